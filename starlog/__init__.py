@@ -1,0 +1,22 @@
+"""starlog: star-tracker centroid extraction with every step kept in MCAP logs.
+
+Conventions used everywhere in starlog (functions, messages, tables):
+
+* pixel coordinates are ``x`` = column and ``y`` = row, 0-based, with (0, 0) at the
+  *centre* of the top-left pixel (the numpy / OpenCV / photutils convention);
+* times are integer nanoseconds named ``log_time``.
+
+Subpackages: :mod:`starlog.io` (the MCAP log layer), :mod:`starlog.sim` (star-image
+simulator), :mod:`starlog.detect` and :mod:`starlog.centroid` (single-frame extraction),
+:mod:`starlog.track` (UKF tracking), :mod:`starlog.compensate` (error decomposition and
+compensation), :mod:`starlog.stages` (the replay stages that join algorithms and logs)
+and :mod:`starlog.cli` (the command line).
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from starlog.errors import StarlogError
+
+__all__ = ["StarlogError", "__version__"]

@@ -1,0 +1,5 @@
+"""Allow ``python -m starlog``."""
+
+from starlog.cli import main
+
+main()

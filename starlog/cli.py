@@ -1,0 +1,264 @@
+"""The ``starlog`` command line: a thin layer over :mod:`starlog.stages`, :mod:`starlog.io` and :mod:`starlog.export`.
+
+Every command has ``--help`` with an example; commands that print results accept ``--json``.
+Errors starlog raises on purpose are printed as one sentence with exit status 1.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import click
+
+from starlog import __version__
+from starlog.errors import StarlogError
+
+__all__ = ["cli", "main"]
+
+F = TypeVar("F", bound=Callable[..., Any])
+CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
+
+
+class _StarlogGroup(click.Group):
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except StarlogError as err:
+            raise click.ClickException(str(err)) from err
+
+
+def _print_json(data: Any) -> None:
+    click.echo(json.dumps(data, indent=2, allow_nan=False))
+
+
+# ---------------------------------------------------------------- shared options
+def output_option(help_text: str = "Output log (.mcap). Written atomically.") -> Callable[[F], F]:
+    return click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+                        help=help_text)
+
+
+def write_options(f: F) -> F:
+    """--force, --compression, --workers, --quiet."""
+    f = click.option("--quiet", "-q", is_flag=True, help="No progress bar.")(f)
+    f = click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
+                     help="Threads for chunk compression and per-frame work.")(f)
+    f = click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd",
+                     show_default=True, help="Chunk compression of the output log.")(f)
+    f = click.option("--force", is_flag=True, help="Overwrite the output if it exists.")(f)
+    return f
+
+
+def json_option(f: F) -> F:
+    return click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")(f)
+
+
+input_log = click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+
+
+@click.group(cls=_StarlogGroup, context_settings=CONTEXT)
+@click.version_option(__version__, prog_name="starlog")
+def cli() -> None:
+    """starlog: star-tracker centroid extraction, with every step kept in MCAP logs.
+
+    A log starts as image frames (simulate, ingest) and each stage writes a new log with its
+    channels added. Open any log in Foxglove; export tables to Parquet.
+
+    Pixel coordinates: x = column, y = row, (0, 0) at the centre of the top-left pixel.
+    Times: integer nanoseconds (log_time).
+    """
+
+
+# ---------------------------------------------------------------- simulate
+def _parse_jitter(values: tuple[str, ...]) -> tuple[Any, ...]:
+    from starlog.sim import Jitter
+
+    out = []
+    for value in values:
+        try:
+            freq, amp = (float(v) for v in value.split(":"))
+        except ValueError:
+            raise click.BadParameter(f"{value!r}: expected FREQ_HZ:AMPLITUDE_PX, e.g. 25:0.05", param_hint="--jitter")
+        out.append(Jitter(frequency_hz=freq, amplitude_px=amp))
+    return tuple(out)
+
+
+@cli.command(context_settings=CONTEXT)
+@output_option()
+@click.option("--preset", type=click.Choice(["paper300", "paper200"]),
+              help="The paper's datasets: paper300 = 300 Hz x 3248 frames, paper200 = 200 Hz x 3027 frames. "
+                   "Other options override it.")
+@click.option("--size", default="256x256", show_default=True, help="Frame size WIDTHxHEIGHT in pixels.")
+@click.option("--stars", "n_stars", type=click.IntRange(0), default=12, show_default=True, help="Number of stars.")
+@click.option("--flux", default="5000:50000", show_default=True,
+              help="Star signal range MIN:MAX in photo-electrons per frame (log-uniform).")
+@click.option("--fps", type=float, help="Frame rate in Hz [default: 300, or the preset's].")
+@click.option("--frames", "n_frames", type=click.IntRange(1), help="Number of frames [default: 300, or the preset's].")
+@click.option("--duration", type=float, help="Duration in seconds (instead of --frames).")
+@click.option("--psf-sigma", type=float, default=1.2, show_default=True, help="Gaussian PSF sigma in pixels.")
+@click.option("--sky", type=float, default=20.0, show_default=True, help="Sky background, e-/pixel/frame.")
+@click.option("--read-noise", type=float, default=3.0, show_default=True, help="Read noise, e- RMS.")
+@click.option("--gain", type=float, default=1.0, show_default=True, help="Gain, e-/DN.")
+@click.option("--bias", type=float, default=100.0, show_default=True, help="Bias offset, DN.")
+@click.option("--adc-bits", type=click.IntRange(1, 16), default=16, show_default=True,
+              help="ADC depth; pixels saturate at 2^bits - 1.")
+@click.option("--hot-pixels", type=click.IntRange(0), default=0, show_default=True, help="Number of hot pixels.")
+@click.option("--cosmic-rays", type=float, default=0.0, show_default=True, help="Mean cosmic-ray hits per frame.")
+@click.option("--jitter", multiple=True, metavar="FREQ:AMP",
+              help="Platform vibration: sinusoid of FREQ Hz and AMP px peak on each axis. Repeatable.")
+@click.option("--drift", default="0,0", show_default=True, help="Platform drift VX,VY in px/s.")
+@click.option("--random-walk", type=float, default=0.0, show_default=True, help="Platform random walk, px/sqrt(s).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
+@click.option("--start-ns", type=click.IntRange(0), default=0, show_default=True, help="log_time of frame 0.")
+@write_options
+def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: str, fps: float | None,
+             n_frames: int | None, duration: float | None, psf_sigma: float, sky: float, read_noise: float,
+             gain: float, bias: float, adc_bits: int, hot_pixels: int, cosmic_rays: float, jitter: tuple[str, ...],
+             drift: str, random_walk: float, seed: int, start_ns: int, force: bool, compression: str,
+             workers: int, quiet: bool) -> None:
+    """Write a simulated star-camera log.
+
+    Stars are pixel-integrated Gaussians on a sky background, with Poisson shot noise, read
+    noise, gain, bias, quantisation and saturation; the platform may jitter, drift and random-walk.
+    Frames go to /camera/image (foxglove.RawImage mono16), true positions to /sim/truth.
+    Same options and seed give identical bytes.
+
+    \b
+    Example:
+      starlog simulate -o sim.mcap --frames 600 --jitter 25:0.05 --seed 7
+      starlog simulate -o paper300.mcap --preset paper300 --size 128x128
+    """
+    from starlog.sim import PRESETS, CameraModel, SimulationConfig
+    from starlog.stages import simulate_log
+
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+        flux_min, flux_max = (float(v) for v in flux.split(":"))
+        drift_x, drift_y = (float(v) for v in drift.split(","))
+    except ValueError as err:
+        raise click.BadParameter(f"{err}; see --help for the formats of --size, --flux and --drift.")
+    params: dict[str, Any] = {"fps": 300.0, "n_frames": 300}
+    if preset:
+        params.update(PRESETS[preset])
+    if fps is not None:
+        params["fps"] = fps
+    if duration is not None and n_frames is not None:
+        raise click.UsageError("give --frames or --duration, not both.")
+    if duration is not None:
+        params["n_frames"] = max(1, int(round(duration * params["fps"])))
+    elif n_frames is not None:
+        params["n_frames"] = n_frames
+    camera = CameraModel(read_noise=read_noise, gain=gain, bias=bias, adc_bits=adc_bits)
+    config = SimulationConfig(width=width, height=height, n_stars=n_stars, flux_min=flux_min, flux_max=flux_max,
+                              psf_sigma=psf_sigma, sky=sky, camera=camera, hot_pixels=hot_pixels,
+                              cosmic_rays_per_frame=cosmic_rays, jitter=_parse_jitter(jitter),
+                              drift_px_per_s=(drift_x, drift_y), random_walk_px_per_sqrt_s=random_walk,
+                              seed=seed, start_time_ns=start_ns, **params)
+    simulate_log(config, output, compression=compression, workers=workers, force=force, show_progress=not quiet)
+    if not quiet:
+        click.echo(f"wrote {output}: {config.n_frames} frames of {width}x{height} at {config.fps:g} Hz, "
+                   f"{n_stars} stars", err=True)
+
+
+# ---------------------------------------------------------------- ingest
+@cli.command(context_settings=CONTEXT)
+@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@output_option()
+@click.option("--fps", type=float, help="Frame rate in Hz; frame n is at START + n/fps.")
+@click.option("--start", "start_ns", type=click.IntRange(0), default=0, show_default=True,
+              help="log_time of the first frame in ns (with --fps), or offset added to parsed times.")
+@click.option("--time-pattern", help="Regular expression with a named group 't' that finds the time in each file "
+                                     "name, e.g. 'img_(?P<t>\\d+)us'.")
+@click.option("--time-unit", type=click.Choice(["s", "ms", "us", "ns"]), default="ns", show_default=True,
+              help="Unit of the time parsed with --time-pattern.")
+@click.option("--skip-bad", is_flag=True, help="Skip unreadable or mismatched files (counted) instead of stopping.")
+@json_option
+@write_options
+def ingest(folder: Path, output: Path, fps: float | None, start_ns: int, time_pattern: str | None, time_unit: str,
+           skip_bad: bool, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
+    """Convert a folder of star images into a log.
+
+    Reads 8/16-bit PNG and TIFF (FITS with `pip install starlog[fits]`) in natural file-name
+    order. Colour images are converted to mono with a warning. Every frame must match the
+    first's size and bit depth.
+
+    \b
+    Example:
+      starlog ingest frames/ -o lab.mcap --fps 300
+      starlog ingest frames/ -o lab.mcap --time-pattern 'img_(?P<t>\\d+)' --time-unit us
+    """
+    from starlog.stages import ingest_folder
+
+    summary = ingest_folder(folder, output, fps=fps, start_ns=start_ns, time_pattern=time_pattern,
+                            time_unit=time_unit, skip_bad=skip_bad, compression=compression, workers=workers,
+                            force=force, show_progress=not quiet)
+    if as_json:
+        _print_json(summary.to_dict())
+    else:
+        click.echo(f"wrote {output}: {summary.frames} frames {summary.width}x{summary.height} {summary.encoding}, "
+                   f"{len(summary.skipped)} skipped")
+        for name, reason in summary.skipped:
+            click.echo(f"  skipped {name}: {reason}")
+
+
+# ---------------------------------------------------------------- info
+@cli.command(context_settings=CONTEXT)
+@input_log
+@json_option
+def info(log: Path, as_json: bool) -> None:
+    """Show a log's channels, time range and the provenance of every stage.
+
+    \b
+    Example:
+      starlog info sim.mcap
+      starlog info sim.mcap --json | jq '.channels[].topic'
+    """
+    from starlog.io.info import describe_log, format_description
+
+    description = describe_log(log)
+    if as_json:
+        _print_json(description)
+    else:
+        click.echo(format_description(description))
+
+
+# ---------------------------------------------------------------- export
+@cli.command(context_settings=CONTEXT)
+@input_log
+@click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder for the Parquet files (created if missing).")
+@click.option("--table", "tables", multiple=True, help="Only this table (repeatable); default: every table the log has.")
+@click.option("--force", is_flag=True, help="Overwrite existing Parquet files.")
+@json_option
+def export(log: Path, output: Path, tables: tuple[str, ...], force: bool, as_json: bool) -> None:
+    """Export a log's channels to Parquet tables (one file per table).
+
+    Tables: frames, truth (simulated logs), centroids, detections, tracks, compensation,
+    decisions — each written when the log has its channels. Columns are documented in
+    schemas/tables.json and the README.
+
+    \b
+    Example:
+      starlog export sim.mcap -o tables/
+      python -c "import pyarrow.parquet as pq; print(pq.read_table('tables/truth.parquet'))"
+    """
+    from starlog.export import export_log
+
+    written = export_log(log, output, tables=tables or None, force=force)
+    if as_json:
+        _print_json({"output": str(output), "tables": written})
+    else:
+        for name, rows in written.items():
+            click.echo(f"{output / (name + '.parquet')}: {rows} rows")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    cli(prog_name="starlog")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,113 @@
+"""The one error hierarchy of starlog.
+
+Every error starlog raises on purpose derives from :class:`StarlogError`; the command line
+turns these into a one-line message and a non-zero exit status, anything else is a bug.
+Messages are full sentences that say what went wrong, where, and how to fix it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = [
+    "StarlogError",
+    "InvalidInputError",
+    "InvalidParameterError",
+    "LogError",
+    "LogNotFoundError",
+    "TruncatedLogError",
+    "CorruptLogError",
+    "ChannelNotFoundError",
+    "MessageDecodeError",
+    "OutputExistsError",
+    "ImageFolderError",
+    "FitError",
+]
+
+
+class StarlogError(Exception):
+    """Base class of every error starlog raises on purpose."""
+
+
+class InvalidInputError(StarlogError, ValueError):
+    """An array, image or table handed to a starlog function cannot be used as given."""
+
+
+class InvalidParameterError(StarlogError, ValueError):
+    """A parameter (keyword argument, command-line option, config entry) is out of range."""
+
+
+class LogError(StarlogError):
+    """A problem with an MCAP log file."""
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        self.path = Path(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
+
+
+class LogNotFoundError(LogError, FileNotFoundError):
+    """The log file does not exist."""
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(path, "no such file.")
+
+
+class TruncatedLogError(LogError):
+    """The log ends early (cut off, or never finished): run ``starlog recover`` on it."""
+
+    def __init__(self, path: str | Path, detail: str) -> None:
+        super().__init__(
+            path,
+            f"the log is truncated or unfinished ({detail}). "
+            f"Rebuild a readable copy with: starlog recover {path} -o RECOVERED.mcap",
+        )
+
+
+class CorruptLogError(LogError):
+    """The log's bytes are damaged (CRC mismatch, invalid record)."""
+
+
+class ChannelNotFoundError(LogError, KeyError):
+    """A channel (topic) asked for is not in the log."""
+
+    def __init__(self, path: str | Path, topic: str, available: list[str]) -> None:
+        self.topic = topic
+        self.available = available
+        listing = ", ".join(sorted(available)) or "none"
+        super().__init__(path, f"no channel {topic!r} in the log (channels: {listing}).")
+
+    def __str__(self) -> str:  # KeyError would otherwise quote the message
+        return f"{self.path}: {self.reason}"
+
+
+class MessageDecodeError(LogError):
+    """A message's bytes do not decode to what its schema says."""
+
+    def __init__(self, path: str | Path, topic: str, log_time: int, detail: str) -> None:
+        self.topic = topic
+        self.log_time = log_time
+        super().__init__(
+            path, f"message on {topic!r} at log_time {log_time} cannot be decoded: {detail}"
+        )
+
+
+class OutputExistsError(StarlogError, FileExistsError):
+    """The output path exists and overwriting was not asked for."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        super().__init__(f"{self.path} exists already; pass --force (force=True) to overwrite it.")
+
+
+class ImageFolderError(StarlogError):
+    """A folder of images cannot be ingested as given."""
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        self.path = Path(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
+
+
+class FitError(StarlogError):
+    """A model fit (centroid fit, filter initialisation, error model) failed."""

@@ -1,0 +1,173 @@
+"""Parquet export: one table per channel family, streamed in row groups (memory flat in log length).
+
+Every table's columns are declared once, in ``schemas/tables.json``, which this module turns
+into Arrow schemas (with each column's description and unit as field metadata) and which the
+README documents. A family is written only when the log has its channels.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.io.reader import ChannelSummary, LogReader
+from starlog.io.schemas import schema_dir
+from starlog.io import topics
+
+__all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "table_columns"]
+
+_ARROW_TYPES: dict[str, pa.DataType] = {
+    "int64": pa.int64(),
+    "int32": pa.int32(),
+    "float64": pa.float64(),
+    "string": pa.string(),
+    "bool": pa.bool_(),
+}
+
+Row = dict[str, Any]
+RowMaker = Callable[[ChannelSummary, int, Any], Iterable[Row]]
+
+
+@cache
+def table_columns() -> dict[str, Any]:
+    """The ``tables`` mapping of ``schemas/tables.json``."""
+    return json.loads((schema_dir() / "tables.json").read_text(encoding="utf-8"))["tables"]
+
+
+def arrow_schema(table: str) -> pa.Schema:
+    """Arrow schema of ``table`` with per-column description/unit metadata."""
+    spec = table_columns()[table]
+    fields = []
+    for name, col in spec["columns"].items():
+        meta = {"description": col["description"]}
+        if "unit" in col:
+            meta["unit"] = col["unit"]
+        fields.append(pa.field(name, _ARROW_TYPES[col["type"]], nullable=False, metadata=meta))
+    return pa.schema(fields, metadata={"description": spec["description"]})
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """A Parquet table: which channels feed it and how a message becomes rows."""
+
+    name: str
+    matches: Callable[[ChannelSummary], bool]
+    rows: RowMaker
+
+
+def _frame_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    yield {"log_time": log_time, **msg}
+
+
+def _truth_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    for star in msg["stars"]:
+        yield {"log_time": log_time, "frame": msg["frame"], **star}
+
+
+#: Tables in export order. Later stages register theirs with :func:`register_table`.
+TABLES: list[TableSpec] = [
+    TableSpec("frames", lambda ch: ch.topic == topics.FRAME_INFO, _frame_rows),
+    TableSpec("truth", lambda ch: ch.topic == topics.TRUTH, _truth_rows),
+]
+
+
+def register_table(spec: TableSpec) -> None:
+    """Add a table family to :data:`TABLES` (used by the stage modules)."""
+    if any(t.name == spec.name for t in TABLES):
+        return
+    TABLES.append(spec)
+
+
+def _write_table(log: LogReader, spec: TableSpec, channels: list[ChannelSummary], path: Path,
+                 row_group_rows: int) -> int:
+    schema = arrow_schema(spec.name)
+    names = schema.names
+    by_topic = {c.topic: c for c in channels}
+    columns: dict[str, list[Any]] = {n: [] for n in names}
+    written = 0
+    tmp = path.with_name(f".{path.name}.partial")
+    with pq.ParquetWriter(tmp, schema, compression="zstd") as writer:
+
+        def flush() -> None:
+            nonlocal written
+            if columns[names[0]]:
+                writer.write_table(pa.table({n: columns[n] for n in names}, schema=schema))
+                written += len(columns[names[0]])
+                for n in names:
+                    columns[n].clear()
+
+        for message in log.messages(list(by_topic)):
+            for row in spec.rows(by_topic[message.topic], message.log_time, message.payload):
+                for n in names:
+                    columns[n].append(row[n])
+            if len(columns[names[0]]) >= row_group_rows:
+                flush()
+        flush()
+    os.replace(tmp, path)
+    return written
+
+
+def export_log(
+    log_path: str | os.PathLike[str],
+    output_dir: str | os.PathLike[str],
+    *,
+    tables: Iterable[str] | None = None,
+    force: bool = False,
+    row_group_rows: int = 65_536,
+) -> dict[str, int]:
+    """Write a Parquet file per table family found in the log; return ``{table: rows}``.
+
+    Parameters
+    ----------
+    log_path : path-like
+        The log to export.
+    output_dir : path-like
+        Folder for ``<table>.parquet`` (created if missing).
+    tables : iterable of str, optional
+        Only these tables (default: every table the log has channels for).
+    force : bool
+        Overwrite existing Parquet files.
+    """
+    _load_stage_tables()
+    known = [t.name for t in TABLES]
+    wanted = list(tables) if tables is not None else known
+    unknown = [t for t in wanted if t not in known]
+    if unknown:
+        raise InvalidParameterError(f"unknown table(s) {unknown}; known tables: {known}.")
+    out = Path(output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    result: dict[str, int] = {}
+    with LogReader(log_path) as log:
+        channels = log.channels()
+        for spec in TABLES:
+            if spec.name not in wanted:
+                continue
+            feeding = [c for c in channels if spec.matches(c)]
+            if not feeding:
+                continue
+            path = out / f"{spec.name}.parquet"
+            if path.exists() and not force:
+                raise OutputExistsError(path)
+            result[spec.name] = _write_table(log, spec, feeding, path, row_group_rows)
+    return result
+
+
+def _load_stage_tables() -> None:
+    """Import the stage modules that register their tables (kept lazy to avoid import cycles)."""
+    import importlib
+
+    for module in ("starlog.stages.centroid", "starlog.stages.track", "starlog.stages.compensate"):
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as err:
+            if err.name != module:
+                raise

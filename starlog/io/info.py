@@ -1,0 +1,60 @@
+"""``starlog info``: what a log holds — channels, time range, provenance."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from starlog.io.reader import LogReader
+
+__all__ = ["describe_log", "format_description"]
+
+
+def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A JSON-ready description of the log at ``path`` (reads only its summary and metadata)."""
+    with LogReader(path) as log:
+        channels = [c.to_dict() for c in log.channels()]
+        start, end = log.time_range()
+        stats = log.summary.statistics
+        return {
+            "path": str(Path(path)),
+            "size_bytes": Path(path).stat().st_size,
+            "message_count": stats.message_count if stats else 0,
+            "chunk_count": len(log.summary.chunk_indexes),
+            "compression": sorted({c.compression or "none" for c in log.summary.chunk_indexes}),
+            "start_log_time": start,
+            "end_log_time": end,
+            "duration_s": (end - start) * 1e-9,
+            "channels": channels,
+            "provenance": [p.to_dict() for p in log.provenance()],
+        }
+
+
+def format_description(info: dict[str, Any]) -> str:
+    """Human-readable text of :func:`describe_log`'s result."""
+    lines = [
+        f"log        {info['path']}  ({info['size_bytes'] / 2**20:.1f} MiB, {info['chunk_count']} chunks, "
+        f"{'/'.join(info['compression']) or 'no data'})",
+        f"time       {info['start_log_time']} .. {info['end_log_time']} ns  ({info['duration_s']:.3f} s)",
+        f"messages   {info['message_count']}",
+        "",
+        f"{'topic':<40} {'schema':<28} {'encoding':<9} {'count':>8} {'rate Hz':>9}",
+    ]
+    for ch in info["channels"]:
+        lines.append(
+            f"{ch['topic']:<40} {ch['schema']:<28} {ch['message_encoding']:<9} {ch['message_count']:>8} "
+            f"{ch['rate_hz']:>9.2f}"
+        )
+    lines.append("")
+    lines.append("provenance")
+    if not info["provenance"]:
+        lines.append("  (none recorded)")
+    for i, p in enumerate(info["provenance"], 1):
+        params = ", ".join(f"{k}={v}" for k, v in sorted(p["parameters"].items()) if not isinstance(v, (dict, list)))
+        lines.append(f"  {i}. {p['stage']} (starlog {p['version']}) -> {', '.join(p['channels'])}")
+        if p["input_digest"]:
+            lines.append(f"     input {p['input_digest']}")
+        if params:
+            lines.append(f"     {params}")
+    return "\n".join(lines)

@@ -1,0 +1,52 @@
+"""Channel names (topics) of a starlog log. Stable: scripts outside starlog rely on them.
+
+========================================  ===========================  ======================
+topic                                     schema                       written by
+========================================  ===========================  ======================
+``/camera/image``                         foxglove.RawImage            simulate, ingest
+``/camera/frame``                         starlog.FrameInfo            simulate, ingest
+``/sim/truth``                            starlog.SimTruth             simulate
+``/stars/detections``                     starlog.Detections           centroid
+``/stars/annotations``                    foxglove.ImageAnnotations    centroid
+``/stars/centroids/<METHOD>``             starlog.Centroids            centroid
+``/track/<METHOD>/<MODEL>``               starlog.Tracks               track
+``/compensated/<METHOD>/<MODEL>/<R>Hz``   starlog.CompensatedSample    compensate
+``/compensation/decisions``               starlog.CompensationRecord   compensate
+========================================  ===========================  ======================
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "IMAGE",
+    "FRAME_INFO",
+    "TRUTH",
+    "DETECTIONS",
+    "ANNOTATIONS",
+    "COMPENSATION_DECISIONS",
+    "centroid_topic",
+    "track_topic",
+    "compensated_topic",
+]
+
+IMAGE = "/camera/image"
+FRAME_INFO = "/camera/frame"
+TRUTH = "/sim/truth"
+DETECTIONS = "/stars/detections"
+ANNOTATIONS = "/stars/annotations"
+COMPENSATION_DECISIONS = "/compensation/decisions"
+
+
+def centroid_topic(method: str) -> str:
+    """``/stars/centroids/<METHOD>``."""
+    return f"/stars/centroids/{method}"
+
+
+def track_topic(method: str, model: str) -> str:
+    """``/track/<METHOD>/<MODEL>``."""
+    return f"/track/{method}/{model}"
+
+
+def compensated_topic(method: str, model: str, rate_hz: float, protocol: str) -> str:
+    """``/compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>``."""
+    return f"/compensated/{method}/{model}/{rate_hz:g}Hz/{protocol}"

@@ -1,0 +1,286 @@
+"""The star-image simulator: a static star field seen by a camera on a perturbed platform.
+
+Physics per frame ``n`` at time ``t = n / fps``:
+
+1. every star sits at its fixed focal-plane position plus the platform offset
+   ``(dx(t), dy(t))`` = jitter (sum of sinusoids) + drift (constant rate) + random walk;
+2. its signal is a circular Gaussian PSF integrated over each pixel (erf), over a uniform sky;
+3. hot pixels (fixed positions, constant extra charge) and cosmic-ray hits (random, sharp, 1–3
+   pixel tracks) are added;
+4. the camera (:class:`~starlog.sim.camera.CameraModel`) applies Poisson shot noise, read
+   noise, gain, bias, quantisation and ADC saturation.
+
+Every random draw comes from generators seeded by ``(seed, purpose, frame)``, so a frame does
+not depend on the frames before it (frames can be rendered in parallel) and the same
+configuration always gives the same frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from starlog.errors import InvalidParameterError
+from starlog.sim.camera import CameraModel
+from starlog.sim.psf import render_stars
+
+__all__ = ["PRESETS", "SimulationConfig", "SimulatedFrame", "StarField", "Simulator", "Jitter"]
+
+_SEED_FIELD, _SEED_FRAME, _SEED_WALK, _SEED_JITTER, _SEED_HOT = 1, 2, 3, 4, 5
+
+
+@dataclass(frozen=True)
+class Jitter:
+    """One sinusoidal platform vibration: ``amplitude_px * sin(2π f t + phase)`` on each axis.
+
+    The x and y phases are drawn from the seed; ``amplitude_px`` is the peak amplitude per axis.
+    """
+
+    frequency_hz: float
+    amplitude_px: float
+
+    def __post_init__(self) -> None:
+        if not (self.frequency_hz > 0 and np.isfinite(self.frequency_hz)):
+            raise InvalidParameterError(f"jitter frequency must be > 0 Hz, got {self.frequency_hz!r}.")
+        if not (self.amplitude_px >= 0 and np.isfinite(self.amplitude_px)):
+            raise InvalidParameterError(f"jitter amplitude must be >= 0 px, got {self.amplitude_px!r}.")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimulationConfig:
+    """Everything that defines a simulated log. Same config → identical frames and bytes.
+
+    Attributes
+    ----------
+    width, height : int
+        Frame size in pixels.
+    n_stars : int
+        Number of stars, placed uniformly at least ``margin`` px from the border.
+    flux_min, flux_max : float
+        Star signal range in photo-electrons per frame (log-uniform).
+    fps : float
+        Frame rate in Hz.
+    n_frames : int
+        Number of frames.
+    start_time_ns : int
+        ``log_time`` of frame 0; frame ``n`` is at ``start + round(n * 1e9 / fps)``.
+    psf_sigma : float
+        Gaussian PSF standard deviation in pixels.
+    sky : float
+        Sky background, photo-electrons per pixel per frame.
+    camera : CameraModel
+        Read noise, gain, bias, ADC bits, full well.
+    hot_pixels : int
+        Number of hot pixels (fixed positions) and ``hot_pixel_charge`` their extra electrons.
+    cosmic_rays_per_frame : float
+        Mean number of cosmic-ray hits per frame (Poisson), each depositing
+        1,000–20,000 e⁻ along a 1–3 pixel track.
+    jitter : tuple of Jitter
+        Platform vibration components.
+    drift_px_per_s : (float, float)
+        Constant platform drift (x, y).
+    random_walk_px_per_sqrt_s : float
+        Platform random walk: the offset's standard deviation grows as this × sqrt(t).
+    margin : float
+        Minimum distance of a star from the border, in pixels.
+    seed : int
+        Seed of every random draw.
+    """
+
+    width: int = 256
+    height: int = 256
+    n_stars: int = 12
+    flux_min: float = 5_000.0
+    flux_max: float = 50_000.0
+    fps: float = 300.0
+    n_frames: int = 300
+    start_time_ns: int = 0
+    psf_sigma: float = 1.2
+    sky: float = 20.0
+    camera: CameraModel = field(default_factory=CameraModel)
+    hot_pixels: int = 0
+    hot_pixel_charge: float = 3_000.0
+    cosmic_rays_per_frame: float = 0.0
+    jitter: tuple[Jitter, ...] = ()
+    drift_px_per_s: tuple[float, float] = (0.0, 0.0)
+    random_walk_px_per_sqrt_s: float = 0.0
+    margin: float = 10.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, message: str) -> None:
+            if not ok:
+                raise InvalidParameterError(message)
+
+        need(8 <= self.width <= 16384 and 8 <= self.height <= 16384,
+             f"frame size must be within 8..16384 px, got {self.width}x{self.height}.")
+        need(0 <= self.n_stars <= 100_000, f"n_stars must be within 0..100000, got {self.n_stars}.")
+        need(0 < self.flux_min <= self.flux_max, f"need 0 < flux_min <= flux_max, got {self.flux_min}, {self.flux_max}.")
+        need(self.fps > 0 and np.isfinite(self.fps), f"fps must be > 0, got {self.fps}.")
+        need(self.n_frames >= 1, f"n_frames must be >= 1, got {self.n_frames}.")
+        need(self.start_time_ns >= 0, f"start_time_ns must be >= 0, got {self.start_time_ns}.")
+        need(0.2 <= self.psf_sigma <= 50, f"psf_sigma must be within 0.2..50 px, got {self.psf_sigma}.")
+        need(self.sky >= 0, f"sky must be >= 0 e-/px, got {self.sky}.")
+        need(self.hot_pixels >= 0, f"hot_pixels must be >= 0, got {self.hot_pixels}.")
+        need(self.cosmic_rays_per_frame >= 0, f"cosmic_rays_per_frame must be >= 0, got {self.cosmic_rays_per_frame}.")
+        need(self.random_walk_px_per_sqrt_s >= 0, "random_walk_px_per_sqrt_s must be >= 0.")
+        need(2 * self.margin < min(self.width, self.height),
+             f"margin {self.margin} px leaves no room for stars in a {self.width}x{self.height} frame.")
+
+    @property
+    def duration_s(self) -> float:
+        """Time spanned by the frames, seconds."""
+        return self.n_frames / self.fps
+
+    def frame_time_ns(self, frame: int | npt.NDArray[np.int64]) -> Any:
+        """``log_time`` of frame(s) ``frame`` (exposure time, integer ns)."""
+        return self.start_time_ns + np.rint(np.asarray(frame, dtype=np.float64) * 1e9 / self.fps).astype(np.int64)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready parameters (recorded as the simulate stage's provenance)."""
+        d = asdict(self)
+        d["jitter"] = [asdict(j) for j in self.jitter]
+        d["drift_px_per_s"] = list(self.drift_px_per_s)
+        return d
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SimulationConfig:
+        """Inverse of :meth:`to_dict`."""
+        d = dict(data)
+        d["camera"] = CameraModel(**d.get("camera", {}))
+        d["jitter"] = tuple(Jitter(**j) for j in d.get("jitter", ()))
+        d["drift_px_per_s"] = tuple(d.get("drift_px_per_s", (0.0, 0.0)))
+        return cls(**d)
+
+
+#: The paper's two "laboratory" datasets (its §3.1): static star field, small platform perturbations.
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper300": {"fps": 300.0, "n_frames": 3248},
+    "paper200": {"fps": 200.0, "n_frames": 3027},
+}
+
+
+@dataclass(frozen=True)
+class StarField:
+    """Fixed star positions (px) and fluxes (e⁻), one entry per star id."""
+
+    x: npt.NDArray[np.float64]
+    y: npt.NDArray[np.float64]
+    flux: npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SimulatedFrame:
+    """One rendered frame with its truth.
+
+    ``x``, ``y`` are the instantaneous true positions (fixed position + platform offset).
+    """
+
+    index: int
+    log_time: int
+    image: npt.NDArray[np.uint16]
+    x: npt.NDArray[np.float64]
+    y: npt.NDArray[np.float64]
+    flux: npt.NDArray[np.float64]
+    platform_dx: float
+    platform_dy: float
+
+
+class Simulator:
+    """Render the frames of a :class:`SimulationConfig`.
+
+    Examples
+    --------
+    >>> sim = Simulator(SimulationConfig(n_frames=2, seed=1))
+    >>> [f.image.shape for f in sim.frames()]
+    [(256, 256), (256, 256)]
+    """
+
+    def __init__(self, config: SimulationConfig) -> None:
+        self.config = config
+        rng = np.random.default_rng([config.seed, _SEED_FIELD])
+        c = config
+        x = rng.uniform(c.margin, c.width - 1 - c.margin, c.n_stars)
+        y = rng.uniform(c.margin, c.height - 1 - c.margin, c.n_stars)
+        flux = np.exp(rng.uniform(np.log(c.flux_min), np.log(c.flux_max), c.n_stars))
+        self.field = StarField(x=x, y=y, flux=flux)
+        jrng = np.random.default_rng([config.seed, _SEED_JITTER])
+        self._jitter_phase = jrng.uniform(0, 2 * np.pi, (len(c.jitter), 2))
+        hrng = np.random.default_rng([config.seed, _SEED_HOT])
+        self._hot_rows = hrng.integers(0, c.height, c.hot_pixels)
+        self._hot_cols = hrng.integers(0, c.width, c.hot_pixels)
+        self._walk = self._random_walk()
+
+    def _random_walk(self) -> npt.NDArray[np.float64]:
+        c = self.config
+        if c.random_walk_px_per_sqrt_s == 0:
+            return np.zeros((c.n_frames, 2))
+        rng = np.random.default_rng([c.seed, _SEED_WALK])
+        steps = rng.normal(0.0, c.random_walk_px_per_sqrt_s * np.sqrt(1.0 / c.fps), (c.n_frames, 2))
+        steps[0] = 0.0
+        return np.cumsum(steps, axis=0)
+
+    def platform_offset(self, frame: int) -> tuple[float, float]:
+        """Platform offset ``(dx, dy)`` in px at frame ``frame``."""
+        c = self.config
+        t = frame / c.fps
+        dx = c.drift_px_per_s[0] * t + self._walk[frame, 0]
+        dy = c.drift_px_per_s[1] * t + self._walk[frame, 1]
+        for j, (px, py) in zip(c.jitter, self._jitter_phase):
+            w = 2 * np.pi * j.frequency_hz * t
+            dx += j.amplitude_px * np.sin(w + px)
+            dy += j.amplitude_px * np.sin(w + py)
+        return float(dx), float(dy)
+
+    def expected_electrons(self, frame: int) -> tuple[npt.NDArray[np.float64], float, float]:
+        """Noise-free expected signal (e⁻/px: sky + stars + hot pixels) and the platform offset."""
+        c = self.config
+        dx, dy = self.platform_offset(frame)
+        image = np.full((c.height, c.width), float(c.sky))
+        render_stars(image.shape, self.field.x + dx, self.field.y + dy, self.field.flux, c.psf_sigma, out=image)
+        if c.hot_pixels:
+            image[self._hot_rows, self._hot_cols] += c.hot_pixel_charge
+        return image, dx, dy
+
+    def _add_cosmic_rays(self, image: npt.NDArray[np.float64], rng: np.random.Generator) -> None:
+        c = self.config
+        for _ in range(rng.poisson(c.cosmic_rays_per_frame)):
+            row, col = int(rng.integers(0, c.height)), int(rng.integers(0, c.width))
+            length = int(rng.integers(1, 4))
+            dr, dc = [(0, 1), (1, 0), (1, 1)][int(rng.integers(0, 3))]
+            charge = rng.uniform(1_000.0, 20_000.0)
+            for k in range(length):
+                r, cc = row + k * dr, col + k * dc
+                if r < c.height and cc < c.width:
+                    image[r, cc] += charge * (1.0 if k == 0 else rng.uniform(0.3, 1.0))
+
+    def render(self, frame: int) -> SimulatedFrame:
+        """Render frame ``frame`` (independent of the other frames)."""
+        c = self.config
+        if not 0 <= frame < c.n_frames:
+            raise InvalidParameterError(f"frame {frame} is outside 0..{c.n_frames - 1}.")
+        expected, dx, dy = self.expected_electrons(frame)
+        rng = np.random.default_rng([c.seed, _SEED_FRAME, frame])
+        if c.cosmic_rays_per_frame:
+            self._add_cosmic_rays(expected, rng)
+        image = c.camera.expose(expected, rng)
+        return SimulatedFrame(
+            index=frame,
+            log_time=int(c.frame_time_ns(frame)),
+            image=image,
+            x=self.field.x + dx,
+            y=self.field.y + dy,
+            flux=self.field.flux.copy(),
+            platform_dx=dx,
+            platform_dy=dy,
+        )
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[SimulatedFrame]:
+        """Render frames ``start..stop-1`` one at a time."""
+        stop = self.config.n_frames if stop is None else stop
+        for n in range(start, stop):
+            yield self.render(n)

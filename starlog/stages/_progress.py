@@ -1,0 +1,21 @@
+"""Progress bars for long stages (tqdm on stderr; silent when disabled)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from typing import TypeVar
+
+from tqdm import tqdm
+
+T = TypeVar("T")
+
+__all__ = ["progress"]
+
+
+def progress(items: Iterable[T], *, total: int | None, description: str, enabled: bool) -> Iterator[T]:
+    """Wrap ``items`` in a progress bar when ``enabled``."""
+    if not enabled:
+        yield from items
+        return
+    with tqdm(items, total=total, desc=description, unit="frame", dynamic_ncols=True, leave=False) as bar:
+        yield from bar

@@ -1,0 +1,59 @@
+"""What every replay stage shares: open the input, write a new log that extends it, record provenance."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+from starlog import __version__
+from starlog.io import LogReader, LogWriter, Provenance, file_digest
+from starlog.io.provenance import PROVENANCE_METADATA_NAME
+from starlog.io.schemas import MessageType
+
+__all__ = ["StageOutput", "extend_log"]
+
+
+@dataclass
+class StageOutput:
+    """The writer of a stage's output, and the channels the stage has added to it."""
+
+    writer: LogWriter
+    channels: list[str] = field(default_factory=list)
+
+    def add_channel(self, topic: str, message_type: MessageType) -> int:
+        """Register a new channel and remember it for the provenance record."""
+        channel_id = self.writer.add_channel(topic, message_type)
+        self.channels.append(topic)
+        return channel_id
+
+
+@contextmanager
+def extend_log(
+    input_path: str | os.PathLike[str],
+    output_path: str | os.PathLike[str],
+    *,
+    stage: str,
+    parameters: dict[str, Any],
+    force: bool = False,
+    compression: str = "zstd",
+    workers: int = 1,
+) -> Iterator[tuple[LogReader, StageOutput]]:
+    """Open ``input_path`` for reading and a new log at ``output_path`` that starts as its copy.
+
+    The input's data section is copied byte for byte (no re-compression); the stage adds its
+    channels; on success its provenance (name, version, parameters, the input's SHA-256 and
+    the channels it added) is recorded and the output renamed into place. On any error the
+    output is discarded and the input is untouched.
+    """
+    digest = file_digest(input_path)
+    with LogReader(input_path) as reader:
+        with LogWriter(output_path, base=input_path, force=force, compression=compression, workers=workers) as writer:
+            out = StageOutput(writer)
+            yield reader, out
+            record = Provenance(stage=stage, version=__version__, parameters=parameters, input_digest=digest,
+                                channels=out.channels)
+            writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
+
