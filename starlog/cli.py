@@ -255,6 +255,41 @@ def export(log: Path, output: Path, tables: tuple[str, ...], force: bool, as_jso
             click.echo(f"{output / (name + '.parquet')}: {rows} rows")
 
 
+# ---------------------------------------------------------------- recover
+@cli.command(context_settings=CONTEXT)
+@input_log
+@output_option("Output log (.mcap), complete and fully indexed.")
+@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+@json_option
+def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
+    """Rebuild a readable, indexed log from a truncated, unfinished or damaged one.
+
+    Keeps every complete message (chunks whose bytes are whole and whose CRC checks) and the
+    provenance records, and reports what was lost: damaged or cut-off chunks with their time
+    range and, where the file still says, the channels and message counts they held.
+
+    \b
+    Example:
+      starlog recover crashed.mcap -o recovered.mcap
+      starlog recover crashed.mcap -o recovered.mcap --json
+    """
+    from starlog.io.recover import recover_log
+
+    report = recover_log(log, output, force=force)
+    if as_json:
+        _print_json(report.to_dict())
+        return
+    click.echo(f"wrote {output}: {sum(report.kept_by_topic.values())} messages kept"
+               f"{'' if report.had_footer else f', the last {report.tail_bytes_lost} bytes were unreadable'}")
+    for topic, count in sorted(report.kept_by_topic.items()):
+        lo, hi = report.kept_time_range[topic]
+        click.echo(f"  kept {topic}: {count} messages, log_time {lo}..{hi}")
+    for chunk in report.lost_chunks:
+        what = ", ".join(f"{t}: {n}" for t, n in chunk.messages_by_topic.items()) or "channels unknown"
+        click.echo(f"  lost chunk at offset {chunk.offset} (log_time {chunk.message_start_time}.."
+                   f"{chunk.message_end_time}; {what}): {chunk.reason}")
+
+
 def main() -> None:
     """Console-script entry point."""
     cli(prog_name="starlog")

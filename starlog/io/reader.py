@@ -212,10 +212,15 @@ class LogReader:
         for topic in wanted:
             if topic not in self.topics:
                 raise ChannelNotFoundError(self.path, topic, self.topics)
+        import zstandard
+
         try:
             yield from self._reader.iter_messages(topics=wanted, start_time=start, end_time=end)
-        except ValueError as err:  # mcap raises ValueError for CRC mismatches
-            raise CorruptLogError(self.path, f"damaged chunk: {err}") from err
+        except (ValueError, zstandard.ZstdError, RuntimeError) as err:  # CRC mismatch; zstd / lz4 damage
+            raise CorruptLogError(
+                self.path, f"a damaged chunk cannot be read ({type(err).__name__}: {err}); "
+                f"starlog recover {self.path} -o RECOVERED.mcap keeps every intact chunk."
+            ) from err
         except (McapError, EOFError) as err:
             raise CorruptLogError(self.path, f"unreadable record: {err}") from err
 
