@@ -255,6 +255,157 @@ def export(log: Path, output: Path, tables: tuple[str, ...], force: bool, as_jso
             click.echo(f"{output / (name + '.parquet')}: {rows} rows")
 
 
+# ---------------------------------------------------------------- centroid
+def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
+    """``KEY=VALUE`` options → dict (values parsed as JSON when they can be, else strings)."""
+    out: dict[str, Any] = {}
+    for item in values:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise click.BadParameter(f"{item!r}: expected KEY=VALUE", param_hint=option)
+        try:
+            out[key.strip()] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key.strip()] = raw
+    return out
+
+
+@cli.command(context_settings=CONTEXT)
+@input_log
+@output_option()
+@click.option("--method", "methods", default="all", show_default=True,
+              help="Sub-pixel methods, comma-separated: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, or all.")
+@click.option("--gain", type=float, help="Camera gain e-/DN [default: from the simulator's provenance, else 1].")
+@click.option("--read-noise", type=float, help="Read noise e- [default: from the simulator's provenance, else estimated].")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Option of starlog.centroid.extract_stars, e.g. --set threshold=5. Repeatable.")
+@json_option
+@write_options
+def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noise: float | None,
+             settings: tuple[str, ...], as_json: bool, force: bool, compression: str, workers: int,
+             quiet: bool) -> None:
+    """Detect stars and measure sub-pixel centroids in every frame.
+
+    Adds /stars/detections, /stars/centroids/<METHOD> per method and /stars/annotations
+    (circles over the frames in Foxglove) to a copy of the log.
+
+    \b
+    Example:
+      starlog centroid sim.mcap -o cen.mcap --method GAUSSFIT,MOMENT
+      starlog centroid lab.mcap -o cen.mcap --method all --gain 2.1 --workers 2
+    """
+    from starlog.stages.centroid import centroid_log
+
+    summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise,
+                           options=_key_values(settings, "--set"), workers=workers, force=force,
+                           compression=compression, show_progress=not quiet)
+    if as_json:
+        _print_json(summary.to_dict())
+    else:
+        d = summary.to_dict()
+        click.echo(f"wrote {output}: {d['frames']} frames, {d['detections_per_frame']:.1f} stars/frame")
+        for method, count in d["centroids"].items():
+            click.echo(f"  {method:<15} {count:>8} centroids, {d['fit_failed'][method]} fit failures")
+
+
+# ---------------------------------------------------------------- track
+@cli.command(context_settings=CONTEXT)
+@input_log
+@output_option()
+@click.option("--centroids", "method", required=True, help="Centroid method whose channel is tracked, e.g. GAUSSFIT.")
+@click.option("--model", "models", default="all", show_default=True,
+              help="Motion models, comma-separated: STATIC, RANDOM_WALK, BROWNIAN_MOTION, POLYNOMIAL_TREND, "
+                   "CONSTANT_VELOCITY, or all.")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Tracker option (gate_probability, association_radius, confirm_hits, max_missed, max_gated, "
+                   "sigma_floor). Repeatable.")
+@click.option("--motion", "motion", multiple=True, metavar="KEY=VALUE",
+              help="Process noise (q_floor, q_position, q_velocity, tau, q_acceleration, q_jerk). Repeatable.")
+@json_option
+@write_options
+def track(log: Path, output: Path, method: str, models: str, settings: tuple[str, ...], motion: tuple[str, ...],
+          as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
+    """Track every star with an Unscented Kalman Filter under each motion model.
+
+    Adds /track/<METHOD>/<MODEL> per model: filtered position, covariance, innovation, NIS,
+    gating and track id of every star in every frame; the brightest star's track is marked.
+
+    \b
+    Example:
+      starlog track cen.mcap -o trk.mcap --centroids GAUSSFIT --model all
+      starlog track cen.mcap -o trk.mcap --centroids NONE --model STATIC --set sigma_floor=0.05
+    """
+    from starlog.stages.track import track_log
+
+    summary = track_log(log, output, method=method, models=models, tracker=_key_values(settings, "--set"),
+                        motion=_key_values(motion, "--motion"), force=force, compression=compression,
+                        show_progress=not quiet)
+    if as_json:
+        _print_json(summary.to_dict())
+    else:
+        d = summary.to_dict()
+        click.echo(f"wrote {output}: {d['frames']} frames of {d['method']} centroids")
+        click.echo(f"  {'model':<18} {'tracks':>7} {'confirmed':>9} {'gated':>6} {'mean NIS':>9} {'brightest':>9}")
+        for model, m in d["models"].items():
+            click.echo(f"  {model:<18} {m['tracks']:>7} {m['confirmed_tracks']:>9} {m['gated_measurements']:>6} "
+                       f"{m['mean_nis']:>9.2f} {m['brightest_track']:>9}")
+
+
+# ---------------------------------------------------------------- compensate
+def format_records(records: list[dict[str, Any]]) -> str:
+    """Readable table of compensation decision records."""
+    lines = [f"{'method':<9} {'model':<17} {'Hz':>5} {'protocol':<9} {'reference':<13} {'RMSE before':>11} "
+             f"{'after':>8} {'gain':>6}  passes (x = rolled back)"]
+    for r in records:
+        for k, fig in enumerate(r["figures"]):
+            passes = " > ".join(p["strategy"] + ("" if p["kept"] else " x") for p in r["compensation"]["passes"])
+            head = (f"{r['method']:<9} {r['model']:<17} {r['rate_hz']:>5g} {r['protocol']:<9}" if k == 0
+                    else " " * 43)
+            lines.append(f"{head} {fig['reference']:<13} {fig['rmse_before']:>11.4f} {fig['rmse_after']:>8.4f} "
+                         f"{100 * fig['effective']:>5.1f}%  {passes if k == 0 else ''}")
+    return "\n".join(lines)
+
+
+@cli.command(context_settings=CONTEXT)
+@input_log
+@output_option()
+@click.option("--track", "track_topic", help="Track channel, e.g. /track/GAUSSFIT/STATIC [default: the only one].")
+@click.option("--rate", "rates", required=True, help="Down-sampling rates in Hz, comma-separated, e.g. 10,50.")
+@click.option("--protocol", "protocols", default="all", show_default=True,
+              help="paper, truth (simulated logs), leakfree, comma-separated, or all.")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Option of starlog.compensate.evaluate (accuracy_source, calibration_fraction, top_k, "
+                   "rollback_threshold, leakfree_reference). Repeatable.")
+@json_option
+@write_options
+def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str,
+               settings: tuple[str, ...], as_json: bool, force: bool, compression: str, workers: int,
+               quiet: bool) -> None:
+    """Decompose the brightest star's error, select strategies and compensate (paper 2.2-2.5).
+
+    For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
+    strategies with rollback below 1 %, under each protocol. Adds the series before/after and
+    one decision record per (rate, protocol) on /compensation/decisions.
+
+    \b
+    Example:
+      starlog compensate trk.mcap -o comp.mcap --track /track/GAUSSFIT/STATIC --rate 10,50
+      starlog compensate trk.mcap -o comp.mcap --rate 50 --protocol paper --json
+    """
+    from starlog.stages.compensate import compensate_log
+
+    try:
+        rate_values = [float(r) for r in rates.split(",") if r.strip()]
+    except ValueError:
+        raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
+    summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
+                             options=_key_values(settings, "--set"), force=force, compression=compression)
+    if as_json:
+        _print_json(summary.to_dict())
+    else:
+        click.echo(format_records(summary.records))
+
+
 # ---------------------------------------------------------------- recover
 @cli.command(context_settings=CONTEXT)
 @input_log

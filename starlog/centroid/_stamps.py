@@ -1,0 +1,194 @@
+"""Private helpers: star windows (stamps), the pixel-integrated Gaussian model, smoothing.
+
+A stamp is the (2h+1) x (2h+1) window centred on the integer pixel nearest the coarse
+position; offsets ``u = -h..h`` are relative to that centre pixel. Pixels outside the frame,
+non-finite or saturated are invalid (``valid`` False, ``data`` 0) and left out everywhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.special import erf
+
+__all__ = [
+    "Stamps",
+    "gather_stamps",
+    "profile_1d",
+    "model",
+    "linear_flux",
+    "fisher_sigma",
+    "smooth",
+    "optimal_smoothing",
+]
+
+_SQ2 = np.sqrt(2.0)
+_ISQ2PI = 1.0 / np.sqrt(2.0 * np.pi)
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass
+class Stamps:
+    """Windows of N stars (all arrays have N rows)."""
+
+    data: F64  # (N, W, W) background-subtracted DN, 0 where invalid
+    valid: npt.NDArray[np.bool_]  # (N, W, W)
+    xc: npt.NDArray[np.intp]  # window centre column
+    yc: npt.NDArray[np.intp]  # window centre row
+    h: int
+    background: F64  # (N,) DN
+    noise: F64  # (N,) DN, background 1-sigma per pixel
+    gain: float
+    saturated: npt.NDArray[np.bool_]
+    cut: npt.NDArray[np.bool_]  # window cut by the frame edge
+    masked: npt.NDArray[np.bool_]  # non-finite pixels in the window
+
+    @property
+    def u(self) -> F64:
+        return np.arange(-self.h, self.h + 1, dtype=np.float64)
+
+
+def gather_stamps(
+    image: npt.NDArray[np.generic],
+    x: F64,
+    y: F64,
+    h: int,
+    background: F64,
+    noise: F64,
+    gain: float,
+    saturation: float,
+) -> Stamps:
+    """Cut the windows around (x, y) out of ``image`` (never modified)."""
+    rows, cols = image.shape
+    xc = np.rint(x).astype(np.intp)
+    yc = np.rint(y).astype(np.intp)
+    d = np.arange(-h, h + 1)
+    rr = yc[:, None] + d
+    cc = xc[:, None] + d
+    inr = (rr >= 0) & (rr < rows)
+    inc = (cc >= 0) & (cc < cols)
+    raw = image[np.clip(rr, 0, rows - 1)[:, :, None], np.clip(cc, 0, cols - 1)[:, None, :]].astype(np.float64)
+    inside = inr[:, :, None] & inc[:, None, :]
+    fin = np.isfinite(raw)
+    sat = raw >= saturation
+    valid = inside & fin & ~sat
+    data = np.where(valid, raw - background[:, None, None], 0.0)
+    return Stamps(
+        data=data,
+        valid=valid,
+        xc=xc,
+        yc=yc,
+        h=h,
+        background=np.asarray(background, np.float64),
+        noise=np.asarray(noise, np.float64),
+        gain=float(gain),
+        saturated=(sat & inside).any(axis=(1, 2)),
+        cut=~inside.all(axis=(1, 2)),
+        masked=(~fin & inside).any(axis=(1, 2)),
+    )
+
+
+def profile_1d(u: F64, c: F64, s: F64 | float, deriv: bool = False) -> tuple[F64, F64 | None, F64 | None]:
+    """Pixel-integrated unit Gaussian along one axis, (N, W), and its c and s derivatives.
+
+    ``u`` must be consecutive integers (pixel offsets); the W + 1 pixel edges are evaluated once.
+    """
+    sc = np.broadcast_to(np.asarray(s, np.float64), c.shape)[:, None]
+    edges = np.append(u - 0.5, u[-1] + 0.5)
+    t = (edges[None, :] - c[:, None]) / sc  # (N, W + 1)
+    cdf = erf(t * (1.0 / _SQ2))
+    e = 0.5 * (cdf[:, 1:] - cdf[:, :-1])
+    if not deriv:
+        return e, None, None
+    pdf = _ISQ2PI * np.exp(-0.5 * t * t)
+    de_dc = -(pdf[:, 1:] - pdf[:, :-1]) / sc
+    tp = t * pdf
+    de_ds = -(tp[:, 1:] - tp[:, :-1]) / sc
+    return e, de_dc, de_ds
+
+
+def model(st: Stamps, cx: F64, cy: F64, s: F64 | float) -> F64:
+    """Unit-flux pixel-integrated Gaussian at window offsets (cx, cy), (N, W, W)."""
+    ex, _, _ = profile_1d(st.u, cx, s)
+    ey, _, _ = profile_1d(st.u, cy, s)
+    return ey[:, :, None] * ex[:, None, :]
+
+
+def variance(st: Stamps, signal: F64) -> F64:
+    """Per-pixel variance, DN^2: background noise^2 + star shot noise (signal in DN / gain)."""
+    return st.noise[:, None, None] ** 2 + np.clip(signal, 0.0, None) / st.gain
+
+
+def linear_flux(st: Stamps, m: F64, flux0: F64 | None = None, iterations: int = 2) -> tuple[F64, F64]:
+    """Weighted least-squares amplitude of the unit model ``m`` (no background term).
+
+    Returns the flux (DN) and its 1-sigma error (DN).
+    """
+    f = np.maximum(np.asarray(flux0, np.float64), 0.0) if flux0 is not None else np.zeros(m.shape[0])
+    if flux0 is None:
+        iterations += 1
+    den = np.ones(m.shape[0])
+    for _ in range(iterations):
+        w = st.valid / variance(st, f[:, None, None] * m)
+        num = (w * m * st.data).sum(axis=(1, 2))
+        den = (w * m * m).sum(axis=(1, 2))
+        f = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    err = 1.0 / np.sqrt(np.where(den > 0, den, np.inf))
+    return f, np.where(np.isfinite(err), err, np.inf)
+
+
+def fisher_sigma(st: Stamps, cx: F64, cy: F64, flux: F64, s: F64 | float) -> F64:
+    """Per-axis Cramer-Rao sigma (px) of a star with known flux, PSF and background."""
+    ex, dex, _ = profile_1d(st.u, cx, s, deriv=True)
+    ey, dey, _ = profile_1d(st.u, cy, s, deriv=True)
+    f = np.maximum(flux, 1e-12)[:, None, None]
+    m = ey[:, :, None] * ex[:, None, :]
+    w = st.valid / variance(st, f * m)
+    jx = f * ey[:, :, None] * dex[:, None, :]
+    jy = f * dey[:, :, None] * ex[:, None, :]
+    ixx = (w * jx * jx).sum(axis=(1, 2))
+    iyy = (w * jy * jy).sum(axis=(1, 2))
+    ixy = (w * jx * jy).sum(axis=(1, 2))
+    det = ixx * iyy - ixy * ixy
+    with np.errstate(all="ignore"):
+        var = 0.5 * (ixx + iyy) / det
+    return np.sqrt(np.where(np.isfinite(var) & (var > 0), var, np.inf))
+
+
+def smooth(data: F64, s: F64) -> F64:
+    """Smooth each (W, W) window with its own Gaussian of sigma ``s`` px (0 = none).
+
+    The kernel is normalised over its full extent (zero padding beyond the window), so the
+    operation is linear and the same on data and model.
+    """
+    n, w, _ = data.shape
+    u = np.arange(w, dtype=np.float64)
+    diff = u[:, None] - u[None, :]
+    ss = np.maximum(s, 1e-3)[:, None, None]
+    k = np.exp(-0.5 * diff[None] ** 2 / ss**2)
+    k /= np.sqrt(2 * np.pi) * ss  # unit area (approximately, for ss >~ 0.5)
+    k = np.where((s > 0.05)[:, None, None], k, np.eye(w)[None])
+    return np.einsum("nij,njk,nlk->nil", k, data, k, optimize=True)
+
+
+def optimal_smoothing(flux: F64, noise: F64, gain: float, psf_sigma: F64 | float, t_max: float = 2.5) -> F64:
+    """Gaussian weight sigma (px) minimising the variance of a Gaussian-weighted centroid.
+
+    Continuous-Gaussian approximation: with PSF sigma s (pixel-integrated: s^2 + 1/12),
+    weight sigma w, flux F (DN), background variance v0 (DN^2) and gain g,
+    ``Var = [(F/g) sd^4/s^2 + v0 pi w^4/2] / [F (sc^2/s^2) w^2/(s^2+w^2)]^2`` with
+    ``sc^2 = s^2 w^2/(s^2+w^2)`` and ``sd^2 = s^2 (w^2/2)/(s^2+w^2/2)``. It gives ``w = s``
+    for background-limited stars and a wide (flat) weight for photon-limited ones.
+    """
+    s2 = (np.broadcast_to(np.asarray(psf_sigma, np.float64), flux.shape) ** 2 + 1.0 / 12.0)[:, None]
+    t = np.linspace(0.8, t_max, 35)[None, :]
+    w2 = t * t * s2
+    sc2 = s2 * w2 / (s2 + w2)
+    sd2 = s2 * (w2 / 2) / (s2 + w2 / 2)
+    f = np.maximum(flux, 1e-9)[:, None]
+    num = (f / gain) * sd2 * sd2 / s2 + (noise**2)[:, None] * np.pi * w2 * w2 / 2
+    den = (f * (sc2 / s2) * w2 / (s2 + w2)) ** 2
+    best = np.argmin(num / den, axis=1)
+    return np.sqrt(w2[np.arange(flux.size), best])

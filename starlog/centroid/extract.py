@@ -1,0 +1,356 @@
+"""Driver: sub-pixel centroids of detected stars, by method name.
+
+:func:`measure_centroids` cuts a window around each detection, estimates the PSF width of the
+frame when it is not given (:func:`estimate_psf_sigma`), runs the chosen method on all windows
+at once, removes the method's pixel-phase (S-curve) and window-truncation bias with the
+pixel-integrated Gaussian model of the star (``debias``), measures the flux with a weighted PSF
+fit and attaches an uncertainty. :func:`extract_stars` runs detection and several methods.
+
+Coordinates: x = column, y = row, 0-based, (0, 0) at the centre of the top-left pixel.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from starlog.centroid._stamps import (
+    Stamps,
+    fisher_sigma,
+    gather_stamps,
+    linear_flux,
+    model,
+    optimal_smoothing,
+)
+from starlog.centroid.bicubic import bicubic_peak
+from starlog.centroid.coarse import log_parabola_peak
+from starlog.centroid.gaussfit import fit_gaussians
+from starlog.centroid.gradient import radial_symmetry_centre
+from starlog.centroid.moment import squared_centroid, weighted_centroid
+from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
+from starlog.detect import detect_stars
+from starlog.errors import InvalidInputError, InvalidParameterError
+
+__all__ = ["EFFICIENCY", "estimate_psf_sigma", "extract_stars", "measure_centroids"]
+
+F64 = npt.NDArray[np.float64]
+
+EFFICIENCY: dict[CentroidMethod, float] = {
+    CentroidMethod.NONE: 1.0,
+    CentroidMethod.MOMENT: 1.0,
+    CentroidMethod.MOMENT_SQUARED: 1.3,
+    CentroidMethod.BICUBIC: 1.0,
+    CentroidMethod.GAUSSFIT: 1.0,
+    CentroidMethod.GRADIENT: 1.12,
+}
+"""Ratio of each method's measured RMS error to the Cramer-Rao bound (median over the
+benchmark's regimes, ``tools/bench_centroid.py``); ``sigma`` = bound x this factor.
+GAUSSFIT takes its sigma from the fit covariance instead."""
+
+_REQUIRED = ("star", "x", "y", "background", "noise", "flux", "flags")
+
+
+def _check_image(image: npt.ArrayLike) -> npt.NDArray[Any]:
+    arr = np.asarray(image)
+    if arr.ndim != 2 or arr.size == 0:
+        raise InvalidInputError(f"image must be a non-empty 2-D array; got shape {arr.shape}.")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise InvalidInputError(f"image must hold integers or floats; got dtype {arr.dtype}.")
+    return arr
+
+
+def _check_detections(detections: npt.NDArray[Any]) -> npt.NDArray[Any]:
+    det = np.asarray(detections)
+    names = det.dtype.names or ()
+    missing = [f for f in _REQUIRED if f not in names]
+    if missing or det.ndim != 1:
+        raise InvalidInputError(
+            f"detections must be a 1-D structured array with fields {_REQUIRED} (DETECTION_DTYPE); "
+            f"missing {missing}, shape {det.shape}."
+        )
+    return det
+
+
+def _default_saturation(arr: npt.NDArray[Any], saturation: float | None) -> float:
+    if saturation is not None:
+        return float(saturation)
+    return float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) else np.inf
+
+
+def _window(psf_sigma: float, window: int | None) -> int:
+    if window is not None:
+        if window < 2:
+            raise InvalidParameterError(f"window (half-size) must be >= 2 px, got {window!r}.")
+        return int(window)
+    return max(3, int(np.ceil(3.5 * psf_sigma)) + 1)
+
+
+def estimate_psf_sigma(
+    image: npt.ArrayLike,
+    detections: npt.NDArray[Any],
+    *,
+    gain: float = 1.0,
+    saturation: float | None = None,
+    max_stars: int = 10,
+    min_snr: float = 20.0,
+    default: float = 1.0,
+) -> float:
+    """Gaussian PSF sigma of a frame (px): median of free-sigma fits of its best stars.
+
+    Uses up to ``max_stars`` of the brightest detections with matched-filter SNR above
+    ``min_snr`` (or, when fewer than 5 reach it, above 7) that are neither saturated, blended,
+    masked nor at the border. Returns ``default`` when no star qualifies.
+    """
+    arr = _check_image(image)
+    det = _check_detections(detections)
+    bad = int(CentroidFlag.SATURATED | CentroidFlag.BLENDED | CentroidFlag.MASKED | CentroidFlag.BORDER)
+    clean = det[(det["flags"] & bad) == 0]
+    snr = clean["snr"] if "snr" in (det.dtype.names or ()) else np.full(clean.size, np.inf)
+    use = clean[snr >= min_snr]
+    if use.size < 5:  # a faint field: the best stars there are, down to SNR 7
+        use = clean[snr >= min(7.0, min_snr)]
+    if use.size == 0:
+        return float(default)
+    use = use[np.argsort(-use["flux"])[:max_stars]]
+    sat = _default_saturation(arr, saturation)
+    # first guess from second moments of a 11x11 window
+    st = gather_stamps(arr, use["x"], use["y"], 5, use["background"], use["noise"], gain, sat)
+    d = np.where(st.data > 2 * st.noise[:, None, None], st.data, 0.0)
+    s0 = d.sum(axis=(1, 2))
+    u = st.u
+    with np.errstate(all="ignore"):
+        mx = (d.sum(axis=1) * u).sum(axis=1) / s0
+        my = (d.sum(axis=2) * u).sum(axis=1) / s0
+        vx = (d.sum(axis=1) * u * u).sum(axis=1) / s0 - mx * mx
+        vy = (d.sum(axis=2) * u * u).sum(axis=1) / s0 - my * my
+    guess = np.sqrt(np.clip(0.5 * (vx + vy) - 1.0 / 12.0, 0.09, 16.0))
+    g0 = float(np.nanmedian(guess)) if np.isfinite(guess).any() else default
+    h = _window(g0 * 1.3, None)
+    st = gather_stamps(arr, use["x"], use["y"], h, use["background"], use["noise"], gain, sat)
+    dx0, dy0 = use["x"] - st.xc, use["y"] - st.yc
+    f0, _ = linear_flux(st, model(st, dx0, dy0, g0), use["flux"])
+    fit = fit_gaussians(st, dx0, dy0, f0, g0, fit_sigma=True, iterations=6, tol=1e-3)
+    good = fit.ok & (fit.psf_sigma > 0.21) & (fit.psf_sigma < 19.9)
+    if not good.any():
+        return float(g0)
+    return float(np.median(fit.psf_sigma[good]))
+
+
+def _run(method: CentroidMethod, data: F64, st: Stamps, ctx: dict[str, Any], x0: F64, y0: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+    if method is CentroidMethod.NONE:
+        return log_parabola_peak(data, st, smooth_sigma=ctx["smooth"])
+    if method is CentroidMethod.MOMENT:
+        return weighted_centroid(
+            data, st, dx0=x0, dy0=y0, flux=ctx["flux"], psf_sigma=ctx["psf"], weighting=ctx["weighting"],
+            iterations=ctx.get("iterations", 10),
+        )
+    if method is CentroidMethod.MOMENT_SQUARED:
+        return squared_centroid(data, st)
+    if method is CentroidMethod.BICUBIC:
+        return bicubic_peak(data, st, smooth_sigma=ctx["smooth"])
+    if method is CentroidMethod.GRADIENT:
+        return radial_symmetry_centre(data, st, smooth_sigma=ctx["smooth_gradient"])
+    raise InvalidParameterError(f"no estimator for method {method!r}.")  # pragma: no cover
+
+
+def measure_centroids(
+    image: npt.ArrayLike,
+    detections: npt.NDArray[Any],
+    *,
+    method: CentroidMethod | str = CentroidMethod.GAUSSFIT,
+    gain: float = 1.0,
+    read_noise: float | None = None,
+    psf_sigma: float | None = None,
+    window: int | None = None,
+    saturation: float | None = None,
+    debias: bool = True,
+    weighting: str = "optimal",
+    fit_psf_sigma: bool = False,
+) -> npt.NDArray[np.void]:
+    """Sub-pixel centroids of detected stars.
+
+    Parameters
+    ----------
+    image : (rows, cols) array_like
+        The frame the detections come from, DN (uint8/uint16/float; pedestal allowed).
+    detections : ndarray of DETECTION_DTYPE
+        From :func:`starlog.detect.detect_stars` (fields star, x, y, background, noise, flux,
+        flags are used).
+    method : CentroidMethod or str
+        NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT or GRADIENT.
+    gain : float
+        Camera gain, e-/DN (for the star's shot noise in weights and ``sigma``).
+    read_noise : float, optional
+        Read noise, e- RMS: a floor on the background noise (``read_noise / gain`` DN). The
+        measured background noise (detections' ``noise``) is used otherwise.
+    psf_sigma : float, optional
+        Gaussian PSF sigma, px. Estimated from the frame's bright stars when not given.
+    window : int, optional
+        Half-size of the square window, px. Default ``max(3, ceil(3.5 psf_sigma) + 1)``.
+    saturation : float, optional
+        Saturation level, DN (default: the dtype maximum for integers, none for floats).
+        Saturated pixels are left out.
+    debias : bool
+        Remove the pixel-phase / truncation bias of non-fit methods with the star's model.
+    weighting : {"optimal", "gaussian", "none"}
+        MOMENT weighting (see :mod:`starlog.centroid.moment`).
+    fit_psf_sigma : bool
+        GAUSSFIT: fit the PSF sigma per star too (default: fixed to ``psf_sigma``).
+
+    Returns
+    -------
+    ndarray of CENTROID_DTYPE, shape (n,)
+        One row per detection, in the detections' order; (0,) when there are none.
+    """
+    arr = _check_image(image)
+    det = _check_detections(detections)
+    try:
+        meth = CentroidMethod(method)
+    except ValueError as err:
+        raise InvalidParameterError(
+            f"unknown centroid method {method!r}; choose one of {[m.value for m in CentroidMethod]}."
+        ) from err
+    if not (gain > 0 and np.isfinite(gain)):
+        raise InvalidParameterError(f"gain must be finite and > 0 (e-/DN), got {gain!r}.")
+    if read_noise is not None and not (read_noise >= 0):
+        raise InvalidParameterError(f"read_noise must be >= 0 e-, got {read_noise!r}.")
+    if psf_sigma is not None and not (psf_sigma > 0 and np.isfinite(psf_sigma)):
+        raise InvalidParameterError(f"psf_sigma must be finite and > 0 px, got {psf_sigma!r}.")
+    if weighting not in ("optimal", "gaussian", "none"):
+        raise InvalidParameterError(f"weighting must be 'optimal', 'gaussian' or 'none', got {weighting!r}.")
+    n = det.size
+    if n == 0:
+        return empty_centroids()
+    sat = _default_saturation(arr, saturation)
+    psf = float(psf_sigma) if psf_sigma is not None else estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
+    h = _window(psf, window)
+    noise = np.asarray(det["noise"], np.float64)
+    if read_noise is not None:
+        noise = np.maximum(noise, read_noise / gain)
+    noise = np.where(np.isfinite(noise) & (noise > 0), noise, 1.0)
+    bg = np.asarray(det["background"], np.float64)
+    x_det = np.asarray(det["x"], np.float64)
+    y_det = np.asarray(det["y"], np.float64)
+    st = gather_stamps(arr, x_det, y_det, h, np.where(np.isfinite(bg), bg, 0.0), noise, gain, sat)
+    dx0, dy0 = x_det - st.xc, y_det - st.yc
+    psf_arr = np.full(n, psf)
+    f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64))
+    bkg = bg.copy()
+    if meth is CentroidMethod.GAUSSFIT:
+        fit = fit_gaussians(st, dx0, dy0, f0, psf_arr, fit_sigma=fit_psf_sigma)
+        dx, dy, ok = fit.dx, fit.dy, fit.ok
+        flux, ferr, sig = fit.flux, fit.flux_err, fit.sigma
+        psf_arr = fit.psf_sigma
+        bkg = bg + np.where(ok, fit.background, 0.0)
+    else:
+        ctx: dict[str, Any] = {"flux": np.maximum(f0, 0), "psf": psf_arr, "weighting": weighting}
+        sm = optimal_smoothing(np.maximum(f0, 0), noise, gain, psf_arr)
+        ctx["smooth"] = sm
+        ctx["smooth_gradient"] = sm
+        ex, ey, ok = _run(meth, st.data, st, ctx, dx0, dy0)
+        dx, dy = ex.copy(), ey.copy()
+        if debias:
+            fm = np.maximum(f0, 0)
+            ctx["iterations"] = 4  # the model's estimate starts next to its fixed point
+            for _ in range(2):
+                mdl = fm[:, None, None] * model(st, dx, dy, psf_arr) * st.valid
+                mx, my, mok = _run(meth, mdl, st, ctx, dx, dy)
+                good = ok & mok & np.isfinite(mx) & np.isfinite(my)
+                dx = np.where(good, dx + (ex - mx), dx)
+                dy = np.where(good, dy + (ey - my), dy)
+        ok &= np.isfinite(dx) & np.isfinite(dy) & (np.abs(dx) < h) & (np.abs(dy) < h)
+        flux, ferr = linear_flux(st, model(st, np.where(ok, dx, dx0), np.where(ok, dy, dy0), psf_arr), f0)
+        sig = fisher_sigma(st, np.where(ok, dx, dx0), np.where(ok, dy, dy0), np.maximum(flux, 0), psf_arr) * EFFICIENCY[meth]
+    ok &= np.isfinite(dx) & np.isfinite(dy)
+    dx = np.where(ok, dx, dx0)
+    dy = np.where(ok, dy, dy0)
+    if not ok.all():
+        fl2, fe2 = linear_flux(st, model(st, dx, dy, psf_arr), np.maximum(f0, 0))
+        flux = np.where(ok, flux, fl2)
+        ferr = np.where(ok, ferr, fe2)
+        sig_fb = fisher_sigma(st, dx, dy, np.maximum(flux, 0), psf_arr) * 2.0
+        sig = np.where(ok, sig, sig_fb)
+    sig = np.where(np.isfinite(sig) & (sig > 0), sig, psf_arr)
+    ferr = np.where(np.isfinite(ferr) & (ferr > 0), ferr, np.inf)
+    snr = np.where(np.isfinite(ferr), flux / ferr, 0.0)
+    # peak: highest background-subtracted pixel within one pixel of the centroid
+    ix = np.clip(np.rint(dx).astype(np.intp) + h, 1, 2 * h - 1)
+    iy = np.clip(np.rint(dy).astype(np.intp) + h, 1, 2 * h - 1)
+    ar = np.arange(n)[:, None]
+    d3 = np.arange(-1, 2)
+    raw = st.data + np.where(st.valid, 0.0, -np.inf)
+    p3 = raw[ar[:, :, None], (iy[:, None] + d3)[:, :, None], (ix[:, None] + d3)[:, None, :]]
+    peak = p3.reshape(n, -1).max(axis=1)
+    peak = np.where(np.isfinite(peak), peak, 0.0)
+    flags = np.asarray(det["flags"], np.uint16).copy()
+    flags &= np.uint16(~int(CentroidFlag.FIT_FAILED | CentroidFlag.LOW_SNR) & 0xFFFF)
+    flags[st.saturated] |= np.uint16(CentroidFlag.SATURATED)
+    flags[st.cut] |= np.uint16(CentroidFlag.BORDER)
+    flags[st.masked] |= np.uint16(CentroidFlag.MASKED)
+    flags[~ok] |= np.uint16(CentroidFlag.FIT_FAILED)
+    flags[snr < 5.0] |= np.uint16(CentroidFlag.LOW_SNR)
+    out = np.zeros(n, dtype=CENTROID_DTYPE)
+    out["star"] = det["star"]
+    out["x"] = st.xc + dx
+    out["y"] = st.yc + dy
+    out["flux"] = flux
+    out["snr"] = snr
+    out["sigma"] = sig
+    out["peak"] = peak
+    out["background"] = bkg
+    out["psf_sigma"] = psf_arr
+    out["flags"] = flags
+    return out
+
+
+def extract_stars(
+    image: npt.ArrayLike,
+    *,
+    methods: Iterable[CentroidMethod | str] = (CentroidMethod.GAUSSFIT,),
+    gain: float = 1.0,
+    read_noise: float | None = None,
+    psf_sigma: float | None = None,
+    window: int | None = None,
+    saturation: float | None = None,
+    detect_options: Mapping[str, Any] | None = None,
+    centroid_options: Mapping[str, Any] | None = None,
+) -> tuple[npt.NDArray[np.void], dict[CentroidMethod, npt.NDArray[np.void]]]:
+    """Detect the stars of a frame and centroid them with each method.
+
+    Parameters
+    ----------
+    image : (rows, cols) array_like
+        Frame, DN.
+    methods : iterable of CentroidMethod or str
+        Methods to run (each once).
+    gain, read_noise, psf_sigma, window, saturation
+        As in :func:`measure_centroids` (``saturation`` is passed to detection too). The PSF
+        sigma is estimated once per frame when not given.
+    detect_options : mapping, optional
+        Extra keyword options of :func:`starlog.detect.detect_stars` (threshold, ...).
+    centroid_options : mapping, optional
+        Extra keyword options of :func:`measure_centroids` (debias, weighting, ...).
+
+    Returns
+    -------
+    detections : ndarray of DETECTION_DTYPE
+    centroids : dict
+        ``{CentroidMethod: ndarray of CENTROID_DTYPE}`` with one row per detection.
+    """
+    meths = [CentroidMethod(m) for m in methods]
+    det = detect_stars(image, saturation=saturation, **dict(detect_options or {}))
+    arr = np.asarray(image)
+    if det.size and psf_sigma is None:
+        psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
+    out: dict[CentroidMethod, npt.NDArray[np.void]] = {}
+    for m in meths:
+        out[m] = measure_centroids(
+            arr, det, method=m, gain=gain, read_noise=read_noise, psf_sigma=psf_sigma,
+            window=window, saturation=saturation, **dict(centroid_options or {}),
+        )
+    return det, out
+
+

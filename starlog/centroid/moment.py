@@ -1,0 +1,105 @@
+"""MOMENT: background-subtracted centre of gravity in a window (and its squared-grey variant).
+
+``MOMENT`` (default ``weighting="optimal"``) is the iteratively re-weighted centre of gravity
+
+    x = sum_i w_i D_i x_i / sum_i w_i D_i,     w_i = P_i(x) / (noise^2 + F P_i(x) / gain),
+
+with ``D`` the background-subtracted pixels, ``P`` the unit pixel-integrated PSF centred on the
+current estimate and ``F`` the star's flux: the noise-optimal weight. It is the Gaussian-windowed
+centroid of ``sep.winpos`` for faint (background-limited) stars and the plain, unweighted centre
+of gravity for bright (photon-limited) ones. ``weighting="gaussian"`` uses ``w = P`` (winpos),
+``weighting="none"`` the plain centre of gravity of the whole window.
+
+``MOMENT_SQUARED`` is the classic squared-grey centroid: ``w_i = D_i`` for pixels above
+``2 * noise`` (else 0), i.e. ``x = sum D_i^2 x_i / sum D_i^2``.
+
+Estimator functions work on window offsets (px from the window's centre pixel) and return
+``(dx, dy, ok)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from starlog.centroid._stamps import Stamps, model, variance
+
+__all__ = ["squared_centroid", "weighted_centroid"]
+
+F64 = npt.NDArray[np.float64]
+
+
+def weighted_centroid(
+    data: F64,
+    st: Stamps,
+    *,
+    dx0: F64,
+    dy0: F64,
+    flux: F64,
+    psf_sigma: F64,
+    weighting: str = "optimal",
+    iterations: int = 10,
+    tol: float = 1e-5,
+) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+    """Iteratively re-weighted centre of gravity of each window (see module docstring)."""
+    u = st.u
+    n = dx0.size
+
+    def step(cx: F64, cy: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+        """One centre-of-gravity evaluation with the weights centred on (cx, cy)."""
+        if weighting == "none":
+            w = st.valid.astype(np.float64)
+        else:
+            m = model(st, cx, cy, psf_sigma)
+            w = st.valid * m
+            if weighting == "optimal":
+                w = w / variance(st, np.maximum(flux, 0)[:, None, None] * m)
+        wd = w * data
+        s0 = wd.sum(axis=(1, 2))
+        good = s0 > 0
+        s0 = np.where(good, s0, 1.0)
+        tx = (wd.sum(axis=1) * u[None, :]).sum(axis=1) / s0
+        ty = (wd.sum(axis=2) * u[None, :]).sum(axis=1) / s0
+        return tx, ty, good
+
+    tx, ty, ok = step(dx0, dy0)
+    if weighting == "none":
+        return tx, ty, ok & (np.abs(tx) < st.h) & (np.abs(ty) < st.h)
+    # the fixed point x = T(x) is found with the secant method on g(x) = T(x) - x, started
+    # with winpos' doubled step (a Gaussian weight as wide as the PSF converges at rate 1/2)
+    x_prev, y_prev = dx0.copy(), dy0.copy()
+    gx_prev, gy_prev = tx - dx0, ty - dy0
+    cx = np.clip(dx0 + 2.0 * gx_prev, -st.h, st.h)
+    cy = np.clip(dy0 + 2.0 * gy_prev, -st.h, st.h)
+    for _ in range(iterations):
+        tx, ty, good = step(cx, cy)
+        ok &= good
+        gx, gy = tx - cx, ty - cy
+        if np.all((np.abs(gx) < tol) & (np.abs(gy) < tol) | ~ok):
+            cx, cy = tx, ty
+            break
+        dgx, dgy = gx - gx_prev, gy - gy_prev
+        with np.errstate(all="ignore"):
+            fx = np.where(np.abs(dgx) > 1e-12, -(cx - x_prev) / dgx, 2.0)
+            fy = np.where(np.abs(dgy) > 1e-12, -(cy - y_prev) / dgy, 2.0)
+        fx = np.where(np.isfinite(fx) & (fx > 0.5) & (fx < 4.0), fx, 2.0)
+        fy = np.where(np.isfinite(fy) & (fy > 0.5) & (fy < 4.0), fy, 2.0)
+        x_prev, y_prev, gx_prev, gy_prev = cx, cy, gx, gy
+        cx = np.clip(cx + fx * gx, -st.h, st.h)
+        cy = np.clip(cy + fy * gy, -st.h, st.h)
+    ok &= np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < st.h) & (np.abs(cy) < st.h)
+    _ = n
+    return cx, cy, ok
+
+
+def squared_centroid(data: F64, st: Stamps, *, threshold_sigma: float = 2.0) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+    """Squared-grey centre of gravity of the pixels above ``threshold_sigma * noise``."""
+    u = st.u
+    d = np.where(st.valid & (data > threshold_sigma * st.noise[:, None, None]), data, 0.0)
+    w = d * d
+    s0 = w.sum(axis=(1, 2))
+    ok = s0 > 0
+    s0 = np.where(ok, s0, 1.0)
+    cx = (w.sum(axis=1) * u[None, :]).sum(axis=1) / s0
+    cy = (w.sum(axis=2) * u[None, :]).sum(axis=1) / s0
+    return cx, cy, ok

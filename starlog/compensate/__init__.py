@@ -1,0 +1,102 @@
+"""Error decomposition and adaptive multi-strategy compensation of centroid series.
+
+The paper's contribution (§2.2–2.5) as plain numpy/scipy algorithms on (N, 2) position series
+in pixels (x = column, y = row, (0, 0) at the centre of the top-left pixel):
+
+* :mod:`~starlog.compensate.decimate` — equidistant decimation to 10–100 Hz;
+* :mod:`~starlog.compensate.decomposition` — the five error categories and ``f_d``;
+* :mod:`~starlog.compensate.strategies` — the five compensation strategies (eq. 1–11);
+* :mod:`~starlog.compensate.selection` — scores (eq. 12), top-three run with rollback (eq. 13);
+* :mod:`~starlog.compensate.protocols` — RMSE (eq. 15), the ``paper`` / ``truth`` /
+  ``leakfree`` evaluation protocols.
+"""
+
+from __future__ import annotations
+
+from starlog.compensate.decimate import (
+    decimate,
+    decimation_indices,
+    decimation_step,
+    effective_rate,
+)
+from starlog.compensate.decomposition import (
+    MIN_SAMPLES,
+    ErrorCategory,
+    ErrorDecomposition,
+    SpectralPeak,
+    decompose,
+)
+from starlog.compensate.protocols import (
+    FIGURE_DTYPE,
+    AccuracySource,
+    Evaluation,
+    Protocol,
+    ReferenceMode,
+    RmseFigure,
+    evaluate,
+    global_mean_reference,
+    rmse,
+    running_mean_reference,
+)
+from starlog.compensate.selection import (
+    PASS_DTYPE,
+    TABLE_1,
+    CompensationPass,
+    CompensationResult,
+    StrategyProfile,
+    compensate,
+    rank_strategies,
+    strategy_scores,
+)
+from starlog.compensate.strategies import (
+    AR_THETA,
+    Strategy,
+    adaptive_median,
+    adaptive_window_trend,
+    apply_strategy,
+    ar_prediction,
+    confidence,
+    confidence_weighted,
+    local_smoothing,
+    trend_window,
+)
+
+__all__ = [
+    "AR_THETA",
+    "FIGURE_DTYPE",
+    "MIN_SAMPLES",
+    "PASS_DTYPE",
+    "TABLE_1",
+    "AccuracySource",
+    "CompensationPass",
+    "CompensationResult",
+    "ErrorCategory",
+    "ErrorDecomposition",
+    "Evaluation",
+    "Protocol",
+    "ReferenceMode",
+    "RmseFigure",
+    "SpectralPeak",
+    "Strategy",
+    "StrategyProfile",
+    "adaptive_median",
+    "adaptive_window_trend",
+    "apply_strategy",
+    "ar_prediction",
+    "compensate",
+    "confidence",
+    "confidence_weighted",
+    "decimate",
+    "decimation_indices",
+    "decimation_step",
+    "decompose",
+    "effective_rate",
+    "evaluate",
+    "global_mean_reference",
+    "local_smoothing",
+    "rank_strategies",
+    "rmse",
+    "running_mean_reference",
+    "strategy_scores",
+    "trend_window",
+]

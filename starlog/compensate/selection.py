@@ -1,0 +1,496 @@
+"""Adaptive strategy selection with rollback (§2.4, DESIGN §2.4).
+
+Score (eq. 12, with eq. 14 reduced to an indicator as DESIGN says)::
+
+    Score_j = sum_k A_k * C_jk * E_j * (1 - D_j),   C_jk = 1 if k is a target of j else 0
+
+with ``A_k`` the magnitude (px) of error category ``k`` from the decomposition and ``E_j``,
+``D_j`` and the targets from Table 1 (:data:`TABLE_1`; its first row is the trend-estimation
+strategy, the paper repeats the median filter's name by mistake).
+
+The ``top_k`` (3) highest-scoring strategies run one after the other in descending score;
+ties keep Table 1's order (a stable sort), so the ranking is deterministic.  Each pass is
+applied to the output of the previous kept pass, with the decomposition (``f_d``) of the
+input; after each pass eq. 13 ``Effective = (RMSE_before - RMSE_after) / RMSE_before`` is
+computed about the selection reference (eq. 15), and the pass is rolled back when
+``Effective < rollback_threshold`` (1 %).  ``RMSE_before = 0`` counts as ``Effective = 0``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from starlog.compensate.decomposition import (
+    MIN_SAMPLES,
+    ErrorCategory,
+    ErrorDecomposition,
+    decompose,
+)
+from starlog.compensate.protocols import (
+    AccuracySource,
+    Protocol,
+    ReferenceMode,
+    _as_samples,
+    _as_series,
+    _check_rate,
+    _radial_rms,
+    calibration_length,
+    running_mean_reference,
+)
+from starlog.compensate.strategies import Strategy, apply_strategy
+from starlog.errors import InvalidInputError, InvalidParameterError
+
+__all__ = [
+    "PASS_DTYPE",
+    "TABLE_1",
+    "CompensationPass",
+    "CompensationResult",
+    "StrategyProfile",
+    "compensate",
+    "rank_strategies",
+    "strategy_scores",
+]
+
+
+@dataclass(frozen=True)
+class StrategyProfile:
+    """One row of Table 1: effect ``E_j``, execution cost ``D_j`` and target categories."""
+
+    strategy: Strategy
+    effect: float
+    cost: float
+    targets: frozenset[ErrorCategory]
+
+
+TABLE_1: tuple[StrategyProfile, ...] = (
+    StrategyProfile(
+        Strategy.ADAPTIVE_WINDOW_TREND, 0.7, 0.3, frozenset({ErrorCategory.SYSTEMATIC_LOW_FREQ})
+    ),
+    StrategyProfile(
+        Strategy.ADAPTIVE_MEDIAN,
+        0.6,
+        0.2,
+        frozenset({ErrorCategory.SYSTEMATIC_HIGH_FREQ, ErrorCategory.MEASUREMENT_NOISE}),
+    ),
+    StrategyProfile(
+        Strategy.LOCAL_SMOOTHING,
+        0.5,
+        0.1,
+        frozenset({ErrorCategory.RANDOM_QUANTIZATION, ErrorCategory.MEASUREMENT_NOISE}),
+    ),
+    StrategyProfile(Strategy.AR_PREDICTION, 0.8, 0.4, frozenset({ErrorCategory.MODEL_MISMATCH})),
+    StrategyProfile(
+        Strategy.CONFIDENCE_WEIGHTED,
+        0.9,
+        0.5,
+        frozenset({ErrorCategory.SYSTEMATIC_LOW_FREQ, ErrorCategory.MODEL_MISMATCH}),
+    ),
+)
+"""Table 1 of the paper (first row read as the trend-estimation strategy)."""
+
+
+def strategy_scores(
+    magnitudes: Mapping[ErrorCategory | str, float],
+    *,
+    table: tuple[StrategyProfile, ...] = TABLE_1,
+) -> dict[Strategy, float]:
+    """Eq. 12 for every strategy of ``table``.
+
+    Parameters
+    ----------
+    magnitudes : mapping ErrorCategory (or its name) -> float
+        ``A_k`` in px; missing categories count as 0.
+
+    Returns
+    -------
+    dict[Strategy, float]
+        In table order.
+    """
+    mags: dict[ErrorCategory, float] = {}
+    for key, value in magnitudes.items():
+        try:
+            mags[ErrorCategory(key)] = float(value)
+        except ValueError as err:
+            raise InvalidParameterError(f"unknown error category {key!r}.") from err
+    return {
+        row.strategy: sum(mags.get(k, 0.0) for k in row.targets) * row.effect * (1.0 - row.cost)
+        for row in table
+    }
+
+
+def rank_strategies(
+    scores: Mapping[Strategy, float], *, table: tuple[StrategyProfile, ...] = TABLE_1
+) -> tuple[Strategy, ...]:
+    """Strategies by descending score; ties keep ``table`` order (deterministic)."""
+    order = [row.strategy for row in table if row.strategy in scores]
+    return tuple(sorted(order, key=lambda s: -scores[s]))  # sorted() is stable
+
+
+PASS_DTYPE = np.dtype(
+    [
+        ("rank", "i4"),
+        ("strategy", "U24"),
+        ("score", "f8"),
+        ("rmse_before", "f8"),
+        ("rmse_after", "f8"),
+        ("effective", "f8"),
+        ("kept", "?"),
+    ]
+)
+"""One compensation pass (row of :meth:`CompensationResult.passes_table`).
+
+Fields
+------
+rank : int32
+    0-based position in the run order (0 = highest score).
+strategy : str
+    :class:`~starlog.compensate.strategies.Strategy` name.
+score : float64, px
+    Eq. 12 score.
+rmse_before : float64, px
+    Eq. 15 of the series entering the pass, about the selection reference, on the selection
+    samples.
+rmse_after : float64, px
+    Same for the pass's output.
+effective : float64, 1
+    Eq. 13.
+kept : bool
+    False when the pass was rolled back (``effective < rollback_threshold``).
+"""
+
+
+@dataclass(frozen=True)
+class CompensationPass:
+    """One strategy pass; fields as in :data:`PASS_DTYPE`."""
+
+    rank: int
+    strategy: Strategy
+    score: float
+    rmse_before: float
+    rmse_after: float
+    effective: float
+    kept: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict with the fields of :data:`PASS_DTYPE`."""
+        return {
+            "rank": self.rank,
+            "strategy": str(self.strategy),
+            "score": self.score,
+            "rmse_before": self.rmse_before,
+            "rmse_after": self.rmse_after,
+            "effective": self.effective,
+            "kept": self.kept,
+        }
+
+
+@dataclass(frozen=True)
+class CompensationResult:
+    """Outcome of :func:`compensate`.
+
+    Attributes
+    ----------
+    compensated : (N, 2) ndarray of float64
+        The compensated series, px (x = column, y = row).
+    decomposition : ErrorDecomposition
+        Decomposition of the selection samples about the selection reference.
+    scores : dict[Strategy, float]
+        Eq. 12 score of every strategy, Table 1 order.
+    order : tuple of Strategy
+        Strategies run, in order (the ``top_k`` best).
+    passes : tuple of CompensationPass
+        One record per strategy run (scores, RMSEs, eq. 13, kept / rolled back).
+    protocol : Protocol
+        The evaluation protocol the run belongs to.
+    reference_mode : ReferenceMode
+        How the reference ``M`` was built.
+    reference_point : tuple of float or None
+        ``M`` (x, y) px when it is a point (global mean, calibration mean); None for the
+        running mean.
+    n_samples : int
+        Length of the series.
+    n_selection : int
+        Samples used for the decomposition, the scores and the rollback decisions
+        (``n_samples``, or the calibration length for the leak-free reference modes).
+    rmse_before, rmse_after : float
+        Eq. 15 on the selection samples about the selection reference before the first pass
+        and after the last kept pass, px.
+    fs : float
+        Sampling rate, Hz.
+    top_k : int
+    rollback_threshold : float
+    accuracy_source : AccuracySource
+        ``A`` of eq. 10.
+    """
+
+    compensated: npt.NDArray[np.float64]
+    decomposition: ErrorDecomposition
+    scores: dict[Strategy, float]
+    order: tuple[Strategy, ...]
+    passes: tuple[CompensationPass, ...]
+    protocol: Protocol
+    reference_mode: ReferenceMode
+    reference_point: tuple[float, float] | None
+    n_samples: int
+    n_selection: int
+    rmse_before: float
+    rmse_after: float
+    fs: float
+    top_k: int
+    rollback_threshold: float
+    accuracy_source: AccuracySource
+
+    @property
+    def kept(self) -> tuple[Strategy, ...]:
+        """Strategies whose pass was kept, in run order."""
+        return tuple(p.strategy for p in self.passes if p.kept)
+
+    def passes_table(self) -> npt.NDArray[np.void]:
+        """The passes as a structured array of :data:`PASS_DTYPE`."""
+        rows = [
+            (p.rank, str(p.strategy), p.score, p.rmse_before, p.rmse_after, p.effective, p.kept)
+            for p in self.passes
+        ]
+        return np.array(rows, dtype=PASS_DTYPE)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready decision record (no arrays, no NaN).
+
+        Layout: ``{"protocol", "reference_mode", "reference_point": [x, y] | null,
+        "n_samples", "n_selection", "fs", "top_k", "rollback_threshold", "accuracy_source",
+        "rmse_before", "rmse_after", "scores": {STRATEGY: score}, "order": [STRATEGY, ...],
+        "kept": [STRATEGY, ...], "passes": [PASS_DTYPE dict, ...],
+        "decomposition": ErrorDecomposition.to_dict()}``.  The compensated series itself is
+        not included (it is the per-sample output).
+        """
+        return {
+            "protocol": str(self.protocol),
+            "reference_mode": str(self.reference_mode),
+            "reference_point": None
+            if self.reference_point is None
+            else [float(v) for v in self.reference_point],
+            "n_samples": self.n_samples,
+            "n_selection": self.n_selection,
+            "fs": self.fs,
+            "top_k": self.top_k,
+            "rollback_threshold": self.rollback_threshold,
+            "accuracy_source": str(self.accuracy_source),
+            "rmse_before": self.rmse_before,
+            "rmse_after": self.rmse_after,
+            "scores": {str(k): float(v) for k, v in self.scores.items()},
+            "order": [str(s) for s in self.order],
+            "kept": [str(s) for s in self.kept],
+            "passes": [p.to_dict() for p in self.passes],
+            "decomposition": self.decomposition.to_dict(),
+        }
+
+
+def compensate(
+    xy: npt.ArrayLike,
+    *,
+    fs: float,
+    flux: npt.ArrayLike | None = None,
+    sigma: npt.ArrayLike | None = None,
+    reference_mode: ReferenceMode | str = ReferenceMode.GLOBAL_MEAN,
+    calibration_fraction: float = 0.5,
+    accuracy_source: AccuracySource | str = AccuracySource.ZERO,
+    top_k: int = 3,
+    rollback_threshold: float = 0.01,
+    protocol: Protocol | str | None = None,
+    table: tuple[StrategyProfile, ...] = TABLE_1,
+) -> CompensationResult:
+    """Decompose, score, and run the best strategies with rollback (§2.4, Figure 1).
+
+    Parameters
+    ----------
+    xy : (N, 2) array_like
+        Decimated centroid series, px (x = column, y = row), finite.  ``N >= 16``
+        (:data:`~starlog.compensate.decomposition.MIN_SAMPLES`); with a leak-free reference
+        mode the calibration segment must have >= 16 samples and leave >= 1 after it.
+    fs : float
+        Sampling rate of ``xy``, Hz.
+    flux : (N,) array_like, optional
+        Intensity ``I`` of eq. 10 (normalised by its maximum); default all equal.
+    sigma : (N,) array_like, optional
+        Centroid uncertainty, px (>= 0); ``A`` of eq. 10 when ``accuracy_source='sigma'``.
+    reference_mode : ReferenceMode or str
+        ``global_mean`` (paper): ``M`` = mean of ``xy``, selection on all samples.
+        ``calibration``: ``M`` = mean of the first ``calibration_fraction`` of ``xy``;
+        ``running_mean``: ``M[n]`` = mean of ``xy[:n]``.  In both leak-free modes the
+        decomposition, scores and rollback see only the calibration segment; the kept
+        strategies are then applied, in order, to the whole series.
+    calibration_fraction : float
+        In (0, 1); leak-free modes only.
+    accuracy_source : AccuracySource or str
+        ``zero`` (``A = 0``, paper) or ``sigma``.
+    top_k : int
+        Strategies to run (1..5), default 3.
+    rollback_threshold : float
+        Minimum eq. 13 improvement to keep a pass, default 0.01.
+    protocol : Protocol or str, optional
+        Label recorded in the result; default ``paper`` for ``global_mean`` and ``leakfree``
+        otherwise.  ``paper`` / ``truth`` need ``global_mean``; ``leakfree`` needs a leak-free
+        mode.
+    table : tuple of StrategyProfile
+        Table 1 (override for experiments).
+
+    Returns
+    -------
+    CompensationResult
+
+    Notes
+    -----
+    Leak-free modes: the strategies are filters of the measurements and may use neighbouring
+    samples (the centred windows of strategies 1–3 reach up to 5 samples ahead); only the
+    reference ``M`` is restricted to the past.  During selection the flux of eq. 10 is
+    normalised by the calibration segment's maximum, in the final pass by the whole
+    sequence's (its weight, ``I / 100``, is at most 0.01).
+    """
+    p = _as_series(xy)
+    n = p.shape[0]
+    fs = _check_rate(fs)
+    try:
+        mode = ReferenceMode(reference_mode)
+    except ValueError as err:
+        raise InvalidParameterError(
+            f"reference_mode must be one of {[m.value for m in ReferenceMode]}; "
+            f"got {reference_mode!r}."
+        ) from err
+    try:
+        acc_src = AccuracySource(accuracy_source)
+    except ValueError as err:
+        raise InvalidParameterError(
+            f"accuracy_source must be 'zero' or 'sigma'; got {accuracy_source!r}."
+        ) from err
+    if protocol is None:
+        proto = Protocol.PAPER if mode is ReferenceMode.GLOBAL_MEAN else Protocol.LEAKFREE
+    else:
+        try:
+            proto = Protocol(protocol)
+        except ValueError as err:
+            raise InvalidParameterError(f"unknown protocol {protocol!r}.") from err
+    if (proto is Protocol.LEAKFREE) != (mode is not ReferenceMode.GLOBAL_MEAN):
+        raise InvalidParameterError(
+            f"protocol {proto.value!r} does not go with reference_mode {mode.value!r}: "
+            "'paper' and 'truth' use 'global_mean'; 'leakfree' uses 'calibration' or "
+            "'running_mean'."
+        )
+    if isinstance(top_k, bool) or not isinstance(top_k, (int, np.integer)) or not (
+        1 <= top_k <= len(table)
+    ):
+        raise InvalidParameterError(
+            f"top_k must be an integer in [1, {len(table)}]; got {top_k!r}."
+        )
+    thr = float(rollback_threshold)
+    if not np.isfinite(thr):
+        raise InvalidParameterError(
+            f"rollback_threshold must be finite; got {rollback_threshold!r}."
+        )
+    if n < MIN_SAMPLES:
+        raise InvalidInputError(
+            f"compensation needs at least {MIN_SAMPLES} samples; got {n}. Use a longer "
+            "sequence or a higher decimated rate."
+        )
+    flux_a = None if flux is None else _as_samples(flux, n, name="flux")
+    accuracy = None
+    if acc_src is AccuracySource.SIGMA:
+        if sigma is None:
+            raise InvalidParameterError("accuracy_source='sigma' needs sigma (px per sample).")
+        accuracy = _as_samples(sigma, n, name="sigma", nonnegative=True)
+    elif sigma is not None:
+        _as_samples(sigma, n, name="sigma", nonnegative=True)  # validate even when unused
+
+    reference_point: tuple[float, float] | None
+    if mode is ReferenceMode.GLOBAL_MEAN:
+        n_sel = n
+        m = p.mean(axis=0)
+        reference = np.broadcast_to(m, (n, 2)).copy()
+        reference_point = (float(m[0]), float(m[1]))
+    else:
+        n_sel = calibration_length(n, fraction=calibration_fraction, minimum=MIN_SAMPLES)
+        if mode is ReferenceMode.CALIBRATION:
+            m = p[:n_sel].mean(axis=0)
+            reference = np.broadcast_to(m, (n, 2)).copy()
+            reference_point = (float(m[0]), float(m[1]))
+        else:
+            reference = running_mean_reference(p)
+            reference_point = None
+
+    sel_xy = p[:n_sel]
+    sel_ref = reference[:n_sel]
+    sel_flux = None if flux_a is None else flux_a[:n_sel]
+    sel_acc = None if accuracy is None else accuracy[:n_sel]
+    decomposition = decompose(sel_xy, fs=fs, reference=sel_ref)
+    scores = strategy_scores(decomposition.magnitudes, table=table)
+    order = rank_strategies(scores, table=table)[: int(top_k)]
+
+    current = sel_xy
+    rmse_first = _radial_rms(sel_xy - sel_ref)
+    passes: list[CompensationPass] = []
+    for rank, strategy in enumerate(order):
+        candidate = apply_strategy(
+            strategy,
+            current,
+            fs=fs,
+            reference=sel_ref,
+            dominant_frequency=decomposition.dominant_frequency,
+            flux=sel_flux,
+            accuracy=sel_acc,
+        )
+        before = _radial_rms(current - sel_ref)
+        after = _radial_rms(candidate - sel_ref)
+        effective = (before - after) / before if before > 0 else 0.0
+        kept = bool(effective >= thr)
+        if kept:
+            current = candidate
+        passes.append(
+            CompensationPass(
+                rank=rank,
+                strategy=strategy,
+                score=float(scores[strategy]),
+                rmse_before=float(before),
+                rmse_after=float(after),
+                effective=float(effective),
+                kept=kept,
+            )
+        )
+    rmse_last = _radial_rms(current - sel_ref)
+
+    if n_sel == n:
+        compensated = current
+    else:
+        compensated = p
+        for record in passes:
+            if record.kept:
+                compensated = apply_strategy(
+                    record.strategy,
+                    compensated,
+                    fs=fs,
+                    reference=reference,
+                    dominant_frequency=decomposition.dominant_frequency,
+                    flux=flux_a,
+                    accuracy=accuracy,
+                )
+    return CompensationResult(
+        compensated=np.array(compensated, dtype=np.float64, copy=True),
+        decomposition=decomposition,
+        scores=scores,
+        order=tuple(order),
+        passes=tuple(passes),
+        protocol=proto,
+        reference_mode=mode,
+        reference_point=reference_point,
+        n_samples=n,
+        n_selection=n_sel,
+        rmse_before=float(rmse_first),
+        rmse_after=float(rmse_last),
+        fs=fs,
+        top_k=int(top_k),
+        rollback_threshold=thr,
+        accuracy_source=acc_src,
+    )

@@ -1,0 +1,62 @@
+"""Temporal filtering of star centroids: motion models, a batched UKF, multi-star tracking.
+
+Pure numpy (+ scipy's assignment solver; filterpy as the reference filter), no I/O.
+
+* :mod:`starlog.track.models` — :class:`MotionModel` (STATIC, RANDOM_WALK, BROWNIAN_MOTION,
+  POLYNOMIAL_TREND, CONSTANT_VELOCITY), :class:`MotionModelConfig`, exact discretisation.
+* :mod:`starlog.track.ukf` — :class:`BatchUKF` and the functional core (Merwe sigma points,
+  unscented transform, gated update), vectorised across stars.
+* :mod:`starlog.track.association` — :class:`StarTracker`: frame-by-frame association, track
+  life cycle, per-track statistics, :meth:`StarTracker.brightest_track`.
+* :mod:`starlog.track.table` — :data:`TRACK_DTYPE` and :data:`TRACK_STATS_DTYPE` row layouts.
+
+Coordinates: x = column, y = row, px, (0, 0) at the centre of the top-left pixel; times are
+int ns ``log_time``.
+"""
+
+from __future__ import annotations
+
+from starlog.track.association import NoTrackError, StarTracker, TrackerConfig, track_centroids
+from starlog.track.models import (
+    MotionModel,
+    MotionModelConfig,
+    discretize,
+    initial_covariance,
+    state_dim,
+)
+from starlog.track.table import TRACK_DTYPE, TRACK_STATS_DTYPE, empty_tracks
+from starlog.track.ukf import (
+    DEFAULT_GATE_PROBABILITY,
+    BatchUKF,
+    SigmaPoints,
+    UKFUpdate,
+    filterpy_step,
+    gate_threshold,
+    make_filterpy_ukf,
+    ukf_predict,
+    ukf_update,
+)
+
+__all__ = [
+    "MotionModel",
+    "MotionModelConfig",
+    "discretize",
+    "initial_covariance",
+    "state_dim",
+    "BatchUKF",
+    "SigmaPoints",
+    "UKFUpdate",
+    "DEFAULT_GATE_PROBABILITY",
+    "gate_threshold",
+    "ukf_predict",
+    "ukf_update",
+    "make_filterpy_ukf",
+    "filterpy_step",
+    "StarTracker",
+    "TrackerConfig",
+    "NoTrackError",
+    "track_centroids",
+    "TRACK_DTYPE",
+    "TRACK_STATS_DTYPE",
+    "empty_tracks",
+]

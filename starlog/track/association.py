@@ -1,0 +1,590 @@
+"""Multi-star tracking across frames: association, track life cycle, per-track statistics.
+
+:class:`StarTracker` is fed one frame at a time (``update(log_time, x, y, sigma, flux)``,
+plain numpy arrays of the frame's centroids) and returns one :data:`TRACK_DTYPE` row per
+live track. Each frame:
+
+1. **Predict** every live track to the frame's ``log_time`` with the batched UKF
+   (:mod:`starlog.track.ukf`); ``dt`` is the ``log_time`` difference to the previous frame
+   (int ns → s), so irregular frame intervals are handled exactly.
+2. **Associate** centroids to tracks by an optimal assignment
+   (:func:`scipy.optimize.linear_sum_assignment`) minimising the total squared Mahalanobis
+   distance ``d² = νᵀ (P_pos + R)⁻¹ ν`` over admissible pairs. A pair is admissible when the
+   centroid lies within ``association_radius`` px of the predicted position *or* inside the
+   innovation gate (``d²`` below the chi-square(2) threshold of ``gate_probability``). The
+   assignment first maximises the number of admissible pairs, then minimises ``d²``.
+3. **Update** the associated tracks (one batched UKF update). The innovation gate then
+   decides: a measurement with ``NIS > threshold`` is a transient outlier, is not applied,
+   and the row is flagged ``gated`` (the track coasts on its prediction). Because the
+   association window is wider than the gate (a few px against a few sigma), a one-frame
+   outlier near a star is caught by the gate instead of starting a spurious track.
+   Outliers are *transient*: after ``max_gated`` (default 5) consecutive gated frames the
+   gate is taken to be rejecting a real change (motion the model does not expect, or a
+   centroid ``sigma`` that understates the true scatter), and the next associated
+   measurement is applied whatever its NIS (``measured`` true, ``nis`` above the threshold),
+   so a track is never frozen for good.
+4. **Start** a track for every unassociated centroid, in row-major order of position
+   (ascending ``y``, then ``x``), so ids do not depend on the order of centroids in the frame:
+   the same input always gives the same ids. Ids are 0, 1, 2 … and never reused. A new track's
+   state is the centroid (velocity and acceleration 0) with
+   :func:`~starlog.track.models.initial_covariance`.
+5. **Life cycle.** A track is *confirmed* once it has ``confirm_hits`` applied measurements
+   (default 3, birth included). A frame without an applied measurement (no centroid
+   associated, or the one associated was gated) is a miss (the ``missed`` count). A
+   tentative (unconfirmed) track is dropped at its first miss. A confirmed track keeps its
+   id through up to ``max_missed`` (default 10) consecutive frames *without an associated
+   centroid*, is re-acquired when its star comes back inside the association window, and
+   is lost (dropped, id retired) at the ``max_missed + 1``-th such frame; gated frames keep
+   a confirmed track alive (its star is there). Frames with no centroids at all are
+   ordinary misses.
+
+"The brightest star's track" (the paper's sequence, §2.1): :meth:`StarTracker.brightest_track`.
+
+Coordinates: x = column, y = row, px, (0, 0) at the centre of the top-left pixel; times are
+int ns ``log_time``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import linear_sum_assignment
+
+from starlog.errors import InvalidInputError, InvalidParameterError, StarlogError
+from starlog.track.models import (
+    MotionModel,
+    MotionModelConfig,
+    discretize,
+    initial_covariance,
+    state_dim,
+)
+from starlog.track.table import TRACK_DTYPE, TRACK_STATS_DTYPE
+from starlog.track.ukf import (
+    DEFAULT_GATE_PROBABILITY,
+    SigmaPoints,
+    gate_threshold,
+    ukf_predict,
+    ukf_update,
+)
+
+__all__ = ["TrackerConfig", "StarTracker", "NoTrackError", "track_centroids"]
+
+Array = npt.NDArray[np.float64]
+_EYE2 = np.eye(2)
+
+
+class NoTrackError(StarlogError, LookupError):
+    """No track satisfies the request (e.g. no confirmed track yet for the brightest star)."""
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Options of :class:`StarTracker` (validated on construction).
+
+    Parameters
+    ----------
+    model : MotionModel or str
+        Motion model of every track (default STATIC, the paper's best model for a static
+        star field, Table 2).
+    motion : MotionModelConfig
+        Process-noise intensities and initial velocity/acceleration uncertainty.
+    points : SigmaPoints
+        Merwe sigma-point scaling.
+    gate_probability : float
+        Innovation gate: probability that a correct measurement passes, chi-square(2 dof);
+        default 0.9999 (NIS threshold 18.42). 1.0 disables the gate.
+    association_radius : float
+        Association window around each predicted position, px (default 3.0): star images
+        are many pixels apart, while jitter and transient outliers stay within a few px.
+    confirm_hits : int
+        Applied measurements (birth included) that confirm a track, >= 1 (default 3).
+    max_missed : int
+        Consecutive frames without an associated centroid that a confirmed track survives,
+        >= 0 (default 10: 33–50 ms at 200–300 Hz).
+    max_gated : int
+        Consecutive gated frames after which the next associated measurement is applied
+        regardless of the gate, >= 1 (default 5: outliers are transient).
+    sigma_floor : float
+        Smallest measurement uncertainty used, px, > 0 (default 1e-3): centroids reporting
+        ``sigma`` below it (e.g. 0 for a method without an uncertainty) use the floor.
+    """
+
+    model: MotionModel | str = MotionModel.STATIC
+    motion: MotionModelConfig = field(default_factory=MotionModelConfig)
+    points: SigmaPoints = field(default_factory=SigmaPoints)
+    gate_probability: float = DEFAULT_GATE_PROBABILITY
+    association_radius: float = 3.0
+    confirm_hits: int = 3
+    max_missed: int = 10
+    max_gated: int = 5
+    sigma_floor: float = 1e-3
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "model", MotionModel.parse(self.model))
+        if not isinstance(self.motion, MotionModelConfig):
+            raise InvalidParameterError(
+                f"TrackerConfig.motion must be a MotionModelConfig, got {self.motion!r}."
+            )
+        if not isinstance(self.points, SigmaPoints):
+            raise InvalidParameterError(
+                f"TrackerConfig.points must be a SigmaPoints, got {self.points!r}."
+            )
+        gate_threshold(self.gate_probability)  # validates
+        for name in ("association_radius", "sigma_floor"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)):
+                raise InvalidParameterError(
+                    f"TrackerConfig.{name} must be a number, got {value!r}."
+                )
+            if not (math.isfinite(value) and value > 0):
+                raise InvalidParameterError(
+                    f"TrackerConfig.{name} must be finite and > 0, got {value!r}."
+                )
+        for name, low in (("confirm_hits", 1), ("max_missed", 0), ("max_gated", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise InvalidParameterError(
+                    f"TrackerConfig.{name} must be an integer >= {low}, got {value!r}."
+                )
+            object.__setattr__(self, name, int(value))
+
+
+def _frame_arrays(
+    x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.ArrayLike, flux: npt.ArrayLike
+) -> tuple[Array, Array, Array, Array]:
+    xs = np.asarray(x, dtype=np.float64)
+    ys = np.asarray(y, dtype=np.float64)
+    ss = np.asarray(sigma, dtype=np.float64)
+    fs = np.asarray(flux, dtype=np.float64)
+    if xs.ndim != 1 or ys.shape != xs.shape or ss.shape != xs.shape or fs.shape != xs.shape:
+        raise InvalidInputError(
+            "x, y, sigma and flux must be 1-D arrays of one length (one entry per centroid), "
+            f"got shapes {xs.shape}, {ys.shape}, {ss.shape}, {fs.shape}."
+        )
+    if xs.size and not (
+        np.isfinite(xs).all() and np.isfinite(ys).all() and np.isfinite(fs).all()
+    ):
+        raise InvalidInputError("centroid x, y and flux must be finite (no NaN or inf).")
+    if xs.size and not ((ss >= 0) & (ss < np.inf)).all():
+        raise InvalidInputError("centroid sigma must be finite and >= 0 px.")
+    return xs, ys, ss, fs
+
+
+class StarTracker:
+    """Track every star of a centroid stream with a batched UKF (see module docstring).
+
+    Parameters
+    ----------
+    config : TrackerConfig, optional
+        All options; keyword arguments override its fields, e.g.
+        ``StarTracker(model="CONSTANT_VELOCITY", max_missed=5)``.
+    **options
+        Fields of :class:`TrackerConfig`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> tracker = StarTracker(model="STATIC")
+    >>> rows = tracker.update(0, np.array([10.0]), np.array([20.0]), np.array([0.1]),
+    ...                       np.array([5e4]))
+    >>> rows["track"].tolist(), rows["measured"].tolist()
+    ([0], [True])
+    """
+
+    def __init__(self, config: TrackerConfig | None = None, **options: Any) -> None:
+        base = TrackerConfig() if config is None else config
+        try:
+            self.config = replace(base, **options) if options else base
+        except TypeError as err:
+            raise InvalidParameterError(f"unknown StarTracker option: {err}.") from err
+        cfg = self.config
+        self.model = MotionModel.parse(cfg.model)
+        self._d = state_dim(self.model)
+        self._threshold = gate_threshold(cfg.gate_probability)
+        self._cache: dict[int, tuple[Array, Array]] = {}
+        d = self._d
+        self._last_time: int | None = None
+        self._next_id = 0
+        self.frames = 0
+        # live tracks, sorted by id
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._x = np.zeros((0, d))
+        self._P = np.zeros((0, d, d))
+        self._hits = np.zeros(0, dtype=np.int64)
+        self._missed = np.zeros(0, dtype=np.int64)
+        self._coast = np.zeros(0, dtype=np.int64)  # consecutive frames without a centroid
+        self._gstreak = np.zeros(0, dtype=np.int64)  # consecutive gated frames
+        self._age = np.zeros(0, dtype=np.int64)
+        self._gated = np.zeros(0, dtype=np.int64)
+        self._first = np.zeros(0, dtype=np.int64)
+        self._last = np.zeros(0, dtype=np.int64)
+        self._sums = np.zeros((0, 3))  # flux, x, y over applied measurements
+        self._lost: list[npt.NDArray[np.void]] = []
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_live(self) -> int:
+        """Number of live tracks (tentative and confirmed)."""
+        return int(self._ids.size)
+
+    @property
+    def last_log_time(self) -> int | None:
+        """``log_time`` of the last frame given to :meth:`update` (None before the first)."""
+        return self._last_time
+
+    # ------------------------------------------------------------------ internals
+    def _transition(self, dt_ns: int) -> tuple[Array, Array]:
+        hit = self._cache.get(dt_ns)
+        if hit is None:
+            F, Q = discretize(self.model, dt_ns * 1e-9, config=self.config.motion)
+            if len(self._cache) >= 1024:
+                self._cache.clear()
+            hit = self._cache[dt_ns] = (np.ascontiguousarray(F.T), Q)
+        return hit
+
+    def _associate(
+        self, xs: Array, ys: Array, var: Array
+    ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+        """Indices (tracks, centroids) of the admissible optimal assignment."""
+        px = self._x[:, 0]
+        py = self._x[:, 1]
+        nx = xs[None, :] - px[:, None]
+        ny = ys[None, :] - py[:, None]
+        a = self._P[:, 0, 0][:, None] + var[None, :]
+        b = self._P[:, 0, 1][:, None]
+        c = self._P[:, 1, 1][:, None] + var[None, :]
+        d2 = (c * nx * nx - 2.0 * b * nx * ny + a * ny * ny) / (a * c - b * b)
+        r2 = self.config.association_radius**2
+        ok = ((nx * nx + ny * ny) <= r2) | (d2 <= self._threshold)
+        if not ok.any():
+            return np.zeros(0, np.intp), np.zeros(0, np.intp)
+        big = 1e3 * (float(d2[ok].max()) + 1.0)
+        cost = np.where(ok, d2, big)
+        rows, cols = linear_sum_assignment(cost)
+        keep = ok[rows, cols]
+        return rows[keep], cols[keep]
+
+    def _retire(self, mask: npt.NDArray[np.bool_]) -> None:
+        if mask.any():
+            self._lost.append(self._stats(mask, alive=False))
+            keep = ~mask
+            self._ids = self._ids[keep]
+            self._x = self._x[keep]
+            self._P = self._P[keep]
+            self._hits = self._hits[keep]
+            self._missed = self._missed[keep]
+            self._coast = self._coast[keep]
+            self._gstreak = self._gstreak[keep]
+            self._age = self._age[keep]
+            self._gated = self._gated[keep]
+            self._first = self._first[keep]
+            self._last = self._last[keep]
+            self._sums = self._sums[keep]
+
+    def _stats(self, mask: npt.NDArray[np.bool_], *, alive: bool) -> npt.NDArray[np.void]:
+        out = np.zeros(int(mask.sum()), dtype=TRACK_STATS_DTYPE)
+        hits = self._hits[mask]
+        sums = self._sums[mask]
+        out["track"] = self._ids[mask]
+        out["alive"] = alive
+        out["confirmed"] = hits >= self.config.confirm_hits
+        out["hits"] = hits
+        out["gated"] = self._gated[mask]
+        out["first_log_time"] = self._first[mask]
+        out["last_log_time"] = self._last[mask]
+        denom = np.maximum(hits, 1)[:, None]
+        mean = sums / denom
+        out["mean_flux"] = mean[:, 0]
+        out["mean_x"] = mean[:, 1]
+        out["mean_y"] = mean[:, 2]
+        return out
+
+    # ------------------------------------------------------------------ public API
+    def update(
+        self,
+        log_time: int,
+        x: npt.ArrayLike,
+        y: npt.ArrayLike,
+        sigma: npt.ArrayLike,
+        flux: npt.ArrayLike,
+    ) -> npt.NDArray[np.void]:
+        """Process one frame's centroids and return the state of every live track.
+
+        Parameters
+        ----------
+        log_time : int
+            Frame time, int ns; strictly increasing from call to call.
+        x, y : (m,) array_like
+            Centroid column and row, px (pixel-centre origin); ``m`` may be 0.
+        sigma : (m,) array_like
+            Each centroid's own uncertainty, px, >= 0 (``sigma_floor`` applies);
+            ``R = diag(sigma², sigma²)``.
+        flux : (m,) array_like
+            Each centroid's flux (any unit; used for the per-track statistics).
+
+        Returns
+        -------
+        (n_live,) ndarray of TRACK_DTYPE
+            One row per live track (tentative ones included, see ``confirmed``), sorted by
+            ``track``; rows of tracks lost in this frame are not included.
+
+        Raises
+        ------
+        InvalidInputError
+            On arrays of unequal length, non-finite values, negative ``sigma``, or a
+            ``log_time`` that does not increase.
+        """
+        if isinstance(log_time, bool) or not isinstance(log_time, (int, np.integer)):
+            raise InvalidInputError(f"log_time must be an integer (ns), got {log_time!r}.")
+        t = int(log_time)
+        if self._last_time is not None and t <= self._last_time:
+            raise InvalidInputError(
+                f"log_time must increase from frame to frame: got {t} after {self._last_time}."
+            )
+        xs, ys, ss, fs = _frame_arrays(x, y, sigma, flux)
+        cfg = self.config
+        ss = np.maximum(ss, cfg.sigma_floor)
+        var = ss * ss
+        m = xs.size
+        n = self._ids.size
+        d = self._d
+
+        # 1. predict
+        if n:
+            assert self._last_time is not None
+            Ft, Q = self._transition(t - self._last_time)
+            self._x, self._P = ukf_predict(
+                self._x, self._P, fx=lambda s: np.matmul(s, Ft), Q=Q, points=cfg.points
+            )
+        self._last_time = t
+        self.frames += 1
+
+        # 2. associate
+        if n and m:
+            ti, mj = self._associate(xs, ys, var)
+        else:
+            ti = mj = np.zeros(0, np.intp)
+
+        innov = np.zeros((n, 2))
+        nis = np.zeros(n)
+        measured = np.zeros(n, dtype=bool)
+        associated = np.zeros(n, dtype=bool)
+        meas = np.zeros((n, 4))  # x, y, sigma, flux
+
+        # 3. update the associated tracks
+        if ti.size:
+            z = np.stack((xs[mj], ys[mj]), axis=1)
+            R = var[mj][:, None, None] * _EYE2
+            reset = self._gstreak[ti] >= cfg.max_gated
+            thr: float | Array = (
+                np.where(reset, np.inf, self._threshold) if reset.any() else self._threshold
+            )
+            res = ukf_update(self._x[ti], self._P[ti], z, R, points=cfg.points, threshold=thr)
+            self._x[ti] = res.x
+            self._P[ti] = res.P
+            innov[ti] = res.innovation
+            nis[ti] = res.nis
+            measured[ti] = res.applied
+            associated[ti] = True
+            meas[ti, 0] = xs[mj]
+            meas[ti, 1] = ys[mj]
+            meas[ti, 2] = ss[mj]
+            meas[ti, 3] = fs[mj]
+            ok = ti[res.applied]
+            self._hits[ok] += 1
+            self._last[ok] = t
+            self._sums[ok] += meas[ok][:, [3, 0, 1]]
+        gated = associated & ~measured
+        self._gated[gated] += 1
+        self._gstreak[gated] += 1
+        self._gstreak[~gated] = 0
+        self._missed[measured] = 0
+        self._missed[~measured] += 1
+        self._coast[associated] = 0
+        self._coast[~associated] += 1
+        self._age += 1
+
+        # 5. retire lost tracks (before births, so that new ids follow the old ones)
+        confirmed = self._hits >= cfg.confirm_hits
+        lost = np.where(confirmed, self._coast > cfg.max_missed, self._missed > 0)
+        if lost.any():
+            keep = ~lost
+            self._retire(lost)
+            innov, nis, measured, gated, meas = (
+                innov[keep], nis[keep], measured[keep], gated[keep], meas[keep],
+            )
+
+        # 4. births, in row-major order of position
+        free = np.ones(m, dtype=bool)
+        free[mj] = False
+        if free.any():
+            new = np.flatnonzero(free)
+            new = new[np.lexsort((xs[new], ys[new]))]
+            k = new.size
+            state = np.zeros((k, d))
+            state[:, 0] = xs[new]
+            state[:, 1] = ys[new]
+            self._ids = np.concatenate((self._ids, np.arange(self._next_id, self._next_id + k)))
+            self._next_id += k
+            self._x = np.concatenate((self._x, state))
+            self._P = np.concatenate(
+                (self._P, initial_covariance(self.model, ss[new], config=cfg.motion))
+            )
+            ones = np.ones(k, dtype=np.int64)
+            zeros = np.zeros(k, dtype=np.int64)
+            self._hits = np.concatenate((self._hits, ones))
+            self._missed = np.concatenate((self._missed, zeros))
+            self._coast = np.concatenate((self._coast, zeros))
+            self._gstreak = np.concatenate((self._gstreak, zeros))
+            self._age = np.concatenate((self._age, zeros))
+            self._gated = np.concatenate((self._gated, zeros))
+            self._first = np.concatenate((self._first, np.full(k, t, dtype=np.int64)))
+            self._last = np.concatenate((self._last, np.full(k, t, dtype=np.int64)))
+            self._sums = np.concatenate((self._sums, np.stack((fs[new], xs[new], ys[new]), 1)))
+            innov = np.concatenate((innov, np.zeros((k, 2))))
+            nis = np.concatenate((nis, np.zeros(k)))
+            measured = np.concatenate((measured, np.ones(k, dtype=bool)))
+            gated = np.concatenate((gated, np.zeros(k, dtype=bool)))
+            meas = np.concatenate((meas, np.stack((xs[new], ys[new], ss[new], fs[new]), 1)))
+
+        # output
+        out = np.empty(self._ids.size, dtype=TRACK_DTYPE)
+        out["track"] = self._ids
+        out["x"] = self._x[:, 0]
+        out["y"] = self._x[:, 1]
+        if d >= 4:
+            out["vx"] = self._x[:, 2]
+            out["vy"] = self._x[:, 3]
+        else:
+            out["vx"] = 0.0
+            out["vy"] = 0.0
+        out["cov_xx"] = self._P[:, 0, 0]
+        out["cov_xy"] = self._P[:, 0, 1]
+        out["cov_yy"] = self._P[:, 1, 1]
+        out["innovation_x"] = innov[:, 0]
+        out["innovation_y"] = innov[:, 1]
+        out["nis"] = nis
+        out["measured"] = measured
+        out["gated"] = gated
+        out["meas_x"] = meas[:, 0]
+        out["meas_y"] = meas[:, 1]
+        out["meas_sigma"] = meas[:, 2]
+        out["flux"] = meas[:, 3]
+        out["age"] = self._age
+        out["missed"] = self._missed
+        out["confirmed"] = self._hits >= cfg.confirm_hits
+        out["hits"] = self._hits
+        return out
+
+    def track_stats(self) -> npt.NDArray[np.void]:
+        """Summary of every track started so far (live and lost), sorted by id.
+
+        Returns
+        -------
+        ndarray of TRACK_STATS_DTYPE
+        """
+        live = self._stats(np.ones(self._ids.size, dtype=bool), alive=True)
+        out = np.concatenate([*self._lost, live]) if self._lost else live
+        return out[np.argsort(out["track"], kind="stable")]
+
+    def brightest_track(self, *, min_hits_fraction: float = 0.9) -> int:
+        """Id of "the brightest star's track" (the paper's centroid sequence, §2.1).
+
+        Rule: among *confirmed* tracks (live or lost), keep those with at least
+        ``min_hits_fraction`` times the largest number of associated measurements (applied
+        or gated) of any confirmed track (so a star seen in nearly every frame beats a brief
+        bright transient); of those, return the one with the highest mean flux over its
+        applied measurements; ties go to the smaller id. Gated measurements count as seen:
+        a model that rejects many measurements of a bright star (STATIC under platform
+        jitter with a small ``sigma``) must still pick the same star as the other models.
+
+        Parameters
+        ----------
+        min_hits_fraction : float
+            In (0, 1]; 1.0 keeps only the tracks with the most measurements.
+
+        Returns
+        -------
+        int
+            The track id.
+
+        Raises
+        ------
+        NoTrackError
+            When no track is confirmed yet.
+        """
+        if not (0.0 < float(min_hits_fraction) <= 1.0):
+            raise InvalidParameterError(
+                f"min_hits_fraction must be in (0, 1], got {min_hits_fraction!r}."
+            )
+        stats = self.track_stats()
+        stats = stats[stats["confirmed"]]
+        if stats.size == 0:
+            raise NoTrackError(
+                f"no confirmed track after {self.frames} frames (a track is confirmed after "
+                f"{self.config.confirm_hits} applied measurements)."
+            )
+        seen = stats["hits"] + stats["gated"]
+        need = min_hits_fraction * seen.max()
+        cand = stats[seen >= need - 1e-9]
+        best = np.lexsort((cand["track"], -cand["mean_flux"]))[0]
+        return int(cand["track"][best])
+
+
+def track_centroids(
+    log_time: npt.ArrayLike,
+    x: npt.ArrayLike,
+    y: npt.ArrayLike,
+    sigma: npt.ArrayLike,
+    flux: npt.ArrayLike,
+    *,
+    config: TrackerConfig | None = None,
+    frame_times: npt.ArrayLike | None = None,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.void], StarTracker]:
+    """Track a whole centroid table (one row per centroid) frame by frame.
+
+    Parameters
+    ----------
+    log_time : (k,) array_like of int
+        Frame time of each centroid, ns; rows of one frame share it.
+    x, y, sigma, flux : (k,) array_like
+        Centroid columns (see :meth:`StarTracker.update`).
+    config : TrackerConfig, optional
+        Tracker options.
+    frame_times : array_like of int, optional
+        Every frame's ``log_time`` (ns), so that frames without centroids are processed
+        too; by default the distinct values of ``log_time``.
+
+    Returns
+    -------
+    row_time : (r,) ndarray of int64
+        ``log_time`` of each output row.
+    rows : (r,) ndarray of TRACK_DTYPE
+        The concatenated per-frame outputs.
+    tracker : StarTracker
+        The tracker after the last frame (for :meth:`StarTracker.brightest_track`).
+    """
+    t = np.asarray(log_time, dtype=np.int64)
+    xs, ys, ss, fs = _frame_arrays(x, y, sigma, flux)
+    if t.shape != xs.shape:
+        raise InvalidInputError(f"log_time must have shape {xs.shape}, got {t.shape}.")
+    frames = np.unique(t) if frame_times is None else np.unique(np.asarray(frame_times, np.int64))
+    order = np.argsort(t, kind="stable")
+    ts = t[order]
+    starts = np.searchsorted(ts, frames, side="left")
+    stops = np.searchsorted(ts, frames, side="right")
+    tracker = StarTracker(config)
+    times: list[npt.NDArray[np.int64]] = []
+    outs: list[npt.NDArray[np.void]] = []
+    for ft, a, b in zip(frames.tolist(), starts.tolist(), stops.tolist(), strict=True):
+        idx = order[a:b]
+        rows = tracker.update(ft, xs[idx], ys[idx], ss[idx], fs[idx])
+        outs.append(rows)
+        times.append(np.full(rows.size, ft, dtype=np.int64))
+    if not outs:
+        return np.zeros(0, np.int64), np.zeros(0, TRACK_DTYPE), tracker
+    return np.concatenate(times), np.concatenate(outs), tracker
