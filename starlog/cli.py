@@ -385,7 +385,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 
     For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
     strategies with rollback below 1 %, under each protocol. Adds the series before/after and
-    one decision record per (rate, protocol) on /compensation/decisions.
+    one decision record per (rate, protocol) on /compensated/<METHOD>/<MODEL>/decisions.
 
     \b
     Example:
@@ -404,6 +404,58 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
         _print_json(summary.to_dict())
     else:
         click.echo(format_records(summary.records))
+
+
+# ---------------------------------------------------------------- run
+@cli.command(context_settings=CONTEXT)
+@click.argument("log", required=False, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="Output log (.mcap).")
+@click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Pipeline config (TOML) [default: the built-in config, see --print-config].")
+@click.option("--print-config", is_flag=True, help="Print the built-in config (a starting point) and exit.")
+@json_option
+@write_options
+def run(log: Path | None, output: Path | None, config_path: Path | None, print_config: bool, as_json: bool,
+        force: bool, compression: str, workers: int, quiet: bool) -> None:
+    """Replay a log through several stages (centroid, track, compensate) from one config file.
+
+    Each stage's parameters come from its table in the TOML config; the result equals running
+    the stages one by one. Prints a short summary (the compensation table at the end).
+
+    \b
+    Example:
+      starlog run --print-config > pipeline.toml
+      starlog run sim.mcap -o result.mcap --config pipeline.toml
+    """
+    from starlog.pipeline import DEFAULT_CONFIG_TOML, load_config, run_pipeline
+
+    if print_config:
+        click.echo(DEFAULT_CONFIG_TOML, nl=False)
+        return
+    if log is None or output is None:
+        raise click.UsageError("give the input LOG and -o/--output (or --print-config).")
+    config = load_config(config_path)
+
+    def report(stage: str, result: dict[str, Any]) -> None:
+        if quiet or as_json:
+            return
+        if stage == "centroid":
+            click.echo(f"centroid: {result['frames']} frames, {result['detections_per_frame']:.1f} stars/frame, "
+                       f"methods {', '.join(result['methods'])}", err=True)
+        elif stage.startswith("track"):
+            models = ", ".join(f"{m} (track {v['brightest_track']}, NIS {v['mean_nis']:.2f})"
+                               for m, v in result["models"].items())
+            click.echo(f"track {result['method']}: brightest star under {models}", err=True)
+
+    result = run_pipeline(log, output, config, workers=workers, force=force, compression=compression,
+                          show_progress=not quiet, on_stage=report)
+    if as_json:
+        _print_json(result.to_dict())
+        return
+    for stage, summary in result.stages:
+        if stage == "compensate":
+            click.echo(format_records(summary["records"]))
+    click.echo(f"wrote {output}; inspect it with: starlog info {output}; tables: starlog export {output} -o DIR")
 
 
 # ---------------------------------------------------------------- recover

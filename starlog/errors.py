@@ -111,3 +111,36 @@ class ImageFolderError(StarlogError):
 
 class FitError(StarlogError):
     """A model fit (centroid fit, filter initialisation, error model) failed."""
+
+
+# ---------------------------------------------------------------- reliability (issue 8)
+__all__ += ["CorruptChunkError", "InvalidMessageError"]
+
+
+class CorruptChunkError(CorruptLogError):
+    """A chunk of the log is damaged (CRC mismatch, undecompressable, or it disagrees with its indexes).
+
+    The error names the chunk: its file ``offset``, the ``topics`` of the channels it holds and
+    its ``log_time`` range, so a user knows what is lost; ``starlog recover`` keeps every other chunk.
+    """
+
+    def __init__(self, path: str | Path, offset: int, topics: list[str], start: int, end: int, detail: str) -> None:
+        self.offset = offset
+        self.topics = list(topics)
+        self.start = start
+        self.end = end
+        listing = ", ".join(self.topics) or "no known channel"
+        super().__init__(
+            path,
+            f"the chunk at offset {offset} (channels {listing}; log_time {start}..{end}) is damaged: {detail}. "
+            f"Keep every intact chunk with: starlog recover {path} -o RECOVERED.mcap",
+        )
+
+
+class InvalidMessageError(LogError):
+    """A message decodes, but its value cannot be used (out of order, wrong frame size, schema violation)."""
+
+    def __init__(self, path: str | Path, topic: str, log_time: int, detail: str) -> None:
+        self.topic = topic
+        self.log_time = log_time
+        super().__init__(path, f"message on {topic!r} at log_time {log_time} is invalid: {detail}")

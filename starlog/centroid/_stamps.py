@@ -7,7 +7,7 @@ non-finite or saturated are invalid (``valid`` False, ``data`` 0) and left out e
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -16,6 +16,7 @@ from scipy.special import erf
 __all__ = [
     "Stamps",
     "gather_stamps",
+    "with_saturated",
     "profile_1d",
     "model",
     "linear_flux",
@@ -44,6 +45,8 @@ class Stamps:
     saturated: npt.NDArray[np.bool_]
     cut: npt.NDArray[np.bool_]  # window cut by the frame edge
     masked: npt.NDArray[np.bool_]  # non-finite pixels in the window
+    satpix: npt.NDArray[np.bool_]  # (N, W, W) saturated pixels inside the frame
+    clip: F64  # (N,) saturation level above the background, DN (inf: none)
 
     @property
     def u(self) -> F64:
@@ -87,7 +90,17 @@ def gather_stamps(
         saturated=(sat & inside).any(axis=(1, 2)),
         cut=~inside.all(axis=(1, 2)),
         masked=(~fin & inside).any(axis=(1, 2)),
+        satpix=sat & inside,
+        clip=float(saturation) - np.asarray(background, np.float64),
     )
+
+
+def with_saturated(st: Stamps) -> Stamps:
+    """The stamps with saturated pixels kept at their (clipped) value, for non-fit methods."""
+    if not st.saturated.any():
+        return st
+    data = np.where(st.satpix, st.clip[:, None, None], st.data)
+    return replace(st, data=data, valid=st.valid | st.satpix)
 
 
 def profile_1d(u: F64, c: F64, s: F64 | float, deriv: bool = False) -> tuple[F64, F64 | None, F64 | None]:

@@ -24,6 +24,7 @@ from starlog.centroid._stamps import (
     linear_flux,
     model,
     optimal_smoothing,
+    with_saturated,
 )
 from starlog.centroid.bicubic import bicubic_peak
 from starlog.centroid.coarse import log_parabola_peak
@@ -250,14 +251,17 @@ def measure_centroids(
         sm = optimal_smoothing(np.maximum(f0, 0), noise, gain, psf_arr)
         ctx["smooth"] = sm
         ctx["smooth_gradient"] = sm
-        ex, ey, ok = _run(meth, st.data, st, ctx, dx0, dy0)
+        # saturated pixels enter the non-fit estimators at their clipped value (and the model
+        # used for debiasing is clipped the same way)
+        se = with_saturated(st)
+        ex, ey, ok = _run(meth, se.data, se, ctx, dx0, dy0)
         dx, dy = ex.copy(), ey.copy()
         if debias:
             fm = np.maximum(f0, 0)
             ctx["iterations"] = 4  # the model's estimate starts next to its fixed point
             for _ in range(2):
-                mdl = fm[:, None, None] * model(st, dx, dy, psf_arr) * st.valid
-                mx, my, mok = _run(meth, mdl, st, ctx, dx, dy)
+                mdl = np.minimum(fm[:, None, None] * model(st, dx, dy, psf_arr), se.clip[:, None, None]) * se.valid
+                mx, my, mok = _run(meth, mdl, se, ctx, dx, dy)
                 good = ok & mok & np.isfinite(mx) & np.isfinite(my)
                 dx = np.where(good, dx + (ex - mx), dx)
                 dy = np.where(good, dy + (ey - my), dy)
@@ -281,7 +285,8 @@ def measure_centroids(
     iy = np.clip(np.rint(dy).astype(np.intp) + h, 1, 2 * h - 1)
     ar = np.arange(n)[:, None]
     d3 = np.arange(-1, 2)
-    raw = st.data + np.where(st.valid, 0.0, -np.inf)
+    sp = with_saturated(st)  # a saturated star's peak is its clipped level
+    raw = np.where(sp.valid, sp.data, -np.inf)
     p3 = raw[ar[:, :, None], (iy[:, None] + d3)[:, :, None], (ix[:, None] + d3)[:, None, :]]
     peak = p3.reshape(n, -1).max(axis=1)
     peak = np.where(np.isfinite(peak), peak, 0.0)

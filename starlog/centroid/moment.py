@@ -43,7 +43,6 @@ def weighted_centroid(
 ) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Iteratively re-weighted centre of gravity of each window (see module docstring)."""
     u = st.u
-    n = dx0.size
 
     def step(cx: F64, cy: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
         """One centre-of-gravity evaluation with the weights centred on (cx, cy)."""
@@ -88,7 +87,6 @@ def weighted_centroid(
         cx = np.clip(cx + fx * gx, -st.h, st.h)
         cy = np.clip(cy + fy * gy, -st.h, st.h)
     ok &= np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < st.h) & (np.abs(cy) < st.h)
-    _ = n
     return cx, cy, ok
 
 

@@ -14,7 +14,8 @@ extraction, connected components, morphology, screening, moments + second-order 
    several peaks separated by a significant saddle is split (flag ``BLENDED``);
 6. screening: hot pixels and cosmic-ray hits are rejected because they are sharper than any
    PSF (the mean of the two horizontal, or the two vertical, neighbours of the brightest pixel
-   is below ``sharpness_ratio`` of it), and so are footprints elongated beyond
+   is below ``sharpness_ratio`` of it and more than 8 noise sigma below it), and so are
+   footprints elongated beyond
    ``max_elongation``; saturated stars are kept and flagged ``SATURATED``; stars within
    ``border`` pixels of the edge are flagged ``BORDER``;
 7. coarse position: the intensity moments of the peak's 5x5 neighbourhood, refined by a
@@ -180,9 +181,10 @@ def detect_stars(
     mesh : int
         Background cell size, px (see :func:`estimate_background`).
     sharpness_ratio : float
-        Hot-pixel / cosmic-ray test: reject a candidate whose brightest pixel is significant
-        (> 5 noise sigma) and the mean of its two horizontal or two vertical neighbours is
-        below this fraction of it. 0.2 accepts Gaussian PSFs with sigma >= ~0.55 px.
+        Hot-pixel / cosmic-ray test: reject a candidate whose brightest pixel stands more than
+        8 noise sigma above the mean of its two horizontal or of its two vertical neighbours,
+        that mean being below this fraction of it. 0.2 accepts Gaussian PSFs with
+        sigma >= ~0.55 px.
     max_elongation : float
         Reject candidates with a larger axis ratio (cosmic-ray tracks); blends are exempt.
     elongation_flag : float
@@ -298,6 +300,9 @@ def detect_stars(
             kept = [0]
         else:
             yy, xx = np.nonzero((f >= cv2.dilate(f, kernel3)) & lm)
+            if yy.size == 0:  # the maximum sits on a pixel the opening removed: take the top one
+                j = int(np.argmax(np.where(lm, f, -np.inf)))
+                yy, xx = np.array([j // wd]), np.array([j % wd])
             fv = f[yy, xx].astype(np.float64) - float(lev)
             if yy.size > 1:
                 order = np.argsort(-fv, kind="stable")
@@ -351,7 +356,10 @@ def detect_stars(
     by, bx = 1 + jmax // 3, 1 + jmax % 3
     hmean = 0.5 * (box[ar, by, bx - 1] + box[ar, by, bx + 1])
     vmean = 0.5 * (box[ar, by - 1, bx] + box[ar, by + 1, bx])
-    sharp = (peak > 5.0 * noise) & (np.minimum(hmean, vmean) < sharpness_ratio * peak)
+    nmin = np.minimum(hmean, vmean)
+    # a spike far above what noise can do (any detectable hot pixel is > 10 sigma) and narrower
+    # than any PSF; noise spikes on faint stars are left alone by the significance condition
+    sharp = (peak - nmin > 8.0 * noise) & (nmin < sharpness_ratio * peak)
     sat = (raw[:, 1:4, 1:4] >= saturation).reshape(n, 9).any(axis=1)
     flags[sat] |= np.uint16(StarFlag.SATURATED)
     sharp &= ~sat

@@ -1,31 +1,75 @@
-"""Reading starlog logs: channel summaries, decoded messages streamed in constant memory, provenance."""
+"""Reading starlog logs: channel summaries, decoded messages streamed in constant memory, provenance.
+
+Nothing damaged is passed on. On opening, the footer, the summary's CRC and the consistency of
+its indexes are checked; while reading, every chunk's CRC, its records, and its message index are
+checked against each other. A problem raises :class:`~starlog.errors.TruncatedLogError` (file
+cut off or never finished), :class:`~starlog.errors.CorruptChunkError` (naming the chunk's offset,
+channels and time range) or :class:`~starlog.errors.CorruptLogError`, each pointing to
+``starlog recover``; a message whose payload does not decode or does not satisfy its schema
+raises :class:`~starlog.errors.MessageDecodeError` / :class:`~starlog.errors.InvalidMessageError`
+naming its topic and ``log_time``.
+"""
 
 from __future__ import annotations
 
+import heapq
+import io
+import json
 import os
-from collections.abc import Iterable, Iterator
+import struct
+import zlib
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO
 
 import numpy as np
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import SeekingReader, make_reader
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, ChunkIndex, Message, Metadata, Schema
 from mcap.summary import Summary
 
 from starlog.errors import (
     ChannelNotFoundError,
+    CorruptChunkError,
     CorruptLogError,
     InvalidInputError,
+    InvalidMessageError,
     LogNotFoundError,
     MessageDecodeError,
     TruncatedLogError,
 )
-from starlog.io.messages import decode_json, decode_raw_image
+from starlog.io.messages import compile_json_schema, decode_json, decode_raw_image
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
-from starlog.io.writer import locate_data_end
+from starlog.io.writer import MCAP_MAGIC, locate_data_end
+
+_RECORD_HEADER = struct.Struct("<BQ")
+_MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log_time, publish_time
+_CHUNK_HEADER = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed CRC
+_FOOTER = struct.Struct("<BQQQI")  # opcode, length, summary_start, summary_offset_start, summary_crc
+
+
+def _hint(path: Path) -> str:
+    return f"Rebuild a readable copy with: starlog recover {path} -o RECOVERED.mcap"
+
+
+def _decompress(compression: str, data: bytes, size: int) -> bytes:
+    """Decompress at most ``size`` + 1 bytes (a damaged frame header cannot make us allocate more)."""
+    if compression == "":
+        return data
+    if compression == "zstd":
+        import zstandard
+
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
+            return reader.read(size + 1)
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
+    raise ValueError(f"unsupported chunk compression {compression!r}")
 
 __all__ = ["ChannelSummary", "DecodedMessage", "LogReader"]
 
@@ -74,11 +118,25 @@ class DecodedMessage:
     payload: Any
 
 
-def decode_payload(path: Path, schema: Schema | None, channel: Channel, message: Message) -> Any:
-    """Decode one message by its schema (JSON → dict, foxglove.RawImage → ndarray)."""
+def decode_payload(
+    path: Path, schema: Schema | None, channel: Channel, message: Message,
+    check: Callable[[Any], str | None] | None = None,
+) -> Any:
+    """Decode one message by its schema (JSON → dict, foxglove.RawImage → ndarray).
+
+    ``check`` (a :func:`~starlog.io.messages.compile_json_schema` checker) validates a JSON
+    payload; a violation raises :class:`InvalidMessageError`.
+    """
     try:
         if channel.message_encoding == "json":
-            return decode_json(message.data)
+            value = decode_json(message.data)
+            if check is not None:
+                problem = check(value)
+                if problem:
+                    raise InvalidMessageError(path, channel.topic, message.log_time,
+                                              f"it does not match its schema {schema.name if schema else ''!r} "
+                                              f"({problem}).")
+            return value
         if schema is not None and schema.name == "foxglove.RawImage":
             return decode_raw_image(message.data)
         if schema is not None and schema.name == "foxglove.ImageAnnotations":
@@ -87,6 +145,8 @@ def decode_payload(path: Path, schema: Schema | None, channel: Channel, message:
             annotations = ImageAnnotations()
             annotations.ParseFromString(message.data)
             return annotations
+    except InvalidMessageError:
+        raise
     except (InvalidInputError, ValueError) as err:
         raise MessageDecodeError(path, channel.topic, message.log_time, str(err)) from err
     except Exception as err:  # protobuf's DecodeError is not a ValueError subclass on every backend
@@ -102,7 +162,10 @@ class LogReader:
     path : path-like
         An MCAP file with a summary section (every file starlog writes has one).
     validate_crcs : bool
-        Check every chunk's CRC as it is read (default). A mismatch raises :class:`CorruptLogError`.
+        Check the summary's and every chunk's CRC (default). A mismatch raises
+        :class:`CorruptLogError` / :class:`CorruptChunkError`.
+    validate_messages : bool
+        Check every JSON message against its embedded JSON Schema as it is decoded (default).
 
     Raises
     ------
@@ -115,27 +178,95 @@ class LogReader:
     ...         image = message.payload  # 2-D uint16 array
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, validate_crcs: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, validate_crcs: bool = True,
+                 validate_messages: bool = True) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise LogNotFoundError(self.path)
+        self._validate_crcs = validate_crcs
+        self._validate_messages = validate_messages
+        self._checkers: dict[int, Callable[[Any], str | None] | None] = {}
         self._file: BinaryIO = open(self.path, "rb")
         try:
-            locate_data_end(self.path, self._file)
-            self._file.seek(0)
-            self._reader = make_reader(self._file, validate_crcs=validate_crcs)
-            assert isinstance(self._reader, SeekingReader)
-            summary = self._reader.get_summary()
-        except (TruncatedLogError, CorruptLogError):
+            self._data_end = self._open()
+        except BaseException:
             self._file.close()
             raise
-        except (McapError, ValueError, EOFError, OSError) as err:
-            self._file.close()
-            raise CorruptLogError(self.path, f"its summary cannot be read ({err}); try starlog recover.") from err
+
+    def _open(self) -> int:
+        f = self._file
+        try:
+            data_end = locate_data_end(self.path, f)
+        except TruncatedLogError:
+            raise
+        except CorruptLogError as err:
+            raise CorruptLogError(self.path, f"{err.reason} {_hint(self.path)}") from err
+        except (ValueError, OSError, struct.error) as err:  # footer pointing before the file start
+            raise CorruptLogError(self.path, f"its footer is damaged ({err}). {_hint(self.path)}") from err
+        size = f.seek(0, os.SEEK_END)
+        f.seek(size - len(MCAP_MAGIC) - _FOOTER.size)
+        _, _, summary_start, summary_offset_start, summary_crc = _FOOTER.unpack(f.read(_FOOTER.size))
+        if summary_start == 0:
+            raise TruncatedLogError(self.path, "it has no summary section")
+        footer_start = size - len(MCAP_MAGIC) - _FOOTER.size
+        if not data_end < summary_start <= footer_start or not (
+            summary_offset_start == 0 or summary_start <= summary_offset_start <= footer_start
+        ):
+            raise CorruptLogError(self.path, f"its footer points outside the file (summary at {summary_start}, "
+                                             f"summary offsets at {summary_offset_start}). {_hint(self.path)}")
+        if self._validate_crcs and summary_crc != 0:
+            f.seek(summary_start)
+            crc = zlib.crc32(f.read(footer_start - summary_start))
+            crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
+            if crc != summary_crc:
+                raise CorruptLogError(
+                    self.path, f"its summary section (offset {summary_start}..{footer_start}) is damaged: "
+                    f"CRC {crc:#010x} does not match the footer's {summary_crc:#010x}. {_hint(self.path)}")
+        try:
+            f.seek(0)
+            self._reader = make_reader(f, validate_crcs=self._validate_crcs)
+            assert isinstance(self._reader, SeekingReader)
+            summary = self._reader.get_summary()
+        except (McapError, ValueError, EOFError, OSError, struct.error, KeyError, MemoryError) as err:
+            raise CorruptLogError(self.path, f"its summary cannot be read ({type(err).__name__}: {err}). "
+                                             f"{_hint(self.path)}") from err
         if summary is None:
-            self._file.close()
             raise TruncatedLogError(self.path, "it has no summary section")
         self._summary: Summary = summary
+        self._check_summary(data_end)
+        return data_end
+
+    def _check_summary(self, data_end: int) -> None:
+        """The indexes must point inside the data section and name known channels and schemas."""
+        summary = self._summary
+        problems: list[str] = []
+        for ch in summary.channels.values():
+            if ch.schema_id != 0 and ch.schema_id not in summary.schemas:
+                problems.append(f"channel {ch.topic!r} refers to missing schema {ch.schema_id}")
+        topics = [ch.topic for ch in summary.channels.values()]
+        if len(set(topics)) != len(topics):
+            problems.append("two channels have the same topic")
+        for ci in summary.chunk_indexes:
+            where = f"chunk index for offset {ci.chunk_start_offset}"
+            if not len(MCAP_MAGIC) <= ci.chunk_start_offset < ci.chunk_start_offset + ci.chunk_length <= data_end:
+                problems.append(f"{where} points outside the data section")
+            if ci.message_start_time > ci.message_end_time:
+                problems.append(f"{where} has its time range reversed")
+            for cid, offset in ci.message_index_offsets.items():
+                if cid not in summary.channels:
+                    problems.append(f"{where} names unknown channel {cid}")
+                if not ci.chunk_start_offset + ci.chunk_length <= offset < data_end:
+                    problems.append(f"{where} has a message index outside the data section")
+        for mi in summary.metadata_indexes:
+            if not len(MCAP_MAGIC) <= mi.offset < mi.offset + mi.length <= data_end:
+                problems.append(f"metadata index {mi.name!r} points outside the data section")
+        if summary.statistics is not None:
+            unknown = set(summary.statistics.channel_message_counts) - set(summary.channels)
+            if unknown:
+                problems.append(f"statistics count messages of unknown channels {sorted(unknown)}")
+        if problems:
+            raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
+                                             f"{_hint(self.path)}")
 
     def __enter__(self) -> LogReader:
         return self
@@ -204,52 +335,213 @@ class LogReader:
             return (0, 0)
         return (stats.message_start_time, stats.message_end_time)
 
+    # ------------------------------------------------------------------ chunks
+    def _chunk_error(self, ci: ChunkIndex, detail: str) -> CorruptChunkError:
+        channels = self._summary.channels
+        names = [channels[c].topic if c in channels else f"channel {c}" for c in sorted(ci.message_index_offsets)]
+        return CorruptChunkError(self.path, ci.chunk_start_offset, names, ci.message_start_time,
+                                 ci.message_end_time, detail)
+
+    def _read_chunk(self, ci: ChunkIndex) -> list[tuple[int, int, int, Message]]:
+        """Every message of the chunk ``ci`` as ``(log_time, position, channel_id, message)``, fully checked."""
+        f = self._file
+        f.seek(ci.chunk_start_offset)
+        raw = f.read(ci.chunk_length)
+        if len(raw) != ci.chunk_length:
+            raise self._chunk_error(ci, "the file ends inside it")
+        opcode, length = _RECORD_HEADER.unpack_from(raw)
+        if opcode != Opcode.CHUNK or _RECORD_HEADER.size + length != ci.chunk_length:
+            raise self._chunk_error(ci, f"no chunk record there (opcode {opcode:#04x}, length {length})")
+        try:
+            start, end, size, crc = _CHUNK_HEADER.unpack_from(raw, 9)
+            pos = 9 + _CHUNK_HEADER.size
+            (name_len,) = struct.unpack_from("<I", raw, pos)
+            compression = raw[pos + 4: pos + 4 + name_len].decode()
+            pos += 4 + name_len
+            (data_len,) = struct.unpack_from("<Q", raw, pos)
+            pos += 8
+            if pos + data_len != len(raw):
+                raise ValueError(f"its data length {data_len} does not fit its record")
+            if (start, end) != (ci.message_start_time, ci.message_end_time) or size != ci.uncompressed_size \
+                    or compression != ci.compression:
+                raise ValueError("its header disagrees with the summary's chunk index")
+            data = _decompress(compression, raw[pos:], size)
+        except Exception as err:  # struct.error, UnicodeDecodeError, ZstdError, lz4 RuntimeError ...
+            raise self._chunk_error(ci, f"{type(err).__name__}: {err}") from err
+        if len(data) != size:
+            raise self._chunk_error(ci, f"it decompresses to {len(data)} bytes, not {size}")
+        if self._validate_crcs and crc != 0 and zlib.crc32(data) != crc:
+            raise self._chunk_error(ci, f"CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(data):#010x})")
+        messages: list[tuple[int, int, int, Message]] = []
+        offsets: dict[int, list[tuple[int, int]]] = {}
+        pos = 0
+        try:
+            while pos < size:
+                opcode, length = _RECORD_HEADER.unpack_from(data, pos)
+                body = pos + _RECORD_HEADER.size
+                if body + length > size:
+                    raise ValueError(f"a record at chunk offset {pos} runs past the chunk's end")
+                if opcode == Opcode.MESSAGE:
+                    cid, seq, log_time, publish_time = _MESSAGE_HEADER.unpack_from(data, body)
+                    if cid not in ci.message_index_offsets:
+                        raise ValueError(f"it holds a message of channel {cid}, which its index does not list")
+                    if not start <= log_time <= end:
+                        raise ValueError(f"a message at log_time {log_time} lies outside its range {start}..{end}")
+                    payload = data[body + _MESSAGE_HEADER.size: body + length]
+                    messages.append((log_time, len(messages), cid, Message(cid, log_time, payload, publish_time, seq)))
+                    offsets.setdefault(cid, []).append((log_time, pos))
+                pos = body + length
+        except (struct.error, ValueError) as err:
+            raise self._chunk_error(ci, str(err)) from err
+        self._check_message_index(ci, offsets)
+        return messages
+
+    def _check_message_index(self, ci: ChunkIndex, offsets: dict[int, list[tuple[int, int]]]) -> None:
+        """The message index records after the chunk must list exactly the chunk's messages."""
+        if not ci.message_index_offsets:
+            if offsets:
+                raise self._chunk_error(ci, "its index lists no channel but it holds messages")
+            return
+        f = self._file
+        first = min(ci.message_index_offsets.values())
+        f.seek(first)
+        block = f.read(ci.message_index_length)
+        for cid, offset in ci.message_index_offsets.items():
+            rel = offset - first
+            try:
+                opcode, length = _RECORD_HEADER.unpack_from(block, rel)
+                channel_id, array_len = struct.unpack_from("<HI", block, rel + 9)
+                if opcode != Opcode.MESSAGE_INDEX or length != 6 + array_len or array_len % 16 \
+                        or channel_id != cid or rel + 9 + length > len(block):
+                    raise ValueError("not a message index record of this channel")
+                records = sorted(struct.iter_unpack("<QQ", block[rel + 15: rel + 15 + array_len]))
+            except (struct.error, ValueError) as err:
+                raise self._chunk_error(ci, f"its message index for channel {cid} at offset {offset} is damaged "
+                                            f"({err})") from err
+            if records != sorted(offsets.get(cid, [])):
+                raise self._chunk_error(ci, f"its message index for channel {cid} at offset {offset} does not match "
+                                            "the chunk's messages")
+
     def raw_messages(
         self, topics: Iterable[str], *, start: int | None = None, end: int | None = None
     ) -> Iterator[tuple[Schema | None, Channel, Message]]:
-        """Undecoded messages of ``topics`` in ``log_time`` order, streamed chunk by chunk."""
+        """Undecoded messages of ``topics`` in ``log_time`` order (ties: file order), streamed chunk by chunk.
+
+        ``start`` is inclusive, ``end`` exclusive. Only chunks whose time ranges overlap are held in
+        memory at once. A damaged chunk raises :class:`CorruptChunkError` naming it.
+        """
         wanted = list(topics)
         for topic in wanted:
             if topic not in self.topics:
                 raise ChannelNotFoundError(self.path, topic, self.topics)
-        import zstandard
+        summary = self._summary
+        ids = {cid for cid, ch in summary.channels.items() if ch.topic in wanted}
+        lo = 0 if start is None else start
+        hi = 2**64 if end is None else end
+        chunks = sorted(
+            (ci for ci in summary.chunk_indexes
+             if ids & set(ci.message_index_offsets) and ci.message_end_time >= lo and ci.message_start_time < hi),
+            key=lambda ci: (ci.message_start_time, ci.chunk_start_offset),
+        )
+        heap: list[tuple[int, int, int, int, Message]] = []
+        next_chunk = 0
+        last = -1
+        while heap or next_chunk < len(chunks):
+            while next_chunk < len(chunks) and (not heap or chunks[next_chunk].message_start_time <= heap[0][0]):
+                ci = chunks[next_chunk]
+                next_chunk += 1
+                for log_time, position, cid, message in self._read_chunk(ci):
+                    if cid in ids and lo <= log_time < hi:
+                        heapq.heappush(heap, (log_time, ci.chunk_start_offset, position, cid, message))
+            log_time, _, _, cid, message = heapq.heappop(heap)
+            if log_time < last:  # cannot happen with consistent indexes; never pass on a wrong order
+                raise CorruptLogError(self.path, f"messages come out of log_time order at {log_time}. "
+                                                 f"{_hint(self.path)}")
+            last = log_time
+            channel = summary.channels[cid]
+            yield (summary.schemas.get(channel.schema_id) if channel.schema_id else None), channel, message
 
-        try:
-            yield from self._reader.iter_messages(topics=wanted, start_time=start, end_time=end)
-        except (ValueError, zstandard.ZstdError, RuntimeError) as err:  # CRC mismatch; zstd / lz4 damage
-            raise CorruptLogError(
-                self.path, f"a damaged chunk cannot be read ({type(err).__name__}: {err}); "
-                f"starlog recover {self.path} -o RECOVERED.mcap keeps every intact chunk."
-            ) from err
-        except (McapError, EOFError) as err:
-            raise CorruptLogError(self.path, f"unreadable record: {err}") from err
+    def _checker(self, schema: Schema | None) -> Callable[[Any], str | None] | None:
+        if not self._validate_messages or schema is None or schema.encoding != "jsonschema":
+            return None
+        if schema.id not in self._checkers:
+            try:
+                self._checkers[schema.id] = compile_json_schema(json.loads(schema.data))
+            except (ValueError, InvalidInputError) as err:  # a schema starlog cannot check fully
+                raise CorruptLogError(self.path, f"the JSON Schema {schema.name!r} in the log cannot be read "
+                                                 f"({err}).") from err
+        return self._checkers[schema.id]
 
     def messages(
         self, topic: str | Iterable[str], *, start: int | None = None, end: int | None = None
     ) -> Iterator[DecodedMessage]:
-        """Decoded messages of one topic (or several, interleaved by ``log_time``), streamed."""
+        """Decoded messages of one topic (or several, interleaved by ``log_time``), streamed.
+
+        JSON payloads are checked against their channel's schema (unless ``validate_messages=False``).
+        """
         topics = [topic] if isinstance(topic, str) else list(topic)
         for schema, channel, message in self.raw_messages(topics, start=start, end=end):
             yield DecodedMessage(
-                channel.topic, message.log_time, message.sequence, decode_payload(self.path, schema, channel, message)
+                channel.topic, message.log_time, message.sequence,
+                decode_payload(self.path, schema, channel, message, self._checker(schema)),
             )
 
     def frames(self, topic: str = "/camera/image") -> Iterator[tuple[int, int, np.ndarray]]:
-        """``(frame_index, log_time, image)`` for every image of ``topic``, in time order."""
+        """``(frame_index, log_time, image)`` for every image of ``topic``, in time order.
+
+        Raises :class:`InvalidMessageError` when a frame is not 2-D, has another size or pixel type
+        than the first, or does not come strictly after the previous frame.
+        """
+        first: tuple[tuple[int, ...], np.dtype[Any]] | None = None
+        last = -1
         for index, message in enumerate(self.messages(topic)):
-            yield index, message.log_time, message.payload
+            image = message.payload
+            if not isinstance(image, np.ndarray) or image.ndim != 2:
+                raise InvalidMessageError(self.path, topic, message.log_time, "it is not a 2-D image.")
+            if first is None:
+                first = (image.shape, image.dtype)
+            elif (image.shape, image.dtype) != first:
+                raise InvalidMessageError(
+                    self.path, topic, message.log_time,
+                    f"frame {index} is {image.shape[1]}x{image.shape[0]} {image.dtype}, but frame 0 is "
+                    f"{first[0][1]}x{first[0][0]} {first[1]}; every frame of a log must match.")
+            if message.log_time <= last:
+                raise InvalidMessageError(self.path, topic, message.log_time,
+                                          f"frame {index} does not come after the previous frame (log_time {last}); "
+                                          "frame timestamps must increase strictly.")
+            last = message.log_time
+            yield index, message.log_time, image
 
     def metadata(self, name: str | None = None) -> list[tuple[str, dict[str, str]]]:
         """MCAP Metadata records ``(name, map)`` in file order, optionally only those named ``name``."""
         out = []
-        try:
-            for record in self._reader.iter_metadata():
-                if name is None or record.name == name:
-                    out.append((record.name, dict(record.metadata)))
-        except (McapError, ValueError, EOFError) as err:
-            raise CorruptLogError(self.path, f"a metadata record is unreadable: {err}") from err
+        for index in sorted(self._summary.metadata_indexes, key=lambda m: m.offset):
+            if name is not None and index.name != name:
+                continue
+            self._file.seek(index.offset)
+            raw = self._file.read(index.length)
+            try:
+                opcode, length = _RECORD_HEADER.unpack_from(raw)
+                if opcode != Opcode.METADATA or _RECORD_HEADER.size + length != index.length:
+                    raise ValueError(f"no metadata record there (opcode {opcode:#04x})")
+                record = Metadata.read(ReadDataStream(io.BytesIO(raw[_RECORD_HEADER.size:])))
+                if record.name != index.name:
+                    raise ValueError(f"it is named {record.name!r}, its index says {index.name!r}")
+            except (struct.error, ValueError, EOFError, McapError) as err:
+                raise CorruptLogError(self.path, f"the metadata record {index.name!r} at offset {index.offset} is "
+                                                 f"damaged ({err}). {_hint(self.path)}") from err
+            out.append((record.name, dict(record.metadata)))
         return out
 
     def provenance(self) -> list[Provenance]:
         """Every stage recorded in the log, oldest first."""
-        return [Provenance.from_metadata(data) for _, data in self.metadata(PROVENANCE_METADATA_NAME)]
+        out = []
+        for _, data in self.metadata(PROVENANCE_METADATA_NAME):
+            try:
+                record = Provenance.from_metadata(data)
+                if not isinstance(record.parameters, dict) or not isinstance(record.channels, list):
+                    raise ValueError("parameters must be an object and channels a list")
+            except (ValueError, TypeError, RecursionError) as err:
+                raise CorruptLogError(self.path, f"a provenance record is damaged ({err}).") from err
+            out.append(record)
+        return out

@@ -11,7 +11,7 @@ topic                                     schema                       written b
 ``/stars/centroids/<METHOD>``             starlog.Centroids            centroid
 ``/track/<METHOD>/<MODEL>``               starlog.Tracks               track
 ``/compensated/<METHOD>/<MODEL>/<R>Hz``   starlog.CompensatedSample    compensate
-``/compensation/decisions``               starlog.CompensationRecord   compensate
+``/compensated/<METHOD>/<MODEL>/decisions``  starlog.CompensationRecord  compensate
 ========================================  ===========================  ======================
 """
 
@@ -23,10 +23,10 @@ __all__ = [
     "TRUTH",
     "DETECTIONS",
     "ANNOTATIONS",
-    "COMPENSATION_DECISIONS",
     "centroid_topic",
     "track_topic",
     "compensated_topic",
+    "decisions_topic",
 ]
 
 IMAGE = "/camera/image"
@@ -34,7 +34,6 @@ FRAME_INFO = "/camera/frame"
 TRUTH = "/sim/truth"
 DETECTIONS = "/stars/detections"
 ANNOTATIONS = "/stars/annotations"
-COMPENSATION_DECISIONS = "/compensation/decisions"
 
 
 def centroid_topic(method: str) -> str:
@@ -50,3 +49,8 @@ def track_topic(method: str, model: str) -> str:
 def compensated_topic(method: str, model: str, rate_hz: float, protocol: str) -> str:
     """``/compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>``."""
     return f"/compensated/{method}/{model}/{rate_hz:g}Hz/{protocol}"
+
+
+def decisions_topic(method: str, model: str) -> str:
+    """``/compensated/<METHOD>/<MODEL>/decisions``: one decision record per (rate, protocol)."""
+    return f"/compensated/{method}/{model}/decisions"

@@ -7,7 +7,7 @@ each protocol (``paper``; ``truth`` when the log has ``/sim/truth``; ``leakfree`
 
 * ``/compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>`` (starlog.CompensatedSample): one message
   per decimated sample at its frame's ``log_time``, the series before and after;
-* ``/compensation/decisions`` (starlog.CompensationRecord): one message per (rate, protocol)
+* ``/compensated/<METHOD>/<MODEL>/decisions`` (starlog.CompensationRecord): one message per (rate, protocol)
   with the error magnitudes, the dominant frequency, every strategy's score, the order run,
   RMSE before/after each pass, what was rolled back, and the protocol's RMSE figures.
 
@@ -52,21 +52,29 @@ class BrightestSeries:
     truth_series: npt.NDArray[np.float64] | None = None
 
 
-def _track_channel(log: LogReader, track: str | None) -> ChannelSummary:
+def select_track_channels(log: LogReader, track: str | Sequence[str] | None) -> list[ChannelSummary]:
+    """Track channels named by ``track``: a topic (``/track/M/MODEL`` or ``M/MODEL``), a list, ``"all"``,
+    or None for the only one."""
     channels = [c for c in log.channels() if c.schema_name == "starlog.Tracks"]
-    if track is not None:
-        topic = track if track.startswith("/") else f"/track/{track}"
-        for c in channels:
-            if c.topic == topic:
-                return c
-        raise ChannelNotFoundError(log.path, topic, [c.topic for c in channels])
-    if len(channels) == 1:
-        return channels[0]
     if not channels:
         raise InvalidInputError(f"{log.path} has no track channel; run `starlog track` on it first.")
-    raise InvalidParameterError(
-        "the log has several track channels; choose one with --track: " + ", ".join(c.topic for c in channels)
-    )
+    if track is None:
+        if len(channels) == 1:
+            return channels
+        raise InvalidParameterError(
+            "the log has several track channels; choose with --track (or 'all'): "
+            + ", ".join(c.topic for c in channels))
+    names = [track] if isinstance(track, str) else list(track)
+    if [n.lower() for n in names] == ["all"]:
+        return channels
+    by_topic = {c.topic: c for c in channels}
+    chosen = []
+    for name in names:
+        topic = name if name.startswith("/") else f"/track/{name}"
+        if topic not in by_topic:
+            raise ChannelNotFoundError(log.path, topic, list(by_topic))
+        chosen.append(by_topic[topic])
+    return chosen
 
 
 def read_brightest_series(log: LogReader, topic: str) -> BrightestSeries:
@@ -159,7 +167,7 @@ def compensate_log(
     output_path: str | os.PathLike[str],
     *,
     rates: Sequence[float],
-    track: str | None = None,
+    track: str | Sequence[str] | None = None,
     protocols: str | Sequence[str] = "all",
     options: dict[str, Any] | None = None,
     force: bool = False,
@@ -171,8 +179,9 @@ def compensate_log(
     ----------
     rates : sequence of float
         Target rates in Hz (equidistant decimation from the frame rate).
-    track : str, optional
-        Track channel (``/track/GAUSSFIT/STATIC`` or ``GAUSSFIT/STATIC``); default: the only one.
+    track : str or sequence of str, optional
+        Track channel(s) (``/track/GAUSSFIT/STATIC`` or ``GAUSSFIT/STATIC``), or ``"all"``;
+        default: the only one.
     protocols : str or sequence of str
         ``"all"`` or any of ``paper``, ``truth``, ``leakfree``.
     options : dict, optional
@@ -184,46 +193,54 @@ def compensate_log(
     options = dict(options or {})
     summary = CompensateSummary()
     with LogReader(input_path) as probe:
-        channel = _track_channel(probe, track)
+        channels = select_track_channels(probe, track)
         has_truth = probe.has_topic(topics.TRUTH)
     chosen = parse_protocols(protocols, has_truth=has_truth)
-    parameters = {"track": channel.topic, "rates": [float(r) for r in rates],
+    parameters = {"tracks": [c.topic for c in channels], "rates": [float(r) for r in rates],
                   "protocols": [p.value for p in chosen], "options": options}
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force,
                     compression=compression) as (log, out):
-        series = read_brightest_series(log, channel.topic)
-        decision_ch = out.add_channel(topics.COMPENSATION_DECISIONS, json_message_type("starlog.CompensationRecord"))
-        for rate in rates:
-            if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
-                raise InvalidParameterError(
-                    f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
-            idx = decimation_indices(series.log_time.size, native_rate=series.native_rate, target_rate=rate)
-            fs = effective_rate(native_rate=series.native_rate, target_rate=rate)
-            for protocol in chosen:
-                truth_kw: dict[str, Any] = {}
-                if protocol is not Protocol.PAPER and series.truth_series is not None:
-                    truth_kw = {"truth_fixed": series.truth_fixed, "truth_series": series.truth_series[idx]}
-                evaluation = evaluate(series.xy[idx], fs=fs, protocol=protocol, flux=series.flux[idx],
-                                      sigma=series.sigma[idx], **truth_kw, **options)
-                topic = topics.compensated_topic(series.method, series.model, rate, protocol.value)
-                sample_ch = out.add_channel(topic, json_message_type("starlog.CompensatedSample"))
-                after = evaluation.result.compensated
-                for k, i in enumerate(idx):
-                    sample = {"sample": k, "frame": int(series.frame[i]), "track": series.track,
-                              "x_before": float(series.xy[i, 0]), "y_before": float(series.xy[i, 1]),
-                              "x_after": float(after[k, 0]), "y_after": float(after[k, 1]),
-                              "scored": bool(k >= evaluation.scored_start)}
-                    out.writer.write(sample_ch, log_time=int(series.log_time[i]), data=encode_json(sample))
-                record = {
-                    "method": series.method, "model": series.model, "track": series.track,
-                    "track_topic": channel.topic, "series_topic": topic, "rate_hz": float(rate),
-                    "effective_rate_hz": fs, "native_rate_hz": series.native_rate,
-                    "n_samples": int(idx.size), "first_log_time": int(series.log_time[idx[0]]),
-                    "last_log_time": int(series.log_time[idx[-1]]), **evaluation.to_dict(),
-                }
-                out.writer.write(decision_ch, log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
-                summary.records.append(record)
+        for channel in channels:
+            _compensate_track(log, out, channel, rates, chosen, options, summary)
     return summary
+
+
+def _compensate_track(log: LogReader, out: Any, channel: ChannelSummary, rates: Sequence[float],
+                      chosen: list[Protocol], options: dict[str, Any], summary: CompensateSummary) -> None:
+    """Compensate the brightest track of ``channel`` at every rate under every protocol."""
+    series = read_brightest_series(log, channel.topic)
+    decision_ch = out.add_channel(topics.decisions_topic(series.method, series.model),
+                                  json_message_type("starlog.CompensationRecord"))
+    for rate in rates:
+        if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
+            raise InvalidParameterError(
+                f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
+        idx = decimation_indices(series.log_time.size, native_rate=series.native_rate, target_rate=rate)
+        fs = effective_rate(native_rate=series.native_rate, target_rate=rate)
+        for protocol in chosen:
+            truth_kw: dict[str, Any] = {}
+            if protocol is not Protocol.PAPER and series.truth_series is not None:
+                truth_kw = {"truth_fixed": series.truth_fixed, "truth_series": series.truth_series[idx]}
+            evaluation = evaluate(series.xy[idx], fs=fs, protocol=protocol, flux=series.flux[idx],
+                                  sigma=series.sigma[idx], **truth_kw, **options)
+            topic = topics.compensated_topic(series.method, series.model, rate, protocol.value)
+            sample_ch = out.add_channel(topic, json_message_type("starlog.CompensatedSample"))
+            after = evaluation.result.compensated
+            for k, i in enumerate(idx):
+                sample = {"sample": k, "frame": int(series.frame[i]), "track": series.track,
+                          "x_before": float(series.xy[i, 0]), "y_before": float(series.xy[i, 1]),
+                          "x_after": float(after[k, 0]), "y_after": float(after[k, 1]),
+                          "scored": bool(k >= evaluation.scored_start)}
+                out.writer.write(sample_ch, log_time=int(series.log_time[i]), data=encode_json(sample))
+            record = {
+                "method": series.method, "model": series.model, "track": series.track,
+                "track_topic": channel.topic, "series_topic": topic, "rate_hz": float(rate),
+                "effective_rate_hz": fs, "native_rate_hz": series.native_rate,
+                "n_samples": int(idx.size), "first_log_time": int(series.log_time[idx[0]]),
+                "last_log_time": int(series.log_time[idx[-1]]), **evaluation.to_dict(),
+            }
+            out.writer.write(decision_ch, log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
+            summary.records.append(record)
 
 
 def _series_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict[str, Any]]:
@@ -247,4 +264,4 @@ def _decision_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict
 
 
 register_table(TableSpec("compensation", lambda ch: ch.schema_name == "starlog.CompensatedSample", _series_rows))
-register_table(TableSpec("decisions", lambda ch: ch.topic == topics.COMPENSATION_DECISIONS, _decision_rows))
+register_table(TableSpec("decisions", lambda ch: ch.schema_name == "starlog.CompensationRecord", _decision_rows))

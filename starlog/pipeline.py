@@ -1,0 +1,180 @@
+"""``starlog run``: replay a log through several stages from one TOML config file.
+
+A config has one table per stage, run in the order centroid → track → compensate; a stage
+whose table is absent is skipped. Each stage writes a complete log (intermediates go to
+temporary files beside the output and are removed), so running the config gives the same
+bytes as running the stages one by one with the same options. Print the default config with
+``starlog run --print-config``::
+
+    [centroid]
+    methods = ["NONE", "MOMENT", "BICUBIC", "GAUSSFIT", "GRADIENT"]
+    # gain = 1.0            # e-/DN; default: from the simulator's provenance, else 1
+    # read_noise = 3.0      # e-; default: from the simulator's provenance, else estimated
+    [centroid.options]      # keyword options of starlog.centroid.extract_stars
+
+    [track]
+    methods = ["NONE", "GAUSSFIT"]   # centroid channels to track, one stage run each
+    models = "all"
+    [track.tracker]         # starlog.track.TrackerConfig fields
+    sigma_floor = 0.05      # px: the platform jitter a STATIC model must absorb
+    [track.motion]          # starlog.track.MotionModelConfig fields
+
+    [compensate]
+    tracks = "all"          # or ["GAUSSFIT/STATIC", ...]
+    rates = [10, 50]
+    protocols = "all"
+    [compensate.options]    # keyword options of starlog.compensate.evaluate
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.io import LogReader
+
+__all__ = ["DEFAULT_CONFIG_TOML", "PipelineConfig", "load_config", "run_pipeline"]
+
+DEFAULT_CONFIG_TOML = __doc__.split("::", 1)[1].split('"""')[0].replace("\n    ", "\n").strip() + "\n"
+
+_STAGE_KEYS: dict[str, set[str]] = {
+    "centroid": {"methods", "gain", "read_noise", "options"},
+    "track": {"methods", "models", "tracker", "motion"},
+    "compensate": {"tracks", "rates", "protocols", "options"},
+}
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Parsed pipeline config: each stage's table, or None when the stage is skipped."""
+
+    centroid: dict[str, Any] | None = None
+    track: dict[str, Any] | None = None
+    compensate: dict[str, Any] | None = None
+    source: str = "<default>"
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], *, source: str = "<dict>") -> PipelineConfig:
+        """Validate a config mapping (unknown tables or keys are errors, named with their place)."""
+        unknown = sorted(set(data) - set(_STAGE_KEYS))
+        if unknown:
+            raise InvalidParameterError(
+                f"{source}: unknown table(s) {unknown}; a pipeline config has [centroid], [track], [compensate].")
+        stages: dict[str, dict[str, Any] | None] = {}
+        for stage, keys in _STAGE_KEYS.items():
+            table = data.get(stage)
+            if table is None:
+                stages[stage] = None
+                continue
+            if not isinstance(table, dict):
+                raise InvalidParameterError(f"{source}: [{stage}] must be a table.")
+            bad = sorted(set(table) - keys)
+            if bad:
+                raise InvalidParameterError(
+                    f"{source}: unknown key(s) {bad} in [{stage}]; allowed: {sorted(keys)}.")
+            stages[stage] = dict(table)
+        if stages["compensate"] is not None and "rates" not in stages["compensate"]:
+            raise InvalidParameterError(f"{source}: [compensate] needs rates = [..] (Hz).")
+        return cls(**stages, source=source)  # type: ignore[arg-type]
+
+
+def load_config(path: str | os.PathLike[str] | None) -> PipelineConfig:
+    """Read a TOML pipeline config (the default config when ``path`` is None)."""
+    if path is None:
+        return PipelineConfig.from_dict(tomllib.loads(DEFAULT_CONFIG_TOML), source="<default config>")
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as err:
+        raise InvalidParameterError(f"cannot read config {path}: {err.strerror}.") from err
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise InvalidParameterError(f"{path}: not valid TOML ({err}).") from err
+    return PipelineConfig.from_dict(data, source=str(path))
+
+
+def _list(value: Any) -> list[str]:
+    return [value] if isinstance(value, str) else list(value)
+
+
+@dataclass
+class PipelineResult:
+    """What each stage of :func:`run_pipeline` reported, in order."""
+
+    output: Path
+    stages: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"output": str(self.output), "stages": [{"stage": s, **r} for s, r in self.stages]}
+
+
+def run_pipeline(
+    input_path: str | os.PathLike[str],
+    output_path: str | os.PathLike[str],
+    config: PipelineConfig,
+    *,
+    workers: int = 1,
+    force: bool = False,
+    compression: str = "zstd",
+    show_progress: bool = False,
+    on_stage: Callable[[str, dict[str, Any]], None] | None = None,
+) -> PipelineResult:
+    """Run the stages of ``config`` on ``input_path``; the final log goes to ``output_path``."""
+    from starlog.stages.centroid import centroid_log
+    from starlog.stages.compensate import compensate_log
+    from starlog.stages.track import track_log
+
+    output = Path(output_path)
+    if output.exists() and not force:
+        raise OutputExistsError(output)
+    steps: list[tuple[str, Callable[[Path, Path], dict[str, Any]]]] = []
+    common = {"compression": compression}
+    if config.centroid is not None:
+        c = config.centroid
+        steps.append(("centroid", lambda i, o: centroid_log(
+            i, o, methods=c.get("methods", "all"), gain=c.get("gain"), read_noise=c.get("read_noise"),
+            options=c.get("options"), workers=workers, show_progress=show_progress, **common).to_dict()))
+    if config.track is not None:
+        t = config.track
+        for method in _list(t.get("methods", ["GAUSSFIT"])):
+            steps.append((f"track {method}", lambda i, o, m=method: track_log(
+                i, o, method=m, models=t.get("models", "all"), tracker=t.get("tracker"), motion=t.get("motion"),
+                show_progress=show_progress, **common).to_dict()))
+    compensate_config = config.compensate
+    result = PipelineResult(output=output)
+    current = Path(input_path)
+    temporaries: list[Path] = []
+    try:
+        for name, step in steps:
+            target = output.with_name(f".{output.name}.{len(temporaries)}.stage.mcap")
+            target.unlink(missing_ok=True)
+            report = step(current, target)
+            temporaries.append(target)
+            current = target
+            result.stages.append((name, report))
+            if on_stage:
+                on_stage(name, report)
+        if compensate_config is not None:
+            k = compensate_config
+            target = output.with_name(f".{output.name}.{len(temporaries)}.stage.mcap")
+            target.unlink(missing_ok=True)
+            report = compensate_log(current, target, rates=k["rates"], track=k.get("tracks", "all"),
+                                    protocols=k.get("protocols", "all"), options=k.get("options"),
+                                    **common).to_dict()
+            temporaries.append(target)
+            current = target
+            result.stages.append(("compensate", report))
+            if on_stage:
+                on_stage("compensate", report)
+        if not temporaries:
+            raise InvalidParameterError(f"{config.source}: the config runs no stage.")
+        os.replace(temporaries.pop(), output)
+    finally:
+        for path in temporaries:
+            path.unlink(missing_ok=True)
+    return result

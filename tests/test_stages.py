@@ -1,0 +1,231 @@
+"""Integration: the stages on a small simulated log, through the CLI and the library."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from click.testing import CliRunner
+
+from starlog.centroid import CENTROID_DTYPE
+from starlog.cli import cli
+from starlog.detect import DETECTION_DTYPE
+from starlog.errors import InvalidInputError, InvalidParameterError
+from starlog.export import arrow_schema, export_log, table_columns
+from starlog.io import LogReader, file_digest, load_json_schema, topics
+from starlog.pipeline import PipelineConfig, load_config, run_pipeline
+from starlog.sim import Jitter
+from starlog.stages import simulate_log
+from starlog.stages.centroid import centroid_log
+from starlog.stages.compensate import compensate_log
+from starlog.stages.track import track_log
+from starlog.track import TRACK_DTYPE
+from tests.conftest import small_config
+
+
+def _invoke(*args: str) -> str:
+    result = CliRunner().invoke(cli, list(args))
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+@pytest.fixture(scope="module")
+def pipeline_logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """simulate → centroid (all) → track (GAUSSFIT, all models) → compensate (all tracks), via the CLI."""
+    d = tmp_path_factory.mktemp("pipeline")
+    logs = {name: d / f"{name}.mcap" for name in ("sim", "cen", "trk", "comp")}
+    simulate_log(small_config(width=96, height=80, n_stars=4, n_frames=160, margin=12.0,
+                              jitter=(Jitter(frequency_hz=9.0, amplitude_px=0.05),)), logs["sim"])
+    _invoke("centroid", str(logs["sim"]), "-o", str(logs["cen"]), "--method", "all", "-q")
+    _invoke("track", str(logs["cen"]), "-o", str(logs["trk"]), "--centroids", "GAUSSFIT", "--set",
+            "sigma_floor=0.05", "-q")
+    _invoke("compensate", str(logs["trk"]), "-o", str(logs["comp"]), "--track", "all", "--rate", "25,50", "-q")
+    return logs
+
+
+def test_each_stage_adds_its_channels_and_provenance(pipeline_logs: dict[str, Path]) -> None:
+    with LogReader(pipeline_logs["comp"]) as log:
+        topics_ = set(log.topics)
+        provenance = log.provenance()
+    assert {topics.DETECTIONS, topics.ANNOTATIONS, "/stars/centroids/GAUSSFIT", "/stars/centroids/NONE",
+            "/track/GAUSSFIT/STATIC", "/track/GAUSSFIT/CONSTANT_VELOCITY",
+            "/compensated/GAUSSFIT/STATIC/50Hz/paper", "/compensated/GAUSSFIT/STATIC/25Hz/truth",
+            "/compensated/GAUSSFIT/STATIC/decisions"} <= topics_
+    assert [p.stage for p in provenance] == ["simulate", "centroid", "track", "compensate"]
+    for record, source in zip(provenance[1:], ("sim", "cen", "trk")):
+        assert record.input_digest == file_digest(pipeline_logs[source])  # the chain of inputs
+
+
+def test_every_json_message_validates_against_its_embedded_schema(pipeline_logs: dict[str, Path]) -> None:
+    with LogReader(pipeline_logs["comp"]) as log:
+        schemas = {s.id: s for s in log.summary.schemas.values()}
+        validators = {}
+        for schema, channel, message in log.raw_messages(log.topics):
+            if channel.message_encoding != "json":
+                continue
+            assert schema is not None
+            if schema.id not in validators:
+                embedded = json.loads(schemas[schema.id].data)
+                assert embedded == load_json_schema(schema.name)
+                validators[schema.id] = jsonschema.Draft202012Validator(embedded)
+            validators[schema.id].validate(json.loads(message.data))
+    assert len(validators) == 7
+
+
+@pytest.mark.parametrize(
+    ("schema", "dtype", "extra"),
+    [("starlog.Centroids", CENTROID_DTYPE, set()), ("starlog.Detections", DETECTION_DTYPE, set())],
+)
+def test_row_schemas_match_the_algorithm_dtypes(schema: str, dtype: np.dtype, extra: set[str]) -> None:
+    properties = load_json_schema(schema)["properties"]["stars"]["items"]["properties"]
+    assert set(properties) == set(dtype.names) | extra
+
+
+def test_track_schema_matches_the_tracker_dtype() -> None:
+    properties = load_json_schema("starlog.Tracks")["properties"]["tracks"]["items"]["properties"]
+    assert set(properties) == set(TRACK_DTYPE.names) | {"brightest"}
+
+
+@pytest.mark.parametrize("table", sorted(table_columns()))
+def test_parquet_tables_document_every_column(table: str) -> None:
+    schema = arrow_schema(table)
+    for field in schema:
+        assert field.metadata[b"description"]
+
+
+def test_annotations_sit_half_a_pixel_off_the_centroids(pipeline_logs: dict[str, Path]) -> None:
+    with LogReader(pipeline_logs["cen"]) as log:
+        annotation = next(log.messages(topics.ANNOTATIONS))
+        centroids = next(log.messages("/stars/centroids/NONE"))
+    assert annotation.log_time == centroids.log_time
+    got = sorted((c.position.x, c.position.y) for c in annotation.payload.circles)
+    want = sorted((s["x"] + 0.5, s["y"] + 0.5) for s in centroids.payload["stars"])
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_centroids_agree_with_the_truth(pipeline_logs: dict[str, Path]) -> None:
+    with LogReader(pipeline_logs["cen"]) as log:
+        truth = {m.log_time: m.payload["stars"] for m in log.messages(topics.TRUTH)}
+        errors, unmatched, frames = [], 0, 0
+        for m in log.messages("/stars/centroids/GAUSSFIT"):
+            frames += 1
+            true = np.array([(s["x"], s["y"]) for s in truth[m.log_time]])
+            for star in m.payload["stars"]:
+                assert -0.5 <= star["x"] < 95.5 and -0.5 <= star["y"] < 79.5  # inside the frame
+                d = np.hypot(*(true - (star["x"], star["y"])).T).min()
+                if d < 1.0:
+                    errors.append(d)
+                else:
+                    unmatched += 1
+    assert len(errors) == 4 * frames  # every star found in every frame
+    assert np.sqrt(np.mean(np.square(errors))) < 0.03  # bright stars: hundredths of a pixel
+    assert unmatched <= 0.05 * frames  # false detections are rare
+
+
+def test_export_round_trips_the_channels_exactly(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
+    written = export_log(pipeline_logs["comp"], tmp_path)
+    assert set(written) == {"frames", "truth", "detections", "centroids", "tracks", "compensation", "decisions"}
+    for name in written:
+        table = pq.read_table(tmp_path / f"{name}.parquet")
+        assert table.schema.names == list(table_columns()[name]["columns"])
+        assert table.num_rows == written[name] > 0
+    centroids = pq.read_table(tmp_path / "centroids.parquet").to_pylist()
+    with LogReader(pipeline_logs["comp"]) as log:
+        expected = [{"log_time": m.log_time, "frame": m.payload["frame"], "method": m.payload["method"], **s}
+                    for m in log.messages([t for t in log.topics if t.startswith("/stars/centroids/")])
+                    for s in m.payload["stars"]]
+    key = lambda r: (r["method"], r["log_time"], r["star"])  # noqa: E731
+    assert sorted(centroids, key=key) == sorted(expected, key=key)
+
+
+def test_decision_records_match_the_series(pipeline_logs: dict[str, Path]) -> None:
+    with LogReader(pipeline_logs["comp"]) as log:
+        records = [m.payload for m in log.messages("/compensated/GAUSSFIT/STATIC/decisions")]
+        assert {(r["rate_hz"], r["protocol"]) for r in records} == {
+            (r, p) for r in (25.0, 50.0) for p in ("paper", "truth", "leakfree")}
+        paper50 = next(r for r in records if r["rate_hz"] == 50.0 and r["protocol"] == "paper")
+        samples = [m.payload for m in log.messages(paper50["series_topic"])]
+    assert len(samples) == paper50["n_samples"]
+    before = np.array([(s["x_before"], s["y_before"]) for s in samples])
+    after = np.array([(s["x_after"], s["y_after"]) for s in samples])
+    mean = before.mean(axis=0)
+    rmse = lambda a: float(np.sqrt(np.mean(np.sum((a - mean) ** 2, axis=1))))  # noqa: E731  (eq. 15)
+    figure = paper50["figures"][0]
+    assert figure["reference"] == "global_mean"
+    assert rmse(before) == pytest.approx(figure["rmse_before"], rel=1e-9)
+    assert rmse(after) == pytest.approx(figure["rmse_after"], rel=1e-9)
+    kept = [p["strategy"] for p in paper50["compensation"]["passes"] if p["kept"]]
+    assert kept == paper50["compensation"]["kept"]
+    assert all(p["effective"] >= 0.01 for p in paper50["compensation"]["passes"] if p["kept"])
+
+
+def test_stage_keeps_its_input_and_refuses_to_overwrite(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
+    before = file_digest(pipeline_logs["cen"])
+    out = tmp_path / "t.mcap"
+    track_log(pipeline_logs["cen"], out, method="NONE", models="STATIC")
+    assert file_digest(pipeline_logs["cen"]) == before
+    result = CliRunner().invoke(cli, ["track", str(pipeline_logs["cen"]), "-o", str(out), "--centroids", "NONE"])
+    assert result.exit_code == 1 and "--force" in result.output
+
+
+def test_parallel_centroiding_gives_the_same_bytes(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
+    for workers in (1, 2):
+        centroid_log(pipeline_logs["sim"], tmp_path / f"w{workers}.mcap", methods="GAUSSFIT,NONE", workers=workers)
+    assert (tmp_path / "w1.mcap").read_bytes() == (tmp_path / "w2.mcap").read_bytes()
+
+
+def test_run_equals_the_stages_one_by_one(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
+    config = PipelineConfig.from_dict({
+        "centroid": {"methods": ["GAUSSFIT"]},
+        "track": {"methods": ["GAUSSFIT"], "models": ["STATIC"], "tracker": {"sigma_floor": 0.05}},
+        "compensate": {"tracks": "all", "rates": [50], "protocols": "paper"},
+    })
+    run_pipeline(pipeline_logs["sim"], tmp_path / "run.mcap", config)
+    centroid_log(pipeline_logs["sim"], tmp_path / "1.mcap", methods=["GAUSSFIT"])
+    track_log(tmp_path / "1.mcap", tmp_path / "2.mcap", method="GAUSSFIT", models=["STATIC"],
+              tracker={"sigma_floor": 0.05})
+    compensate_log(tmp_path / "2.mcap", tmp_path / "3.mcap", rates=[50], track="all", protocols="paper")
+    assert (tmp_path / "run.mcap").read_bytes() == (tmp_path / "3.mcap").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["1.mcap", "2.mcap", "3.mcap", "run.mcap"]
+
+
+def test_run_cli_with_a_config_file(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
+    config = tmp_path / "p.toml"
+    config.write_text('[centroid]\nmethods = ["NONE"]\n[track]\nmethods = ["NONE"]\nmodels = "STATIC"\n'
+                      '[track.tracker]\nsigma_floor = 0.05\n[compensate]\nrates = [50]\nprotocols = "paper,truth"\n')
+    output = _invoke("run", str(pipeline_logs["sim"]), "-o", str(tmp_path / "r.mcap"), "--config", str(config), "-q")
+    assert "NONE      STATIC" in output and "truth_series" in output
+    assert "[centroid]" in _invoke("run", "--print-config")
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [("[centroids]\n", "unknown table"), ("[track]\nmodel = 'STATIC'\n", "unknown key"),
+     ("[compensate]\n", "needs rates"), ("[track\n", "not valid TOML")],
+)
+def test_bad_configs_are_named(tmp_path: Path, text: str, match: str) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(InvalidParameterError, match=match):
+        load_config(path)
+
+
+def test_compensate_input_errors(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
+    with pytest.raises(InvalidParameterError, match="at most the frame rate"):
+        compensate_log(pipeline_logs["trk"], tmp_path / "x.mcap", rates=[500], track="GAUSSFIT/STATIC")
+    with pytest.raises(InvalidInputError, match="no track channel"):
+        compensate_log(pipeline_logs["cen"], tmp_path / "x.mcap", rates=[50])
+    with pytest.raises(InvalidParameterError, match="several track channels"):
+        compensate_log(pipeline_logs["trk"], tmp_path / "x.mcap", rates=[50])
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_unknown_method_and_model_are_named(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
+    with pytest.raises(InvalidParameterError, match="unknown centroid method 'FOO'"):
+        centroid_log(pipeline_logs["sim"], tmp_path / "x.mcap", methods="FOO")
+    with pytest.raises(InvalidParameterError, match="unknown motion model"):
+        track_log(pipeline_logs["cen"], tmp_path / "x.mcap", method="NONE", models="FAST")
