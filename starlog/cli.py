@@ -7,6 +7,7 @@ Errors starlog raises on purpose are printed as one sentence with exit status 1.
 from __future__ import annotations
 
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -44,8 +45,10 @@ def output_option(help_text: str = "Output log (.mcap). Written atomically.") ->
 def write_options(f: F) -> F:
     """--force, --compression, --workers, --quiet."""
     f = click.option("--quiet", "-q", is_flag=True, help="No progress bar.")(f)
-    f = click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
-                     help="Threads for chunk compression and per-frame work.")(f)
+    f = click.option("--workers", type=click.IntRange(1, 256), default=os.cpu_count() or 1,
+                     show_default="all cores",
+                     help="Cores for per-frame work, image decoding and chunk compression; the output "
+                          "does not depend on it.")(f)
     f = click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd",
                      show_default=True, help="Chunk compression of the output log.")(f)
     f = click.option("--force", is_flag=True, help="Overwrite the output if it exists.")(f)
@@ -226,33 +229,66 @@ def info(log: Path, as_json: bool) -> None:
 
 
 # ---------------------------------------------------------------- export
+def scheduler_option(f: F) -> F:
+    return click.option("--scheduler", metavar="ADDRESS",
+                        help="Dask scheduler (tcp://host:8786) to run several logs on; without it, --workers N > 1 "
+                             "starts a local Dask cluster for several logs.")(f)
+
+
+def _report_batch(outcomes: list[Any], as_json: bool, describe: Callable[[Any], str]) -> None:
+    failed = [o for o in outcomes if not o.ok]
+    if as_json:
+        _print_json([{"log": o.name, "ok": o.ok, "result": o.result, "error": o.error} for o in outcomes])
+    else:
+        for o in outcomes:
+            click.echo(f"{o.name}: {describe(o.result)}" if o.ok else f"{o.name}: FAILED: {o.error}")
+        click.echo(f"{len(outcomes) - len(failed)} of {len(outcomes)} logs done, {len(failed)} failed.")
+    if failed:
+        sys.exit(1)
+
+
 @cli.command(context_settings=CONTEXT)
-@input_log
+@click.argument("logs", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Folder for the Parquet files (created if missing).")
+              help="Folder for the Parquet files (created if missing); with several logs, one sub-folder each.")
 @click.option("--table", "tables", multiple=True, help="Only this table (repeatable); default: every table the log has.")
 @click.option("--force", is_flag=True, help="Overwrite existing Parquet files.")
+@click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
+              help="With several logs: local Dask workers.")
+@scheduler_option
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @json_option
-def export(log: Path, output: Path, tables: tuple[str, ...], force: bool, as_json: bool) -> None:
+def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], force: bool, workers: int,
+           scheduler: str | None, quiet: bool, as_json: bool) -> None:
     """Export a log's channels to Parquet tables (one file per table).
 
-    Tables: frames, truth (simulated logs), centroids, detections, tracks, compensation,
+    Tables: frames, truth (simulated logs), detections, centroids, tracks, compensation,
     decisions — each written when the log has its channels. Columns are documented in
-    schemas/tables.json and the README.
+    schemas/tables.json and the README. Several logs go to one sub-folder each, in parallel
+    on a Dask cluster with --scheduler or --workers.
 
     \b
     Example:
       starlog export sim.mcap -o tables/
+      starlog export runs/*.mcap -o tables/ --workers 2
       python -c "import pyarrow.parquet as pq; print(pq.read_table('tables/truth.parquet'))"
     """
+    from starlog.batch import BatchTask, run_batch
     from starlog.export import export_log
 
-    written = export_log(log, output, tables=tables or None, force=force)
-    if as_json:
-        _print_json({"output": str(output), "tables": written})
-    else:
-        for name, rows in written.items():
-            click.echo(f"{output / (name + '.parquet')}: {rows} rows")
+    selected = tables or None
+    if len(logs) == 1 and not scheduler:
+        written = export_log(logs[0], output, tables=selected, force=force)
+        if as_json:
+            _print_json({"output": str(output), "tables": written})
+        else:
+            for name, rows in written.items():
+                click.echo(f"{output / (name + '.parquet')}: {rows} rows")
+        return
+    tasks = [BatchTask(str(log), export_log, (str(log), str(output / log.stem)), {"tables": selected, "force": force})
+             for log in logs]
+    outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet, description="export")
+    _report_batch(outcomes, as_json, lambda r: ", ".join(f"{k} {v} rows" for k, v in r.items()))
 
 
 # ---------------------------------------------------------------- centroid
@@ -408,33 +444,48 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 
 # ---------------------------------------------------------------- run
 @cli.command(context_settings=CONTEXT)
-@click.argument("log", required=False, type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="Output log (.mcap).")
+@click.argument("logs", nargs=-1, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("-o", "--output", type=click.Path(path_type=Path),
+              help="Output log (.mcap); with several input logs, a folder (one output per log, same name).")
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Pipeline config (TOML) [default: the built-in config, see --print-config].")
 @click.option("--print-config", is_flag=True, help="Print the built-in config (a starting point) and exit.")
+@scheduler_option
 @json_option
 @write_options
-def run(log: Path | None, output: Path | None, config_path: Path | None, print_config: bool, as_json: bool,
-        force: bool, compression: str, workers: int, quiet: bool) -> None:
-    """Replay a log through several stages (centroid, track, compensate) from one config file.
+def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, print_config: bool,
+        scheduler: str | None, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
+    """Replay logs through several stages (centroid, track, compensate) from one config file.
 
     Each stage's parameters come from its table in the TOML config; the result equals running
-    the stages one by one. Prints a short summary (the compensation table at the end).
+    the stages one by one. One log: --workers sets the cores for per-frame work. Several logs:
+    they run in parallel on a Dask cluster (--scheduler, or a local one with --workers), a
+    failed log is reported and the others complete.
 
     \b
     Example:
       starlog run --print-config > pipeline.toml
       starlog run sim.mcap -o result.mcap --config pipeline.toml
+      starlog run logs/*.mcap -o results/ --config pipeline.toml --scheduler tcp://10.0.0.5:8786
     """
-    from starlog.pipeline import DEFAULT_CONFIG_TOML, load_config, run_pipeline
+    from starlog.pipeline import DEFAULT_CONFIG_TOML, load_config, run_pipeline, run_pipeline_task
 
     if print_config:
         click.echo(DEFAULT_CONFIG_TOML, nl=False)
         return
-    if log is None or output is None:
-        raise click.UsageError("give the input LOG and -o/--output (or --print-config).")
+    if not logs or output is None:
+        raise click.UsageError("give the input LOG(s) and -o/--output (or --print-config).")
     config = load_config(config_path)
+    if len(logs) > 1 or scheduler:
+        from starlog.batch import BatchTask, run_batch
+
+        output.mkdir(parents=True, exist_ok=True)
+        tasks = [BatchTask(str(log), run_pipeline_task, (str(log), str(output / log.name), config),
+                           {"force": force, "compression": compression}) for log in logs]
+        outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet,
+                             description="run")
+        _report_batch(outcomes, as_json, lambda r: f"wrote {r['output']} ({len(r['stages'])} stages)")
+        return
 
     def report(stage: str, result: dict[str, Any]) -> None:
         if quiet or as_json:
@@ -447,7 +498,7 @@ def run(log: Path | None, output: Path | None, config_path: Path | None, print_c
                                for m, v in result["models"].items())
             click.echo(f"track {result['method']}: brightest star under {models}", err=True)
 
-    result = run_pipeline(log, output, config, workers=workers, force=force, compression=compression,
+    result = run_pipeline(logs[0], output, config, workers=workers, force=force, compression=compression,
                           show_progress=not quiet, on_stage=report)
     if as_json:
         _print_json(result.to_dict())

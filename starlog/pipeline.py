@@ -38,7 +38,7 @@ from typing import Any
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.io import LogReader
 
-__all__ = ["DEFAULT_CONFIG_TOML", "PipelineConfig", "load_config", "run_pipeline"]
+__all__ = ["DEFAULT_CONFIG_TOML", "PipelineConfig", "load_config", "run_pipeline", "run_pipeline_task"]
 
 DEFAULT_CONFIG_TOML = __doc__.split("::", 1)[1].split('"""')[0].replace("\n    ", "\n").strip() + "\n"
 
@@ -178,3 +178,10 @@ def run_pipeline(
         for path in temporaries:
             path.unlink(missing_ok=True)
     return result
+
+
+def run_pipeline_task(input_path: str, output_path: str, config: PipelineConfig, *, force: bool = False,
+                      compression: str = "zstd") -> dict[str, Any]:
+    """One log of a batch (a picklable top-level function for Dask): serial per-frame work, JSON-ready result."""
+    return run_pipeline(input_path, output_path, config, workers=1, force=force,
+                        compression=compression).to_dict()

@@ -15,13 +15,31 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import median_filter
+from scipy.ndimage import median_filter, uniform_filter
 
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = ["Background", "estimate_background"]
+
+
+def _interp_weights(c: npt.NDArray[np.float64], n: int, mesh: int, extrapolate: bool) -> npt.NDArray[np.float32]:
+    """(len(c), n) linear interpolation weights from cell centres to coordinates ``c``."""
+    w = np.zeros((c.size, n), np.float32)
+    if n == 1:
+        w[:, 0] = 1.0
+        return w
+    f = (c + 0.5) / mesh - 0.5
+    if not extrapolate:
+        f = np.clip(f, 0.0, n - 1.0)
+    i0 = np.clip(np.floor(f).astype(np.intp), 0, n - 2)
+    t = f - i0
+    r = np.arange(c.size)
+    w[r, i0] = 1.0 - t
+    w[r, i0 + 1] = t
+    return w
 
 
 @dataclass(frozen=True)
@@ -48,30 +66,27 @@ class Background:
     global_level: float
     global_noise: float
 
-    def _weights(self, coords: npt.ArrayLike, n: int) -> npt.NDArray[np.float32]:
-        """Linear interpolation (and extrapolation past the outer cell centres) matrix."""
-        c = np.asarray(coords, np.float64).ravel()
-        w = np.zeros((c.size, n), np.float32)
-        if n == 1:
-            w[:, 0] = 1.0
-            return w
-        f = (c + 0.5) / self.mesh - 0.5
-        i0 = np.clip(np.floor(f).astype(np.intp), 0, n - 2)
-        t = f - i0
-        r = np.arange(c.size)
-        w[r, i0] = 1.0 - t
-        w[r, i0 + 1] = t
-        return w
+    def _weights(self, coords: npt.ArrayLike, n: int, extrapolate: bool = True) -> npt.NDArray[np.float32]:
+        """Linear interpolation matrix; past the outer cell centres linear extrapolation, or
+        the outer value (``extrapolate=False``)."""
+        return _interp_weights(np.asarray(coords, np.float64).ravel(), n, self.mesh, extrapolate)
 
-    def map(self, grid: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    def map(self, grid: npt.NDArray[np.float32], extrapolate: bool = True) -> npt.NDArray[np.float32]:
         """Full-resolution map of a (ny, nx) cell grid (float32, the frame's shape).
 
-        Bilinear between cell centres, linear extrapolation in the outer half cells.
+        Bilinear between cell centres (``cv2.resize``); in the outer half cells linear
+        extrapolation (level: the grid is padded with a ring of linearly extrapolated ghost
+        cells) or the outer cells' value (``extrapolate=False``, used for the noise).
         """
-        ny, nx = self.mesh_level.shape
-        wy = self._weights(np.arange(self.shape[0]), ny)
-        wx = self._weights(np.arange(self.shape[1]), nx)
-        return np.ascontiguousarray((wy @ np.asarray(grid, np.float32)) @ wx.T)
+        g = np.asarray(grid, np.float32)
+        ny, nx = g.shape
+        pad = 0
+        if extrapolate and ny > 1 and nx > 1:
+            g = np.vstack([2 * g[:1] - g[1:2], g, 2 * g[-1:] - g[-2:-1]])
+            g = np.hstack([2 * g[:, :1] - g[:, 1:2], g, 2 * g[:, -1:] - g[:, -2:-1]])
+            pad = self.mesh
+        full = cv2.resize(g, (g.shape[1] * self.mesh, g.shape[0] * self.mesh), interpolation=cv2.INTER_LINEAR)
+        return np.ascontiguousarray(full[pad : pad + self.shape[0], pad : pad + self.shape[1]])
 
     @property
     def level(self) -> npt.NDArray[np.float32]:
@@ -81,23 +96,23 @@ class Background:
     @property
     def noise(self) -> npt.NDArray[np.float32]:
         """Background noise (1 sigma) per pixel, DN (computed on each access)."""
-        return self.map(self.mesh_noise)
+        return self.map(self.mesh_noise, extrapolate=False)
 
-    def _interp(self, grid: npt.NDArray[np.float32], x: npt.ArrayLike, y: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    def _interp(self, grid: npt.NDArray[np.float32], x: npt.ArrayLike, y: npt.ArrayLike, extrapolate: bool) -> npt.NDArray[np.float64]:
         xs = np.asarray(x, np.float64)
         ys = np.asarray(y, np.float64)
         ny, nx = grid.shape
-        wy = self._weights(ys, ny).astype(np.float64)
-        wx = self._weights(xs, nx).astype(np.float64)
+        wy = self._weights(ys, ny, extrapolate).astype(np.float64)
+        wx = self._weights(xs, nx, extrapolate).astype(np.float64)
         return np.einsum("ki,ij,kj->k", wy, grid.astype(np.float64), wx).reshape(np.broadcast(xs, ys).shape)
 
     def level_at(self, x: npt.ArrayLike, y: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Background level at pixel positions (x = column, y = row), DN."""
-        return self._interp(self.mesh_level, x, y)
+        return self._interp(self.mesh_level, x, y, True)
 
     def noise_at(self, x: npt.ArrayLike, y: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Background noise (1 sigma) at pixel positions (x = column, y = row), DN."""
-        return self._interp(self.mesh_noise, x, y)
+        return self._interp(self.mesh_noise, x, y, False)
 
 
 def _cells(img: npt.NDArray[np.float32], mesh: int, sub: int) -> tuple[npt.NDArray[np.float32], int, int]:
@@ -236,6 +251,8 @@ def estimate_background(
     if filter_size > 1 and (ny > 1 or nx > 1):
         level_grid = median_filter(level_grid, size=filter_size, mode="nearest")
         noise_grid = median_filter(noise_grid, size=filter_size, mode="nearest")
+    # the noise varies slowly: a 3x3 mean of the cells (a third of the estimation error)
+    noise_grid = uniform_filter(noise_grid, size=3, mode="nearest") if min(ny, nx) >= 3 else noise_grid
     glevel = float(np.median(level_grid))
     if min_noise is None:
         min_noise = 1.0 / np.sqrt(12.0) if integer else 1e-6 * max(1.0, abs(glevel))

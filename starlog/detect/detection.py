@@ -13,7 +13,7 @@ extraction, connected components, morphology, screening, moments + second-order 
    area; each component's local maxima of the filtered image are peaks, and a component with
    several peaks separated by a significant saddle is split (flag ``BLENDED``);
 6. screening: hot pixels and cosmic-ray hits are rejected because they are sharper than any
-   PSF (the mean of the two horizontal, or the two vertical, neighbours of the brightest pixel
+   PSF (the mean of the two horizontal, or the two vertical, neighbours of the peak pixel
    is below ``sharpness_ratio`` of it and more than 8 noise sigma below it), and so are
    footprints elongated beyond
    ``max_elongation``; saturated stars are kept and flagged ``SATURATED``; stars within
@@ -146,7 +146,7 @@ def _log_parabola(fm: npt.NDArray[np.float64], f0: npt.NDArray[np.float64], fp: 
 def detect_stars(
     image: npt.ArrayLike,
     *,
-    threshold: float = 4.5,
+    threshold: float = 5.0,
     filter_sigma: float = 1.5,
     min_area: int = 3,
     max_area: int = 20000,
@@ -181,9 +181,9 @@ def detect_stars(
     mesh : int
         Background cell size, px (see :func:`estimate_background`).
     sharpness_ratio : float
-        Hot-pixel / cosmic-ray test: reject a candidate whose brightest pixel stands more than
-        8 noise sigma above the mean of its two horizontal or of its two vertical neighbours,
-        that mean being below this fraction of it. 0.2 accepts Gaussian PSFs with
+        Hot-pixel / cosmic-ray test: reject a candidate whose peak pixel (the filtered image's
+        maximum) stands more than 8 noise sigma above the mean of its two horizontal or of its
+        two vertical neighbours, that mean being below this fraction of it. 0.2 accepts Gaussian PSFs with
         sigma >= ~0.55 px.
     max_elongation : float
         Reject candidates with a larger axis ratio (cosmic-ray tracks); blends are exempt.
@@ -251,7 +251,8 @@ def detect_stars(
     # matched filter on the raw frame; the smooth background passes through unchanged, so the
     # threshold map is level + k * filtered noise (interpolated once from the cell grids)
     gimg = cv2.sepFilter2D(work, cv2.CV_32F, k1, k1, borderType=cv2.BORDER_REFLECT)
-    thr_map = bg.map(bg.mesh_level + np.float32(threshold * knorm) * bg.mesh_noise)
+    thr_map = bg.map(bg.mesh_level)
+    thr_map += bg.map(np.float32(threshold * knorm) * bg.mesh_noise, extrapolate=False)
     binary = cv2.compare(gimg, thr_map, cv2.CMP_GT)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, _CROSS)
     # connected components: external contours give each component's bounding box cheaply;
@@ -353,13 +354,15 @@ def detect_stars(
     jmax = np.argmax(c3, axis=1)
     ar = np.arange(n)
     peak = c3[ar, jmax]
-    by, bx = 1 + jmax // 3, 1 + jmax % 3
-    hmean = 0.5 * (box[ar, by, bx - 1] + box[ar, by, bx + 1])
-    vmean = 0.5 * (box[ar, by - 1, bx] + box[ar, by + 1, bx])
+    # sharpness at the filtered image's peak pixel (where a hot pixel or a track is; for a star
+    # it is the pixel nearest its centre, more robust than the brightest noisy pixel)
+    cval = box[:, 2, 2]
+    hmean = 0.5 * (box[:, 2, 1] + box[:, 2, 3])
+    vmean = 0.5 * (box[:, 1, 2] + box[:, 3, 2])
     nmin = np.minimum(hmean, vmean)
     # a spike far above what noise can do (any detectable hot pixel is > 10 sigma) and narrower
     # than any PSF; noise spikes on faint stars are left alone by the significance condition
-    sharp = (peak - nmin > 8.0 * noise) & (nmin < sharpness_ratio * peak)
+    sharp = (cval - nmin > 8.0 * noise) & (nmin < sharpness_ratio * cval)
     sat = (raw[:, 1:4, 1:4] >= saturation).reshape(n, 9).any(axis=1)
     flags[sat] |= np.uint16(StarFlag.SATURATED)
     sharp &= ~sat

@@ -12,12 +12,14 @@ from __future__ import annotations
 import io
 import os
 import struct
+import zlib
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message, MessageIndex, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
@@ -99,11 +101,17 @@ class _Rebuilder:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.out_ids: dict[int, int] = {}
+        self.by_topic: dict[str, tuple[MessageType, int]] = {}
+
+    def skip(self, what: str) -> None:
+        self.report.skipped_records[what] = self.report.skipped_records.get(what, 0) + 1
 
     def schema(self, schema: Schema) -> None:
         self.schemas[schema.id] = schema
 
     def channel(self, channel: Channel) -> None:
+        if self.channels.get(channel.id, channel) != channel:
+            self.out_ids.pop(channel.id, None)  # a later, different definition of the id wins for what follows
         self.channels[channel.id] = channel
 
     def message(self, message: Message) -> None:
@@ -111,18 +119,27 @@ class _Rebuilder:
         if out_id is None:
             channel = self.channels.get(message.channel_id)
             if channel is None:
-                self.report.skipped_records["message without channel"] = (
-                    self.report.skipped_records.get("message without channel", 0) + 1
-                )
+                self.skip("message without channel")
                 return
             schema = self.schemas.get(channel.schema_id)
+            if channel.schema_id != 0 and schema is None:
+                self.skip("message whose channel's schema is lost")
+                return
             mtype = MessageType(
                 schema.name if schema else "",
                 schema.encoding if schema else "",
                 schema.data if schema else b"",
                 channel.message_encoding,
             )
-            out_id = self.writer.add_channel(channel.topic, mtype, metadata=dict(channel.metadata))
+            known = self.by_topic.get(channel.topic)
+            if known is None:
+                out_id = self.writer.add_channel(channel.topic, mtype, metadata=dict(channel.metadata))
+                self.by_topic[channel.topic] = (mtype, out_id)
+            elif known[0] == mtype:
+                out_id = known[1]
+            else:
+                self.skip("message of a second, different channel with the same topic")
+                return
             self.out_ids[message.channel_id] = out_id
         topic = self.channels[message.channel_id].topic
         self.writer.write(out_id, log_time=message.log_time, data=message.data, publish_time=message.publish_time)
@@ -132,79 +149,164 @@ class _Rebuilder:
         self.report.kept_time_range[topic] = (min(lo, message.log_time), max(hi, message.log_time))
 
 
-def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebuilder) -> None:
-    offset = len(MCAP_MAGIC)
+_KNOWN_OPCODES = {int(op) for op in Opcode}
+_COMPRESSIONS = {b"", b"zstd", b"lz4"}
+
+
+def _plausible_chunk(f: BinaryIO, offset: int, size: int) -> bool:
+    """Whether a whole, self-consistent chunk record starts at ``offset`` (used to resynchronise)."""
     f.seek(offset)
+    head = f.read(9 + 28 + 4)
+    if len(head) < 41 or head[0] != Opcode.CHUNK:
+        return False
+    (length,) = struct.unpack_from("<Q", head, 1)
+    (name_len,) = struct.unpack_from("<I", head, 37)
+    if name_len > 4 or offset + 9 + length > size:
+        return False
+    rest = f.read(name_len + 8)
+    if len(rest) < name_len + 8 or rest[:name_len] not in _COMPRESSIONS:
+        return False
+    (data_len,) = struct.unpack_from("<Q", rest, name_len)
+    return 28 + 4 + name_len + 8 + data_len == length
+
+
+def _resync(f: BinaryIO, start: int, size: int, hints: list[int]) -> int | None:
+    """Offset of the next whole chunk record at or after ``start`` (summary hints first, then a scan)."""
+    for hint in hints:
+        if hint >= start and _plausible_chunk(f, hint, size):
+            return hint
+    window = 1 << 20
+    pos = start
+    while pos < size:
+        f.seek(pos)
+        block = f.read(window + 64)
+        i = block.find(bytes([Opcode.CHUNK]))
+        while i != -1 and i < window:
+            if _plausible_chunk(f, pos + i, size):
+                return pos + i
+            i = block.find(bytes([Opcode.CHUNK]), i + 1)
+        pos += window
+    return None
+
+
+def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebuilder,
+                  hints: list[int] | None = None) -> None:
+    offset = len(MCAP_MAGIC)
     pending_lost: LostChunk | None = None
+    hints = sorted(hints or [])
     while offset < size:
+        f.seek(offset)
         head = f.read(_RECORD_HEADER.size)
         if len(head) < _RECORD_HEADER.size:
             break
         opcode, length = _RECORD_HEADER.unpack(head)
-        if offset + _RECORD_HEADER.size + length > size:
-            break  # record cut off by the end of the file
-        body = f.read(length)
-        stream = ReadDataStream(io.BytesIO(body))
-        try:
-            if opcode == Opcode.SCHEMA:
-                rebuild.schema(Schema.read(stream))
-            elif opcode == Opcode.CHANNEL:
-                rebuild.channel(Channel.read(stream))
-            elif opcode == Opcode.MESSAGE:
-                rebuild.message(Message.read(stream, length))
-            elif opcode == Opcode.CHUNK:
-                chunk = Chunk.read(stream)
-                pending_lost = None
-                try:
-                    records = breakup_chunk(chunk, validate_crc=True)
-                except Exception as err:  # CRC mismatch, damaged compressed data, bad inner record
-                    pending_lost = LostChunk(offset, f"{type(err).__name__}: {err}", chunk.message_start_time,
-                                             chunk.message_end_time)
-                    report.lost_chunks.append(pending_lost)
-                else:
-                    for record in records:
-                        if isinstance(record, Schema):
-                            rebuild.schema(record)
-                        elif isinstance(record, Channel):
-                            rebuild.channel(record)
-                        elif isinstance(record, Message):
-                            rebuild.message(record)
-            elif opcode == Opcode.MESSAGE_INDEX:
-                if pending_lost is not None:
-                    index = MessageIndex.read(stream)
-                    channel = rebuild.channels.get(index.channel_id)
-                    topic = channel.topic if channel else f"channel {index.channel_id}"
-                    pending_lost.messages_by_topic[topic] = len(index.records)
-            elif opcode == Opcode.METADATA:
-                metadata = Metadata.read(stream)
-                rebuild.writer.add_metadata(metadata.name, dict(metadata.metadata))
-                report.metadata_kept += 1
-            elif opcode == Opcode.DATA_END:
-                offset += _RECORD_HEADER.size + length
-                break
-            elif opcode not in (Opcode.HEADER, Opcode.FOOTER):
-                name = Opcode(opcode).name if opcode in Opcode._value2member_map_ else f"opcode {opcode}"
-                report.skipped_records[name] = report.skipped_records.get(name, 0) + 1
-        except (struct.error, ValueError, UnicodeDecodeError, EOFError) as err:
-            report.lost_chunks.append(LostChunk(offset, f"damaged {Opcode(opcode).name if opcode in Opcode._value2member_map_ else opcode} record: {err}"))
-        offset += _RECORD_HEADER.size + length
+        damaged: str | None = None
+        if opcode not in _KNOWN_OPCODES:
+            damaged = f"unknown record type {opcode:#04x}"
+        elif offset + _RECORD_HEADER.size + length > size:
+            damaged = f"a {Opcode(opcode).name} record of {length} bytes runs past the end of the file"
+        else:
+            body = f.read(length)
+            stream = ReadDataStream(io.BytesIO(body))
+            try:
+                if opcode == Opcode.SCHEMA:
+                    rebuild.schema(Schema.read(stream))
+                elif opcode == Opcode.CHANNEL:
+                    rebuild.channel(Channel.read(stream))
+                elif opcode == Opcode.MESSAGE:
+                    rebuild.message(Message.read(stream, length))
+                elif opcode == Opcode.CHUNK:
+                    chunk = Chunk.read(stream)
+                    if stream.count != length:
+                        raise ValueError(f"its fields take {stream.count} bytes, its record {length}")
+                    pending_lost = None
+                    try:
+                        if chunk.compression not in ("", "zstd", "lz4"):
+                            raise ValueError(f"unknown compression {chunk.compression!r}")
+                        records = breakup_chunk(chunk, validate_crc=True)
+                    except Exception as err:  # CRC mismatch, damaged compressed data, bad inner record
+                        pending_lost = LostChunk(offset, f"{type(err).__name__}: {err}", chunk.message_start_time,
+                                                 chunk.message_end_time)
+                        report.lost_chunks.append(pending_lost)
+                    else:
+                        for record in records:
+                            if isinstance(record, Schema):
+                                rebuild.schema(record)
+                            elif isinstance(record, Channel):
+                                rebuild.channel(record)
+                            elif isinstance(record, Message):
+                                rebuild.message(record)
+                elif opcode == Opcode.MESSAGE_INDEX:
+                    if pending_lost is not None:
+                        index = MessageIndex.read(stream)
+                        channel = rebuild.channels.get(index.channel_id)
+                        topic = channel.topic if channel else f"channel {index.channel_id}"
+                        pending_lost.messages_by_topic[topic] = len(index.records)
+                elif opcode == Opcode.METADATA:
+                    metadata = Metadata.read(stream)
+                    rebuild.writer.add_metadata(metadata.name, dict(metadata.metadata))
+                    report.metadata_kept += 1
+                elif opcode == Opcode.DATA_END:
+                    offset += _RECORD_HEADER.size + length
+                    break
+                elif opcode not in (Opcode.HEADER, Opcode.FOOTER):
+                    rebuild.skip(Opcode(opcode).name)
+            except (struct.error, ValueError, UnicodeDecodeError, EOFError, McapError, MemoryError) as err:
+                damaged = f"damaged {Opcode(opcode).name} record: {type(err).__name__}: {err}"
+        if damaged is None:
+            offset += _RECORD_HEADER.size + length
+            continue
+        # The bytes at `offset` are not a whole record: find the next chunk and go on from there.
+        pending_lost = None
+        found = _resync(f, offset + 1, size, hints)
+        if found is None:
+            if report.had_footer or offset + _RECORD_HEADER.size + length <= size or opcode not in _KNOWN_OPCODES:
+                report.lost_chunks.append(LostChunk(offset, f"{damaged}; nothing readable after it"))
+            break  # else: the record cut off by the end of a truncated file (counted in tail_bytes_lost)
+        report.lost_chunks.append(LostChunk(offset, f"{damaged}; skipped {found - offset} bytes to the next chunk"))
+        offset = found
     report.bytes_scanned = offset
 
 
-def _seed_from_summary(f: BinaryIO, rebuild: _Rebuilder) -> None:
-    """Take schemas and channels from the summary when it survived (a chunk holding them may not have)."""
+def _summary_crc_ok(f: BinaryIO, size: int) -> bool:
+    """Whether the footer's summary CRC matches (a damaged summary must not name channels)."""
+    footer = struct.Struct("<BQQQI")
+    if size < len(MCAP_MAGIC) * 2 + footer.size:
+        return False
+    f.seek(size - len(MCAP_MAGIC) - footer.size)
+    opcode, _, start, offsets_start, crc = footer.unpack(f.read(footer.size))
+    end = size - len(MCAP_MAGIC) - footer.size
+    if opcode != Opcode.FOOTER or not len(MCAP_MAGIC) < start <= end:
+        return False
+    f.seek(start)
+    computed = zlib.crc32(f.read(end - start))
+    computed = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, start, offsets_start), computed)
+    return crc == 0 or computed == crc
+
+
+def _seed_from_summary(f: BinaryIO, rebuild: _Rebuilder, size: int) -> list[int]:
+    """Schemas and channels from the summary when it survived intact (a chunk holding them may not have).
+
+    Returns the chunk offsets the summary lists (used to resynchronise after a damaged record).
+    """
     from mcap.reader import make_reader
 
+    if not _summary_crc_ok(f, size):
+        rebuild.skip("damaged summary section (rebuilt from the data section)")
+        return []
     try:
         f.seek(0)
         summary = make_reader(f).get_summary()
     except Exception:  # a damaged summary is simply not used; the scan finds the records in the chunks
-        return
-    if summary is not None:
-        for schema in summary.schemas.values():
-            rebuild.schema(schema)
-        for channel in summary.channels.values():
-            rebuild.channel(channel)
+        rebuild.skip("damaged summary section (rebuilt from the data section)")
+        return []
+    if summary is None:
+        return []
+    for schema in summary.schemas.values():
+        rebuild.schema(schema)
+    for channel in summary.channels.values():
+        rebuild.channel(channel)
+    return [ci.chunk_start_offset for ci in summary.chunk_indexes]
 
 
 def recover_log(
@@ -229,9 +331,8 @@ def recover_log(
         report.had_footer = f.read() == MCAP_MAGIC
         with LogWriter(output, force=force, compression=compression) as writer:
             rebuild = _Rebuilder(writer, report)
-            if report.had_footer:
-                _seed_from_summary(f, rebuild)
-            _read_records(f, report.input_size, report, rebuild)
+            hints = _seed_from_summary(f, rebuild, report.input_size) if report.had_footer else []
+            _read_records(f, report.input_size, report, rebuild, hints)
             report.tail_bytes_lost = 0 if report.had_footer else report.input_size - report.bytes_scanned
             writer.add_metadata(
                 PROVENANCE_METADATA_NAME,

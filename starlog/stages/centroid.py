@@ -4,15 +4,18 @@ Reads ``/camera/image`` and writes ``/stars/detections`` (starlog.Detections),
 ``/stars/centroids/<METHOD>`` per method (starlog.Centroids) and ``/stars/annotations``
 (foxglove.ImageAnnotations: circles at the first method's centroids, so the stars show over
 the frames in Foxglove), each message at its frame's ``log_time``. Frames are processed one at
-a time (memory flat in log length); with ``workers > 1`` frames are extracted on a thread
-pool and written in order, so the output does not depend on the number of workers.
+a time (memory flat in log length). With ``workers > 1`` the log is split into blocks of
+consecutive image chunks; each worker process opens the log itself, decodes and extracts its
+block (so no image crosses a process boundary), and the results are written in frame order:
+the output does not depend on the number of workers.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -133,8 +136,7 @@ def centroid_log(
     summary.centroids = {m.value: 0 for m in chosen}
     summary.failed = {m.value: 0 for m in chosen}
 
-    def extract(image: npt.NDArray[Any]) -> tuple[npt.NDArray[np.void], dict[Any, npt.NDArray[np.void]]]:
-        return extract_stars(image, methods=chosen, gain=gain, read_noise=read_noise, **options)
+    extract = _Extractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options)
 
     with extend_log(input_path, output_path, stage="centroid", parameters=digest_params, force=force,
                     compression=compression, workers=workers) as (log, out):
@@ -143,7 +145,10 @@ def centroid_log(
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))
         cen_ch = {m: out.add_channel(topics.centroid_topic(m.value), json_message_type("starlog.Centroids"))
                   for m in chosen}
-        results = _extract_in_order(log.frames(), extract, workers)
+        if workers > 1 and n_frames >= 64:  # below that, process start-up costs more than it saves
+            results = _extract_parallel(log, input_path, extract, workers)
+        else:
+            results = ((frame, t, extract(image)) for frame, t, image in log.frames())
         for frame, t, (detections, centroids) in progress(results, total=n_frames, description="centroid",
                                                           enabled=show_progress):
             out.writer.write(det_ch, log_time=t, data=encode_json({"frame": frame, "stars": rows(detections)}))
@@ -162,22 +167,66 @@ def centroid_log(
     return summary
 
 
-def _extract_in_order(
-    frames: Iterator[tuple[int, int, npt.NDArray[Any]]], extract: Any, workers: int
-) -> Iterator[tuple[int, int, Any]]:
-    if workers <= 1:
-        for frame, t, image in frames:
-            yield frame, t, extract(image)
-        return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        window: list[tuple[int, int, Any]] = []
-        for frame, t, image in frames:
-            window.append((frame, t, pool.submit(extract, image)))
-            if len(window) >= 2 * workers:
-                f, tt, fut = window.pop(0)
-                yield f, tt, fut.result()
-        for f, tt, fut in window:
-            yield f, tt, fut.result()
+@dataclass(frozen=True)
+class _Extractor:
+    """``extract_stars`` with the stage's options; picklable, so worker processes can run it."""
+
+    methods: tuple[CentroidMethod, ...]
+    gain: float
+    read_noise: float | None
+    options: dict[str, Any]
+
+    def __call__(self, image: npt.NDArray[Any]) -> tuple[npt.NDArray[np.void], dict[Any, npt.NDArray[np.void]]]:
+        return extract_stars(image, methods=self.methods, gain=self.gain, read_noise=self.read_noise,
+                             **self.options)
+
+
+def _extract_block(path: str, start: int, end: int, extract: _Extractor) -> list[tuple[int, Any]]:
+    """Worker: extract every frame with ``start <= log_time < end`` (opens the log itself)."""
+    with LogReader(path) as log:
+        return [(t, extract(image)) for _, t, image in
+                ((0, m.log_time, m.payload) for m in log.messages(topics.IMAGE, start=start, end=end))]
+
+
+def _image_blocks(log: LogReader, frames_per_block: int) -> list[tuple[int, int]]:
+    """Split the image channel into time ranges of whole chunks, about ``frames_per_block`` frames each."""
+    image_id = next(c.id for c in log.summary.channels.values() if c.topic == topics.IMAGE)
+    ranges = sorted((ci.message_start_time, ci.message_end_time) for ci in log.summary.chunk_indexes
+                    if image_id in ci.message_index_offsets)
+    per_chunk = max(1, log.channel(topics.IMAGE).message_count // max(1, len(ranges)))
+    chunks_per_block = max(1, frames_per_block // per_chunk)
+    blocks = []
+    for i in range(0, len(ranges), chunks_per_block):
+        group = ranges[i:i + chunks_per_block]
+        start = group[0][0] if not blocks else blocks[-1][1]
+        blocks.append((start, group[-1][1] + 1))
+    for (_, end), (nxt, _) in zip(ranges, ranges[1:]):
+        if nxt < end - 1:  # chunks overlapping in time: fall back to one block per whole log
+            first, last = log.channel(topics.IMAGE).first_log_time, log.channel(topics.IMAGE).last_log_time
+            return [(first, last + 1)]
+    return blocks
+
+
+def _extract_parallel(log: LogReader, path: str | os.PathLike[str], extract: _Extractor,
+                      workers: int) -> Iterator[tuple[int, int, Any]]:
+    blocks = _image_blocks(log, frames_per_block=32)
+    frame = 0
+    # forkserver: the parent has compression threads, which must not be forked
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("forkserver")) as pool:
+        pending: list[Future[list[tuple[int, Any]]]] = []
+        queue = iter(blocks)
+        for start, end in queue:
+            pending.append(pool.submit(_extract_block, str(path), start, end, extract))
+            if len(pending) >= 2 * workers:
+                break
+        while pending:
+            done = pending.pop(0).result()
+            nxt = next(queue, None)
+            if nxt is not None:
+                pending.append(pool.submit(_extract_block, str(path), nxt[0], nxt[1], extract))
+            for t, result in done:
+                yield frame, t, result
+                frame += 1
 
 
 def _centroid_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict[str, Any]]:

@@ -1,0 +1,259 @@
+"""Tables 2–4 and Figure 5's data: long-format rows, Parquet and Markdown writers.
+
+Every table is one Parquet file in long format (one row per dataset × method × model × rate ×
+protocol × reference, columns :data:`TABLE_FIELDS`, the paper's number beside ours on every row
+where the paper has one) and one Markdown file with a section per protocol and reference, each
+labelled with both.  The Markdown puts the paper's numbers beside ours in the ``paper``
+protocol's section (the only protocol the paper used).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from starlog.experiment import paper_tables
+from starlog.experiment.runner import (
+    FIGURE5_RATES,
+    METHODS,
+    MODELS,
+    PROTOCOL_REFERENCES,
+    TABLE2_RATES,
+    TABLE3_RATES,
+    TABLE4_RATE,
+)
+
+__all__ = [
+    "REFERENCE_TEXT",
+    "TABLE_FIELDS",
+    "TABLE_TITLES",
+    "build_table",
+    "primary_window",
+    "table_markdown",
+    "write_parquet",
+]
+
+TABLE_FIELDS: dict[str, tuple[pa.DataType, str]] = {
+    "table": (pa.string(), "table2, table3, table4 or figure5"),
+    "protocol": (pa.string(), "evaluation protocol: paper, truth, leakfree"),
+    "reference": (pa.string(), "RMSE reference: global_mean, truth_fixed, truth_series, heldout_mean"),
+    "dataset": (pa.string(), "300Hz or 200Hz"),
+    "method": (pa.string(), "sub-pixel centroid method"),
+    "model": (pa.string(), "UKF motion model"),
+    "window": (pa.string(), "scored samples: first N seconds ('6s') or 'full'"),
+    "rate_hz": (pa.float64(), "requested down-sample rate, Hz"),
+    "effective_rate_hz": (pa.float64(), "native rate / decimation step, Hz"),
+    "n_samples": (pa.int64(), "decimated samples in the window"),
+    "n_scored": (pa.int64(), "samples scored"),
+    "compensated": (pa.bool_(), "whether compensation was run"),
+    "rmse_before": (pa.float64(), "ours, eq. 15 before compensation, px"),
+    "rmse_after": (pa.float64(), "ours, eq. 15 after compensation, px (null: not compensated)"),
+    "effective": (pa.float64(), "ours, eq. 13 improvement, fraction (null: not compensated)"),
+    "paper_rmse_before": (pa.float64(), "the paper's RMSE before (its protocol), px; null where it has none"),
+    "paper_rmse_after": (pa.float64(), "the paper's RMSE after (its protocol), px; null where it has none"),
+    "paper_n_samples": (pa.int64(), "the paper's 'Image number' for this rate; null where it gives none"),
+    "order": (pa.string(), "strategies run, '>'-separated"),
+    "kept": (pa.string(), "strategies kept after rollback, '>'-separated"),
+}
+"""Columns of every table's Parquet file: name -> (Arrow type, description with unit)."""
+
+TABLE_TITLES: dict[str, str] = {
+    "table2": "Table 2 — uncompensated RMSE of the five UKF models (sub-pixel method NONE), 5 and 10 Hz",
+    "table3": "Table 3 — STATIC UKF, sub-pixel methods × 10–50 Hz, RMSE before/after compensation",
+    "table4": "Table 4 — five UKF models at 50 Hz (sub-pixel method NONE), RMSE before/after compensation",
+    "figure5": "Figure 5 — RMSE before/after compensation, 10–100 Hz, five UKF models (NONE)",
+}
+
+REFERENCE_TEXT: dict[str, str] = {
+    "global_mean": "RMSE about the global mean of the scored sequence (the paper's eq. 15 and 'truth')",
+    "truth_fixed": "RMSE about the simulator's fixed true star position",
+    "truth_series": "RMSE about the simulator's instantaneous (jittered) true position",
+    "heldout_mean": "RMSE of the held-out half about its own raw mean; the compensation only saw the "
+                    "calibration half",
+}
+
+
+def primary_window(rows: Sequence[dict[str, Any]]) -> str:
+    """The window the tables use: the first non-``full`` window, else ``full``."""
+    windows = {r["window"] for r in rows}
+    short = sorted(w for w in windows if w != "full")
+    return short[0] if short else "full"
+
+
+def _select(table: str, r: dict[str, Any]) -> bool:
+    if table == "table2":
+        return r["method"] == "NONE" and r["rate_hz"] in TABLE2_RATES
+    if table == "table3":
+        return r["model"] == "STATIC" and r["rate_hz"] in TABLE3_RATES
+    if table == "table4":
+        return r["method"] == "NONE" and r["rate_hz"] == TABLE4_RATE
+    if table == "figure5":
+        return r["method"] == "NONE" and r["rate_hz"] in FIGURE5_RATES
+    raise KeyError(table)
+
+
+def build_table(table: str, rows: Sequence[dict[str, Any]], *, window: str | None = None) -> list[dict[str, Any]]:
+    """Long-format rows of ``table`` (columns :data:`TABLE_FIELDS`) from the sweep's result rows."""
+    window = window or primary_window(rows)
+    out = []
+    for r in rows:
+        if r["window"] != window or not _select(table, r):
+            continue
+        before = after = None
+        n_paper = None
+        if table != "figure5":
+            before, after = paper_tables.paper_value(table, dataset=r["dataset"], model=r["model"],
+                                                     method=r["method"], rate_hz=r["rate_hz"])
+            if table == "table3":
+                n_paper = paper_tables.TABLE3_IMAGE_NUMBER.get(int(r["rate_hz"])) if before is not None else None
+            elif table == "table4":
+                n_paper = paper_tables.TABLE3_IMAGE_NUMBER[paper_tables.TABLE4_RATE]
+        out.append({
+            "table": table, "protocol": r["protocol"], "reference": r["reference"], "dataset": r["dataset"],
+            "method": r["method"], "model": r["model"], "window": r["window"], "rate_hz": r["rate_hz"],
+            "effective_rate_hz": r["effective_rate_hz"], "n_samples": r["n_samples"], "n_scored": r["n_scored"],
+            "compensated": r["compensated"], "rmse_before": r["rmse_before"], "rmse_after": r["rmse_after"],
+            "effective": r["effective"], "paper_rmse_before": before, "paper_rmse_after": after,
+            "paper_n_samples": n_paper, "order": r["order"], "kept": r["kept"],
+        })
+    return out
+
+
+def write_parquet(rows: Sequence[dict[str, Any]], path: str | Path, *, description: str) -> Path:
+    """Write long-format rows as zstd Parquet with :data:`TABLE_FIELDS` (descriptions as field metadata)."""
+    fields = [pa.field(name, dtype, nullable=True, metadata={"description": text})
+              for name, (dtype, text) in TABLE_FIELDS.items()]
+    schema = pa.schema(fields, metadata={"description": description, "reference": paper_tables.PAPER_REFERENCE})
+    columns = {name: [r[name] for r in rows] for name in TABLE_FIELDS}
+    table = pa.table(columns, schema=schema)
+    path = Path(path)
+    pq.write_table(table, path, compression="zstd")
+    return path
+
+
+# ---------------------------------------------------------------------------------------------
+# Markdown
+
+
+def _f(value: float | None, digits: int = 4) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "—"
+    return f"{value:.{digits}f}"
+
+
+def _pct(value: float | None) -> str:
+    return "—" if value is None else f"{100 * value:+.0f}%"
+
+
+def _md(header: Sequence[str], body: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in body]
+    return "\n".join(lines)
+
+
+def _index(rows: Sequence[dict[str, Any]]) -> dict[tuple[Any, ...], dict[str, Any]]:
+    return {(r["protocol"], r["reference"], r["dataset"], r["method"], r["model"], r["rate_hz"]): r for r in rows}
+
+
+def _section(table: str, rows: Sequence[dict[str, Any]], protocol: str, reference: str,
+             datasets: Sequence[str]) -> str | None:
+    idx = _index(rows)
+    with_paper = protocol == "paper"
+
+    def cell(ds: str, method: str, model: str, rate: float) -> dict[str, Any] | None:
+        return idx.get((protocol, reference, ds, method, model, rate))
+
+    if table == "table2":
+        header = ["UKF model"]
+        for ds in datasets:
+            for rate in TABLE2_RATES:
+                header.append(f"{ds} RMSE_{rate:g}Hz")
+                if with_paper:
+                    header.append("paper")
+        body = []
+        for model in MODELS:
+            line = [model]
+            for ds in datasets:
+                for rate in TABLE2_RATES:
+                    c = cell(ds, "NONE", model, rate)
+                    line.append(_f(c and c["rmse_before"]))
+                    if with_paper:
+                        line.append(_f(paper_tables.TABLE2[model][ds][int(rate)]))
+            body.append(line)
+    elif table == "table3":
+        header = ["Sub-pixel method", "Rate/Hz", "N (paper)"]
+        for ds in datasets:
+            header += [f"{ds} before", f"{ds} after", "gain"]
+            if with_paper:
+                header += ["paper before", "paper after"]
+        body = []
+        for method in METHODS:
+            for rate in TABLE3_RATES:
+                cells = [cell(ds, method, "STATIC", rate) for ds in datasets]
+                if not any(cells):
+                    continue
+                first = next(c for c in cells if c)
+                paper_n = paper_tables.TABLE3_IMAGE_NUMBER.get(int(rate))
+                has_paper = paper_tables.paper_value("table3", dataset=datasets[0], method=method,
+                                                     rate_hz=rate)[0] is not None
+                n_text = f"{first['n_samples']}" + (f" ({paper_n})" if has_paper and paper_n else "")
+                line = [method, f"{rate:g}", n_text]
+                for ds, c in zip(datasets, cells):
+                    line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
+                    if with_paper:
+                        pb, pa_ = paper_tables.paper_value("table3", dataset=ds, method=method, rate_hz=rate)
+                        line += [_f(pb), _f(pa_)]
+                body.append(line)
+    elif table == "table4":
+        header = ["UKF model"]
+        for ds in datasets:
+            header += [f"{ds} before", f"{ds} after", "gain"]
+            if with_paper:
+                header += ["paper before", "paper after"]
+        body = []
+        for model in MODELS:
+            line = [model]
+            for ds in datasets:
+                c = cell(ds, "NONE", model, TABLE4_RATE)
+                line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
+                if with_paper:
+                    pb, pa_ = paper_tables.TABLE4[model][ds]
+                    line += [_f(pb), _f(pa_)]
+            body.append(line)
+    elif table == "figure5":
+        header = ["Dataset", "UKF model"] + [f"{r:g} Hz" for r in FIGURE5_RATES]
+        body = []
+        for ds in datasets:
+            for model in MODELS:
+                line = [ds, model]
+                for rate in FIGURE5_RATES:
+                    c = cell(ds, "NONE", model, rate)
+                    line.append("—" if c is None else f"{_f(c['rmse_before'])}→{_f(c['rmse_after'])}")
+                body.append(line)
+    else:
+        raise KeyError(table)
+    if not any(any(v not in ("—",) for v in line[1:]) for line in body):
+        return None
+    title = f"### Protocol `{protocol}` — reference `{reference}`\n\n{REFERENCE_TEXT[reference]}."
+    return title + "\n\n" + _md(header, body)
+
+
+def table_markdown(table: str, rows: Sequence[dict[str, Any]], *, note: str = "") -> str:
+    """Markdown of one table: a section per protocol and reference (paper's numbers in ``paper``)."""
+    datasets = [d for d in paper_tables.DATASETS if any(r["dataset"] == d for r in rows)]
+    parts = [f"## {TABLE_TITLES[table]}",
+             f"Reproduction of the paper's {table.replace('table', 'Table ').replace('figure', 'Figure ')} "
+             f"({paper_tables.PAPER_REFERENCE}). RMSE in pixels."]
+    if note:
+        parts.append(note)
+    for protocol, references in PROTOCOL_REFERENCES.items():
+        for reference in references:
+            section = _section(table, rows, protocol, reference, datasets)
+            if section:
+                parts.append(section)
+    return "\n\n".join(parts) + "\n"

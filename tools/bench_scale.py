@@ -1,0 +1,137 @@
+"""Scale benchmark: both cores per log, batches on a local Dask cluster, memory flat in log length.
+
+Prints three tables, every ratio measured in this one run:
+
+1. centroiding one long log with 1 and 2 workers (process per block of frames);
+2. a batch of logs through ``starlog run`` serially and on a local Dask cluster of 2 workers;
+3. peak resident memory of each stage on a log and on one 10x longer.
+
+Usage::
+
+    python tools/bench_scale.py            # full (several minutes)
+    python tools/bench_scale.py --quick    # about a minute
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from starlog.sim import Jitter, SimulationConfig
+from starlog.stages import simulate_log
+
+STARLOG = [sys.executable, "-m", "starlog"]
+CONFIG = """[centroid]
+methods = ["GAUSSFIT", "MOMENT"]
+[track]
+methods = ["GAUSSFIT"]
+models = "STATIC,CONSTANT_VELOCITY"
+[track.tracker]
+sigma_floor = 0.05
+[compensate]
+rates = [10, 50]
+protocols = "all"
+"""
+
+
+def _timed(argv: list[str]) -> tuple[float, float]:
+    """Wall seconds and peak RSS (MiB, largest process of the tree) of a command."""
+    start = time.perf_counter()
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    elapsed = time.perf_counter() - start
+    if status != 0:
+        raise RuntimeError(f"{' '.join(argv)} failed: {proc.stderr.read().decode() if proc.stderr else ''}")
+    return elapsed, usage.ru_maxrss / 1024
+
+
+def bench_single_log(tmp: Path, frames: int) -> None:
+    log = tmp / "long.mcap"
+    simulate_log(SimulationConfig(width=512, height=512, n_stars=40, n_frames=frames, seed=1), log,
+                 compression="lz4", workers=2)
+    rows = []
+    for workers in (1, 2):
+        out = tmp / f"cen{workers}.mcap"
+        seconds, _ = _timed([*STARLOG, "centroid", str(log), "-o", str(out), "--method", "GAUSSFIT,MOMENT",
+                             "--workers", str(workers), "-q", "--force"])
+        rows.append((workers, seconds))
+    same = (tmp / "cen1.mcap").read_bytes() == (tmp / "cen2.mcap").read_bytes()
+    print(f"\n## centroid one log ({frames} frames 512x512, 40 stars, GAUSSFIT+MOMENT)\n")
+    print(f"{'workers':>8} {'seconds':>9} {'frames/s':>9} {'speed-up':>9}")
+    for workers, seconds in rows:
+        print(f"{workers:>8} {seconds:>9.2f} {frames / seconds:>9.1f} {rows[0][1] / seconds:>8.2f}x")
+    print(f"output identical to 1 worker: {same}.  Target: >= 1.6x on 2 cores.")
+
+
+def bench_batch(tmp: Path, n_logs: int, frames: int) -> None:
+    folder = tmp / "batch"
+    folder.mkdir()
+    logs = []
+    for seed in range(n_logs):
+        path = folder / f"log{seed}.mcap"
+        simulate_log(SimulationConfig(width=128, height=128, n_stars=6, n_frames=frames, seed=seed,
+                                      jitter=(Jitter(frequency_hz=7.0, amplitude_px=0.05),)), path)
+        logs.append(str(path))
+    config = tmp / "pipeline.toml"
+    config.write_text(CONFIG)
+    rows = []
+    for label, workers in (("serial", 1), ("local Dask, 2 workers", 2)):
+        out = tmp / f"out{workers}"
+        seconds, _ = _timed([*STARLOG, "run", *logs, "-o", str(out), "--config", str(config), "--workers",
+                             str(workers), "-q", "--force"])
+        rows.append((label, seconds, out))
+    same = all((rows[0][2] / Path(p).name).read_bytes() == (rows[1][2] / Path(p).name).read_bytes() for p in logs)
+    print(f"\n## starlog run on a batch of {n_logs} logs ({frames} frames 128x128 each)\n")
+    print(f"{'case':<24} {'seconds':>9} {'speed-up':>9}")
+    for label, seconds, _ in rows:
+        print(f"{label:<24} {seconds:>9.2f} {rows[0][1] / seconds:>8.2f}x")
+    print(f"outputs identical to serial: {same}.  Target: >= 1.7x on 2 cores.")
+
+
+def bench_memory(tmp: Path, frames: int) -> None:
+    print(f"\n## peak memory per stage, {frames} frames vs {10 * frames} frames (256x256, 12 stars)\n")
+    print(f"{'stage':<12} {'peak MiB 1x':>12} {'peak MiB 10x':>13} {'growth':>8}")
+    peaks: dict[str, list[float]] = {}
+    for scale in (1, 10):
+        d = tmp / f"mem{scale}"
+        d.mkdir()
+        n = frames * scale
+        steps = [
+            ("simulate", [*STARLOG, "simulate", "-o", str(d / "sim.mcap"), "--frames", str(n), "--jitter", "25:0.05",
+                          "--workers", "1", "-q"]),
+            ("centroid", [*STARLOG, "centroid", str(d / "sim.mcap"), "-o", str(d / "cen.mcap"), "--method",
+                          "GAUSSFIT", "--workers", "1", "-q"]),
+            ("track", [*STARLOG, "track", str(d / "cen.mcap"), "-o", str(d / "trk.mcap"), "--centroids",
+                       "GAUSSFIT", "--model", "all", "-q"]),
+            ("compensate", [*STARLOG, "compensate", str(d / "trk.mcap"), "-o", str(d / "cmp.mcap"), "--track",
+                            "all", "--rate", "10,50", "-q"]),
+            ("export", [*STARLOG, "export", str(d / "cmp.mcap"), "-o", str(d / "tables"), "-q"]),
+            ("info", [*STARLOG, "info", str(d / "cmp.mcap")]),
+        ]
+        for name, argv in steps:
+            _, peak = _timed(argv)
+            peaks.setdefault(name, []).append(peak)
+    for name, (small, large) in peaks.items():
+        print(f"{name:<12} {small:>12.1f} {large:>13.1f} {100 * (large / small - 1):>7.1f}%")
+    print("Target: flat within 10 % (compensate holds the brightest star's decimated series, by design).")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    print(f"# starlog bench_scale (cores: {os.cpu_count()}, quick: {args.quick})")
+    with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as d:
+        tmp = Path(d)
+        bench_single_log(tmp, 150 if args.quick else 600)
+        bench_batch(tmp, 4, 300 if args.quick else 900)
+        bench_memory(tmp, 100 if args.quick else 300)
+
+
+if __name__ == "__main__":
+    main()
