@@ -229,3 +229,10 @@ def test_unknown_method_and_model_are_named(pipeline_logs: dict[str, Path], tmp_
         centroid_log(pipeline_logs["sim"], tmp_path / "x.mcap", methods="FOO")
     with pytest.raises(InvalidParameterError, match="unknown motion model"):
         track_log(pipeline_logs["cen"], tmp_path / "x.mcap", method="NONE", models="FAST")
+
+
+def test_parallel_simulation_gives_the_same_bytes(tmp_path: Path) -> None:
+    config = small_config(width=32, height=32, n_stars=2, n_frames=70, margin=6.0)
+    for workers in (1, 2):
+        simulate_log(config, tmp_path / f"w{workers}.mcap", workers=workers)
+    assert (tmp_path / "w1.mcap").read_bytes() == (tmp_path / "w2.mcap").read_bytes()

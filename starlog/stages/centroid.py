@@ -12,10 +12,8 @@ the output does not depend on the number of workers.
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 from collections.abc import Iterator, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,6 +25,7 @@ from starlog.errors import InvalidParameterError
 from starlog.export import TableSpec, register_table
 from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
+from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._stage import extend_log
 
@@ -209,21 +208,10 @@ def _image_blocks(log: LogReader, frames_per_block: int) -> list[tuple[int, int]
 
 def _extract_parallel(log: LogReader, path: str | os.PathLike[str], extract: _Extractor,
                       workers: int) -> Iterator[tuple[int, int, Any]]:
-    blocks = _image_blocks(log, frames_per_block=32)
+    blocks = ((str(path), start, end, extract) for start, end in _image_blocks(log, frames_per_block=32))
     frame = 0
-    # forkserver: the parent has compression threads, which must not be forked
-    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("forkserver")) as pool:
-        pending: list[Future[list[tuple[int, Any]]]] = []
-        queue = iter(blocks)
-        for start, end in queue:
-            pending.append(pool.submit(_extract_block, str(path), start, end, extract))
-            if len(pending) >= 2 * workers:
-                break
-        while pending:
-            done = pending.pop(0).result()
-            nxt = next(queue, None)
-            if nxt is not None:
-                pending.append(pool.submit(_extract_block, str(path), nxt[0], nxt[1], extract))
+    with process_pool(workers) as pool:
+        for done in ordered_map(pool, _extract_block, blocks, window=2 * workers):
             for t, result in done:
                 yield frame, t, result
                 frame += 1

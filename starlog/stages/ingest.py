@@ -25,6 +25,7 @@ from starlog.errors import ImageFolderError, InvalidParameterError
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
+from starlog.stages._parallel import ordered_map
 from starlog.stages._progress import progress
 
 __all__ = ["IMAGE_SUFFIXES", "ColourImageWarning", "IngestSummary", "ingest_folder", "natural_key", "read_image"]
@@ -191,14 +192,7 @@ def _decode_all(files: Sequence[Path], workers: int) -> Iterator[tuple[Path, Any
             yield path, safe(path)
         return
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        window = 4 * workers
-        futures = [pool.submit(safe, p) for p in files[:window]]
-        for i, path in enumerate(files):
-            result = futures[i].result()
-            futures[i] = None  # type: ignore[call-overload]
-            if i + window < len(files):
-                futures.append(pool.submit(safe, files[i + window]))
-            yield path, result
+        yield from zip(files, ordered_map(pool, safe, ((p,) for p in files), window=4 * workers))
 
 
 def ingest_folder(

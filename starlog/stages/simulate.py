@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 from starlog import __version__
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
-from starlog.sim import SimulationConfig, Simulator
+from starlog.sim import SimulatedFrame, SimulationConfig, Simulator
+from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 
 __all__ = ["simulate_log"]
@@ -29,14 +31,16 @@ def simulate_log(
     Channels: ``/camera/image`` (foxglove.RawImage mono16, ``log_time`` = exposure time),
     ``/camera/frame`` (starlog.FrameInfo) and ``/sim/truth`` (starlog.SimTruth: true positions
     in the pixel-centre convention). The configuration is recorded as provenance. Same
-    configuration → identical bytes.
+    configuration → identical bytes, whatever ``workers`` is: frames are rendered in worker
+    processes (each frame's noise depends only on the seed and its index) and written in order.
     """
     simulator = Simulator(config)
     with LogWriter(output, compression=compression, workers=workers, force=force) as log:
         image_ch = log.add_channel(topics.IMAGE, protobuf_message_type("foxglove.RawImage"))
         info_ch = log.add_channel(topics.FRAME_INFO, json_message_type("starlog.FrameInfo"))
         truth_ch = log.add_channel(topics.TRUTH, json_message_type("starlog.SimTruth"))
-        for frame in progress(simulator.frames(), total=config.n_frames, description="simulate", enabled=show_progress):
+        frames = _render_parallel(config, workers) if workers > 1 and config.n_frames >= 64 else simulator.frames()
+        for frame in progress(frames, total=config.n_frames, description="simulate", enabled=show_progress):
             t = frame.log_time
             log.write(image_ch, log_time=t, data=encode_raw_image(frame.image, log_time=t))
             info = {"frame": frame.index, "width": config.width, "height": config.height, "encoding": "mono16",
@@ -54,3 +58,15 @@ def simulate_log(
                                 channels=[topics.IMAGE, topics.FRAME_INFO, topics.TRUTH])
         log.add_metadata(PROVENANCE_METADATA_NAME, provenance.to_metadata())
     return Path(output)
+
+
+def _render_block(config: SimulationConfig, start: int, stop: int) -> list[SimulatedFrame]:
+    """Worker: render frames ``start..stop-1``."""
+    return list(Simulator(config).frames(start, stop))
+
+
+def _render_parallel(config: SimulationConfig, workers: int, block: int = 16) -> Iterator[SimulatedFrame]:
+    blocks = ((config, start, min(start + block, config.n_frames)) for start in range(0, config.n_frames, block))
+    with process_pool(workers) as pool:
+        for frames in ordered_map(pool, _render_block, blocks, window=2 * workers):
+            yield from frames
