@@ -542,6 +542,8 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
         what = ", ".join(f"{t}: {n}" for t, n in chunk.messages_by_topic.items()) or "channels unknown"
         click.echo(f"  lost chunk at offset {chunk.offset} (log_time {chunk.message_start_time}.."
                    f"{chunk.message_end_time}; {what}): {chunk.reason}")
+    for what, n in sorted(report.skipped_records.items()):
+        click.echo(f"  skipped {n} x {what}")
 
 
 def main() -> None:

@@ -108,8 +108,6 @@ def _calibration_samples(sigma, flux_range, reps, seed):
 def test_sigma_is_calibrated(sigma, flux_range):
     z = _calibration_samples(sigma, flux_range, reps=25, seed=11)
     for m in CentroidMethod:
-        if m is CentroidMethod.MOMENT_SQUARED:
-            continue  # its efficiency varies with the regime; sigma is nominal (see EFFICIENCY)
         assert z[m].size > 600
         spread = float(np.sqrt(np.mean(z[m] ** 2)))
         assert 0.8 <= spread <= 1.25, (m, spread)

@@ -210,3 +210,19 @@ def test_truncated_log_points_to_recover(sim_log: Path, tmp_path: Path, cut: flo
 def test_missing_log() -> None:
     with pytest.raises(LogNotFoundError, match="no such file"):
         LogReader("/nonexistent/x.mcap")
+
+
+def test_monotonic_channels_refuse_time_going_backwards(tmp_path: Path) -> None:
+    msg = encode_json({"frame": 0, "width": 1, "height": 1, "encoding": "mono8", "bit_depth": 8, "source": ""})
+    with pytest.raises(InvalidInputError, match="is not after the previous"):
+        with LogWriter(tmp_path / "m.mcap") as w:
+            ch = w.add_channel("/frames", json_message_type("starlog.FrameInfo"), monotonic=True)
+            w.write(ch, log_time=10, data=msg)
+            w.write(ch, log_time=10, data=msg)
+    assert not (tmp_path / "m.mcap").exists()
+
+
+def test_written_logs_are_not_private(tmp_path: Path) -> None:
+    with LogWriter(tmp_path / "p.mcap") as w:
+        w.add_channel("/a", json_message_type("starlog.FrameInfo"))
+    assert (tmp_path / "p.mcap").stat().st_mode & 0o044  # readable by group/others as the umask allows

@@ -50,7 +50,7 @@ def fit_gaussians(
     fit_sigma: bool = False,
     fit_background: bool = True,
     iterations: int = 12,
-    tol: float = 1e-5,
+    tol: float = 1e-4,
 ) -> GaussFitResult:
     """Fit all stamps at once (see module docstring); ``psf_sigma`` is the start/fixed value."""
     n = st.data.shape[0]

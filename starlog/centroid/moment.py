@@ -10,8 +10,10 @@ centroid of ``sep.winpos`` for faint (background-limited) stars and the plain, u
 of gravity for bright (photon-limited) ones. ``weighting="gaussian"`` uses ``w = P`` (winpos),
 ``weighting="none"`` the plain centre of gravity of the whole window.
 
-``MOMENT_SQUARED`` is the classic squared-grey centroid: ``w_i = D_i`` for pixels above
-``2 * noise`` (else 0), i.e. ``x = sum D_i^2 x_i / sum D_i^2``.
+``MOMENT_SQUARED`` is the squared-grey centroid ``x = sum S_i^2 x_i / sum S_i^2`` over the
+pixels of the denoised window ``S`` above twice its noise: the window is first smoothed with a
+Gaussian of half the noise-optimal width (the pipeline's denoising step; without it the
+squared noise of faint stars makes the classic form 1.4-2x worse than the bound).
 
 Estimator functions work on window offsets (px from the window's centre pixel) and return
 ``(dx, dy, ok)``.
@@ -22,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid._stamps import Stamps, model, variance
+from starlog.centroid._stamps import Stamps, model, smooth, variance
 
 __all__ = ["squared_centroid", "weighted_centroid"]
 
@@ -90,10 +92,23 @@ def weighted_centroid(
     return cx, cy, ok
 
 
-def squared_centroid(data: F64, st: Stamps, *, threshold_sigma: float = 2.0) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
-    """Squared-grey centre of gravity of the pixels above ``threshold_sigma * noise``."""
+def squared_centroid(
+    data: F64, st: Stamps, *, smooth_sigma: F64 | None = None, threshold_sigma: float = 2.0
+) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+    """Squared-grey centre of gravity of the (denoised) pixels above ``threshold_sigma`` sigma.
+
+    With ``smooth_sigma`` the window is first denoised with that Gaussian (the pipeline's
+    denoising step) and the threshold applies to the smoothed noise.
+    """
     u = st.u
-    d = np.where(st.valid & (data > threshold_sigma * st.noise[:, None, None]), data, 0.0)
+    if smooth_sigma is not None:
+        d = smooth(np.where(st.valid, data, 0.0), smooth_sigma)
+        # noise of the smoothed window: white noise through a unit-area Gaussian of sigma s
+        nz = st.noise / (2.0 * np.sqrt(np.pi) * np.maximum(smooth_sigma, 0.5))
+    else:
+        d = np.where(st.valid, data, 0.0)
+        nz = st.noise
+    d = np.where(d > threshold_sigma * nz[:, None, None], d, 0.0)
     w = d * d
     s0 = w.sum(axis=(1, 2))
     ok = s0 > 0

@@ -32,8 +32,8 @@ class CentroidMethod(enum.StrEnum):
         noise-optimal weight ``psf / variance`` (a generalised ``sep.winpos``); it becomes the
         plain centre of gravity for bright (photon-limited) stars.
     MOMENT_SQUARED
-        The classic squared-grey centre of gravity (weights = background-subtracted
-        intensity, positive part, squared), recentred iteratively.
+        The squared-grey centre of gravity (weights = squared intensity above 2 sigma) of the
+        window after Gaussian denoising (see :mod:`starlog.centroid.moment`).
     BICUBIC
         Peak of the Keys bicubic interpolation of the (adaptively smoothed) window, found by
         Newton iterations on the continuous surface (not limited by any grid step).

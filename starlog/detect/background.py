@@ -71,22 +71,36 @@ class Background:
         the outer value (``extrapolate=False``)."""
         return _interp_weights(np.asarray(coords, np.float64).ravel(), n, self.mesh, extrapolate)
 
-    def map(self, grid: npt.NDArray[np.float32], extrapolate: bool = True) -> npt.NDArray[np.float32]:
+    def map(
+        self,
+        grid: npt.NDArray[np.float32],
+        extrapolate: bool = True,
+        plus: npt.NDArray[np.float32] | None = None,
+    ) -> npt.NDArray[np.float32]:
         """Full-resolution map of a (ny, nx) cell grid (float32, the frame's shape).
 
         Bilinear between cell centres (``cv2.resize``); in the outer half cells linear
-        extrapolation (level: the grid is padded with a ring of linearly extrapolated ghost
-        cells) or the outer cells' value (``extrapolate=False``, used for the noise).
+        extrapolation (the grid is padded with a ring of linearly extrapolated ghost cells)
+        or the outer cells' value (``extrapolate=False``, used for the noise). ``plus`` is a
+        second grid added with the outer-value rule (one resize for level + k * noise).
         """
         g = np.asarray(grid, np.float32)
         ny, nx = g.shape
-        pad = 0
-        if extrapolate and ny > 1 and nx > 1:
-            g = np.vstack([2 * g[:1] - g[1:2], g, 2 * g[-1:] - g[-2:-1]])
-            g = np.hstack([2 * g[:, :1] - g[:, 1:2], g, 2 * g[:, -1:] - g[:, -2:-1]])
+        if ny > 1 and nx > 1:
+            if extrapolate:
+                g = np.vstack([2 * g[:1] - g[1:2], g, 2 * g[-1:] - g[-2:-1]])
+                g = np.hstack([2 * g[:, :1] - g[:, 1:2], g, 2 * g[:, -1:] - g[:, -2:-1]])
+            else:
+                g = np.pad(g, 1, mode="edge")
+            if plus is not None:
+                g = g + np.pad(np.asarray(plus, np.float32), 1, mode="edge")
             pad = self.mesh
+        else:
+            if plus is not None:
+                g = g + np.asarray(plus, np.float32)
+            pad = 0
         full = cv2.resize(g, (g.shape[1] * self.mesh, g.shape[0] * self.mesh), interpolation=cv2.INTER_LINEAR)
-        return np.ascontiguousarray(full[pad : pad + self.shape[0], pad : pad + self.shape[1]])
+        return full[pad : pad + self.shape[0], pad : pad + self.shape[1]]
 
     @property
     def level(self) -> npt.NDArray[np.float32]:
@@ -136,7 +150,7 @@ def estimate_background(
     mesh: int = 64,
     filter_size: int = 1,
     clip_sigma: float = 3.0,
-    iterations: int = 2,
+    iterations: int = 1,
     subsample: int = 4,
     min_noise: float | None = None,
 ) -> Background:
@@ -205,22 +219,21 @@ def estimate_background(
     cy = np.repeat(np.arange(m, dtype=np.float32) - (m - 1) / 2, m)
     bx = np.zeros_like(med)
     by = np.zeros_like(med)
+    cx2, cy2 = cx * cx, cy * cy
     for _ in range(iterations):
         plane = med.astype(np.float32)[:, None] + bx.astype(np.float32)[:, None] * cx + by.astype(np.float32)[:, None] * cy
         resid = vals - plane
         lim = (clip_sigma * np.maximum(sig, 1e-12)).astype(np.float32)[:, None]
-        keep = (resid >= -lim) & (resid <= lim)
-        n = keep.sum(axis=1)
-        v0 = np.where(keep, resid, np.float32(0))
-        kx = np.where(keep, cx, np.float32(0))
-        ky = np.where(keep, cy, np.float32(0))
+        keep = (np.abs(resid) <= lim).astype(np.float32)  # NaN compares False
+        v0 = np.where(keep > 0, resid, np.float32(0))
+        n = keep.sum(axis=1, dtype=np.float64)
         with np.errstate(all="ignore"):
             d0 = v0.sum(axis=1, dtype=np.float64) / n
-            dbx = np.einsum("ij,ij->i", v0, kx, dtype=np.float64) / np.einsum("ij,ij->i", kx, kx, dtype=np.float64)
-            dby = np.einsum("ij,ij->i", v0, ky, dtype=np.float64) / np.einsum("ij,ij->i", ky, ky, dtype=np.float64)
+            sxx = (keep @ cx2).astype(np.float64)
+            syy = (keep @ cy2).astype(np.float64)
+            dbx = (v0 @ cx).astype(np.float64) / sxx
+            dby = (v0 @ cy).astype(np.float64) / syy
             s2 = np.einsum("ij,ij->i", v0, v0, dtype=np.float64)
-            sxx = np.einsum("ij,ij->i", kx, kx, dtype=np.float64)
-            syy = np.einsum("ij,ij->i", ky, ky, dtype=np.float64)
             # residual variance about the refitted plane (x, y nearly orthogonal in a cell)
             var = (s2 - n * d0**2 - dbx**2 * sxx - dby**2 * syy) / np.maximum(n - 3, 1)
         good = (n >= 8) & np.isfinite(d0) & np.isfinite(dbx) & np.isfinite(dby) & (var > 0)

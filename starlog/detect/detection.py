@@ -245,14 +245,13 @@ def detect_stars(
     elif arr.dtype != np.float32:
         work = arr.astype(np.float32)  # cv2 filters float32 fastest
     rows, cols = arr.shape
-    r = int(np.ceil(2.5 * filter_sigma))
+    r = max(1, int(np.ceil(2.0 * filter_sigma)))
     k1 = cv2.getGaussianKernel(2 * r + 1, filter_sigma, cv2.CV_64F).ravel()
     knorm = float(np.sum(k1**2))  # filtered white-noise sigma = noise * sum(k1^2)
     # matched filter on the raw frame; the smooth background passes through unchanged, so the
-    # threshold map is level + k * filtered noise (interpolated once from the cell grids)
+    # threshold map is level + k * filtered noise (both interpolated from the cell grids)
     gimg = cv2.sepFilter2D(work, cv2.CV_32F, k1, k1, borderType=cv2.BORDER_REFLECT)
-    thr_map = bg.map(bg.mesh_level)
-    thr_map += bg.map(np.float32(threshold * knorm) * bg.mesh_noise, extrapolate=False)
+    thr_map = bg.map(bg.mesh_level, plus=np.float32(threshold * knorm) * bg.mesh_noise)
     binary = cv2.compare(gimg, thr_map, cv2.CMP_GT)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, _CROSS)
     # connected components: external contours give each component's bounding box cheaply;
@@ -266,6 +265,14 @@ def detect_stars(
     rects, seeds = rects[big], seeds[big]
     if rects.shape[0] == 0:
         return empty_detections()
+    # boxes that overlap another box need relabelling inside (a neighbour may poke in)
+    x0s, y0s = rects[:, 0], rects[:, 1]
+    x1s, y1s = x0s + rects[:, 2], y0s + rects[:, 3]
+    if rects.shape[0] <= 2000:
+        ov = (x0s[:, None] < x1s[None, :]) & (x0s[None, :] < x1s[:, None]) & (y0s[:, None] < y1s[None, :]) & (y0s[None, :] < y1s[:, None])
+        shared = ov.sum(axis=1) > 1
+    else:
+        shared = np.ones(rects.shape[0], bool)
     cx = rects[:, 0] + 0.5 * (rects[:, 2] - 1)
     cy = rects[:, 1] + 0.5 * (rects[:, 3] - 1)
     clev = bg.level_at(cx, cy)
@@ -282,9 +289,9 @@ def detect_stars(
         x0, y0, wd, ht = (int(v) for v in rects[i])
         x1, y1 = x0 + wd, y0 + ht
         bcrop = binary[y0:y1, x0:x1]
-        nl, lcrop = cv2.connectedComponents(bcrop, connectivity=8)
-        if nl > 2:
-            lm = lcrop == lcrop[seeds[i, 1] - y0, seeds[i, 0] - x0]
+        if shared[i]:
+            nl, lcrop = cv2.connectedComponents(bcrop, connectivity=8)
+            lm = lcrop == lcrop[seeds[i, 1] - y0, seeds[i, 0] - x0] if nl > 2 else bcrop > 0
         else:
             lm = bcrop > 0
         area = int(np.count_nonzero(lm))
@@ -381,7 +388,7 @@ def detect_stars(
     tr, det = sxx + syy, sxx * syy - sxy**2
     disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
     l1, l2 = tr / 2 + disc, np.maximum(tr / 2 - disc, 1e-12)
-    elong = np.sqrt(l1 / l2)
+    elong = np.maximum(np.sqrt(l1 / l2), 1.0)
     too_long = (elong > max_elongation) & ~blended & ~sat
     flags[elong > elongation_flag] |= np.uint16(StarFlag.ELONGATED)
     keep = ~sharp & ~too_long

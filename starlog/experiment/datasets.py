@@ -14,8 +14,9 @@ the first seed (from the dataset's base seed upwards) whose stars are at least
 centroid by ~1 px and would make the truth protocols meaningless).  Everything is
 deterministic.
 
-``quick`` datasets (CI): 64×64 px, 3 stars, 3.6 s of data (1080 / 720 frames): enough for 36
-samples at 10 Hz, i.e. 18 calibration + 18 scored samples under the ``leakfree`` protocol.
+``quick`` datasets (CI): 48×48 px, 2 stars, 3.2 s of data (960 / 640 frames): enough for 32
+samples at 10 Hz, i.e. 16 calibration + 16 scored samples under the ``leakfree`` protocol
+(the compensation needs at least 16).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ SIGMA_FLOOR_PX = 0.06
 MIN_SEPARATION_PX = 12.0
 
 _BASE_SEEDS = {"300Hz": 300, "200Hz": 200}
-_QUICK_SECONDS = 3.6
+_QUICK_SECONDS = 3.2
 
 
 @dataclass(frozen=True)
@@ -94,9 +95,9 @@ def paper_datasets(*, quick: bool = False) -> tuple[Dataset, ...]:
         params: dict[str, Any] = {
             "fps": fps,
             "n_frames": int(round(_QUICK_SECONDS * fps)) if quick else int(preset["n_frames"]),
-            "width": 64 if quick else 128,
-            "height": 64 if quick else 128,
-            "n_stars": 3 if quick else 6,
+            "width": 48 if quick else 128,
+            "height": 48 if quick else 128,
+            "n_stars": 2 if quick else 6,
             "flux_min": 5_000.0,
             "flux_max": 50_000.0,
             "psf_sigma": 1.2,

@@ -3,7 +3,7 @@
 * :func:`plot_figure4` — bar chart of RMSE before/after per sub-pixel method and rate (STATIC,
   300 Hz dataset), one panel per protocol's primary reference (the paper's Figure 4 analogue);
 * :func:`plot_figure5` — RMSE before/after vs 10–100 Hz for every model, both datasets, one
-  column per protocol (Figure 5 analogue);
+  column per protocol's primary reference plus ``truth_series`` (Figure 5 analogue);
 * :func:`plot_trajectory` — the brightest star's x(t), y(t) before and after compensation, with
   the true jittered position and the global mean.
 """
@@ -20,7 +20,8 @@ from starlog.experiment.runner import FIGURE5_RATES, METHODS, MODELS, TABLE3_RAT
 __all__ = ["PlotDependencyError", "plot_figure4", "plot_figure5", "plot_trajectory"]
 
 _PRIMARY = (("paper", "global_mean"), ("truth", "truth_fixed"), ("leakfree", "heldout_mean"))
-_DPI = 80
+_DPI = 72
+_FIG5_PANELS = (*_PRIMARY, ("truth", "truth_series"))
 
 
 class PlotDependencyError(StarlogError, ImportError):
@@ -81,10 +82,10 @@ def plot_figure5(rows: Sequence[dict[str, Any]], path: str | Path) -> Path:
     plt = _pyplot()
     idx = _lookup(rows)
     datasets = [d for d in ("300Hz", "200Hz") if any(r["dataset"] == d for r in rows)]
-    fig, axes = plt.subplots(len(datasets), len(_PRIMARY), figsize=(12, 3.4 * len(datasets)), squeeze=False)
+    fig, axes = plt.subplots(len(datasets), len(_FIG5_PANELS), figsize=(13, 3.0 * len(datasets)), squeeze=False)
     colors = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e"]
     for i, ds in enumerate(datasets):
-        for j, (protocol, reference) in enumerate(_PRIMARY):
+        for j, (protocol, reference) in enumerate(_FIG5_PANELS):
             ax = axes[i][j]
             for model, color in zip(MODELS, colors):
                 pts = [(rate, idx.get((protocol, reference, ds, "NONE", model, rate))) for rate in FIGURE5_RATES]

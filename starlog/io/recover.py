@@ -327,8 +327,11 @@ def recover_log(
     with open(source, "rb") as f:
         if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
             raise CorruptLogError(source, "does not start with the MCAP magic bytes; nothing can be recovered.")
-        f.seek(max(0, report.input_size - len(MCAP_MAGIC)))
-        report.had_footer = f.read() == MCAP_MAGIC
+        footer_at = report.input_size - len(MCAP_MAGIC) - 29
+        if footer_at >= len(MCAP_MAGIC):
+            f.seek(footer_at)
+            tail = f.read()
+            report.had_footer = tail[0] == Opcode.FOOTER and tail[-len(MCAP_MAGIC):] == MCAP_MAGIC
         with LogWriter(output, force=force, compression=compression) as writer:
             rebuild = _Rebuilder(writer, report)
             hints = _seed_from_summary(f, rebuild, report.input_size) if report.had_footer else []

@@ -193,12 +193,16 @@ class LogWriter:
             channel_message_counts=defaultdict(int),
         )
         self._sequence: dict[int, int] = defaultdict(int)
+        self._last_time: dict[int, int] = {}
         self._builder = ChunkBuilder()
         self._records = RecordBuilder()
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or ".")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)  # mkstemp's 0600 would survive the rename and make every log private
         self._tmp_path = Path(tmp)
         self._file: BinaryIO = os.fdopen(fd, "w+b", buffering=1024 * 1024)
         try:
@@ -230,8 +234,13 @@ class LogWriter:
         """Channel id of every topic in the output (inherited ones included)."""
         return dict(self._topics)
 
-    def add_channel(self, topic: str, message_type: MessageType, *, metadata: dict[str, str] | None = None) -> int:
+    def add_channel(self, topic: str, message_type: MessageType, *, metadata: dict[str, str] | None = None,
+                    monotonic: bool = False) -> int:
         """Register a channel and return its id.
+
+        With ``monotonic=True``, :meth:`write` refuses a ``log_time`` that is not after the
+        channel's previous one (:class:`InvalidInputError`): per-frame channels use it, so a
+        non-monotonic timestamp never reaches a log silently.
 
         Raises :class:`InvalidInputError` if the log already has ``topic`` (a stage run twice on
         the same log): run the stage on the log before it, or use another channel name.
@@ -252,6 +261,8 @@ class LogWriter:
         )
         self._channels[channel_id] = channel
         self._topics[topic] = channel_id
+        if monotonic:
+            self._last_time[channel_id] = -1
         self._stats.channel_count += 1
         self._builder.add_channel(channel)
         return channel_id
@@ -285,6 +296,13 @@ class LogWriter:
         log_time = int(log_time)
         if not 0 <= log_time < 2**64:
             raise InvalidInputError(f"log_time must be a non-negative 64-bit integer of nanoseconds, got {log_time}.")
+        last = self._last_time.get(channel_id)
+        if last is not None:
+            if log_time <= last:
+                raise InvalidInputError(
+                    f"log_time {log_time} on {self._channels[channel_id].topic!r} is not after the previous "
+                    f"message's ({last}); timestamps of a frame channel must increase.")
+            self._last_time[channel_id] = log_time
         seq = self._sequence[channel_id]
         self._sequence[channel_id] = seq + 1
         message = Message(

@@ -23,9 +23,9 @@ class StageOutput:
     writer: LogWriter
     channels: list[str] = field(default_factory=list)
 
-    def add_channel(self, topic: str, message_type: MessageType) -> int:
-        """Register a new channel and remember it for the provenance record."""
-        channel_id = self.writer.add_channel(topic, message_type)
+    def add_channel(self, topic: str, message_type: MessageType, *, monotonic: bool = True) -> int:
+        """Register a new channel (strictly increasing ``log_time`` unless told otherwise) for the provenance."""
+        channel_id = self.writer.add_channel(topic, message_type, monotonic=monotonic)
         self.channels.append(topic)
         return channel_id
 

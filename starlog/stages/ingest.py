@@ -228,8 +228,8 @@ def ingest_folder(
     reference: tuple[tuple[int, ...], np.dtype[Any]] | None = None
     last_time = -1
     with LogWriter(output, compression=compression, workers=workers, force=force) as log:
-        image_ch = log.add_channel(topics.IMAGE, protobuf_message_type("foxglove.RawImage"))
-        info_ch = log.add_channel(topics.FRAME_INFO, json_message_type("starlog.FrameInfo"))
+        image_ch = log.add_channel(topics.IMAGE, protobuf_message_type("foxglove.RawImage"), monotonic=True)
+        info_ch = log.add_channel(topics.FRAME_INFO, json_message_type("starlog.FrameInfo"), monotonic=True)
         decoded = _decode_all(files, workers)
         for position, (path, (result, caught)) in enumerate(
             progress(decoded, total=len(files), description="ingest", enabled=show_progress)

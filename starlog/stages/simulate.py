@@ -36,9 +36,9 @@ def simulate_log(
     """
     simulator = Simulator(config)
     with LogWriter(output, compression=compression, workers=workers, force=force) as log:
-        image_ch = log.add_channel(topics.IMAGE, protobuf_message_type("foxglove.RawImage"))
-        info_ch = log.add_channel(topics.FRAME_INFO, json_message_type("starlog.FrameInfo"))
-        truth_ch = log.add_channel(topics.TRUTH, json_message_type("starlog.SimTruth"))
+        image_ch = log.add_channel(topics.IMAGE, protobuf_message_type("foxglove.RawImage"), monotonic=True)
+        info_ch = log.add_channel(topics.FRAME_INFO, json_message_type("starlog.FrameInfo"), monotonic=True)
+        truth_ch = log.add_channel(topics.TRUTH, json_message_type("starlog.SimTruth"), monotonic=True)
         frames = _render_parallel(config, workers) if workers > 1 and config.n_frames >= 64 else simulator.frames()
         for frame in progress(frames, total=config.n_frames, description="simulate", enabled=show_progress):
             t = frame.log_time

@@ -23,7 +23,7 @@ from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.stages._progress import progress
 from starlog.stages._stage import extend_log
-from starlog.track import MotionModel, MotionModelConfig, StarTracker, TrackerConfig
+from starlog.track import MotionModel, MotionModelConfig, NoTrackError, StarTracker, TrackerConfig
 
 __all__ = ["TrackSummary", "track_log", "parse_models"]
 
@@ -126,7 +126,15 @@ def track_log(
                                                 enabled=show_progress):
             for tr in trackers.values():
                 tr.update(t, x, y, sigma, flux)
-        brightest = {m: tr.brightest_track() for m, tr in trackers.items()}
+        brightest = {}
+        for m, tr in trackers.items():
+            try:
+                brightest[m] = tr.brightest_track()
+            except NoTrackError as err:
+                raise NoTrackError(
+                    f"{m.value} on {source}: {err} If the stars move more than their centroid sigma "
+                    "(platform jitter), the gate rejects them: raise the measurement-noise floor, e.g. "
+                    "--set sigma_floor=0.05 (px), or use a model with process noise.") from err
         # pass 2: the same (deterministic) tracking, written out
         channels = {m: out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
                     for m in chosen}

@@ -1,0 +1,149 @@
+"""starlog.experiment: the quick experiment produces every table and plot, with finite numbers, in layout."""
+
+from __future__ import annotations
+
+import math
+import random
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from numpy.testing import assert_allclose
+
+from starlog.compensate import evaluate
+from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.experiment import TABLE_FIELDS, ExperimentSummary, experiment_command, paper_tables, run_experiment
+from starlog.experiment.runner import (
+    FIGURE5_RATES,
+    METHODS,
+    MODELS,
+    PROTOCOL_REFERENCES,
+    TABLE2_RATES,
+    TABLE3_RATES,
+    sort_rows,
+    uncompensated_figures,
+)
+
+pytest.importorskip("matplotlib")
+
+DATASETS = ("300Hz", "200Hz")
+N_REFERENCES = sum(len(v) for v in PROTOCOL_REFERENCES.values())
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory: pytest.TempPathFactory) -> ExperimentSummary:
+    out = tmp_path_factory.mktemp("experiment")
+    with ProcessPoolExecutor(max_workers=2) as pool:
+        return run_experiment(out, quick=True, executor=pool, show_progress=False)
+
+
+@pytest.mark.parametrize("name", ["table2", "table3", "table4", "figure5"])
+def test_table_files_and_columns(quick_run: ExperimentSummary, name: str) -> None:
+    out = quick_run.output_dir
+    table = pq.read_table(out / f"{name}.parquet")
+    assert table.column_names == list(TABLE_FIELDS)
+    md = (out / f"{name}.md").read_text(encoding="utf-8")
+    for protocol, references in PROTOCOL_REFERENCES.items():
+        for reference in references:
+            assert f"Protocol `{protocol}` — reference `{reference}`" in md
+    rows = table.to_pylist()
+    assert {(r["protocol"], r["reference"]) for r in rows} == {
+        (p, ref) for p, refs in PROTOCOL_REFERENCES.items() for ref in refs}
+    assert all(math.isfinite(r["rmse_before"]) and r["rmse_before"] >= 0 for r in rows)
+    if name != "table2":
+        assert all(r["compensated"] and math.isfinite(r["rmse_after"]) for r in rows)
+
+
+@pytest.mark.parametrize(("name", "cells"), [
+    ("table2", len(DATASETS) * len(MODELS) * len(TABLE2_RATES)),
+    ("table3", len(DATASETS) * len(METHODS) * len(TABLE3_RATES)),
+    ("table4", len(DATASETS) * len(MODELS)),
+    ("figure5", len(DATASETS) * len(MODELS) * len(FIGURE5_RATES)),
+])
+def test_table_layout(quick_run: ExperimentSummary, name: str, cells: int) -> None:
+    rows = quick_run.tables[name]
+    assert len(rows) == cells * N_REFERENCES
+    keys = {(r["dataset"], r["method"], r["model"], r["rate_hz"]) for r in rows}
+    assert len(keys) == cells
+
+
+@pytest.mark.parametrize(("name", "dataset", "method", "model", "rate", "before", "after"), [
+    ("table2", "300Hz", "NONE", "STATIC", 5.0, 0.4481, None),
+    ("table2", "200Hz", "NONE", "CONSTANT_VELOCITY", 10.0, 0.3696, None),
+    ("table3", "300Hz", "NONE", "STATIC", 10.0, 0.4374, 0.1281),
+    ("table3", "200Hz", "BICUBIC", "STATIC", 30.0, 1.5380, 0.1548),
+    ("table3", "200Hz", "GRADIENT", "STATIC", 50.0, 3.0936, 0.1693),
+    ("table4", "300Hz", "NONE", "POLYNOMIAL_TREND", 50.0, 0.4904, 0.1730),
+    ("table4", "200Hz", "NONE", "STATIC", 50.0, 0.3408, 0.1544),
+])
+def test_paper_numbers_beside_ours(quick_run: ExperimentSummary, name: str, dataset: str, method: str,
+                                   model: str, rate: float, before: float, after: float | None) -> None:
+    rows = [r for r in quick_run.tables[name] if (r["dataset"], r["method"], r["model"], r["rate_hz"])
+            == (dataset, method, model, rate)]
+    assert len(rows) == N_REFERENCES
+    for r in rows:
+        assert r["paper_rmse_before"] == before
+        assert r["paper_rmse_after"] == after
+    md = (quick_run.output_dir / f"{name}.md").read_text(encoding="utf-8")
+    paper_section = md.split("Protocol `truth`")[0]
+    assert f"{before:.4f}" in paper_section
+
+
+def test_plots_report_and_logs(quick_run: ExperimentSummary) -> None:
+    out = quick_run.output_dir
+    pngs = [rel for rel in quick_run.files.values() if rel.endswith(".png")]
+    assert {"figure4.png", "figure5.png", "trajectory_static.png"} <= set(pngs)
+    for rel in pngs:
+        data = (out / rel).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and 1_000 < len(data) < 150_000
+    for rel in quick_run.files.values():
+        assert (out / rel).is_file(), rel
+    report = (out / "report.md").read_text(encoding="utf-8")
+    assert "sigma_floor" in report and "![figure5](figure5.png)" in report
+    assert quick_run.showcase_check is not None and quick_run.showcase_check < 1e-12
+    assert all(h["before"] is not None and math.isfinite(h["before"]) for h in quick_run.headline)
+
+
+def test_results_have_both_windows(quick_run: ExperimentSummary) -> None:
+    rows = pq.read_table(quick_run.output_dir / "results.parquet").to_pylist()
+    assert {r["window"] for r in rows} == {"6s", "full"}
+    assert rows == sort_rows(rows)
+
+
+def test_refuses_to_overwrite(quick_run: ExperimentSummary) -> None:
+    with pytest.raises(OutputExistsError):
+        run_experiment(quick_run.output_dir, quick=True, show_progress=False)
+
+
+def test_sort_rows_ignores_completion_order(quick_run: ExperimentSummary) -> None:
+    rows = list(quick_run.rows)
+    random.Random(4).shuffle(rows)
+    assert sort_rows(rows) == quick_run.rows
+
+
+@pytest.mark.parametrize("protocol", ["paper", "truth", "leakfree"])
+def test_uncompensated_figures_match_evaluate(protocol: str) -> None:
+    rng = np.random.default_rng(11)
+    truth_series = np.array([40.0, 30.0]) + 0.05 * rng.standard_normal((48, 2))
+    xy = truth_series + 0.02 * rng.standard_normal((48, 2))
+    truth_fixed = np.array([40.0, 30.0])
+    ours = uncompensated_figures(xy, truth_fixed=truth_fixed, truth_series=truth_series)[protocol]
+    kw = {} if protocol == "paper" else {"truth_fixed": truth_fixed, "truth_series": truth_series}
+    ev = evaluate(xy, fs=10.0, protocol=protocol, **kw)
+    assert [f[0] for f in ours] == [f.reference for f in ev.figures]
+    assert_allclose([f[1] for f in ours], [f.rmse_before for f in ev.figures], rtol=0, atol=1e-12)
+    assert [f[2] for f in ours] == [f.n_scored for f in ev.figures]
+
+
+def test_paper_value_lookup() -> None:
+    assert paper_tables.paper_value("table3", dataset="300Hz", method="GAUSSFIT", rate_hz=50.0) == (0.1097, 0.1097)
+    assert paper_tables.paper_value("table3", dataset="300Hz", method="GAUSSFIT", rate_hz=20.0) == (None, None)
+    assert paper_tables.paper_value("table4", dataset="200Hz", model="RANDOM_WALK", rate_hz=10.0) == (None, None)
+    assert paper_tables.paper_value("table2", dataset="200Hz", model="STATIC", rate_hz=5.0) == (0.3173, None)
+
+
+def test_experiment_command_rejects_bad_workers(tmp_path: Path) -> None:
+    with pytest.raises(InvalidParameterError, match="workers"):
+        experiment_command(tmp_path, quick=True, workers=0)
