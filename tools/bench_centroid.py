@@ -222,9 +222,9 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     args.size = 512 if args.quick else 1024
     args.nstars = 20 if args.quick else 50
-    args.reps = args.reps or (4 if args.quick else 16)
-    args.photutils_reps = 2 if args.quick else 4
-    args.photutils_stars = 10 if args.quick else 25
+    args.reps = args.reps or (4 if args.quick else 12)
+    args.photutils_reps = 2 if args.quick else 3
+    args.photutils_stars = 10 if args.quick else 20
     rng = np.random.default_rng(args.seed)
     print(f"# frames {args.size}x{args.size}, {args.nstars} stars, {args.reps} noise realisations per regime; "
           f"sky {SKY} e-/px, read noise {RN} e-, gain {GAIN}, bias {BIAS} DN; cv2 threads = 1")

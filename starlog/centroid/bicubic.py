@@ -2,9 +2,10 @@
 
 The window is first smoothed with the noise-optimal Gaussian (see
 :func:`starlog.centroid._stamps.optimal_smoothing`), then the continuous bicubic surface through
-its pixels is maximised by Newton iterations with the analytic gradient and Hessian of the
-Keys kernel (a gradient step when the Hessian is not negative definite), so the result is not
-limited by any interpolation grid step.
+its pixels is maximised with the analytic gradient of the Keys kernel: each axis in turn is
+solved for a zero of the gradient by the Illinois false-position method in a +-1 px bracket
+(two rounds; the surface's second derivative jumps at the pixel centres, which stalls Newton
+steps), so the result is not limited by any interpolation grid step.
 """
 
 from __future__ import annotations
@@ -33,7 +34,9 @@ def keys_kernel(t: F64) -> tuple[F64, F64, F64]:
     return k, d1, d2
 
 
-def bicubic_peak(data: F64, st: Stamps, *, smooth_sigma: F64, iterations: int = 10, reach: int = 2) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+def bicubic_peak(
+    data: F64, st: Stamps, *, smooth_sigma: F64, iterations: int = 20, rounds: int = 2, reach: int = 2
+) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Continuous maximum of the bicubic surface, offsets from the window centre (px)."""
     sm = smooth(np.where(st.valid, data, 0.0), smooth_sigma)
     n, w, _ = sm.shape
@@ -44,32 +47,52 @@ def bicubic_peak(data: F64, st: Stamps, *, smooth_sigma: F64, iterations: int = 
     ar = np.arange(n)
     ok = np.ones(n, bool)
     off = np.arange(-1, 3)
-    for _ in range(iterations):
+
+    def grad(x: F64, y: F64) -> tuple[F64, F64]:
         x0 = np.clip(np.floor(x).astype(np.intp), 1, w - 3)
         y0 = np.clip(np.floor(y).astype(np.intp), 1, w - 3)
         cols = x0[:, None] + off[None, :]
         rows = y0[:, None] + off[None, :]
         p = sm[ar[:, None, None], rows[:, :, None], cols[:, None, :]]  # (n, 4, 4)
-        kx, dkx, ddkx = keys_kernel(x[:, None] - cols)
-        ky, dky, ddky = keys_kernel(y[:, None] - rows)
-        gx = np.einsum("ni,nij,nj->n", ky, p, dkx)
-        gy = np.einsum("ni,nij,nj->n", dky, p, kx)
-        hxx = np.einsum("ni,nij,nj->n", ky, p, ddkx)
-        hyy = np.einsum("ni,nij,nj->n", ddky, p, kx)
-        hxy = np.einsum("ni,nij,nj->n", dky, p, dkx)
-        det = hxx * hyy - hxy * hxy
-        negdef = (hxx < 0) & (det > 0)
-        with np.errstate(all="ignore"):
-            sx = np.where(negdef, -(hyy * gx - hxy * gy) / det, 0.0)
-            sy = np.where(negdef, -(hxx * gy - hxy * gx) / det, 0.0)
-        scale = np.maximum(np.abs(hxx) + np.abs(hyy), 1e-300)
-        sx = np.where(negdef, sx, gx / scale)
-        sy = np.where(negdef, sy, gy / scale)
-        sx = np.clip(np.nan_to_num(sx), -0.5, 0.5)
-        sy = np.clip(np.nan_to_num(sy), -0.5, 0.5)
-        x = np.clip(x + sx, 1.0, w - 2.0)
-        y = np.clip(y + sy, 1.0, w - 2.0)
-        if np.all((np.abs(sx) < 1e-7) & (np.abs(sy) < 1e-7)):
-            break
+        kx, dkx, _ = keys_kernel(x[:, None] - cols)
+        ky, dky, _ = keys_kernel(y[:, None] - rows)
+        return np.einsum("ni,nij,nj->n", ky, p, dkx), np.einsum("ni,nij,nj->n", dky, p, kx)
+
+    # the Keys surface's second derivative jumps at the pixel centres, so Newton steps with
+    # the analytic Hessian stall there. Instead each axis in turn is solved for a zero of the
+    # gradient by the Illinois (modified false-position) method inside a +-1 px bracket.
+    for _ in range(rounds):
+        for axis in (0, 1):
+            c = x if axis == 0 else y
+            lo, hi = np.clip(c - 1.0, 1.0, w - 2.0), np.clip(c + 1.0, 1.0, w - 2.0)
+
+            def g_at(v: F64, axis: int = axis) -> F64:
+                return grad(v, y)[0] if axis == 0 else grad(x, v)[1]
+
+            glo, ghi = g_at(lo), g_at(hi)
+            bracket = (glo > 0) & (ghi < 0)
+            ok &= bracket
+            side = np.zeros(n)
+            for _ in range(iterations):
+                with np.errstate(all="ignore"):
+                    m = np.where(bracket, (lo * ghi - hi * glo) / (ghi - glo), c)
+                m = np.where(np.isfinite(m), m, 0.5 * (lo + hi))
+                gm = g_at(m)
+                right = gm > 0  # the root is above m
+                lo = np.where(right, m, lo)
+                glo = np.where(right, gm, glo)
+                hi = np.where(right, hi, m)
+                ghi = np.where(right, ghi, gm)
+                # Illinois: halve the stale end's value when the same end is kept twice
+                ghi = np.where(right & (side > 0), 0.5 * ghi, ghi)
+                glo = np.where(~right & (side < 0), 0.5 * glo, glo)
+                side = np.where(right, 1.0, -1.0)
+                c = m
+                if np.all(hi - lo < 1e-9):
+                    break
+            if axis == 0:
+                x = np.where(bracket, c, x)
+            else:
+                y = np.where(bracket, c, y)
     ok &= (x > 1.0) & (x < w - 2.0) & (y > 1.0) & (y < w - 2.0)
     return x - h, y - h, ok

@@ -12,7 +12,7 @@ and a ``report.md``.  Independent runs go to any ``concurrent.futures.Executor``
 from __future__ import annotations
 
 from starlog.experiment.datasets import SIGMA_FLOOR_PX, Dataset, paper_datasets
-from starlog.experiment.experiment import ExperimentSummary, SchedulerError, experiment_command, run_experiment
+from starlog.experiment.experiment import ExperimentSummary, experiment_command, run_experiment
 from starlog.experiment.runner import RESULT_FIELDS, WINDOW_S
 from starlog.experiment.tables import TABLE_FIELDS
 
@@ -23,7 +23,6 @@ __all__ = [
     "WINDOW_S",
     "Dataset",
     "ExperimentSummary",
-    "SchedulerError",
     "experiment_command",
     "paper_datasets",
     "run_experiment",

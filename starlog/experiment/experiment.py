@@ -12,7 +12,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from starlog.errors import InvalidParameterError, OutputExistsError, StarlogError
+from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.experiment import plots, report, tables
 from starlog.experiment.datasets import JITTER, SIGMA_FLOOR_PX, jitter_rms_px, paper_datasets
 from starlog.experiment.runner import (
@@ -29,14 +29,10 @@ from starlog.experiment.runner import (
     track_and_score,
 )
 
-__all__ = ["ExperimentSummary", "SchedulerError", "experiment_command", "run_experiment"]
+__all__ = ["ExperimentSummary", "experiment_command", "run_experiment"]
 
 _SHOWCASE_RATES = (10.0, 50.0)
 _TRAJECTORY = ("300Hz", "NONE", ("STATIC", "RANDOM_WALK"), 50.0)
-
-
-class SchedulerError(StarlogError):
-    """A Dask scheduler was asked for but cannot be used (``distributed`` missing or unreachable)."""
 
 
 @dataclass
@@ -331,29 +327,13 @@ def experiment_command(
 ) -> ExperimentSummary:
     """What ``starlog experiment -o DIR [--quick] [--workers N] [--scheduler ADDR] [--force]`` calls.
 
-    ``scheduler`` (a Dask scheduler address, needs ``distributed``) wins over ``workers``;
-    ``workers > 1`` uses a ``ProcessPoolExecutor``; otherwise the run is serial.
+    ``scheduler`` sends the independent runs to that Dask cluster; otherwise ``workers > 1``
+    starts a local Dask cluster of that many processes (:func:`starlog.batch.executor_for`);
+    ``workers == 1`` runs serially. The results do not depend on which.
     """
+    from starlog.batch import executor_for
+
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
-    if scheduler:
-        try:
-            from distributed import Client  # type: ignore[import-not-found]
-        except ImportError as err:
-            raise SchedulerError(
-                "--scheduler needs Dask's 'distributed' package: pip install distributed.") from err
-        try:
-            client = Client(scheduler)
-        except OSError as err:
-            raise SchedulerError(f"cannot reach the Dask scheduler at {scheduler!r}: {err}") from err
-        try:
-            return run_experiment(output_dir, quick=quick, executor=client.get_executor(), force=force,
-                                  show_progress=show_progress)
-        finally:
-            client.close()
-    if workers > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            return run_experiment(output_dir, quick=quick, executor=pool, force=force, show_progress=show_progress)
-    return run_experiment(output_dir, quick=quick, executor=None, force=force, show_progress=show_progress)
+    with executor_for(scheduler=scheduler, workers=workers) as executor:
+        return run_experiment(output_dir, quick=quick, executor=executor, force=force, show_progress=show_progress)

@@ -20,7 +20,7 @@ from starlog.experiment.runner import FIGURE5_RATES, METHODS, MODELS, TABLE3_RAT
 __all__ = ["PlotDependencyError", "plot_figure4", "plot_figure5", "plot_trajectory"]
 
 _PRIMARY = (("paper", "global_mean"), ("truth", "truth_fixed"), ("leakfree", "heldout_mean"))
-_DPI = 72
+_DPI = 64
 _FIG5_PANELS = (*_PRIMARY, ("truth", "truth_series"))
 
 
