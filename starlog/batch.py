@@ -105,7 +105,7 @@ def run_batch(
 ) -> list[BatchOutcome]:
     """Run independent tasks; return one :class:`BatchOutcome` per task, in task order."""
     outcomes: list[BatchOutcome | None] = [None] * len(tasks)
-    bar = tqdm(total=len(tasks), desc=description, unit="log", disable=not show_progress, leave=False)
+    bar = tqdm(total=len(tasks), desc=description, unit="log", disable=None if show_progress else True, leave=False)
     try:
         if not scheduler and workers <= 1:
             for i, task in enumerate(tasks):

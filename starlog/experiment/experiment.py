@@ -185,7 +185,8 @@ def run_experiment(
     pool: Any = executor if executor is not None else _Serial()
     tracker = {"sigma_floor": float(sigma_floor)}
     n_tasks = len(datasets) * (2 + len(METHODS))
-    bar = tqdm(total=n_tasks, desc="experiment", unit="run", disable=not show_progress, dynamic_ncols=True)
+    bar = tqdm(total=n_tasks, desc="experiment", unit="run", disable=None if show_progress else True,
+               dynamic_ncols=True)
     futures: dict[Future[Any], tuple[str, str, str]] = {}
 
     def submit(kind: str, ds: str, key: str, fn: Any, *args: Any, **kwargs: Any) -> None:

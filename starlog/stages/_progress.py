@@ -13,9 +13,10 @@ __all__ = ["progress"]
 
 
 def progress(items: Iterable[T], *, total: int | None, description: str, enabled: bool) -> Iterator[T]:
-    """Wrap ``items`` in a progress bar when ``enabled``."""
+    """Wrap ``items`` in a progress bar when ``enabled`` and stderr is a terminal."""
     if not enabled:
         yield from items
         return
-    with tqdm(items, total=total, desc=description, unit="frame", dynamic_ncols=True, leave=False) as bar:
+    with tqdm(items, total=total, desc=description, unit="frame", dynamic_ncols=True, leave=False,
+              disable=None) as bar:
         yield from bar

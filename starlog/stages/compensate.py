@@ -221,8 +221,12 @@ def _compensate_track(log: LogReader, out: Any, channel: ChannelSummary, rates: 
             truth_kw: dict[str, Any] = {}
             if protocol is not Protocol.PAPER and series.truth_series is not None:
                 truth_kw = {"truth_fixed": series.truth_fixed, "truth_series": series.truth_series[idx]}
-            evaluation = evaluate(series.xy[idx], fs=fs, protocol=protocol, flux=series.flux[idx],
-                                  sigma=series.sigma[idx], **truth_kw, **options)
+            try:
+                evaluation = evaluate(series.xy[idx], fs=fs, protocol=protocol, flux=series.flux[idx],
+                                      sigma=series.sigma[idx], **truth_kw, **options)
+            except (InvalidInputError, InvalidParameterError) as err:
+                raise type(err)(f"{channel.topic} at {rate:g} Hz ({idx.size} samples), protocol "
+                                f"{protocol.value}: {err}") from err
             topic = topics.compensated_topic(series.method, series.model, rate, protocol.value)
             sample_ch = out.add_channel(topic, json_message_type("starlog.CompensatedSample"))
             after = evaluation.result.compensated
