@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid import CentroidMethod, extract_stars
+from starlog.centroid import CentroidMethod, estimate_psf_sigma, extract_stars
+from starlog.detect import detect_stars
 from starlog.errors import InvalidParameterError
 from starlog.export import TableSpec, register_table
 from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
@@ -115,8 +116,10 @@ def centroid_log(
         centroid's ``sigma``. Default: the values recorded by ``simulate`` in the log's
         provenance, else gain 1 and read noise estimated from the frame.
     options : dict, optional
-        Keyword options of :func:`starlog.centroid.extract_stars` (detection threshold,
-        window, ...).
+        Keyword options of :func:`starlog.centroid.extract_stars` (``psf_sigma``, ``window``,
+        ``detect_options``, ...). Without ``psf_sigma``, the PSF width is estimated once for
+        the whole log, from the first frames with measurable stars, and recorded in the
+        provenance (one optics, one PSF; re-estimating it per frame costs time and adds noise).
     workers : int
         Frames extracted in parallel (threads); the output bytes do not depend on it.
     """
@@ -130,6 +133,9 @@ def centroid_log(
         read_noise = camera.get("read_noise")
     if not (gain > 0):
         raise InvalidParameterError(f"gain must be > 0 e-/DN, got {gain}.")
+    if options.get("psf_sigma") is None:
+        with LogReader(input_path) as probe:
+            options["psf_sigma"] = _log_psf_sigma(probe, gain=gain, detect_options=options.get("detect_options"))
     digest_params.update({"gain": gain, "read_noise": read_noise})
     summary = CentroidSummary(methods=[m.value for m in chosen], gain=gain)
     summary.centroids = {m.value: 0 for m in chosen}
@@ -164,6 +170,20 @@ def centroid_log(
             summary.frames += 1
             summary.detections += int(detections.size)
     return summary
+
+
+def _log_psf_sigma(log: LogReader, *, gain: float, detect_options: dict[str, Any] | None,
+                   max_frames: int = 10) -> float:
+    """Median PSF sigma over the first ``max_frames`` frames that have measurable stars (1.0 px if none)."""
+    estimates = []
+    for index, _, image in log.frames():
+        if index >= max_frames:
+            break
+        detections = detect_stars(image, **(detect_options or {}))
+        if detections.size:
+            estimates.append(estimate_psf_sigma(image, detections, gain=gain, default=float("nan")))
+    finite = [e for e in estimates if np.isfinite(e)]
+    return float(np.median(finite)) if finite else 1.0
 
 
 @dataclass(frozen=True)
