@@ -36,7 +36,6 @@ from pathlib import Path
 from typing import Any
 
 from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.io import LogReader
 
 __all__ = ["DEFAULT_CONFIG_TOML", "PipelineConfig", "load_config", "run_pipeline", "run_pipeline_task"]
 

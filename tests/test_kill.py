@@ -7,7 +7,6 @@ Also: every command gives identical bytes for identical inputs (reproducibility)
 from __future__ import annotations
 
 import hashlib
-import os
 import signal
 import subprocess
 import sys

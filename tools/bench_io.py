@@ -26,9 +26,7 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 
-from starlog.io import LogReader
 from starlog.sim import SimulationConfig, Simulator
 from starlog.stages import ingest_folder, simulate_log
 
