@@ -9,8 +9,10 @@ Conventions used everywhere in starlog (functions, messages, tables):
 Subpackages: :mod:`starlog.io` (the MCAP log layer), :mod:`starlog.sim` (star-image
 simulator), :mod:`starlog.detect` and :mod:`starlog.centroid` (single-frame extraction),
 :mod:`starlog.track` (UKF tracking), :mod:`starlog.compensate` (error decomposition and
-compensation), :mod:`starlog.stages` (the replay stages that join algorithms and logs)
-and :mod:`starlog.cli` (the command line).
+compensation), :mod:`starlog.stages` (the replay stages that join algorithms and logs),
+:mod:`starlog.pipeline` (several stages from one config), :mod:`starlog.export` (Parquet),
+:mod:`starlog.batch` (many logs on Dask), :mod:`starlog.experiment` (the paper's tables) and
+:mod:`starlog.cli` (the command line).
 """
 
 from __future__ import annotations

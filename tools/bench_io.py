@@ -80,12 +80,14 @@ print(n)
 
 
 def _peak_rss_mib(argv: list[str]) -> float:
-    """Peak RSS of a child process, from wait4's rusage (kB on Linux)."""
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    _, status, usage = os.wait4(proc.pid, 0)
-    if status != 0:
-        raise RuntimeError(f"{argv} failed with status {status}")
-    return usage.ru_maxrss / 1024
+    """Peak RSS (MiB) of a command, from GNU time (a forked child's own ``ru_maxrss`` would count the pages
+    it inherited from this benchmark process before ``exec``)."""
+    result = subprocess.run(["/usr/bin/time", "-f", "STARLOG_MAXRSS_KB %M", *argv], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    if result.returncode != 0:
+        raise RuntimeError(f"{argv} failed:\n{result.stderr}")
+    line = [x for x in result.stderr.splitlines() if x.startswith("STARLOG_MAXRSS_KB")][-1]
+    return int(line.split()[1]) / 1024
 
 
 def bench_memory(frames: int, tmp: Path) -> list[tuple[str, int, float, float]]:
@@ -108,6 +110,7 @@ def bench_memory(frames: int, tmp: Path) -> list[tuple[str, int, float, float]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, seconds")
+    parser.add_argument("--memory-only", action="store_true", help="only the memory table")
     args = parser.parse_args()
     cases = [(512, 60), (1024, 20)] if args.quick else [(512, 600), (1024, 150)]
     mem_frames = 100 if args.quick else 500
@@ -115,7 +118,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as d:
         tmp = Path(d)
         print(f"{'frames':>7} {'size':>9}  {'case':<28} {'frames/s':>9} {'MB/s':>8}")
-        for size, frames in cases:
+        for size, frames in ([] if args.memory_only else cases):
             for name, fps, mbs in bench_throughput(size, frames, tmp):
                 print(f"{frames:>7} {size:>4}x{size:<4}  {name:<28} {fps:>9.1f} {mbs:>8.1f}")
         print("\nTarget: ingest of 512x512 mono16 with lz4 >= 150 MB/s (a 300 Hz camera = 157 MB/s).\n")

@@ -486,24 +486,51 @@ class LogReader:
                 decode_payload(self.path, schema, channel, message, self._checker(schema)),
             )
 
-    def frames(self, topic: str = "/camera/image") -> Iterator[tuple[int, int, np.ndarray]]:
-        """``(frame_index, log_time, image)`` for every image of ``topic``, in time order.
+    def chunk_message_counts(self, topic: str) -> list[tuple[int, int, int]]:
+        """``(message_start_time, message_end_time, count)`` of ``topic`` in each chunk holding it, in time order.
 
+        Read from the message index records (a few bytes per chunk; no chunk is decompressed).
+        """
+        channel_id = next((c.id for c in self._summary.channels.values() if c.topic == topic), None)
+        if channel_id is None:
+            raise ChannelNotFoundError(self.path, topic, self.topics)
+        out = []
+        for ci in self._summary.chunk_indexes:
+            offset = ci.message_index_offsets.get(channel_id)
+            if offset is None:
+                continue
+            self._file.seek(offset)
+            head = self._file.read(_RECORD_HEADER.size + 6)
+            try:
+                opcode, _ = _RECORD_HEADER.unpack_from(head, 0)
+                cid, array_len = struct.unpack_from("<HI", head, _RECORD_HEADER.size)
+            except struct.error as err:
+                raise self._chunk_error(ci, f"its message index is cut short ({err})") from err
+            if opcode != Opcode.MESSAGE_INDEX or cid != channel_id or array_len % 16:
+                raise self._chunk_error(ci, f"its message index for channel {channel_id} is damaged")
+            out.append((ci.message_start_time, ci.message_end_time, array_len // 16))
+        return sorted(out)
+
+    def frames(self, topic: str = "/camera/image", *, start: int | None = None, end: int | None = None,
+               first_index: int = 0) -> Iterator[tuple[int, int, np.ndarray]]:
+        """``(frame_index, log_time, image)`` for every image of ``topic`` (``start <= log_time < end``), in time order.
+
+        ``first_index`` numbers the first frame returned (for a block read out of a longer log).
         Raises :class:`InvalidMessageError` when a frame is not 2-D, has another size or pixel type
         than the first, or does not come strictly after the previous frame.
         """
         first: tuple[tuple[int, ...], np.dtype[Any]] | None = None
         last = -1
-        for index, message in enumerate(self.messages(topic)):
+        for index, message in enumerate(self.messages(topic, start=start, end=end), start=first_index):
             image = message.payload
             if not isinstance(image, np.ndarray) or image.ndim != 2:
                 raise InvalidMessageError(self.path, topic, message.log_time, "it is not a 2-D image.")
             if first is None:
-                first = (image.shape, image.dtype)
+                first, first_at = (image.shape, image.dtype), index
             elif (image.shape, image.dtype) != first:
                 raise InvalidMessageError(
                     self.path, topic, message.log_time,
-                    f"frame {index} is {image.shape[1]}x{image.shape[0]} {image.dtype}, but frame 0 is "
+                    f"frame {index} is {image.shape[1]}x{image.shape[0]} {image.dtype}, but frame {first_at} is "
                     f"{first[0][1]}x{first[0][0]} {first[1]}; every frame of a log must match.")
             if message.log_time <= last:
                 raise InvalidMessageError(self.path, topic, message.log_time,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import multiprocessing
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from typing import Any, TypeVar
 
@@ -26,6 +26,13 @@ def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tupl
         yield pending.popleft().result()
 
 
-def process_pool(workers: int) -> ProcessPoolExecutor:
-    """Worker processes started by a fork server (the caller may have threads, which must not be forked)."""
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("forkserver"))
+def process_pool(workers: int, *, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
+    """Worker processes started by a fork server (the caller may have threads, which must not be forked).
+
+    ``preload`` names modules the fork server imports once, so each worker starts with them loaded
+    (it applies when the fork server starts, i.e. at the first pool of the process).
+    """
+    context = multiprocessing.get_context("forkserver")
+    if preload:
+        context.set_forkserver_preload(list(preload))
+    return ProcessPoolExecutor(max_workers=workers, mp_context=context)

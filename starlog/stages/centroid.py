@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid import CentroidMethod, estimate_psf_sigma, extract_stars
+from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars
 from starlog.detect import detect_stars
 from starlog.errors import InvalidParameterError
 from starlog.export import TableSpec, register_table
@@ -121,20 +121,20 @@ def centroid_log(
         the whole log, from the first frames with measurable stars, and recorded in the
         provenance (one optics, one PSF; re-estimating it per frame costs time and adds noise).
     workers : int
-        Frames extracted in parallel (threads); the output bytes do not depend on it.
+        Processes extracting blocks of frames in parallel (and threads compressing chunks);
+        the output bytes do not depend on it.
     """
     chosen = parse_methods(methods)
     options = dict(options or {})
     digest_params: dict[str, Any] = {"methods": [m.value for m in chosen], "options": options}
     with LogReader(input_path) as probe:
         camera = _camera_from_provenance(probe)
-    gain = gain if gain is not None else camera.get("gain", 1.0)
-    if read_noise is None:
-        read_noise = camera.get("read_noise")
-    if not (gain > 0):
-        raise InvalidParameterError(f"gain must be > 0 e-/DN, got {gain}.")
-    if options.get("psf_sigma") is None:
-        with LogReader(input_path) as probe:
+        gain = gain if gain is not None else camera.get("gain", 1.0)
+        if read_noise is None:
+            read_noise = camera.get("read_noise")
+        if not (gain > 0):
+            raise InvalidParameterError(f"gain must be > 0 e-/DN, got {gain}.")
+        if options.get("psf_sigma") is None:
             options["psf_sigma"] = _log_psf_sigma(probe, gain=gain, detect_options=options.get("detect_options"))
     digest_params.update({"gain": gain, "read_noise": read_noise})
     summary = CentroidSummary(methods=[m.value for m in chosen], gain=gain)
@@ -153,22 +153,17 @@ def centroid_log(
         if workers > 1 and n_frames >= 64:  # below that, process start-up costs more than it saves
             results = _extract_parallel(log, input_path, extract, workers)
         else:
-            results = ((frame, t, extract(image)) for frame, t, image in log.frames())
-        for frame, t, (detections, centroids) in progress(results, total=n_frames, description="centroid",
-                                                          enabled=show_progress):
-            out.writer.write(det_ch, log_time=t, data=encode_json({"frame": frame, "stars": rows(detections)}))
-            first = centroids[chosen[0]]
-            diameter = float(max(6.0, 6.0 * np.median(first["psf_sigma"]))) if first.size else 6.0
-            out.writer.write(ann_ch, log_time=t, data=encode_image_annotations(
-                first["x"], first["y"], log_time=t, diameter=diameter))
-            for m in chosen:
-                c = centroids[m]
-                out.writer.write(cen_ch[m], log_time=t,
-                                 data=encode_json({"frame": frame, "method": m.value, "stars": rows(c)}))
-                summary.centroids[m.value] += int(c.size)
-                summary.failed[m.value] += int(np.count_nonzero(c["flags"] & 4))
+            results = (extract(frame, t, image) for frame, t, image in log.frames())
+        for encoded in progress(results, total=n_frames, description="centroid", enabled=show_progress):
+            t = encoded.log_time
+            out.writer.write(det_ch, log_time=t, data=encoded.detections)
+            out.writer.write(ann_ch, log_time=t, data=encoded.annotations)
+            for k, m in enumerate(chosen):
+                out.writer.write(cen_ch[m], log_time=t, data=encoded.centroids[k])
+                summary.centroids[m.value] += encoded.n_centroids[k]
+                summary.failed[m.value] += encoded.n_failed[k]
             summary.frames += 1
-            summary.detections += int(detections.size)
+            summary.detections += encoded.n_detections
     return summary
 
 
@@ -187,54 +182,74 @@ def _log_psf_sigma(log: LogReader, *, gain: float, detect_options: dict[str, Any
 
 
 @dataclass(frozen=True)
+class _FrameMessages:
+    """One frame's encoded messages (detections, annotations, centroids per method) and counts."""
+
+    log_time: int
+    detections: bytes
+    annotations: bytes
+    centroids: tuple[bytes, ...]
+    n_detections: int
+    n_centroids: tuple[int, ...]
+    n_failed: tuple[int, ...]
+
+
+@dataclass(frozen=True)
 class _Extractor:
-    """``extract_stars`` with the stage's options; picklable, so worker processes can run it."""
+    """Detect, centroid and encode one frame; picklable, so worker processes do the whole per-frame work."""
 
     methods: tuple[CentroidMethod, ...]
     gain: float
     read_noise: float | None
     options: dict[str, Any]
 
-    def __call__(self, image: npt.NDArray[Any]) -> tuple[npt.NDArray[np.void], dict[Any, npt.NDArray[np.void]]]:
-        return extract_stars(image, methods=self.methods, gain=self.gain, read_noise=self.read_noise,
-                             **self.options)
+    def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any]) -> _FrameMessages:
+        detections, centroids = extract_stars(image, methods=self.methods, gain=self.gain,
+                                              read_noise=self.read_noise, **self.options)
+        first = centroids[self.methods[0]]
+        diameter = float(max(6.0, 6.0 * np.median(first["psf_sigma"]))) if first.size else 6.0
+        per_method = [centroids[m] for m in self.methods]
+        return _FrameMessages(
+            log_time=log_time,
+            detections=encode_json({"frame": frame, "stars": rows(detections)}),
+            annotations=encode_image_annotations(first["x"], first["y"], log_time=log_time, diameter=diameter),
+            centroids=tuple(encode_json({"frame": frame, "method": m.value, "stars": rows(c)})
+                            for m, c in zip(self.methods, per_method)),
+            n_detections=int(detections.size),
+            n_centroids=tuple(int(c.size) for c in per_method),
+            n_failed=tuple(int(np.count_nonzero(c["flags"] & CentroidFlag.FIT_FAILED)) for c in per_method),
+        )
 
 
-def _extract_block(path: str, start: int, end: int, extract: _Extractor) -> list[tuple[int, Any]]:
-    """Worker: extract every frame with ``start <= log_time < end`` (opens the log itself)."""
+def _extract_block(path: str, start: int, end: int, first_index: int, extract: _Extractor) -> list[_FrameMessages]:
+    """Worker: every frame with ``start <= log_time < end`` (opens the log itself; no image crosses processes)."""
     with LogReader(path) as log:
-        return [(t, extract(image)) for _, t, image in
-                ((0, m.log_time, m.payload) for m in log.messages(topics.IMAGE, start=start, end=end))]
+        return [extract(frame, t, image) for frame, t, image in
+                log.frames(start=start, end=end, first_index=first_index)]
 
 
-def _image_blocks(log: LogReader, frames_per_block: int) -> list[tuple[int, int]]:
-    """Split the image channel into time ranges of whole chunks, about ``frames_per_block`` frames each."""
-    image_id = next(c.id for c in log.summary.channels.values() if c.topic == topics.IMAGE)
-    ranges = sorted((ci.message_start_time, ci.message_end_time) for ci in log.summary.chunk_indexes
-                    if image_id in ci.message_index_offsets)
-    per_chunk = max(1, log.channel(topics.IMAGE).message_count // max(1, len(ranges)))
-    chunks_per_block = max(1, frames_per_block // per_chunk)
-    blocks = []
-    for i in range(0, len(ranges), chunks_per_block):
-        group = ranges[i:i + chunks_per_block]
-        start = group[0][0] if not blocks else blocks[-1][1]
-        blocks.append((start, group[-1][1] + 1))
-    for (_, end), (nxt, _) in zip(ranges, ranges[1:]):
-        if nxt < end - 1:  # chunks overlapping in time: fall back to one block per whole log
-            first, last = log.channel(topics.IMAGE).first_log_time, log.channel(topics.IMAGE).last_log_time
-            return [(first, last + 1)]
+def _image_blocks(log: LogReader, frames_per_block: int) -> list[tuple[int, int, int]]:
+    """Split the image channel into ``(start, end, first_frame)`` time ranges of whole chunks (~``frames_per_block``)."""
+    chunks = log.chunk_message_counts(topics.IMAGE)
+    for (_, end, _), (nxt, _, _) in zip(chunks, chunks[1:]):
+        if nxt < end:  # chunks overlapping in time (not written in time order): one block
+            return [(chunks[0][0], chunks[-1][1] + 1, 0)]
+    blocks: list[tuple[int, int, int]] = []
+    start, first, count = chunks[0][0] if chunks else 0, 0, 0
+    for i, (_, end, n) in enumerate(chunks):
+        count += n
+        if count >= frames_per_block or i == len(chunks) - 1:
+            blocks.append((start, end + 1, first))
+            start, first, count = end + 1, first + count, 0
     return blocks
 
 
 def _extract_parallel(log: LogReader, path: str | os.PathLike[str], extract: _Extractor,
-                      workers: int) -> Iterator[tuple[int, int, Any]]:
-    blocks = ((str(path), start, end, extract) for start, end in _image_blocks(log, frames_per_block=32))
-    frame = 0
-    with process_pool(workers) as pool:
+                      workers: int) -> Iterator[_FrameMessages]:
+    blocks = ((str(path), start, end, first, extract) for start, end, first in _image_blocks(log, 32))
+    with process_pool(workers, preload=["starlog.stages.centroid"]) as pool:
         for done in ordered_map(pool, _extract_block, blocks, window=2 * workers):
-            for t, result in done:
-                yield frame, t, result
-                frame += 1
+            yield from done
 
 
 def _centroid_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict[str, Any]]:
