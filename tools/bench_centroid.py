@@ -13,7 +13,9 @@ bias = mean (x, y) error, px; rmse/crb = median over stars of per-star RMSE / bo
 sig/rmse = median over stars of (reported sigma, RMS over realisations) / per-star RMSE;
 fps = frames per second on one core (detection + PSF estimate + that method; SEP: background +
 extract + flux_radius + winpos; photutils: starlog's detection + centroid_2dg), from the median
-frame time over the realisations; fps* = the same with the PSF sigma known (no estimate).
+frame time over the realisations; fps* = the same with the PSF sigma known (no estimate). The
+speed targets are judged on fps*, because that is how `starlog centroid` runs: it estimates the
+PSF width once per log and passes it to every frame (fps shows the cost of re-estimating it).
 
 Run: python tools/bench_centroid.py [--quick] [--reps N] [--no-photutils]
 """
@@ -250,8 +252,8 @@ def main(argv: list[str] | None = None) -> int:
                             bool(byk["MOMENT"][1] >= byk["SEP winpos"][1]), "compl"))
             sep_fps = byk["SEP winpos"][7]
             for m, fac in ((CentroidMethod.MOMENT, 2.0), (CentroidMethod.GRADIENT, 2.0), (CentroidMethod.GAUSSFIT, 1.0)):
-                targets.append((f"{tag}: {m.value} fps {byk[m.value][7]:.1f} >= {fac} x SEP {sep_fps:.1f}",
-                                bool(byk[m.value][7] >= fac * sep_fps), "speed"))
+                targets.append((f"{tag}: {m.value} fps* {byk[m.value][8]:.1f} >= {fac} x SEP {sep_fps:.1f}",
+                                bool(byk[m.value][8] >= fac * sep_fps), "speed"))
             sys.stdout.flush()
     if args.artifacts:
         print("\n# with 200 hot pixels (300-5000 e-) and 40 cosmic-ray tracks (0-10 px, 500-5000 e-/px) per frame")
