@@ -122,7 +122,7 @@ def export_log(
     *,
     tables: Iterable[str] | None = None,
     force: bool = False,
-    row_group_rows: int = 65_536,
+    row_group_rows: int = 16_384,
 ) -> dict[str, int]:
     """Write a Parquet file per table family found in the log; return ``{table: rows}``.
 

@@ -445,7 +445,7 @@ class LogWriter:
             src.seek(0)
             remaining = data_end
             while remaining:
-                block = src.read(min(remaining, 16 * 1024 * 1024))
+                block = src.read(min(remaining, 4 * 1024 * 1024))
                 if not block:
                     raise TruncatedLogError(base, "it ended while its data section was being copied")
                 self._file.write(block)
