@@ -132,3 +132,18 @@ def test_float_images_are_refused_with_advice(tmp_path: Path) -> None:
     tifffile.imwrite(folder / "f.tif", np.zeros((4, 4), np.float32))
     with pytest.raises(ImageFolderError, match="8- or 16-bit unsigned"):
         ingest_folder(folder, tmp_path / "o.mcap", fps=10)
+
+
+def test_fits_frames_ingest_with_the_extra(tmp_path: Path) -> None:
+    fits = pytest.importorskip("astropy.io.fits", reason="FITS needs the extra: pip install 'starlog[fits]'")
+    folder = tmp_path / "fits"
+    folder.mkdir()
+    rng = np.random.default_rng(8)
+    frames = [rng.integers(0, 60000, (12, 10), dtype=np.uint16) for _ in range(3)]
+    for n, frame in enumerate(frames):
+        fits.PrimaryHDU(frame).writeto(folder / f"f{n}.fits")  # stored as int16 + BZERO 32768
+    summary = ingest_folder(folder, tmp_path / "o.mcap", fps=50)
+    assert summary.frames == 3 and summary.encoding == "mono16"
+    with LogReader(tmp_path / "o.mcap") as log:
+        for (_, _, image), frame in zip(log.frames(), frames):
+            np.testing.assert_array_equal(image, frame)
