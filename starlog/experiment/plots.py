@@ -1,4 +1,4 @@
-"""PNG plots of the experiment (matplotlib, Agg backend, imported lazily: ``pip install starlog[plot]``).
+"""PNG plots of the experiment (matplotlib, Agg backend, imported lazily).
 
 * :func:`plot_figure4` — bar chart of RMSE before/after per sub-pixel method and rate (STATIC,
   300 Hz dataset), one panel per protocol's primary reference (the paper's Figure 4 analogue);
@@ -33,7 +33,7 @@ def _pyplot() -> Any:
         import matplotlib
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise PlotDependencyError(
-            "the experiment's plots need matplotlib: pip install 'starlog[plot]'.") from err
+            "the experiment's plots need matplotlib (a starlog dependency): pip install matplotlib.") from err
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
