@@ -31,6 +31,16 @@ __all__ = ["squared_centroid", "weighted_centroid"]
 F64 = npt.NDArray[np.float64]
 
 
+def _centre_of_weights(w: F64, u: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+    """Centre ``(x, y)`` of stamps of non-negative weights ``w`` (n, k, k) on offsets ``u`` (k,); ok = any weight."""
+    s0 = w.sum(axis=(1, 2))
+    ok = s0 > 0
+    s0 = np.where(ok, s0, 1.0)
+    cx = (w.sum(axis=1) * u[None, :]).sum(axis=1) / s0
+    cy = (w.sum(axis=2) * u[None, :]).sum(axis=1) / s0
+    return cx, cy, ok
+
+
 def weighted_centroid(
     data: F64,
     st: Stamps,
@@ -55,13 +65,7 @@ def weighted_centroid(
             w = st.valid * m
             if weighting == "optimal":
                 w = w / variance(st, np.maximum(flux, 0)[:, None, None] * m)
-        wd = w * data
-        s0 = wd.sum(axis=(1, 2))
-        good = s0 > 0
-        s0 = np.where(good, s0, 1.0)
-        tx = (wd.sum(axis=1) * u[None, :]).sum(axis=1) / s0
-        ty = (wd.sum(axis=2) * u[None, :]).sum(axis=1) / s0
-        return tx, ty, good
+        return _centre_of_weights(w * data, u)
 
     tx, ty, ok = step(dx0, dy0)
     if weighting == "none":
@@ -109,10 +113,4 @@ def squared_centroid(
         d = np.where(st.valid, data, 0.0)
         nz = st.noise
     d = np.where(d > threshold_sigma * nz[:, None, None], d, 0.0)
-    w = d * d
-    s0 = w.sum(axis=(1, 2))
-    ok = s0 > 0
-    s0 = np.where(ok, s0, 1.0)
-    cx = (w.sum(axis=1) * u[None, :]).sum(axis=1) / s0
-    cy = (w.sum(axis=2) * u[None, :]).sum(axis=1) / s0
-    return cx, cy, ok
+    return _centre_of_weights(d * d, u)

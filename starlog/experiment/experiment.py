@@ -123,10 +123,6 @@ class _Serial:
         return fut
 
 
-def _outputs(out: Path, names: list[str]) -> dict[str, Path]:
-    return {n: out / n for n in names}
-
-
 def run_experiment(
     output_dir: str | os.PathLike[str],
     *,

@@ -272,8 +272,9 @@ def track_and_score(
     rows: list[dict[str, Any]] = []
     series_out: dict[str, Any] = {}
     with LogReader(track_path) as log:
+        truth_cache: dict[int, Any] = {}
         for model in models:
-            series = read_brightest_series(log, f"/track/{method}/{model}")
+            series = read_brightest_series(log, f"/track/{method}/{model}", truth_cache=truth_cache)
             r, s = _score_series(series, dataset=dataset, rates_uncompensated=rates_uncompensated,
                                  rates_compensated=rates_compensated, window_s=window_s,
                                  calibration_fraction=calibration_fraction, keep_series=keep_series)

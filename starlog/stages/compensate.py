@@ -77,8 +77,17 @@ def select_track_channels(log: LogReader, track: str | Sequence[str] | None) -> 
     return chosen
 
 
-def read_brightest_series(log: LogReader, topic: str) -> BrightestSeries:
-    """The brightest star's track from ``topic``, and its true positions when ``/sim/truth`` exists."""
+#: Truth of one simulated star: its fixed position (2,), and the times (n,) and positions (n, 2) of every frame.
+StarTruth = tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], npt.NDArray[np.float64]]
+
+
+def read_brightest_series(log: LogReader, topic: str, *,
+                          truth_cache: dict[int, StarTruth] | None = None) -> BrightestSeries:
+    """The brightest star's track from ``topic``, and its true positions when ``/sim/truth`` exists.
+
+    Pass the same ``truth_cache`` dict for several track channels of one log: the truth of each
+    star is then read from the log once, not once per channel.
+    """
     times, frames, xy, flux, sigma = [], [], [], [], []
     method = model = ""
     track_id = -1
@@ -107,32 +116,46 @@ def read_brightest_series(log: LogReader, topic: str) -> BrightestSeries:
                              native_rate=float(native))
     if not log.has_topic(topics.TRUTH):
         return series
-    return _with_truth(log, series)
+    return _with_truth(log, series, {} if truth_cache is None else truth_cache)
 
 
-def _with_truth(log: LogReader, series: BrightestSeries) -> BrightestSeries:
-    """Attach the true positions of the simulated star that the track follows (nearest fixed position)."""
-    wanted = {int(t): i for i, t in enumerate(series.log_time)}
-    truth = np.full((series.log_time.size, 2), np.nan)
-    mean = series.xy.mean(axis=0)
-    star_id: int | None = None
-    fixed: npt.NDArray[np.float64] | None = None
+def _nearest_star(log: LogReader, point: npt.NDArray[np.float64]) -> int | None:
+    """Id of the simulated star whose fixed position is nearest ``point`` (from the first truth message)."""
     for message in log.messages(topics.TRUTH):
         stars = message.payload["stars"]
-        if star_id is None and stars:
+        if stars:
             static = np.array([(s["x_static"], s["y_static"]) for s in stars])
-            nearest = int(np.argmin(np.hypot(*(static - mean).T)))
-            star_id, fixed = stars[nearest]["star"], static[nearest]
-        i = wanted.get(message.log_time)
-        if i is None or star_id is None:
-            continue
-        for s in stars:
+            return int(stars[int(np.argmin(np.hypot(*(static - point).T)))]["star"])
+    return None
+
+
+def _star_truth(log: LogReader, star_id: int) -> StarTruth:
+    """Fixed position, and time-sorted instantaneous positions, of one simulated star (one pass over the truth)."""
+    fixed = np.full(2, np.nan)
+    times: list[int] = []
+    xy: list[tuple[float, float]] = []
+    for message in log.messages(topics.TRUTH):
+        for s in message.payload["stars"]:
             if s["star"] == star_id:
-                truth[i] = (s["x"], s["y"])
+                fixed = np.array([s["x_static"], s["y_static"]])
+                times.append(message.log_time)
+                xy.append((s["x"], s["y"]))
                 break
-    if fixed is None or np.isnan(truth).any():
+    return fixed, np.asarray(times, dtype=np.int64), np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+
+
+def _with_truth(log: LogReader, series: BrightestSeries, cache: dict[int, StarTruth]) -> BrightestSeries:
+    """Attach the true positions of the simulated star that the track follows (nearest fixed position)."""
+    star_id = _nearest_star(log, series.xy.mean(axis=0))
+    if star_id is None:
         return series
-    return BrightestSeries(**{**series.__dict__, "truth_fixed": fixed, "truth_series": truth})
+    if star_id not in cache:
+        cache[star_id] = _star_truth(log, star_id)
+    fixed, times, xy = cache[star_id]
+    at = np.searchsorted(times, series.log_time)
+    if times.size == 0 or np.any(at >= times.size) or np.any(times[np.minimum(at, times.size - 1)] != series.log_time):
+        return series  # some sample has no truth: the truth protocol is not offered for this series
+    return BrightestSeries(**{**series.__dict__, "truth_fixed": fixed, "truth_series": xy[at]})
 
 
 @dataclass
@@ -200,15 +223,17 @@ def compensate_log(
                   "protocols": [p.value for p in chosen], "options": options}
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force,
                     compression=compression) as (log, out):
+        truth_cache: dict[int, StarTruth] = {}
         for channel in channels:
-            _compensate_track(log, out, channel, rates, chosen, options, summary)
+            _compensate_track(log, out, channel, rates, chosen, options, summary, truth_cache)
     return summary
 
 
 def _compensate_track(log: LogReader, out: Any, channel: ChannelSummary, rates: Sequence[float],
-                      chosen: list[Protocol], options: dict[str, Any], summary: CompensateSummary) -> None:
+                      chosen: list[Protocol], options: dict[str, Any], summary: CompensateSummary,
+                      truth_cache: dict[int, StarTruth]) -> None:
     """Compensate the brightest track of ``channel`` at every rate under every protocol."""
-    series = read_brightest_series(log, channel.topic)
+    series = read_brightest_series(log, channel.topic, truth_cache=truth_cache)
     decision_ch = out.add_channel(topics.decisions_topic(series.method, series.model),
                                   json_message_type("starlog.CompensationRecord"), monotonic=False)
     for rate in rates:
