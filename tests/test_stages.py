@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import jsonschema
@@ -15,7 +17,7 @@ from starlog.centroid import CENTROID_DTYPE
 from starlog.cli import cli
 from starlog.detect import DETECTION_DTYPE
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.export import arrow_schema, export_log, table_columns
+from starlog.export import TABLES, arrow_schema, export_log, table_columns
 from starlog.io import LogReader, file_digest, load_json_schema, topics
 from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.sim import Jitter
@@ -95,6 +97,17 @@ def test_parquet_tables_document_every_column(table: str) -> None:
     schema = arrow_schema(table)
     for field in schema:
         assert field.metadata[b"description"]
+
+
+def test_export_declares_every_table_in_one_place_without_importing_stages(pipeline_logs: dict[str, Path],
+                                                                           tmp_path: Path) -> None:
+    assert [t.name for t in TABLES] == list(table_columns())
+    code = ("import sys; from starlog.export import export_log; "
+            f"written = export_log({str(pipeline_logs['comp'])!r}, {str(tmp_path)!r}); "
+            "loaded = [m for m in sys.modules if m.startswith('starlog.stages')]; "
+            "print(len(written), loaded); sys.exit(1 if loaded else 0)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert done.returncode == 0 and done.stdout.startswith("7 "), done.stdout + done.stderr
 
 
 def test_annotations_sit_half_a_pixel_off_the_centroids(pipeline_logs: dict[str, Path]) -> None:
