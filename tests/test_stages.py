@@ -18,10 +18,11 @@ from starlog.cli import cli
 from starlog.detect import DETECTION_DTYPE
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.export import TABLES, arrow_schema, export_log, table_columns
-from starlog.io import LogReader, file_digest, load_json_schema, topics
+from starlog.io import LogReader, file_digest, json_message_type, load_json_schema, topics
 from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.sim import Jitter
 from starlog.stages import simulate_log
+from starlog.stages._stage import extend_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
 from starlog.stages.track import track_log
@@ -183,6 +184,23 @@ def test_stage_keeps_its_input_and_refuses_to_overwrite(pipeline_logs: dict[str,
     assert file_digest(pipeline_logs["cen"]) == before
     result = CliRunner().invoke(cli, ["track", str(pipeline_logs["cen"]), "-o", str(out), "--centroids", "NONE"])
     assert result.exit_code == 1 and "--force" in result.output
+
+
+def test_stage_channels_refuse_time_going_back_unless_unordered(pipeline_logs: dict[str, Path],
+                                                                tmp_path: Path) -> None:
+    message_type = json_message_type("starlog.FrameInfo")
+    with pytest.raises(InvalidInputError, match="not after"):
+        with extend_log(pipeline_logs["sim"], tmp_path / "a.mcap", stage="test", parameters={}) as (_, out):
+            ch = out.add_channel("/test/ordered", message_type)
+            out.writer.write(ch, log_time=2, data=b"{}")
+            out.writer.write(ch, log_time=2, data=b"{}")
+    assert not (tmp_path / "a.mcap").exists()
+    with extend_log(pipeline_logs["sim"], tmp_path / "b.mcap", stage="test", parameters={}) as (_, out):
+        ch = out.add_channel("/test/unordered", message_type, unordered=True)
+        for t in (2, 2, 1):
+            out.writer.write(ch, log_time=t, data=b"{}")
+    with LogReader(tmp_path / "b.mcap") as log:
+        assert log.channel("/test/unordered").message_count == 3
 
 
 def test_parallel_centroiding_gives_the_same_bytes(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:

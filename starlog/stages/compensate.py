@@ -234,7 +234,7 @@ def _compensate_track(log: LogReader, out: Any, channel: ChannelSummary, rates: 
     """Compensate the brightest track of ``channel`` at every rate under every protocol."""
     series = read_brightest_series(log, channel.topic, truth_cache=truth_cache)
     decision_ch = out.add_channel(topics.decisions_topic(series.method, series.model),
-                                  json_message_type("starlog.CompensationRecord"), monotonic=False)
+                                  json_message_type("starlog.CompensationRecord"), unordered=True)
     for rate in rates:
         if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
             raise InvalidParameterError(
