@@ -22,6 +22,7 @@ __all__ = ["cli", "main"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
+QUIET_HELP = "No progress bar and no status lines on stderr; results (stdout, --json) still print."
 
 
 class _StarlogGroup(click.Group):
@@ -36,6 +37,12 @@ def _print_json(data: Any) -> None:
     click.echo(json.dumps(data, indent=2, allow_nan=False))
 
 
+def _status(quiet: bool, text: str) -> None:
+    """A status line (what was written where) on stderr, unless ``--quiet``; results go to stdout."""
+    if not quiet:
+        click.echo(text, err=True)
+
+
 # ---------------------------------------------------------------- shared options
 def output_option(help_text: str = "Output log (.mcap). Written atomically.") -> Callable[[F], F]:
     return click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
@@ -44,7 +51,7 @@ def output_option(help_text: str = "Output log (.mcap). Written atomically.") ->
 
 def write_options(f: F) -> F:
     """--force, --compression, --workers, --quiet."""
-    f = click.option("--quiet", "-q", is_flag=True, help="No progress bar.")(f)
+    f = click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)(f)
     f = click.option("--workers", type=click.IntRange(1, 256), default=os.cpu_count() or 1,
                      show_default="all cores",
                      help="Cores for per-frame work, image decoding and chunk compression; the output "
@@ -72,6 +79,9 @@ def cli() -> None:
 
     Pixel coordinates: x = column, y = row, (0, 0) at the centre of the top-left pixel.
     Times: integer nanoseconds (log_time).
+
+    Results print on stdout (--json: as JSON); progress bars and status lines ("wrote ...") go
+    to stderr, and -q silences them.
     """
 
 
@@ -161,9 +171,8 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
                               drift_px_per_s=(drift_x, drift_y), random_walk_px_per_sqrt_s=random_walk,
                               seed=seed, start_time_ns=start_ns, **params)
     simulate_log(config, output, compression=compression, workers=workers, force=force, show_progress=not quiet)
-    if not quiet:
-        click.echo(f"wrote {output}: {config.n_frames} frames of {width}x{height} at {config.fps:g} Hz, "
-                   f"{n_stars} stars", err=True)
+    _status(quiet, f"wrote {output}: {config.n_frames} frames of {width}x{height} at {config.fps:g} Hz, "
+                   f"{n_stars} stars")
 
 
 # ---------------------------------------------------------------- ingest
@@ -198,11 +207,11 @@ def ingest(folder: Path, output: Path, fps: float | None, start_ns: int, time_pa
     summary = ingest_folder(folder, output, fps=fps, start_ns=start_ns, time_pattern=time_pattern,
                             time_unit=time_unit, skip_bad=skip_bad, compression=compression, workers=workers,
                             force=force, show_progress=not quiet)
+    _status(quiet, f"wrote {output}: {summary.frames} frames {summary.width}x{summary.height} {summary.encoding}, "
+                   f"{len(summary.skipped)} skipped")
     if as_json:
         _print_json(summary.to_dict())
     else:
-        click.echo(f"wrote {output}: {summary.frames} frames {summary.width}x{summary.height} {summary.encoding}, "
-                   f"{len(summary.skipped)} skipped")
         for name, reason in summary.skipped:
             click.echo(f"  skipped {name}: {reason}")
 
@@ -256,7 +265,7 @@ def _report_batch(outcomes: list[Any], as_json: bool, describe: Callable[[Any], 
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
               help="With several logs: local Dask workers.")
 @scheduler_option
-@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 @json_option
 def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], force: bool, workers: int,
            scheduler: str | None, quiet: bool, as_json: bool) -> None:
@@ -335,11 +344,11 @@ def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noi
     summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise,
                            options=_key_values(settings, "--set"), workers=workers, force=force,
                            compression=compression, show_progress=not quiet)
+    d = summary.to_dict()
+    _status(quiet, f"wrote {output}: {d['frames']} frames, {d['detections_per_frame']:.1f} stars/frame")
     if as_json:
-        _print_json(summary.to_dict())
+        _print_json(d)
     else:
-        d = summary.to_dict()
-        click.echo(f"wrote {output}: {d['frames']} frames, {d['detections_per_frame']:.1f} stars/frame")
         for method, count in d["centroids"].items():
             click.echo(f"  {method:<15} {count:>8} centroids, {d['fit_failed'][method]} fit failures")
 
@@ -376,11 +385,11 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
     summary = track_log(log, output, method=method, models=models, tracker=_key_values(settings, "--set"),
                         motion=_key_values(motion, "--motion"), force=force, compression=compression,
                         show_progress=not quiet)
+    d = summary.to_dict()
+    _status(quiet, f"wrote {output}: {d['frames']} frames of {d['method']} centroids")
     if as_json:
-        _print_json(summary.to_dict())
+        _print_json(d)
     else:
-        d = summary.to_dict()
-        click.echo(f"wrote {output}: {d['frames']} frames of {d['method']} centroids")
         click.echo(f"  {'model':<18} {'tracks':>7} {'confirmed':>9} {'gated':>6} {'mean NIS':>9} {'brightest':>9}")
         for model, m in d["models"].items():
             click.echo(f"  {model:<18} {m['tracks']:>7} {m['confirmed_tracks']:>9} {m['gated_measurements']:>6} "
@@ -436,6 +445,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
         raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
                              options=_key_values(settings, "--set"), force=force, compression=compression)
+    _status(quiet, f"wrote {output}: {len(summary.records)} decision records")
     if as_json:
         _print_json(summary.to_dict())
     else:
@@ -488,7 +498,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
         return
 
     def report(stage: str, result: dict[str, Any]) -> None:
-        if quiet or as_json:
+        if quiet:
             return
         if stage == "centroid":
             click.echo(f"centroid: {result['frames']} frames, {result['detections_per_frame']:.1f} stars/frame, "
@@ -500,13 +510,13 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
 
     result = run_pipeline(logs[0], output, config, workers=workers, force=force, compression=compression,
                           show_progress=not quiet, on_stage=report)
+    _status(quiet, f"wrote {output}; inspect it with: starlog info {output}; tables: starlog export {output} -o DIR")
     if as_json:
         _print_json(result.to_dict())
         return
     for stage, summary in result.stages:
         if stage == "compensate":
             click.echo(format_records(summary["records"]))
-    click.echo(f"wrote {output}; inspect it with: starlog info {output}; tables: starlog export {output} -o DIR")
 
 
 # ---------------------------------------------------------------- experiment
@@ -518,7 +528,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
               help="Local Dask workers for the independent runs (1: serial).")
 @scheduler_option
 @click.option("--force", is_flag=True, help="Overwrite an existing output folder's results.")
-@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 @json_option
 def experiment(output: Path, quick: bool, workers: int, scheduler: str | None, force: bool, quiet: bool,
                as_json: bool) -> None:

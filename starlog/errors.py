@@ -113,7 +113,7 @@ class FitError(StarlogError):
     """A model fit (centroid fit, filter initialisation, error model) failed."""
 
 
-# ---------------------------------------------------------------- reliability (issue 8)
+# ---------------------------------------------------------------- reliability
 __all__ += ["CorruptChunkError", "InvalidMessageError"]
 
 

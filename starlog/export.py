@@ -1,8 +1,9 @@
 """Parquet export: one table per channel family, streamed in row groups (memory flat in log length).
 
-Every table's columns are declared once, in ``schemas/tables.json``, which this module turns
-into Arrow schemas (with each column's description and unit as field metadata) and which the
-README documents. A family is written only when the log has its channels.
+Every table is declared here, in :data:`TABLES` (which channels feed it and how a message
+becomes rows), and its columns once, in ``schemas/tables.json``, which this module turns into
+Arrow schemas (with each column's description and unit as field metadata) and which the README
+documents. A family is written only when the log has its channels.
 """
 
 from __future__ import annotations
@@ -68,23 +69,62 @@ def _frame_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
     yield {"log_time": log_time, **msg}
 
 
-def _truth_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+def _per_star_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    """Truth and detections: one row per star of the frame."""
     for star in msg["stars"]:
         yield {"log_time": log_time, "frame": msg["frame"], **star}
 
 
-#: Tables in export order. Later stages register theirs with :func:`register_table`.
-TABLES: list[TableSpec] = [
-    TableSpec("frames", lambda ch: ch.topic == topics.FRAME_INFO, _frame_rows),
-    TableSpec("truth", lambda ch: ch.topic == topics.TRUTH, _truth_rows),
-]
+def _centroid_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    for star in msg["stars"]:
+        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], **star}
 
 
-def register_table(spec: TableSpec) -> None:
-    """Add a table family to :data:`TABLES` (used by the stage modules)."""
-    if any(t.name == spec.name for t in TABLES):
-        return
-    TABLES.append(spec)
+def _track_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    for row in msg["tracks"]:
+        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], "model": msg["model"], **row}
+
+
+def _series_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    """A compensated sample; method, model, rate and protocol come from its topic."""
+    _, _, method, model, rate, protocol = ch.topic.split("/")
+    yield {"log_time": log_time, "method": method, "model": model, "rate_hz": float(rate[:-2]),
+           "protocol": protocol, **msg}
+
+
+def _decision_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    """One row per compensation pass of a decision record, with the record's headline figures."""
+    comp = msg["compensation"]
+    primary = msg["figures"][0]
+    base = {"log_time": log_time, "method": msg["method"], "model": msg["model"], "rate_hz": msg["rate_hz"],
+            "protocol": msg["protocol"], "n_samples": msg["n_samples"],
+            "dominant_frequency": comp["decomposition"]["dominant_frequency"],
+            "reference": primary["reference"], "protocol_rmse_before": primary["rmse_before"],
+            "protocol_rmse_after": primary["rmse_after"]}
+    for p in comp["passes"]:
+        yield {**base, "rank": p["rank"], "strategy": p["strategy"], "score": p["score"],
+               "rmse_before": p["rmse_before"], "rmse_after": p["rmse_after"], "effective": p["effective"],
+               "kept": p["kept"]}
+
+
+def _topic_is(topic: str) -> Callable[[ChannelSummary], bool]:
+    return lambda ch: ch.topic == topic
+
+
+def _schema_is(schema_name: str) -> Callable[[ChannelSummary], bool]:
+    return lambda ch: ch.schema_name == schema_name
+
+
+#: Every table, in export order; the columns of each are in ``schemas/tables.json``.
+TABLES: tuple[TableSpec, ...] = (
+    TableSpec("frames", _topic_is(topics.FRAME_INFO), _frame_rows),
+    TableSpec("truth", _topic_is(topics.TRUTH), _per_star_rows),
+    TableSpec("detections", _topic_is(topics.DETECTIONS), _per_star_rows),
+    TableSpec("centroids", _schema_is("starlog.Centroids"), _centroid_rows),
+    TableSpec("tracks", _schema_is("starlog.Tracks"), _track_rows),
+    TableSpec("compensation", _schema_is("starlog.CompensatedSample"), _series_rows),
+    TableSpec("decisions", _schema_is("starlog.CompensationRecord"), _decision_rows),
+)
 
 
 def _write_table(log: LogReader, spec: TableSpec, channels: list[ChannelSummary], path: Path,
@@ -137,7 +177,6 @@ def export_log(
     force : bool
         Overwrite existing Parquet files.
     """
-    _load_stage_tables()
     known = [t.name for t in TABLES]
     wanted = list(tables) if tables is not None else known
     unknown = [t for t in wanted if t not in known]
@@ -160,14 +199,3 @@ def export_log(
             result[spec.name] = _write_table(log, spec, feeding, path, row_group_rows)
     return result
 
-
-def _load_stage_tables() -> None:
-    """Import the stage modules that register their tables (kept lazy to avoid import cycles)."""
-    import importlib
-
-    for module in ("starlog.stages.centroid", "starlog.stages.track", "starlog.stages.compensate"):
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as err:
-            if err.name != module:
-                raise

@@ -3,27 +3,8 @@
 A config has one table per stage, run in the order centroid → track → compensate; a stage
 whose table is absent is skipped. Each stage writes a complete log (intermediates go to
 temporary files beside the output and are removed), so running the config gives the same
-bytes as running the stages one by one with the same options. Print the default config with
-``starlog run --print-config``::
-
-    [centroid]
-    methods = ["NONE", "MOMENT", "BICUBIC", "GAUSSFIT", "GRADIENT"]
-    # gain = 1.0            # e-/DN; default: from the simulator's provenance, else 1
-    # read_noise = 3.0      # e-; default: from the simulator's provenance, else estimated
-    [centroid.options]      # keyword options of starlog.centroid.extract_stars
-
-    [track]
-    methods = ["NONE", "GAUSSFIT"]   # centroid channels to track, one stage run each
-    models = "all"
-    [track.tracker]         # starlog.track.TrackerConfig fields
-    sigma_floor = 0.05      # px: the platform jitter a STATIC model must absorb
-    [track.motion]          # starlog.track.MotionModelConfig fields
-
-    [compensate]
-    tracks = "all"          # or ["GAUSSFIT/STATIC", ...]
-    rates = [10, 50]
-    protocols = "all"
-    [compensate.options]    # keyword options of starlog.compensate.evaluate
+bytes as running the stages one by one with the same options. The built-in config is
+:data:`DEFAULT_CONFIG_TOML` (``starlog run --print-config`` prints it).
 """
 
 from __future__ import annotations
@@ -39,7 +20,27 @@ from starlog.errors import InvalidParameterError, OutputExistsError
 
 __all__ = ["DEFAULT_CONFIG_TOML", "PipelineConfig", "load_config", "run_pipeline", "run_pipeline_task"]
 
-DEFAULT_CONFIG_TOML = __doc__.split("::", 1)[1].split('"""')[0].replace("\n    ", "\n").strip() + "\n"
+#: The built-in config, a starting point for your own (``starlog run --print-config``).
+DEFAULT_CONFIG_TOML = """\
+[centroid]
+methods = ["NONE", "MOMENT", "BICUBIC", "GAUSSFIT", "GRADIENT"]
+# gain = 1.0            # e-/DN; default: from the simulator's provenance, else 1
+# read_noise = 3.0      # e-; default: from the simulator's provenance, else estimated
+[centroid.options]      # keyword options of starlog.centroid.extract_stars
+
+[track]
+methods = ["NONE", "GAUSSFIT"]   # centroid channels to track, one stage run each
+models = "all"
+[track.tracker]         # starlog.track.TrackerConfig fields
+sigma_floor = 0.05      # px: the platform jitter a STATIC model must absorb
+[track.motion]          # starlog.track.MotionModelConfig fields
+
+[compensate]
+tracks = "all"          # or ["GAUSSFIT/STATIC", ...]
+rates = [10, 50]
+protocols = "all"
+[compensate.options]    # keyword options of starlog.compensate.evaluate
+"""
 
 _STAGE_KEYS: dict[str, set[str]] = {
     "centroid": {"methods", "gain", "read_noise", "options"},

@@ -1,15 +1,29 @@
-"""The command line: help everywhere, determinism, info/export output, errors as one sentence."""
+"""The command line: help everywhere, every option used, -q, determinism, info/export output, errors, -OO."""
 
 from __future__ import annotations
 
+import ast
+import inspect
 import json
+import pkgutil
+import subprocess
+import sys
+import textwrap
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import click
+import cv2
 import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
+from tqdm import tqdm
 
+import starlog
 from starlog.cli import cli
+from starlog.io import LogReader
+from starlog.pipeline import DEFAULT_CONFIG_TOML
 
 SMALL = ["--size", "48x40", "--stars", "2", "--frames", "8", "--seed", "4", "-q"]
 
@@ -71,3 +85,134 @@ def test_errors_are_one_sentence_with_exit_status_1(tmp_path: Path) -> None:
 def test_bad_option_formats(tmp_path: Path) -> None:
     result = CliRunner().invoke(cli, ["simulate", "-o", str(tmp_path / "x.mcap"), "--jitter", "abc"])
     assert result.exit_code == 2 and "FREQ_HZ:AMPLITUDE_PX" in result.output
+
+
+# ---------------------------------------------------------------- every option does something
+def _names_used(function: Callable[..., Any]) -> set[str]:
+    """Names the function's body reads (nested functions included), not its signature."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(function)))
+    definition = tree.body[0]
+    assert isinstance(definition, ast.FunctionDef)
+    return {node.id for statement in definition.body for node in ast.walk(statement)
+            if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Load)}
+
+
+#: Options known to be accepted and ignored; remove an entry once the option is used or dropped.
+IGNORED_OPTIONS = {("track", "workers"), ("compensate", "workers")}
+
+OPTIONS = [pytest.param(name, param.name, id=f"{name} {param.opts[-1]}",
+                        marks=[pytest.mark.xfail(strict=True, reason=f"{name} {param.opts[-1]} is accepted and ignored")]
+                        if (name, param.name) in IGNORED_OPTIONS else [])
+           for name, command in sorted(cli.commands.items()) for param in command.params]
+
+
+@pytest.mark.parametrize(("name", "param"), OPTIONS)
+def test_every_option_in_help_is_used_by_its_command(name: str, param: str) -> None:
+    command = cli.commands[name]
+    option = next(p for p in command.params if p.name == param)
+    assert option.name in inspect.signature(command.callback).parameters  # type: ignore[arg-type]
+    if isinstance(option, click.Option):  # listed in --help
+        assert not option.hidden and any(o in command.get_help(click.Context(command)) for o in option.opts)
+    assert param in _names_used(command.callback), f"{name}: {option.opts} is accepted but never used"  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def quiet_logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """simulate → centroid → track → compensate, and the frames as PNG files, in one folder."""
+    d = tmp_path_factory.mktemp("quiet")
+    runner = CliRunner()
+    steps = [["simulate", "-o", "sim.mcap", "--size", "80x64", "--stars", "3", "--fps", "100", "--frames", "120",
+              "--jitter", "7:0.05", "--seed", "2"],
+             ["centroid", "sim.mcap", "-o", "cen.mcap", "--method", "NONE"],
+             ["track", "cen.mcap", "-o", "trk.mcap", "--centroids", "NONE", "--model", "STATIC",
+              "--set", "sigma_floor=0.05"],
+             ["compensate", "trk.mcap", "-o", "cmp.mcap", "--rate", "50", "--protocol", "paper"]]
+    for step in steps:
+        args = [str(d / a) if a.endswith(".mcap") else a for a in step]
+        result = runner.invoke(cli, [*args, "--workers", "1", "-q"])
+        assert result.exit_code == 0, result.output
+    (d / "frames").mkdir()
+    with LogReader(d / "sim.mcap") as log:
+        for index, _, image in log.frames():
+            assert cv2.imwrite(str(d / "frames" / f"f{index}.png"), image)
+    (d / "p.toml").write_text('[centroid]\nmethods = ["NONE"]\n[track]\nmethods = ["NONE"]\nmodels = "STATIC"\n'
+                              '[track.tracker]\nsigma_floor = 0.05\n[compensate]\nrates = [50]\nprotocols = "paper"\n')
+    return d
+
+
+#: Each command that takes -q, on the logs of ``quiet_logs``; OUT is its output; True if it writes a log.
+QUIET_COMMANDS = {
+    "simulate": (["simulate", "-o", "OUT.mcap", "--size", "48x40", "--frames", "20", "--workers", "1"], True),
+    "ingest": (["ingest", "frames", "-o", "OUT.mcap", "--fps", "100", "--workers", "1"], True),
+    "centroid": (["centroid", "sim.mcap", "-o", "OUT.mcap", "--method", "NONE,MOMENT", "--workers", "1"], True),
+    "track": (["track", "cen.mcap", "-o", "OUT.mcap", "--centroids", "NONE", "--model", "STATIC",
+               "--set", "sigma_floor=0.05", "--workers", "1"], True),
+    "compensate": (["compensate", "trk.mcap", "-o", "OUT.mcap", "--rate", "50", "--protocol", "paper",
+                    "--workers", "1"], True),
+    "run": (["run", "sim.mcap", "-o", "OUT.mcap", "--config", "p.toml", "--workers", "1"], True),
+    "export": (["export", "sim.mcap", "cen.mcap", "-o", "OUT", "--workers", "1"], False),
+}
+
+
+@pytest.fixture
+def progress_bars_shown(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Show progress bars although the test's stderr is not a terminal."""
+    show = tqdm.__init__
+
+    def init(self: tqdm, *args: Any, **kwargs: Any) -> None:
+        if kwargs.get("disable", False) is None:
+            kwargs["disable"] = False
+        show(self, *args, **kwargs)
+
+    monkeypatch.setattr(tqdm, "__init__", init)
+
+
+def test_every_command_with_quiet_is_covered() -> None:
+    with_quiet = {name for name, command in cli.commands.items() if any(p.name == "quiet" for p in command.params)}
+    assert with_quiet == set(QUIET_COMMANDS) | {"experiment"}
+
+
+@pytest.mark.parametrize("name", sorted(QUIET_COMMANDS))
+def test_quiet_silences_progress_and_status_and_keeps_the_results(
+        name: str, quiet_logs: Path, progress_bars_shown: None) -> None:
+    template, writes_log = QUIET_COMMANDS[name]
+    args = [str(quiet_logs / a.replace("OUT", name)) if a.startswith(("OUT", "frames")) or a.endswith((".mcap", ".toml"))
+            else a for a in template]
+    runner = CliRunner()
+    loud = runner.invoke(cli, [*args, "--force"])
+    quiet = runner.invoke(cli, [*args, "--force", "-q"])
+    assert loud.exit_code == 0 and quiet.exit_code == 0, loud.output + quiet.output
+    assert quiet.stderr == "", f"{name} -q still prints on stderr: {quiet.stderr!r}"
+    assert loud.stderr != "", f"{name} without -q shows no progress or status"
+    if writes_log:
+        assert f"wrote {quiet_logs / name}.mcap" in loud.stderr
+    assert loud.stdout == quiet.stdout  # the results do not depend on -q
+
+
+def test_experiment_quiet_turns_off_its_progress_bar(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    calls: list[bool] = []
+
+    class Summary:
+        def text(self) -> str:
+            return "the summary"
+
+    def experiment_command(output: Path, **options: Any) -> Summary:
+        calls.append(options["show_progress"])
+        return Summary()
+
+    monkeypatch.setattr("starlog.experiment.experiment_command", experiment_command)
+    for flags in ([], ["-q"]):
+        result = CliRunner().invoke(cli, ["experiment", "-o", str(tmp_path), "--quick", *flags])
+        assert result.exit_code == 0 and result.stdout == "the summary\n", result.output
+    assert calls == [True, False]
+
+
+# ---------------------------------------------------------------- python -OO
+def test_help_and_every_module_work_without_docstrings() -> None:
+    modules = sorted(m.name for m in pkgutil.walk_packages(starlog.__path__, "starlog.") if m.name != "starlog.__main__")
+    assert "starlog.pipeline" in modules
+    code = f"import importlib; [importlib.import_module(m) for m in {modules!r}]"
+    for args in (["-c", code], ["-m", "starlog", "--help"], ["-m", "starlog", "run", "--print-config"]):
+        done = subprocess.run([sys.executable, "-OO", *args], capture_output=True, text=True, check=False)
+        assert done.returncode == 0, done.stderr
+    assert done.stdout == DEFAULT_CONFIG_TOML

@@ -1,4 +1,4 @@
-"""Issue 8, property-based: hostile bytes into the readers, recover and image ingest.
+"""Property-based: hostile bytes into the readers, recover and image ingest.
 
 Only starlog's own errors (StarlogError subclasses) may come out; whatever reads successfully
 is exactly what the intact log holds.

@@ -1,4 +1,4 @@
-"""Issue 8: a stage killed (SIGKILL) at random moments never changes its input, never leaves a
+"""A stage killed (SIGKILL) at random moments never changes its input, never leaves a
 half-written file under the output name, and a rerun gives the bytes of an uninterrupted run.
 
 Also: every command gives identical bytes for identical inputs (reproducibility).

@@ -1,4 +1,4 @@
-"""Issue 8: a corpus of broken logs. Every command gives a clear StarlogError or a correct recovery.
+"""A corpus of broken logs. Every command gives a clear StarlogError or a correct recovery.
 
 Never an uncaught non-starlog exception, never silently wrong data: whenever a read succeeds,
 what it returns is compared with the intact log.

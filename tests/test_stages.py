@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import jsonschema
@@ -15,11 +17,12 @@ from starlog.centroid import CENTROID_DTYPE
 from starlog.cli import cli
 from starlog.detect import DETECTION_DTYPE
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.export import arrow_schema, export_log, table_columns
-from starlog.io import LogReader, file_digest, load_json_schema, topics
+from starlog.export import TABLES, arrow_schema, export_log, table_columns
+from starlog.io import LogReader, file_digest, json_message_type, load_json_schema, topics
 from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.sim import Jitter
 from starlog.stages import simulate_log
+from starlog.stages._stage import extend_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
 from starlog.stages.track import track_log
@@ -97,6 +100,17 @@ def test_parquet_tables_document_every_column(table: str) -> None:
         assert field.metadata[b"description"]
 
 
+def test_export_declares_every_table_in_one_place_without_importing_stages(pipeline_logs: dict[str, Path],
+                                                                           tmp_path: Path) -> None:
+    assert [t.name for t in TABLES] == list(table_columns())
+    code = ("import sys; from starlog.export import export_log; "
+            f"written = export_log({str(pipeline_logs['comp'])!r}, {str(tmp_path)!r}); "
+            "loaded = [m for m in sys.modules if m.startswith('starlog.stages')]; "
+            "print(len(written), loaded); sys.exit(1 if loaded else 0)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert done.returncode == 0 and done.stdout.startswith("7 "), done.stdout + done.stderr
+
+
 def test_annotations_sit_half_a_pixel_off_the_centroids(pipeline_logs: dict[str, Path]) -> None:
     with LogReader(pipeline_logs["cen"]) as log:
         annotation = next(log.messages(topics.ANNOTATIONS))
@@ -170,6 +184,23 @@ def test_stage_keeps_its_input_and_refuses_to_overwrite(pipeline_logs: dict[str,
     assert file_digest(pipeline_logs["cen"]) == before
     result = CliRunner().invoke(cli, ["track", str(pipeline_logs["cen"]), "-o", str(out), "--centroids", "NONE"])
     assert result.exit_code == 1 and "--force" in result.output
+
+
+def test_stage_channels_refuse_time_going_back_unless_unordered(pipeline_logs: dict[str, Path],
+                                                                tmp_path: Path) -> None:
+    message_type = json_message_type("starlog.FrameInfo")
+    with pytest.raises(InvalidInputError, match="not after"):
+        with extend_log(pipeline_logs["sim"], tmp_path / "a.mcap", stage="test", parameters={}) as (_, out):
+            ch = out.add_channel("/test/ordered", message_type)
+            out.writer.write(ch, log_time=2, data=b"{}")
+            out.writer.write(ch, log_time=2, data=b"{}")
+    assert not (tmp_path / "a.mcap").exists()
+    with extend_log(pipeline_logs["sim"], tmp_path / "b.mcap", stage="test", parameters={}) as (_, out):
+        ch = out.add_channel("/test/unordered", message_type, unordered=True)
+        for t in (2, 2, 1):
+            out.writer.write(ch, log_time=t, data=b"{}")
+    with LogReader(tmp_path / "b.mcap") as log:
+        assert log.channel("/test/unordered").message_count == 3
 
 
 def test_parallel_centroiding_gives_the_same_bytes(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:

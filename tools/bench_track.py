@@ -1,4 +1,4 @@
-"""Benchmark of starlog's tracking filters (issue 4): filter updates per second per model.
+"""Benchmark of starlog's tracking filters: filter updates per second per model.
 
 One update = one star in one frame (predict + measurement update). Measured, per motion model:
 

@@ -1,4 +1,4 @@
-"""Equidistant decimation of a native-rate sequence (paper §3.1, DESIGN §2.1).
+"""Equidistant decimation of a native-rate sequence (paper §3.1; docs/PAPER.md, "Down-sampling").
 
 The paper down-samples its 200 / 300 Hz centroid sequences to 10–100 Hz "with equidistant
 sampling intervals".  starlog keeps every ``k``-th sample:

@@ -1,4 +1,4 @@
-"""Error decomposition of a centroid series into the paper's five categories (§2.2, DESIGN §2.2).
+"""Error decomposition of a centroid series into the paper's five categories (§2.2; docs/PAPER.md, "Error decomposition").
 
 With ``e[n] = xy[n] - reference[n]`` (px), the decomposition is sequential, each stage fitted
 on what the previous ones left:

@@ -1,4 +1,4 @@
-"""Evaluation protocols, references and the RMSE of eq. 15 (DESIGN §2.1 and §2.5).
+"""Evaluation protocols, references and the RMSE of eq. 15 (paper §2.1, §2.5; docs/PAPER.md, "Evaluation protocols").
 
 The paper's "truth" is the global mean of the centroid sequence, and its RMSE (eq. 15) is the
 radial scatter about that mean.  Strategies 1, 4 and 5 pull the measurements towards that same
@@ -60,7 +60,7 @@ __all__ = [
 
 
 class Protocol(enum.StrEnum):
-    """How a compensation run is scored (DESIGN §2.5); see the module docstring."""
+    """How a compensation run is scored (docs/PAPER.md, "Evaluation protocols"); see the module docstring."""
 
     PAPER = "paper"
     TRUTH = "truth"

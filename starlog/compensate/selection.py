@@ -1,6 +1,6 @@
-"""Adaptive strategy selection with rollback (§2.4, DESIGN §2.4).
+"""Adaptive strategy selection with rollback (§2.4, eq. 12–14; docs/PAPER.md, "Adaptive selection").
 
-Score (eq. 12, with eq. 14 reduced to an indicator as DESIGN says)::
+Score (eq. 12, with eq. 14 reduced to an indicator as docs/PAPER.md reads it)::
 
     Score_j = sum_k A_k * C_jk * E_j * (1 - D_j),   C_jk = 1 if k is a target of j else 0
 

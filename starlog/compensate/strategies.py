@@ -1,4 +1,4 @@
-"""The five compensation strategies of §2.3, read as DESIGN §2.3 says.
+"""The five compensation strategies of §2.3, read as docs/PAPER.md ("Compensation strategies") says.
 
 Every strategy is a plain function on an (N, 2) position series ``xy`` in pixels (x = column,
 y = row); it returns a new (N, 2) float64 array and never modifies its inputs.  An empty series
@@ -179,7 +179,7 @@ def _nan_windows(a: npt.NDArray[np.float64], left: int, length: int) -> npt.NDAr
 
 
 def local_noise_level(xy: npt.ArrayLike) -> npt.NDArray[np.float64]:
-    """Local noise level (px) per sample and axis: the "SNR" of eq. 4 as DESIGN §2.3 reads it.
+    """Local noise level (px) per sample and axis: the "SNR" of eq. 4 as docs/PAPER.md reads it.
 
     For sample ``n`` and each axis, the first differences ``d[k] = x[k + 1] - x[k]`` lying inside
     ``[n - 5, n + 5]`` (truncated at the ends; 10 differences in the interior) give

@@ -1,6 +1,6 @@
 """Star detection: matched filter, k-sigma threshold, connected components, screening.
 
-Steps (DESIGN.md section 2.1; the paper's "denoising, background estimation, foreground
+Steps (paper §2.1, read as docs/PAPER.md "Single-frame extraction" says; the paper's "denoising, background estimation, foreground
 extraction, connected components, morphology, screening, moments + second-order fit"):
 
 1. background level and noise maps (:func:`starlog.detect.estimate_background`);

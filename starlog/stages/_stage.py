@@ -23,9 +23,15 @@ class StageOutput:
     writer: LogWriter
     channels: list[str] = field(default_factory=list)
 
-    def add_channel(self, topic: str, message_type: MessageType, *, monotonic: bool = True) -> int:
-        """Register a new channel (strictly increasing ``log_time`` unless told otherwise) for the provenance."""
-        channel_id = self.writer.add_channel(topic, message_type, monotonic=monotonic)
+    def add_channel(self, topic: str, message_type: MessageType, *, unordered: bool = False) -> int:
+        """Register a new channel and record it for the provenance.
+
+        A stage's channels hold one message per frame, so the writer checks that their
+        ``log_time`` increases strictly (``LogWriter.add_channel(monotonic=True)``); a channel whose
+        messages may share or revisit a time (e.g. one record per rate and protocol) says
+        ``unordered=True``.
+        """
+        channel_id = self.writer.add_channel(topic, message_type, monotonic=not unordered)
         self.channels.append(topic)
         return channel_id
 

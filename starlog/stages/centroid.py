@@ -23,9 +23,8 @@ import numpy.typing as npt
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars
 from starlog.detect import detect_stars
 from starlog.errors import InvalidParameterError
-from starlog.export import TableSpec, register_table
 from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
-from starlog.io.reader import ChannelSummary, LogReader
+from starlog.io.reader import LogReader
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._stage import extend_log
@@ -250,17 +249,3 @@ def _extract_parallel(log: LogReader, path: str | os.PathLike[str], extract: _Ex
     with process_pool(workers, preload=["starlog.stages.centroid"]) as pool:
         for done in ordered_map(pool, _extract_block, blocks, window=2 * workers):
             yield from done
-
-
-def _centroid_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict[str, Any]]:
-    for star in msg["stars"]:
-        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], **star}
-
-
-def _detection_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict[str, Any]]:
-    for star in msg["stars"]:
-        yield {"log_time": log_time, "frame": msg["frame"], **star}
-
-
-register_table(TableSpec("detections", lambda ch: ch.topic == topics.DETECTIONS, _detection_rows))
-register_table(TableSpec("centroids", lambda ch: ch.schema_name == "starlog.Centroids", _centroid_rows))

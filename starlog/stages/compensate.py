@@ -18,7 +18,7 @@ that is a few MB per hour of recording.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,7 +27,6 @@ import numpy.typing as npt
 
 from starlog.compensate import Protocol, decimation_indices, effective_rate, evaluate
 from starlog.errors import ChannelNotFoundError, InvalidInputError, InvalidParameterError
-from starlog.export import TableSpec, register_table
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.stages._stage import extend_log
@@ -235,7 +234,7 @@ def _compensate_track(log: LogReader, out: Any, channel: ChannelSummary, rates: 
     """Compensate the brightest track of ``channel`` at every rate under every protocol."""
     series = read_brightest_series(log, channel.topic, truth_cache=truth_cache)
     decision_ch = out.add_channel(topics.decisions_topic(series.method, series.model),
-                                  json_message_type("starlog.CompensationRecord"), monotonic=False)
+                                  json_message_type("starlog.CompensationRecord"), unordered=True)
     for rate in rates:
         if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
             raise InvalidParameterError(
@@ -270,27 +269,3 @@ def _compensate_track(log: LogReader, out: Any, channel: ChannelSummary, rates: 
             }
             out.writer.write(decision_ch, log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
             summary.records.append(record)
-
-
-def _series_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict[str, Any]]:
-    _, _, method, model, rate, protocol = ch.topic.split("/")
-    yield {"log_time": log_time, "method": method, "model": model, "rate_hz": float(rate[:-2]),
-           "protocol": protocol, **msg}
-
-
-def _decision_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict[str, Any]]:
-    comp = msg["compensation"]
-    primary = msg["figures"][0]
-    base = {"log_time": log_time, "method": msg["method"], "model": msg["model"], "rate_hz": msg["rate_hz"],
-            "protocol": msg["protocol"], "n_samples": msg["n_samples"],
-            "dominant_frequency": comp["decomposition"]["dominant_frequency"],
-            "reference": primary["reference"], "protocol_rmse_before": primary["rmse_before"],
-            "protocol_rmse_after": primary["rmse_after"]}
-    for p in comp["passes"]:
-        yield {**base, "rank": p["rank"], "strategy": p["strategy"], "score": p["score"],
-               "rmse_before": p["rmse_before"], "rmse_after": p["rmse_after"], "effective": p["effective"],
-               "kept": p["kept"]}
-
-
-register_table(TableSpec("compensation", lambda ch: ch.schema_name == "starlog.CompensatedSample", _series_rows))
-register_table(TableSpec("decisions", lambda ch: ch.schema_name == "starlog.CompensationRecord", _decision_rows))

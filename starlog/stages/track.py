@@ -18,9 +18,8 @@ from typing import Any
 import numpy as np
 
 from starlog.errors import InvalidParameterError
-from starlog.export import TableSpec, register_table
 from starlog.io import encode_json, json_message_type, topics
-from starlog.io.reader import ChannelSummary, LogReader
+from starlog.io.reader import LogReader
 from starlog.stages._progress import progress
 from starlog.stages._stage import extend_log
 from starlog.track import MotionModel, MotionModelConfig, NoTrackError, StarTracker, TrackerConfig
@@ -164,11 +163,3 @@ def track_log(
             summary.gated[m.value] = int(stats["gated"].sum())
             summary.mean_nis[m.value] = nis_sum[m] / nis_n[m] if nis_n[m] else 0.0
     return summary
-
-
-def _track_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[dict[str, Any]]:
-    for row in msg["tracks"]:
-        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], "model": msg["model"], **row}
-
-
-register_table(TableSpec("tracks", lambda ch: ch.schema_name == "starlog.Tracks", _track_rows))

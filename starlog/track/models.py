@@ -1,4 +1,4 @@
-"""The five motion models of the tracking filter (DESIGN §2.1, paper §3.2.1).
+"""The five motion models of the tracking filter (paper §3.2.1; docs/PAPER.md, "Temporal filtering").
 
 Every model is linear and time-invariant in continuous time; this module gives its exact
 discretisation over a step ``dt`` (seconds): the transition matrix ``F(dt)`` and the process

@@ -1,4 +1,4 @@
-"""Batched unscented Kalman filter for star centroids (DESIGN §2.1, paper §2.1).
+"""Batched unscented Kalman filter for star centroids (paper §2.1; docs/PAPER.md, "Temporal filtering").
 
 One filter step per star and frame: predict with a :mod:`~starlog.track.models` motion
 model, then update with the centroid ``z = (x, y)`` (px) and its own uncertainty ``sigma``
