@@ -62,6 +62,12 @@ def json_option(f: F) -> F:
 input_log = click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 
 
+def image_topic_option(f: F) -> F:
+    return click.option("--image-topic", metavar="TOPIC",
+                        help="Image channel to read [default: /camera/image, else the log's only image channel]. "
+                             "Any foxglove.RawImage/CompressedImage or ROS 1/2 sensor_msgs Image/CompressedImage.")(f)
+
+
 @click.group(cls=_StarlogGroup, context_settings=CONTEXT)
 @click.version_option(__version__, prog_name="starlog")
 def cli() -> None:
@@ -315,11 +321,14 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--read-noise", type=float, help="Read noise e- [default: from the simulator's provenance, else estimated].")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Option of starlog.centroid.extract_stars, e.g. --set threshold=5. Repeatable.")
+@image_topic_option
+@click.option("--skip-bad", is_flag=True, help="Leave out frames that do not decode or do not fit (each named) "
+                                              "instead of stopping.")
 @json_option
 @write_options
 def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noise: float | None,
-             settings: tuple[str, ...], as_json: bool, force: bool, compression: str, workers: int,
-             quiet: bool) -> None:
+             settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, as_json: bool, force: bool,
+             compression: str, workers: int, quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
 
     Adds /stars/detections, /stars/centroids/<METHOD> per method and /stars/annotations
@@ -333,13 +342,18 @@ def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noi
     from starlog.stages.centroid import centroid_log
 
     summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise,
-                           options=_key_values(settings, "--set"), workers=workers, force=force,
-                           compression=compression, show_progress=not quiet)
+                           options=_key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
+                           workers=workers, force=force, compression=compression, show_progress=not quiet)
     if as_json:
         _print_json(summary.to_dict())
     else:
         d = summary.to_dict()
-        click.echo(f"wrote {output}: {d['frames']} frames, {d['detections_per_frame']:.1f} stars/frame")
+        for note in d["notes"]:
+            click.echo(f"note: {note}", err=True)
+        click.echo(f"wrote {output}: {d['frames']} of {d['channel_messages']} frames of {d['image_topic']} read, "
+                   f"{d['detections_per_frame']:.1f} stars/frame")
+        for skipped in d["skipped_frames"]:
+            click.echo(f"  skipped frame {skipped['index']} (log_time {skipped['log_time']}): {skipped['reason']}")
         for method, count in d["centroids"].items():
             click.echo(f"  {method:<15} {count:>8} centroids, {d['fit_failed'][method]} fit failures")
 
