@@ -596,6 +596,43 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
         click.echo(f"  skipped {n} x {what}")
 
 
+# ---------------------------------------------------------------- verify
+@cli.command(context_settings=CONTEXT)
+@input_log
+@json_option
+def verify(log: Path, as_json: bool) -> None:
+    """Check every record of an MCAP file and report every problem found (like `mcap doctor`).
+
+    Checks magic, header, footer, the summary and its CRC, every chunk (CRC, decompression),
+    message and chunk indexes against the contents, statistics, schema/channel references,
+    JSON messages against their schemas, protobuf/ROS decoding, image decoding and size, and
+    log_time order per channel. Valid but unusual layouts (no message indexes, no summary) are
+    notes. Exit status 0 only when no error was found.
+
+    \b
+    Example:
+      starlog verify sim.mcap
+      starlog verify bag.mcap --json | jq '.problems[] | select(.severity == "error")'
+    """
+    from starlog.io.verify import verify_log
+
+    report = verify_log(log)
+    if as_json:
+        _print_json(report.to_dict())
+    else:
+        shown: dict[str, int] = {}
+        for problem in report.problems:
+            shown[problem.kind] = shown.get(problem.kind, 0) + 1
+            if shown[problem.kind] <= 20:
+                click.echo(problem.line())
+        for kind, count in shown.items():
+            if count > 20:
+                click.echo(f"... {count - 20} more {kind} problems (all of them with --json)")
+        click.echo(report.verdict())
+    if not report.ok:
+        sys.exit(1)
+
+
 def main() -> None:
     """Console-script entry point."""
     cli(prog_name="starlog")
