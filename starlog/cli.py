@@ -258,25 +258,31 @@ def _report_batch(outcomes: list[Any], as_json: bool, describe: Callable[[Any], 
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the Parquet files (created if missing); with several logs, one sub-folder each.")
 @click.option("--table", "tables", multiple=True, help="Only this table (repeatable); default: every table the log has.")
+@click.option("--topic", "export_topics", multiple=True, metavar="TOPIC",
+              help="Also export this channel (any JSON, protobuf, ROS 1/2 channel) as a flat table <topic>.parquet: "
+                   "log_time first, nested fields as a.b columns, arrays as lists. Repeatable.")
 @click.option("--force", is_flag=True, help="Overwrite existing Parquet files.")
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
               help="With several logs: local Dask workers.")
 @scheduler_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @json_option
-def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], force: bool, workers: int,
-           scheduler: str | None, quiet: bool, as_json: bool) -> None:
+def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], export_topics: tuple[str, ...], force: bool,
+           workers: int, scheduler: str | None, quiet: bool, as_json: bool) -> None:
     """Export a log's channels to Parquet tables (one file per table).
 
     Tables: frames, truth (simulated logs), detections, centroids, tracks, compensation,
     decisions — each written when the log has its channels. Columns are documented in
-    schemas/tables.json and the README. Several logs go to one sub-folder each, in parallel
-    on a Dask cluster with --scheduler or --workers.
+    schemas/tables.json and the README. A log from another tool gets a frames table of its
+    image channels (topic column); --topic exports any channel as a flat table. With nothing
+    to export, the command says so, lists the channels and fails. Several logs go to one
+    sub-folder each, in parallel on a Dask cluster with --scheduler or --workers.
 
     \b
     Example:
       starlog export sim.mcap -o tables/
       starlog export runs/*.mcap -o tables/ --workers 2
+      starlog export bag.mcap -o tables/ --topic /imu/data
       python -c "import pyarrow.parquet as pq; print(pq.read_table('tables/truth.parquet'))"
     """
     from starlog.batch import BatchTask, run_batch
@@ -284,15 +290,15 @@ def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], force:
 
     selected = tables or None
     if len(logs) == 1 and not scheduler:
-        written = export_log(logs[0], output, tables=selected, force=force)
+        written = export_log(logs[0], output, tables=selected, force=force, topics=export_topics)
         if as_json:
             _print_json({"output": str(output), "tables": written})
         else:
             for name, rows in written.items():
                 click.echo(f"{output / (name + '.parquet')}: {rows} rows")
         return
-    tasks = [BatchTask(str(log), export_log, (str(log), str(output / log.stem)), {"tables": selected, "force": force})
-             for log in logs]
+    tasks = [BatchTask(str(log), export_log, (str(log), str(output / log.stem)),
+                       {"tables": selected, "force": force, "topics": export_topics}) for log in logs]
     outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet, description="export")
     _report_batch(outcomes, as_json, lambda r: ", ".join(f"{k} {v} rows" for k, v in r.items()))
 

@@ -213,6 +213,8 @@ def test_pixel_encodings_decode_to_mono() -> None:
     assert note and "rgb8" in note
     bgra = np.concatenate([rgb[:, :, ::-1], np.full((6, 8, 1), 255, np.uint8)], axis=2)
     np.testing.assert_array_equal(pixels_to_mono(bgra.tobytes(), 8, 6, 32, "bgra8")[0], image)
+    np.testing.assert_array_equal(pixels_to_mono(rgb[:, :, ::-1].tobytes(), 8, 6, 24, "bgr8")[0], image)
+    np.testing.assert_array_equal(pixels_to_mono(bgra[:, :, [2, 1, 0, 3]].tobytes(), 8, 6, 32, "rgba8")[0], image)
     flat = np.full((8, 8), 1000, np.uint16)  # a grey scene seen through any Bayer filter
     for pattern in ("rggb", "bggr", "gbrg", "grbg"):
         image, note = pixels_to_mono(flat.tobytes(), 8, 8, 16, f"bayer_{pattern}16")
@@ -264,3 +266,44 @@ def test_foxglove_json_images_and_jpeg(native: dict[str, Path], tmp_path: Path) 
     with LogReader(jpeg) as log:
         for (_, _, image), (_, image0) in zip(log.frames("/camera/compressed"), frames):
             assert image.dtype == np.uint8 and image.shape == image0.shape  # JPEG holds 8 bits: lossy, but read
+
+
+# ---------------------------------------------------------------- export from any log
+def test_export_foreign_frames_and_any_topic(native: dict[str, Path], tmp_path: Path) -> None:
+    import pyarrow.parquet as pq
+    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3  # a nested protobuf type
+    from foxglove_schemas_protobuf.Pose_pb2 import Pose
+    from mcap_protobuf.writer import Writer as ProtobufWriter
+
+    bag = write_ros2(native["sim"], tmp_path / "bag.mcap")
+    code, text = _run("export", str(bag), "-o", str(tmp_path / "t"), "--topic", "/camera/image_raw", "--json")
+    assert code == 0, text
+    frames = pq.read_table(tmp_path / "t" / "frames.parquet").to_pylist()
+    times = [t for t, _ in native_frames(native["sim"])]
+    assert [r["log_time"] for r in frames] == times and {r["topic"] for r in frames} == {"/camera/image_raw"}
+    assert frames[0]["width"] == 64 and frames[0]["height"] == 48 and frames[3]["frame"] == 3
+    flat = pq.read_table(tmp_path / "t" / "camera.image_raw.parquet")
+    assert flat.column_names[0] == "log_time" and "header.stamp.sec" in flat.column_names
+    assert "header.frame_id" in flat.column_names and flat.column("encoding").to_pylist()[0] == "mono16"
+
+    poses = tmp_path / "poses.mcap"
+    with open(poses, "wb") as f, ProtobufWriter(f) as writer:
+        for t in range(5):
+            pose = Pose(position=Vector3(x=t, y=2.0 * t, z=0.5))
+            pose.orientation.w = 1.0
+            writer.write_message("/pose", pose, log_time=t, publish_time=t)
+    code, text = _run("export", str(poses), "-o", str(tmp_path / "p"))
+    assert code == 1 and "nothing to export" in text and "/pose (foxglove.Pose)" in text and "--topic" in text
+    code, text = _run("export", str(poses), "-o", str(tmp_path / "p"), "--topic", "/pose")
+    assert code == 0, text
+    table = pq.read_table(tmp_path / "p" / "pose.parquet")
+    assert table.column_names[:4] == ["log_time", "position.x", "position.y", "position.z"]
+    assert table.column("position.y").to_pylist() == [0.0, 2.0, 4.0, 6.0, 8.0]
+
+    with LogReader(native["cen"]) as log:  # lists and nested JSON of a native channel
+        n = sum(1 for _ in log.messages(topics.DETECTIONS))
+    code, text = _run("export", str(native["cen"]), "-o", str(tmp_path / "d"), "--table", "detections",
+                      "--topic", topics.DETECTIONS)
+    detections = pq.read_table(tmp_path / "d" / "stars.detections.parquet")
+    assert code == 0 and detections.num_rows == n and detections.column_names == ["log_time", "frame", "stars"]
+    assert isinstance(detections.column("stars").to_pylist()[0], list)
