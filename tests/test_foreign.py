@@ -307,3 +307,38 @@ def test_export_foreign_frames_and_any_topic(native: dict[str, Path], tmp_path: 
     detections = pq.read_table(tmp_path / "d" / "stars.detections.parquet")
     assert code == 0 and detections.num_rows == n and detections.column_names == ["log_time", "frame", "stars"]
     assert isinstance(detections.column("stars").to_pylist()[0], list)
+
+
+def test_run_config_chooses_the_image_topic(native: dict[str, Path], tmp_path: Path) -> None:
+    bag = write_ros2(native["sim"], tmp_path / "bag.mcap", compressed="png")
+    config = tmp_path / "p.toml"
+    config.write_text(f'[centroid]\nmethods = ["{METHOD}"]\nimage_topic = "/camera/image_raw"\n'
+                      '[centroid.options]\npsf_sigma = 1.2\n')
+    code, text = _run("run", str(bag), "-o", str(tmp_path / "out.mcap"), "--config", str(config), "--json", "-q")
+    assert code == 0, text
+    stage = json.loads(text)["stages"][0]
+    assert stage["image_topic"] == "/camera/image_raw" and stage["frames"] == stage["channel_messages"] == 24
+    _same_centroids(tmp_path / "out.mcap", native)
+
+
+def test_foxglove_compressed_image_in_json(native: dict[str, Path], tmp_path: Path) -> None:
+    import base64
+
+    from mcap.writer import Writer
+
+    path = tmp_path / "cjson.mcap"
+    frames = list(native_frames(native["sim"]))
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("foxglove.CompressedImage", "jsonschema", b'{"type": "object"}')
+        cid = w.register_channel("/camera/png", "json", sid)
+        for t, image in frames:
+            w.add_message(cid, log_time=t, publish_time=t, data=json.dumps({
+                "timestamp": {"sec": t // 10**9, "nsec": t % 10**9}, "frame_id": "cam", "format": "png",
+                "data": base64.b64encode(cv2.imencode(".png", image)[1].tobytes()).decode()}).encode())
+        w.finish()
+    out = tmp_path / "cen.mcap"
+    summary = centroid_log(path, out, methods=METHOD, options={"psf_sigma": 1.2})
+    assert summary.image_topic == "/camera/png" and summary.frames == 24
+    _same_centroids(out, native)
