@@ -69,6 +69,12 @@ def json_option(f: F) -> F:
 input_log = click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 
 
+def image_topic_option(f: F) -> F:
+    return click.option("--image-topic", metavar="TOPIC",
+                        help="Image channel to read [default: /camera/image, else the log's only image channel]. "
+                             "Any foxglove.RawImage/CompressedImage or ROS 1/2 sensor_msgs Image/CompressedImage.")(f)
+
+
 @click.group(cls=_StarlogGroup, context_settings=CONTEXT)
 @click.version_option(__version__, prog_name="starlog")
 def cli() -> None:
@@ -261,25 +267,31 @@ def _report_batch(outcomes: list[Any], as_json: bool, describe: Callable[[Any], 
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the Parquet files (created if missing); with several logs, one sub-folder each.")
 @click.option("--table", "tables", multiple=True, help="Only this table (repeatable); default: every table the log has.")
+@click.option("--topic", "export_topics", multiple=True, metavar="TOPIC",
+              help="Also export this channel (any JSON, protobuf, ROS 1/2 channel) as a flat table <topic>.parquet: "
+                   "log_time first, nested fields as a.b columns, arrays as lists. Repeatable.")
 @click.option("--force", is_flag=True, help="Overwrite existing Parquet files.")
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
               help="With several logs: local Dask workers.")
 @scheduler_option
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 @json_option
-def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], force: bool, workers: int,
-           scheduler: str | None, quiet: bool, as_json: bool) -> None:
+def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], export_topics: tuple[str, ...], force: bool,
+           workers: int, scheduler: str | None, quiet: bool, as_json: bool) -> None:
     """Export a log's channels to Parquet tables (one file per table).
 
     Tables: frames, truth (simulated logs), detections, centroids, tracks, compensation,
     decisions — each written when the log has its channels. Columns are documented in
-    schemas/tables.json and the README. Several logs go to one sub-folder each, in parallel
-    on a Dask cluster with --scheduler or --workers.
+    schemas/tables.json and the README. A log from another tool gets a frames table of its
+    image channels (topic column); --topic exports any channel as a flat table. With nothing
+    to export, the command says so, lists the channels and fails. Several logs go to one
+    sub-folder each, in parallel on a Dask cluster with --scheduler or --workers.
 
     \b
     Example:
       starlog export sim.mcap -o tables/
       starlog export runs/*.mcap -o tables/ --workers 2
+      starlog export bag.mcap -o tables/ --topic /imu/data
       python -c "import pyarrow.parquet as pq; print(pq.read_table('tables/truth.parquet'))"
     """
     from starlog.batch import BatchTask, run_batch
@@ -287,15 +299,15 @@ def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], force:
 
     selected = tables or None
     if len(logs) == 1 and not scheduler:
-        written = export_log(logs[0], output, tables=selected, force=force)
+        written = export_log(logs[0], output, tables=selected, force=force, topics=export_topics)
         if as_json:
             _print_json({"output": str(output), "tables": written})
         else:
             for name, rows in written.items():
                 click.echo(f"{output / (name + '.parquet')}: {rows} rows")
         return
-    tasks = [BatchTask(str(log), export_log, (str(log), str(output / log.stem)), {"tables": selected, "force": force})
-             for log in logs]
+    tasks = [BatchTask(str(log), export_log, (str(log), str(output / log.stem)),
+                       {"tables": selected, "force": force, "topics": export_topics}) for log in logs]
     outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet, description="export")
     _report_batch(outcomes, as_json, lambda r: ", ".join(f"{k} {v} rows" for k, v in r.items()))
 
@@ -324,11 +336,14 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @click.option("--read-noise", type=float, help="Read noise e- [default: from the simulator's provenance, else estimated].")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Option of starlog.centroid.extract_stars, e.g. --set threshold=5. Repeatable.")
+@image_topic_option
+@click.option("--skip-bad", is_flag=True, help="Leave out frames that do not decode or do not fit (each named) "
+                                              "instead of stopping.")
 @json_option
 @write_options
 def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noise: float | None,
-             settings: tuple[str, ...], as_json: bool, force: bool, compression: str, workers: int,
-             quiet: bool) -> None:
+             settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, as_json: bool, force: bool,
+             compression: str, workers: int, quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
 
     Adds /stars/detections, /stars/centroids/<METHOD> per method and /stars/annotations
@@ -342,10 +357,16 @@ def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noi
     from starlog.stages.centroid import centroid_log
 
     summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise,
-                           options=_key_values(settings, "--set"), workers=workers, force=force,
-                           compression=compression, show_progress=not quiet)
+                           options=_key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
+                           workers=workers, force=force, compression=compression, show_progress=not quiet)
     d = summary.to_dict()
-    _status(quiet, f"wrote {output}: {d['frames']} frames, {d['detections_per_frame']:.1f} stars/frame")
+    for note in d["notes"]:
+        click.echo(f"note: {note}", err=True)
+    _status(quiet, f"wrote {output}: {d['frames']} of {d['channel_messages']} frames of {d['image_topic']} read, "
+                   f"{d['detections_per_frame']:.1f} stars/frame")
+    for skipped in d["skipped_frames"]:
+        click.echo(f"  skipped frame {skipped['index']} (log_time {skipped['log_time']}): {skipped['reason']}",
+                   err=True)
     if as_json:
         _print_json(d)
     else:
@@ -590,6 +611,43 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
                    f"{chunk.message_end_time}; {what}): {chunk.reason}")
     for what, n in sorted(report.skipped_records.items()):
         click.echo(f"  skipped {n} x {what}")
+
+
+# ---------------------------------------------------------------- verify
+@cli.command(context_settings=CONTEXT)
+@input_log
+@json_option
+def verify(log: Path, as_json: bool) -> None:
+    """Check every record of an MCAP file and report every problem found (like `mcap doctor`).
+
+    Checks magic, header, footer, the summary and its CRC, every chunk (CRC, decompression),
+    message and chunk indexes against the contents, statistics, schema/channel references,
+    JSON messages against their schemas, protobuf/ROS decoding, image decoding and size, and
+    log_time order per channel. Valid but unusual layouts (no message indexes, no summary) are
+    notes. Exit status 0 only when no error was found.
+
+    \b
+    Example:
+      starlog verify sim.mcap
+      starlog verify bag.mcap --json | jq '.problems[] | select(.severity == "error")'
+    """
+    from starlog.io.verify import verify_log
+
+    report = verify_log(log)
+    if as_json:
+        _print_json(report.to_dict())
+    else:
+        shown: dict[str, int] = {}
+        for problem in report.problems:
+            shown[problem.kind] = shown.get(problem.kind, 0) + 1
+            if shown[problem.kind] <= 20:
+                click.echo(problem.line())
+        for kind, count in shown.items():
+            if count > 20:
+                click.echo(f"... {count - 20} more {kind} problems (all of them with --json)")
+        click.echo(report.verdict())
+    if not report.ok:
+        sys.exit(1)
 
 
 def main() -> None:

@@ -25,8 +25,19 @@ __all__ = [
 ]
 
 
+def _restore(cls: type, args: tuple, state: dict) -> StarlogError:
+    error = cls.__new__(cls)
+    Exception.__init__(error, *args)
+    error.__dict__.update(state)
+    return error
+
+
 class StarlogError(Exception):
     """Base class of every error starlog raises on purpose."""
+
+    def __reduce__(self) -> tuple:
+        """Picklable whatever the subclass's constructor takes (errors cross from worker processes)."""
+        return (_restore, (type(self), self.args, dict(self.__dict__)))
 
 
 class InvalidInputError(StarlogError, ValueError):

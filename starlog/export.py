@@ -20,6 +20,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.io.flatten import export_image_frames, export_topic
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.io.schemas import schema_dir
 from starlog.io import topics
@@ -163,6 +164,7 @@ def export_log(
     tables: Iterable[str] | None = None,
     force: bool = False,
     row_group_rows: int = 16_384,
+    topics: Iterable[str] = (),
 ) -> dict[str, int]:
     """Write a Parquet file per table family found in the log; return ``{table: rows}``.
 
@@ -176,6 +178,13 @@ def export_log(
         Only these tables (default: every table the log has channels for).
     force : bool
         Overwrite existing Parquet files.
+    topics : iterable of str
+        Channels exported as flat tables too (any JSON, protobuf, ROS 1 or ROS 2 channel),
+        one ``<topic>.parquet`` each (see :func:`starlog.io.flatten.export_topic`).
+
+    A log without starlog's frame channel but with image channels gets a ``frames`` table of
+    those (:func:`starlog.io.flatten.export_image_frames`). Nothing to export raises
+    :class:`InvalidParameterError` listing the log's channels.
     """
     known = [t.name for t in TABLES]
     wanted = list(tables) if tables is not None else known
@@ -197,5 +206,23 @@ def export_log(
             if path.exists() and not force:
                 raise OutputExistsError(path)
             result[spec.name] = _write_table(log, spec, feeding, path, row_group_rows)
+        _export_foreign(log, out, result, wanted, list(topics), force, row_group_rows)
     return result
+
+
+def _export_foreign(log: LogReader, out: Path, result: dict[str, int], wanted: list[str], topics: list[str],
+                    force: bool, row_group_rows: int) -> None:
+    """Frames of foreign image channels, the ``topics`` asked for, or an error when nothing was exported."""
+    if "frames" in wanted and "frames" not in result:
+        rows = export_image_frames(log, out, force=force, row_group_rows=row_group_rows)
+        if rows is not None:
+            result["frames"] = rows
+    for topic in topics:
+        name, rows = export_topic(log, topic, out, force=force, row_group_rows=row_group_rows)
+        result[name] = rows
+    if not result:
+        listing = ", ".join(f"{c.topic} ({c.schema_name or 'no schema'})" for c in log.channels()) or "none"
+        raise InvalidParameterError(
+            f"{log.path}: nothing to export: the log has no channel of the tables {wanted} (channels: {listing}). "
+            "Export any channel as a flat table with --topic TOPIC.")
 

@@ -26,6 +26,7 @@ DEFAULT_CONFIG_TOML = """\
 methods = ["NONE", "MOMENT", "BICUBIC", "GAUSSFIT", "GRADIENT"]
 # gain = 1.0            # e-/DN; default: from the simulator's provenance, else 1
 # read_noise = 3.0      # e-; default: from the simulator's provenance, else estimated
+# image_topic = "/camera/image_raw"  # default: /camera/image, else the log's only image channel
 [centroid.options]      # keyword options of starlog.centroid.extract_stars
 
 [track]
@@ -43,7 +44,7 @@ protocols = "all"
 """
 
 _STAGE_KEYS: dict[str, set[str]] = {
-    "centroid": {"methods", "gain", "read_noise", "options"},
+    "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad"},
     "track": {"methods", "models", "tracker", "motion"},
     "compensate": {"tracks", "rates", "protocols", "options"},
 }
@@ -138,7 +139,8 @@ def run_pipeline(
         c = config.centroid
         steps.append(("centroid", lambda i, o: centroid_log(
             i, o, methods=c.get("methods", "all"), gain=c.get("gain"), read_noise=c.get("read_noise"),
-            options=c.get("options"), workers=workers, show_progress=show_progress, **common).to_dict()))
+            options=c.get("options"), image_topic=c.get("image_topic"), skip_bad=bool(c.get("skip_bad", False)),
+            workers=workers, show_progress=show_progress, **common).to_dict()))
     if config.track is not None:
         t = config.track
         for method in _list(t.get("methods", ["GAUSSFIT"])):

@@ -308,7 +308,7 @@ BAD_VALUES: dict[str, tuple[Callable[[np.random.Generator], list[tuple[int, byte
                                 MessageDecodeError, "whole number"),
     "big-endian mono16": (lambda rng: [(7, _raw_image(32, 32, "mono16be", _frame(rng).astype(">u2").tobytes()))],
                           None, MessageDecodeError, "big-endian"),
-    "unsupported encoding": (lambda rng: [(7, _raw_image(32, 32, "rgb8", bytes(32 * 32 * 3), step=96))], None,
+    "unsupported encoding": (lambda rng: [(7, _raw_image(32, 32, "yuv422", bytes(32 * 32 * 2), step=64))], None,
                              MessageDecodeError, "unsupported image encoding"),
     "frame of another size": (
         lambda rng: [(0, encode_raw_image(_frame(rng), log_time=0)),

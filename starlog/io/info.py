@@ -6,6 +6,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from starlog.io.frames import stamp_disagreement
+from starlog.io.images import is_image_schema
 from starlog.io.reader import LogReader
 
 __all__ = ["describe_log", "format_description"]
@@ -16,6 +18,11 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
     with LogReader(path) as log:
         channels = [c.to_dict() for c in log.channels()]
         start, end = log.time_range()
+        for channel in log.channels():
+            if is_image_schema(channel.schema_name):
+                note = stamp_disagreement(log, channel.topic)
+                if note:
+                    log.add_note(note)
         stats = log.summary.statistics
         return {
             "path": str(Path(path)),
@@ -28,6 +35,7 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "duration_s": (end - start) * 1e-9,
             "channels": channels,
             "provenance": [p.to_dict() for p in log.provenance()],
+            "notes": list(log.notes),
         }
 
 
@@ -57,4 +65,6 @@ def format_description(info: dict[str, Any]) -> str:
             lines.append(f"     input {p['input_digest']}")
         if params:
             lines.append(f"     {params}")
+    for note in info.get("notes", []):
+        lines.append(f"note: {note}")
     return "\n".join(lines)

@@ -42,8 +42,12 @@ from starlog.errors import (
     MessageDecodeError,
     TruncatedLogError,
 )
-from starlog.io.messages import compile_json_schema, decode_json, decode_raw_image
+from starlog.io.foreign import message_decoder
+from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
+from starlog.io.images import is_image_schema
+from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
+from starlog.io.scan import LooseRun, find_loose_runs, read_loose, synthesize_summary
 from starlog.io.writer import MCAP_MAGIC, locate_data_end
 
 _RECORD_HEADER = struct.Struct("<BQ")
@@ -122,12 +126,18 @@ def decode_payload(
     path: Path, schema: Schema | None, channel: Channel, message: Message,
     check: Callable[[Any], str | None] | None = None,
 ) -> Any:
-    """Decode one message by its schema (JSON → dict, foxglove.RawImage → ndarray).
+    """Decode one message by its schema.
 
+    JSON → dict; an image type (:mod:`starlog.io.images`) → 2-D mono ndarray; other protobuf,
+    ROS 2 (cdr) and ROS 1 messages → the object their support library decodes; anything else → bytes.
     ``check`` (a :func:`~starlog.io.messages.compile_json_schema` checker) validates a JSON
     payload; a violation raises :class:`InvalidMessageError`.
     """
     try:
+        if schema is not None and is_image_schema(schema.name):
+            decoded = decode_image_message(schema, channel.message_encoding, message.data)
+            if decoded is not None:
+                return decoded.image
         if channel.message_encoding == "json":
             value = decode_json(message.data)
             if check is not None:
@@ -137,14 +147,9 @@ def decode_payload(
                                               f"it does not match its schema {schema.name if schema else ''!r} "
                                               f"({problem}).")
             return value
-        if schema is not None and schema.name == "foxglove.RawImage":
-            return decode_raw_image(message.data)
-        if schema is not None and schema.name == "foxglove.ImageAnnotations":
-            from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
-
-            annotations = ImageAnnotations()
-            annotations.ParseFromString(message.data)
-            return annotations
+        decoder = message_decoder(schema, channel.message_encoding)
+        if decoder is not None:
+            return decoder(message.data)
     except InvalidMessageError:
         raise
     except (InvalidInputError, ValueError) as err:
@@ -186,6 +191,11 @@ class LogReader:
         self._validate_crcs = validate_crcs
         self._validate_messages = validate_messages
         self._checkers: dict[int, Callable[[Any], str | None] | None] = {}
+        self.notes: list[str] = []
+        self._summary: Summary
+        self._loose: list[LooseRun] = []
+        self._extents: dict[int, list[int]] | None = None  # count, first, last per channel (unindexed parts)
+        self._indexed = True
         self._file: BinaryIO = open(self.path, "rb")
         try:
             self._data_end = self._open()
@@ -207,7 +217,8 @@ class LogReader:
         f.seek(size - len(MCAP_MAGIC) - _FOOTER.size)
         _, _, summary_start, summary_offset_start, summary_crc = _FOOTER.unpack(f.read(_FOOTER.size))
         if summary_start == 0:
-            raise TruncatedLogError(self.path, "it has no summary section")
+            self._scan_everything(data_end, "it has no summary section")
+            return data_end
         footer_start = size - len(MCAP_MAGIC) - _FOOTER.size
         if not data_end < summary_start <= footer_start or not (
             summary_offset_start == 0 or summary_start <= summary_offset_start <= footer_start
@@ -232,9 +243,46 @@ class LogReader:
                                              f"{_hint(self.path)}") from err
         if summary is None:
             raise TruncatedLogError(self.path, "it has no summary section")
-        self._summary: Summary = summary
+        self._summary = summary
         self._check_summary(data_end)
+        self._find_unindexed(data_end)
         return data_end
+
+    def _scan_everything(self, data_end: int, why: str, known: Summary | None = None) -> None:
+        """Build the missing summary by one linear scan of the data section (every chunk CRC-checked)."""
+        try:
+            result = synthesize_summary(self.path, self._file, data_end, known=known)
+        except (ValueError, struct.error, McapError, EOFError, UnicodeDecodeError) as err:
+            raise CorruptLogError(self.path, f"{why}, and a linear scan of it stops: {err}. {_hint(self.path)}"
+                                  ) from err
+        self._summary = result.summary
+        self._loose = result.loose
+        self._extents = result.extents
+        self._indexed = False
+        self._check_summary(data_end)
+        self.add_note(f"{why}: read by a linear scan of the whole file; add the indexes with: "
+                      f"starlog recover {self.path} -o INDEXED.mcap")
+
+    def _find_unindexed(self, data_end: int) -> None:
+        """Messages outside chunks, chunks the summary does not list, chunks without message indexes."""
+        try:
+            self._loose, unlisted_chunk = find_loose_runs(self._file, self._summary, data_end)
+        except (ValueError, struct.error) as err:
+            raise CorruptLogError(self.path, f"its data section is damaged outside every indexed record ({err}). "
+                                             f"{_hint(self.path)}") from err
+        if unlisted_chunk:
+            why = "its summary lists no chunk indexes" if not self._summary.chunk_indexes else \
+                "it has chunks its summary does not list"
+            self._scan_everything(data_end, why, known=self._summary)
+            return
+        bare = sum(1 for ci in self._summary.chunk_indexes if not ci.message_index_offsets)
+        if bare:
+            self.add_note(f"{bare} of {len(self._summary.chunk_indexes)} chunks have no message indexes: each is "
+                          "read by scanning it whole.")
+        if self._loose:
+            self.add_note("some messages lie outside chunks (no index lists them): they are found by walking the "
+                          "data section and read in log_time order with the rest.")
+        self._indexed = not bare and not self._loose
 
     def _check_summary(self, data_end: int) -> None:
         """The indexes must point inside the data section and name known channels and schemas."""
@@ -268,6 +316,11 @@ class LogReader:
             raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
                                              f"{_hint(self.path)}")
 
+    def add_note(self, note: str) -> None:
+        """Record a one-line note about how the log was read (shown once, in reading order)."""
+        if note not in self.notes:
+            self.notes.append(note)
+
     def __enter__(self) -> LogReader:
         return self
 
@@ -284,6 +337,35 @@ class LogReader:
     def summary(self) -> Summary:
         """The MCAP summary (schemas, channels, chunk indexes, statistics)."""
         return self._summary
+
+    @property
+    def fully_indexed(self) -> bool:
+        """Whether every message is reachable through the summary's indexes (chunk and message indexes).
+
+        False for valid but unusual files: no summary, chunks without message indexes, messages
+        outside chunks. Such files are read in full all the same, by scanning.
+        """
+        return self._indexed
+
+    def _unindexed_extents(self) -> dict[int, list[int]]:
+        """``[count, first, last]`` per channel over what the indexes do not describe (scanned once, lazily).
+
+        Covers every segment when the summary has no statistics.
+        """
+        if self._extents is None:
+            every = self._summary.statistics is None
+            segments = [ci for ci in self._summary.chunk_indexes if every or not ci.message_index_offsets]
+            extents: dict[int, list[int]] = {}
+            for ci in segments + list(self._loose):
+                for log_time, _, cid, _ in self._read_chunk(ci):
+                    e = extents.get(cid)
+                    if e is None:
+                        extents[cid] = [1, log_time, log_time]
+                    else:
+                        e[0] += 1
+                        e[1], e[2] = min(e[1], log_time), max(e[2], log_time)
+            self._extents = extents
+        return self._extents
 
     @property
     def topics(self) -> list[str]:
@@ -304,6 +386,13 @@ class LogReader:
             for cid in index.message_index_offsets:
                 first[cid] = min(first.get(cid, index.message_start_time), index.message_start_time)
                 last[cid] = max(last.get(cid, index.message_end_time), index.message_end_time)
+        if not self._indexed or summary.statistics is None:
+            extents = self._unindexed_extents()
+            for cid, (count, lo, hi) in extents.items():
+                first[cid] = min(first.get(cid, lo), lo)
+                last[cid] = max(last.get(cid, hi), hi)
+            if summary.statistics is None:
+                counts = {cid: e[0] for cid, e in extents.items()}
         out = []
         for cid in sorted(summary.channels):
             ch = summary.channels[cid]
@@ -331,7 +420,10 @@ class LogReader:
     def time_range(self) -> tuple[int, int]:
         """First and last ``log_time`` of the whole log (0, 0 when empty)."""
         stats = self._summary.statistics
-        if stats is None or stats.message_count == 0:
+        if stats is None:
+            extents = self._unindexed_extents().values()
+            return (min((e[1] for e in extents), default=0), max((e[2] for e in extents), default=0))
+        if stats.message_count == 0:
             return (0, 0)
         return (stats.message_start_time, stats.message_end_time)
 
@@ -344,6 +436,12 @@ class LogReader:
 
     def _read_chunk(self, ci: ChunkIndex) -> list[tuple[int, int, int, Message]]:
         """Every message of the chunk ``ci`` as ``(log_time, position, channel_id, message)``, fully checked."""
+        if isinstance(ci, LooseRun):
+            try:
+                return read_loose(self._file, ci)
+            except (ValueError, struct.error) as err:
+                raise CorruptLogError(self.path, f"the messages outside chunks at offset {ci.chunk_start_offset} are "
+                                                 f"damaged ({err}). {_hint(self.path)}") from err
         f = self._file
         f.seek(ci.chunk_start_offset)
         raw = f.read(ci.chunk_length)
@@ -383,8 +481,9 @@ class LogReader:
                     raise ValueError(f"a record at chunk offset {pos} runs past the chunk's end")
                 if opcode == Opcode.MESSAGE:
                     cid, seq, log_time, publish_time = _MESSAGE_HEADER.unpack_from(data, body)
-                    if cid not in ci.message_index_offsets:
-                        raise ValueError(f"it holds a message of channel {cid}, which its index does not list")
+                    if cid not in (ci.message_index_offsets or self._summary.channels):
+                        raise ValueError(f"it holds a message of channel {cid}, which "
+                                         f"{'its index' if ci.message_index_offsets else 'the log'} does not list")
                     if not start <= log_time <= end:
                         raise ValueError(f"a message at log_time {log_time} lies outside its range {start}..{end}")
                     payload = data[body + _MESSAGE_HEADER.size: body + length]
@@ -398,9 +497,7 @@ class LogReader:
 
     def _check_message_index(self, ci: ChunkIndex, offsets: dict[int, list[tuple[int, int]]]) -> None:
         """The message index records after the chunk must list exactly the chunk's messages."""
-        if not ci.message_index_offsets:
-            if offsets:
-                raise self._chunk_error(ci, "its index lists no channel but it holds messages")
+        if not ci.message_index_offsets:  # valid MCAP: the chunk has no message index records
             return
         f = self._file
         first = min(ci.message_index_offsets.values())
@@ -439,8 +536,9 @@ class LogReader:
         lo = 0 if start is None else start
         hi = 2**64 if end is None else end
         chunks = sorted(
-            (ci for ci in summary.chunk_indexes
-             if ids & set(ci.message_index_offsets) and ci.message_end_time >= lo and ci.message_start_time < hi),
+            (ci for ci in [*summary.chunk_indexes, *self._loose]
+             if (not ci.message_index_offsets or ids & set(ci.message_index_offsets))
+             and ci.message_end_time >= lo and ci.message_start_time < hi),
             key=lambda ci: (ci.message_start_time, ci.chunk_start_offset),
         )
         heap: list[tuple[int, int, int, int, Message]] = []
@@ -453,6 +551,8 @@ class LogReader:
                 for log_time, position, cid, message in self._read_chunk(ci):
                     if cid in ids and lo <= log_time < hi:
                         heapq.heappush(heap, (log_time, ci.chunk_start_offset, position, cid, message))
+            if not heap:  # the last chunks held none of the wanted messages
+                break
             log_time, _, _, cid, message = heapq.heappop(heap)
             if log_time < last:  # cannot happen with consistent indexes; never pass on a wrong order
                 raise CorruptLogError(self.path, f"messages come out of log_time order at {log_time}. "
@@ -466,10 +566,15 @@ class LogReader:
             return None
         if schema.id not in self._checkers:
             try:
-                self._checkers[schema.id] = compile_json_schema(json.loads(schema.data))
-            except (ValueError, InvalidInputError) as err:  # a schema starlog cannot check fully
+                schema_value = json.loads(schema.data)
+            except ValueError as err:
                 raise CorruptLogError(self.path, f"the JSON Schema {schema.name!r} in the log cannot be read "
                                                  f"({err}).") from err
+            try:
+                self._checkers[schema.id] = compile_json_schema(schema_value)
+            except (InvalidInputError, ValueError, TypeError, KeyError) as err:  # keywords of other tools' schemas
+                self._checkers[schema.id] = None
+                self.add_note(f"messages of schema {schema.name!r} are not checked against it ({err}).")
         return self._checkers[schema.id]
 
     def messages(
@@ -512,32 +617,24 @@ class LogReader:
         return sorted(out)
 
     def frames(self, topic: str = "/camera/image", *, start: int | None = None, end: int | None = None,
-               first_index: int = 0) -> Iterator[tuple[int, int, np.ndarray]]:
+               first_index: int = 0, on_bad: Callable[[SkippedFrame], None] | None = None,
+               ) -> Iterator[tuple[int, int, np.ndarray]]:
         """``(frame_index, log_time, image)`` for every image of ``topic`` (``start <= log_time < end``), in time order.
 
+        Any image type of :mod:`starlog.io.images` is decoded to a 2-D mono array.
         ``first_index`` numbers the first frame returned (for a block read out of a longer log).
         Raises :class:`InvalidMessageError` when a frame is not 2-D, has another size or pixel type
-        than the first, or does not come strictly after the previous frame.
+        than the first, or does not come strictly after the previous frame; with ``on_bad``,
+        such a frame is handed to it and left out instead.
         """
-        first: tuple[tuple[int, ...], np.dtype[Any]] | None = None
-        last = -1
-        for index, message in enumerate(self.messages(topic, start=start, end=end), start=first_index):
-            image = message.payload
-            if not isinstance(image, np.ndarray) or image.ndim != 2:
-                raise InvalidMessageError(self.path, topic, message.log_time, "it is not a 2-D image.")
-            if first is None:
-                first, first_at = (image.shape, image.dtype), index
-            elif (image.shape, image.dtype) != first:
-                raise InvalidMessageError(
-                    self.path, topic, message.log_time,
-                    f"frame {index} is {image.shape[1]}x{image.shape[0]} {image.dtype}, but frame {first_at} is "
-                    f"{first[0][1]}x{first[0][0]} {first[1]}; every frame of a log must match.")
-            if message.log_time <= last:
-                raise InvalidMessageError(self.path, topic, message.log_time,
-                                          f"frame {index} does not come after the previous frame (log_time {last}); "
-                                          "frame timestamps must increase strictly.")
-            last = message.log_time
-            yield index, message.log_time, image
+        for frame in self.frame_records(topic, start=start, end=end, first_index=first_index, on_bad=on_bad):
+            yield frame.index, frame.log_time, frame.image
+
+    def frame_records(self, topic: str = "/camera/image", *, start: int | None = None, end: int | None = None,
+                      first_index: int = 0, on_bad: Callable[[SkippedFrame], None] | None = None,
+                      ) -> Iterator[Frame]:
+        """Like :meth:`frames`, as :class:`~starlog.io.frames.Frame` records (with the message's own stamp)."""
+        return iter_frames(self, topic, start=start, end=end, first_index=first_index, on_bad=on_bad)
 
     def metadata(self, name: str | None = None) -> list[tuple[str, dict[str, str]]]:
         """MCAP Metadata records ``(name, map)`` in file order, optionally only those named ``name``."""

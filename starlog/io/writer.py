@@ -440,8 +440,13 @@ class LogWriter:
                 summary = make_reader(src).get_summary()
             except Exception as err:  # mcap raises McapError, ValueError, struct.error...
                 raise CorruptLogError(base, f"its summary section cannot be read ({err}).") from err
-            if summary is None:
-                raise TruncatedLogError(base, "it has no summary section")
+            if summary is None or not summary.chunk_indexes:  # a valid file without indexes: scan it
+                from starlog.io.scan import synthesize_summary
+
+                try:
+                    summary = synthesize_summary(base, src, data_end, known=summary).summary
+                except ValueError as err:
+                    raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
             src.seek(0)
             remaining = data_end
             while remaining:

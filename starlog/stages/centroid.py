@@ -1,13 +1,16 @@
 """The ``centroid`` stage: detection and sub-pixel centroids of every frame.
 
-Reads ``/camera/image`` and writes ``/stars/detections`` (starlog.Detections),
+Reads an image channel (``/camera/image`` by default; any image type of
+:mod:`starlog.io.images`, chosen with ``image_topic``) and writes ``/stars/detections`` (starlog.Detections),
 ``/stars/centroids/<METHOD>`` per method (starlog.Centroids) and ``/stars/annotations``
 (foxglove.ImageAnnotations: circles at the first method's centroids, so the stars show over
 the frames in Foxglove), each message at its frame's ``log_time``. Frames are processed one at
 a time (memory flat in log length). With ``workers > 1`` the log is split into blocks of
 consecutive image chunks; each worker process opens the log itself, decodes and extracts its
 block (so no image crosses a process boundary), and the results are written in frame order:
-the output does not depend on the number of workers.
+the output does not depend on the number of workers. The summary says how many frames were
+read against how many messages the channel holds; they must agree unless ``skip_bad`` names
+every frame left out.
 """
 
 from __future__ import annotations
@@ -22,8 +25,10 @@ import numpy.typing as npt
 
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars
 from starlog.detect import detect_stars
-from starlog.errors import InvalidParameterError
+from starlog.errors import CorruptLogError, InvalidParameterError
 from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
+from starlog.io.frames import SkippedFrame
+from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
@@ -69,11 +74,19 @@ class CentroidSummary:
     centroids: dict[str, int] = field(default_factory=dict)
     failed: dict[str, int] = field(default_factory=dict)
     gain: float = 1.0
+    image_topic: str = topics.IMAGE
+    channel_messages: int = 0
+    skipped: list[SkippedFrame] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "methods": self.methods,
+            "image_topic": self.image_topic,
             "frames": self.frames,
+            "channel_messages": self.channel_messages,
+            "skipped_frames": [s.to_dict() for s in self.skipped],
+            "notes": list(self.notes),
             "detections": self.detections,
             "detections_per_frame": self.detections / self.frames if self.frames else 0.0,
             "centroids": dict(self.centroids),
@@ -99,6 +112,8 @@ def centroid_log(
     gain: float | None = None,
     read_noise: float | None = None,
     options: dict[str, Any] | None = None,
+    image_topic: str | None = None,
+    skip_bad: bool = False,
     workers: int = 1,
     force: bool = False,
     compression: str = "zstd",
@@ -119,6 +134,11 @@ def centroid_log(
         ``detect_options``, ...). Without ``psf_sigma``, the PSF width is estimated once for
         the whole log, from the first frames with measurable stars, and recorded in the
         provenance (one optics, one PSF; re-estimating it per frame costs time and adds noise).
+    image_topic : str, optional
+        The image channel to read. Default: ``/camera/image`` if present, else the log's only
+        image channel (with a note), else an error listing the image channels.
+    skip_bad : bool
+        Leave out frames that do not decode or do not fit (named in the summary) instead of stopping.
     workers : int
         Processes extracting blocks of frames in parallel (and threads compressing chunks);
         the output bytes do not depend on it.
@@ -127,6 +147,7 @@ def centroid_log(
     options = dict(options or {})
     digest_params: dict[str, Any] = {"methods": [m.value for m in chosen], "options": options}
     with LogReader(input_path) as probe:
+        topic, chosen_note = choose_image_topic(input_path, probe.channels(), image_topic)
         camera = _camera_from_provenance(probe)
         gain = gain if gain is not None else camera.get("gain", 1.0)
         if read_noise is None:
@@ -134,9 +155,13 @@ def centroid_log(
         if not (gain > 0):
             raise InvalidParameterError(f"gain must be > 0 e-/DN, got {gain}.")
         if options.get("psf_sigma") is None:
-            options["psf_sigma"] = _log_psf_sigma(probe, gain=gain, detect_options=options.get("detect_options"))
+            options["psf_sigma"] = _log_psf_sigma(probe, topic, gain=gain,
+                                                  detect_options=options.get("detect_options"))
     digest_params.update({"gain": gain, "read_noise": read_noise})
-    summary = CentroidSummary(methods=[m.value for m in chosen], gain=gain)
+    if topic != topics.IMAGE:  # a foreign log: the provenance names the channel the stars come from
+        digest_params["image_topic"] = topic
+    summary = CentroidSummary(methods=[m.value for m in chosen], gain=gain, image_topic=topic)
+    summary.notes = [chosen_note] if chosen_note else []
     summary.centroids = {m.value: 0 for m in chosen}
     summary.failed = {m.value: 0 for m in chosen}
 
@@ -144,16 +169,19 @@ def centroid_log(
 
     with extend_log(input_path, output_path, stage="centroid", parameters=digest_params, force=force,
                     compression=compression, workers=workers) as (log, out):
-        n_frames = log.channel(topics.IMAGE).message_count
+        summary.channel_messages = n_frames = log.channel(topic).message_count
         det_ch = out.add_channel(topics.DETECTIONS, json_message_type("starlog.Detections"))
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))
         cen_ch = {m: out.add_channel(topics.centroid_topic(m.value), json_message_type("starlog.Centroids"))
                   for m in chosen}
-        if workers > 1 and n_frames >= 64:  # below that, process start-up costs more than it saves
-            results = _extract_parallel(log, input_path, extract, workers)
+        if workers > 1 and n_frames >= 64 and log.fully_indexed:  # below 64, start-up costs more than it saves
+            results = _extract_parallel(log, input_path, topic, extract, workers, skip_bad)
         else:
-            results = (extract(frame, t, image) for frame, t, image in log.frames())
+            results = _extract_serial(log, topic, extract, skip_bad)
         for encoded in progress(results, total=n_frames, description="centroid", enabled=show_progress):
+            if isinstance(encoded, SkippedFrame):
+                summary.skipped.append(encoded)
+                continue
             t = encoded.log_time
             out.writer.write(det_ch, log_time=t, data=encoded.detections)
             out.writer.write(ann_ch, log_time=t, data=encoded.annotations)
@@ -163,14 +191,26 @@ def centroid_log(
                 summary.failed[m.value] += encoded.n_failed[k]
             summary.frames += 1
             summary.detections += encoded.n_detections
+        _check_frame_count(log, topic, summary)
+        summary.notes += [n for n in log.notes if n not in summary.notes]
     return summary
 
 
-def _log_psf_sigma(log: LogReader, *, gain: float, detect_options: dict[str, Any] | None,
+def _check_frame_count(log: LogReader, topic: str, summary: CentroidSummary) -> None:
+    """Frames read plus frames skipped (each named) must be every message of the channel."""
+    read = summary.frames + len(summary.skipped)
+    if read != summary.channel_messages:
+        raise CorruptLogError(
+            log.path, f"{read} frames of {topic!r} were read but the channel holds {summary.channel_messages} "
+            f"messages (by its statistics): the log's indexes disagree with its contents. Check it with: "
+            f"starlog verify {log.path}")
+
+
+def _log_psf_sigma(log: LogReader, topic: str, *, gain: float, detect_options: dict[str, Any] | None,
                    max_frames: int = 10) -> float:
     """Median PSF sigma over the first ``max_frames`` frames that have measurable stars (1.0 px if none)."""
     estimates = []
-    for index, _, image in log.frames():
+    for index, _, image in log.frames(topic, on_bad=lambda skipped: None):
         if index >= max_frames:
             break
         detections = detect_stars(image, **(detect_options or {}))
@@ -202,7 +242,9 @@ class _Extractor:
     read_noise: float | None
     options: dict[str, Any]
 
-    def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any]) -> _FrameMessages:
+    def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any], stamp: int | None = None
+                 ) -> _FrameMessages:
+        """``stamp``: the image message's own time, given to the annotations so Foxglove pairs them with it."""
         detections, centroids = extract_stars(image, methods=self.methods, gain=self.gain,
                                               read_noise=self.read_noise, **self.options)
         first = centroids[self.methods[0]]
@@ -211,7 +253,8 @@ class _Extractor:
         return _FrameMessages(
             log_time=log_time,
             detections=encode_json({"frame": frame, "stars": rows(detections)}),
-            annotations=encode_image_annotations(first["x"], first["y"], log_time=log_time, diameter=diameter),
+            annotations=encode_image_annotations(first["x"], first["y"], log_time=log_time if stamp is None else stamp,
+                                                 diameter=diameter),
             centroids=tuple(encode_json({"frame": frame, "method": m.value, "stars": rows(c)})
                             for m, c in zip(self.methods, per_method)),
             n_detections=int(detections.size),
@@ -220,16 +263,30 @@ class _Extractor:
         )
 
 
-def _extract_block(path: str, start: int, end: int, first_index: int, extract: _Extractor) -> list[_FrameMessages]:
+def _extract_serial(log: LogReader, topic: str, extract: _Extractor, skip_bad: bool, *,
+                    start: int | None = None, end: int | None = None, first_index: int = 0,
+                    ) -> Iterator[_FrameMessages | SkippedFrame]:
+    """Every frame's messages in order; with ``skip_bad``, a bad frame comes out as a :class:`SkippedFrame`."""
+    skipped: list[SkippedFrame] = []
+    frames = log.frame_records(topic, start=start, end=end, first_index=first_index,
+                               on_bad=skipped.append if skip_bad else None)
+    for frame in frames:
+        yield from skipped
+        skipped.clear()
+        yield extract(frame.index, frame.log_time, frame.image, frame.stamp)
+    yield from skipped
+
+
+def _extract_block(path: str, topic: str, start: int, end: int, first_index: int, extract: _Extractor,
+                   skip_bad: bool) -> list[_FrameMessages | SkippedFrame]:
     """Worker: every frame with ``start <= log_time < end`` (opens the log itself; no image crosses processes)."""
     with LogReader(path) as log:
-        return [extract(frame, t, image) for frame, t, image in
-                log.frames(start=start, end=end, first_index=first_index)]
+        return list(_extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first_index))
 
 
-def _image_blocks(log: LogReader, frames_per_block: int) -> list[tuple[int, int, int]]:
+def _image_blocks(log: LogReader, topic: str, frames_per_block: int) -> list[tuple[int, int, int]]:
     """Split the image channel into ``(start, end, first_frame)`` time ranges of whole chunks (~``frames_per_block``)."""
-    chunks = log.chunk_message_counts(topics.IMAGE)
+    chunks = log.chunk_message_counts(topic)
     for (_, end, _), (nxt, _, _) in zip(chunks, chunks[1:]):
         if nxt < end:  # chunks overlapping in time (not written in time order): one block
             return [(chunks[0][0], chunks[-1][1] + 1, 0)]
@@ -243,9 +300,10 @@ def _image_blocks(log: LogReader, frames_per_block: int) -> list[tuple[int, int,
     return blocks
 
 
-def _extract_parallel(log: LogReader, path: str | os.PathLike[str], extract: _Extractor,
-                      workers: int) -> Iterator[_FrameMessages]:
-    blocks = ((str(path), start, end, first, extract) for start, end, first in _image_blocks(log, 32))
+def _extract_parallel(log: LogReader, path: str | os.PathLike[str], topic: str, extract: _Extractor,
+                      workers: int, skip_bad: bool) -> Iterator[_FrameMessages | SkippedFrame]:
+    blocks = ((str(path), topic, start, end, first, extract, skip_bad)
+              for start, end, first in _image_blocks(log, topic, 32))
     with process_pool(workers, preload=["starlog.stages.centroid"]) as pool:
         for done in ordered_map(pool, _extract_block, blocks, window=2 * workers):
             yield from done

@@ -1,0 +1,173 @@
+"""Export of any channel as a flat table, and of any image channel as ``frames.parquet``.
+
+A message (JSON, protobuf, ROS 1 or ROS 2) becomes one row: ``log_time`` first, then its fields
+with nested fields as ``a.b`` columns and arrays as list columns (an array of messages becomes a
+list of structs). Rows are written in row groups as they are read (memory flat in log length).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from starlog.errors import InvalidInputError, InvalidParameterError, MessageDecodeError, OutputExistsError
+from starlog.io.foreign import message_decoder
+from starlog.io.frames import cached_image_decoder
+from starlog.io.images import IMAGE_SCHEMAS, is_image_schema
+from starlog.io.messages import decode_json
+from starlog.io.reader import LogReader
+
+__all__ = ["flatten", "to_plain", "export_topic", "export_image_frames", "topic_file_name"]
+
+
+def to_plain(value: Any) -> Any:
+    """A decoded message (protobuf, ROS 1/2 object, dict) as dicts, lists, bytes and Python scalars."""
+    if isinstance(value, dict):
+        return {str(k): to_plain(v) for k, v in value.items()}
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return bytes(value)
+    if isinstance(value, (list, tuple)):
+        return [to_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    descriptor = getattr(value, "DESCRIPTOR", None)
+    if descriptor is not None and hasattr(descriptor, "fields"):  # protobuf message
+        return {f.name: to_plain(getattr(value, f.name)) for f in descriptor.fields}
+    slots = getattr(value, "__slots__", None)
+    if slots:  # ROS 1 (genpy) and ROS 2 (mcap-ros2-support) messages
+        return {name: to_plain(getattr(value, name)) for name in slots if not name.startswith("_")}
+    if hasattr(value, "__iter__"):  # protobuf repeated containers
+        return [to_plain(v) for v in value]
+    return str(value)
+
+
+def flatten(plain: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested dicts → ``a.b`` keys; lists stay lists."""
+    out: dict[str, Any] = {}
+    for key, value in plain.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten(value, f"{name}."))  # an empty message adds no column
+        else:
+            out[name] = value
+    return out
+
+
+def topic_file_name(topic: str) -> str:
+    """``/camera/info`` → ``camera.info`` (the Parquet file's stem)."""
+    return topic.strip("/").replace("/", ".") or "root"
+
+
+def _rows(log: LogReader, topic: str) -> Iterator[dict[str, Any]]:
+    decoders: dict[int, Any] = {}
+    for schema, channel, message in log.raw_messages([topic]):
+        if channel.id not in decoders:
+            decoder = decode_json if channel.message_encoding == "json" else \
+                message_decoder(schema, channel.message_encoding)
+            if decoder is None:
+                raise InvalidParameterError(
+                    f"{log.path}: channel {topic!r} has message encoding {channel.message_encoding!r} "
+                    f"(schema {schema.name if schema else 'none'!r}); starlog exports JSON, protobuf, ROS 1 and ROS 2.")
+            decoders[channel.id] = decoder
+        try:
+            value = to_plain(decoders[channel.id](message.data))
+        except Exception as err:
+            raise MessageDecodeError(log.path, topic, message.log_time, f"{type(err).__name__}: {err}") from err
+        if not isinstance(value, dict):
+            value = {"value": value}
+        yield {"log_time": message.log_time, **flatten(value)}
+
+
+def _write_rows(rows: Iterator[dict[str, Any]], path: Path, row_group_rows: int) -> int:
+    """Stream rows into a Parquet file (columns fixed by the first row group; later new keys are an error)."""
+    tmp = path.with_name(f".{path.name}.partial")
+    writer: pq.ParquetWriter | None = None
+    schema: pa.Schema | None = None
+    batch: list[dict[str, Any]] = []
+    written = 0
+
+    def flush() -> None:
+        nonlocal writer, schema, written
+        if not batch:
+            return
+        table = pa.Table.from_pylist(batch, schema=schema)
+        if writer is None:
+            schema = table.schema
+            writer = pq.ParquetWriter(tmp, schema, compression="zstd")
+        writer.write_table(table)
+        written += len(batch)
+        batch.clear()
+
+    try:
+        for row in rows:
+            batch.append(row)
+            if len(batch) >= row_group_rows:
+                flush()
+        flush()
+    except (pa.ArrowInvalid, pa.ArrowTypeError) as err:
+        raise InvalidInputError(f"{path.name}: the messages do not fit one table ({err}).") from err
+    finally:
+        if writer is not None:
+            writer.close()
+    if writer is None:
+        pq.write_table(pa.table({"log_time": pa.array([], pa.int64())}), tmp)
+    os.replace(tmp, path)
+    return written
+
+
+def export_topic(log: LogReader, topic: str, output_dir: Path, *, force: bool = False,
+                 row_group_rows: int = 16_384) -> tuple[str, int]:
+    """Write ``<topic>.parquet`` (see :func:`topic_file_name`) with one flattened row per message."""
+    if topic not in log.topics:
+        from starlog.errors import ChannelNotFoundError
+
+        raise ChannelNotFoundError(log.path, topic, log.topics)
+    name = topic_file_name(topic)
+    path = output_dir / f"{name}.parquet"
+    if path.exists() and not force:
+        raise OutputExistsError(path)
+    return name, _write_rows(_rows(log, topic), path, row_group_rows)
+
+
+def _frame_rows(log: LogReader, topics: list[str]) -> Iterator[dict[str, Any]]:
+    index: dict[str, int] = {}
+    for schema, channel, message in log.raw_messages(topics):
+        decode = cached_image_decoder(schema, channel.message_encoding)
+        n = index[channel.topic] = index.get(channel.topic, -1) + 1
+        try:
+            decoded = decode(message.data) if decode is not None else None
+        except InvalidInputError as err:
+            raise MessageDecodeError(log.path, channel.topic, message.log_time, str(err)) from err
+        image = decoded.image if decoded is not None else np.zeros((0, 0))
+        yield {"log_time": message.log_time, "topic": channel.topic, "frame": n,
+               "width": int(image.shape[1]), "height": int(image.shape[0]),
+               "dtype": str(image.dtype), "schema": schema.name if schema else "",
+               "kind": IMAGE_SCHEMAS.get(schema.name if schema else "", ""),
+               "frame_id": decoded.frame_id if decoded else "",
+               "stamp": decoded.stamp if decoded and decoded.stamp is not None else -1}
+
+
+def export_image_frames(log: LogReader, output_dir: Path, *, force: bool = False,
+                        row_group_rows: int = 16_384) -> int | None:
+    """``frames.parquet`` from every image channel of a log without starlog's frame channel (None if it has none).
+
+    Columns: log_time, topic, frame (index in its channel), width, height, dtype (of the decoded
+    mono frame), schema, kind (raw / compressed), frame_id, stamp (the message's own time in ns, -1 if unset).
+    """
+    topics = [c.topic for c in log.channels() if is_image_schema(c.schema_name)]
+    if not topics:
+        return None
+    path = output_dir / "frames.parquet"
+    if path.exists() and not force:
+        raise OutputExistsError(path)
+    return _write_rows(_frame_rows(log, topics), path, row_group_rows)

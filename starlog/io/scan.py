@@ -1,0 +1,363 @@
+"""Reading valid MCAP files that lack some of their indexes, by scanning.
+
+The MCAP format makes every index optional: a writer may leave out message index records, the
+chunk indexes, the whole summary, or write messages outside chunks. Such a file is still valid
+and still holds every message. This module finds what the indexes do not say:
+
+* :func:`find_loose_runs` walks the parts of the data section that the summary's indexes do not
+  cover (in a file starlog wrote: only the header) and returns the messages written outside
+  chunks as :class:`LooseRun` segments, read like chunks and merged in ``log_time`` order;
+* :func:`synthesize_summary` walks a file with no summary (or no chunk indexes) from start to
+  end once and builds the summary it should have had (schemas, channels, chunk indexes,
+  statistics, metadata indexes), every chunk CRC-checked on the way.
+
+Both read record headers (nine bytes each) and skip record bodies, except chunks in a file
+with no summary, which must be decompressed to learn their channels. Memory stays flat: only
+indexes and counters are kept, never messages.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    ChunkIndex,
+    Message,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+)
+from mcap.summary import Summary
+
+__all__ = [
+    "ChunkContents",
+    "LooseRun",
+    "ScanResult",
+    "chunk_record",
+    "find_loose_runs",
+    "iter_records",
+    "read_loose",
+    "synthesize_summary",
+]
+
+RECORD_HEADER = struct.Struct("<BQ")
+MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log_time, publish_time
+CHUNK_HEADER = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed CRC
+MAGIC_LENGTH = 8
+_RUN_MESSAGES = 1024  # loose messages per segment: bounds what one read holds in memory
+_RUN_BYTES = 8 * 1024 * 1024
+
+
+@dataclass(eq=False)
+class LooseRun(ChunkIndex):
+    """Consecutive messages written outside chunks, described like a chunk (``compression`` is empty,
+    ``message_index_offsets`` lists the channels it holds with offset 0: there is no index record)."""
+
+
+@dataclass(frozen=True)
+class ChunkContents:
+    """A chunk record's header fields and its decompressed, CRC-checked records."""
+
+    start: int
+    end: int
+    uncompressed_size: int
+    crc: int
+    compression: str
+    compressed_size: int
+    data: bytes
+
+
+def decompress(compression: str, data: bytes, size: int) -> bytes:
+    """Decompress at most ``size`` + 1 bytes (a damaged frame header cannot make us allocate more)."""
+    if compression == "":
+        return data
+    if compression == "zstd":
+        import zstandard
+
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
+            return reader.read(size + 1)
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
+    raise ValueError(f"unsupported chunk compression {compression!r}")
+
+
+def chunk_record(body: bytes | memoryview, *, check_crc: bool = True) -> ChunkContents:
+    """Parse a chunk record's body (after its opcode and length), decompress it and check its CRC.
+
+    Raises ``ValueError`` / ``struct.error`` (or the decompressor's error) naming what is wrong.
+    """
+    start, end, size, crc = CHUNK_HEADER.unpack_from(body, 0)
+    pos = CHUNK_HEADER.size
+    (name_len,) = struct.unpack_from("<I", body, pos)
+    compression = bytes(body[pos + 4: pos + 4 + name_len]).decode()
+    pos += 4 + name_len
+    (data_len,) = struct.unpack_from("<Q", body, pos)
+    pos += 8
+    if pos + data_len != len(body):
+        raise ValueError(f"its data length {data_len} does not fit its record")
+    data = decompress(compression, bytes(body[pos:]), size)
+    if len(data) != size:
+        raise ValueError(f"it decompresses to {len(data)} bytes, not {size}")
+    if check_crc and crc != 0 and zlib.crc32(data) != crc:
+        raise ValueError(f"CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(data):#010x})")
+    return ChunkContents(start, end, size, crc, compression, int(data_len), data)
+
+
+def iter_records(data: bytes | memoryview, base: int = 0) -> Iterator[tuple[int, int, int, int]]:
+    """``(offset, opcode, body_start, body_length)`` of each record in ``data`` (offsets from ``base``).
+
+    Raises ``ValueError`` when a record runs past the end of ``data``.
+    """
+    pos, size = 0, len(data)
+    while pos < size:
+        if pos + RECORD_HEADER.size > size:
+            raise ValueError(f"a record header at offset {base + pos} is cut off")
+        opcode, length = RECORD_HEADER.unpack_from(data, pos)
+        body = pos + RECORD_HEADER.size
+        if body + length > size:
+            raise ValueError(f"the record at offset {base + pos} (opcode {opcode:#04x}, {length} bytes) runs past "
+                             f"the end of its section")
+        yield base + pos, opcode, body, length
+        pos = body + length
+
+
+def _walk_file(f: BinaryIO, start: int, end: int) -> Iterator[tuple[int, int, int]]:
+    """``(offset, opcode, length)`` of each top-level record between ``start`` and ``end``, reading headers only."""
+    pos = start
+    while pos < end:
+        f.seek(pos)
+        head = f.read(RECORD_HEADER.size)
+        if len(head) < RECORD_HEADER.size:
+            raise ValueError(f"a record header at offset {pos} is cut off")
+        opcode, length = RECORD_HEADER.unpack(head)
+        if pos + RECORD_HEADER.size + length > end:
+            raise ValueError(f"the record at offset {pos} (opcode {opcode:#04x}, {length} bytes) runs past the end of "
+                             f"the data section at {end}")
+        yield pos, opcode, length
+        pos += RECORD_HEADER.size + length
+
+
+class _RunBuilder:
+    """Groups loose messages into :class:`LooseRun` segments of bounded size."""
+
+    def __init__(self) -> None:
+        self.runs: list[LooseRun] = []
+        self._open: list[Any] | None = None  # [first offset, end offset, start, end, count, channels]
+
+    def add(self, offset: int, length: int, channel_id: int, log_time: int) -> None:
+        run = self._open
+        if run is not None and (run[4] >= _RUN_MESSAGES or offset + length - run[0] > _RUN_BYTES):
+            self.close()
+            run = None
+        if run is None:
+            self._open = [offset, offset + length, log_time, log_time, 1, {channel_id}]
+            return
+        run[1] = offset + length
+        run[2], run[3] = min(run[2], log_time), max(run[3], log_time)
+        run[4] += 1
+        run[5].add(channel_id)
+
+    def close(self) -> None:
+        if self._open is None:
+            return
+        first, stop, start, end, _, channels = self._open
+        self.runs.append(LooseRun(
+            chunk_length=stop - first, chunk_start_offset=first, compression="", compressed_size=stop - first,
+            message_end_time=end, message_index_length=0, message_index_offsets={c: 0 for c in sorted(channels)},
+            message_start_time=start, uncompressed_size=stop - first))
+        self._open = None
+
+
+def _message_head(f: BinaryIO, offset: int) -> tuple[int, int]:
+    f.seek(offset + RECORD_HEADER.size)
+    channel_id, _, log_time, _ = MESSAGE_HEADER.unpack(f.read(MESSAGE_HEADER.size))
+    return channel_id, log_time
+
+
+def _covered(summary: Summary) -> list[tuple[int, int]]:
+    spans = []
+    for ci in summary.chunk_indexes:
+        spans.append((ci.chunk_start_offset, ci.chunk_start_offset + ci.chunk_length))
+        if ci.message_index_offsets:
+            first = min(ci.message_index_offsets.values())
+            spans.append((first, first + ci.message_index_length))
+    spans += [(m.offset, m.offset + m.length) for m in summary.metadata_indexes]
+    spans += [(a.offset, a.offset + a.length) for a in summary.attachment_indexes]
+    return sorted(spans)
+
+
+def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> tuple[list[LooseRun], bool]:
+    """Messages outside chunks, found in the gaps the summary's indexes leave in the data section.
+
+    Returns the runs and whether a chunk the chunk indexes do not list was met (then the file
+    must be read by :func:`synthesize_summary`). Raises ``ValueError`` for a damaged gap.
+    """
+    builder = _RunBuilder()
+    pos = MAGIC_LENGTH
+    unindexed_chunk = False
+    for lo, hi in _covered(summary) + [(data_end, data_end)]:
+        if lo > pos:
+            for offset, opcode, length in _walk_file(f, pos, lo):
+                if opcode == Opcode.MESSAGE:
+                    channel_id, log_time = _message_head(f, offset)
+                    builder.add(offset, RECORD_HEADER.size + length, channel_id, log_time)
+                elif opcode == Opcode.CHUNK:
+                    unindexed_chunk = True
+                else:
+                    builder.close()
+        pos = max(pos, hi)
+    builder.close()
+    return builder.runs, unindexed_chunk
+
+
+def read_loose(f: BinaryIO, run: LooseRun) -> list[tuple[int, int, int, Message]]:
+    """Every message of ``run`` as ``(log_time, position, channel_id, message)``."""
+    f.seek(run.chunk_start_offset)
+    data = f.read(run.chunk_length)
+    if len(data) != run.chunk_length:
+        raise ValueError("the file ends inside it")
+    out: list[tuple[int, int, int, Message]] = []
+    for _, opcode, body, length in iter_records(data, run.chunk_start_offset):
+        if opcode == Opcode.MESSAGE:
+            cid, seq, log_time, publish_time = MESSAGE_HEADER.unpack_from(data, body)
+            payload = data[body + MESSAGE_HEADER.size: body + length]
+            out.append((log_time, len(out), cid, Message(cid, log_time, payload, publish_time, seq)))
+    return out
+
+
+@dataclass
+class ScanResult:
+    """What a full scan found: the summary the file should have had, its loose-message runs and
+    each channel's ``(count, first log_time, last log_time)``."""
+
+    summary: Summary
+    loose: list[LooseRun]
+    extents: dict[int, list[int]]
+
+
+def _body(f: BinaryIO, offset: int, length: int) -> bytes:
+    f.seek(offset + RECORD_HEADER.size)
+    data = f.read(length)
+    if len(data) != length:
+        raise ValueError(f"the file ends inside the record at offset {offset}")
+    return data
+
+
+class _Tally:
+    def __init__(self) -> None:
+        self.summary = Summary()
+        self.extents: dict[int, list[int]] = {}
+
+    def schema(self, record: Schema) -> None:
+        if record.id != 0:
+            self.summary.schemas.setdefault(record.id, record)
+
+    def channel(self, record: Channel) -> None:
+        self.summary.channels.setdefault(record.id, record)
+
+    def message(self, channel_id: int, log_time: int) -> None:
+        extent = self.extents.get(channel_id)
+        if extent is None:
+            self.extents[channel_id] = [1, log_time, log_time]
+        else:
+            extent[0] += 1
+            extent[1], extent[2] = min(extent[1], log_time), max(extent[2], log_time)
+
+    def chunk(self, offset: int, length: int, contents: ChunkContents) -> ChunkIndex:
+        for _, opcode, body, size in iter_records(contents.data):
+            record = contents.data[body: body + size]
+            if opcode == Opcode.SCHEMA:
+                self.schema(Schema.read(ReadDataStream(io.BytesIO(record))))
+            elif opcode == Opcode.CHANNEL:
+                self.channel(Channel.read(ReadDataStream(io.BytesIO(record))))
+            elif opcode == Opcode.MESSAGE:
+                cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(record, 0)
+                self.message(cid, log_time)
+        return ChunkIndex(
+            chunk_length=length, chunk_start_offset=offset, compression=contents.compression,
+            compressed_size=contents.compressed_size, message_end_time=contents.end, message_index_length=0,
+            message_index_offsets={}, message_start_time=contents.start, uncompressed_size=contents.uncompressed_size)
+
+    def statistics(self) -> Statistics:
+        counts = {cid: e[0] for cid, e in sorted(self.extents.items())}
+        starts = [e[1] for e in self.extents.values()]
+        ends = [e[2] for e in self.extents.values()]
+        return Statistics(
+            message_count=sum(counts.values()), schema_count=len(self.summary.schemas),
+            channel_count=len(self.summary.channels), attachment_count=len(self.summary.attachment_indexes),
+            metadata_count=len(self.summary.metadata_indexes), chunk_count=len(self.summary.chunk_indexes),
+            message_start_time=min(starts, default=0), message_end_time=max(ends, default=0),
+            channel_message_counts=counts)
+
+
+def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary | None = None) -> ScanResult:
+    """Scan the data section once and build the summary the file lacks (chunks CRC-checked).
+
+    ``known``: a summary without chunk indexes whose schemas and channels are kept.
+    Raises ``ValueError`` naming the first damaged record.
+    """
+    tally = _Tally()
+    if known is not None:
+        for schema in known.schemas.values():
+            tally.schema(schema)
+        for channel in known.channels.values():
+            tally.channel(channel)
+    runs = _RunBuilder()
+    last_chunk: ChunkIndex | None = None
+    index_end = 0
+    for offset, opcode, length in _walk_file(f, MAGIC_LENGTH, data_end):
+        if opcode == Opcode.MESSAGE_INDEX and last_chunk is not None:
+            (channel_id,) = struct.unpack("<H", _body(f, offset, 2)[:2]) if length >= 2 else (None,)
+            if channel_id is not None:
+                last_chunk.message_index_offsets[channel_id] = offset
+                index_end = offset + RECORD_HEADER.size + length
+                first = min(last_chunk.message_index_offsets.values())
+                last_chunk.message_index_length = index_end - first
+            continue
+        last_chunk = None
+        if opcode == Opcode.MESSAGE:
+            channel_id, log_time = _message_head(f, offset)
+            runs.add(offset, RECORD_HEADER.size + length, channel_id, log_time)
+            tally.message(channel_id, log_time)
+            continue
+        runs.close()
+        if opcode == Opcode.CHUNK:
+            try:
+                contents = chunk_record(_body(f, offset, length))
+            except (ValueError, struct.error) as err:
+                raise ValueError(f"the chunk at offset {offset} is damaged: {err}") from err
+            except Exception as err:  # zstd / lz4 errors
+                raise ValueError(f"the chunk at offset {offset} is damaged: {type(err).__name__}: {err}") from err
+            last_chunk = tally.chunk(offset, RECORD_HEADER.size + length, contents)
+            tally.summary.chunk_indexes.append(last_chunk)
+        elif opcode == Opcode.SCHEMA:
+            tally.schema(Schema.read(ReadDataStream(io.BytesIO(_body(f, offset, length)))))
+        elif opcode == Opcode.CHANNEL:
+            tally.channel(Channel.read(ReadDataStream(io.BytesIO(_body(f, offset, length)))))
+        elif opcode == Opcode.METADATA:
+            record = Metadata.read(ReadDataStream(io.BytesIO(_body(f, offset, length))))
+            tally.summary.metadata_indexes.append(MetadataIndex(offset=offset, length=RECORD_HEADER.size + length,
+                                                                name=record.name))
+        elif opcode == Opcode.ATTACHMENT:
+            record = Attachment.read(ReadDataStream(io.BytesIO(_body(f, offset, length))))
+            tally.summary.attachment_indexes.append(AttachmentIndex(
+                offset=offset, length=RECORD_HEADER.size + length, log_time=record.log_time,
+                create_time=record.create_time, data_size=len(record.data), name=record.name,
+                media_type=record.media_type))
+    runs.close()
+    tally.summary.statistics = tally.statistics()
+    return ScanResult(tally.summary, runs.runs, tally.extents)

@@ -1,0 +1,561 @@
+"""``starlog verify``: read every record of an MCAP file and report every problem found.
+
+Checked: the magic bytes, header and footer; the summary section and its CRC; every chunk's
+header, decompression and CRC; the message index records against the chunk contents; the
+chunk indexes against the chunks; the statistics against the messages counted; schema and
+channel references; JSON messages against their JSON Schemas; protobuf, ROS 1 and ROS 2
+messages decode; images decode with one size per channel; ``log_time`` order per channel.
+
+Each problem has a ``kind`` (a stable name), a severity (``error``: the file is damaged or a
+stage would refuse it; ``note``: valid MCAP that other readers accept but that is unusual, such
+as chunks without message indexes or no summary), the file ``offset`` of the record, and the
+``channel`` and ``log_time`` where they apply. The file is read once, chunk by chunk; memory
+holds one chunk and per-channel counters.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import struct
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Attachment, Channel, ChunkIndex, Metadata, MetadataIndex, Schema, Statistics, SummaryOffset
+
+from starlog.io.foreign import message_decoder
+from starlog.io.frames import cached_image_decoder
+from starlog.io.images import is_image_schema
+from starlog.io.messages import compile_json_schema, decode_json
+from starlog.io.scan import MAGIC_LENGTH, MESSAGE_HEADER, RECORD_HEADER, chunk_record, iter_records
+
+__all__ = ["Problem", "VerifyReport", "verify_log"]
+
+MAGIC = b"\x89MCAP0\r\n"
+_FOOTER = struct.Struct("<BQQQI")
+_DATA_END_LENGTH = RECORD_HEADER.size + 4
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One problem: ``kind`` (stable name), ``severity`` (error / note), where, and what."""
+
+    kind: str
+    severity: str
+    detail: str
+    offset: int | None = None
+    channel: str | None = None
+    log_time: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "severity": self.severity, "offset": self.offset, "channel": self.channel,
+                "log_time": self.log_time, "detail": self.detail}
+
+    def line(self) -> str:
+        where = [f"offset {self.offset}" if self.offset is not None else "",
+                 f"channel {self.channel}" if self.channel else "",
+                 f"log_time {self.log_time}" if self.log_time is not None else ""]
+        place = ", ".join(w for w in where if w)
+        return f"{self.severity} {self.kind}{f' ({place})' if place else ''}: {self.detail}"
+
+
+@dataclass
+class VerifyReport:
+    """What :func:`verify_log` found."""
+
+    path: str
+    size: int = 0
+    messages: int = 0
+    chunks: int = 0
+    channels: int = 0
+    problems: list[Problem] = field(default_factory=list)
+
+    @property
+    def errors(self) -> list[Problem]:
+        return [p for p in self.problems if p.severity == "error"]
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+    def verdict(self) -> str:
+        """One line: clean or damaged, with counts."""
+        notes = len(self.problems) - len(self.errors)
+        what = f"{self.messages} messages, {self.channels} channels, {self.chunks} chunks"
+        if self.ok:
+            return f"OK: {self.path} is a valid MCAP file ({what}){f', {notes} notes' if notes else ''}."
+        kinds = sorted({p.kind for p in self.errors})
+        return (f"DAMAGED: {self.path} has {len(self.errors)} errors ({', '.join(kinds)}){f', {notes} notes' if notes else ''}"
+                f"; read {what}. Keep what is intact with: starlog recover {self.path} -o RECOVERED.mcap")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"path": self.path, "ok": self.ok, "size_bytes": self.size, "messages": self.messages,
+                "chunks": self.chunks, "channels": self.channels, "verdict": self.verdict(),
+                "problems": [p.to_dict() for p in self.problems]}
+
+
+@dataclass
+class _Seen:
+    """A chunk as found in the data section."""
+
+    offset: int
+    length: int
+    start: int
+    end: int
+    compression: str
+    compressed_size: int
+    uncompressed_size: int
+    positions: dict[int, list[tuple[int, int]]]
+    index_offsets: dict[int, int] = field(default_factory=dict)
+    index_end: int = 0
+
+
+@dataclass
+class _ChannelState:
+    topic: str
+    count: int = 0
+    last: int = -1
+    out_of_order: int = 0
+    image: tuple[Any, ...] | None = None
+    checker: Callable[[Any], str | None] | None = None
+    decode: Callable[[bytes], Any] | None = None
+    kind: str = "bytes"
+
+
+def _read(stream: bytes, cls: Any) -> Any:
+    return cls.read(ReadDataStream(io.BytesIO(stream)))
+
+
+class _Verifier:
+    def __init__(self, path: Path, f: BinaryIO, report: VerifyReport) -> None:
+        self.path, self.f, self.report = path, f, report
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.states: dict[int, _ChannelState] = {}
+        self.seen: dict[int, _Seen] = {}
+        self.metadata: dict[int, str] = {}
+        self.summary: dict[str, Any] = {}
+        self.counted: dict[int, int] = {}
+        self.times: list[int] = []  # [first, last] over every message
+        self.loose = 0
+        self.unknown_channels: set[int] = set()
+        self.bare_chunks = 0
+
+    def problem(self, kind: str, detail: str, *, severity: str = "error", offset: int | None = None,
+                channel: str | None = None, log_time: int | None = None) -> None:
+        self.report.problems.append(Problem(kind, severity, detail, offset, channel, log_time))
+
+    # ------------------------------------------------------------------ frame of the file
+    def envelope(self, size: int) -> tuple[int, int, int, int] | None:
+        """Check the magic bytes and footer; return ``(summary_start, summary_offset_start, crc, footer)``."""
+        f = self.f
+        f.seek(0)
+        if f.read(MAGIC_LENGTH) != MAGIC:
+            self.problem("bad_magic", "the file does not start with the MCAP magic bytes; is it an MCAP file?",
+                         offset=0)
+            return None
+        footer = size - MAGIC_LENGTH - _FOOTER.size
+        if footer < MAGIC_LENGTH:
+            self.problem("truncated", f"only {size} bytes: shorter than any complete MCAP file", offset=size)
+            return None
+        f.seek(footer)
+        tail = f.read(_FOOTER.size + MAGIC_LENGTH)
+        if tail[-MAGIC_LENGTH:] != MAGIC:
+            self.problem("truncated", "the file does not end with the MCAP magic bytes: cut off or never finished",
+                         offset=size - MAGIC_LENGTH)
+            return None
+        opcode, length, summary_start, summary_offset_start, crc = _FOOTER.unpack(tail[:_FOOTER.size])
+        if opcode != Opcode.FOOTER or length != 20:
+            self.problem("bad_footer", f"no footer record before the closing magic (opcode {opcode:#04x})",
+                         offset=footer)
+            return None
+        return summary_start, summary_offset_start, crc, footer
+
+    # ------------------------------------------------------------------ summary section
+    def read_summary(self, summary_start: int, summary_offset_start: int, crc: int, footer: int) -> int | None:
+        """Parse and check the summary section; return where the data section must end (its DataEnd)."""
+        if summary_start == 0:
+            self.problem("no_summary", "the file has no summary section: readers must scan it whole; add one with "
+                         f"starlog recover {self.path} -o INDEXED.mcap", severity="note")
+            return None
+        if not MAGIC_LENGTH + _DATA_END_LENGTH <= summary_start <= footer or (
+                summary_offset_start and not summary_start <= summary_offset_start <= footer):
+            self.problem("bad_footer", f"the footer points outside the file (summary at {summary_start}, summary "
+                         f"offsets at {summary_offset_start})", offset=footer)
+            return None
+        self.f.seek(summary_start)
+        section = self.f.read(footer - summary_start)
+        if crc != 0:
+            computed = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start),
+                                  zlib.crc32(section))
+            if computed != crc:
+                self.problem("summary_crc", f"the summary's CRC {computed:#010x} does not match the footer's "
+                             f"{crc:#010x}: the summary section is damaged", offset=summary_start)
+        groups: dict[str, list[Any]] = {"chunk_indexes": [], "metadata_indexes": [], "offsets": []}
+        readers = {Opcode.SCHEMA: ("schemas", Schema), Opcode.CHANNEL: ("channels", Channel),
+                   Opcode.CHUNK_INDEX: ("chunk_indexes", ChunkIndex), Opcode.METADATA_INDEX:
+                   ("metadata_indexes", MetadataIndex), Opcode.STATISTICS: ("statistics", Statistics),
+                   Opcode.SUMMARY_OFFSET: ("offsets", SummaryOffset)}
+        try:
+            for offset, opcode, body, length in iter_records(section, summary_start):
+                if opcode in readers:
+                    name, cls = readers[opcode]
+                    record = _read(section[body: body + length], cls)
+                    if name == "schemas":
+                        self.schemas.setdefault(record.id, record)
+                    elif name == "channels":
+                        self.channels.setdefault(record.id, record)
+                    elif name == "statistics":
+                        groups["statistics"] = record
+                    else:
+                        groups[name].append((offset, record))
+        except Exception as err:  # struct.error, EOFError, ValueError, UnicodeDecodeError from a damaged record
+            self.problem("bad_summary", f"the summary section cannot be parsed ({type(err).__name__}: {err})",
+                         offset=summary_start)
+        for offset, record in groups["offsets"]:
+            self.check_summary_offset(offset, record, summary_start, footer)
+        self.summary = groups
+        return summary_start - _DATA_END_LENGTH
+
+    def check_summary_offset(self, offset: int, record: SummaryOffset, start: int, footer: int) -> None:
+        if not start <= record.group_start <= record.group_start + record.group_length <= footer:
+            self.problem("bad_summary_offset", f"a summary offset record points outside the summary section "
+                         f"({record.group_start}+{record.group_length})", offset=offset)
+            return
+        if record.group_length == 0:  # an empty group (some writers list those too)
+            return
+        self.f.seek(record.group_start)
+        head = self.f.read(1)
+        if head and head[0] != record.group_opcode:
+            self.problem("bad_summary_offset", f"a summary offset record for opcode {record.group_opcode:#04x} "
+                         f"points at a record of opcode {head[0]:#04x}", offset=offset)
+
+    # ------------------------------------------------------------------ data section
+    def walk_data(self, limit: int, expected_end: int | None) -> None:
+        """Every record from the header to the DataEnd record, chunks opened and checked."""
+        f, pos, current = self.f, MAGIC_LENGTH, None
+        bodies = {Opcode.CHUNK, Opcode.MESSAGE_INDEX, Opcode.MESSAGE, Opcode.SCHEMA, Opcode.CHANNEL,
+                  Opcode.METADATA, Opcode.ATTACHMENT}
+        while pos < limit:
+            f.seek(pos)
+            head = f.read(RECORD_HEADER.size)
+            if len(head) < RECORD_HEADER.size:
+                break
+            opcode, length = RECORD_HEADER.unpack(head)
+            if pos + RECORD_HEADER.size + length > limit:
+                self.problem("bad_record", f"the record at offset {pos} (opcode {opcode:#04x}, {length} bytes) runs "
+                             "past the end of the data section", offset=pos)
+                break
+            if pos == MAGIC_LENGTH and opcode != Opcode.HEADER:
+                self.problem("no_header", f"the first record is opcode {opcode:#04x}, not a header", offset=pos)
+            if current is not None and opcode != Opcode.MESSAGE_INDEX:
+                self.finish_chunk(current)
+                current = None
+            if opcode == Opcode.DATA_END:
+                if expected_end is not None and pos != expected_end:
+                    self.problem("bad_data_end", f"the data section ends at {pos}, the footer says {expected_end}",
+                                 offset=pos)
+                return
+            body = f.read(length) if opcode in bodies else b""
+            try:
+                current = self.record(pos, opcode, body, current)
+            except Exception as err:  # a record whose fields do not parse
+                self.problem("bad_record", f"the record at offset {pos} (opcode {opcode:#04x}) cannot be parsed "
+                             f"({type(err).__name__}: {err})", offset=pos)
+            pos += RECORD_HEADER.size + length
+        if current is not None:
+            self.finish_chunk(current)
+        self.problem("no_data_end", "the data section has no DataEnd record where it should end", offset=pos)
+
+    def record(self, offset: int, opcode: int, body: bytes, current: _Seen | None) -> _Seen | None:
+        if opcode == Opcode.CHUNK:
+            return self.chunk(offset, body)
+        if opcode == Opcode.MESSAGE_INDEX:
+            self.message_index(offset, body, current)
+            return current
+        if opcode == Opcode.MESSAGE:
+            cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(body, 0)
+            self.loose += 1
+            self.message(cid, log_time, body[MESSAGE_HEADER.size:], offset)
+        elif opcode == Opcode.SCHEMA:
+            self.add_schema(_read(body, Schema), offset)
+        elif opcode == Opcode.CHANNEL:
+            self.add_channel(_read(body, Channel), offset)
+        elif opcode == Opcode.METADATA:
+            self.metadata[offset] = _read(body, Metadata).name
+        elif opcode == Opcode.ATTACHMENT:
+            record = _read(body, Attachment)
+            (stored,) = struct.unpack_from("<I", body, len(body) - 4)
+            if stored != 0 and zlib.crc32(body[:-4]) != stored:
+                self.problem("attachment_crc", f"the attachment {record.name!r} fails its CRC", offset=offset)
+        return None
+
+    def add_schema(self, schema: Schema, offset: int) -> None:
+        known = self.schemas.setdefault(schema.id, schema)
+        if (known.name, known.encoding, bytes(known.data)) != (schema.name, schema.encoding, bytes(schema.data)):
+            self.problem("schema_conflict", f"schema {schema.id} is defined twice, differently", offset=offset)
+
+    def add_channel(self, channel: Channel, offset: int) -> None:
+        known = self.channels.setdefault(channel.id, channel)
+        if (known.topic, known.schema_id, known.message_encoding) != (channel.topic, channel.schema_id,
+                                                                       channel.message_encoding):
+            self.problem("channel_conflict", f"channel {channel.id} is defined twice, differently", offset=offset,
+                         channel=channel.topic)
+
+    def chunk(self, offset: int, body: bytes) -> _Seen | None:
+        self.report.chunks += 1
+        try:
+            start, end, size, _ = struct.unpack_from("<QQQI", body, 0)
+            (name_len,) = struct.unpack_from("<I", body, 28)
+            compression = body[32: 32 + name_len].decode()
+            (compressed_size,) = struct.unpack_from("<Q", body, 32 + name_len)
+        except Exception as err:
+            self.problem("bad_chunk", f"the chunk header cannot be parsed ({err})", offset=offset)
+            return None
+        seen = _Seen(offset, RECORD_HEADER.size + len(body), start, end, compression, compressed_size, size, {})
+        self.seen[offset] = seen
+        try:
+            contents = chunk_record(body)
+        except ValueError as err:
+            kind = "chunk_crc" if "CRC" in str(err) else "chunk_decompress"
+            self.problem(kind, f"the chunk (log_time {start}..{end}) is damaged: {err}", offset=offset)
+            return seen
+        except Exception as err:  # zstd / lz4 errors
+            self.problem("chunk_decompress", f"the chunk (log_time {start}..{end}) does not decompress "
+                         f"({type(err).__name__}: {err})", offset=offset)
+            return seen
+        data = contents.data
+        try:
+            for rel, opcode, at, length in iter_records(data):
+                if opcode == Opcode.MESSAGE:
+                    cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(data, at)
+                    seen.positions.setdefault(cid, []).append((log_time, rel))
+                    if not start <= log_time <= end:
+                        self.problem("chunk_time_range", f"a message at log_time {log_time} lies outside the "
+                                     f"chunk's range {start}..{end}", offset=offset, log_time=log_time)
+                    self.message(cid, log_time, data[at + MESSAGE_HEADER.size: at + length], offset)
+                elif opcode == Opcode.SCHEMA:
+                    self.add_schema(_read(data[at: at + length], Schema), offset)
+                elif opcode == Opcode.CHANNEL:
+                    self.add_channel(_read(data[at: at + length], Channel), offset)
+        except Exception as err:
+            self.problem("bad_chunk", f"the chunk's records cannot be parsed ({type(err).__name__}: {err})",
+                         offset=offset)
+        return seen
+
+    def message_index(self, offset: int, body: bytes, current: _Seen | None) -> None:
+        if current is None:
+            self.problem("stray_message_index", "a message index record that follows no chunk", offset=offset)
+            return
+        cid, array_len = struct.unpack_from("<HI", body, 0)
+        topic = self.channels[cid].topic if cid in self.channels else f"#{cid}"
+        if 6 + array_len != len(body) or array_len % 16:
+            self.problem("bad_message_index", f"its array length {array_len} does not fit its record", offset=offset,
+                         channel=topic)
+            return
+        current.index_offsets[cid] = offset
+        current.index_end = offset + RECORD_HEADER.size + len(body)
+        entries = sorted(struct.iter_unpack("<QQ", body[6:]))
+        if entries != sorted(current.positions.get(cid, [])):
+            self.problem("message_index_mismatch", f"the message index of the chunk at {current.offset} does not "
+                         "list the chunk's messages of this channel", offset=offset, channel=topic)
+
+    def finish_chunk(self, seen: _Seen) -> None:
+        if not seen.index_offsets:
+            if seen.positions:
+                self.bare_chunks += 1
+            return
+        for cid in sorted(set(seen.positions) - set(seen.index_offsets)):
+            topic = self.channels[cid].topic if cid in self.channels else f"#{cid}"
+            self.problem("message_index_missing", "the chunk has message indexes, but none for this channel",
+                         offset=seen.offset, channel=topic)
+
+    # ------------------------------------------------------------------ messages
+    def state(self, cid: int, offset: int) -> _ChannelState | None:
+        if cid in self.states:
+            return self.states[cid]
+        channel = self.channels.get(cid)
+        if channel is None:
+            if cid not in self.unknown_channels:
+                self.unknown_channels.add(cid)
+                self.problem("unknown_channel", f"messages of channel id {cid}, which no channel record defines",
+                             offset=offset)
+            return None
+        state = self.states[cid] = _ChannelState(channel.topic)
+        schema = self.schemas.get(channel.schema_id)
+        if channel.schema_id != 0 and schema is None:
+            self.problem("missing_schema", f"the channel refers to schema {channel.schema_id}, which is not defined",
+                         offset=offset, channel=channel.topic)
+            return state
+        try:
+            self.prepare(state, schema, channel.message_encoding)
+        except Exception as err:
+            self.problem("bad_schema", f"its schema {schema.name if schema else ''!r} cannot be used to decode "
+                         f"({type(err).__name__}: {err})", offset=offset, channel=channel.topic)
+        return state
+
+    def prepare(self, state: _ChannelState, schema: Schema | None, encoding: str) -> None:
+        if schema is not None and is_image_schema(schema.name):
+            state.decode, state.kind = cached_image_decoder(schema, encoding), "image"
+            if state.decode is not None:
+                return
+        if encoding == "json":
+            state.kind = "json"
+            if schema is not None and schema.encoding == "jsonschema":
+                try:
+                    state.checker = compile_json_schema(json.loads(schema.data))
+                except (ValueError, TypeError, KeyError) as err:
+                    self.problem("schema_not_checked", f"JSON messages are decoded but not checked against schema "
+                                 f"{schema.name!r} ({err})", severity="note", channel=state.topic)
+            return
+        state.decode = message_decoder(schema, encoding)
+        state.kind = "decoded" if state.decode is not None else "bytes"
+        if state.decode is None:
+            self.problem("not_decoded", f"message encoding {encoding!r} with schema "
+                         f"{schema.name if schema else 'none'!r}: starlog checks only the container",
+                         severity="note", channel=state.topic)
+
+    def message(self, cid: int, log_time: int, data: bytes, offset: int) -> None:
+        self.report.messages += 1
+        self.counted[cid] = self.counted.get(cid, 0) + 1
+        self.times = [min(self.times[0], log_time), max(self.times[1], log_time)] if self.times else [log_time] * 2
+        state = self.state(cid, offset)
+        if state is None:
+            return
+        state.count += 1
+        if log_time < state.last:
+            state.out_of_order += 1
+        elif log_time == state.last and state.kind == "image":
+            self.problem("duplicate_frame_time", "two frames at one log_time (stages need strictly increasing "
+                         "frame times)", offset=offset, channel=state.topic, log_time=log_time)
+        state.last = max(state.last, log_time)
+        try:
+            self.content(state, data, offset, log_time)
+        except Exception as err:  # protobuf DecodeError, ROS deserialisation errors, InvalidInputError ...
+            self.problem("decode_error", f"the message does not decode: {type(err).__name__}: {err}", offset=offset,
+                         channel=state.topic, log_time=log_time)
+
+    def content(self, state: _ChannelState, data: bytes, offset: int, log_time: int) -> None:
+        if state.kind == "image" and state.decode is not None:
+            image = state.decode(data).image
+            shape = (image.shape, image.dtype)
+            if image.ndim != 2:
+                self.problem("image_size", "the frame is not a 2-D image", offset=offset, channel=state.topic,
+                             log_time=log_time)
+            elif state.image is None:
+                state.image = shape
+            elif shape != state.image:
+                self.problem("image_size_changed", f"a {image.shape[1]}x{image.shape[0]} {image.dtype} frame in a "
+                             f"channel of {state.image[0][1]}x{state.image[0][0]} {state.image[1]} frames",
+                             offset=offset, channel=state.topic, log_time=log_time)
+        elif state.kind == "json":
+            value = decode_json(data)
+            if state.checker is not None:
+                problem = state.checker(value)
+                if problem:
+                    self.problem("json_schema", f"the message does not match its schema ({problem})", offset=offset,
+                                 channel=state.topic, log_time=log_time)
+        elif state.decode is not None:
+            state.decode(data)
+
+    # ------------------------------------------------------------------ indexes against contents
+    def check_indexes(self) -> None:
+        indexes = self.summary.get("chunk_indexes", [])
+        listed = set()
+        for offset, ci in indexes:
+            listed.add(ci.chunk_start_offset)
+            seen = self.seen.get(ci.chunk_start_offset)
+            if seen is None:
+                self.problem("chunk_index_mismatch", f"a chunk index points at {ci.chunk_start_offset}, where no "
+                             "chunk starts", offset=offset)
+                continue
+            index_length = seen.index_end - min(seen.index_offsets.values()) if seen.index_offsets else 0
+            wrong = [name for name, got, want in [
+                ("chunk_length", ci.chunk_length, seen.length), ("message_start_time", ci.message_start_time, seen.start),
+                ("message_end_time", ci.message_end_time, seen.end), ("compression", ci.compression, seen.compression),
+                ("compressed_size", ci.compressed_size, seen.compressed_size),
+                ("uncompressed_size", ci.uncompressed_size, seen.uncompressed_size),
+                ("message_index_offsets", dict(ci.message_index_offsets), seen.index_offsets),
+                ("message_index_length", ci.message_index_length, index_length)] if got != want]
+            if wrong:
+                self.problem("chunk_index_mismatch", f"the chunk index disagrees with the chunk at "
+                             f"{ci.chunk_start_offset} in {', '.join(wrong)}", offset=offset)
+        unlisted = [o for o in self.seen if o not in listed]
+        if indexes and unlisted:
+            for o in unlisted:
+                self.problem("chunk_not_indexed", "the summary's chunk indexes do not list this chunk", offset=o)
+        elif unlisted and self.summary:
+            self.problem("no_chunk_indexes", f"the summary lists none of the {len(unlisted)} chunks: readers must scan "
+                         "the file", severity="note")
+        names = {o: n for o, n in self.metadata.items()}
+        for offset, mi in self.summary.get("metadata_indexes", []):
+            if names.get(mi.offset) != mi.name:
+                self.problem("metadata_index_mismatch", f"the metadata index {mi.name!r} points at {mi.offset}, where "
+                             "no metadata record of that name is", offset=offset)
+        self.check_statistics()
+
+    def check_statistics(self) -> None:
+        stats: Statistics | None = self.summary.get("statistics")
+        if stats is None:
+            if self.summary:
+                self.problem("no_statistics", "the summary has no statistics record", severity="note")
+            return
+        start, end = self.times or [0, 0]
+        wrong = [name for name, got, want in [
+            ("message_count", stats.message_count, self.report.messages),
+            ("chunk_count", stats.chunk_count, self.report.chunks),
+            ("channel_message_counts", {k: v for k, v in stats.channel_message_counts.items() if v},
+             {k: v for k, v in self.counted.items() if v}),
+            ("message_start_time", stats.message_start_time, start),
+            ("message_end_time", stats.message_end_time, end),
+            ("metadata_count", stats.metadata_count, len(self.metadata))] if got != want]
+        if wrong:
+            self.problem("statistics_mismatch", f"the statistics record disagrees with the file in {', '.join(wrong)}")
+
+    def finish(self) -> None:
+        for cid, channel in sorted(self.channels.items()):
+            if channel.schema_id != 0 and channel.schema_id not in self.schemas and cid not in self.states:
+                self.problem("missing_schema", f"the channel refers to schema {channel.schema_id}, which is not "
+                             "defined", channel=channel.topic)
+        self.check_indexes()
+        if self.bare_chunks:
+            self.problem("no_message_indexes", f"{self.bare_chunks} chunks have no message index records (valid; "
+                         "readers scan those chunks)", severity="note")
+        if self.loose:
+            self.problem("messages_outside_chunks", f"{self.loose} messages are written outside chunks (valid; no "
+                         "index lists them)", severity="note")
+        for state in self.states.values():
+            if state.out_of_order:
+                self.problem("out_of_order", f"{state.out_of_order} messages come before an earlier message of "
+                             "their channel in the file (valid; readers deliver them in log_time order)",
+                             severity="note", channel=state.topic)
+        self.report.channels = len(self.channels)
+
+
+def verify_log(path: str | os.PathLike[str]) -> VerifyReport:
+    """Check every record of the MCAP file at ``path``; never raises for a damaged file."""
+    report = VerifyReport(str(path))
+    try:
+        with open(path, "rb") as f:
+            report.size = size = f.seek(0, os.SEEK_END)
+            verifier = _Verifier(Path(path), f, report)
+            envelope = verifier.envelope(size)
+            if envelope is None:
+                if not report.problems or report.problems[0].kind != "bad_magic":
+                    verifier.walk_data(size, None)  # a cut-off file: still check what is there
+                return report
+            summary_start, summary_offset_start, crc, footer = envelope
+            data_end = verifier.read_summary(summary_start, summary_offset_start, crc, footer)
+            verifier.walk_data(footer if data_end is None else data_end + _DATA_END_LENGTH, data_end)
+            verifier.finish()
+    except OSError as err:
+        report.problems.append(Problem("unreadable", "error", f"the file cannot be read ({err.strerror or err})"))
+    except Exception as err:  # never a traceback: whatever was not foreseen is still reported
+        report.problems.append(Problem("unexpected", "error", f"verification stopped: {type(err).__name__}: {err}"))
+    return report

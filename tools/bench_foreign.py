@@ -1,0 +1,89 @@
+"""Benchmark of reading foreign camera logs: centroid speed by image type, and verify against plain reading.
+
+Prints two tables, every figure measured in this one run on the same simulated frames:
+
+1. centroid frames/s (serial, one method, PSF width given) from the native ``foxglove.RawImage``
+   log, a ROS 2 ``sensor_msgs/msg/Image`` bag (mono16, cdr) and a ``foxglove.CompressedImage``
+   PNG log, with the change against RawImage (the target: no worse than -15 %);
+2. ``starlog verify`` time against streaming every message of the same log with
+   ``LogReader.messages`` (the target: at most 1.5x).
+
+Usage::
+
+    python tools/bench_foreign.py            # 256x256, 300 frames
+    python tools/bench_foreign.py --quick    # 128x128, 100 frames
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.foreign_logs writes the foreign logs
+
+from starlog.io import LogReader  # noqa: E402
+from starlog.io.verify import verify_log  # noqa: E402
+from starlog.sim import SimulationConfig  # noqa: E402
+from starlog.stages import simulate_log  # noqa: E402
+from starlog.stages.centroid import centroid_log  # noqa: E402
+from tests.foreign_logs import write_foxglove_compressed, write_ros2  # noqa: E402
+
+
+def _timed(func) -> float:  # type: ignore[no-untyped-def]
+    start = time.perf_counter()
+    func()
+    return time.perf_counter() - start
+
+
+def bench_centroid(logs: dict[str, Path], frames: int, tmp: Path) -> None:
+    print(f"\ncentroid (MOMENT, serial), {frames} frames")
+    print(f"{'image type':<34} {'frames/s':>9} {'vs RawImage':>12}")
+    base = None
+    for name, path in logs.items():
+        out = tmp / f"cen_{path.stem}.mcap"
+        dt = _timed(lambda: centroid_log(path, out, methods="MOMENT", options={"psf_sigma": 1.3}, force=True))
+        fps = frames / dt
+        base = base or fps
+        print(f"{name:<34} {fps:>9.1f} {100 * (fps / base - 1):>+11.1f}%")
+
+
+def _stream(path: Path) -> None:
+    with LogReader(path) as log:
+        for _ in log.messages(log.topics):
+            pass
+
+
+def bench_verify(logs: dict[str, Path]) -> None:
+    print("\nverify against LogReader.messages (every channel)")
+    print(f"{'log':<34} {'stream s':>9} {'verify s':>9} {'ratio':>6}")
+    for name, path in logs.items():
+        stream = min(_timed(lambda: _stream(path)) for _ in range(2))
+        verify = min(_timed(lambda: verify_log(path)) for _ in range(2))
+        print(f"{name:<34} {stream:>9.3f} {verify:>9.3f} {verify / stream:>6.2f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    size, frames = (128, 100) if args.quick else (256, 300)
+    with tempfile.TemporaryDirectory() as folder:
+        tmp = Path(folder)
+        sim = tmp / "sim.mcap"
+        simulate_log(SimulationConfig(width=size, height=size, n_stars=30, n_frames=frames, seed=2), sim)
+        cen = tmp / "sim_cen.mcap"
+        centroid_log(sim, cen, methods="MOMENT", options={"psf_sigma": 1.3})
+        logs = {
+            "foxglove.RawImage (native)": sim,
+            "sensor_msgs/msg/Image mono16": write_ros2(sim, tmp / "ros2.mcap"),
+            "foxglove.CompressedImage png": write_foxglove_compressed(sim, tmp / "png.mcap"),
+        }
+        bench_centroid(logs, frames, tmp)
+        bench_verify({**logs, "native after centroid": cen})
+
+
+if __name__ == "__main__":
+    main()
