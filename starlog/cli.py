@@ -422,6 +422,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
     strategies with rollback below 1 %, under each protocol. Adds the series before/after and
     one decision record per (rate, protocol) on /compensated/<METHOD>/<MODEL>/decisions.
+    --workers runs the (track, rate, protocol) evaluations in that many processes.
 
     \b
     Example:
@@ -435,7 +436,8 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     except ValueError:
         raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
-                             options=_key_values(settings, "--set"), force=force, compression=compression)
+                             options=_key_values(settings, "--set"), workers=workers, show_progress=not quiet,
+                             force=force, compression=compression)
     if as_json:
         _print_json(summary.to_dict())
     else:

@@ -1,4 +1,4 @@
-"""The paper's experiments, regenerated with one call (DESIGN §3, issue 6).
+"""The paper's experiments, regenerated with one call (paper §3; docs/PAPER.md).
 
 :func:`run_experiment` simulates the two "laboratory" datasets (300 Hz × 3248 frames and
 200 Hz × 3027 frames, :mod:`~starlog.experiment.datasets`), runs the ``centroid``, ``track``

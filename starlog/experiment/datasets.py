@@ -1,4 +1,4 @@
-"""The two simulated "laboratory" datasets of the paper's §3.1 (DESIGN §3).
+"""The two simulated "laboratory" datasets of the paper's §3.1 (docs/PAPER.md).
 
 A static star field seen at 300 Hz (3248 frames) and 200 Hz (3027 frames) by a camera on a
 platform with small perturbations: two sinusoidal vibrations (3.7 Hz, 0.08 px and 17 Hz,
