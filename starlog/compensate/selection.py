@@ -33,12 +33,6 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensate.decomposition import (
-    MIN_SAMPLES,
-    ErrorCategory,
-    ErrorDecomposition,
-    decompose,
-)
 from starlog.compensate._series import (
     as_samples,
     as_series,
@@ -47,6 +41,12 @@ from starlog.compensate._series import (
     improvement,
     parse_choice,
     radial_rms,
+)
+from starlog.compensate.decomposition import (
+    MIN_SAMPLES,
+    ErrorCategory,
+    ErrorDecomposition,
+    decompose,
 )
 from starlog.compensate.references import (
     ReferenceMode,
@@ -431,9 +431,8 @@ def compensate(
     reference_mode : ReferenceMode or str
         ``global_mean`` (paper): ``M`` = mean of ``xy``, selection on all samples.
         ``calibration``: ``M`` = mean of the first ``calibration_fraction`` of ``xy``;
-        ``running_mean``: ``M[n]`` = mean of ``xy[:n]``.  In both leak-free modes the
-        decomposition, scores and rollback see only the calibration segment; the kept
-        strategies are then applied, in order, to the whole series.
+        ``running_mean``: ``M[n]`` = mean of ``xy[:n]`` (leak-free modes: see the module
+        docstring).
     calibration_fraction : float
         In (0, 1); leak-free modes only.
     accuracy_source : AccuracySource or str
@@ -452,7 +451,6 @@ def compensate(
     Returns
     -------
     CompensationResult
-        See the module docstring for the leak-free modes.
     """
     p = as_series(xy)
     n = p.shape[0]
