@@ -413,7 +413,13 @@ def format_records(records: list[dict[str, Any]]) -> str:
               help="Option of starlog.compensate.evaluate (accuracy_source, calibration_fraction, top_k, "
                    "rollback_threshold, leakfree_reference). Repeatable.")
 @json_option
-@write_options
+@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+@click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
+              help="Chunk compression of the output log.")
+@click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
+              help="Processes for the (track, rate, protocol) evaluations; pays off for many of them (reading "
+                   "the tracks dominates otherwise). The output does not depend on it.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str,
                settings: tuple[str, ...], as_json: bool, force: bool, compression: str, workers: int,
                quiet: bool) -> None:
@@ -422,7 +428,6 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
     strategies with rollback below 1 %, under each protocol. Adds the series before/after and
     one decision record per (rate, protocol) on /compensated/<METHOD>/<MODEL>/decisions.
-    --workers runs the (track, rate, protocol) evaluations in that many processes.
 
     \b
     Example:
