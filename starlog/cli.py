@@ -443,7 +443,13 @@ def format_records(records: list[dict[str, Any]]) -> str:
               help="Option of starlog.compensate.evaluate (accuracy_source, calibration_fraction, top_k, "
                    "rollback_threshold, leakfree_reference). Repeatable.")
 @json_option
-@write_options
+@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+@click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
+              help="Chunk compression of the output log.")
+@click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
+              help="Processes for the (track, rate, protocol) evaluations; pays off for many of them (reading "
+                   "the tracks dominates otherwise). The output does not depend on it.")
+@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str,
                settings: tuple[str, ...], as_json: bool, force: bool, compression: str, workers: int,
                quiet: bool) -> None:
@@ -465,7 +471,8 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     except ValueError:
         raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
-                             options=_key_values(settings, "--set"), force=force, compression=compression)
+                             options=_key_values(settings, "--set"), workers=workers, show_progress=not quiet,
+                             force=force, compression=compression)
     _status(quiet, f"wrote {output}: {len(summary.records)} decision records")
     if as_json:
         _print_json(summary.to_dict())

@@ -98,7 +98,7 @@ def _names_used(function: Callable[..., Any]) -> set[str]:
 
 
 #: Options known to be accepted and ignored; remove an entry once the option is used or dropped.
-IGNORED_OPTIONS = {("track", "workers"), ("compensate", "workers")}
+IGNORED_OPTIONS = {("track", "workers")}
 
 OPTIONS = [pytest.param(name, param.name, id=f"{name} {param.opts[-1]}",
                         marks=[pytest.mark.xfail(strict=True, reason=f"{name} {param.opts[-1]} is accepted and ignored")]

@@ -23,7 +23,7 @@ def _xaxis(values: list[float]) -> np.ndarray:
 
 
 @pytest.mark.parametrize(
-    ("fs", "fd", "expected"),
+    ("rate_hz", "fd", "expected"),
     [
         (100.0, 10.0, 5),  # 100 / 20 = 5 -> 5
         (100.0, 20.0, 3),  # 2.5 -> nearest odd 3
@@ -40,19 +40,19 @@ def _xaxis(values: list[float]) -> np.ndarray:
         (30.0, 3.0, 5),  # 5 -> 5
     ],
 )
-def test_trend_window_eq1(fs: float, fd: float, expected: int) -> None:
-    assert S.trend_window(fs=fs, dominant_frequency=fd) == expected
+def test_trend_window_eq1(rate_hz: float, fd: float, expected: int) -> None:
+    assert S.trend_window(rate_hz=rate_hz, dominant_frequency=fd) == expected
 
 
 @pytest.mark.parametrize("fd", [-1.0, float("nan"), float("inf")])
 def test_trend_window_rejects_bad_frequency(fd: float) -> None:
     with pytest.raises(InvalidParameterError, match="dominant_frequency"):
-        S.trend_window(fs=100.0, dominant_frequency=fd)
+        S.trend_window(rate_hz=100.0, dominant_frequency=fd)
 
 
 def test_trend_window_rejects_bad_rate() -> None:
-    with pytest.raises(InvalidParameterError, match="fs"):
-        S.trend_window(fs=0.0, dominant_frequency=1.0)
+    with pytest.raises(InvalidParameterError, match="rate_hz"):
+        S.trend_window(rate_hz=0.0, dominant_frequency=1.0)
 
 
 def test_moving_average_eq2_truncated_edges() -> None:
@@ -64,9 +64,9 @@ def test_moving_average_eq2_truncated_edges() -> None:
 
 
 def test_adaptive_window_trend_eq3_by_hand() -> None:
-    # fs = 100, f_d = 20 -> W = 3; T = [0.5, 1, 2, 5, 6.5]; M = (1, 0); y = x - (T - M).
+    # rate_hz = 100, f_d = 20 -> W = 3; T = [0.5, 1, 2, 5, 6.5]; M = (1, 0); y = x - (T - M).
     x = _xaxis([0.0, 1.0, 2.0, 3.0, 10.0])
-    y = S.adaptive_window_trend(x, fs=100.0, dominant_frequency=20.0, reference=[1.0, 0.0])
+    y = S.adaptive_window_trend(x, rate_hz=100.0, dominant_frequency=20.0, reference=[1.0, 0.0])
     assert_allclose(y[:, 0], [0.5, 1.0, 1.0, -1.0, 4.5], rtol=0, atol=1e-12)
     assert_allclose(y[:, 1], 0.0, rtol=0, atol=1e-12)
 
@@ -206,7 +206,7 @@ def test_confidence_rejects_negative_accuracy() -> None:
 
 def _run(strategy: Strategy, xy: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return S.apply_strategy(
-        strategy, xy, fs=50.0, reference=reference, dominant_frequency=7.0,
+        strategy, xy, rate_hz=50.0, reference=reference, dominant_frequency=7.0,
         flux=np.ones(len(xy)), accuracy=np.zeros(len(xy)),
     )
 
@@ -238,7 +238,7 @@ def test_reference_shape_mismatch_rejected() -> None:
 
 def test_unknown_strategy_rejected() -> None:
     with pytest.raises(InvalidParameterError, match="unknown strategy"):
-        S.apply_strategy("KALMAN", np.zeros((5, 2)), fs=10.0, reference=[0.0, 0.0])
+        S.apply_strategy("KALMAN", np.zeros((5, 2)), rate_hz=10.0, reference=[0.0, 0.0])
 
 
 # --- hypothesis properties ---------------------------------------------------------------------

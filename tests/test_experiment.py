@@ -131,7 +131,7 @@ def test_uncompensated_figures_match_evaluate(protocol: str) -> None:
     truth_fixed = np.array([40.0, 30.0])
     ours = uncompensated_figures(xy, truth_fixed=truth_fixed, truth_series=truth_series)[protocol]
     kw = {} if protocol == "paper" else {"truth_fixed": truth_fixed, "truth_series": truth_series}
-    ev = evaluate(xy, fs=10.0, protocol=protocol, **kw)
+    ev = evaluate(xy, rate_hz=10.0, protocol=protocol, **kw)
     assert [f[0] for f in ours] == [f.reference for f in ev.figures]
     assert_allclose([f[1] for f in ours], [f.rmse_before for f in ev.figures], rtol=0, atol=1e-12)
     assert [f[2] for f in ours] == [f.n_scored for f in ev.figures]

@@ -14,12 +14,10 @@ from starlog.compensate.decimate import (
     decimation_step,
     effective_rate,
 )
-from starlog.compensate.protocols import (
-    FIGURE_DTYPE,
-    Protocol,
-    evaluate,
+from starlog.compensate.protocols import FIGURE_DTYPE, evaluate, rmse
+from starlog.compensate.references import (
+    ScoringProtocol,
     global_mean_reference,
-    rmse,
     running_mean_reference,
 )
 from starlog.errors import InvalidInputError, InvalidParameterError
@@ -126,38 +124,38 @@ def test_decimate_rejects_non_numeric() -> None:
 # --- protocols on a simulated static star ------------------------------------------------------
 
 
-def _static_star(seed: int, n: int = 300, fs: float = 50.0):  # type: ignore[no-untyped-def]
+def _static_star(seed: int, n: int = 300, rate_hz: float = 50.0):  # type: ignore[no-untyped-def]
     """White centroid noise (0.3 px) + small platform jitter (0.05 px) about a fixed point."""
     rng = np.random.default_rng(seed)
-    t = np.arange(n) / fs
+    t = np.arange(n) / rate_hz
     fixed = np.array([512.37, 300.81])
     jitter = 0.05 * np.column_stack(
         [np.sin(2 * np.pi * 3.1 * t), np.cos(2 * np.pi * 3.1 * t + 0.4)]
     )
     truth = fixed + jitter
     xy = truth + rng.normal(0.0, 0.3, size=(n, 2))
-    return xy, fixed, truth, fs
+    return xy, fixed, truth, rate_hz
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_paper_protocol_improves_static_star(seed: int) -> None:
-    xy, _, _, fs = _static_star(seed)
-    ev = evaluate(xy, fs=fs, protocol="paper")
-    assert ev.protocol is Protocol.PAPER
+    xy, _, _, rate_hz = _static_star(seed)
+    ev = evaluate(xy, rate_hz=rate_hz, protocol="paper")
+    assert ev.protocol is ScoringProtocol.PAPER
     assert [f.reference for f in ev.figures] == ["global_mean"]
     assert_allclose(ev.rmse_before, rmse(xy, xy.mean(axis=0)), rtol=0, atol=1e-12)
     assert ev.rmse_after < ev.rmse_before  # the paper's claim
     assert ev.n_scored == len(xy) and ev.scored_start == 0
-    assert ev.result.protocol is Protocol.PAPER
+    assert ev.result.protocol is ScoringProtocol.PAPER
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_truth_and_leakfree_figures_are_computed(seed: int) -> None:
-    xy, fixed, truth, fs = _static_star(seed)
-    paper = evaluate(xy, fs=fs, protocol="paper")
-    tr = evaluate(xy, fs=fs, protocol="truth", truth_fixed=fixed, truth_series=truth)
-    lf = evaluate(xy, fs=fs, protocol="leakfree", truth_fixed=fixed, truth_series=truth)
-    lf_run = evaluate(xy, fs=fs, protocol="leakfree", leakfree_reference="running_mean",
+    xy, fixed, truth, rate_hz = _static_star(seed)
+    paper = evaluate(xy, rate_hz=rate_hz, protocol="paper")
+    tr = evaluate(xy, rate_hz=rate_hz, protocol="truth", truth_fixed=fixed, truth_series=truth)
+    lf = evaluate(xy, rate_hz=rate_hz, protocol="leakfree", truth_fixed=fixed, truth_series=truth)
+    lf_run = evaluate(xy, rate_hz=rate_hz, protocol="leakfree", leakfree_reference="running_mean",
                       truth_series=truth)
     assert [f.reference for f in tr.figures] == ["truth_fixed", "truth_series"]
     assert [f.reference for f in lf.figures] == ["heldout_mean", "truth_fixed", "truth_series"]
@@ -168,7 +166,7 @@ def test_truth_and_leakfree_figures_are_computed(seed: int) -> None:
             assert f.rmse_before > 0
     # truth: same strategy run as the paper (global mean), scored against the truth
     assert_array_equal(tr.result.compensated, paper.result.compensated)
-    assert tr.result.protocol is Protocol.TRUTH
+    assert tr.result.protocol is ScoringProtocol.TRUTH
     assert_allclose(tr.figure("truth_fixed").rmse_before, rmse(xy, fixed), rtol=0, atol=1e-12)
     assert_allclose(tr.figure("truth_series").rmse_after,
                     rmse(tr.result.compensated, truth), rtol=0, atol=1e-12)
@@ -179,12 +177,12 @@ def test_truth_and_leakfree_figures_are_computed(seed: int) -> None:
                     rtol=0, atol=1e-12)
     assert_allclose(lf.figure("truth_series").rmse_after,
                     rmse(lf.result.compensated[150:], truth[150:]), rtol=0, atol=1e-12)
-    assert lf.result.protocol is Protocol.LEAKFREE
+    assert lf.result.protocol is ScoringProtocol.LEAKFREE
 
 
 def test_evaluation_record_json_and_table() -> None:
-    xy, fixed, truth, fs = _static_star(3)
-    ev = evaluate(xy, fs=fs, protocol="leakfree", truth_fixed=fixed, truth_series=truth)
+    xy, fixed, truth, rate_hz = _static_star(3)
+    ev = evaluate(xy, rate_hz=rate_hz, protocol="leakfree", truth_fixed=fixed, truth_series=truth)
     d = ev.to_dict()
     assert json.loads(json.dumps(d, allow_nan=False)) == d
     assert d["protocol"] == "leakfree"
@@ -196,9 +194,9 @@ def test_evaluation_record_json_and_table() -> None:
 
 
 def test_truth_protocol_needs_truth() -> None:
-    xy, _, _, fs = _static_star(4)
+    xy, _, _, rate_hz = _static_star(4)
     with pytest.raises(InvalidParameterError, match="truth"):
-        evaluate(xy, fs=fs, protocol="truth")
+        evaluate(xy, rate_hz=rate_hz, protocol="truth")
 
 
 @pytest.mark.parametrize(
@@ -211,6 +209,6 @@ def test_truth_protocol_needs_truth() -> None:
     ],
 )
 def test_evaluate_rejects(kwargs: dict[str, object], error: type) -> None:
-    xy, _, _, fs = _static_star(5, n=60, fs=10.0)
+    xy, _, _, rate_hz = _static_star(5, n=60, rate_hz=10.0)
     with pytest.raises(error):
-        evaluate(xy, fs=fs, **kwargs)  # type: ignore[arg-type]
+        evaluate(xy, rate_hz=rate_hz, **kwargs)  # type: ignore[arg-type]

@@ -12,7 +12,7 @@ from hypothesis.extra import numpy as hnp
 from numpy.testing import assert_allclose, assert_array_equal
 
 from starlog.compensate.decomposition import ErrorCategory
-from starlog.compensate.protocols import Protocol, ReferenceMode
+from starlog.compensate.references import ReferenceMode, ScoringProtocol
 from starlog.compensate.selection import (
     PASS_DTYPE,
     TABLE_1,
@@ -93,7 +93,7 @@ def _replay(xy: np.ndarray, result) -> np.ndarray:  # type: ignore[no-untyped-de
     for p in result.passes:
         if p.kept:
             out = apply_strategy(
-                p.strategy, out, fs=result.fs, reference=ref,
+                p.strategy, out, rate_hz=result.rate_hz, reference=ref,
                 dominant_frequency=result.decomposition.dominant_frequency,
             )
     return out
@@ -101,7 +101,7 @@ def _replay(xy: np.ndarray, result) -> np.ndarray:  # type: ignore[no-untyped-de
 
 def test_top_three_run_in_score_order_and_record_matches() -> None:
     xy = _noise_series(0, 0.3)
-    res = compensate(xy, fs=50.0)
+    res = compensate(xy, rate_hz=50.0)
     ranked = rank_strategies(res.scores)
     assert res.order == ranked[:3]
     assert tuple(p.strategy for p in res.passes) == res.order
@@ -121,7 +121,7 @@ def test_top_three_run_in_score_order_and_record_matches() -> None:
     assert_allclose(res.rmse_after, current_rmse, rtol=0, atol=1e-12)
     # ... and replaying the kept passes gives the compensated series.
     assert_allclose(res.compensated, _replay(xy, res), rtol=0, atol=1e-12)
-    assert res.protocol is Protocol.PAPER
+    assert res.protocol is ScoringProtocol.PAPER
     assert res.reference_mode is ReferenceMode.GLOBAL_MEAN
     assert res.n_selection == res.n_samples == len(xy)
 
@@ -131,7 +131,7 @@ def test_pass_below_one_percent_is_rolled_back() -> None:
     # variance is ~1e-4 px^2, so eq. 5 gives alpha ~ 1e-4 and local smoothing changes the
     # RMSE by far less than 1 %: it must be rolled back.
     xy = _noise_series(1, 0.01)
-    res = compensate(xy, fs=50.0)
+    res = compensate(xy, rate_hz=50.0)
     by_name = {p.strategy: p for p in res.passes}
     assert res.order[:2] == (Strategy.ADAPTIVE_MEDIAN, Strategy.LOCAL_SMOOTHING)
     smoothing = by_name[Strategy.LOCAL_SMOOTHING]
@@ -144,7 +144,7 @@ def test_pass_below_one_percent_is_rolled_back() -> None:
 
 def test_everything_rolled_back_returns_input() -> None:
     xy = _noise_series(2, 0.2)
-    res = compensate(xy, fs=50.0, rollback_threshold=1.0)
+    res = compensate(xy, rate_hz=50.0, rollback_threshold=1.0)
     assert res.kept == ()
     assert_array_equal(res.compensated, xy)
     assert res.rmse_after == res.rmse_before
@@ -152,21 +152,21 @@ def test_everything_rolled_back_returns_input() -> None:
 
 def test_constant_series_rolls_everything_back() -> None:
     xy = np.full((40, 2), 7.5)
-    res = compensate(xy, fs=10.0)
+    res = compensate(xy, rate_hz=10.0)
     assert res.kept == ()
     assert all(p.effective == 0.0 for p in res.passes)
     assert_array_equal(res.compensated, xy)
 
 
 def test_top_k() -> None:
-    res = compensate(_noise_series(3, 0.2), fs=50.0, top_k=5)
+    res = compensate(_noise_series(3, 0.2), rate_hz=50.0, top_k=5)
     assert len(res.passes) == 5
     assert set(res.order) == set(Strategy)
 
 
 def test_record_is_json_ready_and_table() -> None:
     xy = _noise_series(4, 0.2)
-    res = compensate(xy, fs=50.0, flux=np.linspace(100, 200, len(xy)))
+    res = compensate(xy, rate_hz=50.0, flux=np.linspace(100, 200, len(xy)))
     d = res.to_dict()
     text = json.dumps(d, allow_nan=False)
     assert json.loads(text) == d
@@ -185,7 +185,7 @@ def test_input_not_mutated() -> None:
     flux = np.linspace(1.0, 2.0, len(xy))
     sigma = np.full(len(xy), 0.01)
     copies = (xy.copy(), flux.copy(), sigma.copy())
-    res = compensate(xy, fs=50.0, flux=flux, sigma=sigma, accuracy_source="sigma")
+    res = compensate(xy, rate_hz=50.0, flux=flux, sigma=sigma, accuracy_source="sigma")
     for a, b in zip((xy, flux, sigma), copies):
         assert_array_equal(a, b)
     assert res.compensated is not xy
@@ -197,14 +197,14 @@ def test_leakfree_selection_never_sees_held_out_samples(mode: ReferenceMode) -> 
     other = xy.copy()
     rng = np.random.default_rng(60)
     other[100:] += rng.normal(0.0, 1.0, size=(100, 2)) + 5.0  # change only the held-out part
-    a = compensate(xy, fs=50.0, reference_mode=mode, calibration_fraction=0.5)
-    b = compensate(other, fs=50.0, reference_mode=mode, calibration_fraction=0.5)
+    a = compensate(xy, rate_hz=50.0, reference_mode=mode, calibration_fraction=0.5)
+    b = compensate(other, rate_hz=50.0, reference_mode=mode, calibration_fraction=0.5)
     assert a.n_selection == b.n_selection == 100
     assert a.decomposition.n_samples == 100
     assert a.scores == b.scores
     assert a.passes == b.passes
     assert a.reference_point == b.reference_point
-    assert a.protocol is Protocol.LEAKFREE
+    assert a.protocol is ScoringProtocol.LEAKFREE
     if mode is ReferenceMode.CALIBRATION:
         assert_allclose(a.reference_point, xy[:100].mean(axis=0), rtol=0, atol=1e-12)
     else:
@@ -230,12 +230,12 @@ def test_leakfree_selection_never_sees_held_out_samples(mode: ReferenceMode) -> 
 )
 def test_bad_arguments(kwargs: dict[str, object], error: type, match: str) -> None:
     with pytest.raises(error, match=match):
-        compensate(_noise_series(7, 0.1, n=60), fs=10.0, **kwargs)  # type: ignore[arg-type]
+        compensate(_noise_series(7, 0.1, n=60), rate_hz=10.0, **kwargs)  # type: ignore[arg-type]
 
 
 def test_too_short_rejected() -> None:
     with pytest.raises(InvalidInputError, match="at least 16"):
-        compensate(np.zeros((15, 2)), fs=10.0)
+        compensate(np.zeros((15, 2)), rate_hz=10.0)
 
 
 @settings(max_examples=30, deadline=None)
@@ -248,7 +248,7 @@ def test_too_short_rejected() -> None:
 )
 def test_compensate_properties(xy: np.ndarray) -> None:
     original = xy.copy()
-    res = compensate(xy, fs=25.0)
+    res = compensate(xy, rate_hz=25.0)
     assert res.compensated.shape == xy.shape
     assert np.isfinite(res.compensated).all()
     assert_array_equal(xy, original)

@@ -1,14 +1,18 @@
 """Error decomposition and adaptive multi-strategy compensation of centroid series.
 
 The paper's contribution (§2.2–2.5) as plain numpy/scipy algorithms on (N, 2) position series
-in pixels (x = column, y = row, (0, 0) at the centre of the top-left pixel):
+in pixels (x = column, y = row, (0, 0) at the centre of the top-left pixel).  Modules, each
+importing only those above it:
 
+* :mod:`~starlog.compensate._series` — input validation, eq. 15 of a residual, eq. 13;
 * :mod:`~starlog.compensate.decimate` — equidistant decimation to 10–100 Hz;
+* :mod:`~starlog.compensate.references` — the ``paper`` / ``truth`` / ``leakfree`` scoring
+  protocols and the reference ``M`` each gives the strategies;
 * :mod:`~starlog.compensate.decomposition` — the five error categories and ``f_d``;
 * :mod:`~starlog.compensate.strategies` — the five compensation strategies (eq. 1–11);
 * :mod:`~starlog.compensate.selection` — scores (eq. 12), top-three run with rollback (eq. 13);
-* :mod:`~starlog.compensate.protocols` — RMSE (eq. 15), the ``paper`` / ``truth`` /
-  ``leakfree`` evaluation protocols.
+* :mod:`~starlog.compensate.protocols` — RMSE (eq. 15), the figures of each protocol and
+  :func:`evaluate`.
 """
 
 from __future__ import annotations
@@ -28,15 +32,19 @@ from starlog.compensate.decomposition import (
 )
 from starlog.compensate.protocols import (
     FIGURE_DTYPE,
-    AccuracySource,
     Evaluation,
-    Protocol,
-    ReferenceMode,
     RmseFigure,
     evaluate,
-    global_mean_reference,
+    protocol_figures,
     rmse,
+)
+from starlog.compensate.references import (
+    ReferenceMode,
+    ScoringProtocol,
+    global_mean_reference,
+    protocols_for,
     running_mean_reference,
+    scored_start,
 )
 from starlog.compensate.selection import (
     PASS_DTYPE,
@@ -50,6 +58,7 @@ from starlog.compensate.selection import (
 )
 from starlog.compensate.strategies import (
     AR_THETA,
+    AccuracySource,
     Strategy,
     adaptive_median,
     adaptive_window_trend,
@@ -73,9 +82,9 @@ __all__ = [
     "ErrorCategory",
     "ErrorDecomposition",
     "Evaluation",
-    "Protocol",
     "ReferenceMode",
     "RmseFigure",
+    "ScoringProtocol",
     "SpectralPeak",
     "Strategy",
     "StrategyProfile",
@@ -94,9 +103,12 @@ __all__ = [
     "evaluate",
     "global_mean_reference",
     "local_smoothing",
+    "protocol_figures",
+    "protocols_for",
     "rank_strategies",
     "rmse",
     "running_mean_reference",
+    "scored_start",
     "strategy_scores",
     "trend_window",
 ]

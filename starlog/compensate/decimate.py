@@ -7,7 +7,7 @@ sampling intervals".  starlog keeps every ``k``-th sample:
 * kept indices ``start, start + k, start + 2k, ...`` (``start`` = 0 by default);
 * the effective rate is ``f_native / k`` — which differs from the target when ``f_native`` is
   not a multiple of it (300 Hz -> 40 Hz: ``k = 8``, 37.5 Hz; 200 Hz -> 30 Hz: ``k = 7``,
-  28.571... Hz).  Use the effective rate as ``fs`` downstream.
+  28.571... Hz).  Use the effective rate as ``rate_hz`` downstream.
 
 No anti-alias filter is applied (the paper's "equidistant sampling" keeps raw samples).
 A target rate above the native rate is rejected; the 10–100 Hz range of the paper is not
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensate.protocols import _check_rate
+from starlog.compensate._series import check_rate
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = ["decimate", "decimation_indices", "decimation_step", "effective_rate"]
@@ -48,8 +48,8 @@ def decimation_step(*, native_rate: float, target_rate: float) -> int:
     InvalidParameterError
         When a rate is not a finite positive number or ``target_rate > native_rate``.
     """
-    fn = _check_rate(native_rate, name="native_rate")
-    ft = _check_rate(target_rate, name="target_rate")
+    fn = check_rate(native_rate, name="native_rate")
+    ft = check_rate(target_rate, name="target_rate")
     if ft > fn:
         raise InvalidParameterError(
             f"target_rate {ft} Hz is above the native rate {fn} Hz; decimation can only lower "

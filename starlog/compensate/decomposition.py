@@ -8,7 +8,7 @@ on what the previous ones left:
    fitted by least squares to each axis.
 2. **SYSTEMATIC_HIGH_FREQ** — spectral peaks standing clearly above the broadband floor.  The
    periodogram ``P(f) = |X_x(f)|^2 + |X_y(f)|^2`` of the detrended residual is searched for
-   ``f >= min_peak_frequency`` (default 4 frequency bins, ``4 fs / N``: anything slower is
+   ``f >= min_peak_frequency`` (default 4 frequency bins, ``4 rate_hz / N``: anything slower is
    trend) and below Nyquist.  The broadband floor at each bin is a running median of ``P`` over
    ``+-max(8, n_bins // 16)`` bins divided by 1.678 (the median of a Gamma(2, 1) variable, the
    law of ``P`` for white noise); a local floor keeps a red, drifting spectrum (e.g. AR noise)
@@ -54,7 +54,7 @@ import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import optimize, stats
 
-from starlog.compensate.protocols import _as_reference, _as_series, _check_rate, _radial_rms
+from starlog.compensate._series import as_reference, as_series, check_int, check_rate, radial_rms
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = [
@@ -111,7 +111,7 @@ class ErrorDecomposition:
         SYSTEMATIC_HIGH_FREQ: True when at least one peak was found).
     total_rms : float
         Radial RMS of ``e`` itself, px.
-    fs : float
+    rate_hz : float
         Sampling rate, Hz.
     n_samples : int
         Length of the series.
@@ -126,7 +126,7 @@ class ErrorDecomposition:
     peaks: tuple[SpectralPeak, ...] = ()
     significant: dict[ErrorCategory, bool] = field(default_factory=dict)
     total_rms: float = 0.0
-    fs: float = 0.0
+    rate_hz: float = 0.0
     n_samples: int = 0
     trend_degree: int = 3
     ar_order: int = 2
@@ -137,7 +137,7 @@ class ErrorDecomposition:
 
         Layout: ``{"magnitudes": {CATEGORY: px}, "significant": {CATEGORY: bool},
         "dominant_frequency": Hz, "peaks": [{"frequency": Hz, "magnitude": px}],
-        "total_rms": px, "fs": Hz, "n_samples": int, "trend_degree": int, "ar_order": int,
+        "total_rms": px, "fs": Hz (the sampling rate), "n_samples": int, "trend_degree": int, "ar_order": int,
         "ar_coefficients": {"x": [...], "y": [...]}}``.
         """
         return {
@@ -149,7 +149,7 @@ class ErrorDecomposition:
                 for p in self.peaks
             ],
             "total_rms": float(self.total_rms),
-            "fs": float(self.fs),
+            "fs": float(self.rate_hz),
             "n_samples": int(self.n_samples),
             "trend_degree": int(self.trend_degree),
             "ar_order": int(self.ar_order),
@@ -173,13 +173,13 @@ def _periodogram_power(
 
 
 def _strongest_peak(
-    r: npt.NDArray[np.float64], fs: float, fmin: float, false_alarm: float
+    r: npt.NDArray[np.float64], rate_hz: float, fmin: float, false_alarm: float
 ) -> float | None:
     n = r.shape[0]
     spec = np.fft.rfft(r, axis=0)
     power = np.sum(np.abs(spec) ** 2, axis=1)
-    freqs = np.fft.rfftfreq(n, d=1.0 / fs)
-    sel = (freqs >= fmin) & (freqs > 0) & (freqs < 0.5 * fs * (1 - 1e-12))
+    freqs = np.fft.rfftfreq(n, d=1.0 / rate_hz)
+    sel = (freqs >= fmin) & (freqs > 0) & (freqs < 0.5 * rate_hz * (1 - 1e-12))
     if np.count_nonzero(sel) < 3:
         return None
     p_sel = power[sel]
@@ -201,10 +201,10 @@ def _strongest_peak(
 
 def _refine(
     r: npt.NDArray[np.float64], t: npt.NDArray[np.float64], f0: float, df: float,
-    fmin: float, fs: float,
+    fmin: float, rate_hz: float,
 ) -> float:
     lo = max(f0 - df, fmin, 1e-12)
-    hi = min(f0 + df, 0.5 * fs * (1 - 1e-9))
+    hi = min(f0 + df, 0.5 * rate_hz * (1 - 1e-9))
     if hi <= lo:
         return f0
     res = optimize.minimize_scalar(
@@ -226,98 +226,67 @@ def _f_significant(ss: float, q: int, ss_w: float, dof_w: int, false_alarm: floa
     return bool(stat > stats.f.isf(false_alarm, q, dof_w))
 
 
-def decompose(
-    xy: npt.ArrayLike,
-    *,
-    fs: float,
-    reference: npt.ArrayLike | None = None,
-    trend_degree: int = 3,
-    max_peaks: int = 5,
-    min_peak_frequency: float | None = None,
-    scurve_harmonics: int = 2,
-    ar_order: int = 2,
-    false_alarm: float = 0.01,
-) -> ErrorDecomposition:
-    """Decompose ``e = xy - reference`` into the five error categories (§2.2).
+@dataclass(frozen=True)
+class _Settings:
+    """Validated model orders and thresholds of :func:`decompose`."""
 
-    Parameters
-    ----------
-    xy : (N, 2) array_like
-        Positions, px (x = column, y = row).  ``N >= MIN_SAMPLES`` (16).
-    fs : float
-        Sampling rate, Hz.
-    reference : (2,) or (N, 2) array_like, optional
-        Reference positions; default the global mean of ``xy`` (the paper's truth).
-    trend_degree : int
-        Degree of the Legendre trend polynomial (0..8), default 3.
-    max_peaks : int
-        Most periodic peaks fitted (>= 0), default 5.
-    min_peak_frequency : float, optional
-        Lowest frequency searched for peaks, Hz; default ``4 fs / N``.
-    scurve_harmonics : int
-        Harmonics of the sub-pixel phase in the S-curve regression (>= 1), default 2.
-    ar_order : int
-        Order of the AR model of the final residual (>= 1), default 2.
-    false_alarm : float
-        Probability of a false detection for the peak search and the F-tests, in (0, 0.5).
+    trend_degree: int
+    max_peaks: int
+    scurve_harmonics: int
+    ar_order: int
+    false_alarm: float
+    min_peak_frequency: float
 
-    Returns
-    -------
-    ErrorDecomposition
-        See the module docstring for the method.
-    """
-    p = _as_series(xy)
-    n = p.shape[0]
-    if n < MIN_SAMPLES:
-        raise InvalidInputError(
-            f"the error decomposition needs at least {MIN_SAMPLES} samples; got {n}."
-        )
-    fs = _check_rate(fs)
-    for name, value, lo, hi in (
-        ("trend_degree", trend_degree, 0, 8),
-        ("max_peaks", max_peaks, 0, 50),
-        ("scurve_harmonics", scurve_harmonics, 1, 8),
-        ("ar_order", ar_order, 1, 8),
-    ):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not (
-            lo <= value <= hi
-        ):
-            raise InvalidParameterError(
-                f"{name} must be an integer in [{lo}, {hi}]; got {value!r}."
-            )
+
+def _check_settings(n: int, rate_hz: float, *, trend_degree: int, max_peaks: int,
+                    min_peak_frequency: float | None, scurve_harmonics: int, ar_order: int,
+                    false_alarm: float) -> _Settings:
+    degree = check_int(trend_degree, name="trend_degree", lo=0, hi=8)
+    peaks = check_int(max_peaks, name="max_peaks", lo=0, hi=50)
+    harmonics = check_int(scurve_harmonics, name="scurve_harmonics", lo=1, hi=8)
+    order = check_int(ar_order, name="ar_order", lo=1, hi=8)
     fa = float(false_alarm)
     if not 0.0 < fa < 0.5:
         raise InvalidParameterError(f"false_alarm must be in (0, 0.5); got {false_alarm!r}.")
-    ref = (
-        np.broadcast_to(p.mean(axis=0), (n, 2)).copy()
-        if reference is None
-        else _as_reference(reference, n)
-    )
-    e = p - ref
-    df = fs / n
-    fmin = 4.0 * df if min_peak_frequency is None else float(min_peak_frequency)
+    fmin = 4.0 * (rate_hz / n) if min_peak_frequency is None else float(min_peak_frequency)
     if not math.isfinite(fmin) or fmin < 0:
         raise InvalidParameterError(
             f"min_peak_frequency must be >= 0 Hz; got {min_peak_frequency!r}."
         )
+    return _Settings(trend_degree=degree, max_peaks=peaks, scurve_harmonics=harmonics,
+                     ar_order=order, false_alarm=fa, min_peak_frequency=fmin)
 
-    t = np.arange(n, dtype=np.float64) / fs
-    u = np.linspace(-1.0, 1.0, n)
-    poly = np.polynomial.legendre.legvander(u, int(trend_degree))
+
+@dataclass(frozen=True)
+class _TrendAndPeaks:
+    """Stages 1 and 2: the joint least-squares design, its residual, and each component."""
+
+    design: npt.NDArray[np.float64]
+    resid: npt.NDArray[np.float64]
+    trend: npt.NDArray[np.float64]
+    frequencies: list[float]
+    peak_series: list[npt.NDArray[np.float64]]
+    periodic: npt.NDArray[np.float64]
+
+
+def _fit_trend_and_peaks(e: npt.NDArray[np.float64], rate_hz: float, cfg: _Settings) -> _TrendAndPeaks:
+    """Legendre trend plus up to ``max_peaks`` sinusoids, refitted jointly after each peak."""
+    n = e.shape[0]
+    df = rate_hz / n
+    t = np.arange(n, dtype=np.float64) / rate_hz
+    poly = np.polynomial.legendre.legvander(np.linspace(-1.0, 1.0, n), cfg.trend_degree)
     n_poly = poly.shape[1]
     # Leave room for the S-curve and AR regressors and for the noise estimate.
-    max_cols = max(n_poly, n // 2 - 2 * int(scurve_harmonics) - int(ar_order))
-
-    # --- stages 1 and 2: trend and periodic peaks, fitted jointly --------------------------
+    max_cols = max(n_poly, n // 2 - 2 * cfg.scurve_harmonics - cfg.ar_order)
     design = poly
     coef = _lstsq(design, e)
     resid = e - design @ coef
     freqs: list[float] = []
-    while len(freqs) < max_peaks and design.shape[1] + 2 <= max_cols:
-        f0 = _strongest_peak(resid, fs, fmin, fa)
+    while len(freqs) < cfg.max_peaks and design.shape[1] + 2 <= max_cols:
+        f0 = _strongest_peak(resid, rate_hz, cfg.min_peak_frequency, cfg.false_alarm)
         if f0 is None:
             break
-        f = _refine(resid, t, f0, df, fmin, fs)
+        f = _refine(resid, t, f0, df, cfg.min_peak_frequency, rate_hz)
         if any(abs(f - g) < df for g in freqs):
             break
         freqs.append(f)
@@ -325,17 +294,19 @@ def decompose(
         design = np.hstack([design, cols])
         coef = _lstsq(design, e)
         resid = e - design @ coef
-    trend = poly @ coef[:n_poly]
     peak_series = [
         design[:, n_poly + 2 * i : n_poly + 2 * i + 2] @ coef[n_poly + 2 * i : n_poly + 2 * i + 2]
         for i in range(len(freqs))
     ]
     periodic = np.sum(peak_series, axis=0) if peak_series else np.zeros_like(e)
+    return _TrendAndPeaks(design=design, resid=resid, trend=poly @ coef[:n_poly], frequencies=freqs,
+                          peak_series=peak_series, periodic=periodic)
 
-    # --- stage 3: S-curve on the sub-pixel phase of the smooth position --------------------
-    smooth = ref + trend + periodic
-    phase = smooth - np.round(smooth)
-    scurve = np.zeros_like(e)
+
+def _fit_scurve(resid: npt.NDArray[np.float64], design: npt.NDArray[np.float64],
+                phase: npt.NDArray[np.float64], harmonics: int) -> tuple[npt.NDArray[np.float64], int]:
+    """Stage 3: the S-curve series (N, 2) and its number of coefficients (both axes)."""
+    scurve = np.zeros_like(resid)
     q_scurve = 0
     pinv_design = np.linalg.pinv(design)
     # The S-curve is identifiable only where the phase visits enough of the pixel.
@@ -344,7 +315,7 @@ def decompose(
         if resultant[axis] > _MAX_PHASE_RESULTANT:
             continue
         cols_list = []
-        for k in range(1, int(scurve_harmonics) + 1):
+        for k in range(1, harmonics + 1):
             cols_list.append(np.sin(2 * np.pi * k * phase[:, axis]))
             cols_list.append(np.cos(2 * np.pi * k * phase[:, axis]))
         s_cols = np.column_stack(cols_list)
@@ -361,45 +332,122 @@ def decompose(
         beta = _lstsq(s_use, resid[:, axis])
         scurve[:, axis] = s_use @ beta
         q_scurve += rank
-    resid2 = resid - scurve
+    return scurve, q_scurve
 
-    # --- stage 4: AR-predictable part of what is left ----------------------------------------
-    order = int(ar_order)
-    predicted = np.zeros_like(e)
-    ar_coefs: list[tuple[float, ...]] = []
+
+def _fit_ar(resid: npt.NDArray[np.float64], order: int
+            ) -> tuple[npt.NDArray[np.float64], tuple[tuple[float, ...], tuple[float, ...]]]:
+    """Stage 4: the one-step AR(``order``) prediction (N, 2) of each axis, and the coefficients."""
+    n = resid.shape[0]
+    predicted = np.zeros_like(resid)
+    coefs: list[tuple[float, ...]] = []
     for axis in range(2):
-        r = resid2[:, axis]
+        r = resid[:, axis]
         lagged = np.column_stack([r[order - i - 1 : n - i - 1] for i in range(order)])
         a = _lstsq(lagged, r[order:])
         predicted[order:, axis] = lagged @ a
-        ar_coefs.append(tuple(float(v) for v in a))
-    white = resid2 - predicted
+        coefs.append(tuple(float(v) for v in a))
+    return predicted, (coefs[0], coefs[1])
 
-    # --- significance (F-tests against the white remainder) ----------------------------------
+
+def decompose(
+    xy: npt.ArrayLike,
+    *,
+    rate_hz: float,
+    reference: npt.ArrayLike | None = None,
+    trend_degree: int = 3,
+    max_peaks: int = 5,
+    min_peak_frequency: float | None = None,
+    scurve_harmonics: int = 2,
+    ar_order: int = 2,
+    false_alarm: float = 0.01,
+) -> ErrorDecomposition:
+    """Decompose ``e = xy - reference`` into the five error categories (§2.2).
+
+    Parameters
+    ----------
+    xy : (N, 2) array_like
+        Positions, px (x = column, y = row).  ``N >= MIN_SAMPLES`` (16).
+    rate_hz : float
+        Sampling rate, Hz.
+    reference : (2,) or (N, 2) array_like, optional
+        Reference positions; default the global mean of ``xy`` (the paper's truth).
+    trend_degree : int
+        Degree of the Legendre trend polynomial (0..8), default 3.
+    max_peaks : int
+        Most periodic peaks fitted (0..50), default 5.
+    min_peak_frequency : float, optional
+        Lowest frequency searched for peaks, Hz; default ``4 rate_hz / N``.
+    scurve_harmonics : int
+        Harmonics of the sub-pixel phase in the S-curve regression (1..8), default 2.
+    ar_order : int
+        Order of the AR model of the final residual (1..8), default 2.
+    false_alarm : float
+        Probability of a false detection for the peak search and the F-tests, in (0, 0.5).
+
+    Returns
+    -------
+    ErrorDecomposition
+        See the module docstring for the method.
+    """
+    p = as_series(xy)
+    n = p.shape[0]
+    if n < MIN_SAMPLES:
+        raise InvalidInputError(
+            f"the error decomposition needs at least {MIN_SAMPLES} samples; got {n}."
+        )
+    rate_hz = check_rate(rate_hz)
+    cfg = _check_settings(n, rate_hz, trend_degree=trend_degree, max_peaks=max_peaks,
+                          min_peak_frequency=min_peak_frequency, scurve_harmonics=scurve_harmonics,
+                          ar_order=ar_order, false_alarm=false_alarm)
+    ref = (
+        np.broadcast_to(p.mean(axis=0), (n, 2)).copy()
+        if reference is None
+        else as_reference(reference, n)
+    )
+    e = p - ref
+    fit = _fit_trend_and_peaks(e, rate_hz, cfg)
+    smooth = ref + fit.trend + fit.periodic  # where the image is, without measurement noise
+    scurve, q_scurve = _fit_scurve(fit.resid, fit.design, smooth - np.round(smooth),
+                                   cfg.scurve_harmonics)
+    predicted, ar_coefs = _fit_ar(fit.resid - scurve, cfg.ar_order)
+    white = fit.resid - scurve - predicted
+    return _categorise(e, fit, scurve, q_scurve, predicted, white, rate_hz=rate_hz, cfg=cfg,
+                       ar_coefs=ar_coefs)
+
+
+def _categorise(e: npt.NDArray[np.float64], fit: _TrendAndPeaks, scurve: npt.NDArray[np.float64],
+                q_scurve: int, predicted: npt.NDArray[np.float64], white: npt.NDArray[np.float64], *,
+                rate_hz: float, cfg: _Settings,
+                ar_coefs: tuple[tuple[float, ...], tuple[float, ...]]) -> ErrorDecomposition:
+    """F-test each component against the white remainder and measure the five categories."""
+    n = e.shape[0]
+    order = cfg.ar_order
+    n_poly = cfg.trend_degree + 1
+    fa = cfg.false_alarm
     ss_w = float(np.sum(white**2))
-    n_params = 2 * design.shape[1] + q_scurve + 2 * order
+    n_params = 2 * fit.design.shape[1] + q_scurve + 2 * order
     dof_w = max(1, 2 * n - n_params)
-    sig_trend = _f_significant(float(np.sum(trend**2)), 2 * n_poly, ss_w, dof_w, fa)
+    sig_trend = _f_significant(float(np.sum(fit.trend**2)), 2 * n_poly, ss_w, dof_w, fa)
     sig_scurve = _f_significant(float(np.sum(scurve**2)), q_scurve, ss_w, dof_w, fa)
     sig_ar = _f_significant(float(np.sum(predicted**2)), 2 * order, ss_w, dof_w, fa)
     noise = white.copy()
     if not sig_trend:
-        noise += trend
+        noise += fit.trend
     if not sig_scurve:
         noise += scurve
     if not sig_ar:
         noise += predicted
 
-    peaks = tuple(
-        SpectralPeak(frequency=f, magnitude=_radial_rms(s)) for f, s in zip(freqs, peak_series)
-    )
+    peaks = tuple(SpectralPeak(frequency=f, magnitude=radial_rms(s))
+                  for f, s in zip(fit.frequencies, fit.peak_series))
     f_d = max(peaks, key=lambda pk: pk.magnitude).frequency if peaks else 0.0
     magnitudes = {
-        ErrorCategory.SYSTEMATIC_LOW_FREQ: _radial_rms(trend) if sig_trend else 0.0,
-        ErrorCategory.SYSTEMATIC_HIGH_FREQ: _radial_rms(periodic),
-        ErrorCategory.MEASUREMENT_NOISE: _radial_rms(noise),
-        ErrorCategory.RANDOM_QUANTIZATION: _radial_rms(scurve) if sig_scurve else 0.0,
-        ErrorCategory.MODEL_MISMATCH: _radial_rms(predicted) if sig_ar else 0.0,
+        ErrorCategory.SYSTEMATIC_LOW_FREQ: radial_rms(fit.trend) if sig_trend else 0.0,
+        ErrorCategory.SYSTEMATIC_HIGH_FREQ: radial_rms(fit.periodic),
+        ErrorCategory.MEASUREMENT_NOISE: radial_rms(noise),
+        ErrorCategory.RANDOM_QUANTIZATION: radial_rms(scurve) if sig_scurve else 0.0,
+        ErrorCategory.MODEL_MISMATCH: radial_rms(predicted) if sig_ar else 0.0,
     }
     significant = {
         ErrorCategory.SYSTEMATIC_LOW_FREQ: sig_trend,
@@ -413,10 +461,10 @@ def decompose(
         dominant_frequency=float(f_d),
         peaks=peaks,
         significant=significant,
-        total_rms=_radial_rms(e),
-        fs=fs,
+        total_rms=radial_rms(e),
+        rate_hz=rate_hz,
         n_samples=n,
-        trend_degree=int(trend_degree),
+        trend_degree=cfg.trend_degree,
         ar_order=order,
-        ar_coefficients=(ar_coefs[0], ar_coefs[1]),
+        ar_coefficients=ar_coefs,
     )

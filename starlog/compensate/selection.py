@@ -14,6 +14,14 @@ applied to the output of the previous kept pass, with the decomposition (``f_d``
 input; after each pass eq. 13 ``Effective = (RMSE_before - RMSE_after) / RMSE_before`` is
 computed about the selection reference (eq. 15), and the pass is rolled back when
 ``Effective < rollback_threshold`` (1 %).  ``RMSE_before = 0`` counts as ``Effective = 0``.
+
+Leak-free reference modes (:class:`~starlog.compensate.references.ReferenceMode`): the
+decomposition, the scores and the rollback see only the calibration segment, then the kept
+strategies run, in order, on the whole series.  The strategies are filters of the measurements
+and may use neighbouring samples (the centred windows of strategies 1–3 reach up to 5 samples
+ahead); only the reference ``M`` is restricted to the past.  During selection the flux of
+eq. 10 is normalised by the calibration segment's maximum, in the final pass by the whole
+sequence's (its weight, ``I / 100``, is at most 0.01).
 """
 
 from __future__ import annotations
@@ -25,24 +33,28 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from starlog.compensate._series import (
+    as_samples,
+    as_series,
+    check_int,
+    check_rate,
+    improvement,
+    parse_choice,
+    radial_rms,
+)
 from starlog.compensate.decomposition import (
     MIN_SAMPLES,
     ErrorCategory,
     ErrorDecomposition,
     decompose,
 )
-from starlog.compensate.protocols import (
-    AccuracySource,
-    Protocol,
+from starlog.compensate.references import (
     ReferenceMode,
-    _as_samples,
-    _as_series,
-    _check_rate,
-    _radial_rms,
-    calibration_length,
-    running_mean_reference,
+    ScoringProtocol,
+    SelectionReference,
+    selection_reference,
 )
-from starlog.compensate.strategies import Strategy, apply_strategy
+from starlog.compensate.strategies import AccuracySource, Strategy, apply_strategy
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = [
@@ -205,8 +217,8 @@ class CompensationResult:
         Strategies run, in order (the ``top_k`` best).
     passes : tuple of CompensationPass
         One record per strategy run (scores, RMSEs, eq. 13, kept / rolled back).
-    protocol : Protocol
-        The evaluation protocol the run belongs to.
+    protocol : ScoringProtocol
+        The scoring protocol the run belongs to.
     reference_mode : ReferenceMode
         How the reference ``M`` was built.
     reference_point : tuple of float or None
@@ -220,7 +232,7 @@ class CompensationResult:
     rmse_before, rmse_after : float
         Eq. 15 on the selection samples about the selection reference before the first pass
         and after the last kept pass, px.
-    fs : float
+    rate_hz : float
         Sampling rate, Hz.
     top_k : int
     rollback_threshold : float
@@ -233,14 +245,14 @@ class CompensationResult:
     scores: dict[Strategy, float]
     order: tuple[Strategy, ...]
     passes: tuple[CompensationPass, ...]
-    protocol: Protocol
+    protocol: ScoringProtocol
     reference_mode: ReferenceMode
     reference_point: tuple[float, float] | None
     n_samples: int
     n_selection: int
     rmse_before: float
     rmse_after: float
-    fs: float
+    rate_hz: float
     top_k: int
     rollback_threshold: float
     accuracy_source: AccuracySource
@@ -265,8 +277,9 @@ class CompensationResult:
         "n_samples", "n_selection", "fs", "top_k", "rollback_threshold", "accuracy_source",
         "rmse_before", "rmse_after", "scores": {STRATEGY: score}, "order": [STRATEGY, ...],
         "kept": [STRATEGY, ...], "passes": [PASS_DTYPE dict, ...],
-        "decomposition": ErrorDecomposition.to_dict()}``.  The compensated series itself is
-        not included (it is the per-sample output).
+        "decomposition": ErrorDecomposition.to_dict()}``, with ``fs`` the sampling rate
+        :attr:`rate_hz` (the log format's key).  The compensated series itself is not included
+        (it is the per-sample output).
         """
         return {
             "protocol": str(self.protocol),
@@ -276,7 +289,7 @@ class CompensationResult:
             else [float(v) for v in self.reference_point],
             "n_samples": self.n_samples,
             "n_selection": self.n_selection,
-            "fs": self.fs,
+            "fs": self.rate_hz,
             "top_k": self.top_k,
             "rollback_threshold": self.rollback_threshold,
             "accuracy_source": str(self.accuracy_source),
@@ -290,10 +303,107 @@ class CompensationResult:
         }
 
 
+@dataclass(frozen=True)
+class _Settings:
+    """The validated options of :func:`compensate`."""
+
+    mode: ReferenceMode
+    accuracy_source: AccuracySource
+    protocol: ScoringProtocol
+    top_k: int
+    rollback_threshold: float
+
+
+def _check_settings(reference_mode: ReferenceMode | str, accuracy_source: AccuracySource | str,
+                    protocol: ScoringProtocol | str | None, top_k: int, rollback_threshold: float,
+                    n_strategies: int) -> _Settings:
+    mode = parse_choice(ReferenceMode, reference_mode, name="reference_mode")
+    acc_src = parse_choice(AccuracySource, accuracy_source, name="accuracy_source")
+    if protocol is None:
+        proto = ScoringProtocol.PAPER if mode is ReferenceMode.GLOBAL_MEAN else ScoringProtocol.LEAKFREE
+    else:
+        proto = parse_choice(ScoringProtocol, protocol, name="protocol")
+    if (proto is ScoringProtocol.LEAKFREE) != (mode is not ReferenceMode.GLOBAL_MEAN):
+        raise InvalidParameterError(
+            f"protocol {proto.value!r} does not go with reference_mode {mode.value!r}: "
+            "'paper' and 'truth' use 'global_mean'; 'leakfree' uses 'calibration' or "
+            "'running_mean'."
+        )
+    k = check_int(top_k, name="top_k", lo=1, hi=n_strategies)
+    thr = float(rollback_threshold)
+    if not np.isfinite(thr):
+        raise InvalidParameterError(
+            f"rollback_threshold must be finite; got {rollback_threshold!r}."
+        )
+    return _Settings(mode=mode, accuracy_source=acc_src, protocol=proto, top_k=k,
+                     rollback_threshold=thr)
+
+
+def _per_sample_inputs(
+    n: int, flux: npt.ArrayLike | None, sigma: npt.ArrayLike | None, source: AccuracySource
+) -> tuple[npt.NDArray[np.float64] | None, npt.NDArray[np.float64] | None]:
+    """Validated flux ``I`` and accuracy ``A`` of eq. 10 (None: not given / ``A = 0``)."""
+    flux_a = None if flux is None else as_samples(flux, n, name="flux")
+    if source is AccuracySource.SIGMA:
+        if sigma is None:
+            raise InvalidParameterError("accuracy_source='sigma' needs sigma (px per sample).")
+        return flux_a, as_samples(sigma, n, name="sigma", nonnegative=True)
+    if sigma is not None:
+        as_samples(sigma, n, name="sigma", nonnegative=True)  # validate even when unused
+    return flux_a, None
+
+
+def _head(a: npt.NDArray[np.float64] | None, n: int) -> npt.NDArray[np.float64] | None:
+    return None if a is None else a[:n]
+
+
+def _run_passes(
+    xy: npt.NDArray[np.float64], reference: npt.NDArray[np.float64], *, rate_hz: float,
+    decomposition: ErrorDecomposition, order: tuple[Strategy, ...], scores: dict[Strategy, float],
+    flux: npt.NDArray[np.float64] | None, accuracy: npt.NDArray[np.float64] | None,
+    threshold: float,
+) -> tuple[npt.NDArray[np.float64], list[CompensationPass]]:
+    """Run ``order`` one after the other, rolling back each pass that improves eq. 13 by less
+    than ``threshold``; returns the output of the last kept pass and one record per pass."""
+    current = xy
+    passes: list[CompensationPass] = []
+    for rank, strategy in enumerate(order):
+        candidate = apply_strategy(
+            strategy, current, rate_hz=rate_hz, reference=reference,
+            dominant_frequency=decomposition.dominant_frequency, flux=flux, accuracy=accuracy,
+        )
+        before = radial_rms(current - reference)
+        after = radial_rms(candidate - reference)
+        effective = improvement(before, after)
+        kept = bool(effective >= threshold)
+        if kept:
+            current = candidate
+        passes.append(CompensationPass(rank=rank, strategy=strategy, score=float(scores[strategy]),
+                                       rmse_before=float(before), rmse_after=float(after),
+                                       effective=float(effective), kept=kept))
+    return current, passes
+
+
+def _replay_kept(
+    xy: npt.NDArray[np.float64], passes: list[CompensationPass], *, rate_hz: float,
+    reference: npt.NDArray[np.float64], decomposition: ErrorDecomposition,
+    flux: npt.NDArray[np.float64] | None, accuracy: npt.NDArray[np.float64] | None,
+) -> npt.NDArray[np.float64]:
+    """The kept strategies, in order, on the whole series (leak-free modes)."""
+    out = xy
+    for record in passes:
+        if record.kept:
+            out = apply_strategy(
+                record.strategy, out, rate_hz=rate_hz, reference=reference,
+                dominant_frequency=decomposition.dominant_frequency, flux=flux, accuracy=accuracy,
+            )
+    return out
+
+
 def compensate(
     xy: npt.ArrayLike,
     *,
-    fs: float,
+    rate_hz: float,
     flux: npt.ArrayLike | None = None,
     sigma: npt.ArrayLike | None = None,
     reference_mode: ReferenceMode | str = ReferenceMode.GLOBAL_MEAN,
@@ -301,7 +411,7 @@ def compensate(
     accuracy_source: AccuracySource | str = AccuracySource.ZERO,
     top_k: int = 3,
     rollback_threshold: float = 0.01,
-    protocol: Protocol | str | None = None,
+    protocol: ScoringProtocol | str | None = None,
     table: tuple[StrategyProfile, ...] = TABLE_1,
 ) -> CompensationResult:
     """Decompose, score, and run the best strategies with rollback (§2.4, Figure 1).
@@ -312,7 +422,7 @@ def compensate(
         Decimated centroid series, px (x = column, y = row), finite.  ``N >= 16``
         (:data:`~starlog.compensate.decomposition.MIN_SAMPLES`); with a leak-free reference
         mode the calibration segment must have >= 16 samples and leave >= 1 after it.
-    fs : float
+    rate_hz : float
         Sampling rate of ``xy``, Hz.
     flux : (N,) array_like, optional
         Intensity ``I`` of eq. 10 (normalised by its maximum); default all equal.
@@ -321,9 +431,8 @@ def compensate(
     reference_mode : ReferenceMode or str
         ``global_mean`` (paper): ``M`` = mean of ``xy``, selection on all samples.
         ``calibration``: ``M`` = mean of the first ``calibration_fraction`` of ``xy``;
-        ``running_mean``: ``M[n]`` = mean of ``xy[:n]``.  In both leak-free modes the
-        decomposition, scores and rollback see only the calibration segment; the kept
-        strategies are then applied, in order, to the whole series.
+        ``running_mean``: ``M[n]`` = mean of ``xy[:n]`` (leak-free modes: see the module
+        docstring).
     calibration_fraction : float
         In (0, 1); leak-free modes only.
     accuracy_source : AccuracySource or str
@@ -332,7 +441,7 @@ def compensate(
         Strategies to run (1..5), default 3.
     rollback_threshold : float
         Minimum eq. 13 improvement to keep a pass, default 0.01.
-    protocol : Protocol or str, optional
+    protocol : ScoringProtocol or str, optional
         Label recorded in the result; default ``paper`` for ``global_mean`` and ``leakfree``
         otherwise.  ``paper`` / ``truth`` need ``global_mean``; ``leakfree`` needs a leak-free
         mode.
@@ -342,155 +451,58 @@ def compensate(
     Returns
     -------
     CompensationResult
-
-    Notes
-    -----
-    Leak-free modes: the strategies are filters of the measurements and may use neighbouring
-    samples (the centred windows of strategies 1–3 reach up to 5 samples ahead); only the
-    reference ``M`` is restricted to the past.  During selection the flux of eq. 10 is
-    normalised by the calibration segment's maximum, in the final pass by the whole
-    sequence's (its weight, ``I / 100``, is at most 0.01).
     """
-    p = _as_series(xy)
+    p = as_series(xy)
     n = p.shape[0]
-    fs = _check_rate(fs)
-    try:
-        mode = ReferenceMode(reference_mode)
-    except ValueError as err:
-        raise InvalidParameterError(
-            f"reference_mode must be one of {[m.value for m in ReferenceMode]}; "
-            f"got {reference_mode!r}."
-        ) from err
-    try:
-        acc_src = AccuracySource(accuracy_source)
-    except ValueError as err:
-        raise InvalidParameterError(
-            f"accuracy_source must be 'zero' or 'sigma'; got {accuracy_source!r}."
-        ) from err
-    if protocol is None:
-        proto = Protocol.PAPER if mode is ReferenceMode.GLOBAL_MEAN else Protocol.LEAKFREE
-    else:
-        try:
-            proto = Protocol(protocol)
-        except ValueError as err:
-            raise InvalidParameterError(f"unknown protocol {protocol!r}.") from err
-    if (proto is Protocol.LEAKFREE) != (mode is not ReferenceMode.GLOBAL_MEAN):
-        raise InvalidParameterError(
-            f"protocol {proto.value!r} does not go with reference_mode {mode.value!r}: "
-            "'paper' and 'truth' use 'global_mean'; 'leakfree' uses 'calibration' or "
-            "'running_mean'."
-        )
-    if isinstance(top_k, bool) or not isinstance(top_k, (int, np.integer)) or not (
-        1 <= top_k <= len(table)
-    ):
-        raise InvalidParameterError(
-            f"top_k must be an integer in [1, {len(table)}]; got {top_k!r}."
-        )
-    thr = float(rollback_threshold)
-    if not np.isfinite(thr):
-        raise InvalidParameterError(
-            f"rollback_threshold must be finite; got {rollback_threshold!r}."
-        )
+    rate_hz = check_rate(rate_hz)
+    cfg = _check_settings(reference_mode, accuracy_source, protocol, top_k, rollback_threshold,
+                          len(table))
     if n < MIN_SAMPLES:
         raise InvalidInputError(
             f"compensation needs at least {MIN_SAMPLES} samples; got {n}. Use a longer "
             "sequence or a higher decimated rate."
         )
-    flux_a = None if flux is None else _as_samples(flux, n, name="flux")
-    accuracy = None
-    if acc_src is AccuracySource.SIGMA:
-        if sigma is None:
-            raise InvalidParameterError("accuracy_source='sigma' needs sigma (px per sample).")
-        accuracy = _as_samples(sigma, n, name="sigma", nonnegative=True)
-    elif sigma is not None:
-        _as_samples(sigma, n, name="sigma", nonnegative=True)  # validate even when unused
-
-    reference_point: tuple[float, float] | None
-    if mode is ReferenceMode.GLOBAL_MEAN:
-        n_sel = n
-        m = p.mean(axis=0)
-        reference = np.broadcast_to(m, (n, 2)).copy()
-        reference_point = (float(m[0]), float(m[1]))
-    else:
-        n_sel = calibration_length(n, fraction=calibration_fraction, minimum=MIN_SAMPLES)
-        if mode is ReferenceMode.CALIBRATION:
-            m = p[:n_sel].mean(axis=0)
-            reference = np.broadcast_to(m, (n, 2)).copy()
-            reference_point = (float(m[0]), float(m[1]))
-        else:
-            reference = running_mean_reference(p)
-            reference_point = None
-
-    sel_xy = p[:n_sel]
-    sel_ref = reference[:n_sel]
-    sel_flux = None if flux_a is None else flux_a[:n_sel]
-    sel_acc = None if accuracy is None else accuracy[:n_sel]
-    decomposition = decompose(sel_xy, fs=fs, reference=sel_ref)
+    flux_a, accuracy = _per_sample_inputs(n, flux, sigma, cfg.accuracy_source)
+    ref = selection_reference(p, cfg.mode, calibration_fraction=calibration_fraction,
+                              minimum=MIN_SAMPLES)
+    n_sel = ref.n_selection
+    sel_xy, sel_ref = p[:n_sel], ref.values[:n_sel]
+    decomposition = decompose(sel_xy, rate_hz=rate_hz, reference=sel_ref)
     scores = strategy_scores(decomposition.magnitudes, table=table)
-    order = rank_strategies(scores, table=table)[: int(top_k)]
+    order = rank_strategies(scores, table=table)[: cfg.top_k]
+    current, passes = _run_passes(
+        sel_xy, sel_ref, rate_hz=rate_hz, decomposition=decomposition, order=order,
+        scores=scores, flux=_head(flux_a, n_sel), accuracy=_head(accuracy, n_sel),
+        threshold=cfg.rollback_threshold,
+    )
+    compensated = current if n_sel == n else _replay_kept(
+        p, passes, rate_hz=rate_hz, reference=ref.values, decomposition=decomposition,
+        flux=flux_a, accuracy=accuracy,
+    )
+    return _result(compensated, decomposition, scores, order, passes, cfg, ref, n=n,
+                   rmse_first=radial_rms(sel_xy - sel_ref), rmse_last=radial_rms(current - sel_ref),
+                   rate_hz=rate_hz)
 
-    current = sel_xy
-    rmse_first = _radial_rms(sel_xy - sel_ref)
-    passes: list[CompensationPass] = []
-    for rank, strategy in enumerate(order):
-        candidate = apply_strategy(
-            strategy,
-            current,
-            fs=fs,
-            reference=sel_ref,
-            dominant_frequency=decomposition.dominant_frequency,
-            flux=sel_flux,
-            accuracy=sel_acc,
-        )
-        before = _radial_rms(current - sel_ref)
-        after = _radial_rms(candidate - sel_ref)
-        effective = (before - after) / before if before > 0 else 0.0
-        kept = bool(effective >= thr)
-        if kept:
-            current = candidate
-        passes.append(
-            CompensationPass(
-                rank=rank,
-                strategy=strategy,
-                score=float(scores[strategy]),
-                rmse_before=float(before),
-                rmse_after=float(after),
-                effective=float(effective),
-                kept=kept,
-            )
-        )
-    rmse_last = _radial_rms(current - sel_ref)
 
-    if n_sel == n:
-        compensated = current
-    else:
-        compensated = p
-        for record in passes:
-            if record.kept:
-                compensated = apply_strategy(
-                    record.strategy,
-                    compensated,
-                    fs=fs,
-                    reference=reference,
-                    dominant_frequency=decomposition.dominant_frequency,
-                    flux=flux_a,
-                    accuracy=accuracy,
-                )
+def _result(compensated: npt.NDArray[np.float64], decomposition: ErrorDecomposition,
+            scores: dict[Strategy, float], order: tuple[Strategy, ...],
+            passes: list[CompensationPass], cfg: _Settings, ref: SelectionReference, *, n: int,
+            rmse_first: float, rmse_last: float, rate_hz: float) -> CompensationResult:
     return CompensationResult(
         compensated=np.array(compensated, dtype=np.float64, copy=True),
         decomposition=decomposition,
         scores=scores,
         order=tuple(order),
         passes=tuple(passes),
-        protocol=proto,
-        reference_mode=mode,
-        reference_point=reference_point,
+        protocol=cfg.protocol,
+        reference_mode=cfg.mode,
+        reference_point=ref.point,
         n_samples=n,
-        n_selection=n_sel,
+        n_selection=ref.n_selection,
         rmse_before=float(rmse_first),
         rmse_after=float(rmse_last),
-        fs=fs,
-        top_k=int(top_k),
-        rollback_threshold=thr,
-        accuracy_source=acc_src,
+        rate_hz=rate_hz,
+        top_k=cfg.top_k,
+        rollback_threshold=cfg.rollback_threshold,
+        accuracy_source=cfg.accuracy_source,
     )

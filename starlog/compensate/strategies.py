@@ -23,11 +23,12 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
 
-from starlog.compensate.protocols import _as_reference, _as_samples, _as_series, _check_rate
+from starlog.compensate._series import as_reference, as_samples, as_series, check_rate
 from starlog.errors import InvalidParameterError
 
 __all__ = [
     "AR_THETA",
+    "AccuracySource",
     "MEDIAN_WINDOW_MAX",
     "MEDIAN_WINDOW_MIN",
     "NOISE_HALF_WIDTH",
@@ -70,24 +71,35 @@ class Strategy(enum.StrEnum):
     CONFIDENCE_WEIGHTED = "CONFIDENCE_WEIGHTED"
 
 
+class AccuracySource(enum.StrEnum):
+    """Where the sub-pixel accuracy ``A`` of eq. 10 comes from.
+
+    ``ZERO``: ``A = 0`` (the paper: no sub-pixel interpolation).  ``SIGMA``: ``A`` = the
+    centroid's own uncertainty ``sigma`` in pixels (for sub-pixel centroid methods).
+    """
+
+    ZERO = "zero"
+    SIGMA = "sigma"
+
+
 # ---------------------------------------------------------------------------------------------
 # 1. adaptive window trend estimation (eq. 1-3)
 
 
-def trend_window(*, fs: float, dominant_frequency: float) -> int:
-    """Trend window of eq. 1: nearest odd integer to ``fs / (2 f_d)``, clipped to [3, 11].
+def trend_window(*, rate_hz: float, dominant_frequency: float) -> int:
+    """Trend window of eq. 1: nearest odd integer to ``rate_hz / (2 f_d)``, clipped to [3, 11].
 
-    With ``v = fs / (2 f_d)`` the nearest odd integer is ``2 floor(v / 2) + 1``; at a tie (``v``
+    With ``v = rate_hz / (2 f_d)`` the nearest odd integer is ``2 floor(v / 2) + 1``; at a tie (``v``
     an even integer, equally far from two odd numbers) this takes the larger one.
     ``f_d = 0`` (no dominant frequency, see :func:`~starlog.compensate.decomposition.decompose`)
     is the limit ``v -> inf``: 11.
 
     Examples
     --------
-    >>> trend_window(fs=100, dominant_frequency=10), trend_window(fs=100, dominant_frequency=20)
+    >>> trend_window(rate_hz=100, dominant_frequency=10), trend_window(rate_hz=100, dominant_frequency=20)
     (5, 3)
     """
-    fs = _check_rate(fs)
+    rate_hz = check_rate(rate_hz)
     fd = float(dominant_frequency)
     if not math.isfinite(fd) or fd < 0:
         raise InvalidParameterError(
@@ -95,7 +107,7 @@ def trend_window(*, fs: float, dominant_frequency: float) -> int:
         )
     if fd == 0.0:
         return TREND_WINDOW_MAX
-    v = fs / (2.0 * fd)
+    v = rate_hz / (2.0 * fd)
     if v >= TREND_WINDOW_MAX:
         return TREND_WINDOW_MAX
     w = 2 * int(math.floor(v / 2.0)) + 1
@@ -116,7 +128,7 @@ def moving_average(xy: npt.ArrayLike, *, window: int) -> npt.NDArray[np.float64]
     window : int
         Odd window length >= 1.
     """
-    p = _as_series(xy)
+    p = as_series(xy)
     if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1 or (
         window % 2 == 0
     ):
@@ -135,7 +147,7 @@ def moving_average(xy: npt.ArrayLike, *, window: int) -> npt.NDArray[np.float64]
 def adaptive_window_trend(
     xy: npt.ArrayLike,
     *,
-    fs: float,
+    rate_hz: float,
     dominant_frequency: float,
     reference: npt.ArrayLike,
 ) -> npt.NDArray[np.float64]:
@@ -149,16 +161,16 @@ def adaptive_window_trend(
     ----------
     xy : (N, 2) array_like
         Positions, px.
-    fs : float
+    rate_hz : float
         Sampling rate, Hz.
     dominant_frequency : float
         ``f_d`` in Hz (0.0: none, window 11).
     reference : (2,) or (N, 2) array_like
         ``M``, px.
     """
-    p = _as_series(xy)
-    w = trend_window(fs=fs, dominant_frequency=dominant_frequency)
-    m = _as_reference(reference, p.shape[0])
+    p = as_series(xy)
+    w = trend_window(rate_hz=rate_hz, dominant_frequency=dominant_frequency)
+    m = as_reference(reference, p.shape[0])
     if p.shape[0] == 0:
         return p
     return p - (moving_average(p, window=w) - m)
@@ -190,7 +202,7 @@ def local_noise_level(xy: npt.ArrayLike) -> npt.NDArray[np.float64]:
     -------
     (N, 2) ndarray of float64
     """
-    p = _as_series(xy)
+    p = as_series(xy)
     n = p.shape[0]
     out = np.zeros((n, 2))
     if n < 2:
@@ -227,7 +239,7 @@ def adaptive_median(xy: npt.ArrayLike) -> npt.NDArray[np.float64]:
     the paper says, only samples whose whole window fits in the series are filtered; the others
     (the first and last ``W[n] // 2`` samples) are left unchanged.
     """
-    p = _as_series(xy)
+    p = as_series(xy)
     n = p.shape[0]
     out = p.copy()
     if n < MEDIAN_WINDOW_MIN:
@@ -262,7 +274,7 @@ def local_variance(xy: npt.ArrayLike) -> npt.NDArray[np.float64]:
     -------
     (N,) ndarray of float64
     """
-    p = _as_series(xy)
+    p = as_series(xy)
     n = p.shape[0]
     if n == 0:
         return np.zeros(0)
@@ -282,7 +294,7 @@ def local_smoothing(xy: npt.ArrayLike) -> npt.NDArray[np.float64]:
     ``y[n] = (1 - alpha) x[n] + alpha / 2 (x[n - 1] + x[n + 1])`` (eq. 6), the same ``alpha``
     for both axes.  The first and last samples (no neighbour on one side) are unchanged.
     """
-    p = _as_series(xy)
+    p = as_series(xy)
     n = p.shape[0]
     out = p.copy()
     if n < 3:
@@ -318,8 +330,8 @@ def ar_prediction(
     ``y[n] = 0.7 (M[n] + e_hat[n]) + 0.3 x[n]``.  The first two samples have no two past errors
     and are left unchanged.
     """
-    p = _as_series(xy)
-    m = _as_reference(reference, p.shape[0])
+    p = as_series(xy)
+    m = as_reference(reference, p.shape[0])
     wgt = float(prediction_weight)
     if not 0.0 <= wgt <= 1.0:
         raise InvalidParameterError(
@@ -362,16 +374,16 @@ def confidence(
     -------
     (N,) ndarray of float64
     """
-    p = _as_series(xy)
+    p = as_series(xy)
     n = p.shape[0]
-    m = _as_reference(reference, n)
+    m = as_reference(reference, n)
     if flux is None:
         intensity = np.ones(n)
     else:
-        f = np.maximum(_as_samples(flux, n, name="flux"), 0.0)
+        f = np.maximum(as_samples(flux, n, name="flux"), 0.0)
         top = float(f.max()) if n else 0.0
         intensity = f / top if top > 0 else np.zeros(n)
-    a = np.zeros(n) if accuracy is None else _as_samples(accuracy, n, name="accuracy",
+    a = np.zeros(n) if accuracy is None else as_samples(accuracy, n, name="accuracy",
                                                          nonnegative=True)
     d = np.hypot(*(p - m).T) if n else np.zeros(0)
     gamma = (intensity / 100.0 + (1.0 - 10.0 * a)) * 0.5 * np.exp(-d)
@@ -390,8 +402,8 @@ def confidence_weighted(
     ``output = gamma G + (1 - gamma) M`` with ``gamma`` from :func:`confidence`, ``G`` the
     measurement and ``M`` the reference (same ``gamma`` on both axes).
     """
-    p = _as_series(xy)
-    m = _as_reference(reference, p.shape[0])
+    p = as_series(xy)
+    m = as_reference(reference, p.shape[0])
     g = confidence(p, reference=m, flux=flux, accuracy=accuracy)[:, None]
     return g * p + (1.0 - g) * m
 
@@ -403,7 +415,7 @@ def apply_strategy(
     strategy: Strategy | str,
     xy: npt.ArrayLike,
     *,
-    fs: float,
+    rate_hz: float,
     reference: npt.ArrayLike,
     dominant_frequency: float = 0.0,
     flux: npt.ArrayLike | None = None,
@@ -416,7 +428,7 @@ def apply_strategy(
     strategy : Strategy or str
     xy : (N, 2) array_like
         Positions, px.
-    fs : float
+    rate_hz : float
         Sampling rate, Hz (strategy 1).
     reference : (2,) or (N, 2) array_like
         ``M``, px (strategies 1, 4, 5).
@@ -433,7 +445,7 @@ def apply_strategy(
         ) from err
     if s is Strategy.ADAPTIVE_WINDOW_TREND:
         return adaptive_window_trend(
-            xy, fs=fs, dominant_frequency=dominant_frequency, reference=reference
+            xy, rate_hz=rate_hz, dominant_frequency=dominant_frequency, reference=reference
         )
     if s is Strategy.ADAPTIVE_MEDIAN:
         return adaptive_median(xy)

@@ -10,15 +10,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
+import pyarrow.parquet as pq
 from tqdm import tqdm
 
+from starlog.batch import executor_for
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.experiment import plots, report, tables
-from starlog.experiment.datasets import JITTER, SIGMA_FLOOR_PX, jitter_rms_px, paper_datasets
+from starlog.experiment.datasets import JITTER, SIGMA_FLOOR_PX, Dataset, jitter_rms_px, paper_datasets
 from starlog.experiment.runner import (
     COMPENSATED_RATES,
     METHODS,
     MODELS,
+    RESULT_FIELDS,
     TABLE4_RATE,
     UNCOMPENSATED_RATES,
     WINDOW_S,
@@ -166,10 +170,47 @@ def run_experiment(
     if window_s is not None and not window_s > 0:
         raise InvalidParameterError(f"window_s must be > 0 s or None, got {window_s!r}.")
     out = Path(output_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    logs = out / "logs"
-    logs.mkdir(exist_ok=True)
     datasets = paper_datasets(quick=quick)
+    _prepare_output(out, datasets, force=force)
+    track_results, showcases = _run_sweep(
+        executor if executor is not None else _Serial(), datasets, out / "logs",
+        tracker={"sigma_floor": float(sigma_floor)}, window_s=window_s, force=force, show_progress=show_progress)
+
+    rows = sort_rows([r for t in track_results for r in t["rows"]])
+    series: dict[str, Any] = {}
+    for t in track_results:
+        series.update(t["series"])
+    summary = ExperimentSummary(
+        output_dir=out, quick=quick, wall_time_s=0.0,
+        executor="serial" if executor is None else type(executor).__name__,
+        datasets=[d.to_dict() for d in datasets], sigma_floor_px=float(sigma_floor), window_s=window_s,
+        rows=rows,
+        tracks={f"{t['dataset']}/{t['method']}": t["track"] for t in sorted(
+            track_results, key=lambda t: (t["dataset"], t["method"]))},
+    )
+    summary.showcase_check = _cross_check(rows, showcases)
+    _write_results(rows, out / "results.parquet")
+    files: dict[str, str] = {"results": "results.parquet"}
+    tables_md = _write_tables(summary, out, files)
+    if plot:
+        _write_plots(summary, series, out, files)
+    files.update(_log_files(datasets))
+    files["summary"] = "summary.json"
+    files["report"] = "report.md"
+    summary.files = files
+    summary.headline = report.headline_rows(summary.tables)
+    summary.wall_time_s = time.perf_counter() - t0
+    data = summary.to_dict()
+    (out / "summary.json").write_text(json.dumps(data, indent=1), encoding="utf-8")
+    (out / "report.md").write_text(report.render_report(data, tables_md, summary.headline), encoding="utf-8")
+    return summary
+
+
+def _prepare_output(out: Path, datasets: list[Dataset], *, force: bool) -> None:
+    """Create ``out/logs``; refuse to overwrite a previous run's outputs unless ``force``."""
+    logs = out / "logs"
+    out.mkdir(parents=True, exist_ok=True)
+    logs.mkdir(exist_ok=True)
     guard = [out / "report.md", out / "results.parquet"]
     for ds in datasets:
         guard += [logs / f"{ds.name}_sim.mcap", logs / f"{ds.name}_centroids.mcap"]
@@ -178,8 +219,12 @@ def run_experiment(
             if p.exists():
                 raise OutputExistsError(p)
 
-    pool: Any = executor if executor is not None else _Serial()
-    tracker = {"sigma_floor": float(sigma_floor)}
+
+def _run_sweep(pool: Any, datasets: list[Dataset], logs: Path, *, tracker: dict[str, Any],
+               window_s: float | None, force: bool,
+               show_progress: bool) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Every task on ``pool``: each finished centroid run submits its track runs, each ``NONE``
+    track run its compensate showcase.  Returns the track results and the showcases."""
     n_tasks = len(datasets) * (2 + len(METHODS))
     bar = tqdm(total=n_tasks, desc="experiment", unit="run", disable=None if show_progress else True,
                dynamic_ncols=True)
@@ -188,12 +233,11 @@ def run_experiment(
     def submit(kind: str, ds: str, key: str, fn: Any, *args: Any, **kwargs: Any) -> None:
         futures[pool.submit(fn, *args, **kwargs)] = (kind, ds, key)
 
-    centroid_paths: dict[str, str] = {}
+    centroid_paths = {ds.name: path_str(logs / f"{ds.name}_centroids.mcap") for ds in datasets}
     track_results: list[dict[str, Any]] = []
     showcases: list[dict[str, Any]] = []
     try:
         for ds in datasets:
-            centroid_paths[ds.name] = path_str(logs / f"{ds.name}_centroids.mcap")
             submit("centroid", ds.name, "", simulate_and_centroid, ds.to_dict(), path_str(logs / f"{ds.name}_sim.mcap"),
                    centroid_paths[ds.name], methods=list(METHODS), force=force)
         while futures:
@@ -226,60 +270,49 @@ def run_experiment(
         raise
     finally:
         bar.close()
+    return track_results, showcases
 
-    rows = sort_rows([r for t in track_results for r in t["rows"]])
-    series: dict[str, Any] = {}
-    for t in track_results:
-        series.update(t["series"])
-    summary = ExperimentSummary(
-        output_dir=out, quick=quick, wall_time_s=0.0,
-        executor="serial" if executor is None else type(executor).__name__,
-        datasets=[d.to_dict() for d in datasets], sigma_floor_px=float(sigma_floor), window_s=window_s,
-        rows=rows,
-        tracks={f"{t['dataset']}/{t['method']}": t["track"] for t in sorted(
-            track_results, key=lambda t: (t["dataset"], t["method"]))},
-    )
-    summary.showcase_check = _cross_check(rows, showcases)
-    files: dict[str, str] = {}
-    results_path = out / "results.parquet"
-    _write_results(rows, results_path)
-    files["results"] = "results.parquet"
+
+def _write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) -> dict[str, str]:
+    """Tables 2-4 and Figure 5 as Parquet and Markdown; returns the Markdown by table name."""
     tables_md: dict[str, str] = {}
     for name in ("table2", "table3", "table4", "figure5"):
-        trows = tables.build_table(name, rows)
+        trows = tables.build_table(name, summary.rows)
         summary.tables[name] = trows
         tables.write_parquet(trows, out / f"{name}.parquet", description=tables.TABLE_TITLES[name])
         tables_md[name] = tables.table_markdown(name, trows, note=f"Scored samples: {summary.window_note}.")
         (out / f"{name}.md").write_text(tables_md[name], encoding="utf-8")
         files[f"{name}.parquet"] = f"{name}.parquet"
         files[f"{name}.md"] = f"{name}.md"
-    if plot:
-        files["figure4"] = plots.plot_figure4(summary.tables["table3"], out / "figure4.png").name
-        files["figure5"] = plots.plot_figure5(summary.tables["figure5"], out / "figure5.png").name
-        ds_name, method, models, rate = _TRAJECTORY
-        for m in models:
-            key = f"{ds_name}/{method}/{m}/{rate:g}Hz/{window_s:g}s" if window_s is not None else ""
-            if key not in series:
-                continue
-            name = f"trajectory_{m.lower()}"
-            files[name] = plots.plot_trajectory(
-                series[key], out / f"{name}.png",
-                title=f"{ds_name} dataset, {method} centroids, {m} UKF, {rate:g} Hz — brightest star").name
+    return tables_md
+
+
+def _write_plots(summary: ExperimentSummary, series: dict[str, Any], out: Path, files: dict[str, str]) -> None:
+    """Figures 4 and 5, and the trajectory of the brightest star (before/after) per model."""
+    files["figure4"] = plots.plot_figure4(summary.tables["table3"], out / "figure4.png").name
+    files["figure5"] = plots.plot_figure5(summary.tables["figure5"], out / "figure5.png").name
+    ds_name, method, models, rate = _TRAJECTORY
+    window_s = summary.window_s
+    for m in models:
+        key = f"{ds_name}/{method}/{m}/{rate:g}Hz/{window_s:g}s" if window_s is not None else ""
+        if key not in series:
+            continue
+        name = f"trajectory_{m.lower()}"
+        files[name] = plots.plot_trajectory(
+            series[key], out / f"{name}.png",
+            title=f"{ds_name} dataset, {method} centroids, {m} UKF, {rate:g} Hz — brightest star").name
+
+
+def _log_files(datasets: list[Dataset]) -> dict[str, str]:
+    """Output name → path of every log the experiment writes."""
+    files: dict[str, str] = {}
     for ds in datasets:
         for kind in ("sim", "centroids"):
             files[f"{ds.name}_{kind}"] = f"logs/{ds.name}_{kind}.mcap"
         for method in METHODS:
             files[f"{ds.name}_track_{method}"] = f"logs/{ds.name}_track_{method}.mcap"
         files[f"{ds.name}_compensated"] = f"logs/{ds.name}_compensated.mcap"
-    files["summary"] = "summary.json"
-    files["report"] = "report.md"
-    summary.files = files
-    summary.headline = report.headline_rows(summary.tables)
-    summary.wall_time_s = time.perf_counter() - t0
-    data = summary.to_dict()
-    (out / "summary.json").write_text(json.dumps(data, indent=1), encoding="utf-8")
-    (out / "report.md").write_text(report.render_report(data, tables_md, summary.headline), encoding="utf-8")
-    return summary
+    return files
 
 
 def _cross_check(rows: list[dict[str, Any]], showcases: list[dict[str, Any]]) -> float | None:
@@ -300,11 +333,6 @@ def _cross_check(rows: list[dict[str, Any]], showcases: list[dict[str, Any]]) ->
 
 
 def _write_results(rows: list[dict[str, Any]], path: Path) -> None:
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from starlog.experiment.runner import RESULT_FIELDS
-
     types = {"rate_hz": pa.float64(), "effective_rate_hz": pa.float64(), "n_samples": pa.int64(),
              "compensated": pa.bool_(), "n_scored": pa.int64(), "rmse_before": pa.float64(),
              "rmse_after": pa.float64(), "effective": pa.float64(), "dominant_frequency_hz": pa.float64()}
@@ -328,8 +356,6 @@ def experiment_command(
     starts a local Dask cluster of that many processes (:func:`starlog.batch.executor_for`);
     ``workers == 1`` runs serially. The results do not depend on which.
     """
-    from starlog.batch import executor_for
-
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
     with executor_for(scheduler=scheduler, workers=workers) as executor:

@@ -11,7 +11,7 @@ the output directory):
    for ``NONE``, STATIC for the other methods; Table 3 only needs STATIC), then, for each
    model, the brightest star's series is decimated to every rate and scored under the
    ``paper``, ``truth`` and ``leakfree`` protocols, uncompensated and compensated
-   (:func:`starlog.compensate.evaluate`);
+   (:func:`starlog.stages.compensate.evaluate_series`, the ``compensate`` stage's own scoring);
 3. :func:`compensate_showcase` — per dataset: the ``compensate`` stage on ``NONE/STATIC``
    at the paper's rates, leaving a log with every decision record and compensated series
    (for Foxglove), and a cross-check of the sweep.
@@ -39,9 +39,21 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensate import Protocol, decimation_indices, effective_rate, evaluate
+from starlog.compensate import (
+    Evaluation,
+    ScoringProtocol,
+    decimation_indices,
+    effective_rate,
+    protocol_figures,
+    protocols_for,
+    scored_start,
+)
 from starlog.io.reader import LogReader
 from starlog.sim import SimulationConfig
+from starlog.stages import simulate_log
+from starlog.stages.centroid import centroid_log
+from starlog.stages.compensate import BrightestSeries, compensate_log, evaluate_series, read_brightest_series
+from starlog.stages.track import track_log
 
 __all__ = [
     "COMPENSATED_RATES",
@@ -81,7 +93,7 @@ UNCOMPENSATED_RATES: tuple[float, ...] = (5.0,)
 COMPENSATED_RATES: tuple[float, ...] = FIGURE5_RATES
 #: Default scoring window, s (the paper's "Image number" column).
 WINDOW_S: float = 6.0
-#: The RMSE figures of each protocol, primary first (see :mod:`starlog.compensate.protocols`).
+#: The RMSE figures of each protocol, primary first (:func:`starlog.compensate.protocol_figures`).
 PROTOCOL_REFERENCES: dict[str, tuple[str, ...]] = {
     "paper": ("global_mean",),
     "truth": ("truth_fixed", "truth_series"),
@@ -123,9 +135,6 @@ def simulate_and_centroid(
     ``dataset`` is :meth:`Dataset.to_dict` (``name``, ``config``).  Returns the paths and the
     centroid stage's summary.
     """
-    from starlog.stages import simulate_log
-    from starlog.stages.centroid import centroid_log
-
     config = SimulationConfig.from_dict(dataset["config"])
     simulate_log(config, sim_path, force=force)
     summary = centroid_log(sim_path, centroid_path, methods=list(methods), force=force)
@@ -137,12 +146,8 @@ def _window_indices(n: int, *, native_rate: float, rate: float, window_s: float 
     idx = decimation_indices(n, native_rate=native_rate, target_rate=rate)
     if window_s is None:
         return idx
-    fs = effective_rate(native_rate=native_rate, target_rate=rate)
-    return idx[: int(math.floor(window_s * fs + 0.5))]
-
-
-def _rms(residual: npt.NDArray[np.float64]) -> float:
-    return float(np.sqrt(np.mean(np.sum(residual * residual, axis=1)))) if residual.size else 0.0
+    rate_hz = effective_rate(native_rate=native_rate, target_rate=rate)
+    return idx[: int(math.floor(window_s * rate_hz + 0.5))]
 
 
 def uncompensated_figures(
@@ -154,38 +159,62 @@ def uncompensated_figures(
 ) -> dict[str, list[tuple[str, float, int]]]:
     """RMSE figures of an uncompensated series under each protocol (Table 2).
 
-    The same definitions as :func:`starlog.compensate.evaluate`'s ``rmse_before`` (which needs
-    at least 16 samples to also compensate): ``paper`` about the global mean; ``truth`` about
-    the fixed and the jittered true positions; ``leakfree`` on the held-out samples after the
-    first ``floor(calibration_fraction · n + 0.5)``, about their own mean and the truth.
+    :func:`starlog.compensate.protocol_figures` without a compensation (``evaluate`` needs at
+    least 16 samples to also compensate), with the leak-free split of
+    :func:`starlog.compensate.scored_start`.
 
     Returns
     -------
     dict
-        ``protocol -> [(reference, rmse_px, n_scored), ...]`` (truth figures only when given).
+        ``protocol -> [(reference, rmse_px, n_scored), ...]`` (``truth`` only when a truth is given).
     """
     out: dict[str, list[tuple[str, float, int]]] = {}
     n = xy.shape[0]
-    out["paper"] = [("global_mean", _rms(xy - xy.mean(axis=0)), n)]
-    honest: list[tuple[str, float, int]] = []
-    if truth_fixed is not None:
-        honest.append(("truth_fixed", _rms(xy - truth_fixed), n))
-    if truth_series is not None:
-        honest.append(("truth_series", _rms(xy - truth_series), n))
-    if honest:
-        out["truth"] = honest
-    start = int(math.floor(calibration_fraction * n + 0.5))
-    held = xy[start:]
-    leak = [("heldout_mean", _rms(held - held.mean(axis=0)) if held.size else 0.0, n - start)]
-    if truth_fixed is not None:
-        leak.append(("truth_fixed", _rms(held - truth_fixed), n - start))
-    if truth_series is not None:
-        leak.append(("truth_series", _rms(held - truth_series[start:]), n - start))
-    out["leakfree"] = leak
+    for protocol in protocols_for(has_truth=truth_fixed is not None or truth_series is not None):
+        start = scored_start(protocol, n, calibration_fraction=calibration_fraction)
+        figures = protocol_figures(xy, protocol=protocol, start=start, truth_fixed=truth_fixed,
+                                   truth_series=truth_series)
+        out[protocol.value] = [(f.reference, f.rmse_before, f.n_scored) for f in figures]
     return out
 
 
-def _score_series(series: Any, *, dataset: str, rates_uncompensated: Sequence[float],
+def _uncompensated_rows(base: dict[str, Any], series: BrightestSeries, idx: npt.NDArray[np.int64], *,
+                        calibration_fraction: float) -> list[dict[str, Any]]:
+    ts = None if series.truth_series is None else series.truth_series[idx]
+    figures = uncompensated_figures(series.xy[idx], truth_fixed=series.truth_fixed, truth_series=ts,
+                                    calibration_fraction=calibration_fraction)
+    return [{**base, "compensated": False, "protocol": protocol, "reference": reference, "n_scored": n_scored,
+             "rmse_before": value, "rmse_after": None, "effective": None, "order": "", "kept": "",
+             "dominant_frequency_hz": None}
+            for protocol, figs in figures.items() for reference, value, n_scored in figs]
+
+
+def _compensated_rows(base: dict[str, Any], protocol: ScoringProtocol, ev: Evaluation) -> list[dict[str, Any]]:
+    res = ev.result
+    return [{**base, "compensated": True, "protocol": protocol.value, "reference": fig.reference,
+             "n_scored": int(fig.n_scored), "rmse_before": float(fig.rmse_before),
+             "rmse_after": float(fig.rmse_after), "effective": float(fig.effective),
+             "order": ">".join(str(s) for s in res.order), "kept": ">".join(str(s) for s in res.kept),
+             "dominant_frequency_hz": float(res.decomposition.dominant_frequency)}
+            for fig in ev.figures]
+
+
+def _keep_series(kept: dict[str, Any], key: str, series: BrightestSeries, idx: npt.NDArray[np.int64],
+                 protocol: ScoringProtocol, ev: Evaluation) -> None:
+    """Store the series before/after (for the trajectory plot) under ``key``."""
+    tf, ts = series.truth_fixed, None if series.truth_series is None else series.truth_series[idx]
+    entry = kept.setdefault(key, {
+        "t_s": ((series.log_time[idx] - series.log_time[0]) * 1e-9).tolist(),
+        "before": series.xy[idx].tolist(),
+        "truth_series": None if ts is None else ts.tolist(),
+        "truth_fixed": None if tf is None else [float(v) for v in tf],
+        "after": {}, "scored_start": {},
+    })
+    entry["after"][protocol.value] = ev.result.compensated.tolist()
+    entry["scored_start"][protocol.value] = int(ev.scored_start)
+
+
+def _score_series(series: BrightestSeries, *, dataset: str, rates_uncompensated: Sequence[float],
                   rates_compensated: Sequence[float], window_s: float | None,
                   calibration_fraction: float, keep_series: Sequence[float]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows for one brightest-star series; and the series of the ``keep_series`` rates (6 s window)."""
@@ -195,51 +224,24 @@ def _score_series(series: Any, *, dataset: str, rates_uncompensated: Sequence[fl
     windows: list[tuple[str, float | None]] = [("full", None)]
     if window_s is not None:
         windows.insert(0, (f"{window_s:g}s", window_s))
+    has_truth = series.truth_fixed is not None or series.truth_series is not None
     n = series.xy.shape[0]
     for window, wsec in windows:
         for rate in sorted({*rates_uncompensated, *rates_compensated}):
             idx = _window_indices(n, native_rate=series.native_rate, rate=rate, window_s=wsec)
-            fs = effective_rate(native_rate=series.native_rate, target_rate=rate)
-            xy = series.xy[idx]
-            tf = series.truth_fixed
-            ts = None if series.truth_series is None else series.truth_series[idx]
+            rate_hz = effective_rate(native_rate=series.native_rate, target_rate=rate)
             base = {"dataset": dataset, "method": series.method, "model": series.model, "window": window,
-                    "rate_hz": float(rate), "effective_rate_hz": float(fs), "n_samples": int(idx.size)}
+                    "rate_hz": float(rate), "effective_rate_hz": float(rate_hz), "n_samples": int(idx.size)}
             if rate not in rates_compensated:
-                for protocol, figures in uncompensated_figures(
-                        xy, truth_fixed=tf, truth_series=ts, calibration_fraction=calibration_fraction).items():
-                    for reference, value, n_scored in figures:
-                        rows.append({**base, "compensated": False, "protocol": protocol, "reference": reference,
-                                     "n_scored": n_scored, "rmse_before": value, "rmse_after": None,
-                                     "effective": None, "order": "", "kept": "", "dominant_frequency_hz": None})
+                rows += _uncompensated_rows(base, series, idx, calibration_fraction=calibration_fraction)
                 continue
-            for protocol in ("paper", "truth", "leakfree"):
-                truth_kw: dict[str, Any] = {}
-                if protocol != "paper":
-                    if tf is None and ts is None and protocol == "truth":
-                        continue
-                    truth_kw = {"truth_fixed": tf, "truth_series": ts}
-                ev = evaluate(xy, fs=fs, protocol=Protocol(protocol), flux=series.flux[idx], sigma=series.sigma[idx],
-                              accuracy_source=accuracy, calibration_fraction=calibration_fraction, **truth_kw)
-                res = ev.result
-                for fig in ev.figures:
-                    rows.append({**base, "compensated": True, "protocol": protocol, "reference": fig.reference,
-                                 "n_scored": int(fig.n_scored), "rmse_before": float(fig.rmse_before),
-                                 "rmse_after": float(fig.rmse_after), "effective": float(fig.effective),
-                                 "order": ">".join(str(s) for s in res.order),
-                                 "kept": ">".join(str(s) for s in res.kept),
-                                 "dominant_frequency_hz": float(res.decomposition.dominant_frequency)})
+            for protocol in protocols_for(has_truth=has_truth):
+                ev = evaluate_series(series, idx, rate_hz=rate_hz, protocol=protocol, accuracy_source=accuracy,
+                                     calibration_fraction=calibration_fraction)
+                rows += _compensated_rows(base, protocol, ev)
                 if window != "full" and rate in keep_series:
                     key = f"{dataset}/{series.method}/{series.model}/{rate:g}Hz/{window}"
-                    entry = kept_series.setdefault(key, {
-                        "t_s": ((series.log_time[idx] - series.log_time[0]) * 1e-9).tolist(),
-                        "before": xy.tolist(),
-                        "truth_series": None if ts is None else ts.tolist(),
-                        "truth_fixed": None if tf is None else [float(v) for v in tf],
-                        "after": {}, "scored_start": {},
-                    })
-                    entry["after"][protocol] = res.compensated.tolist()
-                    entry["scored_start"][protocol] = int(ev.scored_start)
+                    _keep_series(kept_series, key, series, idx, protocol, ev)
     return rows, kept_series
 
 
@@ -264,9 +266,6 @@ def track_and_score(
     Returns ``{"dataset", "method", "track_path", "track": TrackSummary.to_dict(), "rows": [...],
     "series": {...}}`` — plain data (rows of :data:`RESULT_FIELDS`).
     """
-    from starlog.stages.compensate import read_brightest_series
-    from starlog.stages.track import track_log
-
     summary = track_log(centroid_path, track_path, method=method, models=list(models), tracker=dict(tracker),
                         motion=dict(motion or {}), force=force)
     rows: list[dict[str, Any]] = []
@@ -297,8 +296,6 @@ def compensate_showcase(
 
     Returns ``{"dataset", "path", "records": [{method, model, rate_hz, protocol, figures}]}``.
     """
-    from starlog.stages.compensate import compensate_log
-
     summary = compensate_log(track_path, output_path, rates=list(rates), track=track_topic, protocols="all",
                              force=force)
     records = [{"method": r["method"], "model": r["model"], "rate_hz": r["rate_hz"], "protocol": r["protocol"],

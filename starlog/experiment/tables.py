@@ -10,7 +10,7 @@ protocol's section (the only protocol the paper used).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -160,83 +160,101 @@ def _index(rows: Sequence[dict[str, Any]]) -> dict[tuple[Any, ...], dict[str, An
     return {(r["protocol"], r["reference"], r["dataset"], r["method"], r["model"], r["rate_hz"]): r for r in rows}
 
 
+Cell = Callable[[str, str, str, float], "dict[str, Any] | None"]
+"""``cell(dataset, method, model, rate)``: the result row of one section, or None."""
+
+
+def _table2_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
+    header = ["UKF model"]
+    for ds in datasets:
+        for rate in TABLE2_RATES:
+            header.append(f"{ds} RMSE_{rate:g}Hz")
+            if with_paper:
+                header.append("paper")
+    body = []
+    for model in MODELS:
+        line = [model]
+        for ds in datasets:
+            for rate in TABLE2_RATES:
+                c = cell(ds, "NONE", model, rate)
+                line.append(_f(c and c["rmse_before"]))
+                if with_paper:
+                    line.append(_f(paper_tables.TABLE2[model][ds][int(rate)]))
+        body.append(line)
+    return header, body
+
+
+def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
+    header = ["Sub-pixel method", "Rate/Hz", "N (paper)"]
+    for ds in datasets:
+        header += [f"{ds} before", f"{ds} after", "gain"]
+        if with_paper:
+            header += ["paper before", "paper after"]
+    body = []
+    for method in METHODS:
+        for rate in TABLE3_RATES:
+            cells = [cell(ds, method, "STATIC", rate) for ds in datasets]
+            if not any(cells):
+                continue
+            first = next(c for c in cells if c)
+            paper_n = paper_tables.TABLE3_IMAGE_NUMBER.get(int(rate))
+            has_paper = paper_tables.paper_value("table3", dataset=datasets[0], method=method,
+                                                 rate_hz=rate)[0] is not None
+            n_text = f"{first['n_samples']}" + (f" ({paper_n})" if has_paper and paper_n else "")
+            line = [method, f"{rate:g}", n_text]
+            for ds, c in zip(datasets, cells):
+                line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
+                if with_paper:
+                    pb, pa_ = paper_tables.paper_value("table3", dataset=ds, method=method, rate_hz=rate)
+                    line += [_f(pb), _f(pa_)]
+            body.append(line)
+    return header, body
+
+
+def _table4_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
+    header = ["UKF model"]
+    for ds in datasets:
+        header += [f"{ds} before", f"{ds} after", "gain"]
+        if with_paper:
+            header += ["paper before", "paper after"]
+    body = []
+    for model in MODELS:
+        line = [model]
+        for ds in datasets:
+            c = cell(ds, "NONE", model, TABLE4_RATE)
+            line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
+            if with_paper:
+                pb, pa_ = paper_tables.TABLE4[model][ds]
+                line += [_f(pb), _f(pa_)]
+        body.append(line)
+    return header, body
+
+
+def _figure5_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
+    header = ["Dataset", "UKF model"] + [f"{r:g} Hz" for r in FIGURE5_RATES]
+    body = []
+    for ds in datasets:
+        for model in MODELS:
+            line = [ds, model]
+            for rate in FIGURE5_RATES:
+                c = cell(ds, "NONE", model, rate)
+                line.append("—" if c is None else f"{_f(c['rmse_before'])}→{_f(c['rmse_after'])}")
+            body.append(line)
+    return header, body
+
+
+_LINES = {"table2": _table2_lines, "table3": _table3_lines, "table4": _table4_lines, "figure5": _figure5_lines}
+
+
 def _section(table: str, rows: Sequence[dict[str, Any]], protocol: str, reference: str,
              datasets: Sequence[str]) -> str | None:
+    """Markdown of one table under one protocol and reference (None when it has no value)."""
     idx = _index(rows)
-    with_paper = protocol == "paper"
 
     def cell(ds: str, method: str, model: str, rate: float) -> dict[str, Any] | None:
         return idx.get((protocol, reference, ds, method, model, rate))
 
-    if table == "table2":
-        header = ["UKF model"]
-        for ds in datasets:
-            for rate in TABLE2_RATES:
-                header.append(f"{ds} RMSE_{rate:g}Hz")
-                if with_paper:
-                    header.append("paper")
-        body = []
-        for model in MODELS:
-            line = [model]
-            for ds in datasets:
-                for rate in TABLE2_RATES:
-                    c = cell(ds, "NONE", model, rate)
-                    line.append(_f(c and c["rmse_before"]))
-                    if with_paper:
-                        line.append(_f(paper_tables.TABLE2[model][ds][int(rate)]))
-            body.append(line)
-    elif table == "table3":
-        header = ["Sub-pixel method", "Rate/Hz", "N (paper)"]
-        for ds in datasets:
-            header += [f"{ds} before", f"{ds} after", "gain"]
-            if with_paper:
-                header += ["paper before", "paper after"]
-        body = []
-        for method in METHODS:
-            for rate in TABLE3_RATES:
-                cells = [cell(ds, method, "STATIC", rate) for ds in datasets]
-                if not any(cells):
-                    continue
-                first = next(c for c in cells if c)
-                paper_n = paper_tables.TABLE3_IMAGE_NUMBER.get(int(rate))
-                has_paper = paper_tables.paper_value("table3", dataset=datasets[0], method=method,
-                                                     rate_hz=rate)[0] is not None
-                n_text = f"{first['n_samples']}" + (f" ({paper_n})" if has_paper and paper_n else "")
-                line = [method, f"{rate:g}", n_text]
-                for ds, c in zip(datasets, cells):
-                    line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
-                    if with_paper:
-                        pb, pa_ = paper_tables.paper_value("table3", dataset=ds, method=method, rate_hz=rate)
-                        line += [_f(pb), _f(pa_)]
-                body.append(line)
-    elif table == "table4":
-        header = ["UKF model"]
-        for ds in datasets:
-            header += [f"{ds} before", f"{ds} after", "gain"]
-            if with_paper:
-                header += ["paper before", "paper after"]
-        body = []
-        for model in MODELS:
-            line = [model]
-            for ds in datasets:
-                c = cell(ds, "NONE", model, TABLE4_RATE)
-                line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
-                if with_paper:
-                    pb, pa_ = paper_tables.TABLE4[model][ds]
-                    line += [_f(pb), _f(pa_)]
-            body.append(line)
-    elif table == "figure5":
-        header = ["Dataset", "UKF model"] + [f"{r:g} Hz" for r in FIGURE5_RATES]
-        body = []
-        for ds in datasets:
-            for model in MODELS:
-                line = [ds, model]
-                for rate in FIGURE5_RATES:
-                    c = cell(ds, "NONE", model, rate)
-                    line.append("—" if c is None else f"{_f(c['rmse_before'])}→{_f(c['rmse_after'])}")
-                body.append(line)
-    else:
-        raise KeyError(table)
+    header, body = _LINES[table](cell, datasets, protocol == "paper")
     if not any(any(v not in ("—",) for v in line[1:]) for line in body):
         return None
     title = f"### Protocol `{protocol}` — reference `{reference}`\n\n{REFERENCE_TEXT[reference]}."

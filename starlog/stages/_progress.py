@@ -12,11 +12,12 @@ T = TypeVar("T")
 __all__ = ["progress"]
 
 
-def progress(items: Iterable[T], *, total: int | None, description: str, enabled: bool) -> Iterator[T]:
-    """Wrap ``items`` in a progress bar when ``enabled`` and stderr is a terminal."""
+def progress(items: Iterable[T], *, total: int | None, description: str, enabled: bool,
+             unit: str = "frame") -> Iterator[T]:
+    """Wrap ``items`` in a progress bar (counting ``unit``) when ``enabled`` and stderr is a terminal."""
     if not enabled:
         yield from items
         return
-    with tqdm(items, total=total, desc=description, unit="frame", dynamic_ncols=True, leave=False,
+    with tqdm(items, total=total, desc=description, unit=unit, dynamic_ncols=True, leave=False,
               disable=None) as bar:
         yield from bar

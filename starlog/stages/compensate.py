@@ -12,26 +12,40 @@ each protocol (``paper``; ``truth`` when the log has ``/sim/truth``; ``leakfree`
   RMSE before/after each pass, what was rolled back, and the protocol's RMSE figures.
 
 The sequence of one track is held in memory (the method needs its global mean); at ≤ 100 Hz
-that is a few MB per hour of recording.
+that is a few MB per hour of recording.  The evaluations of one track (every rate × protocol)
+are independent: with ``workers > 1`` they run in worker processes, and are written in the
+same order, so the output does not depend on ``workers``.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import Executor
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensate import Protocol, decimation_indices, effective_rate, evaluate
+from starlog.compensate import (
+    Evaluation,
+    ScoringProtocol,
+    decimation_indices,
+    effective_rate,
+    evaluate,
+    protocols_for,
+)
 from starlog.errors import ChannelNotFoundError, InvalidInputError, InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
-from starlog.stages._stage import extend_log
+from starlog.stages._parallel import ordered_map, process_pool
+from starlog.stages._progress import progress
+from starlog.stages._stage import StageOutput, extend_log
 
-__all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "read_brightest_series"]
+__all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "evaluate_series", "read_brightest_series"]
 
 
 @dataclass(frozen=True)
@@ -157,6 +171,20 @@ def _with_truth(log: LogReader, series: BrightestSeries, cache: dict[int, StarTr
     return BrightestSeries(**{**series.__dict__, "truth_fixed": fixed, "truth_series": xy[at]})
 
 
+def evaluate_series(series: BrightestSeries, idx: npt.NDArray[np.int64], *, rate_hz: float,
+                    protocol: ScoringProtocol, **options: Any) -> Evaluation:
+    """:func:`starlog.compensate.evaluate` on the samples ``idx`` of ``series`` (sampled at ``rate_hz``).
+
+    The truth goes with every protocol but ``paper`` when the series has it; ``options`` are
+    :func:`~starlog.compensate.evaluate`'s keyword options.
+    """
+    truth: dict[str, Any] = {}
+    if protocol is not ScoringProtocol.PAPER and series.truth_series is not None:
+        truth = {"truth_fixed": series.truth_fixed, "truth_series": series.truth_series[idx]}
+    return evaluate(series.xy[idx], rate_hz=rate_hz, protocol=protocol, flux=series.flux[idx],
+                    sigma=series.sigma[idx], **truth, **options)
+
+
 @dataclass
 class CompensateSummary:
     """Every evaluation :func:`compensate_log` ran: ``records[i]`` is one decision record."""
@@ -167,19 +195,19 @@ class CompensateSummary:
         return {"records": self.records}
 
 
-def parse_protocols(spec: str | Sequence[str], *, has_truth: bool) -> list[Protocol]:
+def parse_protocols(spec: str | Sequence[str], *, has_truth: bool) -> list[ScoringProtocol]:
     """``"all"`` (paper, truth when simulated, leakfree) or names → protocols."""
     names = spec.split(",") if isinstance(spec, str) else list(spec)
     if [n.strip().lower() for n in names] == ["all"]:
-        return [Protocol.PAPER, *([Protocol.TRUTH] if has_truth else []), Protocol.LEAKFREE]
+        return list(protocols_for(has_truth=has_truth))
     out = []
     for name in names:
         try:
-            out.append(Protocol(name.strip().lower()))
+            out.append(ScoringProtocol(name.strip().lower()))
         except ValueError:
             raise InvalidParameterError(
                 f"unknown protocol {name!r}; choose paper, truth, leakfree or all.") from None
-    if Protocol.TRUTH in out and not has_truth:
+    if ScoringProtocol.TRUTH in out and not has_truth:
         raise InvalidInputError("the truth protocol needs /sim/truth: this log was not simulated.")
     return list(dict.fromkeys(out))
 
@@ -192,6 +220,8 @@ def compensate_log(
     track: str | Sequence[str] | None = None,
     protocols: str | Sequence[str] = "all",
     options: dict[str, Any] | None = None,
+    workers: int = 1,
+    show_progress: bool = False,
     force: bool = False,
     compression: str = "zstd",
 ) -> CompensateSummary:
@@ -209,9 +239,16 @@ def compensate_log(
     options : dict, optional
         Keyword options of :func:`starlog.compensate.evaluate` (accuracy_source,
         calibration_fraction, top_k, rollback_threshold, leakfree_reference).
+    workers : int
+        Processes for the evaluations (1: in this process) and threads for chunk compression;
+        the output does not depend on it.
+    show_progress : bool
+        A progress bar over the evaluations (stderr).
     """
     if not rates:
         raise InvalidParameterError("give at least one rate (--rate HZ).")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
     options = dict(options or {})
     summary = CompensateSummary()
     with LogReader(input_path) as probe:
@@ -220,52 +257,98 @@ def compensate_log(
     chosen = parse_protocols(protocols, has_truth=has_truth)
     parameters = {"tracks": [c.topic for c in channels], "rates": [float(r) for r in rates],
                   "protocols": [p.value for p in chosen], "options": options}
+    n_jobs = len(channels) * len(rates) * len(chosen)
+    parallel = workers > 1 and n_jobs > 1
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force,
-                    compression=compression) as (log, out):
-        truth_cache: dict[int, StarTruth] = {}
-        for channel in channels:
-            _compensate_track(log, out, channel, rates, chosen, options, summary, truth_cache)
+                    compression=compression, workers=workers) as (log, out), \
+            (process_pool(workers, preload=[__name__]) if parallel else nullcontext()) as pool:
+        jobs = _plan_jobs(log, channels, rates, chosen)
+        done = _evaluated(jobs, options, pool, window=2 * workers)
+        decisions: dict[str, int] = {}
+        for job, evaluation in progress(done, total=n_jobs, description="compensate", enabled=show_progress,
+                                        unit="run"):
+            if job.track_topic not in decisions:
+                decisions[job.track_topic] = out.add_channel(
+                    topics.decisions_topic(job.series.method, job.series.model),
+                    json_message_type("starlog.CompensationRecord"), unordered=True)
+            summary.records.append(_write_evaluation(out, decisions[job.track_topic], job, evaluation))
     return summary
 
 
-def _compensate_track(log: LogReader, out: Any, channel: ChannelSummary, rates: Sequence[float],
-                      chosen: list[Protocol], options: dict[str, Any], summary: CompensateSummary,
-                      truth_cache: dict[int, StarTruth]) -> None:
-    """Compensate the brightest track of ``channel`` at every rate under every protocol."""
-    series = read_brightest_series(log, channel.topic, truth_cache=truth_cache)
-    decision_ch = out.add_channel(topics.decisions_topic(series.method, series.model),
-                                  json_message_type("starlog.CompensationRecord"), unordered=True)
-    for rate in rates:
-        if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
-            raise InvalidParameterError(
-                f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
-        idx = decimation_indices(series.log_time.size, native_rate=series.native_rate, target_rate=rate)
-        fs = effective_rate(native_rate=series.native_rate, target_rate=rate)
-        for protocol in chosen:
-            truth_kw: dict[str, Any] = {}
-            if protocol is not Protocol.PAPER and series.truth_series is not None:
-                truth_kw = {"truth_fixed": series.truth_fixed, "truth_series": series.truth_series[idx]}
-            try:
-                evaluation = evaluate(series.xy[idx], fs=fs, protocol=protocol, flux=series.flux[idx],
-                                      sigma=series.sigma[idx], **truth_kw, **options)
-            except (InvalidInputError, InvalidParameterError) as err:
-                raise type(err)(f"{channel.topic} at {rate:g} Hz ({idx.size} samples), protocol "
-                                f"{protocol.value}: {err}") from err
-            topic = topics.compensated_topic(series.method, series.model, rate, protocol.value)
-            sample_ch = out.add_channel(topic, json_message_type("starlog.CompensatedSample"))
-            after = evaluation.result.compensated
-            for k, i in enumerate(idx):
-                sample = {"sample": k, "frame": int(series.frame[i]), "track": series.track,
-                          "x_before": float(series.xy[i, 0]), "y_before": float(series.xy[i, 1]),
-                          "x_after": float(after[k, 0]), "y_after": float(after[k, 1]),
-                          "scored": bool(k >= evaluation.scored_start)}
-                out.writer.write(sample_ch, log_time=int(series.log_time[i]), data=encode_json(sample))
-            record = {
-                "method": series.method, "model": series.model, "track": series.track,
-                "track_topic": channel.topic, "series_topic": topic, "rate_hz": float(rate),
-                "effective_rate_hz": fs, "native_rate_hz": series.native_rate,
-                "n_samples": int(idx.size), "first_log_time": int(series.log_time[idx[0]]),
-                "last_log_time": int(series.log_time[idx[-1]]), **evaluation.to_dict(),
-            }
-            out.writer.write(decision_ch, log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
-            summary.records.append(record)
+@dataclass(frozen=True)
+class _Job:
+    """One evaluation: the brightest series of ``track_topic`` at one rate, under one protocol."""
+
+    track_topic: str
+    series: BrightestSeries
+    rate: float
+    idx: npt.NDArray[np.int64]
+    rate_hz: float
+    protocol: ScoringProtocol
+
+
+def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[float],
+               chosen: list[ScoringProtocol]) -> Iterator[_Job]:
+    """Every (track channel, rate, protocol), in output order; each channel's series read when reached."""
+    truth_cache: dict[int, StarTruth] = {}
+    for channel in channels:
+        series = read_brightest_series(log, channel.topic, truth_cache=truth_cache)
+        jobs = []
+        for rate in rates:
+            if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
+                raise InvalidParameterError(
+                    f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
+            idx = decimation_indices(series.log_time.size, native_rate=series.native_rate, target_rate=rate)
+            rate_hz = effective_rate(native_rate=series.native_rate, target_rate=rate)
+            jobs += [_Job(channel.topic, series, float(rate), idx, rate_hz, p) for p in chosen]
+        yield from jobs
+
+
+def _evaluate_job(job: _Job, options: dict[str, Any]) -> Evaluation:
+    """Run one job (in a worker process when parallel); errors say which job failed."""
+    try:
+        return evaluate_series(job.series, job.idx, rate_hz=job.rate_hz, protocol=job.protocol, **options)
+    except (InvalidInputError, InvalidParameterError) as err:
+        raise type(err)(f"{job.track_topic} at {job.rate:g} Hz ({job.idx.size} samples), protocol "
+                        f"{job.protocol.value}: {err}") from err
+
+
+def _evaluated(jobs: Iterable[_Job], options: dict[str, Any], pool: Executor | None, *,
+               window: int) -> Iterator[tuple[_Job, Evaluation]]:
+    """Each job with its evaluation, in job order; on ``pool`` when given."""
+    if pool is None:
+        for job in jobs:
+            yield job, _evaluate_job(job, options)
+        return
+    submitted: deque[_Job] = deque()
+
+    def feed() -> Iterator[tuple[_Job, dict[str, Any]]]:
+        for job in jobs:
+            submitted.append(job)  # ordered_map yields results in this same order
+            yield job, options
+
+    for evaluation in ordered_map(pool, _evaluate_job, feed(), window=window):
+        yield submitted.popleft(), evaluation
+
+
+def _write_evaluation(out: StageOutput, decision_channel: int, job: _Job, evaluation: Evaluation) -> dict[str, Any]:
+    """Write the series before/after and the decision record of one job; return the record."""
+    series, idx = job.series, job.idx
+    topic = topics.compensated_topic(series.method, series.model, job.rate, job.protocol.value)
+    sample_ch = out.add_channel(topic, json_message_type("starlog.CompensatedSample"))
+    after = evaluation.result.compensated
+    for k, i in enumerate(idx):
+        sample = {"sample": k, "frame": int(series.frame[i]), "track": series.track,
+                  "x_before": float(series.xy[i, 0]), "y_before": float(series.xy[i, 1]),
+                  "x_after": float(after[k, 0]), "y_after": float(after[k, 1]),
+                  "scored": bool(k >= evaluation.scored_start)}
+        out.writer.write(sample_ch, log_time=int(series.log_time[i]), data=encode_json(sample))
+    record = {
+        "method": series.method, "model": series.model, "track": series.track,
+        "track_topic": job.track_topic, "series_topic": topic, "rate_hz": job.rate,
+        "effective_rate_hz": job.rate_hz, "native_rate_hz": series.native_rate,
+        "n_samples": int(idx.size), "first_log_time": int(series.log_time[idx[0]]),
+        "last_log_time": int(series.log_time[idx[-1]]), **evaluation.to_dict(),
+    }
+    out.writer.write(decision_channel, log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
+    return record
