@@ -582,9 +582,24 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
         click.echo(f"  skipped {n} x {what}")
 
 
+class _Terminated(BaseException):
+    """SIGTERM arrived: unwind (abort partial outputs, stop worker pools), then die of the signal."""
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise _Terminated()
+
+
 def main() -> None:
     """Console-script entry point."""
-    cli(prog_name="starlog")
+    import signal
+
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        cli(prog_name="starlog")
+    except _Terminated:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)  # exit status says "terminated by SIGTERM", as without the handler
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,17 +1,43 @@
-"""Ordered parallel map with a bounded window: results in input order, at most ``window`` in flight."""
+"""Parallel helpers: an ordered map with a bounded window, and a process pool that never outlives its owner.
+
+Worker processes come from a fork server (the caller may have threads, which must not be forked).
+Whatever ends the owning process (SIGKILL, SIGTERM, Ctrl-C, an exception), nothing is left behind:
+
+- each worker watches the owner's pid (a pidfd on Linux, polling elsewhere) and exits at once
+  when the owner is gone, and on Linux also dies with its own parent, the fork server
+  (``prctl(PR_SET_PDEATHSIG, SIGKILL)``);
+- the fork server exits by itself when the owner and every worker are gone (it waits on a pipe
+  whose write ends they hold), and so does multiprocessing's resource tracker;
+- if the owner leaves the pool by an exception (``KeyboardInterrupt`` included), queued tasks are
+  cancelled and the workers terminated instead of waited for.
+
+Workers ignore SIGINT: a Ctrl-C at the terminal reaches the whole process group, and the owner
+alone decides how to stop.
+"""
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
+import os
+import select
+import signal
+import sys
+import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from contextlib import contextmanager
 from typing import Any, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
 
 __all__ = ["ordered_map", "process_pool"]
+
+_PR_SET_PDEATHSIG = 1
+_POLL_SECONDS = 0.2
 
 
 def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tuple[Any, ...]], *,
@@ -26,8 +52,9 @@ def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tupl
         yield pending.popleft().result()
 
 
-def process_pool(workers: int, *, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
-    """Worker processes started by a fork server (the caller may have threads, which must not be forked).
+@contextmanager
+def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[ProcessPoolExecutor]:
+    """A ``ProcessPoolExecutor`` of ``workers`` processes that all end when the calling process ends.
 
     ``preload`` names modules the fork server imports once, so each worker starts with them loaded
     (it applies when the fork server starts, i.e. at the first pool of the process).
@@ -35,4 +62,58 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> ProcessPoolExe
     context = multiprocessing.get_context("forkserver")
     if preload:
         context.set_forkserver_preload(list(preload))
-    return ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_guard_worker,
+                               initargs=(os.getpid(),))
+    try:
+        yield pool
+    except BaseException:
+        _stop_now(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _stop_now(pool: ProcessPoolExecutor) -> None:
+    """Cancel queued tasks and terminate the workers (the owner is stopping; their results are not wanted)."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())  # private, but there is no public way
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in workers:
+        if process.is_alive():
+            process.terminate()
+    for process in workers:
+        process.join(timeout=2.0)
+
+
+def _guard_worker(owner_pid: int) -> None:
+    """Worker initializer: ignore Ctrl-C, die with the fork server and with the owner process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # no usable libc: the watchdog below still applies
+            pass
+    threading.Thread(target=_exit_when_gone, args=(owner_pid,), name="starlog-owner-watchdog", daemon=True).start()
+
+
+def _exit_when_gone(owner_pid: int) -> None:
+    """Block until ``owner_pid`` has exited, then end this process at once (no cleanup: nothing is wanted)."""
+    try:
+        pidfd = os.pidfd_open(owner_pid)  # type: ignore[attr-defined]  # Linux >= 5.3
+    except (AttributeError, OSError):
+        pidfd = None
+    if pidfd is not None:
+        select.select([pidfd], [], [])  # readable once the process has exited (zombie or reaped)
+    else:
+        while _is_alive(owner_pid):
+            time.sleep(_POLL_SECONDS)
+    os._exit(1)
+
+
+def _is_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # the pid now belongs to another user's process: ours is gone
+        return False
+    return True
