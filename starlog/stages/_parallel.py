@@ -3,11 +3,10 @@
 Worker processes come from a fork server (the caller may have threads, which must not be forked).
 Whatever ends the owning process (SIGKILL, SIGTERM, Ctrl-C, an exception), nothing is left behind:
 
-- each worker watches the owner's pid (a pidfd on Linux, polling elsewhere) and exits at once
-  when the owner is gone, and on Linux also dies with its own parent, the fork server
-  (``prctl(PR_SET_PDEATHSIG, SIGKILL)``);
-- the fork server exits by itself when the owner and every worker are gone (it waits on a pipe
-  whose write ends they hold), and so does multiprocessing's resource tracker;
+- the fork server and each worker watch the owner's pid (:mod:`starlog._lifeline`) and exit at
+  once when the owner is gone; on Linux a worker also dies with its parent, the fork server
+  (``prctl(PR_SET_PDEATHSIG, SIGKILL)``, which needs no Python thread to run);
+- multiprocessing's resource tracker exits by itself once they are all gone;
 - if the owner leaves the pool by an exception (``KeyboardInterrupt`` included), queued tasks are
   cancelled and the workers terminated instead of waited for.
 
@@ -20,16 +19,15 @@ from __future__ import annotations
 import ctypes
 import multiprocessing
 import os
-import select
 import signal
 import sys
-import threading
-import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from typing import Any, TypeVar
+
+from starlog import _lifeline as lifeline
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -37,7 +35,9 @@ R = TypeVar("R")
 __all__ = ["ordered_map", "process_pool"]
 
 _PR_SET_PDEATHSIG = 1
-_POLL_SECONDS = 0.2
+# Imported first by the fork server: the lifeline ties it to its owner, and workers then start with
+# this module (their initializer) loaded, so they are guarded from their first milliseconds.
+_FORK_SERVER_PRELOAD = ["starlog._lifeline", "starlog.stages._parallel"]
 
 
 def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tuple[Any, ...]], *,
@@ -60,8 +60,7 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[Proce
     (it applies when the fork server starts, i.e. at the first pool of the process).
     """
     context = multiprocessing.get_context("forkserver")
-    if preload:
-        context.set_forkserver_preload(list(preload))
+    context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_guard_worker,
                                initargs=(os.getpid(),))
     try:
@@ -84,36 +83,12 @@ def _stop_now(pool: ProcessPoolExecutor) -> None:
 
 
 def _guard_worker(owner_pid: int) -> None:
-    """Worker initializer: ignore Ctrl-C, die with the fork server and with the owner process."""
+    """Worker initializer: ignore Ctrl-C, die with the fork server (Linux) and with the owner process."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         try:
             libc = ctypes.CDLL(None, use_errno=True)
             libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-        except (OSError, AttributeError):  # no usable libc: the watchdog below still applies
+        except (OSError, AttributeError):  # no usable libc: the lifeline below still applies
             pass
-    threading.Thread(target=_exit_when_gone, args=(owner_pid,), name="starlog-owner-watchdog", daemon=True).start()
-
-
-def _exit_when_gone(owner_pid: int) -> None:
-    """Block until ``owner_pid`` has exited, then end this process at once (no cleanup: nothing is wanted)."""
-    try:
-        pidfd = os.pidfd_open(owner_pid)  # type: ignore[attr-defined]  # Linux >= 5.3
-    except (AttributeError, OSError):
-        pidfd = None
-    if pidfd is not None:
-        select.select([pidfd], [], [])  # readable once the process has exited (zombie or reaped)
-    else:
-        while _is_alive(owner_pid):
-            time.sleep(_POLL_SECONDS)
-    os._exit(1)
-
-
-def _is_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # the pid now belongs to another user's process: ours is gone
-        return False
-    return True
+    lifeline.watch(owner_pid)
