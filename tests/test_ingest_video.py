@@ -155,6 +155,7 @@ def test_ser_times_must_increase(sim_frames, tmp_path: Path) -> None:
     (lambda d: b"NOT-A-SER-FILE" + d[14:], "not a SER file"),
     (lambda d: d[:18] + struct.pack("<i", 16) + d[22:], "CYYM colour filter"),
     (lambda d: d[:34] + struct.pack("<i", 0) + d[38:], "invalid SER header"),
+    (lambda d: d[:38] + struct.pack("<i", 0) + d[42:], "FrameCount 0 .* 1 whole frames"),
 ])
 def test_unusable_ser_header_is_a_clear_error(tmp_path: Path, damage, match: str) -> None:
     write_ser(tmp_path / "c.ser", [np.zeros((4, 4), np.uint8)], times_ns=[EPOCH_NS])

@@ -196,7 +196,8 @@ def ingest_source(
     with LogWriter(output, compression=compression, workers=workers, force=force) as log:
         _write_frames(log, opened, stamp, summary, warned, skip_bad=skip_bad, show_progress=show_progress)
         if summary.frames == 0:
-            raise ImageFolderError(path, "no frame could be ingested (every frame was skipped as bad).")
+            raise ImageFolderError(path, "no frame could be ingested (every frame was skipped as bad)."
+                                   if summary.skipped else "holds no frames.")
         provenance = Provenance(stage="ingest", version=__version__, parameters=parameters,
                                 channels=[topics.IMAGE, topics.FRAME_INFO])
         log.add_metadata(PROVENANCE_METADATA_NAME, provenance.to_metadata())

@@ -182,10 +182,14 @@ def folder_frames(files: Sequence[Path], workers: int) -> Iterator[SourceFrame]:
 # ---------------------------------------------------------------- SER
 def ser_frames(path: Path) -> tuple[int, bool, Iterator[SourceFrame]]:
     """``(frame count, has timestamps, frames)`` of a SER file (format: :mod:`starlog.io.ser`)."""
-    from starlog.io.ser import SerReader
+    from starlog.io.ser import HEADER_SIZE, SerReader
 
     with SerReader(path) as reader:
         count, times = reader.header.frame_count, reader.timestamps_ns()
+        if count == 0:
+            whole = (reader.size - HEADER_SIZE) // reader.header.frame_bytes
+            raise ImageFolderError(path, f"has FrameCount 0 in its header (its bytes hold {whole} whole frames: "
+                                         "the capture may not have been closed properly).")
     return count, times is not None, _ser_iter(path, times)
 
 
