@@ -183,38 +183,54 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
 
 # ---------------------------------------------------------------- ingest
 @cli.command(context_settings=CONTEXT)
-@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("source", type=click.Path(exists=True, path_type=Path))
 @output_option()
-@click.option("--fps", type=float, help="Frame rate in Hz; frame n is at START + n/fps.")
+@click.option("--fps", "--rate", "fps", type=float,
+              help="Frame rate in Hz; frame n is at START + n/fps. Without it, a SER or video file's own "
+                   "frame times are used.")
 @click.option("--start", "start_ns", type=click.IntRange(0), default=0, show_default=True,
-              help="log_time of the first frame in ns (with --fps), or offset added to parsed times.")
+              help="log_time of the first frame in ns (with --fps), or offset added to parsed or file times.")
 @click.option("--time-pattern", help="Regular expression with a named group 't' that finds the time in each file "
                                      "name, e.g. 'img_(?P<t>\\d+)us'.")
 @click.option("--time-unit", type=click.Choice(["s", "ms", "us", "ns"]), default="ns", show_default=True,
               help="Unit of the time parsed with --time-pattern.")
-@click.option("--skip-bad", is_flag=True, help="Skip unreadable or mismatched files (counted) instead of stopping.")
+@click.option("--skip-bad", is_flag=True,
+              help="Skip unreadable or mismatched files or frames (each named in the summary) instead of stopping.")
 @json_option
 @write_options
-def ingest(folder: Path, output: Path, fps: float | None, start_ns: int, time_pattern: str | None, time_unit: str,
+def ingest(source: Path, output: Path, fps: float | None, start_ns: int, time_pattern: str | None, time_unit: str,
            skip_bad: bool, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
-    """Convert a folder of star images into a log.
+    """Convert camera output into a log: a folder of star images, a SER file or a video.
 
-    Reads 8/16-bit PNG and TIFF (FITS with `pip install starlog[fits]`) in natural file-name
-    order. Colour images are converted to mono with a warning. Every frame must match the
-    first's size and bit depth.
+    \b
+    Folders: 8/16-bit PNG and TIFF, BMP, JPEG, FITS (with `pip install starlog[fits]`), in
+      natural file-name order (img2 before img10).
+    SER (astronomy-camera video): 8/16-bit mono, RGB/BGR and Bayer (debayered); frame times from
+      its timestamp trailer (UTC, ns since 1970) unless --fps is given.
+    AVI/MP4/MOV/MKV (via OpenCV, decoded to 8 bits): frame times from the container unless --fps.
+
+    Colour frames are converted to mono, and lossy compression (JPEG, most video codecs), which
+    biases sub-pixel centroids, is noted. Every frame must match the first's size and bit depth.
 
     \b
     Example:
       starlog ingest frames/ -o lab.mcap --fps 300
       starlog ingest frames/ -o lab.mcap --time-pattern 'img_(?P<t>\\d+)' --time-unit us
+      starlog ingest capture.ser -o lab.mcap
+      starlog ingest capture.avi -o lab.mcap --fps 100 --skip-bad
     """
+    import warnings
+
     from starlog.stages import ingest_folder
 
-    summary = ingest_folder(folder, output, fps=fps, start_ns=start_ns, time_pattern=time_pattern,
-                            time_unit=time_unit, skip_bad=skip_bad, compression=compression, workers=workers,
-                            force=force, show_progress=not quiet)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = lambda message, *_, **__: click.echo(f"note: {message}", err=True)
+        summary = ingest_folder(source, output, fps=fps, start_ns=start_ns, time_pattern=time_pattern,
+                                time_unit=time_unit, skip_bad=skip_bad, compression=compression, workers=workers,
+                                force=force, show_progress=not quiet)
     _status(quiet, f"wrote {output}: {summary.frames} frames {summary.width}x{summary.height} {summary.encoding}, "
-                   f"{len(summary.skipped)} skipped")
+                   f"timed by {summary.timing}, {len(summary.skipped)} skipped")
     if as_json:
         _print_json(summary.to_dict())
     else:
@@ -657,9 +673,24 @@ def verify(log: Path, as_json: bool) -> None:
         sys.exit(1)
 
 
+class _Terminated(BaseException):
+    """SIGTERM arrived: unwind (abort partial outputs, stop worker pools), then die of the signal."""
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise _Terminated()
+
+
 def main() -> None:
     """Console-script entry point."""
-    cli(prog_name="starlog")
+    import signal
+
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        cli(prog_name="starlog")
+    except _Terminated:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)  # exit status says "terminated by SIGTERM", as without the handler
 
 
 if __name__ == "__main__":  # pragma: no cover

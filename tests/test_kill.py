@@ -1,12 +1,17 @@
 """A stage killed (SIGKILL) at random moments never changes its input, never leaves a
 half-written file under the output name, and a rerun gives the bytes of an uninterrupted run.
 
+Nothing is left behind: after SIGKILL, SIGTERM or Ctrl-C of a stage, every process it started
+(fork server, workers, resource tracker) is gone within 2 s; SIGTERM and Ctrl-C also remove the
+partial output.
+
 Also: every command gives identical bytes for identical inputs (reproducibility).
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
 import signal
 import subprocess
 import sys
@@ -25,6 +30,9 @@ PY = [sys.executable, "-m", "starlog"]
 SIM = ["--size", "32x32", "--stars", "3", "--seed", "1", "-q"]
 
 
+LEFTOVER_GRACE_S = 2.0
+
+
 def sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -33,6 +41,75 @@ def run(args: list[str], cwd: Path) -> float:
     t0 = time.perf_counter()
     subprocess.run(PY + args, cwd=cwd, check=True, capture_output=True, timeout=120)
     return time.perf_counter() - t0
+
+
+def start(args: list[str], cwd: Path, marker: str) -> subprocess.Popen[bytes]:
+    """Start a starlog command; every process it starts inherits ``marker`` in its environment."""
+    env = {**os.environ, "STARLOG_TEST_PROCESS_MARKER": marker}
+    return subprocess.Popen(PY + args, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+
+
+def marked_processes(marker: str) -> list[int]:
+    """Live (not zombie) processes whose environment carries ``marker``, wherever they were re-parented."""
+    needle = f"STARLOG_TEST_PROCESS_MARKER={marker}".encode()
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            environ = Path(f"/proc/{entry}/environ").read_bytes()
+            state = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:  # gone meanwhile, or not ours to read
+            continue
+        if needle in environ.split(b"\0") and state != "Z":
+            found.append(int(entry))
+    return found
+
+
+def descendants(pid: int) -> set[int]:
+    """Every process below ``pid`` (children of any of its threads, recursively)."""
+    found: set[int] = set()
+    todo = [pid]
+    while todo:
+        for task in Path(f"/proc/{todo.pop()}/task").glob("*"):
+            try:
+                children = {int(c) for c in (task / "children").read_text().split()}
+            except OSError:
+                continue
+            todo.extend(children - found)
+            found |= children
+    return found
+
+
+def assert_nothing_left(marker: str, tracked: set[int]) -> None:
+    """Within 2 s, no process started by the killed command is alive (found by marker or by pid)."""
+    deadline = time.monotonic() + LEFTOVER_GRACE_S
+    while True:
+        alive = set(marked_processes(marker)) | {p for p in tracked if _alive(p)}
+        if not alive or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    assert not alive, f"processes left behind {LEFTOVER_GRACE_S} s after the kill: {_describe(alive)}"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _describe(pids: set[int]) -> list[str]:
+    out = []
+    for pid in sorted(pids):
+        try:
+            out.append(f"{pid}: {Path(f'/proc/{pid}/cmdline').read_bytes().replace(bytes(1), b' ')[:120]!r}")
+        except OSError:
+            out.append(f"{pid}: (gone)")
+    return out
+
+
+needs_proc = pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="process tracking reads /proc (Linux)")
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +145,7 @@ def _input_digest(workdir: Path, name: str | None) -> str:
     return sha(path)
 
 
+@needs_proc
 @pytest.mark.parametrize("stage", list(STAGES))
 def test_killed_stage(workdir: Path, stage: str, tmp_path: Path) -> None:
     source, template = STAGES[stage]
@@ -79,11 +157,14 @@ def test_killed_stage(workdir: Path, stage: str, tmp_path: Path) -> None:
     (workdir / out_name).unlink()
     rng = np.random.default_rng(list(STAGES).index(stage))
     phases: dict[str, int] = {}
-    for delay in rng.uniform(0.3, 1.05, KILLS_PER_STAGE) * duration:
-        proc = subprocess.Popen(PY + args, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for n, delay in enumerate(rng.uniform(0.3, 1.05, KILLS_PER_STAGE) * duration):
+        marker = f"{stage}-{n}-{os.getpid()}"
+        proc = start(args, workdir, marker)
         time.sleep(delay)
+        tracked = descendants(proc.pid)
         proc.send_signal(signal.SIGKILL)
         code = proc.wait(timeout=60)
+        assert_nothing_left(marker, tracked)
         assert _input_digest(workdir, source) == before, "a killed stage changed its input"
         partials = sorted(workdir.glob(f".{out_name}.*.partial"))
         assert code in (0, -signal.SIGKILL)
@@ -109,6 +190,44 @@ def test_killed_stage(workdir: Path, stage: str, tmp_path: Path) -> None:
     assert sha(workdir / out_name) == reference
     (workdir / out_name).unlink()
     print(f"\n{stage}: {KILLS_PER_STAGE} kills over {duration:.2f} s runs, phases {phases}")
+
+
+POOL_STAGES = {
+    "centroid": ["centroid", "big.mcap", "-o", "OUT", "--method", "MOMENT,GAUSSFIT", "--workers", "2", "-q"],
+    "simulate": ["simulate", "-o", "OUT", "--frames", "4000", "--size", "96x96", "--stars", "20", "--workers", "2",
+                 "-q"],
+}
+
+
+@needs_proc
+@pytest.mark.parametrize("how", ["SIGKILL", "SIGTERM", "SIGINT"])
+@pytest.mark.parametrize("stage", list(POOL_STAGES))
+def test_stopped_stage_leaves_no_process_and_no_partial_output(workdir: Path, stage: str, how: str) -> None:
+    """Stopped while its worker pool runs, a stage's fork server and workers exit within 2 s."""
+    if not (workdir / "big.mcap").exists():
+        run(["simulate", "-o", "big.mcap", "--frames", "1500", "--size", "96x96", "--stars", "20", "-q"], workdir)
+    out_name = f"{stage}_{how}.mcap"
+    args = [a if a != "OUT" else out_name for a in POOL_STAGES[stage]]
+    marker = f"pool-{stage}-{how}-{os.getpid()}"
+    proc = start(args, workdir, marker)
+    deadline = time.monotonic() + 60
+    while len(descendants(proc.pid)) < 3 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)  # until the fork server and both workers run
+    time.sleep(0.3)
+    tracked = descendants(proc.pid)
+    assert proc.poll() is None and len(tracked) >= 3, "the stage ended before its worker pool could be stopped"
+    proc.send_signal(getattr(signal, how))
+    code = proc.wait(timeout=30)
+    assert_nothing_left(marker, tracked)
+    partials = sorted(workdir.glob(f".{out_name}.*.partial"))
+    if how == "SIGKILL":
+        assert code == -signal.SIGKILL
+        for partial in partials:
+            partial.unlink()
+    else:  # the stage unwinds: partial output removed, exit status says how it was stopped
+        assert code == (-signal.SIGTERM if how == "SIGTERM" else 1)
+        assert not partials, "a stopped stage left its partial output"
+    assert not (workdir / out_name).exists()
 
 
 def test_every_command_is_reproducible(workdir: Path, tmp_path: Path) -> None:

@@ -7,7 +7,7 @@ here join them to the log layer (:mod:`starlog.io`) and record provenance.
 
 from __future__ import annotations
 
-from starlog.stages.ingest import IngestSummary, ingest_folder
+from starlog.stages.ingest import IngestSummary, ingest_folder, ingest_source
 from starlog.stages.simulate import simulate_log
 
-__all__ = ["IngestSummary", "ingest_folder", "simulate_log"]
+__all__ = ["IngestSummary", "ingest_folder", "ingest_source", "simulate_log"]

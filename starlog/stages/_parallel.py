@@ -1,17 +1,43 @@
-"""Ordered parallel map with a bounded window: results in input order, at most ``window`` in flight."""
+"""Parallel helpers: an ordered map with a bounded window, and a process pool that never outlives its owner.
+
+Worker processes come from a fork server (the caller may have threads, which must not be forked).
+Whatever ends the owning process (SIGKILL, SIGTERM, Ctrl-C, an exception), nothing is left behind:
+
+- the fork server and each worker watch the owner's pid (:mod:`starlog._lifeline`) and exit at
+  once when the owner is gone; on Linux a worker also dies with its parent, the fork server
+  (``prctl(PR_SET_PDEATHSIG, SIGKILL)``, which needs no Python thread to run);
+- multiprocessing's resource tracker exits by itself once they are all gone;
+- if the owner leaves the pool by an exception (``KeyboardInterrupt`` included), queued tasks are
+  cancelled and the workers terminated instead of waited for.
+
+Workers ignore SIGINT: a Ctrl-C at the terminal reaches the whole process group, and the owner
+alone decides how to stop.
+"""
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
+import os
+import signal
+import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from contextlib import contextmanager
 from typing import Any, TypeVar
+
+from starlog import _lifeline as lifeline
 
 T = TypeVar("T")
 R = TypeVar("R")
 
 __all__ = ["ordered_map", "process_pool"]
+
+_PR_SET_PDEATHSIG = 1
+# Imported first by the fork server: the lifeline ties it to its owner, and workers then start with
+# this module (their initializer) loaded, so they are guarded from their first milliseconds.
+_FORK_SERVER_PRELOAD = ["starlog._lifeline", "starlog.stages._parallel"]
 
 
 def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tuple[Any, ...]], *,
@@ -26,13 +52,43 @@ def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tupl
         yield pending.popleft().result()
 
 
-def process_pool(workers: int, *, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
-    """Worker processes started by a fork server (the caller may have threads, which must not be forked).
+@contextmanager
+def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[ProcessPoolExecutor]:
+    """A ``ProcessPoolExecutor`` of ``workers`` processes that all end when the calling process ends.
 
     ``preload`` names modules the fork server imports once, so each worker starts with them loaded
     (it applies when the fork server starts, i.e. at the first pool of the process).
     """
     context = multiprocessing.get_context("forkserver")
-    if preload:
-        context.set_forkserver_preload(list(preload))
-    return ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_guard_worker,
+                               initargs=(os.getpid(),))
+    try:
+        yield pool
+    except BaseException:
+        _stop_now(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _stop_now(pool: ProcessPoolExecutor) -> None:
+    """Cancel queued tasks and terminate the workers (the owner is stopping; their results are not wanted)."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())  # private, but there is no public way
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in workers:
+        if process.is_alive():
+            process.terminate()
+    for process in workers:
+        process.join(timeout=2.0)
+
+
+def _guard_worker(owner_pid: int) -> None:
+    """Worker initializer: ignore Ctrl-C, die with the fork server (Linux) and with the owner process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # no usable libc: the lifeline below still applies
+            pass
+    lifeline.watch(owner_pid)

@@ -1,0 +1,64 @@
+"""Processes that end when their owner ends: a watchdog on the owner's pid.
+
+:func:`watch` starts a daemon thread that ends the calling process the moment the owner process
+has exited (a pidfd on Linux, which becomes readable at exit even before the owner is reaped;
+polling every 0.2 s elsewhere). The worker pools of :mod:`starlog.stages._parallel` use it.
+
+Imported by multiprocessing's fork server (as its first preload module), this module also ties the
+fork server to the process that started it: nothing else would stop a fork server whose owner was
+killed while it still had workers or was importing its other preload modules.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import sys
+import threading
+import time
+
+__all__ = ["watch"]
+
+_POLL_SECONDS = 0.2
+
+
+def watch(owner_pid: int) -> None:
+    """End this process (``os._exit``, no cleanup) as soon as ``owner_pid`` has exited."""
+    threading.Thread(target=_exit_when_gone, args=(owner_pid,), name="starlog-lifeline", daemon=True).start()
+
+
+def _exit_when_gone(owner_pid: int) -> None:
+    try:
+        pidfd = os.pidfd_open(owner_pid)  # type: ignore[attr-defined,unused-ignore]  # Linux >= 5.3
+    except (AttributeError, OSError):  # not Linux, or the owner is gone already
+        pidfd = None
+    if pidfd is not None:
+        select.select([pidfd], [], [])
+    else:
+        while _is_alive(owner_pid):
+            time.sleep(_POLL_SECONDS)
+    os._exit(1)
+
+
+def _is_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, PermissionError):  # gone (a PermissionError: the pid now names another's process)
+        return False
+    return True
+
+
+def _imported_by_fork_server() -> bool:
+    forkserver = sys.modules.get("multiprocessing.forkserver")
+    if forkserver is None:
+        return False
+    frame = sys._getframe()
+    while frame is not None:
+        if frame.f_code is forkserver.main.__code__:
+            return True
+        frame = frame.f_back  # type: ignore[assignment]
+    return False
+
+
+if _imported_by_fork_server():
+    watch(os.getppid())
