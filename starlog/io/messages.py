@@ -246,6 +246,7 @@ class _PredicateSource:
 
     def __init__(self) -> None:
         self.lines: list[str] = []
+        self.functions: list[str] = []  # column checkers and their tables, defined beside ``is_valid``
         self.constants: dict[str, Any] = {}
         self._names = 0
 
@@ -316,18 +317,86 @@ class _PredicateSource:
             out(f"{pad}    if len({var}) < {int(low)}: return False")
         if high is not None:
             out(f"{pad}    if len({var}) > {int(high)}: return False")
-        if isinstance(items, dict):
-            item = self.name("v")
-            out(f"{pad}    for {item} in {var}:")
-            self.emit(items, item, indent + 2)
-            out(f"{pad}        pass")
+        if not isinstance(items, dict):
+            return
+        item = self.name("v")
+        if _is_record(items):  # rows of one record type: check column by column, in C loops
+            props = items["properties"]
+            keys, table = self.name("k"), self.name("COLUMNS")
+            columns = ", ".join(f"{key!r}: {self._column_function(sub)}" for key, sub in props.items())
+            self.functions.append(f"{table} = {{{columns}}}")
+            out(f"{pad}    {keys} = tuple({var}[0]) if {var} and type({var}[0]) is dict else ()")
+            out(f"{pad}    if len({keys}) == {len(props)} and {self.constant(frozenset(props))}.issuperset({keys}) "
+                f"and all(type(_i) is dict and tuple(_i) == {keys} for _i in {var}):")
+            out(f"{pad}        for _name, _column in zip({keys}, zip(*[_i.values() for _i in {var}])):")
+            out(f"{pad}            if not {table}[_name](_column): return False")
+            out(f"{pad}    else:")
+            out(f"{pad}        for {item} in {var}:")
+            self.emit(items, item, indent + 3)
+            out(f"{pad}            pass")
+            return
+        out(f"{pad}    for {item} in {var}:")
+        self.emit(items, item, indent + 2)
+        out(f"{pad}        pass")
+
+    def _column_function(self, schema: dict[str, Any]) -> str:
+        """Name of a generated ``column(values) -> bool``: every value of one property satisfies ``schema``."""
+        name = self.name("column")
+        saved, self.lines = self.lines, []
+        out = self.lines.append
+        _check_keywords(schema)
+        kind = schema.get("type")
+        kinds = [kind] if isinstance(kind, str) else list(kind or [])
+        numeric = bool(kinds) and set(kinds) <= {"number", "integer"}
+        if not set(schema) <= _ANNOTATIONS | {"type", "enum", "minimum", "maximum"}:
+            self.lines.append("    for x in c:")
+            self.emit(schema, "x", 2)
+            out("        pass")
+        else:
+            if kinds:
+                allowed = frozenset(t for k in kinds for t in _PYTHON_TYPES[k])
+                out("    ts = set(map(type, c))")
+                out(f"    if not ts <= {self.constant(allowed)}: return False")
+                if "integer" in kinds and "number" not in kinds:
+                    out("    if float in ts and not all(x.is_integer() for x in c if type(x) is float): return False")
+            if "enum" in schema:
+                out("    for x in c:")
+                out(f"        if x not in {self.constant(list(schema['enum']))}: return False")
+            for key, low_or_high in (("minimum", "min(c) <"), ("maximum", "max(c) >")):
+                if key in schema and numeric:
+                    out(f"    if {low_or_high} {self.constant(schema[key])}: return False")
+                elif key in schema:
+                    out("    for x in c:")
+                    out(f"        if (type(x) is float or type(x) is int) and x {'<' if key == 'minimum' else '>'} "
+                        f"{self.constant(schema[key])}: return False")
+        self.functions.append(f"def {name}(c):\n" + "\n".join(self.lines) + "\n    return True")
+        self.lines = saved
+        return name
+
+
+#: Keywords that say nothing about validity.
+_ANNOTATIONS = {"$schema", "$id", "title", "description", "unit", "examples", "default"}
+
+#: Python types of decoded JSON values, per JSON Schema type.
+_PYTHON_TYPES: dict[str, tuple[type, ...]] = {
+    "object": (dict,), "array": (list,), "string": (str,), "boolean": (bool,), "null": (type(None),),
+    "number": (int, float), "integer": (int, float),
+}
+
+
+def _is_record(schema: dict[str, Any]) -> bool:
+    """Whether ``schema`` describes objects with exactly its listed properties, all required."""
+    props = schema.get("properties")
+    return (isinstance(props, dict) and bool(props) and schema.get("type", "object") == "object"
+            and schema.get("additionalProperties") is False and set(schema.get("required", [])) == set(props)
+            and set(schema) <= _ANNOTATIONS | {"type", "properties", "required", "additionalProperties"})
 
 
 def _compile_predicate(schema: dict[str, Any]) -> Callable[[Any], bool]:
     """``is_valid(value) -> bool`` for ``schema``, generated as Python source and compiled once."""
     source = _PredicateSource()
     source.emit(schema, "value", 1)
-    text = "def is_valid(value):\n" + "\n".join(source.lines) + "\n    return True\n"
+    text = "def is_valid(value):\n" + "\n".join(source.lines) + "\n    return True\n\n" + "\n".join(source.functions)
     namespace: dict[str, Any] = dict(source.constants)
     exec(compile(text, "<starlog json schema>", "exec"), namespace)  # source built above from the schema only
     return namespace["is_valid"]  # type: ignore[no-any-return]
