@@ -1,10 +1,11 @@
 """``starlog run``: replay a log through several stages from one TOML config file.
 
 A config has one table per stage, run in the order centroid → track → compensate; a stage
-whose table is absent is skipped. Each stage writes a complete log (intermediates go to
-temporary files beside the output and are removed), so running the config gives the same
-bytes as running the stages one by one with the same options. The built-in config is
-:data:`DEFAULT_CONFIG_TOML` (``starlog run --print-config`` prints it).
+whose table is absent is skipped. Each stage writes only what it adds (a sidecar beside the
+output, removed at the end) and reads its input and the sidecars before it as one log; the
+output is written once and has the same bytes as running the stages one by one with the same
+options. The built-in config is :data:`DEFAULT_CONFIG_TOML` (``starlog run --print-config``
+prints it).
 """
 
 from __future__ import annotations
@@ -17,6 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.io.stack import StackedLog
+from starlog.stages.centroid import centroid_log
+from starlog.stages.compensate import compensate_log
+from starlog.stages.track import track_log
 
 __all__ = ["DEFAULT_CONFIG_TOML", "PipelineConfig", "load_config", "run_pipeline", "run_pipeline_task"]
 
@@ -114,27 +119,13 @@ class PipelineResult:
         return {"output": str(self.output), "stages": [{"stage": s, **r} for s, r in self.stages]}
 
 
-def run_pipeline(
-    input_path: str | os.PathLike[str],
-    output_path: str | os.PathLike[str],
-    config: PipelineConfig,
-    *,
-    workers: int = 1,
-    force: bool = False,
-    compression: str = "zstd",
-    show_progress: bool = False,
-    on_stage: Callable[[str, dict[str, Any]], None] | None = None,
-) -> PipelineResult:
-    """Run the stages of ``config`` on ``input_path``; the final log goes to ``output_path``."""
-    from starlog.stages.centroid import centroid_log
-    from starlog.stages.compensate import compensate_log
-    from starlog.stages.track import track_log
+Step = Callable[[StackedLog, Path], dict[str, Any]]
 
-    output = Path(output_path)
-    if output.exists() and not force:
-        raise OutputExistsError(output)
-    steps: list[tuple[str, Callable[[Path, Path], dict[str, Any]]]] = []
-    common = {"compression": compression}
+
+def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progress: bool) -> list[tuple[str, Step]]:
+    """Every stage run of ``config``, in order, as ``(name, step(input, sidecar) -> report)``."""
+    steps: list[tuple[str, Step]] = []
+    common: dict[str, Any] = {"compression": compression}
     if config.centroid is not None:
         c = config.centroid
         steps.append(("centroid", lambda i, o: centroid_log(
@@ -147,37 +138,53 @@ def run_pipeline(
             steps.append((f"track {method}", lambda i, o, m=method: track_log(
                 i, o, method=m, models=t.get("models", "all"), tracker=t.get("tracker"), motion=t.get("motion"),
                 show_progress=show_progress, **common).to_dict()))
-    compensate_config = config.compensate
+    if config.compensate is not None:
+        k = config.compensate
+        steps.append(("compensate", lambda i, o: compensate_log(
+            i, o, rates=k["rates"], track=k.get("tracks", "all"), protocols=k.get("protocols", "all"),
+            options=k.get("options"), show_progress=show_progress, **common).to_dict()))
+    return steps
+
+
+def run_pipeline(
+    input_path: str | os.PathLike[str],
+    output_path: str | os.PathLike[str],
+    config: PipelineConfig,
+    *,
+    workers: int = 1,
+    force: bool = False,
+    compression: str = "zstd",
+    show_progress: bool = False,
+    on_stage: Callable[[str, dict[str, Any]], None] | None = None,
+) -> PipelineResult:
+    """Run the stages of ``config`` on ``input_path``; the final log goes to ``output_path``.
+
+    Each stage reads the input and the sidecars of the stages before it as one log
+    (:class:`~starlog.io.stack.StackedLog`) and writes only its own records; the output is
+    written once, at the end, and is the file the stages run one by one would have made.
+    """
+    output = Path(output_path)
+    if output.exists() and not force:
+        raise OutputExistsError(output)
+    steps = _steps(config, workers=workers, compression=compression, show_progress=show_progress)
+    if not steps:
+        raise InvalidParameterError(f"{config.source}: the config runs no stage.")
     result = PipelineResult(output=output)
-    current = Path(input_path)
-    temporaries: list[Path] = []
+    stack = StackedLog.of(input_path)
+    sidecars: list[Path] = []
     try:
         for name, step in steps:
-            target = output.with_name(f".{output.name}.{len(temporaries)}.stage.mcap")
-            target.unlink(missing_ok=True)
-            report = step(current, target)
-            temporaries.append(target)
-            current = target
+            sidecar = output.with_name(f".{output.name}.{len(sidecars)}.sidecar")
+            sidecar.unlink(missing_ok=True)
+            report = step(stack, sidecar)
+            sidecars.append(sidecar)
+            stack = stack.extend(sidecar)
             result.stages.append((name, report))
             if on_stage:
                 on_stage(name, report)
-        if compensate_config is not None:
-            k = compensate_config
-            target = output.with_name(f".{output.name}.{len(temporaries)}.stage.mcap")
-            target.unlink(missing_ok=True)
-            report = compensate_log(current, target, rates=k["rates"], track=k.get("tracks", "all"),
-                                    protocols=k.get("protocols", "all"), options=k.get("options"),
-                                    **common).to_dict()
-            temporaries.append(target)
-            current = target
-            result.stages.append(("compensate", report))
-            if on_stage:
-                on_stage("compensate", report)
-        if not temporaries:
-            raise InvalidParameterError(f"{config.source}: the config runs no stage.")
-        os.replace(temporaries.pop(), output)
+        stack.write_to(output, force=force)
     finally:
-        for path in temporaries:
+        for path in sidecars:
             path.unlink(missing_ok=True)
     return result
 

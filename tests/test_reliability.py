@@ -283,7 +283,7 @@ def _raw_image(width: int, height: int, encoding: str, data: bytes, step: int | 
 
 
 def _write_log(path: Path, images: list[tuple[int, bytes]], infos: list[tuple[int, bytes]] | None = None) -> Path:
-    with LogWriter(path) as w:
+    with LogWriter(path, validate=False) as w:  # a foreign writer: it writes what it is given
         image = w.add_channel(topics.IMAGE, protobuf_message_type("foxglove.RawImage"))
         info = w.add_channel(topics.FRAME_INFO, json_message_type("starlog.FrameInfo"))
         for t, data in images:

@@ -189,16 +189,18 @@ def test_stage_keeps_its_input_and_refuses_to_overwrite(pipeline_logs: dict[str,
 def test_stage_channels_refuse_time_going_back_unless_unordered(pipeline_logs: dict[str, Path],
                                                                 tmp_path: Path) -> None:
     message_type = json_message_type("starlog.FrameInfo")
+    info = json.dumps({"frame": 0, "width": 16, "height": 16, "encoding": "mono16", "bit_depth": 16,
+                       "source": ""}).encode()
     with pytest.raises(InvalidInputError, match="not after"):
         with extend_log(pipeline_logs["sim"], tmp_path / "a.mcap", stage="test", parameters={}) as (_, out):
             ch = out.add_channel("/test/ordered", message_type)
-            out.writer.write(ch, log_time=2, data=b"{}")
-            out.writer.write(ch, log_time=2, data=b"{}")
+            out.writer.write(ch, log_time=2, data=info)
+            out.writer.write(ch, log_time=2, data=info)
     assert not (tmp_path / "a.mcap").exists()
     with extend_log(pipeline_logs["sim"], tmp_path / "b.mcap", stage="test", parameters={}) as (_, out):
         ch = out.add_channel("/test/unordered", message_type, unordered=True)
         for t in (2, 2, 1):
-            out.writer.write(ch, log_time=t, data=b"{}")
+            out.writer.write(ch, log_time=t, data=info)
     with LogReader(tmp_path / "b.mcap") as log:
         assert log.channel("/test/unordered").message_count == 3
 

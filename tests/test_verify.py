@@ -176,7 +176,7 @@ def test_damaged_container_is_reported_by_kind(logs: dict[str, Path], tmp_path: 
 
 
 def _bad_log(path: Path, images: list[tuple[int, bytes]], infos: list[tuple[int, bytes]]) -> Path:
-    with LogWriter(path) as w:
+    with LogWriter(path, validate=False) as w:  # deliberately bad messages
         image = w.add_channel(topics.IMAGE, protobuf_message_type("foxglove.RawImage"))
         info = w.add_channel(topics.FRAME_INFO, json_message_type("starlog.FrameInfo"))
         for t, data in images:

@@ -1,11 +1,16 @@
 """Benchmark of the foundation: simulate and ingest throughput, and memory of reading logs.
 
-Prints two tables, every ratio measured in this one run:
+Prints three tables, every ratio measured in this one run:
 
 1. frames/s and MB/s (raw mono16 pixel bytes per second) of ``simulate`` and ``ingest`` for
    512x512 and 1024x1024 frames, beside numpy ``tofile`` of the same bytes (the disk's raw
    write speed, the ceiling for any logger);
-2. peak resident memory of ``starlog info`` and of streaming a whole image channel, for a log
+2. the codec of starlog's own JSON channels, per message (µs) and MB/s of JSON: the previous
+   path (standard-library json, schema checked by a closure walk on every read and not on
+   write) beside the current one (orjson; the writer checks each message with the compiled
+   checker; a reader of a channel starlog checked decodes only), and reading each channel
+   from a log through :class:`LogReader`;
+3. peak resident memory of ``starlog info`` and of streaming a whole image channel, for a log
    and one 10x longer (it must stay flat).
 
 Usage::
@@ -25,10 +30,19 @@ import tempfile
 import time
 from pathlib import Path
 
+import json
+from collections.abc import Callable
+from typing import Any
+
 import cv2
 
+from starlog.io import LogReader, decode_json, encode_json
+from starlog.io.messages import _compile_walker, compile_json_schema
+from starlog.io.schemas import load_json_schema
 from starlog.sim import SimulationConfig, Simulator
 from starlog.stages import ingest_folder, simulate_log
+from starlog.stages.centroid import centroid_log
+from starlog.stages.track import track_log
 
 
 def _mb(frames: int, size: int) -> float:
@@ -68,6 +82,67 @@ def bench_throughput(size: int, frames: int, tmp: Path) -> list[tuple[str, float
         dt = time.perf_counter() - start
         rows.append((f"ingest PNG {compression} workers={workers}", frames / dt, _mb(frames, size) / dt))
     return rows
+
+
+def _per_call_us(function: Callable[[Any], Any], values: list[Any], repeat: int = 3) -> float:
+    """Best of ``repeat`` passes over ``values``: microseconds per call."""
+    best = float("inf")
+    for _ in range(repeat):
+        start = time.perf_counter()
+        for value in values:
+            function(value)
+        best = min(best, time.perf_counter() - start)
+    return best / len(values) * 1e6
+
+
+_CODEC_CHANNELS = [("/sim/truth", "starlog.SimTruth"), ("/stars/detections", "starlog.Detections"),
+                   ("/stars/centroids/GAUSSFIT", "starlog.Centroids"), ("/track/GAUSSFIT/STATIC", "starlog.Tracks")]
+
+
+def bench_codec(frames: int, tmp: Path) -> list[tuple[str, int, float, float, float, float, float, float]]:
+    """Per channel: bytes/message; read µs before/after (and after, checked); write µs before/after; log read µs."""
+    config = SimulationConfig(width=512, height=512, n_stars=40, n_frames=frames, seed=3)
+    sim, cen, trk = tmp / "codec_sim.mcap", tmp / "codec_cen.mcap", tmp / "codec_trk.mcap"
+    simulate_log(config, sim, compression="lz4")
+    centroid_log(sim, cen, methods="GAUSSFIT", workers=1)
+    track_log(cen, trk, method="GAUSSFIT", models="STATIC", tracker={"sigma_floor": 0.05})
+    rows = []
+    with LogReader(trk) as log:
+        for topic, name in _CODEC_CHANNELS:
+            raw = [bytes(m.data) for _, _, m in log.raw_messages([topic])]
+            values = [decode_json(r) for r in raw]
+            walker, checker = _compile_walker(load_json_schema(name)), compile_json_schema(load_json_schema(name))
+
+            def read_before(data: bytes) -> None:
+                walker(json.loads(data.decode("utf-8")), "$")
+
+            def write_before(value: Any) -> None:
+                json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
+
+            def write_after(value: Any) -> None:
+                checker(decode_json(encode_json(value)))  # what the stage and LogWriter.write do
+
+            start = time.perf_counter()
+            n = sum(1 for _ in log.messages(topic))
+            log_read = (time.perf_counter() - start) / n * 1e6
+            rows.append((topic, sum(map(len, raw)) // len(raw), _per_call_us(read_before, raw),
+                         _per_call_us(decode_json, raw), _per_call_us(lambda d: checker(decode_json(d)), raw),
+                         _per_call_us(write_before, values), _per_call_us(write_after, values), log_read))
+    return rows
+
+
+def print_codec(rows: list[tuple[str, int, float, float, float, float, float, float]]) -> None:
+    print(f"{'channel':<27} {'B/msg':>6}  {'read before':>11} {'read after':>10} {'(checked)':>9}  "
+          f"{'write before':>12} {'write after':>11}  {'LogReader':>9}")
+    for topic, size, rb, ra, rc, wb, wa, lr in rows:
+        print(f"{topic:<27} {size:>6}  {rb:>9.1f}us {ra:>8.1f}us {rc:>7.1f}us  {wb:>10.1f}us {wa:>9.1f}us  "
+              f"{lr:>7.1f}us")
+    print(f"{'MB/s of JSON':<27} {'':>6}  " + "  ".join(
+        f"{sum(r[1] for r in rows) / sum(r[k] for r in rows):>9.1f}" for k in (2, 3, 4, 5, 6, 7)))
+    print("\nread before: json.loads + schema walk (every message, every read); read after: orjson.loads (a channel\n"
+          "starlog checked on write, CRC verified); (checked): + compiled check (foreign or old logs); write before:\n"
+          "json.dumps, unchecked; write after: orjson.dumps + decode + compiled check; LogReader: per message of\n"
+          "LogReader.messages on the log (chunk read, decompression, index checks, decode).\n")
 
 
 _READ_ALL = """
@@ -114,6 +189,7 @@ def main() -> None:
     args = parser.parse_args()
     cases = [(512, 60), (1024, 20)] if args.quick else [(512, 600), (1024, 150)]
     mem_frames = 100 if args.quick else 500
+    codec_frames = 30 if args.quick else 200
     print(f"# starlog bench_io  (cores: {os.cpu_count()}, quick: {args.quick})\n")
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as d:
         tmp = Path(d)
@@ -122,6 +198,9 @@ def main() -> None:
             for name, fps, mbs in bench_throughput(size, frames, tmp):
                 print(f"{frames:>7} {size:>4}x{size:<4}  {name:<28} {fps:>9.1f} {mbs:>8.1f}")
         print("\nTarget: ingest of 512x512 mono16 with lz4 >= 150 MB/s (a 300 Hz camera = 157 MB/s).\n")
+        if not args.memory_only:
+            print(f"# codec of starlog's JSON channels (512x512, 40 stars, {codec_frames} frames)")
+            print_codec(bench_codec(codec_frames, tmp))
         print(f"{'case':<24} {'frames':>7} {'peak MiB':>9} {'10x frames':>11} {'peak MiB':>9} {'growth':>7}")
         for name, n, small, large in bench_memory(mem_frames, tmp):
             print(f"{name:<24} {n:>7} {small:>9.1f} {10 * n:>11} {large:>9.1f} {100 * (large / small - 1):>6.1f}%")

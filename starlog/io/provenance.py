@@ -8,14 +8,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from starlog.io.stack import StackedLog
+
 __all__ = ["PROVENANCE_METADATA_NAME", "Provenance", "file_digest"]
 
 #: Name of the MCAP Metadata records that hold one stage's provenance each.
 PROVENANCE_METADATA_NAME = "starlog.provenance"
 
 
-def file_digest(path: str | Path) -> str:
-    """SHA-256 of a file's bytes, as ``"sha256:<hex>"``."""
+def file_digest(path: str | Path | StackedLog) -> str:
+    """SHA-256 of a file's bytes (or of the bytes a :class:`StackedLog` stands for), as ``"sha256:<hex>"``."""
+    if isinstance(path, StackedLog):
+        return path.digest()
     with open(path, "rb") as f:
         return "sha256:" + hashlib.file_digest(f, "sha256").hexdigest()
 

@@ -7,7 +7,10 @@ cut off or never finished), :class:`~starlog.errors.CorruptChunkError` (naming t
 channels and time range) or :class:`~starlog.errors.CorruptLogError`, each pointing to
 ``starlog recover``; a message whose payload does not decode or does not satisfy its schema
 raises :class:`~starlog.errors.MessageDecodeError` / :class:`~starlog.errors.InvalidMessageError`
-naming its topic and ``log_time``.
+naming its topic and ``log_time``. Messages that starlog's writer checked against their schema
+(their channel is marked ``starlog.validated``) are not checked again when their chunk's CRC and
+the summary's CRC were verified: the bytes are those that passed the check. Every other JSON
+message (foreign logs, logs of older versions, ``validate_crcs=False``) is checked as it is decoded.
 """
 
 from __future__ import annotations
@@ -45,10 +48,12 @@ from starlog.errors import (
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
 from starlog.io.images import is_image_schema
+from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
 from starlog.io.scan import LooseRun, find_loose_runs, read_loose, synthesize_summary
-from starlog.io.writer import MCAP_MAGIC, locate_data_end
+from starlog.io.stack import StackedLog
+from starlog.io.writer import VALIDATED_METADATA_KEY
 
 _RECORD_HEADER = struct.Struct("<BQ")
 _MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log_time, publish_time
@@ -169,8 +174,10 @@ class LogReader:
     validate_crcs : bool
         Check the summary's and every chunk's CRC (default). A mismatch raises
         :class:`CorruptLogError` / :class:`CorruptChunkError`.
-    validate_messages : bool
-        Check every JSON message against its embedded JSON Schema as it is decoded (default).
+    validate_messages : bool or "all"
+        Check JSON messages against their embedded JSON Schema as they are decoded (default):
+        those that starlog checked when writing them only when their CRCs could not be verified;
+        ``"all"``: every one, whoever wrote it.
 
     Raises
     ------
@@ -183,11 +190,10 @@ class LogReader:
     ...         image = message.payload  # 2-D uint16 array
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, validate_crcs: bool = True,
-                 validate_messages: bool = True) -> None:
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise LogNotFoundError(self.path)
+    def __init__(self, path: str | os.PathLike[str] | StackedLog, *, validate_crcs: bool = True,
+                 validate_messages: bool | str = True) -> None:
+        if validate_messages not in (True, False, "all"):
+            raise ValueError(f"validate_messages must be True, False or 'all', got {validate_messages!r}.")
         self._validate_crcs = validate_crcs
         self._validate_messages = validate_messages
         self._checkers: dict[int, Callable[[Any], str | None] | None] = {}
@@ -196,7 +202,15 @@ class LogReader:
         self._loose: list[LooseRun] = []
         self._extents: dict[int, list[int]] | None = None  # count, first, last per channel (unindexed parts)
         self._indexed = True
-        self._file: BinaryIO = open(self.path, "rb")
+        self._summary_verified = False
+        if isinstance(path, StackedLog):
+            self.path = path.path
+            self._file: BinaryIO = path.open()
+        else:
+            self.path = Path(path)
+            if not self.path.is_file():
+                raise LogNotFoundError(self.path)
+            self._file = open(self.path, "rb")
         try:
             self._data_end = self._open()
         except BaseException:
@@ -233,6 +247,7 @@ class LogReader:
                 raise CorruptLogError(
                     self.path, f"its summary section (offset {summary_start}..{footer_start}) is damaged: "
                     f"CRC {crc:#010x} does not match the footer's {summary_crc:#010x}. {_hint(self.path)}")
+            self._summary_verified = True
         try:
             f.seek(0)
             self._reader = make_reader(f, validate_crcs=self._validate_crcs)
@@ -357,7 +372,7 @@ class LogReader:
             segments = [ci for ci in self._summary.chunk_indexes if every or not ci.message_index_offsets]
             extents: dict[int, list[int]] = {}
             for ci in segments + list(self._loose):
-                for log_time, _, cid, _ in self._read_chunk(ci):
+                for log_time, _, cid, _ in self._read_chunk(ci)[0]:
                     e = extents.get(cid)
                     if e is None:
                         extents[cid] = [1, log_time, log_time]
@@ -434,11 +449,12 @@ class LogReader:
         return CorruptChunkError(self.path, ci.chunk_start_offset, names, ci.message_start_time,
                                  ci.message_end_time, detail)
 
-    def _read_chunk(self, ci: ChunkIndex) -> list[tuple[int, int, int, Message]]:
-        """Every message of the chunk ``ci`` as ``(log_time, position, channel_id, message)``, fully checked."""
+    def _read_chunk(self, ci: ChunkIndex) -> tuple[list[tuple[int, int, int, Message]], bool]:
+        """Every message of the chunk ``ci`` as ``(log_time, position, channel_id, message)``, fully checked,
+        and whether its CRC was verified (never for messages outside chunks)."""
         if isinstance(ci, LooseRun):
             try:
-                return read_loose(self._file, ci)
+                return read_loose(self._file, ci), False
             except (ValueError, struct.error) as err:
                 raise CorruptLogError(self.path, f"the messages outside chunks at offset {ci.chunk_start_offset} are "
                                                  f"damaged ({err}). {_hint(self.path)}") from err
@@ -468,7 +484,8 @@ class LogReader:
             raise self._chunk_error(ci, f"{type(err).__name__}: {err}") from err
         if len(data) != size:
             raise self._chunk_error(ci, f"it decompresses to {len(data)} bytes, not {size}")
-        if self._validate_crcs and crc != 0 and zlib.crc32(data) != crc:
+        verified = self._validate_crcs and crc != 0
+        if verified and zlib.crc32(data) != crc:
             raise self._chunk_error(ci, f"CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(data):#010x})")
         messages: list[tuple[int, int, int, Message]] = []
         offsets: dict[int, list[tuple[int, int]]] = {}
@@ -493,7 +510,7 @@ class LogReader:
         except (struct.error, ValueError) as err:
             raise self._chunk_error(ci, str(err)) from err
         self._check_message_index(ci, offsets)
-        return messages
+        return messages, verified
 
     def _check_message_index(self, ci: ChunkIndex, offsets: dict[int, list[tuple[int, int]]]) -> None:
         """The message index records after the chunk must list exactly the chunk's messages."""
@@ -524,9 +541,17 @@ class LogReader:
     ) -> Iterator[tuple[Schema | None, Channel, Message]]:
         """Undecoded messages of ``topics`` in ``log_time`` order (ties: file order), streamed chunk by chunk.
 
-        ``start`` is inclusive, ``end`` exclusive. Only chunks whose time ranges overlap are held in
-        memory at once. A damaged chunk raises :class:`CorruptChunkError` naming it.
+        ``start`` is inclusive, ``end`` exclusive. Only the chunks holding these topics are read,
+        and only those whose time ranges overlap are held in memory at once. A damaged chunk
+        raises :class:`CorruptChunkError` naming it.
         """
+        for schema, channel, message, _ in self._merged_messages(topics, start=start, end=end):
+            yield schema, channel, message
+
+    def _merged_messages(
+        self, topics: Iterable[str], *, start: int | None, end: int | None
+    ) -> Iterator[tuple[Schema | None, Channel, Message, bool]]:
+        """:meth:`raw_messages`, each with whether its chunk's CRC was verified."""
         wanted = list(topics)
         for topic in wanted:
             if topic not in self.topics:
@@ -537,29 +562,35 @@ class LogReader:
         hi = 2**64 if end is None else end
         chunks = sorted(
             (ci for ci in [*summary.chunk_indexes, *self._loose]
-             if (not ci.message_index_offsets or ids & set(ci.message_index_offsets))
+             if (not ci.message_index_offsets or not ids.isdisjoint(ci.message_index_offsets))
              and ci.message_end_time >= lo and ci.message_start_time < hi),
             key=lambda ci: (ci.message_start_time, ci.chunk_start_offset),
         )
-        heap: list[tuple[int, int, int, int, Message]] = []
+        heap: list[tuple[int, int, int, int, Message, bool]] = []
         next_chunk = 0
         last = -1
         while heap or next_chunk < len(chunks):
             while next_chunk < len(chunks) and (not heap or chunks[next_chunk].message_start_time <= heap[0][0]):
                 ci = chunks[next_chunk]
                 next_chunk += 1
-                for log_time, position, cid, message in self._read_chunk(ci):
+                messages, verified = self._read_chunk(ci)
+                for log_time, position, cid, message in messages:
                     if cid in ids and lo <= log_time < hi:
-                        heapq.heappush(heap, (log_time, ci.chunk_start_offset, position, cid, message))
+                        heapq.heappush(heap, (log_time, ci.chunk_start_offset, position, cid, message, verified))
             if not heap:  # the last chunks held none of the wanted messages
                 break
-            log_time, _, _, cid, message = heapq.heappop(heap)
+            log_time, _, _, cid, message, verified = heapq.heappop(heap)
             if log_time < last:  # cannot happen with consistent indexes; never pass on a wrong order
                 raise CorruptLogError(self.path, f"messages come out of log_time order at {log_time}. "
                                                  f"{_hint(self.path)}")
             last = log_time
             channel = summary.channels[cid]
-            yield (summary.schemas.get(channel.schema_id) if channel.schema_id else None), channel, message
+            yield (summary.schemas.get(channel.schema_id) if channel.schema_id else None), channel, message, verified
+
+    def _trusted(self, channel: Channel) -> bool:
+        """Whether the channel's messages were checked by starlog's writer and the summary saying so is intact."""
+        return (self._validate_messages is True and self._summary_verified
+                and channel.metadata.get(VALIDATED_METADATA_KEY) == "jsonschema")
 
     def _checker(self, schema: Schema | None) -> Callable[[Any], str | None] | None:
         if not self._validate_messages or schema is None or schema.encoding != "jsonschema":
@@ -582,13 +613,15 @@ class LogReader:
     ) -> Iterator[DecodedMessage]:
         """Decoded messages of one topic (or several, interleaved by ``log_time``), streamed.
 
-        JSON payloads are checked against their channel's schema (unless ``validate_messages=False``).
+        JSON payloads are checked against their channel's schema (see ``validate_messages``).
         """
         topics = [topic] if isinstance(topic, str) else list(topic)
-        for schema, channel, message in self.raw_messages(topics, start=start, end=end):
+        trusted = {c.id: self._trusted(c) for c in self._summary.channels.values()}
+        for schema, channel, message, verified in self._merged_messages(topics, start=start, end=end):
+            check = None if verified and trusted[channel.id] else self._checker(schema)
             yield DecodedMessage(
                 channel.topic, message.log_time, message.sequence,
-                decode_payload(self.path, schema, channel, message, self._checker(schema)),
+                decode_payload(self.path, schema, channel, message, check),
             )
 
     def chunk_message_counts(self, topic: str) -> list[tuple[int, int, int]]:

@@ -194,6 +194,7 @@ def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebu
     offset = len(MCAP_MAGIC)
     pending_lost: LostChunk | None = None
     hints = sorted(hints or [])
+    skipped_by_length: int | None = None  # start of the previous record if only its length was trusted
     while offset < size:
         f.seek(offset)
         head = f.read(_RECORD_HEADER.size)
@@ -254,16 +255,22 @@ def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebu
             except (struct.error, ValueError, UnicodeDecodeError, EOFError, McapError, MemoryError) as err:
                 damaged = f"damaged {Opcode(opcode).name} record: {type(err).__name__}: {err}"
         if damaged is None:
+            skipped_by_length = offset if opcode == Opcode.MESSAGE_INDEX and pending_lost is None else None
             offset += _RECORD_HEADER.size + length
             continue
-        # The bytes at `offset` are not a whole record: find the next chunk and go on from there.
+        # The bytes at `offset` are not a whole record: find the next chunk and go on from there. When the
+        # record before was only skipped by its length, that length may be the damage: look inside it too.
         pending_lost = None
-        found = _resync(f, offset + 1, size, hints)
+        found = _resync(f, offset + 1 if skipped_by_length is None else skipped_by_length + 1, size, hints)
         if found is None:
             if report.had_footer or offset + _RECORD_HEADER.size + length <= size or opcode not in _KNOWN_OPCODES:
                 report.lost_chunks.append(LostChunk(offset, f"{damaged}; nothing readable after it"))
             break  # else: the record cut off by the end of a truncated file (counted in tail_bytes_lost)
-        report.lost_chunks.append(LostChunk(offset, f"{damaged}; skipped {found - offset} bytes to the next chunk"))
+        if found > offset:
+            report.lost_chunks.append(LostChunk(offset, f"{damaged}; skipped {found - offset} bytes to the next chunk"))
+        else:
+            report.lost_chunks.append(LostChunk(offset, f"{damaged}; the record before overran it: resumed at the "
+                                                        f"chunk at offset {found}"))
         offset = found
     report.bytes_scanned = offset
 
@@ -332,7 +339,7 @@ def recover_log(
             f.seek(footer_at)
             tail = f.read()
             report.had_footer = tail[0] == Opcode.FOOTER and tail[-len(MCAP_MAGIC):] == MCAP_MAGIC
-        with LogWriter(output, force=force, compression=compression) as writer:
+        with LogWriter(output, force=force, compression=compression, validate=False) as writer:  # bytes as found
             rebuild = _Rebuilder(writer, report)
             hints = _seed_from_summary(f, rebuild, report.input_size) if report.had_footer else []
             _read_records(f, report.input_size, report, rebuild, hints)

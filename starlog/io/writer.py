@@ -13,6 +13,15 @@ Why not :class:`mcap.writer.Writer` directly? Two things it cannot do:
 * **compress on several cores** — chunks are compressed on a thread pool (zstd and lz4
   release the GIL) and written in order, so the bytes do not depend on the number of workers.
 
+Each channel gets chunks of its own, so a reader of small channels (centroids, truth) never
+decompresses image chunks; the open chunks of all channels are closed together. Every JSON
+message is checked against its channel's JSON Schema as it is written (a compiled checker,
+see :func:`~starlog.io.messages.compile_json_schema`), and the channel is marked so (metadata
+``starlog.validated``): a reader then need not check those messages again when their chunk's
+CRC vouches for the bytes. Given a
+:class:`~starlog.io.stack.StackedLog` as ``base``, the writer writes only its new records and
+the summary (a sidecar), every offset counted as if the stack's data were before it.
+
 The output goes to a temporary file beside the destination and is renamed over it only
 when :meth:`LogWriter.close` completes, so a killed stage leaves either no output or the
 previous file, never a half-written one under the final name.
@@ -20,17 +29,19 @@ previous file, never a half-written one under the final name.
 
 from __future__ import annotations
 
+import json
 import os
 import struct
 import tempfile
 import zlib
 from collections import defaultdict, deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from types import TracebackType
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from mcap._chunk_builder import ChunkBuilder
 from mcap.data_stream import RecordBuilder
@@ -53,13 +64,17 @@ from mcap.records import (
 
 from starlog import __version__
 from starlog.errors import CorruptLogError, InvalidInputError, InvalidParameterError, OutputExistsError, TruncatedLogError
+from starlog.io.layout import MCAP_MAGIC, locate_data_end
+from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.schemas import MessageType
+from starlog.io.stack import StackedLog
 
-__all__ = ["Compression", "LogWriter", "MCAP_MAGIC", "locate_data_end"]
+__all__ = ["Compression", "LogWriter", "MCAP_MAGIC", "VALIDATED_METADATA_KEY", "locate_data_end"]
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_FOOTER_RECORD_LEN = 1 + 8 + 20
-_DATA_END_RECORD_LEN = 1 + 8 + 4
+#: Channel metadata key set by :class:`LogWriter` on the JSON channels whose every message it
+#: checked against the channel's JSON Schema while writing.
+VALIDATED_METADATA_KEY = "starlog.validated"
+
 LIBRARY = f"starlog/{__version__}"
 
 
@@ -93,34 +108,6 @@ class _PendingChunk:
     end_time: int
 
 
-def locate_data_end(path: Path, f: BinaryIO) -> int:
-    """Offset of the DataEnd record of a complete MCAP file (the end of its data section).
-
-    Raises :class:`TruncatedLogError` when the file has no valid footer.
-    """
-    size = f.seek(0, os.SEEK_END)
-    min_size = 2 * len(MCAP_MAGIC) + _FOOTER_RECORD_LEN + _DATA_END_RECORD_LEN
-    if size < min_size:
-        raise TruncatedLogError(path, f"only {size} bytes, shorter than any complete MCAP file")
-    f.seek(0)
-    if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-        raise CorruptLogError(path, "does not start with the MCAP magic bytes; is it an MCAP file?")
-    f.seek(size - len(MCAP_MAGIC) - _FOOTER_RECORD_LEN)
-    tail = f.read(_FOOTER_RECORD_LEN + len(MCAP_MAGIC))
-    if tail[-len(MCAP_MAGIC):] != MCAP_MAGIC or tail[0] != Opcode.FOOTER:
-        raise TruncatedLogError(path, "no footer at the end of the file")
-    (summary_start,) = struct.unpack_from("<Q", tail, 9)
-    if summary_start:
-        data_end = summary_start - _DATA_END_RECORD_LEN
-    else:
-        data_end = size - len(MCAP_MAGIC) - _FOOTER_RECORD_LEN - _DATA_END_RECORD_LEN
-    f.seek(data_end)
-    record = f.read(_DATA_END_RECORD_LEN)
-    if len(record) != _DATA_END_RECORD_LEN or record[0] != Opcode.DATA_END or struct.unpack_from("<Q", record, 1)[0] != 4:
-        raise CorruptLogError(path, f"no DataEnd record at offset {data_end} where the footer says the summary starts")
-    return data_end
-
-
 class LogWriter:
     """Write a new MCAP log, or a copy of ``base`` with new channels appended.
 
@@ -136,9 +123,15 @@ class LogWriter:
         Threads compressing chunks (the bytes written do not depend on it).
     force : bool
         Overwrite an existing ``path``; otherwise :class:`OutputExistsError`.
-    base : path-like, optional
+    base : path-like or StackedLog, optional
         A complete log whose data section is copied unchanged to the start of the output; its
         schemas, channels, indexes, metadata and statistics are carried into the new summary.
+        With a :class:`~starlog.io.stack.StackedLog`, nothing is copied: the output is a sidecar
+        holding only the new records and the summary, to be stacked on ``base``.
+    validate : bool
+        Check every message of a JSON channel against the channel's JSON Schema as it is written
+        (:class:`InvalidInputError` on a violation), and mark the channel as checked. Off only
+        for tools that must copy messages as they are (``recover``).
 
     Examples
     --------
@@ -156,7 +149,8 @@ class LogWriter:
         chunk_size: int = 4 * 1024 * 1024,
         workers: int = 1,
         force: bool = False,
-        base: str | os.PathLike[str] | None = None,
+        base: str | os.PathLike[str] | StackedLog | None = None,
+        validate: bool = True,
     ) -> None:
         self.path = Path(path)
         try:
@@ -171,10 +165,14 @@ class LogWriter:
             raise InvalidParameterError(f"workers must be >= 1, got {workers}.")
         if self.path.exists() and not force:
             raise OutputExistsError(self.path)
-        if base is not None and Path(base).resolve() == self.path.resolve():
+        if base is not None and (base.path if isinstance(base, StackedLog) else Path(base)).resolve() \
+                == self.path.resolve():
             raise InvalidParameterError(f"the output {self.path} must differ from the input log.")
         self.chunk_size = chunk_size
         self.workers = workers
+        self.validate = validate
+        self._checkers: dict[int, Callable[[Any], str | None]] = {}
+        self._origin = 0  # offset in the complete log of this file's first byte (non-zero for a sidecar)
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
         self._topics: dict[str, int] = {}
@@ -194,7 +192,8 @@ class LogWriter:
         )
         self._sequence: dict[int, int] = defaultdict(int)
         self._last_time: dict[int, int] = {}
-        self._builder = ChunkBuilder()
+        self._builders: dict[int, ChunkBuilder] = {}
+        self._open_bytes = 0  # message bytes in the open chunks of all channels
         self._records = RecordBuilder()
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
@@ -210,6 +209,8 @@ class LogWriter:
                 self._file.write(MCAP_MAGIC)
                 Header(profile="", library=LIBRARY).write(self._records)
                 self._flush_records()
+            elif isinstance(base, StackedLog):
+                self._start_from_stack(base)
             else:
                 self._start_from(Path(base))
         except BaseException:
@@ -252,20 +253,48 @@ class LogWriter:
             )
         schema_id = self._schema_id(message_type)
         channel_id = max(self._channels, default=0) + 1
+        meta = {k: v for k, v in (metadata or {}).items() if k != VALIDATED_METADATA_KEY}
+        checker = self._message_checker(message_type)
+        if checker is not None:
+            self._checkers[channel_id] = checker
+            meta[VALIDATED_METADATA_KEY] = "jsonschema"
         channel = Channel(
             id=channel_id,
             topic=topic,
             message_encoding=message_type.message_encoding,
             schema_id=schema_id,
-            metadata=dict(metadata or {}),
+            metadata=meta,
         )
         self._channels[channel_id] = channel
         self._topics[topic] = channel_id
         if monotonic:
             self._last_time[channel_id] = -1
         self._stats.channel_count += 1
-        self._builder.add_channel(channel)
+        builder = self._builders[channel_id] = ChunkBuilder()
+        builder.add_schema(self._schemas[schema_id])  # each channel's first chunk names its schema
+        builder.add_channel(channel)
         return channel_id
+
+    def _adopt(self, channel_id: int) -> None:
+        """Start chunks for a channel inherited from the base (its records are already in the base)."""
+        channel = self._channels[channel_id]
+        schema = self._schemas.get(channel.schema_id)
+        if schema is not None:
+            checker = self._message_checker(MessageType(schema.name, schema.encoding, schema.data,
+                                                        channel.message_encoding))
+            if checker is not None:
+                self._checkers[channel_id] = checker
+        self._builders[channel_id] = ChunkBuilder()
+
+    def _message_checker(self, message_type: MessageType) -> Callable[[Any], str | None] | None:
+        if not self.validate or message_type.message_encoding != "json" or \
+                message_type.schema_encoding != "jsonschema":
+            return None
+        try:
+            return _checker_of(message_type.schema_data)
+        except (ValueError, InvalidInputError) as err:
+            raise InvalidParameterError(f"the JSON Schema {message_type.schema_name!r} cannot be compiled "
+                                        f"({err}).") from err
 
     def _schema_id(self, message_type: MessageType) -> int:
         for schema in self._schemas.values():
@@ -284,18 +313,30 @@ class LogWriter:
         )
         self._schemas[schema_id] = schema
         self._stats.schema_count += 1
-        self._builder.add_schema(schema)
         return schema_id
 
     # ------------------------------------------------------------------ writing
     def write(self, channel: int | str, *, log_time: int, data: bytes, publish_time: int | None = None) -> None:
-        """Add one message. ``channel`` is an id from :meth:`add_channel` or a topic."""
+        """Add one message. ``channel`` is an id from :meth:`add_channel` or a topic.
+
+        A message of a JSON channel that does not decode or does not match the channel's schema
+        raises :class:`InvalidInputError` (unless the writer was made with ``validate=False``).
+        """
         channel_id = self._topics[channel] if isinstance(channel, str) else channel
-        if channel_id not in self._channels:
-            raise InvalidParameterError(f"channel id {channel_id} was never registered.")
+        if channel_id not in self._builders:
+            if channel_id not in self._channels:
+                raise InvalidParameterError(f"channel id {channel_id} was never registered.")
+            self._adopt(channel_id)
         log_time = int(log_time)
         if not 0 <= log_time < 2**64:
             raise InvalidInputError(f"log_time must be a non-negative 64-bit integer of nanoseconds, got {log_time}.")
+        checker = self._checkers.get(channel_id)
+        if checker is not None:
+            problem = checker(decode_json(data))
+            if problem:
+                raise InvalidInputError(
+                    f"the message on {self._channels[channel_id].topic!r} at log_time {log_time} does not match "
+                    f"its schema {self._schemas[self._channels[channel_id].schema_id].name!r} ({problem}).")
         last = self._last_time.get(channel_id)
         if last is not None:
             if log_time <= last:
@@ -320,15 +361,18 @@ class LogWriter:
             stats.message_end_time = max(stats.message_end_time, log_time)
         stats.message_count += 1
         stats.channel_message_counts[channel_id] += 1
-        self._builder.add_message(message)
-        if self._builder.count >= self.chunk_size:
+        builder = self._builders[channel_id]
+        before = builder.count
+        builder.add_message(message)
+        self._open_bytes += builder.count - before
+        if self._open_bytes >= self.chunk_size:
             self._close_chunk()
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Add an MCAP Metadata record (indexed)."""
         self._close_chunk()
         self._drain(all_of_them=True)
-        offset = self._file.tell()
+        offset = self._tell()
         Metadata(name=name, metadata=dict(data)).write(self._records)
         length = self._records.count
         self._flush_records()
@@ -372,8 +416,21 @@ class LogWriter:
     def _flush_records(self) -> None:
         self._file.write(self._records.end())
 
+    def _tell(self) -> int:
+        """Offset of the next byte in the complete log."""
+        return self._origin + self._file.tell()
+
     def _close_chunk(self) -> None:
-        builder = self._builder
+        """Close the open chunk of every channel (in channel order).
+
+        All at once, when their messages add up to ``chunk_size``: the file stays in time order
+        chunk group by chunk group, so a killed writer loses no more than with mixed chunks.
+        """
+        for channel_id in sorted(self._builders):
+            self._close_builder(self._builders[channel_id])
+        self._open_bytes = 0
+
+    def _close_builder(self, builder: ChunkBuilder) -> None:
         if builder.num_messages == 0:
             return
         data = builder.end()
@@ -398,19 +455,19 @@ class LogWriter:
         f = self._file
         compression = b"" if self.compression is Compression.NONE else self.compression.value.encode()
         body_len = 8 + 8 + 8 + 4 + 4 + len(compression) + 8 + len(compressed)
-        chunk_start = f.tell()
+        chunk_start = self._tell()
         f.write(struct.pack("<BQQQQI", Opcode.CHUNK, body_len, pending.start_time, pending.end_time,
                             pending.uncompressed_size, crc))
         f.write(struct.pack("<I", len(compression)))
         f.write(compression)
         f.write(struct.pack("<Q", len(compressed)))
         f.write(compressed)
-        chunk_length = f.tell() - chunk_start
-        index_start = f.tell()
+        chunk_length = self._tell() - chunk_start
+        index_start = self._tell()
         offsets: dict[int, int] = {}
         for channel_id in sorted(pending.message_indices):
             records = pending.message_indices[channel_id]
-            offsets[channel_id] = f.tell()
+            offsets[channel_id] = self._tell()
             f.write(struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + 16 * len(records), channel_id, 16 * len(records)))
             f.write(b"".join(struct.pack("<QQ", t, o) for t, o in records))
         self._chunk_indexes.append(
@@ -420,7 +477,7 @@ class LogWriter:
                 chunk_start_offset=chunk_start,
                 chunk_length=chunk_length,
                 message_index_offsets=offsets,
-                message_index_length=f.tell() - index_start,
+                message_index_length=self._tell() - index_start,
                 compression=compression.decode(),
                 compressed_size=len(compressed),
                 uncompressed_size=pending.uncompressed_size,
@@ -455,6 +512,22 @@ class LogWriter:
                     raise TruncatedLogError(base, "it ended while its data section was being copied")
                 self._file.write(block)
                 remaining -= len(block)
+        self._inherit(summary)
+
+    def _start_from_stack(self, base: StackedLog) -> None:
+        """Sidecar mode: nothing copied, offsets continue after the stack's data section."""
+        with base.open() as f:
+            try:
+                summary = make_reader(f).get_summary()
+            except Exception as err:  # mcap raises McapError, ValueError, struct.error...
+                raise CorruptLogError(base.path, f"its summary section cannot be read ({err}).") from err
+        if summary is None:
+            raise TruncatedLogError(base.path, "it has no summary section")
+        self._origin = base.data_end
+        self._inherit(summary)
+
+    def _inherit(self, summary: Any) -> None:
+        """Carry the base's schemas, channels, indexes and statistics into this log's summary."""
         self._schemas = dict(summary.schemas)
         self._channels = dict(summary.channels)
         self._topics = {c.topic: c.id for c in summary.channels.values()}
@@ -482,7 +555,7 @@ class LogWriter:
     def _write_summary(self) -> None:
         DataEnd(data_section_crc=0).write(self._records)
         self._flush_records()
-        summary_start = self._file.tell()
+        summary_start = self._tell()
         out = RecordBuilder()
         offsets: list[SummaryOffset] = []
 
@@ -517,3 +590,14 @@ class LogWriter:
         self._flush_records()
         self._file.write(MCAP_MAGIC)
 
+
+
+_CHECKERS: dict[bytes, Callable[[Any], str | None]] = {}
+
+
+def _checker_of(schema_data: bytes) -> Callable[[Any], str | None]:
+    """The compiled checker of a JSON Schema text (compiled once per process)."""
+    checker = _CHECKERS.get(schema_data)
+    if checker is None:
+        checker = _CHECKERS[schema_data] = compile_json_schema(json.loads(schema_data))
+    return checker

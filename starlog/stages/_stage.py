@@ -12,6 +12,7 @@ from starlog import __version__
 from starlog.io import LogReader, LogWriter, Provenance, file_digest
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.io.schemas import MessageType
+from starlog.io.stack import StackedLog
 
 __all__ = ["StageOutput", "extend_log"]
 
@@ -38,7 +39,7 @@ class StageOutput:
 
 @contextmanager
 def extend_log(
-    input_path: str | os.PathLike[str],
+    input_path: str | os.PathLike[str] | StackedLog,
     output_path: str | os.PathLike[str],
     *,
     stage: str,
@@ -52,7 +53,8 @@ def extend_log(
     The input's data section is copied byte for byte (no re-compression); the stage adds its
     channels; on success its provenance (name, version, parameters, the input's SHA-256 and
     the channels it added) is recorded and the output renamed into place. On any error the
-    output is discarded and the input is untouched.
+    output is discarded and the input is untouched. With a :class:`StackedLog` as input, the
+    output is a sidecar to stack on it: the same records, without the copy of the input's data.
     """
     digest = file_digest(input_path)
     with LogReader(input_path) as reader:

@@ -1,0 +1,246 @@
+"""A log and the sidecars of the stages run on it, read as the one log that appending them would give.
+
+A stage that extends a log writes a file that starts with a byte-for-byte copy of its input's
+data section (see :class:`~starlog.io.LogWriter`). Several stages in a row would copy that data
+once per stage. A :class:`StackedLog` avoids it: a stage given a stacked log as its input writes
+only what it adds — its chunks, message indexes and metadata, then the summary of the whole
+(a *sidecar*) — with every offset counted as if the data before it were there. The stack reads
+as the concatenation ``base data section + each sidecar's data + last sidecar's summary``, which
+is exactly the file the stage would have written; its SHA-256 is hashed from those same bytes,
+and :meth:`StackedLog.write_to` writes it once at the end.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import struct
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from starlog.errors import CorruptLogError, InvalidParameterError, LogNotFoundError, OutputExistsError
+from starlog.io.layout import DATA_END_RECORD_LEN, FOOTER_RECORD_LEN, MCAP_MAGIC, locate_data_end
+
+__all__ = ["StackedLog"]
+
+_COPY_BLOCK = 4 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class _Segment:
+    """``length`` bytes of ``path`` from ``offset``."""
+
+    path: Path
+    offset: int
+    length: int
+
+
+def _summary_start(path: Path) -> int:
+    """The (virtual) offset of the summary named in the footer of ``path``."""
+    with open(path, "rb") as f:
+        size = f.seek(0, os.SEEK_END)
+        if size < FOOTER_RECORD_LEN + len(MCAP_MAGIC):
+            raise CorruptLogError(path, "a sidecar too short to end with a footer")
+        f.seek(size - len(MCAP_MAGIC) - FOOTER_RECORD_LEN)
+        tail = f.read()
+    if tail[-len(MCAP_MAGIC):] != MCAP_MAGIC:
+        raise CorruptLogError(path, "a sidecar that does not end with the MCAP magic")
+    (summary_start,) = struct.unpack_from("<Q", tail, 9)
+    return int(summary_start)
+
+
+def _hash_range(digest: Any, path: Path, offset: int, length: int) -> None:
+    with open(path, "rb") as f:
+        f.seek(offset)
+        while length:
+            block = f.read(min(length, _COPY_BLOCK))
+            if not block:
+                raise CorruptLogError(path, "it ended while it was being read")
+            digest.update(block)
+            length -= len(block)
+
+
+class StackedLog:
+    """A complete log (``base``) plus the sidecars written on it, viewed as one log.
+
+    Build it with :meth:`of`, add each stage's sidecar with :meth:`extend`. :class:`LogReader`
+    reads it, :class:`LogWriter` given it as ``base`` writes a sidecar, and
+    :func:`~starlog.io.file_digest` gives the SHA-256 of the bytes it stands for.
+    """
+
+    def __init__(self, base: Path, base_data_end: int, segments: tuple[_Segment, ...], tail: _Segment,
+                 prefix_hash: Any, full_digest: str | None = None) -> None:
+        self.base = base
+        self._base_data_end = base_data_end
+        self._segments = segments  # the data section: base's, then each sidecar's new records
+        self._tail = tail  # DataEnd, summary, footer, magic of the newest layer
+        self._prefix_hash = prefix_hash
+        self._full_digest = full_digest
+
+    @classmethod
+    def of(cls, path: str | os.PathLike[str]) -> StackedLog:
+        """A stack of one complete log and no sidecar (reads the log once, for its digest)."""
+        base = Path(path)
+        if not base.is_file():
+            raise LogNotFoundError(base)
+        with open(base, "rb") as f:
+            data_end = locate_data_end(base, f)
+            size = f.seek(0, os.SEEK_END)
+        prefix = hashlib.sha256()
+        _hash_range(prefix, base, 0, data_end)
+        full = prefix.copy()
+        _hash_range(full, base, data_end, size - data_end)
+        return cls(base, data_end, (_Segment(base, 0, data_end),), _Segment(base, data_end, size - data_end),
+                   prefix, "sha256:" + full.hexdigest())
+
+    @property
+    def layers(self) -> int:
+        """Number of sidecars on the base."""
+        return len(self._segments) - 1
+
+    @property
+    def path(self) -> Path:
+        """The file that names this stack in messages: the newest sidecar, or the base."""
+        return self._tail.path
+
+    @property
+    def data_end(self) -> int:
+        """Offset of the DataEnd record in the log this stack stands for."""
+        return sum(s.length for s in self._segments)
+
+    @property
+    def size(self) -> int:
+        """Size in bytes of the log this stack stands for."""
+        return self.data_end + self._tail.length
+
+    def extend(self, sidecar: str | os.PathLike[str]) -> StackedLog:
+        """This stack with ``sidecar`` (written by a :class:`LogWriter` whose base was this stack) on top."""
+        path = Path(sidecar)
+        new_data_end = _summary_start(path) - DATA_END_RECORD_LEN
+        added = new_data_end - self.data_end
+        size = path.stat().st_size
+        if not 0 <= added <= size:
+            raise CorruptLogError(path, f"this sidecar does not continue a log whose data ends at {self.data_end}")
+        prefix = self._prefix_hash.copy()
+        _hash_range(prefix, path, 0, added)
+        return StackedLog(self.base, self._base_data_end, (*self._segments, _Segment(path, 0, added)),
+                          _Segment(path, added, size - added), prefix)
+
+    def digest(self) -> str:
+        """``"sha256:<hex>"`` of the bytes this stack stands for."""
+        if self._full_digest is not None:
+            return self._full_digest
+        full = self._prefix_hash.copy()
+        _hash_range(full, self._tail.path, self._tail.offset, self._tail.length)
+        return "sha256:" + full.hexdigest()
+
+    def open(self) -> BinaryIO:
+        """A read-only, seekable file of the bytes this stack stands for."""
+        return io.BufferedReader(_ConcatenatedFile((*self._segments, self._tail)), buffer_size=64 * 1024)
+
+    def write_to(self, output: str | os.PathLike[str], *, force: bool = False) -> Path:
+        """Write the log this stack stands for to ``output`` (temporary file, fsync, rename)."""
+        out = Path(output)
+        if out.exists() and not force:
+            raise OutputExistsError(out)
+        fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent or ".")
+        try:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(fd, 0o666 & ~umask)
+            with os.fdopen(fd, "wb") as dst:
+                for segment in (*self._segments, self._tail):
+                    _copy_range(segment, dst)
+                dst.flush()
+                os.fsync(dst.fileno())
+            os.replace(tmp, out)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return out
+
+    def __fspath__(self) -> str:
+        if self.layers:
+            raise InvalidParameterError(f"{self} is not one file; read it with LogReader or write it out first.")
+        return str(self.base)
+
+    def __str__(self) -> str:
+        return str(self.base) if not self.layers else f"{self.base} + {self.layers} sidecar(s)"
+
+    def __repr__(self) -> str:
+        return f"StackedLog({str(self)!r})"
+
+
+def _copy_range(segment: _Segment, dst: BinaryIO) -> None:
+    with open(segment.path, "rb") as src:
+        offset, remaining = segment.offset, segment.length
+        while remaining:
+            try:  # kernel-side copy: the bytes do not pass through Python
+                sent = os.copy_file_range(src.fileno(), dst.fileno(), remaining, offset)
+            except (AttributeError, OSError):
+                src.seek(offset)
+                sent = dst.write(src.read(min(remaining, _COPY_BLOCK)))
+            if sent <= 0:
+                raise CorruptLogError(segment.path, "it ended while it was being copied")
+            offset += sent
+            remaining -= sent
+
+
+class _ConcatenatedFile(io.RawIOBase):
+    """Byte ranges of several files read as one seekable file."""
+
+    def __init__(self, segments: tuple[_Segment, ...]) -> None:
+        super().__init__()
+        self._segments = [s for s in segments if s.length]
+        self._starts: list[int] = []
+        position = 0
+        for s in self._segments:
+            self._starts.append(position)
+            position += s.length
+        self._size = position
+        self._position = 0
+        self._files: dict[Path, BinaryIO] = {}
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._position
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._position, os.SEEK_END: self._size}[whence]
+        if base + offset < 0:
+            raise OSError(22, "negative seek position")
+        self._position = base + offset
+        return self._position
+
+    def readinto(self, buffer: Any) -> int:
+        view = memoryview(buffer).cast("B")
+        done = 0
+        while done < len(view) and self._position < self._size:
+            index = max(i for i, start in enumerate(self._starts) if start <= self._position)
+            segment, start = self._segments[index], self._starts[index]
+            within = self._position - start
+            count = min(len(view) - done, segment.length - within)
+            f = self._files.get(segment.path)
+            if f is None:
+                f = self._files[segment.path] = open(segment.path, "rb", buffering=0)
+            f.seek(segment.offset + within)
+            got = f.readinto(view[done: done + count])
+            if not got:
+                raise CorruptLogError(segment.path, "it is shorter than when it was written")
+            done += got
+            self._position += got
+        return done
+
+    def close(self) -> None:
+        for f in self._files.values():
+            f.close()
+        self._files.clear()
+        super().close()
