@@ -527,7 +527,9 @@ def targets(sizes: list[dict[str, Any]], workers_all: int) -> list[tuple[str, bo
 
 
 def print_report(sizes: list[dict[str, Any]], args: argparse.Namespace) -> None:
-    print(f"# starlog bench_pipeline (cores: {os.cpu_count()}, repeat: {args.repeat}, quick: {args.quick})\n")
+    load = ", ".join(f"{x:.1f}" for x in args.load_before + os.getloadavg())
+    print(f"# starlog bench_pipeline (cores: {os.cpu_count()}, repeat: {args.repeat}, quick: {args.quick}; "
+          f"load average 1/5/15 min before and after: {load})\n")
     print(f"Wall time of `python -m starlog <stage>` (best of {args.repeat}); frames/s marginal and start-up s "
           "from a line through (frames, seconds); frames/s cpu from user + sys seconds (one worker only); "
           "camera = 300 Hz.\n")
@@ -576,6 +578,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.profile_stage:
         command = args.command[1:] if args.command[:1] == ["--"] else args.command
         return profile_stage(args.profile_stage, command)
+    args.load_before = os.getloadavg()  # other jobs on the machine make every wall time slower
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as tmp:
         root = Path(args.keep) if args.keep else Path(tmp)
         sizes = []
