@@ -83,7 +83,7 @@ WRITE_WORDS = ("compress", "encode", "pack", "write", "dump", "serial")
 
 
 def stars_for(size: int) -> int:
-    """40 stars on 512x512 and 50 on 1024x1024 (the issue's logs); other sizes in proportion to the side."""
+    """40 stars on 512x512 and 50 on 1024x1024; other sizes in proportion to the side."""
     return {512: 40, 1024: 50}.get(size, max(8, round(40 * size / 512)))
 
 
@@ -494,7 +494,7 @@ def checks_table(sizes: list[dict[str, Any]]) -> str:
 
 
 def targets(sizes: list[dict[str, Any]], workers_all: int) -> list[tuple[str, bool]]:
-    """The issue's targets, each judged on this run's figures (every size measured)."""
+    """The stage-level targets, each judged on this run's figures (every size measured)."""
     out = []
     for s in sizes:
         tag = f"{s['size']}²"
