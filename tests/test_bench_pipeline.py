@@ -1,0 +1,67 @@
+"""The stage benchmark's own arithmetic: the marginal rate and start-up, and where sampled time is attributed."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+TOOL = Path(__file__).resolve().parent.parent / "tools" / "bench_pipeline.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_pipeline", TOOL)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)
+
+
+def test_marginal_rate_and_start_up_of_a_known_line(bench):
+    # 2.5 s of start-up, then 150 frames/s
+    rate, start_up = bench.marginal_fit([300, 3000], [2.5 + 300 / 150, 2.5 + 3000 / 150])
+    assert rate == pytest.approx(150.0)
+    assert start_up == pytest.approx(2.5)
+    rate, start_up = bench.marginal_fit([100, 200, 400], [1.0 + 0.01 * 100, 1.0 + 0.01 * 200, 1.0 + 0.01 * 400])
+    assert rate == pytest.approx(100.0)
+    assert start_up == pytest.approx(1.0)
+
+
+def test_marginal_rate_is_nan_when_the_longer_log_is_not_slower(bench):
+    rate, _ = bench.marginal_fit([300, 3000], [5.0, 4.9])
+    assert math.isnan(rate)
+    with pytest.raises(ValueError):
+        bench.marginal_fit([300, 300], [1.0, 2.0])
+
+
+def _stack(modules: list[tuple[str, str]]):
+    """A real call stack through functions defined in the given (module, function) namespaces, outermost first."""
+    source_of = "def {name}(inner):\n    return inner()\n"
+    call = lambda: sys._getframe()  # noqa: E731 (innermost: the frame that is "interrupted")
+    for module, name in reversed(modules):
+        namespace = {"__name__": module}
+        exec(compile(source_of.format(name=name), f"<{module}>", "exec"), namespace)
+        call = (lambda f, inner: lambda: f(inner))(namespace[name], call)
+    return call()
+
+
+@pytest.mark.parametrize("modules, expected", [
+    ([("starlog.stages.centroid", "centroid_log"), ("starlog.centroid.gaussfit", "fit")], "algorithm"),
+    ([("starlog.stages.track", "track_log"), ("starlog.io.reader", "messages"), ("starlog.io.messages", "check")],
+     "read"),
+    ([("starlog.stages.track", "track_log"), ("starlog.io.writer", "write"), ("starlog.io.messages", "check")],
+     "write"),
+    ([("starlog.stages.centroid", "__call__"), ("starlog.io.messages", "encode_json")], "write"),
+    ([("starlog.stages.centroid", "rows")], "stage"),
+    ([("starlog.stages.centroid", "centroid_log"), ("starlog.io.schemas", "json_message_type")], "other"),
+    ([("click.core", "invoke")], "other"),
+])
+def test_sampled_time_goes_to_the_innermost_starlog_frame(bench, modules, expected):
+    assert bench.classify(_stack(modules), {}) == expected
