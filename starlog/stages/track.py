@@ -4,28 +4,55 @@ Reads ``/stars/centroids/<METHOD>`` and writes ``/track/<METHOD>/<MODEL>`` (``st
 one message per frame). The brightest star's track — the paper's centroid sequence — is
 marked in every row (``brightest``). Finding it needs the whole log (it is the confirmed track
 with the most measurements and the highest mean flux, see
-:meth:`starlog.track.StarTracker.brightest_track`), so the centroid channel, which is small, is
-read twice: once to find it, once to write. Memory does not grow with the log's length.
+:meth:`starlog.track.StarTracker.brightest_track`), so the stage runs in three passes, each
+streaming block by block so that memory does not grow with the log's length:
+
+1. **read** — the centroid channel is decoded once into numpy blocks, spooled to a temporary
+   file next to the output;
+2. **track** — each motion model's tracker runs once over the spooled centroids and spools its
+   rows (models run in parallel worker processes when ``workers > 1``);
+3. **write** — the rows are encoded (the brightest track now known) block by block, in
+   parallel when ``workers > 1``, and written in frame order, model after model.
+
+The bytes written do not depend on ``workers``.
 """
 
 from __future__ import annotations
 
+import operator
 import os
-from collections.abc import Iterator, Sequence
+import tempfile
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from starlog.errors import InvalidParameterError
 from starlog.export import TableSpec, register_table
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
+from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
+from starlog.stages._spool import read_block, read_blocks, write_block
 from starlog.stages._stage import extend_log
-from starlog.track import MotionModel, MotionModelConfig, NoTrackError, StarTracker, TrackerConfig
+from starlog.track import (
+    TRACK_DTYPE,
+    MotionModel,
+    MotionModelConfig,
+    NoTrackError,
+    StarTracker,
+    TrackerConfig,
+)
 
 __all__ = ["TrackSummary", "track_log", "parse_models"]
+
+#: Frames per spooled block: bounds the memory of every pass.
+BLOCK_FRAMES = 256
+_STAR_FIELDS = operator.itemgetter("x", "y", "sigma", "flux")
+_ROW_KEYS = (*(TRACK_DTYPE.names or ()), "brightest")
 
 
 def parse_models(spec: str | Sequence[str]) -> list[MotionModel]:
@@ -68,14 +95,126 @@ class TrackSummary:
         }
 
 
-def _centroid_frames(log: LogReader, topic: str) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    for message in log.messages(topic):
-        stars = message.payload["stars"]
-        x = np.array([s["x"] for s in stars], dtype=np.float64)
-        y = np.array([s["y"] for s in stars], dtype=np.float64)
-        sigma = np.array([s["sigma"] for s in stars], dtype=np.float64)
-        flux = np.array([s["flux"] for s in stars], dtype=np.float64)
-        yield message.payload["frame"], message.log_time, x, y, sigma, flux
+# ---------------------------------------------------------------- pass 1: read
+def _centroid_block(messages: list[Any]) -> tuple[npt.NDArray[Any], ...]:
+    """``(frame, log_time, stars per frame, (k, 4) x/y/sigma/flux)`` of decoded centroid messages."""
+    frames = np.array([m.payload["frame"] for m in messages], dtype=np.int64)
+    times = np.array([m.log_time for m in messages], dtype=np.int64)
+    stars = [m.payload["stars"] for m in messages]
+    counts = np.array([len(s) for s in stars], dtype=np.int64)
+    values = [row for s in stars for row in map(_STAR_FIELDS, s)]
+    table = np.array(values, dtype=np.float64).reshape(len(values), 4)
+    return frames, times, counts, table
+
+
+def _batches(items: Iterable[Any], size: int) -> Iterator[list[Any]]:
+    batch: list[Any] = []
+    for item in items:
+        batch.append(item)
+        if len(batch) == size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+def _spool_centroids(log: LogReader, topic: str, path: Path, *, show_progress: bool) -> int:
+    """Pass 1: the centroid channel → blocks of arrays in ``path``; the number of frames."""
+    n_frames = 0
+    messages = progress(log.messages(topic), total=log.channel(topic).message_count,
+                        description="track (read)", enabled=show_progress)
+    with open(path, "wb") as file:
+        for batch in _batches(messages, BLOCK_FRAMES):
+            write_block(file, *_centroid_block(batch))
+            n_frames += len(batch)
+    return n_frames
+
+
+# ---------------------------------------------------------------- pass 2: track
+@dataclass(frozen=True)
+class _ModelRun:
+    """One model's tracking: the row spool (block offsets) and its statistics."""
+
+    brightest: int
+    offsets: list[int]
+    tracks: int
+    confirmed: int
+    gated: int
+    mean_nis: float
+
+
+def _no_track_hint(model: MotionModel, source: str, err: NoTrackError) -> NoTrackError:
+    return NoTrackError(
+        f"{model.value} on {source}: {err} If the stars move more than their centroid sigma "
+        "(platform jitter), the gate rejects them: raise the measurement-noise floor, e.g. "
+        "--set sigma_floor=0.05 (px), or use a model with process noise.")
+
+
+def _track_model(config: TrackerConfig, source: str, centroids: Path, rows_path: Path) -> _ModelRun:
+    """Pass 2 for one model: track every spooled frame, spool the rows, find the brightest track."""
+    tracker = StarTracker(config)
+    nis_sum, nis_n = 0.0, 0
+    offsets = []
+    with open(rows_path, "wb") as file:
+        for frames, times, counts, table in read_blocks(centroids, 4):
+            ends = np.cumsum(counts).tolist()
+            starts = [0, *ends[:-1]]
+            out = []
+            for t, a, b in zip(times.tolist(), starts, ends, strict=True):
+                rows = tracker.update(t, table[a:b, 0], table[a:b, 1], table[a:b, 2], table[a:b, 3])
+                applied = rows["measured"] & (rows["age"] > 0)
+                nis_sum += float(rows["nis"][applied].sum())
+                nis_n += int(applied.sum())
+                out.append(rows)
+            row_counts = np.array([r.size for r in out], dtype=np.int64)
+            offsets.append(write_block(file, frames, times, row_counts, np.concatenate(out)))
+    try:
+        brightest = tracker.brightest_track()
+    except NoTrackError as err:
+        raise _no_track_hint(tracker.model, source, err) from err
+    stats = tracker.track_stats()
+    return _ModelRun(brightest=brightest, offsets=offsets, tracks=int(stats.size),
+                     confirmed=int(stats["confirmed"].sum()), gated=int(stats["gated"].sum()),
+                     mean_nis=nis_sum / nis_n if nis_n else 0.0)
+
+
+# ---------------------------------------------------------------- pass 3: write
+def _encode_block(rows_path: Path, offset: int, method: str, model: str,
+                  brightest: int) -> tuple[list[int], list[bytes]]:
+    """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame.
+
+    Columns are converted to Python values once per block (``tolist``), not row by row.
+    """
+    frames, times, counts, rows = read_block(rows_path, offset, 4)
+    columns = [rows[name].tolist() for name in TRACK_DTYPE.names or ()]
+    columns.append((rows["track"] == brightest).tolist())
+    records = [dict(zip(_ROW_KEYS, values)) for values in zip(*columns)]
+    ends = np.cumsum(counts).tolist()
+    messages = [
+        encode_json({"frame": frame, "method": method, "model": model, "tracks": records[a:b]})
+        for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)
+    ]
+    return times.tolist(), messages
+
+
+def _frames_out(encoded: Iterator[tuple[list[int], list[bytes]]], n_models: int,
+                n_blocks: int) -> Iterator[tuple[int, list[bytes]]]:
+    """``(log_time, one message per model)`` of every frame, from per-(block, model) encodings."""
+    for _ in range(n_blocks):
+        blocks = [next(encoded) for _ in range(n_models)]
+        times = blocks[0][0]
+        for i, t in enumerate(times):
+            yield t, [messages[i] for _, messages in blocks]
+
+
+# ---------------------------------------------------------------- the stage
+def _configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
+             motion: dict[str, Any] | None) -> dict[MotionModel, TrackerConfig]:
+    try:
+        motion_config = MotionModelConfig(**(motion or {}))
+        return {m: TrackerConfig(model=m, motion=motion_config, **(tracker or {})) for m in chosen}
+    except TypeError as err:
+        raise InvalidParameterError(f"unknown tracker option: {err}.") from err
 
 
 def track_log(
@@ -88,6 +227,7 @@ def track_log(
     motion: dict[str, Any] | None = None,
     force: bool = False,
     compression: str = "zstd",
+    workers: int = 1,
     show_progress: bool = False,
 ) -> TrackSummary:
     """Track every star of ``/stars/centroids/<method>`` under each motion model.
@@ -103,66 +243,49 @@ def track_log(
         confirm_hits, max_missed, sigma_floor).
     motion : dict, optional
         :class:`~starlog.track.MotionModelConfig` fields (process-noise intensities).
+    workers : int
+        Processes tracking the models (at most one per model; with several, they also encode
+        the messages) and threads compressing the output's chunks. The output does not depend on it.
     """
     chosen = parse_models(models)
-    options = dict(tracker or {})
-    try:
-        motion_config = MotionModelConfig(**(motion or {}))
-        configs = {m: TrackerConfig(model=m, motion=motion_config, **options) for m in chosen}
-    except TypeError as err:
-        raise InvalidParameterError(f"unknown tracker option: {err}.") from err
+    configs = _configs(chosen, tracker, motion)
     method = method.upper()
     source = topics.centroid_topic(method)
-    parameters = {"method": method, "models": [m.value for m in chosen], "tracker": options,
+    parameters = {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
                   "motion": dict(motion or {})}
     summary = TrackSummary(method=method)
+    processes = min(workers, len(chosen))
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force,
-                    compression=compression) as (log, out):
-        n_frames = log.channel(source).message_count
-        # pass 1: which track is the brightest star's, per model
-        trackers = {m: StarTracker(configs[m]) for m in chosen}
-        frames = _centroid_frames(log, source)
-        for _, t, x, y, sigma, flux in progress(frames, total=n_frames, description="track (pass 1/2)",
-                                                enabled=show_progress):
-            for tr in trackers.values():
-                tr.update(t, x, y, sigma, flux)
-        brightest = {}
-        for m, tr in trackers.items():
-            try:
-                brightest[m] = tr.brightest_track()
-            except NoTrackError as err:
-                raise NoTrackError(
-                    f"{m.value} on {source}: {err} If the stars move more than their centroid sigma "
-                    "(platform jitter), the gate rejects them: raise the measurement-noise floor, e.g. "
-                    "--set sigma_floor=0.05 (px), or use a model with process noise.") from err
-        # pass 2: the same (deterministic) tracking, written out
-        channels = {m: out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
-                    for m in chosen}
-        trackers = {m: StarTracker(configs[m]) for m in chosen}
-        nis_sum = dict.fromkeys(chosen, 0.0)
-        nis_n = dict.fromkeys(chosen, 0)
-        frames = _centroid_frames(log, source)
-        for frame, t, x, y, sigma, flux in progress(frames, total=n_frames, description="track (pass 2/2)",
-                                                    enabled=show_progress):
-            for m, tr in trackers.items():
-                rows = tr.update(t, x, y, sigma, flux)
-                names = rows.dtype.names
-                assert names is not None
-                applied = rows["measured"] & (rows["age"] > 0)
-                nis_sum[m] += float(rows["nis"][applied].sum())
-                nis_n[m] += int(applied.sum())
-                tracks = [dict(zip(names, values)) | {"brightest": values[0] == brightest[m]}
-                          for values in rows.tolist()]
-                message = {"frame": frame, "method": method, "model": m.value, "tracks": tracks}
-                out.writer.write(channels[m], log_time=t, data=encode_json(message))
-            summary.frames += 1
-        for m, tr in trackers.items():
-            stats = tr.track_stats()
-            summary.brightest[m.value] = brightest[m]
-            summary.tracks[m.value] = int(stats.size)
-            summary.confirmed[m.value] = int(stats["confirmed"].sum())
-            summary.gated[m.value] = int(stats["gated"].sum())
-            summary.mean_nis[m.value] = nis_sum[m] / nis_n[m] if nis_n[m] else 0.0
+                    compression=compression, workers=workers) as (log, out), \
+            tempfile.TemporaryDirectory(prefix=".track-", dir=Path(output_path).parent) as tmp:
+        centroids = Path(tmp) / "centroids"
+        rows = {m: Path(tmp) / f"rows-{m.value}" for m in chosen}
+        summary.frames = _spool_centroids(log, source, centroids, show_progress=show_progress)
+        pool = process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else None
+        try:
+            args = ([configs[m] for m in chosen], [source] * len(chosen), [centroids] * len(chosen),
+                    [rows[m] for m in chosen])
+            runs = dict(zip(chosen, (pool.map if pool else map)(_track_model, *args), strict=True))
+            items = [(rows[m], runs[m].offsets[block], method, m.value, runs[m].brightest)
+                     for block in range(-(-summary.frames // BLOCK_FRAMES)) for m in chosen]
+            encoded = (ordered_map(pool, _encode_block, items, window=2 * processes) if pool
+                       else (_encode_block(*item) for item in items))
+            channels = [out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
+                        for m in chosen]
+            frames = _frames_out(encoded, len(chosen), len(items) // len(chosen))
+            for t, messages in progress(frames, total=summary.frames, description="track (write)",
+                                        enabled=show_progress):
+                for channel, message in zip(channels, messages, strict=True):
+                    out.writer.write(channel, log_time=t, data=message)
+        finally:
+            if pool is not None:
+                pool.shutdown(cancel_futures=True)
+    for m, run in runs.items():
+        summary.brightest[m.value] = run.brightest
+        summary.tracks[m.value] = run.tracks
+        summary.confirmed[m.value] = run.confirmed
+        summary.gated[m.value] = run.gated
+        summary.mean_nis[m.value] = run.mean_nis
     return summary
 
 
