@@ -22,10 +22,10 @@ from __future__ import annotations
 import operator
 import os
 import tempfile
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
@@ -50,7 +50,7 @@ from starlog.track import (
 __all__ = ["TrackSummary", "track_log", "parse_models"]
 
 #: Frames per spooled block: bounds the memory of every pass.
-BLOCK_FRAMES = 256
+BLOCK_FRAMES = 64
 _STAR_FIELDS = operator.itemgetter("x", "y", "sigma", "flux")
 _ROW_KEYS = (*(TRACK_DTYPE.names or ()), "brightest")
 
@@ -96,26 +96,27 @@ class TrackSummary:
 
 
 # ---------------------------------------------------------------- pass 1: read
-def _centroid_block(messages: list[Any]) -> tuple[npt.NDArray[Any], ...]:
-    """``(frame, log_time, stars per frame, (k, 4) x/y/sigma/flux)`` of decoded centroid messages."""
-    frames = np.array([m.payload["frame"] for m in messages], dtype=np.int64)
-    times = np.array([m.log_time for m in messages], dtype=np.int64)
-    stars = [m.payload["stars"] for m in messages]
-    counts = np.array([len(s) for s in stars], dtype=np.int64)
-    values = [row for s in stars for row in map(_STAR_FIELDS, s)]
-    table = np.array(values, dtype=np.float64).reshape(len(values), 4)
-    return frames, times, counts, table
+class _CentroidBlock:
+    """Centroid messages gathered into arrays, each message's star dicts dropped once converted."""
 
+    def __init__(self) -> None:
+        self.frames: list[int] = []
+        self.times: list[int] = []
+        self.counts: list[int] = []
+        self.values: list[tuple[float, float, float, float]] = []
 
-def _batches(items: Iterable[Any], size: int) -> Iterator[list[Any]]:
-    batch: list[Any] = []
-    for item in items:
-        batch.append(item)
-        if len(batch) == size:
-            yield batch
-            batch = []
-    if batch:
-        yield batch
+    def add(self, log_time: int, payload: dict[str, Any]) -> None:
+        stars = payload["stars"]
+        self.frames.append(payload["frame"])
+        self.times.append(log_time)
+        self.counts.append(len(stars))
+        self.values.extend(map(_STAR_FIELDS, stars))
+
+    def write(self, file: BinaryIO) -> None:
+        """Spool ``(frame, log_time, stars per frame, (k, 4) x/y/sigma/flux)``."""
+        table = np.array(self.values, dtype=np.float64).reshape(len(self.values), 4)
+        write_block(file, np.array(self.frames, dtype=np.int64), np.array(self.times, dtype=np.int64),
+                    np.array(self.counts, dtype=np.int64), table)
 
 
 def _spool_centroids(log: LogReader, topic: str, path: Path, *, show_progress: bool) -> int:
@@ -123,10 +124,16 @@ def _spool_centroids(log: LogReader, topic: str, path: Path, *, show_progress: b
     n_frames = 0
     messages = progress(log.messages(topic), total=log.channel(topic).message_count,
                         description="track (read)", enabled=show_progress)
+    block = _CentroidBlock()
     with open(path, "wb") as file:
-        for batch in _batches(messages, BLOCK_FRAMES):
-            write_block(file, *_centroid_block(batch))
-            n_frames += len(batch)
+        for message in messages:
+            block.add(message.log_time, message.payload)
+            n_frames += 1
+            if len(block.frames) == BLOCK_FRAMES:
+                block.write(file)
+                block = _CentroidBlock()
+        if block.frames:
+            block.write(file)
     return n_frames
 
 
