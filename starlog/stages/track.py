@@ -23,12 +23,13 @@ import operator
 import os
 import tempfile
 from collections.abc import Iterator, Sequence
+from concurrent.futures import Executor
+from contextlib import ExitStack, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
-import numpy.typing as npt
 
 from starlog.errors import InvalidParameterError
 from starlog.export import TableSpec, register_table
@@ -36,8 +37,8 @@ from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
-from starlog.stages._spool import read_block, read_blocks, write_block
-from starlog.stages._stage import extend_log
+from starlog.stages._spool import Spool, opened, read_block, read_blocks, write_block
+from starlog.stages._stage import StageOutput, extend_log
 from starlog.track import (
     TRACK_DTYPE,
     MotionModel,
@@ -119,13 +120,13 @@ class _CentroidBlock:
                     np.array(self.counts, dtype=np.int64), table)
 
 
-def _spool_centroids(log: LogReader, topic: str, path: Path, *, show_progress: bool) -> int:
-    """Pass 1: the centroid channel → blocks of arrays in ``path``; the number of frames."""
+def _spool_centroids(log: LogReader, topic: str, spool: Spool, *, show_progress: bool) -> int:
+    """Pass 1: the centroid channel → blocks of arrays in ``spool``; the number of frames."""
     n_frames = 0
     messages = progress(log.messages(topic), total=log.channel(topic).message_count,
                         description="track (read)", enabled=show_progress)
     block = _CentroidBlock()
-    with open(path, "wb") as file:
+    with opened(spool, "wb") as file:
         for message in messages:
             block.add(message.log_time, message.payload)
             n_frames += 1
@@ -140,9 +141,10 @@ def _spool_centroids(log: LogReader, topic: str, path: Path, *, show_progress: b
 # ---------------------------------------------------------------- pass 2: track
 @dataclass(frozen=True)
 class _ModelRun:
-    """One model's tracking: the row spool (block offsets) and its statistics."""
+    """One model's tracking: its row spool (and block offsets) and statistics."""
 
     brightest: int
+    spool: Spool
     offsets: list[int]
     tracks: int
     confirmed: int
@@ -157,12 +159,12 @@ def _no_track_hint(model: MotionModel, source: str, err: NoTrackError) -> NoTrac
         "--set sigma_floor=0.05 (px), or use a model with process noise.")
 
 
-def _track_model(config: TrackerConfig, source: str, centroids: Path, rows_path: Path) -> _ModelRun:
+def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Spool) -> _ModelRun:
     """Pass 2 for one model: track every spooled frame, spool the rows, find the brightest track."""
     tracker = StarTracker(config)
     nis_sum, nis_n = 0.0, 0
     offsets = []
-    with open(rows_path, "wb") as file:
+    with opened(spool, "wb") as file:
         for frames, times, counts, table in read_blocks(centroids, 4):
             ends = np.cumsum(counts).tolist()
             starts = [0, *ends[:-1]]
@@ -180,19 +182,19 @@ def _track_model(config: TrackerConfig, source: str, centroids: Path, rows_path:
     except NoTrackError as err:
         raise _no_track_hint(tracker.model, source, err) from err
     stats = tracker.track_stats()
-    return _ModelRun(brightest=brightest, offsets=offsets, tracks=int(stats.size),
+    return _ModelRun(brightest=brightest, spool=spool, offsets=offsets, tracks=int(stats.size),
                      confirmed=int(stats["confirmed"].sum()), gated=int(stats["gated"].sum()),
                      mean_nis=nis_sum / nis_n if nis_n else 0.0)
 
 
 # ---------------------------------------------------------------- pass 3: write
-def _encode_block(rows_path: Path, offset: int, method: str, model: str,
+def _encode_block(spool: Spool, offset: int, method: str, model: str,
                   brightest: int) -> tuple[list[int], list[bytes]]:
     """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame.
 
     Columns are converted to Python values once per block (``tolist``), not row by row.
     """
-    frames, times, counts, rows = read_block(rows_path, offset, 4)
+    frames, times, counts, rows = read_block(spool, offset, 4)
     columns = [rows[name].tolist() for name in TRACK_DTYPE.names or ()]
     columns.append((rows["track"] == brightest).tolist())
     records = [dict(zip(_ROW_KEYS, values)) for values in zip(*columns)]
@@ -214,7 +216,57 @@ def _frames_out(encoded: Iterator[tuple[list[int], list[bytes]]], n_models: int,
             yield t, [messages[i] for _, messages in blocks]
 
 
+def _track_models(configs: dict[MotionModel, TrackerConfig], source: str, spools: _Spools,
+                  pool: Executor | None) -> dict[MotionModel, _ModelRun]:
+    """Pass 2 for every model, in worker processes when there is a pool."""
+    models = list(configs)
+    args = ([configs[m] for m in models], [source] * len(models), [spools.centroids] * len(models),
+            [spools.rows[m] for m in models])
+    runs = (pool.map if pool else map)(_track_model, *args)
+    return dict(zip(models, runs, strict=True))
+
+
+def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: str, n_frames: int,
+                  pool: Executor | None, *, show_progress: bool) -> None:
+    """Pass 3: encode every model's rows (blocks in worker processes when there is a pool) and
+    write them frame by frame, the models of one frame in order."""
+    n_blocks = -(-n_frames // BLOCK_FRAMES)
+    items = [(run.spool, run.offsets[block], method, m.value, run.brightest)
+             for block in range(n_blocks) for m, run in runs.items()]
+    encoded = (ordered_map(pool, _encode_block, items, window=2 * len(runs)) if pool
+               else (_encode_block(*item) for item in items))
+    channels = [out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
+                for m in runs]
+    frames = _frames_out(encoded, len(runs), n_blocks)
+    for t, messages in progress(frames, total=n_frames, description="track (write)", enabled=show_progress):
+        for channel, message in zip(channels, messages, strict=True):
+            out.writer.write(channel, log_time=t, data=message)
+
+
 # ---------------------------------------------------------------- the stage
+@dataclass(frozen=True)
+class _Spools:
+    """Where the centroids and each model's rows are spooled."""
+
+    centroids: Spool
+    rows: dict[MotionModel, Spool]
+
+
+@contextmanager
+def _spools(models: list[MotionModel], output_path: Path, *, shared: bool) -> Iterator[_Spools]:
+    """Spools next to the output (on disk, not in memory): anonymous files, which a killed run
+    cannot leave behind, or, when ``shared`` with worker processes, files in a temporary folder."""
+    if not shared:
+        with ExitStack() as stack:
+            def anonymous() -> BinaryIO:
+                return stack.enter_context(tempfile.TemporaryFile(dir=output_path.parent))
+
+            yield _Spools(anonymous(), {m: anonymous() for m in models})
+        return
+    with tempfile.TemporaryDirectory(prefix=f".{output_path.name}.track-", dir=output_path.parent) as tmp:
+        yield _Spools(Path(tmp) / "centroids", {m: Path(tmp) / f"rows-{m.value}" for m in models})
+
+
 def _configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
              motion: dict[str, Any] | None) -> dict[MotionModel, TrackerConfig]:
     try:
@@ -264,29 +316,11 @@ def track_log(
     processes = min(workers, len(chosen))
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force,
                     compression=compression, workers=workers) as (log, out), \
-            tempfile.TemporaryDirectory(prefix=".track-", dir=Path(output_path).parent) as tmp:
-        centroids = Path(tmp) / "centroids"
-        rows = {m: Path(tmp) / f"rows-{m.value}" for m in chosen}
-        summary.frames = _spool_centroids(log, source, centroids, show_progress=show_progress)
-        pool = process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else None
-        try:
-            args = ([configs[m] for m in chosen], [source] * len(chosen), [centroids] * len(chosen),
-                    [rows[m] for m in chosen])
-            runs = dict(zip(chosen, (pool.map if pool else map)(_track_model, *args), strict=True))
-            items = [(rows[m], runs[m].offsets[block], method, m.value, runs[m].brightest)
-                     for block in range(-(-summary.frames // BLOCK_FRAMES)) for m in chosen]
-            encoded = (ordered_map(pool, _encode_block, items, window=2 * processes) if pool
-                       else (_encode_block(*item) for item in items))
-            channels = [out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
-                        for m in chosen]
-            frames = _frames_out(encoded, len(chosen), len(items) // len(chosen))
-            for t, messages in progress(frames, total=summary.frames, description="track (write)",
-                                        enabled=show_progress):
-                for channel, message in zip(channels, messages, strict=True):
-                    out.writer.write(channel, log_time=t, data=message)
-        finally:
-            if pool is not None:
-                pool.shutdown(cancel_futures=True)
+            _spools(chosen, Path(output_path), shared=processes > 1) as spools, \
+            (process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else nullcontext()) as pool:
+        summary.frames = _spool_centroids(log, source, spools.centroids, show_progress=show_progress)
+        runs = _track_models(configs, source, spools, pool)
+        _write_tracks(out, runs, method, summary.frames, pool, show_progress=show_progress)
     for m, run in runs.items():
         summary.brightest[m.value] = run.brightest
         summary.tracks[m.value] = run.tracks
