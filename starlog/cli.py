@@ -421,7 +421,7 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
 
     summary = track_log(log, output, method=method, models=models, tracker=_key_values(settings, "--set"),
                         motion=_key_values(motion, "--motion"), force=force, compression=compression,
-                        show_progress=not quiet)
+                        workers=workers, show_progress=not quiet)
     d = summary.to_dict()
     _status(quiet, f"wrote {output}: {d['frames']} frames of {d['method']} centroids")
     if as_json:

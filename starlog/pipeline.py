@@ -137,7 +137,7 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
         for method in _list(t.get("methods", ["GAUSSFIT"])):
             steps.append((f"track {method}", lambda i, o, m=method: track_log(
                 i, o, method=m, models=t.get("models", "all"), tracker=t.get("tracker"), motion=t.get("motion"),
-                show_progress=show_progress, **common).to_dict()))
+                workers=workers, show_progress=show_progress, **common).to_dict()))
     if config.compensate is not None:
         k = config.compensate
         steps.append(("compensate", lambda i, o: compensate_log(

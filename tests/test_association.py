@@ -18,6 +18,7 @@ from starlog.track import (
     TrackerConfig,
     track_centroids,
 )
+from starlog.track.state import FrameRows, TrackState
 
 PERIOD_NS = 3_333_333  # 300 Hz
 # well separated stars (> 50 px apart), row-major order is the order below
@@ -341,3 +342,28 @@ def test_underestimated_sigma_does_not_break_tracks() -> None:
         pos = STARS + shake + rng.normal(0, 0.02, STARS.shape)
         rows = tracker.update(k * PERIOD_NS, pos[:, 0], pos[:, 1], np.full(4, 0.02), FLUX)
         assert_array_equal(rows["track"], [0, 1, 2, 3])
+
+
+def test_track_state_take_and_concat_keep_every_array_in_step() -> None:
+    d = 4
+    old = TrackState.born(ids=np.array([0, 1, 2]), x=np.arange(12.0).reshape(3, d),
+                          P=np.stack([np.eye(d) * k for k in (1.0, 2.0, 3.0)]), log_time=5,
+                          sums=np.ones((3, 3)))
+    old.hits[:] = [7, 8, 9]
+    new = TrackState.born(ids=np.array([3]), x=np.zeros((1, d)), P=np.eye(d)[None], log_time=9,
+                          sums=np.zeros((1, 3)))
+    both = TrackState.empty(d).concat(old).concat(new)
+    kept = both.take(np.array([True, False, True, True]))
+    assert len(both) == 4 and len(kept) == 3
+    assert kept.ids.tolist() == [0, 2, 3]
+    assert kept.hits.tolist() == [7, 9, 1]
+    assert kept.first_time.tolist() == [5, 5, 9]
+    assert_array_equal(kept.x[1], np.arange(8.0, 12.0))
+    assert_array_equal(kept.P[1], np.eye(d) * 3.0)
+    sizes = {name: len(getattr(kept, name)) for name in vars(kept)}
+    assert set(sizes.values()) == {3}, sizes
+    new.missed[0] += 1  # a counter of a new track shares memory with no other counter
+    assert [new.coast[0], new.gated_streak[0], new.age[0], new.gated[0]] == [0, 0, 0, 0]
+    rows = FrameRows.empty(2).concat(FrameRows.born(np.array([[1.0, 2.0, 0.1, 5e3]])))
+    assert rows.measured.tolist() == [False, False, True]
+    assert rows.take(np.array([2])).meas.tolist() == [[1.0, 2.0, 0.1, 5e3]]

@@ -97,12 +97,7 @@ def _names_used(function: Callable[..., Any]) -> set[str]:
             if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Load)}
 
 
-#: Options known to be accepted and ignored; remove an entry once the option is used or dropped.
-IGNORED_OPTIONS = {("track", "workers")}
-
-OPTIONS = [pytest.param(name, param.name, id=f"{name} {param.opts[-1]}",
-                        marks=[pytest.mark.xfail(strict=True, reason=f"{name} {param.opts[-1]} is accepted and ignored")]
-                        if (name, param.name) in IGNORED_OPTIONS else [])
+OPTIONS = [pytest.param(name, param.name, id=f"{name} {param.opts[-1]}")
            for name, command in sorted(cli.commands.items()) for param in command.params]
 
 

@@ -211,6 +211,16 @@ def test_parallel_centroiding_gives_the_same_bytes(pipeline_logs: dict[str, Path
     assert (tmp_path / "w1.mcap").read_bytes() == (tmp_path / "w2.mcap").read_bytes()
 
 
+def test_parallel_tracking_gives_the_same_bytes(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
+    """Models tracked in worker processes, or one after the other, write the same log (the CLI's too)."""
+    for workers in (1, 2):
+        track_log(pipeline_logs["cen"], tmp_path / f"w{workers}.mcap", method="GAUSSFIT", models="all",
+                  tracker={"sigma_floor": 0.05}, workers=workers)
+    serial = (tmp_path / "w1.mcap").read_bytes()
+    assert serial == (tmp_path / "w2.mcap").read_bytes()
+    assert serial == pipeline_logs["trk"].read_bytes()
+
+
 def test_run_equals_the_stages_one_by_one(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
     config = PipelineConfig.from_dict({
         "centroid": {"methods": ["GAUSSFIT"]},

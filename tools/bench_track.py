@@ -1,4 +1,4 @@
-"""Benchmark of starlog's tracking filters: filter updates per second per model.
+"""Benchmark of starlog's tracking: filter updates per second per model, and the ``track`` stage.
 
 One update = one star in one frame (predict + measurement update). Measured, per motion model:
 
@@ -11,20 +11,37 @@ One update = one star in one frame (predict + measurement update). Measured, per
 
 PASS/FAIL compares the batched and tracker rates with the target of 6,000 updates/s.
 
+``--stage`` benchmarks the ``track`` stage as a user runs it instead: ``starlog track LOG
+--model STATIC`` (one model, the CLI in a new process, input log on disk, output written) on a
+centroid log and on one 10x longer, against the tracker alone on the same centroids. CPU
+seconds (the machine may be shared), split into interpreter start-up, the stage's fixed copy of
+the input (SHA-256 digest and data-section copy, proportional to the input's size, images
+included) and the rest; peak resident memory of each run (must stay flat in the log's length).
+By default the logs are synthetic centroid channels (40 stars, 300 Hz, no images); ``--log``
+times a real one (e.g. a simulated 512x512 log centroided with GAUSSFIT).
+
 Usage::
 
     python tools/bench_track.py            # full run (about a minute on a slow core)
     python tools/bench_track.py --quick    # a few seconds
+    python tools/bench_track.py --stage [--log cen.mcap --method GAUSSFIT]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import platform
+import resource
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
+from starlog.io import LogReader, LogWriter, encode_json, file_digest, json_message_type, topics
 from starlog.track import (
     BatchUKF,
     MotionModel,
@@ -90,10 +107,122 @@ def bench_tracker(model: MotionModel, frames) -> tuple[float, float, int]:
     return wall, updates / wall, tracker.n_live
 
 
+STAGE_STARS = 40
+_STAGE_CHILD = """
+import json, resource, sys, time
+from starlog.stages.track import track_log
+t0 = time.process_time()
+track_log(sys.argv[1], sys.argv[2], method=sys.argv[3], models="STATIC", force=True)
+print(json.dumps({"cpu": time.process_time() - t0,
+                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def write_centroid_log(path: Path, n_frames: int, method: str = "GAUSSFIT", seed: int = 0) -> None:
+    """A log with only a centroid channel: 40 jittering stars at 300 Hz (no images)."""
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(20, 490, (STAGE_STARS, 2))
+    flux = rng.uniform(5e3, 5e4, STAGE_STARS)
+    sigma = 0.01 + 3.0 / np.sqrt(flux)
+    with LogWriter(path, force=True) as log:
+        channel = log.add_channel(topics.centroid_topic(method), json_message_type("starlog.Centroids"))
+        for k in range(n_frames):
+            t = k * PERIOD_NS
+            shake = 0.05 * np.sin(2 * np.pi * 25.0 * t * 1e-9)
+            p = pos + shake + rng.normal(size=pos.shape) * sigma[:, None]
+            stars = [{"star": i, "x": float(p[i, 0]), "y": float(p[i, 1]), "flux": float(flux[i]),
+                      "snr": 100.0, "sigma": float(sigma[i]), "peak": 1000.0, "background": 100.0,
+                      "psf_sigma": 1.2, "flags": 0} for i in range(STAGE_STARS)]
+            log.write(channel, log_time=t, data=encode_json({"frame": k, "method": method, "stars": stars}))
+
+
+def _cpu_of(command: list[str]) -> tuple[float, str]:
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    out = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime, out
+
+
+def bench_stage(log: Path, method: str, tmp: Path) -> dict[str, float]:
+    """CPU seconds of ``starlog track`` (CLI) and its parts, and of the tracker alone, on ``log``."""
+    with LogReader(log) as reader:
+        frames = [(m.log_time, *(np.array([s[k] for s in m.payload["stars"]], dtype=np.float64)
+                                 for k in ("x", "y", "sigma", "flux")))
+                  for m in reader.messages(topics.centroid_topic(method))]
+    tracker_cpu = []
+    for _ in range(3):
+        tracker = StarTracker(model=MotionModel.STATIC)
+        t0 = time.process_time()
+        for frame in frames:
+            tracker.update(*frame)
+        tracker_cpu.append(time.process_time() - t0)
+    n_frames = len(frames)
+    del frames
+    out = tmp / "track_out.mcap"
+    python = sys.executable
+    cli = [python, "-m", "starlog", "track", str(log), "-o", str(out), "--centroids", method,
+           "--model", "STATIC", "-q", "--force", "--workers", "1"]
+    total = min(_cpu_of(cli)[0] for _ in range(3))
+    start = min(_cpu_of([python, "-c", "import starlog.cli, starlog.stages.track"])[0] for _ in range(3))
+    child = [json.loads(_cpu_of([python, "-c", _STAGE_CHILD, str(log), str(out), method])[1])
+             for _ in range(3)]
+    t0 = time.process_time()
+    file_digest(log)
+    with open(log, "rb") as f:
+        while f.read(1 << 20):
+            pass
+    copy = time.process_time() - t0  # digest + one read of the input: a lower bound of its copy
+    return {"frames": n_frames, "tracker": min(tracker_cpu),
+            "cli": total, "start": start, "stage": min(c["cpu"] for c in child), "copy": copy,
+            "peak_mb": max(c["peak_mb"] for c in child)}
+
+
+def stage_main(args: argparse.Namespace) -> None:
+    with tempfile.TemporaryDirectory() as name:
+        tmp = Path(name)
+        if args.log:
+            logs = [Path(args.log)]
+        else:
+            n = 300 if args.quick else 1200
+            logs = [tmp / f"cen_{k}.mcap" for k in (n, 10 * n)]
+            for path, k in zip(logs, (n, 10 * n), strict=True):
+                write_centroid_log(path, k, args.method)
+        print("starlog track stage benchmark: `starlog track LOG --model STATIC --workers 1` vs the "
+              "tracker alone on the same centroids (CPU s, best of 3)")
+        print(f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
+        print()
+        head = (f"{'log':<22} {'frames':>7} {'tracker':>8} {'CLI total':>9} {'start-up':>8} "
+                f"{'stage':>7} {'in copy':>7} {'total/trk':>9} {'stage/trk':>9} {'peak MB':>8}")
+        print(head)
+        print("-" * len(head))
+        peaks = []
+        for log in logs:
+            r = bench_stage(log, args.method, tmp)
+            peaks.append(r["peak_mb"])
+            print(f"{log.name[:22]:<22} {r['frames']:>7} {r['tracker']:>8.3f} {r['cli']:>9.3f} {r['start']:>8.3f} "
+                  f"{r['stage']:>7.3f} {r['copy']:>7.3f} {r['cli'] / r['tracker']:>9.2f} "
+                  f"{(r['stage'] - r['copy']) / r['tracker']:>9.2f} {r['peak_mb']:>8.0f}")
+        print()
+        print("columns: tracker = StarTracker.update over every frame in this process; CLI total = the "
+              "command in a new process; start-up = importing the CLI and the stage; stage = track_log in "
+              "a new process; in copy = digest + read of the input (the stage's fixed copy, lower bound); "
+              "stage/trk = (stage - in copy) / tracker; peak MB = peak RSS of the stage process")
+        if len(peaks) == 2:
+            growth = peaks[1] / peaks[0] - 1
+            print(f"peak memory 1x -> 10x frames: {100 * growth:+.1f} % "
+                  f"({'PASS' if growth <= 0.10 else 'FAIL'}, target within 10 %)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="short run (a few seconds)")
+    ap.add_argument("--stage", action="store_true", help="benchmark the track stage instead (see above)")
+    ap.add_argument("--log", help="with --stage: a centroid log to time (default: synthetic, 1x and 10x)")
+    ap.add_argument("--method", default="GAUSSFIT", help="with --stage: centroid method of the log")
     args = ap.parse_args()
+    if args.stage:
+        stage_main(args)
+        return
     steps = 150 if args.quick else 1000
     fp_steps = 60 if args.quick else 300
     n_frames = 300 if args.quick else 3248

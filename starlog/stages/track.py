@@ -4,27 +4,55 @@ Reads ``/stars/centroids/<METHOD>`` and writes ``/track/<METHOD>/<MODEL>`` (``st
 one message per frame). The brightest star's track — the paper's centroid sequence — is
 marked in every row (``brightest``). Finding it needs the whole log (it is the confirmed track
 with the most measurements and the highest mean flux, see
-:meth:`starlog.track.StarTracker.brightest_track`), so the centroid channel, which is small, is
-read twice: once to find it, once to write. Memory does not grow with the log's length.
+:meth:`starlog.track.StarTracker.brightest_track`), so the stage runs in three passes, each
+streaming block by block so that memory does not grow with the log's length:
+
+1. **read** — the centroid channel is decoded once into numpy blocks, spooled to a temporary
+   file next to the output;
+2. **track** — each motion model's tracker runs once over the spooled centroids and spools its
+   rows (models run in parallel worker processes when ``workers > 1``);
+3. **write** — the rows are encoded (the brightest track now known) block by block, in
+   parallel when ``workers > 1``, and written in frame order, model after model.
+
+The bytes written do not depend on ``workers``.
 """
 
 from __future__ import annotations
 
+import operator
 import os
+import tempfile
 from collections.abc import Iterator, Sequence
+from concurrent.futures import Executor
+from contextlib import ExitStack, contextmanager, nullcontext
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import Any, BinaryIO
 
 import numpy as np
 
 from starlog.errors import InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import LogReader
+from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
-from starlog.stages._stage import extend_log
-from starlog.track import MotionModel, MotionModelConfig, NoTrackError, StarTracker, TrackerConfig
+from starlog.stages._spool import Spool, opened, read_block, read_blocks, write_block
+from starlog.stages._stage import StageOutput, extend_log
+from starlog.track import (
+    TRACK_DTYPE,
+    MotionModel,
+    MotionModelConfig,
+    NoTrackError,
+    StarTracker,
+    TrackerConfig,
+)
 
 __all__ = ["TrackSummary", "track_log", "parse_models"]
+
+#: Frames per spooled block: bounds the memory of every pass.
+BLOCK_FRAMES = 64
+_STAR_FIELDS = operator.itemgetter("x", "y", "sigma", "flux")
+_ROW_KEYS = (*(TRACK_DTYPE.names or ()), "brightest")
 
 
 def parse_models(spec: str | Sequence[str]) -> list[MotionModel]:
@@ -67,14 +95,184 @@ class TrackSummary:
         }
 
 
-def _centroid_frames(log: LogReader, topic: str) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    for message in log.messages(topic):
-        stars = message.payload["stars"]
-        x = np.array([s["x"] for s in stars], dtype=np.float64)
-        y = np.array([s["y"] for s in stars], dtype=np.float64)
-        sigma = np.array([s["sigma"] for s in stars], dtype=np.float64)
-        flux = np.array([s["flux"] for s in stars], dtype=np.float64)
-        yield message.payload["frame"], message.log_time, x, y, sigma, flux
+# ---------------------------------------------------------------- pass 1: read
+class _CentroidBlock:
+    """Centroid messages gathered into arrays, each message's star dicts dropped once converted."""
+
+    def __init__(self) -> None:
+        self.frames: list[int] = []
+        self.times: list[int] = []
+        self.counts: list[int] = []
+        self.values: list[tuple[float, float, float, float]] = []
+
+    def add(self, log_time: int, payload: dict[str, Any]) -> None:
+        stars = payload["stars"]
+        self.frames.append(payload["frame"])
+        self.times.append(log_time)
+        self.counts.append(len(stars))
+        self.values.extend(map(_STAR_FIELDS, stars))
+
+    def write(self, file: BinaryIO) -> None:
+        """Spool ``(frame, log_time, stars per frame, (k, 4) x/y/sigma/flux)``."""
+        table = np.array(self.values, dtype=np.float64).reshape(len(self.values), 4)
+        write_block(file, np.array(self.frames, dtype=np.int64), np.array(self.times, dtype=np.int64),
+                    np.array(self.counts, dtype=np.int64), table)
+
+
+def _spool_centroids(log: LogReader, topic: str, spool: Spool, *, show_progress: bool) -> int:
+    """Pass 1: the centroid channel → blocks of arrays in ``spool``; the number of frames."""
+    n_frames = 0
+    messages = progress(log.messages(topic), total=log.channel(topic).message_count,
+                        description="track (read)", enabled=show_progress)
+    block = _CentroidBlock()
+    with opened(spool, "wb") as file:
+        for message in messages:
+            block.add(message.log_time, message.payload)
+            n_frames += 1
+            if len(block.frames) == BLOCK_FRAMES:
+                block.write(file)
+                block = _CentroidBlock()
+        if block.frames:
+            block.write(file)
+    return n_frames
+
+
+# ---------------------------------------------------------------- pass 2: track
+@dataclass(frozen=True)
+class _ModelRun:
+    """One model's tracking: its row spool (and block offsets) and statistics."""
+
+    brightest: int
+    spool: Spool
+    offsets: list[int]
+    tracks: int
+    confirmed: int
+    gated: int
+    mean_nis: float
+
+
+def _no_track_hint(model: MotionModel, source: str, err: NoTrackError) -> NoTrackError:
+    return NoTrackError(
+        f"{model.value} on {source}: {err} If the stars move more than their centroid sigma "
+        "(platform jitter), the gate rejects them: raise the measurement-noise floor, e.g. "
+        "--set sigma_floor=0.05 (px), or use a model with process noise.")
+
+
+def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Spool) -> _ModelRun:
+    """Pass 2 for one model: track every spooled frame, spool the rows, find the brightest track."""
+    tracker = StarTracker(config)
+    nis_sum, nis_n = 0.0, 0
+    offsets = []
+    with opened(spool, "wb") as file:
+        for frames, times, counts, table in read_blocks(centroids, 4):
+            ends = np.cumsum(counts).tolist()
+            starts = [0, *ends[:-1]]
+            out = []
+            for t, a, b in zip(times.tolist(), starts, ends, strict=True):
+                rows = tracker.update(t, table[a:b, 0], table[a:b, 1], table[a:b, 2], table[a:b, 3])
+                applied = rows["measured"] & (rows["age"] > 0)
+                nis_sum += float(rows["nis"][applied].sum())
+                nis_n += int(applied.sum())
+                out.append(rows)
+            row_counts = np.array([r.size for r in out], dtype=np.int64)
+            offsets.append(write_block(file, frames, times, row_counts, np.concatenate(out)))
+    try:
+        brightest = tracker.brightest_track()
+    except NoTrackError as err:
+        raise _no_track_hint(tracker.model, source, err) from err
+    stats = tracker.track_stats()
+    return _ModelRun(brightest=brightest, spool=spool, offsets=offsets, tracks=int(stats.size),
+                     confirmed=int(stats["confirmed"].sum()), gated=int(stats["gated"].sum()),
+                     mean_nis=nis_sum / nis_n if nis_n else 0.0)
+
+
+# ---------------------------------------------------------------- pass 3: write
+def _encode_block(spool: Spool, offset: int, method: str, model: str,
+                  brightest: int) -> tuple[list[int], list[bytes]]:
+    """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame.
+
+    Columns are converted to Python values once per block (``tolist``), not row by row.
+    """
+    frames, times, counts, rows = read_block(spool, offset, 4)
+    columns = [rows[name].tolist() for name in TRACK_DTYPE.names or ()]
+    columns.append((rows["track"] == brightest).tolist())
+    records = [dict(zip(_ROW_KEYS, values)) for values in zip(*columns)]
+    ends = np.cumsum(counts).tolist()
+    messages = [
+        encode_json({"frame": frame, "method": method, "model": model, "tracks": records[a:b]})
+        for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)
+    ]
+    return times.tolist(), messages
+
+
+def _frames_out(encoded: Iterator[tuple[list[int], list[bytes]]], n_models: int,
+                n_blocks: int) -> Iterator[tuple[int, list[bytes]]]:
+    """``(log_time, one message per model)`` of every frame, from per-(block, model) encodings."""
+    for _ in range(n_blocks):
+        blocks = [next(encoded) for _ in range(n_models)]
+        times = blocks[0][0]
+        for i, t in enumerate(times):
+            yield t, [messages[i] for _, messages in blocks]
+
+
+def _track_models(configs: dict[MotionModel, TrackerConfig], source: str, spools: _Spools,
+                  pool: Executor | None) -> dict[MotionModel, _ModelRun]:
+    """Pass 2 for every model, in worker processes when there is a pool."""
+    models = list(configs)
+    args = ([configs[m] for m in models], [source] * len(models), [spools.centroids] * len(models),
+            [spools.rows[m] for m in models])
+    runs = (pool.map if pool else map)(_track_model, *args)
+    return dict(zip(models, runs, strict=True))
+
+
+def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: str, n_frames: int,
+                  pool: Executor | None, *, show_progress: bool) -> None:
+    """Pass 3: encode every model's rows (blocks in worker processes when there is a pool) and
+    write them frame by frame, the models of one frame in order."""
+    n_blocks = -(-n_frames // BLOCK_FRAMES)
+    items = [(run.spool, run.offsets[block], method, m.value, run.brightest)
+             for block in range(n_blocks) for m, run in runs.items()]
+    encoded = (ordered_map(pool, _encode_block, items, window=2 * len(runs)) if pool
+               else (_encode_block(*item) for item in items))
+    channels = [out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
+                for m in runs]
+    frames = _frames_out(encoded, len(runs), n_blocks)
+    for t, messages in progress(frames, total=n_frames, description="track (write)", enabled=show_progress):
+        for channel, message in zip(channels, messages, strict=True):
+            out.writer.write(channel, log_time=t, data=message)
+
+
+# ---------------------------------------------------------------- the stage
+@dataclass(frozen=True)
+class _Spools:
+    """Where the centroids and each model's rows are spooled."""
+
+    centroids: Spool
+    rows: dict[MotionModel, Spool]
+
+
+@contextmanager
+def _spools(models: list[MotionModel], output_path: Path, *, shared: bool) -> Iterator[_Spools]:
+    """Spools next to the output (on disk, not in memory): anonymous files, which a killed run
+    cannot leave behind, or, when ``shared`` with worker processes, files in a temporary folder."""
+    if not shared:
+        with ExitStack() as stack:
+            def anonymous() -> BinaryIO:
+                return stack.enter_context(tempfile.TemporaryFile(dir=output_path.parent))
+
+            yield _Spools(anonymous(), {m: anonymous() for m in models})
+        return
+    with tempfile.TemporaryDirectory(prefix=f".{output_path.name}.track-", dir=output_path.parent) as tmp:
+        yield _Spools(Path(tmp) / "centroids", {m: Path(tmp) / f"rows-{m.value}" for m in models})
+
+
+def _configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
+             motion: dict[str, Any] | None) -> dict[MotionModel, TrackerConfig]:
+    try:
+        motion_config = MotionModelConfig(**(motion or {}))
+        return {m: TrackerConfig(model=m, motion=motion_config, **(tracker or {})) for m in chosen}
+    except TypeError as err:
+        raise InvalidParameterError(f"unknown tracker option: {err}.") from err
 
 
 def track_log(
@@ -87,6 +285,7 @@ def track_log(
     motion: dict[str, Any] | None = None,
     force: bool = False,
     compression: str = "zstd",
+    workers: int = 1,
     show_progress: bool = False,
 ) -> TrackSummary:
     """Track every star of ``/stars/centroids/<method>`` under each motion model.
@@ -102,64 +301,29 @@ def track_log(
         confirm_hits, max_missed, sigma_floor).
     motion : dict, optional
         :class:`~starlog.track.MotionModelConfig` fields (process-noise intensities).
+    workers : int
+        Processes tracking the models (at most one per model; with several, they also encode
+        the messages) and threads compressing the output's chunks. The output does not depend on it.
     """
     chosen = parse_models(models)
-    options = dict(tracker or {})
-    try:
-        motion_config = MotionModelConfig(**(motion or {}))
-        configs = {m: TrackerConfig(model=m, motion=motion_config, **options) for m in chosen}
-    except TypeError as err:
-        raise InvalidParameterError(f"unknown tracker option: {err}.") from err
+    configs = _configs(chosen, tracker, motion)
     method = method.upper()
     source = topics.centroid_topic(method)
-    parameters = {"method": method, "models": [m.value for m in chosen], "tracker": options,
+    parameters = {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
                   "motion": dict(motion or {})}
     summary = TrackSummary(method=method)
+    processes = min(workers, len(chosen))
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force,
-                    compression=compression) as (log, out):
-        n_frames = log.channel(source).message_count
-        # pass 1: which track is the brightest star's, per model
-        trackers = {m: StarTracker(configs[m]) for m in chosen}
-        frames = _centroid_frames(log, source)
-        for _, t, x, y, sigma, flux in progress(frames, total=n_frames, description="track (pass 1/2)",
-                                                enabled=show_progress):
-            for tr in trackers.values():
-                tr.update(t, x, y, sigma, flux)
-        brightest = {}
-        for m, tr in trackers.items():
-            try:
-                brightest[m] = tr.brightest_track()
-            except NoTrackError as err:
-                raise NoTrackError(
-                    f"{m.value} on {source}: {err} If the stars move more than their centroid sigma "
-                    "(platform jitter), the gate rejects them: raise the measurement-noise floor, e.g. "
-                    "--set sigma_floor=0.05 (px), or use a model with process noise.") from err
-        # pass 2: the same (deterministic) tracking, written out
-        channels = {m: out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
-                    for m in chosen}
-        trackers = {m: StarTracker(configs[m]) for m in chosen}
-        nis_sum = dict.fromkeys(chosen, 0.0)
-        nis_n = dict.fromkeys(chosen, 0)
-        frames = _centroid_frames(log, source)
-        for frame, t, x, y, sigma, flux in progress(frames, total=n_frames, description="track (pass 2/2)",
-                                                    enabled=show_progress):
-            for m, tr in trackers.items():
-                rows = tr.update(t, x, y, sigma, flux)
-                names = rows.dtype.names
-                assert names is not None
-                applied = rows["measured"] & (rows["age"] > 0)
-                nis_sum[m] += float(rows["nis"][applied].sum())
-                nis_n[m] += int(applied.sum())
-                tracks = [dict(zip(names, values)) | {"brightest": values[0] == brightest[m]}
-                          for values in rows.tolist()]
-                message = {"frame": frame, "method": method, "model": m.value, "tracks": tracks}
-                out.writer.write(channels[m], log_time=t, data=encode_json(message))
-            summary.frames += 1
-        for m, tr in trackers.items():
-            stats = tr.track_stats()
-            summary.brightest[m.value] = brightest[m]
-            summary.tracks[m.value] = int(stats.size)
-            summary.confirmed[m.value] = int(stats["confirmed"].sum())
-            summary.gated[m.value] = int(stats["gated"].sum())
-            summary.mean_nis[m.value] = nis_sum[m] / nis_n[m] if nis_n[m] else 0.0
+                    compression=compression, workers=workers) as (log, out), \
+            _spools(chosen, Path(output_path), shared=processes > 1) as spools, \
+            (process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else nullcontext()) as pool:
+        summary.frames = _spool_centroids(log, source, spools.centroids, show_progress=show_progress)
+        runs = _track_models(configs, source, spools, pool)
+        _write_tracks(out, runs, method, summary.frames, pool, show_progress=show_progress)
+    for m, run in runs.items():
+        summary.brightest[m.value] = run.brightest
+        summary.tracks[m.value] = run.tracks
+        summary.confirmed[m.value] = run.confirmed
+        summary.gated[m.value] = run.gated
+        summary.mean_nis[m.value] = run.mean_nis
     return summary

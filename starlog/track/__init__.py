@@ -9,6 +9,7 @@ Pure numpy (+ scipy's assignment solver; filterpy as the reference filter), no I
 * :mod:`starlog.track.association` — :class:`StarTracker`: frame-by-frame association, track
   life cycle, per-track statistics, :meth:`StarTracker.brightest_track`.
 * :mod:`starlog.track.table` — :data:`TRACK_DTYPE` and :data:`TRACK_STATS_DTYPE` row layouts.
+* :mod:`starlog.track.state` — the live tracks' arrays, held in one structure (take/concat).
 
 Coordinates: x = column, y = row, px, (0, 0) at the centre of the top-left pixel; times are
 int ns ``log_time``.

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -62,6 +62,7 @@ from starlog.track.models import (
     initial_covariance,
     state_dim,
 )
+from starlog.track.state import FrameRows, TrackState
 from starlog.track.table import TRACK_DTYPE, TRACK_STATS_DTYPE
 from starlog.track.ukf import (
     DEFAULT_GATE_PROBABILITY,
@@ -153,25 +154,39 @@ class TrackerConfig:
             object.__setattr__(self, name, int(value))
 
 
+class _Centroids(NamedTuple):
+    """One frame's centroids, validated; ``sigma`` already raised to the tracker's floor."""
+
+    x: Array
+    y: Array
+    sigma: Array
+    flux: Array
+    var: Array  # sigma², the diagonal of R
+
+
 def _frame_arrays(
     x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.ArrayLike, flux: npt.ArrayLike
 ) -> tuple[Array, Array, Array, Array]:
     xs = np.asarray(x, dtype=np.float64)
     ys = np.asarray(y, dtype=np.float64)
-    ss = np.asarray(sigma, dtype=np.float64)
-    fs = np.asarray(flux, dtype=np.float64)
-    if xs.ndim != 1 or ys.shape != xs.shape or ss.shape != xs.shape or fs.shape != xs.shape:
+    sigmas = np.asarray(sigma, dtype=np.float64)
+    fluxes = np.asarray(flux, dtype=np.float64)
+    if (xs.ndim != 1 or ys.shape != xs.shape or sigmas.shape != xs.shape
+            or fluxes.shape != xs.shape):
         raise InvalidInputError(
             "x, y, sigma and flux must be 1-D arrays of one length (one entry per centroid), "
-            f"got shapes {xs.shape}, {ys.shape}, {ss.shape}, {fs.shape}."
+            f"got shapes {xs.shape}, {ys.shape}, {sigmas.shape}, {fluxes.shape}."
         )
     if xs.size and not (
-        np.isfinite(xs).all() and np.isfinite(ys).all() and np.isfinite(fs).all()
+        np.isfinite(xs).all() and np.isfinite(ys).all() and np.isfinite(fluxes).all()
     ):
         raise InvalidInputError("centroid x, y and flux must be finite (no NaN or inf).")
-    if xs.size and not ((ss >= 0) & (ss < np.inf)).all():
+    if xs.size and not ((sigmas >= 0) & (sigmas < np.inf)).all():
         raise InvalidInputError("centroid sigma must be finite and >= 0 px.")
-    return xs, ys, ss, fs
+    return xs, ys, sigmas, fluxes
+
+
+_NO_PAIRS = (np.zeros(0, np.intp), np.zeros(0, np.intp))
 
 
 class StarTracker:
@@ -206,37 +221,24 @@ class StarTracker:
         self._d = state_dim(self.model)
         self._threshold = gate_threshold(cfg.gate_probability)
         self._cache: dict[int, tuple[Array, Array]] = {}
-        d = self._d
         self._last_time: int | None = None
         self._next_id = 0
         self.frames = 0
-        # live tracks, sorted by id
-        self._ids = np.zeros(0, dtype=np.int64)
-        self._x = np.zeros((0, d))
-        self._P = np.zeros((0, d, d))
-        self._hits = np.zeros(0, dtype=np.int64)
-        self._missed = np.zeros(0, dtype=np.int64)
-        self._coast = np.zeros(0, dtype=np.int64)  # consecutive frames without a centroid
-        self._gstreak = np.zeros(0, dtype=np.int64)  # consecutive gated frames
-        self._age = np.zeros(0, dtype=np.int64)
-        self._gated = np.zeros(0, dtype=np.int64)
-        self._first = np.zeros(0, dtype=np.int64)
-        self._last = np.zeros(0, dtype=np.int64)
-        self._sums = np.zeros((0, 3))  # flux, x, y over applied measurements
+        self._tracks = TrackState.empty(self._d)  # live tracks, sorted by id
         self._lost: list[npt.NDArray[np.void]] = []
 
     # ------------------------------------------------------------------ properties
     @property
     def n_live(self) -> int:
         """Number of live tracks (tentative and confirmed)."""
-        return int(self._ids.size)
+        return len(self._tracks)
 
     @property
     def last_log_time(self) -> int | None:
         """``log_time`` of the last frame given to :meth:`update` (None before the first)."""
         return self._last_time
 
-    # ------------------------------------------------------------------ internals
+    # ------------------------------------------------------------------ one frame, step by step
     def _transition(self, dt_ns: int) -> tuple[Array, Array]:
         hit = self._cache.get(dt_ns)
         if hit is None:
@@ -246,58 +248,178 @@ class StarTracker:
             hit = self._cache[dt_ns] = (np.ascontiguousarray(F.T), Q)
         return hit
 
-    def _associate(
-        self, xs: Array, ys: Array, var: Array
-    ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
-        """Indices (tracks, centroids) of the admissible optimal assignment."""
-        px = self._x[:, 0]
-        py = self._x[:, 1]
-        nx = xs[None, :] - px[:, None]
-        ny = ys[None, :] - py[:, None]
-        a = self._P[:, 0, 0][:, None] + var[None, :]
-        b = self._P[:, 0, 1][:, None]
-        c = self._P[:, 1, 1][:, None] + var[None, :]
-        d2 = (c * nx * nx - 2.0 * b * nx * ny + a * ny * ny) / (a * c - b * b)
+    def _frame_time(self, log_time: int) -> int:
+        if isinstance(log_time, bool) or not isinstance(log_time, (int, np.integer)):
+            raise InvalidInputError(f"log_time must be an integer (ns), got {log_time!r}.")
+        t = int(log_time)
+        if self._last_time is not None and t <= self._last_time:
+            raise InvalidInputError(
+                f"log_time must increase from frame to frame: got {t} after {self._last_time}."
+            )
+        return t
+
+    def _predict(self, t: int) -> None:
+        """Step 1: every live track's prior at ``t``."""
+        tracks = self._tracks
+        if len(tracks):
+            assert self._last_time is not None
+            Ft, Q = self._transition(t - self._last_time)
+            tracks.x, tracks.P = ukf_predict(
+                tracks.x, tracks.P, fx=lambda s: np.matmul(s, Ft), Q=Q, points=self.config.points
+            )
+
+    def _associate(self, c: _Centroids) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+        """Step 2: indices (tracks, centroids) of the admissible optimal assignment."""
+        tracks = self._tracks
+        if not (len(tracks) and c.x.size):
+            return _NO_PAIRS
+        px = tracks.x[:, 0]
+        py = tracks.x[:, 1]
+        nx = c.x[None, :] - px[:, None]
+        ny = c.y[None, :] - py[:, None]
+        a = tracks.P[:, 0, 0][:, None] + c.var[None, :]
+        b = tracks.P[:, 0, 1][:, None]
+        cc = tracks.P[:, 1, 1][:, None] + c.var[None, :]
+        d2 = (cc * nx * nx - 2.0 * b * nx * ny + a * ny * ny) / (a * cc - b * b)
         r2 = self.config.association_radius**2
         ok = ((nx * nx + ny * ny) <= r2) | (d2 <= self._threshold)
         if not ok.any():
-            return np.zeros(0, np.intp), np.zeros(0, np.intp)
+            return _NO_PAIRS
         big = 1e3 * (float(d2[ok].max()) + 1.0)
         cost = np.where(ok, d2, big)
         rows, cols = linear_sum_assignment(cost)
         keep = ok[rows, cols]
         return rows[keep], cols[keep]
 
-    def _retire(self, mask: npt.NDArray[np.bool_]) -> None:
-        if mask.any():
-            self._lost.append(self._stats(mask, alive=False))
-            keep = ~mask
-            self._ids = self._ids[keep]
-            self._x = self._x[keep]
-            self._P = self._P[keep]
-            self._hits = self._hits[keep]
-            self._missed = self._missed[keep]
-            self._coast = self._coast[keep]
-            self._gstreak = self._gstreak[keep]
-            self._age = self._age[keep]
-            self._gated = self._gated[keep]
-            self._first = self._first[keep]
-            self._last = self._last[keep]
-            self._sums = self._sums[keep]
+    def _apply(
+        self, t: int, c: _Centroids, ti: npt.NDArray[np.intp], mj: npt.NDArray[np.intp]
+    ) -> tuple[FrameRows, npt.NDArray[np.bool_]]:
+        """Step 3: gated UKF update of the associated tracks; the rows and who was associated."""
+        tracks = self._tracks
+        n = len(tracks)
+        rows = FrameRows.empty(n)
+        associated = np.zeros(n, dtype=bool)
+        if ti.size:
+            cfg = self.config
+            z = np.stack((c.x[mj], c.y[mj]), axis=1)
+            R = c.var[mj][:, None, None] * _EYE2
+            reset = tracks.gated_streak[ti] >= cfg.max_gated
+            thr: float | Array = (
+                np.where(reset, np.inf, self._threshold) if reset.any() else self._threshold
+            )
+            res = ukf_update(tracks.x[ti], tracks.P[ti], z, R, points=cfg.points, threshold=thr)
+            tracks.x[ti] = res.x
+            tracks.P[ti] = res.P
+            rows.innovation[ti] = res.innovation
+            rows.nis[ti] = res.nis
+            rows.measured[ti] = res.applied
+            associated[ti] = True
+            rows.meas[ti, 0] = c.x[mj]
+            rows.meas[ti, 1] = c.y[mj]
+            rows.meas[ti, 2] = c.sigma[mj]
+            rows.meas[ti, 3] = c.flux[mj]
+            ok = ti[res.applied]
+            tracks.hits[ok] += 1
+            tracks.last_time[ok] = t
+            tracks.sums[ok] += rows.meas[ok][:, [3, 0, 1]]
+        rows.gated = associated & ~rows.measured
+        return rows, associated
 
-    def _stats(self, mask: npt.NDArray[np.bool_], *, alive: bool) -> npt.NDArray[np.void]:
-        out = np.zeros(int(mask.sum()), dtype=TRACK_STATS_DTYPE)
-        hits = self._hits[mask]
-        sums = self._sums[mask]
-        out["track"] = self._ids[mask]
+    def _count(self, rows: FrameRows, associated: npt.NDArray[np.bool_]) -> None:
+        """Life-cycle counters after this frame's measurements."""
+        tracks = self._tracks
+        gated = rows.gated
+        measured = rows.measured
+        tracks.gated[gated] += 1
+        tracks.gated_streak[gated] += 1
+        tracks.gated_streak[~gated] = 0
+        tracks.missed[measured] = 0
+        tracks.missed[~measured] += 1
+        tracks.coast[associated] = 0
+        tracks.coast[~associated] += 1
+        tracks.age += 1
+
+    def _retire_lost(self, rows: FrameRows) -> FrameRows:
+        """Step 5: drop lost tracks (before births, so that new ids follow the old ones)."""
+        cfg = self.config
+        tracks = self._tracks
+        confirmed = tracks.hits >= cfg.confirm_hits
+        lost = np.where(confirmed, tracks.coast > cfg.max_missed, tracks.missed > 0)
+        if not lost.any():
+            return rows
+        self._lost.append(self._stats(tracks.take(lost), alive=False))
+        keep = ~lost
+        self._tracks = tracks.take(keep)
+        return rows.take(keep)
+
+    def _start_tracks(
+        self, t: int, c: _Centroids, mj: npt.NDArray[np.intp], rows: FrameRows
+    ) -> FrameRows:
+        """Step 4: a track per unassociated centroid, in row-major order of position."""
+        free = np.ones(c.x.size, dtype=bool)
+        free[mj] = False
+        if not free.any():
+            return rows
+        new = np.flatnonzero(free)
+        new = new[np.lexsort((c.x[new], c.y[new]))]
+        k = new.size
+        state = np.zeros((k, self._d))
+        state[:, 0] = c.x[new]
+        state[:, 1] = c.y[new]
+        born = TrackState.born(
+            ids=np.arange(self._next_id, self._next_id + k),
+            x=state,
+            P=initial_covariance(self.model, c.sigma[new], config=self.config.motion),
+            log_time=t,
+            sums=np.stack((c.flux[new], c.x[new], c.y[new]), 1),
+        )
+        self._next_id += k
+        self._tracks = self._tracks.concat(born)
+        return rows.concat(
+            FrameRows.born(np.stack((c.x[new], c.y[new], c.sigma[new], c.flux[new]), 1))
+        )
+
+    def _output(self, rows: FrameRows) -> npt.NDArray[np.void]:
+        """One :data:`TRACK_DTYPE` row per live track."""
+        tracks = self._tracks
+        out = np.empty(len(tracks), dtype=TRACK_DTYPE)
+        out["track"] = tracks.ids
+        out["x"] = tracks.x[:, 0]
+        out["y"] = tracks.x[:, 1]
+        if self._d >= 4:
+            out["vx"] = tracks.x[:, 2]
+            out["vy"] = tracks.x[:, 3]
+        else:
+            out["vx"] = 0.0
+            out["vy"] = 0.0
+        out["cov_xx"] = tracks.P[:, 0, 0]
+        out["cov_xy"] = tracks.P[:, 0, 1]
+        out["cov_yy"] = tracks.P[:, 1, 1]
+        out["innovation_x"] = rows.innovation[:, 0]
+        out["innovation_y"] = rows.innovation[:, 1]
+        out["nis"] = rows.nis
+        out["measured"] = rows.measured
+        out["gated"] = rows.gated
+        out["meas_x"] = rows.meas[:, 0]
+        out["meas_y"] = rows.meas[:, 1]
+        out["meas_sigma"] = rows.meas[:, 2]
+        out["flux"] = rows.meas[:, 3]
+        out["age"] = tracks.age
+        out["missed"] = tracks.missed
+        out["confirmed"] = tracks.hits >= self.config.confirm_hits
+        out["hits"] = tracks.hits
+        return out
+
+    def _stats(self, tracks: TrackState, *, alive: bool) -> npt.NDArray[np.void]:
+        out = np.zeros(len(tracks), dtype=TRACK_STATS_DTYPE)
+        out["track"] = tracks.ids
         out["alive"] = alive
-        out["confirmed"] = hits >= self.config.confirm_hits
-        out["hits"] = hits
-        out["gated"] = self._gated[mask]
-        out["first_log_time"] = self._first[mask]
-        out["last_log_time"] = self._last[mask]
-        denom = np.maximum(hits, 1)[:, None]
-        mean = sums / denom
+        out["confirmed"] = tracks.hits >= self.config.confirm_hits
+        out["hits"] = tracks.hits
+        out["gated"] = tracks.gated
+        out["first_log_time"] = tracks.first_time
+        out["last_log_time"] = tracks.last_time
+        mean = tracks.sums / np.maximum(tracks.hits, 1)[:, None]
         out["mean_flux"] = mean[:, 0]
         out["mean_x"] = mean[:, 1]
         out["mean_y"] = mean[:, 2]
@@ -338,147 +460,19 @@ class StarTracker:
             On arrays of unequal length, non-finite values, negative ``sigma``, or a
             ``log_time`` that does not increase.
         """
-        if isinstance(log_time, bool) or not isinstance(log_time, (int, np.integer)):
-            raise InvalidInputError(f"log_time must be an integer (ns), got {log_time!r}.")
-        t = int(log_time)
-        if self._last_time is not None and t <= self._last_time:
-            raise InvalidInputError(
-                f"log_time must increase from frame to frame: got {t} after {self._last_time}."
-            )
-        xs, ys, ss, fs = _frame_arrays(x, y, sigma, flux)
-        cfg = self.config
-        ss = np.maximum(ss, cfg.sigma_floor)
-        var = ss * ss
-        m = xs.size
-        n = self._ids.size
-        d = self._d
-
-        # 1. predict
-        if n:
-            assert self._last_time is not None
-            Ft, Q = self._transition(t - self._last_time)
-            self._x, self._P = ukf_predict(
-                self._x, self._P, fx=lambda s: np.matmul(s, Ft), Q=Q, points=cfg.points
-            )
+        t = self._frame_time(log_time)
+        xs, ys, sigmas, fluxes = _frame_arrays(x, y, sigma, flux)
+        sigmas = np.maximum(sigmas, self.config.sigma_floor)
+        c = _Centroids(xs, ys, sigmas, fluxes, sigmas * sigmas)
+        self._predict(t)
         self._last_time = t
         self.frames += 1
-
-        # 2. associate
-        if n and m:
-            ti, mj = self._associate(xs, ys, var)
-        else:
-            ti = mj = np.zeros(0, np.intp)
-
-        innov = np.zeros((n, 2))
-        nis = np.zeros(n)
-        measured = np.zeros(n, dtype=bool)
-        associated = np.zeros(n, dtype=bool)
-        meas = np.zeros((n, 4))  # x, y, sigma, flux
-
-        # 3. update the associated tracks
-        if ti.size:
-            z = np.stack((xs[mj], ys[mj]), axis=1)
-            R = var[mj][:, None, None] * _EYE2
-            reset = self._gstreak[ti] >= cfg.max_gated
-            thr: float | Array = (
-                np.where(reset, np.inf, self._threshold) if reset.any() else self._threshold
-            )
-            res = ukf_update(self._x[ti], self._P[ti], z, R, points=cfg.points, threshold=thr)
-            self._x[ti] = res.x
-            self._P[ti] = res.P
-            innov[ti] = res.innovation
-            nis[ti] = res.nis
-            measured[ti] = res.applied
-            associated[ti] = True
-            meas[ti, 0] = xs[mj]
-            meas[ti, 1] = ys[mj]
-            meas[ti, 2] = ss[mj]
-            meas[ti, 3] = fs[mj]
-            ok = ti[res.applied]
-            self._hits[ok] += 1
-            self._last[ok] = t
-            self._sums[ok] += meas[ok][:, [3, 0, 1]]
-        gated = associated & ~measured
-        self._gated[gated] += 1
-        self._gstreak[gated] += 1
-        self._gstreak[~gated] = 0
-        self._missed[measured] = 0
-        self._missed[~measured] += 1
-        self._coast[associated] = 0
-        self._coast[~associated] += 1
-        self._age += 1
-
-        # 5. retire lost tracks (before births, so that new ids follow the old ones)
-        confirmed = self._hits >= cfg.confirm_hits
-        lost = np.where(confirmed, self._coast > cfg.max_missed, self._missed > 0)
-        if lost.any():
-            keep = ~lost
-            self._retire(lost)
-            innov, nis, measured, gated, meas = (
-                innov[keep], nis[keep], measured[keep], gated[keep], meas[keep],
-            )
-
-        # 4. births, in row-major order of position
-        free = np.ones(m, dtype=bool)
-        free[mj] = False
-        if free.any():
-            new = np.flatnonzero(free)
-            new = new[np.lexsort((xs[new], ys[new]))]
-            k = new.size
-            state = np.zeros((k, d))
-            state[:, 0] = xs[new]
-            state[:, 1] = ys[new]
-            self._ids = np.concatenate((self._ids, np.arange(self._next_id, self._next_id + k)))
-            self._next_id += k
-            self._x = np.concatenate((self._x, state))
-            self._P = np.concatenate(
-                (self._P, initial_covariance(self.model, ss[new], config=cfg.motion))
-            )
-            ones = np.ones(k, dtype=np.int64)
-            zeros = np.zeros(k, dtype=np.int64)
-            self._hits = np.concatenate((self._hits, ones))
-            self._missed = np.concatenate((self._missed, zeros))
-            self._coast = np.concatenate((self._coast, zeros))
-            self._gstreak = np.concatenate((self._gstreak, zeros))
-            self._age = np.concatenate((self._age, zeros))
-            self._gated = np.concatenate((self._gated, zeros))
-            self._first = np.concatenate((self._first, np.full(k, t, dtype=np.int64)))
-            self._last = np.concatenate((self._last, np.full(k, t, dtype=np.int64)))
-            self._sums = np.concatenate((self._sums, np.stack((fs[new], xs[new], ys[new]), 1)))
-            innov = np.concatenate((innov, np.zeros((k, 2))))
-            nis = np.concatenate((nis, np.zeros(k)))
-            measured = np.concatenate((measured, np.ones(k, dtype=bool)))
-            gated = np.concatenate((gated, np.zeros(k, dtype=bool)))
-            meas = np.concatenate((meas, np.stack((xs[new], ys[new], ss[new], fs[new]), 1)))
-
-        # output
-        out = np.empty(self._ids.size, dtype=TRACK_DTYPE)
-        out["track"] = self._ids
-        out["x"] = self._x[:, 0]
-        out["y"] = self._x[:, 1]
-        if d >= 4:
-            out["vx"] = self._x[:, 2]
-            out["vy"] = self._x[:, 3]
-        else:
-            out["vx"] = 0.0
-            out["vy"] = 0.0
-        out["cov_xx"] = self._P[:, 0, 0]
-        out["cov_xy"] = self._P[:, 0, 1]
-        out["cov_yy"] = self._P[:, 1, 1]
-        out["innovation_x"] = innov[:, 0]
-        out["innovation_y"] = innov[:, 1]
-        out["nis"] = nis
-        out["measured"] = measured
-        out["gated"] = gated
-        out["meas_x"] = meas[:, 0]
-        out["meas_y"] = meas[:, 1]
-        out["meas_sigma"] = meas[:, 2]
-        out["flux"] = meas[:, 3]
-        out["age"] = self._age
-        out["missed"] = self._missed
-        out["confirmed"] = self._hits >= cfg.confirm_hits
-        out["hits"] = self._hits
-        return out
+        ti, mj = self._associate(c)
+        rows, associated = self._apply(t, c, ti, mj)
+        self._count(rows, associated)
+        rows = self._retire_lost(rows)
+        rows = self._start_tracks(t, c, mj, rows)
+        return self._output(rows)
 
     def track_stats(self) -> npt.NDArray[np.void]:
         """Summary of every track started so far (live and lost), sorted by id.
@@ -487,7 +481,7 @@ class StarTracker:
         -------
         ndarray of TRACK_STATS_DTYPE
         """
-        live = self._stats(np.ones(self._ids.size, dtype=bool), alive=True)
+        live = self._stats(self._tracks, alive=True)
         out = np.concatenate([*self._lost, live]) if self._lost else live
         return out[np.argsort(out["track"], kind="stable")]
 
@@ -569,7 +563,7 @@ def track_centroids(
         The tracker after the last frame (for :meth:`StarTracker.brightest_track`).
     """
     t = np.asarray(log_time, dtype=np.int64)
-    xs, ys, ss, fs = _frame_arrays(x, y, sigma, flux)
+    xs, ys, sigmas, fluxes = _frame_arrays(x, y, sigma, flux)
     if t.shape != xs.shape:
         raise InvalidInputError(f"log_time must have shape {xs.shape}, got {t.shape}.")
     frames = np.unique(t) if frame_times is None else np.unique(np.asarray(frame_times, np.int64))
@@ -582,7 +576,7 @@ def track_centroids(
     outs: list[npt.NDArray[np.void]] = []
     for ft, a, b in zip(frames.tolist(), starts.tolist(), stops.tolist(), strict=True):
         idx = order[a:b]
-        rows = tracker.update(ft, xs[idx], ys[idx], ss[idx], fs[idx])
+        rows = tracker.update(ft, xs[idx], ys[idx], sigmas[idx], fluxes[idx])
         outs.append(rows)
         times.append(np.full(rows.size, ft, dtype=np.int64))
     if not outs:
