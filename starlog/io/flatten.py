@@ -16,7 +16,13 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from starlog.errors import InvalidInputError, InvalidParameterError, MessageDecodeError, OutputExistsError
+from starlog.errors import (
+    ChannelNotFoundError,
+    InvalidInputError,
+    InvalidParameterError,
+    MessageDecodeError,
+    OutputExistsError,
+)
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import cached_image_decoder
 from starlog.io.images import IMAGE_SCHEMAS, is_image_schema
@@ -129,8 +135,6 @@ def export_topic(log: LogReader, topic: str, output_dir: Path, *, force: bool = 
                  row_group_rows: int = 16_384) -> tuple[str, int]:
     """Write ``<topic>.parquet`` (see :func:`topic_file_name`) with one flattened row per message."""
     if topic not in log.topics:
-        from starlog.errors import ChannelNotFoundError
-
         raise ChannelNotFoundError(log.path, topic, log.topics)
     name = topic_file_name(topic)
     path = output_dir / f"{name}.parquet"

@@ -7,22 +7,31 @@ messages such as annotations can carry the stamp Foxglove pairs them by.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
-from mcap.records import Schema
+from mcap.records import Channel, Message, Schema
 
 from starlog.errors import InvalidInputError, InvalidMessageError, LogError, MessageDecodeError
 from starlog.io.foreign import schema_key
 from starlog.io.images import DecodedImage, image_decoder
 
-if TYPE_CHECKING:
-    from starlog.io.reader import LogReader
-
 __all__ = ["Frame", "SkippedFrame", "cached_image_decoder", "decode_image_message", "iter_frames", "stamp_disagreement"]
+
+class MessageSource(Protocol):
+    """What frame reading needs of a log (:class:`~starlog.io.reader.LogReader` is one)."""
+
+    path: Path
+
+    def raw_messages(self, topics: Iterable[str], *, start: int | None = None,
+                     end: int | None = None) -> Iterator[tuple[Schema | None, Channel, Message]]: ...
+
+    def add_note(self, note: str) -> None: ...
+
 
 _IMAGE_DECODERS: dict[tuple[str, str, str, bytes], Callable[[bytes], DecodedImage] | None] = {}
 
@@ -75,7 +84,7 @@ def decode_image_message(schema: Schema | None, message_encoding: str, data: byt
     return None if decode is None else decode(data)
 
 
-def iter_frames(log: LogReader, topic: str, *, start: int | None = None, end: int | None = None,
+def iter_frames(log: MessageSource, topic: str, *, start: int | None = None, end: int | None = None,
                 first_index: int = 0, on_bad: Callable[[SkippedFrame], None] | None = None) -> Iterator[Frame]:
     """Every frame of ``topic`` with ``start <= log_time < end``, in time order, numbered from ``first_index``.
 
@@ -124,7 +133,7 @@ def iter_frames(log: LogReader, topic: str, *, start: int | None = None, end: in
         yield Frame(index, t, image, decoded.stamp, decoded.frame_id)
 
 
-def stamp_disagreement(log: LogReader, topic: str, *, sample: int = 64) -> str | None:
+def stamp_disagreement(log: MessageSource, topic: str, *, sample: int = 64) -> str | None:
     """A note when the frames' own stamps differ from their ``log_time`` by more than one frame period.
 
     Looks at the first ``sample`` frames only (``info`` reads no more than that).

@@ -31,6 +31,7 @@ from mcap.records import Schema
 
 from starlog.errors import ChannelNotFoundError, InvalidInputError, InvalidParameterError
 from starlog.io.foreign import message_decoder
+from starlog.io.messages import decode_json
 
 __all__ = [
     "IMAGE_SCHEMAS",
@@ -210,8 +211,6 @@ def image_decoder(schema: Schema | None, message_encoding: str) -> Callable[[byt
         return None
     kind = IMAGE_SCHEMAS[schema.name]
     if message_encoding == "json":
-        from starlog.io.messages import decode_json
-
         parse: Callable[[bytes], Any] = decode_json
     else:
         found = message_decoder(schema, message_encoding)

@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import ImageFolderError
+from starlog.io.ser import HEADER_SIZE, SerReader
 from starlog.stages._parallel import ordered_map
 
 __all__ = ["IMAGE_SUFFIXES", "SER_SUFFIXES", "VIDEO_SUFFIXES", "ColourImageWarning", "LossyImageWarning",
@@ -182,8 +183,6 @@ def folder_frames(files: Sequence[Path], workers: int) -> Iterator[SourceFrame]:
 # ---------------------------------------------------------------- SER
 def ser_frames(path: Path) -> tuple[int, bool, Iterator[SourceFrame]]:
     """``(frame count, has timestamps, frames)`` of a SER file (format: :mod:`starlog.io.ser`)."""
-    from starlog.io.ser import HEADER_SIZE, SerReader
-
     with SerReader(path) as reader:
         count, times = reader.header.frame_count, reader.timestamps_ns()
         if count == 0:
@@ -194,8 +193,6 @@ def ser_frames(path: Path) -> tuple[int, bool, Iterator[SourceFrame]]:
 
 
 def _ser_iter(path: Path, times: list[int] | None) -> Iterator[SourceFrame]:
-    from starlog.io.ser import SerReader
-
     with SerReader(path) as reader:
         header = reader.header
         for index in range(header.frame_count):
