@@ -236,3 +236,66 @@ def test_motion_cli_json_and_summary(motion_logs: dict[str, Path], tmp_path: Pat
     assert channel["stars"] == 8 and len(channel["star_noise"]) == 8
     with pytest.raises(Exception, match="unknown motion option"):
         motion_log(motion_logs["trk"], tmp_path / "x.mcap", options={"k_sgima": 3})
+
+
+# ---------------------------------------------------------------- compensate: relative protocol, motion modes
+def test_separate_on_a_motionless_field_equals_keep_within_noise() -> None:
+    from starlog.compensate import evaluate
+
+    rng = np.random.default_rng(8)
+    static = _field(rng, 10)
+    still = MotionParameters(*(np.zeros(400) for _ in range(3)), np.ones(400))
+    frame, star, xy = _observe(static, still, noise=0.03, rng=rng)
+    obs = Observations.build(frame, star, xy[:, 0], xy[:, 1], np.full(frame.size, 0.05))
+    est = estimate_platform(obs, centre=tuple(CENTRE))
+    reference, variance = star_reference(obs, est, 0, np.arange(400))
+    series = xy[star == 0]
+    common = dict(rate_hz=50.0, protocol="truth", truth_fixed=static[0], truth_series=np.tile(static[0], (400, 1)),
+                  static_position=est.static[0], platform_displacement=reference - est.static[0],
+                  reference_variance=variance)
+    keep = evaluate(series, motion="keep", **common)
+    separate = evaluate(series, motion="separate", **common)
+    noise = float(np.sqrt(np.mean(variance)))  # the other stars' motion estimate, added back by separate
+    assert keep.motion == "keep" and separate.motion == "separate"
+    assert separate.figure("truth_fixed").rmse_after == pytest.approx(keep.figure("truth_fixed").rmse_after,
+                                                                      abs=2 * noise)
+    assert np.sqrt(np.mean(np.sum((separate.compensated - keep.compensated) ** 2, axis=1))) < 3 * noise + 0.01
+    with pytest.raises(Exception, match="platform displacement"):
+        evaluate(series, rate_hz=50.0, protocol="relative")
+
+
+@pytest.fixture(scope="module")
+def compensated_log(motion_logs: dict[str, Path]) -> Path:
+    out = motion_logs["trk"].with_name("cmp.mcap")
+    result = CliRunner().invoke(cli, ["compensate", str(motion_logs["trk"]), "-o", str(out), "--rate", "25,50",
+                                      "--protocol", "truth,relative", "--motion", "keep,separate", "-q"])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_compensate_relative_and_separate_records_channels_and_tables(compensated_log: Path, tmp_path: Path) -> None:
+    with LogReader(compensated_log) as log:
+        records = [m.payload for m in log.messages("/compensated/NONE/STATIC/decisions")]
+        assert {"/compensated/NONE/STATIC/50Hz/relative", "/compensated/NONE/STATIC/50Hz/relative/separate",
+                "/compensated/NONE/STATIC/25Hz/truth/separate"} <= set(log.topics)
+        validators: dict[int, jsonschema.Draft202012Validator] = {}
+        for schema, _, message in log.raw_messages([t for t in log.topics if t.startswith("/compensated")]):
+            assert schema is not None
+            validators.setdefault(schema.id, jsonschema.Draft202012Validator(json.loads(schema.data)))
+            validators[schema.id].validate(json.loads(message.data))
+    assert [(r["rate_hz"], r["protocol"], r["motion"]) for r in records] == [
+        (rate, protocol, motion) for rate in (25.0, 50.0) for protocol in ("truth", "relative")
+        for motion in ("keep", "separate")]
+    for r in records:
+        figures = {f["reference"]: f for f in r["figures"]}
+        if r["motion"] == "separate":  # the jitter is kept: the error against the moving truth drops
+            assert figures["truth_series"]["effective"] > 0.3
+        if r["protocol"] == "relative":
+            assert [f["reference"] for f in r["figures"]][0] == "relative"
+            for key in ("rmse_before", "rmse_after"):
+                assert figures["relative"][key] == pytest.approx(figures["truth_series"][key], rel=0.25)
+    export_log(compensated_log, tmp_path, tables=["compensation", "decisions"])
+    samples = pq.read_table(tmp_path / "compensation.parquet").to_pylist()
+    assert {(r["protocol"], r["motion"]) for r in samples} == {(p, m) for p in ("truth", "relative")
+                                                               for m in ("keep", "separate")}
+    assert {r["motion"] for r in pq.read_table(tmp_path / "decisions.parquet").to_pylist()} == {"keep", "separate"}
