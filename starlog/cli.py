@@ -612,14 +612,17 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the datasets, logs, tables (Markdown + Parquet), plots and report.")
 @click.option("--quick", is_flag=True, help="Small frames and few frames: every table and plot in about a minute.")
+@click.option("--sweep", is_flag=True, help="Instead of the paper's tables, the regime map: keep vs separate "
+                                            "compensation over jitter 0-10x the centroid noise, 3/6/20 stars, 10 and "
+                                            "50 Hz, every UKF model (regime_map.parquet/.md/.png).")
 @click.option("--workers", type=click.IntRange(1, 256), default=os.cpu_count() or 1, show_default="all cores",
               help="Local Dask workers for the independent runs (1: serial).")
 @scheduler_option
 @click.option("--force", is_flag=True, help="Overwrite an existing output folder's results.")
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 @json_option
-def experiment(output: Path, quick: bool, workers: int, scheduler: str | None, force: bool, quiet: bool,
-               as_json: bool) -> None:
+def experiment(output: Path, quick: bool, sweep: bool, workers: int, scheduler: str | None, force: bool,
+               quiet: bool, as_json: bool) -> None:
     """Regenerate the paper's Tables 2-4 and Figure 5 on simulated "laboratory" datasets.
 
     Simulates the two datasets (300 Hz x 3248 frames, 200 Hz x 3027 frames; static star field,
@@ -632,11 +635,12 @@ def experiment(output: Path, quick: bool, workers: int, scheduler: str | None, f
       starlog experiment -o results/ --quick
       starlog experiment -o results/ --workers 2
       starlog experiment -o results/ --scheduler tcp://10.0.0.5:8786
+      starlog experiment -o regime/ --sweep --workers 2
     """
     from starlog.experiment import experiment_command
 
     summary = experiment_command(output, quick=quick, workers=workers, scheduler=scheduler, force=force,
-                                 show_progress=not quiet)
+                                 show_progress=not quiet, sweep=sweep)
     if as_json:
         _print_json(summary.to_dict())
     else:

@@ -121,22 +121,23 @@ def _figure(name: str, before: npt.NDArray[np.float64], after: npt.NDArray[np.fl
 
 def _relative_figure(before: npt.NDArray[np.float64], after: npt.NDArray[np.float64],
                      reference: npt.NDArray[np.float64], variance: npt.NDArray[np.float64] | None, *,
-                     after_holds_reference: bool) -> RmseFigure:
+                     reference_weight: float) -> RmseFigure:
     """Eq. 15 about the relative reference, over the samples that have one.
 
-    The star's own errors are independent of the reference's (other stars), so the reference's
-    predicted variance (radial, px²) is removed in quadrature.  When ``after`` is built on the
-    reference itself (``separate``), its distance to the reference misses the reference's error,
-    which is then added instead.
+    With ``e`` the reference's error (variance ``V``, predicted by its fit) and ``x`` a series,
+    ``x - truth = (x - reference) + e``.  A series independent of the other stars (the star's own
+    track, or ``keep``'s output) has ``E|x - truth|² = E|x - reference|² - V``; one that carries
+    ``f e`` because it was rebuilt on the reference (``separate``, ``f = reference_weight``) has
+    ``E|x - truth|² ≈ E|x - reference|² + (2f - 1) V``.
     """
     ok = np.isfinite(reference).all(axis=1)
     var = float(np.mean(variance[ok])) if variance is not None and ok.any() else 0.0
 
-    def score(xy: npt.NDArray[np.float64], sign: float) -> float:
+    def score(xy: npt.NDArray[np.float64], extra: float) -> float:
         r = radial_rms(xy[ok] - reference[ok])
-        return float(np.sqrt(max(r * r + sign * var, 0.0)))
+        return float(np.sqrt(max(r * r + extra, 0.0)))
 
-    b, a = score(before, -1.0), score(after, 1.0 if after_holds_reference else -1.0)
+    b, a = score(before, -var), score(after, (2.0 * reference_weight - 1.0) * var)
     return RmseFigure(reference="relative", rmse_before=b, rmse_after=a, effective=float(improvement(b, a)),
                       n_scored=int(ok.sum()))
 
@@ -151,7 +152,7 @@ def protocol_figures(
     truth_series: npt.NDArray[np.float64] | None = None,
     relative: npt.NDArray[np.float64] | None = None,
     relative_variance: npt.NDArray[np.float64] | None = None,
-    after_holds_reference: bool = False,
+    reference_weight: float = 0.0,
 ) -> tuple[RmseFigure, ...]:
     """The RMSE figures (eq. 15, eq. 13) a protocol reports for one series, primary first.
 
@@ -160,7 +161,8 @@ def protocol_figures(
     samples from ``start`` on), then the truth figures, all over the samples from ``start`` on.
     ``relative``: ``relative`` about the per-sample reference ``relative`` (NaN rows: no
     reference, not scored; ``relative_variance`` its predicted radial variance, px²;
-    ``after_holds_reference`` when ``after`` was rebuilt on that reference, motion ``separate``),
+    ``reference_weight`` the share of the reference's error ``after`` carries: 0, or the motion
+    factor under ``separate``),
     then the truth figures over every sample.
     ``after=None`` scores an uncompensated series (``rmse_after = rmse_before``, effective 0).
     Inputs are validated (N, 2) arrays in px; ``truth_series`` is aligned with ``before``.
@@ -170,8 +172,7 @@ def protocol_figures(
     if protocol is ScoringProtocol.RELATIVE:
         if relative is None:
             raise InvalidParameterError("the 'relative' protocol needs the reference from the other stars.")
-        return (_relative_figure(before, after, relative, relative_variance,
-                                 after_holds_reference=after_holds_reference),
+        return (_relative_figure(before, after, relative, relative_variance, reference_weight=reference_weight),
                 *protocol_figures(before, after, protocol=ScoringProtocol.TRUTH, truth_fixed=truth_fixed,
                                   truth_series=truth_series))
     if protocol is ScoringProtocol.PAPER:
@@ -212,6 +213,9 @@ class Evaluation:
         ``keep`` or ``separate`` (what the strategies compensated).
     positions_after : (N, 2) ndarray or None
         Under ``separate``, the rebuilt positions (static + fitted motion + compensated residual).
+    motion_factor : float
+        Under ``separate``, the Wiener factor the fitted motion was added back with (0: the
+        fitted motion is all noise, 1: all signal).
     """
 
     protocol: ScoringProtocol
@@ -221,6 +225,7 @@ class Evaluation:
     result: CompensationResult
     motion: MotionMode = MotionMode.KEEP
     positions_after: npt.NDArray[np.float64] | None = None
+    motion_factor: float = 0.0
 
     @property
     def compensated(self) -> npt.NDArray[np.float64]:
@@ -263,6 +268,7 @@ class Evaluation:
         return {
             "protocol": str(self.protocol),
             "motion": str(self.motion),
+            **({"motion_factor": self.motion_factor} if self.motion is MotionMode.SEPARATE else {}),
             "scored_start": self.scored_start,
             "n_scored": self.n_scored,
             "figures": [f.to_dict() for f in self.figures],
@@ -339,7 +345,8 @@ def evaluate(
         Passed to :func:`~starlog.compensate.selection.compensate`.
     motion : MotionMode or str
         ``keep`` (paper): compensate the positions.  ``separate``: compensate the residual
-        ``xy - platform_displacement`` and add the displacement back.
+        ``xy - platform_displacement`` and add the displacement back, shrunk by its Wiener factor
+        (so that the noise of a motion fitted on a still platform is not added).
     static_position : (2,) array_like, optional
         The star's static position, px (``relative`` protocol).
     platform_displacement : (N, 2) array_like, optional
@@ -376,7 +383,9 @@ def evaluate(
         assert disp is not None
         relative = np.asarray(static_position, dtype=np.float64) + disp
         var = None if reference_variance is None else np.asarray(reference_variance, dtype=np.float64).reshape(n)
-    shift = _filled(disp) if mode_motion is MotionMode.SEPARATE and disp is not None else None
+    shift, factor = None, 0.0
+    if mode_motion is MotionMode.SEPARATE and disp is not None:
+        shift, factor = _wiener(_filled(disp), reference_variance)
     result = compensate(
         p if shift is None else p - shift,
         rate_hz=rate_hz,
@@ -392,7 +401,7 @@ def evaluate(
     start = scored_start(proto, n, calibration_fraction=calibration_fraction)
     after = result.compensated if shift is None else result.compensated + shift
     figures = protocol_figures(p, after, protocol=proto, start=start, truth_fixed=tf, truth_series=ts,
-                               relative=relative, relative_variance=var, after_holds_reference=shift is not None)
+                               relative=relative, relative_variance=var, reference_weight=factor)
     return Evaluation(
         protocol=proto,
         figures=figures,
@@ -401,6 +410,7 @@ def evaluate(
         result=result,
         motion=mode_motion,
         positions_after=None if shift is None else after,
+        motion_factor=factor,
     )
 
 
@@ -414,6 +424,24 @@ def _checked_displacement(displacement: npt.ArrayLike | None, n: int) -> npt.NDA
     if not np.isfinite(d).all(axis=1).any():
         raise InvalidInputError("platform_displacement has no finite sample: no frame had a fitted motion.")
     return d
+
+
+def _wiener(displacement: npt.NDArray[np.float64],
+            variance: npt.ArrayLike | None) -> tuple[npt.NDArray[np.float64], float]:
+    """The displacement shrunk towards its mean by the scalar Wiener factor ``1 - noise / spread``.
+
+    ``variance`` is the displacement's predicted radial variance (px²) per sample: on a still
+    platform the fitted motion is that noise alone and the factor is 0 (``separate`` then adds no
+    noise); a motion well above it is kept whole.  Returns the displacement and the factor.
+    """
+    if variance is None or displacement.shape[0] < 2:
+        return displacement, 1.0
+    v = np.asarray(variance, dtype=np.float64)
+    noise = float(np.mean(v[np.isfinite(v)])) if np.isfinite(v).any() else 0.0
+    mean = displacement.mean(axis=0)
+    spread = float(np.mean(np.sum((displacement - mean) ** 2, axis=1)))
+    factor = float(np.clip(1.0 - noise / spread, 0.0, 1.0)) if spread > 0 else 0.0
+    return mean + factor * (displacement - mean), factor
 
 
 def _filled(displacement: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
