@@ -299,3 +299,46 @@ def test_compensate_relative_and_separate_records_channels_and_tables(compensate
     assert {(r["protocol"], r["motion"]) for r in samples} == {(p, m) for p in ("truth", "relative")
                                                                for m in ("keep", "separate")}
     assert {r["motion"] for r in pq.read_table(tmp_path / "decisions.parquet").to_pylist()} == {"keep", "separate"}
+
+
+# ---------------------------------------------------------------- the regime map (experiment --sweep)
+def test_regime_map_configs_tables_and_plot(tmp_path: Path) -> None:
+    from starlog.experiment.plots import plot_regime_map
+    from starlog.experiment.regime import REGIME_FIELDS, regime_configs, regime_markdown, write_regime_parquet
+
+    specs = regime_configs(0.01, quick=False)
+    assert {(s["stars"], s["jitter_ratio"]) for s in specs} == {(n, r) for n in (3, 6, 20)
+                                                                 for r in (0.0, 0.5, 1.0, 2.0, 5.0, 10.0)}
+    for spec in specs:
+        config = SimulationConfig.from_dict(spec["config"])
+        rms = np.sqrt(sum(j.amplitude_px**2 / 2 for j in config.jitter))
+        assert rms == pytest.approx(spec["jitter_ratio"] * 0.01)
+        assert spec["sigma_floor"] >= 2 * rms
+    rows = [{"stars": n, "jitter_ratio": r, "jitter_rms_px": r * 0.01, "noise_px": 0.01, "model": "STATIC",
+             "rate_hz": rate, "motion": motion, "protocol": protocol, "reference": reference, "n_scored": 60,
+             "rmse_before": 0.02, "rmse_after": 0.01, "effective": 0.5 if motion == "keep" else -0.25}
+            for n in (3, 20) for r in (0.0, 2.0) for rate in (10.0, 50.0) for motion in ("keep", "separate")
+            for protocol, reference in (("truth", "truth_series"), ("truth", "truth_fixed"),
+                                        ("leakfree", "heldout_mean"), ("relative", "relative"))]
+    table = pq.read_table(write_regime_parquet(rows, tmp_path / "r.parquet"))
+    assert table.schema.names == list(REGIME_FIELDS) and table.num_rows == len(rows)
+    text = regime_markdown(rows)
+    assert "## relative / relative, 50 Hz" in text and "| 20 | 50 % / -25 % | 50 % / -25 % |" in text
+    assert plot_regime_map(rows, tmp_path / "r.png").stat().st_size > 1000
+
+
+def test_experiment_sweep_flag_reaches_the_command(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    seen: list[bool] = []
+
+    class Summary:
+        def text(self) -> str:
+            return "map"
+
+    def experiment_command(output: Path, **options: object) -> Summary:
+        seen.append(bool(options["sweep"]))
+        return Summary()
+
+    monkeypatch.setattr("starlog.experiment.experiment_command", experiment_command)
+    for flags in ([], ["--sweep"]):
+        assert CliRunner().invoke(cli, ["experiment", "-o", str(tmp_path), *flags, "-q"]).exit_code == 0
+    assert seen == [False, True]
