@@ -130,14 +130,16 @@ def _parse_jitter(values: tuple[str, ...]) -> tuple[Any, ...]:
               help="Platform vibration: sinusoid of FREQ Hz and AMP px peak on each axis. Repeatable.")
 @click.option("--drift", default="0,0", show_default=True, help="Platform drift VX,VY in px/s.")
 @click.option("--random-walk", type=float, default=0.0, show_default=True, help="Platform random walk, px/sqrt(s).")
+@click.option("--roll", metavar="FREQ:AMP", help="Platform roll about the image centre, FREQ_HZ:AMPLITUDE_RAD "
+                                               "(sinusoidal), e.g. 2:0.001. Default: none.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--start-ns", type=click.IntRange(0), default=0, show_default=True, help="log_time of frame 0.")
 @write_options
 def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: str, fps: float | None,
              n_frames: int | None, duration: float | None, psf_sigma: float, sky: float, read_noise: float,
              gain: float, bias: float, adc_bits: int, hot_pixels: int, cosmic_rays: float, jitter: tuple[str, ...],
-             drift: str, random_walk: float, seed: int, start_ns: int, force: bool, compression: str,
-             workers: int, quiet: bool) -> None:
+             drift: str, random_walk: float, roll: str | None, seed: int, start_ns: int, force: bool,
+             compression: str, workers: int, quiet: bool) -> None:
     """Write a simulated star-camera log.
 
     Stars are pixel-integrated Gaussians on a sky background, with Poisson shot noise, read
@@ -157,8 +159,9 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
         width, height = (int(v) for v in size.lower().split("x"))
         flux_min, flux_max = (float(v) for v in flux.split(":"))
         drift_x, drift_y = (float(v) for v in drift.split(","))
+        roll_hz, roll_rad = (float(v) for v in roll.split(":")) if roll else (1.0, 0.0)
     except ValueError as err:
-        raise click.BadParameter(f"{err}; see --help for the formats of --size, --flux and --drift.")
+        raise click.BadParameter(f"{err}; see --help for the formats of --size, --flux, --drift and --roll.")
     params: dict[str, Any] = {"fps": 300.0, "n_frames": 300}
     if preset:
         params.update(PRESETS[preset])
@@ -175,7 +178,7 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
                               psf_sigma=psf_sigma, sky=sky, camera=camera, hot_pixels=hot_pixels,
                               cosmic_rays_per_frame=cosmic_rays, jitter=_parse_jitter(jitter),
                               drift_px_per_s=(drift_x, drift_y), random_walk_px_per_sqrt_s=random_walk,
-                              seed=seed, start_time_ns=start_ns, **params)
+                              roll_amplitude_rad=roll_rad, roll_frequency_hz=roll_hz, seed=seed, start_time_ns=start_ns, **params)
     simulate_log(config, output, compression=compression, workers=workers, force=force, show_progress=not quiet)
     _status(quiet, f"wrote {output}: {config.n_frames} frames of {width}x{height} at {config.fps:g} Hz, "
                    f"{n_stars} stars")
@@ -433,16 +436,68 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
                        f"{m['mean_nis']:>9.2f} {m['brightest_track']:>9}")
 
 
+# ---------------------------------------------------------------- motion
+@cli.command(context_settings=CONTEXT)
+@input_log
+@output_option()
+@click.option("--track", "track_topic", help="Track channel, e.g. /track/GAUSSFIT/STATIC, or all [default: the only one].")
+@click.option("--model", "fit", type=click.Choice(["translation", "rigid", "similarity"]), default="rigid",
+              show_default=True, help="2-D platform motion fitted per frame about the image centre.")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Option of starlog.motion.estimate_platform (k_sigma, min_stars, min_star_frames, max_iterations, "
+                   "tol, max_rejections). Repeatable.")
+@json_option
+@write_options
+def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings: tuple[str, ...], as_json: bool,
+           force: bool, compression: str, workers: int, quiet: bool) -> None:
+    """Fit the platform motion to all tracked stars; each star's residual is its centroid error alone.
+
+    Per frame, a weighted least-squares fit of the stars' measured positions (meas_x, meas_y of
+    the track channel) to their static positions, estimated jointly over the log; stars more
+    than k_sigma off the fit are left out and flagged. Adds /platform/<METHOD>/<MODEL> (dx, dy,
+    roll, 1-sigma, stars used, residual RMS) and /stars/residuals/<METHOD>/<MODEL>. Frames with
+    fewer than 3 usable stars get no motion. The per-star noise printed is each star's centroid
+    noise measured without a simulator.
+
+    \b
+    Example:
+      starlog motion trk.mcap -o mot.mcap --track /track/GAUSSFIT/STATIC
+      starlog motion trk.mcap -o mot.mcap --track all --model translation --set k_sigma=4 --json
+    """
+    from starlog.stages.motion import motion_log
+
+    summary = motion_log(log, output, track=track_topic, model=fit, options=_key_values(settings, "--set"),
+                         force=force, compression=compression, workers=workers)
+    d = summary.to_dict()
+    _status(quiet, f"wrote {output}: {fit} platform motion of {len(d['channels'])} track channel(s)")
+    if as_json:
+        _print_json(d)
+        return
+    for topic, ch in d["channels"].items():
+        click.echo(f"{topic}: {ch['frames_with_motion']}/{ch['frames']} frames with a motion, {ch['stars']} stars, "
+                   f"{ch['outliers']} outliers, {ch['short_tracks']} short tracks left out")
+        if ch["frames_without_motion"]:
+            click.echo(f"  {ch['frames_without_motion']} frames without a motion ({ch['without_motion_reason']})")
+        click.echo(f"  RMS dx {ch['rms_dx']:.4f} px, dy {ch['rms_dy']:.4f} px, roll {ch['rms_roll']:.3g} rad; "
+                   f"median 1-sigma dx {ch['median_sigma_dx']:.4f} px, dy {ch['median_sigma_dy']:.4f} px; "
+                   f"median residual RMS {ch['median_residual_rms']:.4f} px")
+        noise = ", ".join(f"{track}: {value:.4f}" for track, value in ch["star_noise"].items())
+        click.echo(f"  centroid noise per track (px, 1 sigma per axis): {noise}")
+
+
 # ---------------------------------------------------------------- compensate
 def format_records(records: list[dict[str, Any]]) -> str:
     """Readable table of compensation decision records."""
-    lines = [f"{'method':<9} {'model':<17} {'Hz':>5} {'protocol':<9} {'reference':<13} {'RMSE before':>11} "
-             f"{'after':>8} {'gain':>6}  passes (x = rolled back)"]
+    motion = any(r.get("motion", "keep") != "keep" for r in records)
+    lines = [f"{'method':<9} {'model':<17} {'Hz':>5} {'protocol':<9} " + ("motion   " if motion else "")
+             + f"{'reference':<13} {'RMSE before':>11} {'after':>8} {'gain':>6}  passes (x = rolled back)"]
     for r in records:
         for k, fig in enumerate(r["figures"]):
             passes = " > ".join(p["strategy"] + ("" if p["kept"] else " x") for p in r["compensation"]["passes"])
             head = (f"{r['method']:<9} {r['model']:<17} {r['rate_hz']:>5g} {r['protocol']:<9}" if k == 0
                     else " " * 43)
+            if motion:
+                head += f" {r.get('motion', 'keep'):<8}" if k == 0 else " " * 9
             lines.append(f"{head} {fig['reference']:<13} {fig['rmse_before']:>11.4f} {fig['rmse_after']:>8.4f} "
                          f"{100 * fig['effective']:>5.1f}%  {passes if k == 0 else ''}")
     return "\n".join(lines)
@@ -454,7 +509,11 @@ def format_records(records: list[dict[str, Any]]) -> str:
 @click.option("--track", "track_topic", help="Track channel, e.g. /track/GAUSSFIT/STATIC [default: the only one].")
 @click.option("--rate", "rates", required=True, help="Down-sampling rates in Hz, comma-separated, e.g. 10,50.")
 @click.option("--protocol", "protocols", default="all", show_default=True,
-              help="paper, truth (simulated logs), leakfree, comma-separated, or all.")
+              help="paper, truth (simulated logs), leakfree, relative (truth-free: against the motion fitted to the "
+                   "other stars), comma-separated, or all (= paper, truth, leakfree).")
+@click.option("--motion", "motion", default="keep", show_default=True,
+              help="keep: compensate the positions (the paper's method); separate: compensate the star's residual "
+                   "from the platform motion fitted to the other stars and add the motion back; or keep,separate.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Option of starlog.compensate.evaluate (accuracy_source, calibration_fraction, top_k, "
                    "rollback_threshold, leakfree_reference). Repeatable.")
@@ -466,7 +525,7 @@ def format_records(records: list[dict[str, Any]]) -> str:
               help="Processes for the (track, rate, protocol) evaluations; pays off for many of them (reading "
                    "the tracks dominates otherwise). The output does not depend on it.")
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
-def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str,
+def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str, motion: str,
                settings: tuple[str, ...], as_json: bool, force: bool, compression: str, workers: int,
                quiet: bool) -> None:
     """Decompose the brightest star's error, select strategies and compensate (paper 2.2-2.5).
@@ -479,6 +538,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     Example:
       starlog compensate trk.mcap -o comp.mcap --track /track/GAUSSFIT/STATIC --rate 10,50
       starlog compensate trk.mcap -o comp.mcap --rate 50 --protocol paper --json
+      starlog compensate trk.mcap -o comp.mcap --rate 10,50 --protocol truth,relative --motion keep,separate
     """
     from starlog.stages.compensate import compensate_log
 
@@ -487,8 +547,8 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     except ValueError:
         raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
-                             options=_key_values(settings, "--set"), workers=workers, show_progress=not quiet,
-                             force=force, compression=compression)
+                             options=_key_values(settings, "--set"), motion=motion, workers=workers,
+                             show_progress=not quiet, force=force, compression=compression)
     _status(quiet, f"wrote {output}: {len(summary.records)} decision records")
     if as_json:
         _print_json(summary.to_dict())
@@ -568,14 +628,17 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the datasets, logs, tables (Markdown + Parquet), plots and report.")
 @click.option("--quick", is_flag=True, help="Small frames and few frames: every table and plot in about a minute.")
+@click.option("--sweep", is_flag=True, help="Instead of the paper's tables, the regime map: keep vs separate "
+                                            "compensation over jitter 0-10x the centroid noise, 3/6/20 stars, 10 and "
+                                            "50 Hz, every UKF model (regime_map.parquet/.md/.png).")
 @click.option("--workers", type=click.IntRange(1, 256), default=os.cpu_count() or 1, show_default="all cores",
               help="Local Dask workers for the independent runs (1: serial).")
 @scheduler_option
 @click.option("--force", is_flag=True, help="Overwrite an existing output folder's results.")
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 @json_option
-def experiment(output: Path, quick: bool, workers: int, scheduler: str | None, force: bool, quiet: bool,
-               as_json: bool) -> None:
+def experiment(output: Path, quick: bool, sweep: bool, workers: int, scheduler: str | None, force: bool,
+               quiet: bool, as_json: bool) -> None:
     """Regenerate the paper's Tables 2-4 and Figure 5 on simulated "laboratory" datasets.
 
     Simulates the two datasets (300 Hz x 3248 frames, 200 Hz x 3027 frames; static star field,
@@ -588,11 +651,12 @@ def experiment(output: Path, quick: bool, workers: int, scheduler: str | None, f
       starlog experiment -o results/ --quick
       starlog experiment -o results/ --workers 2
       starlog experiment -o results/ --scheduler tcp://10.0.0.5:8786
+      starlog experiment -o regime/ --sweep --workers 2
     """
     from starlog.experiment import experiment_command
 
     summary = experiment_command(output, quick=quick, workers=workers, scheduler=scheduler, force=force,
-                                 show_progress=not quiet)
+                                 show_progress=not quiet, sweep=sweep)
     if as_json:
         _print_json(summary.to_dict())
     else:

@@ -86,11 +86,22 @@ def _track_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
         yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], "model": msg["model"], **row}
 
 
+def _motion_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    yield {"log_time": log_time, **msg}
+
+
+def _residual_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    head = {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], "model": msg["model"],
+            "fit": msg["fit"]}
+    for star in msg["stars"]:
+        yield {**head, **star}
+
+
 def _series_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
-    """A compensated sample; method, model, rate and protocol come from its topic."""
-    _, _, method, model, rate, protocol = ch.topic.split("/")
+    """A compensated sample; method, model, rate, protocol and motion mode come from its topic."""
+    _, _, method, model, rate, protocol, *separate = ch.topic.split("/")
     yield {"log_time": log_time, "method": method, "model": model, "rate_hz": float(rate[:-2]),
-           "protocol": protocol, **msg}
+           "protocol": protocol, "motion": separate[0] if separate else "keep", **msg}
 
 
 def _decision_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
@@ -98,7 +109,7 @@ def _decision_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]
     comp = msg["compensation"]
     primary = msg["figures"][0]
     base = {"log_time": log_time, "method": msg["method"], "model": msg["model"], "rate_hz": msg["rate_hz"],
-            "protocol": msg["protocol"], "n_samples": msg["n_samples"],
+            "protocol": msg["protocol"], "motion": msg.get("motion", "keep"), "n_samples": msg["n_samples"],
             "dominant_frequency": comp["decomposition"]["dominant_frequency"],
             "reference": primary["reference"], "protocol_rmse_before": primary["rmse_before"],
             "protocol_rmse_after": primary["rmse_after"]}
@@ -123,6 +134,8 @@ TABLES: tuple[TableSpec, ...] = (
     TableSpec("detections", _topic_is(topics.DETECTIONS), _per_star_rows),
     TableSpec("centroids", _schema_is("starlog.Centroids"), _centroid_rows),
     TableSpec("tracks", _schema_is("starlog.Tracks"), _track_rows),
+    TableSpec("motion", _schema_is("starlog.PlatformMotion"), _motion_rows),
+    TableSpec("residuals", _schema_is("starlog.StarResiduals"), _residual_rows),
     TableSpec("compensation", _schema_is("starlog.CompensatedSample"), _series_rows),
     TableSpec("decisions", _schema_is("starlog.CompensationRecord"), _decision_rows),
 )

@@ -144,6 +144,7 @@ QUIET_COMMANDS = {
                "--set", "sigma_floor=0.05", "--workers", "1"], True),
     "compensate": (["compensate", "trk.mcap", "-o", "OUT.mcap", "--rate", "50", "--protocol", "paper",
                     "--workers", "1"], True),
+    "motion": (["motion", "trk.mcap", "-o", "OUT.mcap", "--workers", "1"], True),
     "run": (["run", "sim.mcap", "-o", "OUT.mcap", "--config", "p.toml", "--workers", "1"], True),
     "export": (["export", "sim.mcap", "cen.mcap", "-o", "OUT", "--workers", "1"], False),
 }

@@ -6,8 +6,9 @@ importing only those above it:
 
 * :mod:`~starlog.compensate._series` — input validation, eq. 15 of a residual, eq. 13;
 * :mod:`~starlog.compensate.decimate` — equidistant decimation to 10–100 Hz;
-* :mod:`~starlog.compensate.references` — the ``paper`` / ``truth`` / ``leakfree`` scoring
-  protocols and the reference ``M`` each gives the strategies;
+* :mod:`~starlog.compensate.references` — the ``paper`` / ``truth`` / ``leakfree`` / ``relative``
+  scoring protocols, the reference ``M`` each gives the strategies, and the motion modes
+  (``keep`` / ``separate``);
 * :mod:`~starlog.compensate.decomposition` — the five error categories and ``f_d``;
 * :mod:`~starlog.compensate.strategies` — the five compensation strategies (eq. 1–11);
 * :mod:`~starlog.compensate.selection` — scores (eq. 12), top-three run with rollback (eq. 13);
@@ -39,6 +40,7 @@ from starlog.compensate.protocols import (
     rmse,
 )
 from starlog.compensate.references import (
+    MotionMode,
     ReferenceMode,
     ScoringProtocol,
     global_mean_reference,
@@ -82,6 +84,7 @@ __all__ = [
     "ErrorCategory",
     "ErrorDecomposition",
     "Evaluation",
+    "MotionMode",
     "ReferenceMode",
     "RmseFigure",
     "ScoringProtocol",

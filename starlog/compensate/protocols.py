@@ -18,6 +18,7 @@ import numpy.typing as npt
 
 from starlog.compensate._series import as_reference, as_series, improvement, parse_choice, radial_rms
 from starlog.compensate.references import (
+    MotionMode,
     ReferenceMode,
     ScoringProtocol,
     reference_mode_for,
@@ -76,7 +77,8 @@ Fields
 ------
 reference : str
     What the RMSE is measured about: ``global_mean`` (paper), ``truth_fixed``, ``truth_series``,
-    ``heldout_mean`` (leak-free: mean of the raw held-out samples).
+    ``heldout_mean`` (leak-free: mean of the raw held-out samples), ``relative`` (static position
+    plus the motion fitted from the other stars, its own variance removed).
 rmse_before : float64, px
     Eq. 15 of the uncompensated scored samples about the reference.
 rmse_after : float64, px
@@ -117,6 +119,29 @@ def _figure(name: str, before: npt.NDArray[np.float64], after: npt.NDArray[np.fl
                       n_scored=int(before.shape[0]))
 
 
+def _relative_figure(before: npt.NDArray[np.float64], after: npt.NDArray[np.float64],
+                     reference: npt.NDArray[np.float64], variance: npt.NDArray[np.float64] | None, *,
+                     reference_weight: float) -> RmseFigure:
+    """Eq. 15 about the relative reference, over the samples that have one.
+
+    With ``e`` the reference's error (variance ``V``, predicted by its fit) and ``x`` a series,
+    ``x - truth = (x - reference) + e``.  A series independent of the other stars (the star's own
+    track, or ``keep``'s output) has ``E|x - truth|² = E|x - reference|² - V``; one that carries
+    ``f e`` because it was rebuilt on the reference (``separate``, ``f = reference_weight``) has
+    ``E|x - truth|² ≈ E|x - reference|² + (2f - 1) V``.
+    """
+    ok = np.isfinite(reference).all(axis=1)
+    var = float(np.mean(variance[ok])) if variance is not None and ok.any() else 0.0
+
+    def score(xy: npt.NDArray[np.float64], extra: float) -> float:
+        r = radial_rms(xy[ok] - reference[ok])
+        return float(np.sqrt(max(r * r + extra, 0.0)))
+
+    b, a = score(before, -var), score(after, (2.0 * reference_weight - 1.0) * var)
+    return RmseFigure(reference="relative", rmse_before=b, rmse_after=a, effective=float(improvement(b, a)),
+                      n_scored=int(ok.sum()))
+
+
 def protocol_figures(
     before: npt.NDArray[np.float64],
     after: npt.NDArray[np.float64] | None = None,
@@ -125,17 +150,31 @@ def protocol_figures(
     start: int = 0,
     truth_fixed: npt.NDArray[np.float64] | None = None,
     truth_series: npt.NDArray[np.float64] | None = None,
+    relative: npt.NDArray[np.float64] | None = None,
+    relative_variance: npt.NDArray[np.float64] | None = None,
+    reference_weight: float = 0.0,
 ) -> tuple[RmseFigure, ...]:
     """The RMSE figures (eq. 15, eq. 13) a protocol reports for one series, primary first.
 
     ``paper``: ``global_mean`` over every sample.  ``truth``: ``truth_fixed`` and/or
     ``truth_series`` over every sample.  ``leakfree``: ``heldout_mean`` (the mean of the raw
     samples from ``start`` on), then the truth figures, all over the samples from ``start`` on.
+    ``relative``: ``relative`` about the per-sample reference ``relative`` (NaN rows: no
+    reference, not scored; ``relative_variance`` its predicted radial variance, px²;
+    ``reference_weight`` the share of the reference's error ``after`` carries: 0, or the motion
+    factor under ``separate``),
+    then the truth figures over every sample.
     ``after=None`` scores an uncompensated series (``rmse_after = rmse_before``, effective 0).
     Inputs are validated (N, 2) arrays in px; ``truth_series`` is aligned with ``before``.
     """
     if after is None:
         after = before
+    if protocol is ScoringProtocol.RELATIVE:
+        if relative is None:
+            raise InvalidParameterError("the 'relative' protocol needs the reference from the other stars.")
+        return (_relative_figure(before, after, relative, relative_variance, reference_weight=reference_weight),
+                *protocol_figures(before, after, protocol=ScoringProtocol.TRUTH, truth_fixed=truth_fixed,
+                                  truth_series=truth_series))
     if protocol is ScoringProtocol.PAPER:
         return (_figure("global_mean", before, after, np.broadcast_to(before.mean(axis=0), before.shape)),)
     start = start if protocol is ScoringProtocol.LEAKFREE else 0
@@ -168,7 +207,15 @@ class Evaluation:
     n_scored : int
         Number of scored samples.
     result : CompensationResult
-        The compensation run (scores, decisions, compensated series).
+        The compensation run (scores, decisions, compensated series; under ``separate`` the
+        compensated *residual* series).
+    motion : MotionMode
+        ``keep`` or ``separate`` (what the strategies compensated).
+    positions_after : (N, 2) ndarray or None
+        Under ``separate``, the rebuilt positions (static + fitted motion + compensated residual).
+    motion_factor : float
+        Under ``separate``, the Wiener factor the fitted motion was added back with (0: the
+        fitted motion is all noise, 1: all signal).
     """
 
     protocol: ScoringProtocol
@@ -176,6 +223,14 @@ class Evaluation:
     scored_start: int
     n_scored: int
     result: CompensationResult
+    motion: MotionMode = MotionMode.KEEP
+    positions_after: npt.NDArray[np.float64] | None = None
+    motion_factor: float = 0.0
+
+    @property
+    def compensated(self) -> npt.NDArray[np.float64]:
+        """The positions after compensation, px (rebuilt with the platform motion under ``separate``)."""
+        return self.result.compensated if self.positions_after is None else self.positions_after
 
     @property
     def rmse_before(self) -> float:
@@ -208,10 +263,12 @@ class Evaluation:
         return np.array(rows, dtype=FIGURE_DTYPE)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict: ``protocol``, ``scored_start``, ``n_scored``, ``figures`` (list of
+        """JSON-ready dict: ``protocol``, ``motion``, ``scored_start``, ``n_scored``, ``figures`` (list of
         :data:`FIGURE_DTYPE` dicts) and ``compensation`` (:meth:`CompensationResult.to_dict`)."""
         return {
             "protocol": str(self.protocol),
+            "motion": str(self.motion),
+            **({"motion_factor": self.motion_factor} if self.motion is MotionMode.SEPARATE else {}),
             "scored_start": self.scored_start,
             "n_scored": self.n_scored,
             "figures": [f.to_dict() for f in self.figures],
@@ -255,6 +312,10 @@ def evaluate(
     calibration_fraction: float = 0.5,
     top_k: int = 3,
     rollback_threshold: float = 0.01,
+    motion: MotionMode | str = MotionMode.KEEP,
+    static_position: npt.ArrayLike | None = None,
+    platform_displacement: npt.ArrayLike | None = None,
+    reference_variance: npt.ArrayLike | None = None,
 ) -> Evaluation:
     """Compensate a decimated centroid series and score it under one protocol.
 
@@ -282,12 +343,25 @@ def evaluate(
         Fraction of the samples in the unscored calibration segment (``leakfree`` only).
     top_k, rollback_threshold
         Passed to :func:`~starlog.compensate.selection.compensate`.
+    motion : MotionMode or str
+        ``keep`` (paper): compensate the positions.  ``separate``: compensate the residual
+        ``xy - platform_displacement`` and add the displacement back, shrunk by its Wiener factor
+        (so that the noise of a motion fitted on a still platform is not added).
+    static_position : (2,) array_like, optional
+        The star's static position, px (``relative`` protocol).
+    platform_displacement : (N, 2) array_like, optional
+        The star's displacement by the platform motion fitted from the other stars at each
+        sample, px; NaN where the other stars did not give a motion (those samples are not scored
+        under ``relative``, and the displacement is interpolated in time under ``separate``).
+    reference_variance : (N,) array_like, optional
+        Predicted radial variance of ``static_position + platform_displacement``, px².
 
     Returns
     -------
     Evaluation
     """
     proto = parse_choice(ScoringProtocol, protocol, name="protocol")
+    mode_motion = parse_choice(MotionMode, motion, name="motion")
     p = as_series(xy)
     n = p.shape[0]
     tf, ts = _checked_truth(truth_fixed, truth_series, n)
@@ -296,8 +370,24 @@ def evaluate(
         raise InvalidParameterError(
             "the 'truth' protocol needs truth_fixed and/or truth_series (simulated logs)."
         )
+    disp = _checked_displacement(platform_displacement, n)
+    needs_motion = proto is ScoringProtocol.RELATIVE or mode_motion is MotionMode.SEPARATE
+    if needs_motion and disp is None:
+        raise InvalidParameterError(
+            "the 'relative' protocol and motion 'separate' need the platform displacement fitted from "
+            "the other stars (starlog.motion).")
+    relative = var = None
+    if proto is ScoringProtocol.RELATIVE:
+        if static_position is None or np.shape(static_position) != (2,):
+            raise InvalidParameterError("the 'relative' protocol needs the star's static position (2,).")
+        assert disp is not None
+        relative = np.asarray(static_position, dtype=np.float64) + disp
+        var = None if reference_variance is None else np.asarray(reference_variance, dtype=np.float64).reshape(n)
+    shift, factor = None, 0.0
+    if mode_motion is MotionMode.SEPARATE and disp is not None:
+        shift, factor = _wiener(_filled(disp), reference_variance)
     result = compensate(
-        p,
+        p if shift is None else p - shift,
         rate_hz=rate_hz,
         flux=flux,
         sigma=sigma,
@@ -309,12 +399,55 @@ def evaluate(
         protocol=proto,
     )
     start = scored_start(proto, n, calibration_fraction=calibration_fraction)
-    figures = protocol_figures(p, result.compensated, protocol=proto, start=start, truth_fixed=tf,
-                               truth_series=ts)
+    after = result.compensated if shift is None else result.compensated + shift
+    figures = protocol_figures(p, after, protocol=proto, start=start, truth_fixed=tf, truth_series=ts,
+                               relative=relative, relative_variance=var, reference_weight=factor)
     return Evaluation(
         protocol=proto,
         figures=figures,
         scored_start=start,
-        n_scored=n - start,
+        n_scored=figures[0].n_scored if proto is ScoringProtocol.RELATIVE else n - start,
         result=result,
+        motion=mode_motion,
+        positions_after=None if shift is None else after,
+        motion_factor=factor,
     )
+
+
+def _checked_displacement(displacement: npt.ArrayLike | None, n: int) -> npt.NDArray[np.float64] | None:
+    """An (n, 2) displacement, NaN rows allowed (no motion there), at least one finite row."""
+    if displacement is None:
+        return None
+    d = np.asarray(displacement, dtype=np.float64)
+    if d.shape != (n, 2):
+        raise InvalidInputError(f"platform_displacement must have shape ({n}, 2) to match xy; got {d.shape}.")
+    if not np.isfinite(d).all(axis=1).any():
+        raise InvalidInputError("platform_displacement has no finite sample: no frame had a fitted motion.")
+    return d
+
+
+def _wiener(displacement: npt.NDArray[np.float64],
+            variance: npt.ArrayLike | None) -> tuple[npt.NDArray[np.float64], float]:
+    """The displacement shrunk towards its mean by the scalar Wiener factor ``1 - noise / spread``.
+
+    ``variance`` is the displacement's predicted radial variance (px²) per sample: on a still
+    platform the fitted motion is that noise alone and the factor is 0 (``separate`` then adds no
+    noise); a motion well above it is kept whole.  Returns the displacement and the factor.
+    """
+    if variance is None or displacement.shape[0] < 2:
+        return displacement, 1.0
+    v = np.asarray(variance, dtype=np.float64)
+    noise = float(np.mean(v[np.isfinite(v)])) if np.isfinite(v).any() else 0.0
+    mean = displacement.mean(axis=0)
+    spread = float(np.mean(np.sum((displacement - mean) ** 2, axis=1)))
+    factor = float(np.clip(1.0 - noise / spread, 0.0, 1.0)) if spread > 0 else 0.0
+    return mean + factor * (displacement - mean), factor
+
+
+def _filled(displacement: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The displacement with its NaN rows interpolated linearly in sample index (held at the ends)."""
+    ok = np.isfinite(displacement).all(axis=1)
+    if ok.all():
+        return displacement
+    k = np.arange(displacement.shape[0])
+    return np.stack([np.interp(k, k[ok], displacement[ok, axis]) for axis in (0, 1)], axis=1)

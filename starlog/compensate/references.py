@@ -24,6 +24,13 @@ evaluation (and every compensation result) says which one it used:
     then applied to the whole sequence and scored on the held-out part against the mean of the
     *raw held-out samples* (figure ``heldout_mean``: a reference no strategy and no selection step
     ever saw) and against the truth on the held-out part when given.
+``relative``
+    Truth-free: the strategies and the selection use the global mean ``M`` (as under ``truth``),
+    and the RMSE is scored against the star's static position moved by the platform motion fitted
+    from the *other* stars of each frame (figure ``relative``, :mod:`starlog.motion`).  The other
+    stars' centroid errors are independent of this star's, so the figure is this star's error
+    plus the reference's own; the reference's variance, predicted by its fit, is removed in
+    quadrature.  The truth figures follow when a truth is given.
 
 All positions are pixels, ``x`` = column, ``y`` = row, (0, 0) at the centre of the top-left pixel.
 """
@@ -41,6 +48,7 @@ from starlog.compensate._series import as_series, parse_choice
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = [
+    "MotionMode",
     "ReferenceMode",
     "ScoringProtocol",
     "SelectionReference",
@@ -61,6 +69,20 @@ class ScoringProtocol(enum.StrEnum):
     PAPER = "paper"
     TRUTH = "truth"
     LEAKFREE = "leakfree"
+    RELATIVE = "relative"
+
+
+class MotionMode(enum.StrEnum):
+    """What the strategies compensate.
+
+    ``KEEP`` (the paper's method): the star's positions, platform motion included.
+    ``SEPARATE``: the star's residual series (positions minus its static position moved by the
+    platform motion fitted from the other stars: centroid error alone); the positions are then
+    rebuilt as static + fitted motion + compensated residual.
+    """
+
+    KEEP = "keep"
+    SEPARATE = "separate"
 
 
 class ReferenceMode(enum.StrEnum):
@@ -80,7 +102,8 @@ _LEAKFREE_MODES = (ReferenceMode.CALIBRATION, ReferenceMode.RUNNING_MEAN)
 
 
 def protocols_for(*, has_truth: bool) -> tuple[ScoringProtocol, ...]:
-    """Every protocol a series can be scored under: ``truth`` only when its truth is known."""
+    """The protocols ``all`` stands for: ``truth`` only when the truth is known (``relative`` is asked for
+    by name: it needs the other stars' tracks)."""
     if has_truth:
         return (ScoringProtocol.PAPER, ScoringProtocol.TRUTH, ScoringProtocol.LEAKFREE)
     return (ScoringProtocol.PAPER, ScoringProtocol.LEAKFREE)
@@ -91,7 +114,7 @@ def reference_mode_for(
 ) -> ReferenceMode:
     """The reference mode a protocol runs the strategies with.
 
-    ``paper`` and ``truth`` use the global mean; ``leakfree`` uses ``leakfree_reference``
+    ``paper``, ``truth`` and ``relative`` use the global mean; ``leakfree`` uses ``leakfree_reference``
     (``calibration`` or ``running_mean``: the global mean would see the scored samples).
     """
     if protocol is not ScoringProtocol.LEAKFREE:

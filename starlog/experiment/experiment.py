@@ -18,6 +18,7 @@ from starlog.batch import executor_for
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.experiment import plots, report, tables
 from starlog.experiment.datasets import JITTER, SIGMA_FLOOR_PX, Dataset, jitter_rms_px, paper_datasets
+from starlog.experiment.regime import RegimeSummary, run_regime_map
 from starlog.experiment.runner import (
     COMPENSATED_RATES,
     METHODS,
@@ -349,8 +350,11 @@ def experiment_command(
     scheduler: str | None = None,
     force: bool = False,
     show_progress: bool = True,
-) -> ExperimentSummary:
-    """What ``starlog experiment -o DIR [--quick] [--workers N] [--scheduler ADDR] [--force]`` calls.
+    sweep: bool = False,
+) -> ExperimentSummary | RegimeSummary:
+    """What ``starlog experiment -o DIR [--quick] [--sweep] [--workers N] [--scheduler ADDR] [--force]`` calls.
+
+    ``sweep`` runs the regime map (:mod:`starlog.experiment.regime`) instead of the paper's tables.
 
     ``scheduler`` sends the independent runs to that Dask cluster; otherwise ``workers > 1``
     starts a local Dask cluster of that many processes (:func:`starlog.batch.executor_for`);
@@ -359,4 +363,7 @@ def experiment_command(
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
     with executor_for(scheduler=scheduler, workers=workers) as executor:
+        if sweep:
+            return run_regime_map(output_dir, quick=quick, executor=executor, force=force,
+                                  show_progress=show_progress)
         return run_experiment(output_dir, quick=quick, executor=executor, force=force, show_progress=show_progress)

@@ -5,7 +5,9 @@
 * :func:`plot_figure5` — RMSE before/after vs 10–100 Hz for every model, both datasets, one
   column per protocol's primary reference plus ``truth_series`` (Figure 5 analogue);
 * :func:`plot_trajectory` — the brightest star's x(t), y(t) before and after compensation, with
-  the true jittered position and the global mean.
+  the true jittered position and the global mean;
+* :func:`plot_regime_map` — compensation gain against the jitter / noise ratio, ``keep`` and
+  ``separate`` for each star count, one panel per reference and rate.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Any
 from starlog.errors import StarlogError
 from starlog.experiment.runner import FIGURE5_RATES, METHODS, MODELS, TABLE3_RATES
 
-__all__ = ["PlotDependencyError", "plot_figure4", "plot_figure5", "plot_trajectory"]
+__all__ = ["PlotDependencyError", "plot_figure4", "plot_figure5", "plot_regime_map", "plot_trajectory"]
 
 _PRIMARY = (("paper", "global_mean"), ("truth", "truth_fixed"), ("leakfree", "heldout_mean"))
 _DPI = 64
@@ -133,6 +135,43 @@ def plot_trajectory(series: dict[str, Any], path: str | Path, *, title: str) -> 
     axes[0].set_title(title, fontsize=9)
     axes[0].legend(fontsize=7, ncol=3)
     axes[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return path
+
+
+def plot_regime_map(rows: Sequence[dict[str, Any]], gains: dict[tuple[Any, ...], float],
+                    figures: Sequence[tuple[str, str]], rates: Sequence[float], path: str | Path) -> Path:
+    """Median gain over the UKF models vs jitter/noise; rows of panels = references, columns = rates.
+
+    ``gains`` maps (protocol, reference, rate, motion, stars, jitter ratio) to the median gain
+    (:func:`starlog.experiment.regime.median_gains`); ``figures`` are the (protocol, reference) rows.
+    """
+    plt = _pyplot()
+    ratios = sorted({r["jitter_ratio"] for r in rows})
+    stars = sorted({r["stars"] for r in rows})
+    fig, axes = plt.subplots(len(figures), len(rates), figsize=(10, 11), sharex=True, squeeze=False)
+    colors = {"keep": "#2f6db5", "separate": "#d62728"}
+    styles = ["-", "--", ":", "-."]
+    x = [max(v, 0.2) for v in ratios]  # log axis: jitter 0 drawn at 0.2
+    for i, (protocol, reference) in enumerate(figures):
+        for j, rate in enumerate(rates):
+            ax = axes[i][j]
+            for motion in ("keep", "separate"):
+                for n, style in zip(stars, styles):
+                    y = [100 * gains.get((protocol, reference, rate, motion, n, v), float("nan")) for v in ratios]
+                    ax.plot(x, y, style, marker="o", ms=3, color=colors[motion], label=f"{motion}, {n} stars")
+            ax.axhline(0, color="#444444", lw=0.8)
+            ax.set_xscale("log")
+            ax.set_ylim(-150, 100)
+            ax.set_title(f"{protocol} / {reference}, {rate:g} Hz", fontsize=9)
+            ax.set_ylabel("gain (%)")
+            ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("platform jitter RMS / centroid noise (0 drawn at 0.2)")
+    axes[0][0].legend(fontsize=7, ncol=2)
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=_DPI)

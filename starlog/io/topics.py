@@ -10,6 +10,8 @@ topic                                     schema                       written b
 ``/stars/annotations``                    foxglove.ImageAnnotations    centroid
 ``/stars/centroids/<METHOD>``             starlog.Centroids            centroid
 ``/track/<METHOD>/<MODEL>``               starlog.Tracks               track
+``/platform/<METHOD>/<MODEL>``            starlog.PlatformMotion       motion
+``/stars/residuals/<METHOD>/<MODEL>``     starlog.StarResiduals        motion
 ``/compensated/<METHOD>/<MODEL>/<R>Hz``   starlog.CompensatedSample    compensate
 ``/compensated/<METHOD>/<MODEL>/decisions``  starlog.CompensationRecord  compensate
 ========================================  ===========================  ======================
@@ -25,6 +27,8 @@ __all__ = [
     "ANNOTATIONS",
     "centroid_topic",
     "track_topic",
+    "platform_topic",
+    "residuals_topic",
     "compensated_topic",
     "decisions_topic",
 ]
@@ -44,6 +48,16 @@ def centroid_topic(method: str) -> str:
 def track_topic(method: str, model: str) -> str:
     """``/track/<METHOD>/<MODEL>``."""
     return f"/track/{method}/{model}"
+
+
+def platform_topic(method: str, model: str) -> str:
+    """``/platform/<METHOD>/<MODEL>``: the platform motion fitted to the stars of ``/track/<METHOD>/<MODEL>``."""
+    return f"/platform/{method}/{model}"
+
+
+def residuals_topic(method: str, model: str) -> str:
+    """``/stars/residuals/<METHOD>/<MODEL>``: each star's motion-removed residual."""
+    return f"/stars/residuals/{method}/{model}"
 
 
 def compensated_topic(method: str, model: str, rate_hz: float, protocol: str) -> str:

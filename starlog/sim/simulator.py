@@ -3,7 +3,8 @@
 Physics per frame ``n`` at time ``t = n / fps``:
 
 1. every star sits at its fixed focal-plane position plus the platform offset
-   ``(dx(t), dy(t))`` = jitter (sum of sinusoids) + drift (constant rate) + random walk;
+   ``(dx(t), dy(t))`` = jitter (sum of sinusoids) + drift (constant rate) + random walk,
+   rotated first, when a roll is set, by ``roll(t)`` about the image centre;
 2. its signal is a circular Gaussian PSF integrated over each pixel (erf), over a uniform sky;
 3. hot pixels (fixed positions, constant extra charge) and cosmic-ray hits (random, sharp, 1–3
    pixel tracks) are added;
@@ -87,6 +88,10 @@ class SimulationConfig:
         Platform random walk: the offset's standard deviation grows as this × sqrt(t).
     margin : float
         Minimum distance of a star from the border, in pixels.
+    roll_amplitude_rad, roll_frequency_hz : float
+        Platform roll ``roll_amplitude_rad * sin(2π roll_frequency_hz t)`` about the image centre
+        ``((width - 1) / 2, (height - 1) / 2)``, counter-clockwise in (x, y) = (column, row).
+        0 (default): no roll.
     seed : int
         Seed of every random draw.
     """
@@ -109,6 +114,8 @@ class SimulationConfig:
     drift_px_per_s: tuple[float, float] = (0.0, 0.0)
     random_walk_px_per_sqrt_s: float = 0.0
     margin: float = 10.0
+    roll_amplitude_rad: float = 0.0
+    roll_frequency_hz: float = 1.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -128,6 +135,10 @@ class SimulationConfig:
         need(self.hot_pixels >= 0, f"hot_pixels must be >= 0, got {self.hot_pixels}.")
         need(self.cosmic_rays_per_frame >= 0, f"cosmic_rays_per_frame must be >= 0, got {self.cosmic_rays_per_frame}.")
         need(self.random_walk_px_per_sqrt_s >= 0, "random_walk_px_per_sqrt_s must be >= 0.")
+        need(np.isfinite(self.roll_amplitude_rad) and abs(self.roll_amplitude_rad) <= 0.1,
+             f"roll_amplitude_rad must be within -0.1..0.1 rad, got {self.roll_amplitude_rad}.")
+        need(self.roll_frequency_hz > 0 and np.isfinite(self.roll_frequency_hz),
+             f"roll_frequency_hz must be > 0, got {self.roll_frequency_hz}.")
         need(2 * self.margin < min(self.width, self.height),
              f"margin {self.margin} px leaves no room for stars in a {self.width}x{self.height} frame.")
 
@@ -177,7 +188,8 @@ class StarField:
 class SimulatedFrame:
     """One rendered frame with its truth.
 
-    ``x``, ``y`` are the instantaneous true positions (fixed position + platform offset).
+    ``x``, ``y`` are the instantaneous true positions (fixed position rotated by ``platform_roll``
+    about the image centre, plus the platform offset).
     """
 
     index: int
@@ -188,6 +200,7 @@ class SimulatedFrame:
     flux: npt.NDArray[np.float64]
     platform_dx: float
     platform_dy: float
+    platform_roll: float = 0.0
 
 
 class Simulator:
@@ -236,12 +249,30 @@ class Simulator:
             dy += j.amplitude_px * np.sin(w + py)
         return float(dx), float(dy)
 
+    def platform_roll(self, frame: int) -> float:
+        """Platform roll about the image centre at frame ``frame``, rad (0 without a roll)."""
+        c = self.config
+        return float(c.roll_amplitude_rad * np.sin(2 * np.pi * c.roll_frequency_hz * frame / c.fps))
+
+    def true_positions(self, frame: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Instantaneous true star positions ``(x, y)`` at frame ``frame``, px."""
+        c = self.config
+        dx, dy = self.platform_offset(frame)
+        if c.roll_amplitude_rad == 0:
+            return self.field.x + dx, self.field.y + dy
+        roll = self.platform_roll(frame)
+        cx, cy = (c.width - 1) / 2.0, (c.height - 1) / 2.0
+        u, v = self.field.x - cx, self.field.y - cy
+        return (cx + np.cos(roll) * u - np.sin(roll) * v + dx,
+                cy + np.sin(roll) * u + np.cos(roll) * v + dy)
+
     def expected_electrons(self, frame: int) -> tuple[npt.NDArray[np.float64], float, float]:
         """Noise-free expected signal (e⁻/px: sky + stars + hot pixels) and the platform offset."""
         c = self.config
         dx, dy = self.platform_offset(frame)
+        x, y = self.true_positions(frame)
         image = np.full((c.height, c.width), float(c.sky))
-        render_stars(image.shape, self.field.x + dx, self.field.y + dy, self.field.flux, c.psf_sigma, out=image)
+        render_stars(image.shape, x, y, self.field.flux, c.psf_sigma, out=image)
         if c.hot_pixels:
             image[self._hot_rows, self._hot_cols] += c.hot_pixel_charge
         return image, dx, dy
@@ -268,15 +299,17 @@ class Simulator:
         if c.cosmic_rays_per_frame:
             self._add_cosmic_rays(expected, rng)
         image = c.camera.expose(expected, rng)
+        x, y = self.true_positions(frame)
         return SimulatedFrame(
             index=frame,
             log_time=int(c.frame_time_ns(frame)),
             image=image,
-            x=self.field.x + dx,
-            y=self.field.y + dy,
+            x=x,
+            y=y,
             flux=self.field.flux.copy(),
             platform_dx=dx,
             platform_dy=dy,
+            platform_roll=self.platform_roll(frame),
         )
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[SimulatedFrame]:

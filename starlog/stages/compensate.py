@@ -3,10 +3,13 @@
 Reads one track channel (``/track/<METHOD>/<MODEL>``), takes the brightest star's track (the
 paper's centroid sequence: its filtered ``x``, ``y``, flux and centroid ``sigma``), decimates
 it equidistantly to each requested rate, and runs :func:`starlog.compensate.evaluate` under
-each protocol (``paper``; ``truth`` when the log has ``/sim/truth``; ``leakfree``). It writes
+each protocol (``paper``; ``truth`` when the log has ``/sim/truth``; ``leakfree``; ``relative`` when
+asked for) and each motion mode (``keep``, the paper's; ``separate``: compensate the star's
+residual from the platform motion fitted to the other stars, :mod:`starlog.motion`). It writes
 
 * ``/compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>`` (starlog.CompensatedSample): one message
-  per decimated sample at its frame's ``log_time``, the series before and after;
+  per decimated sample at its frame's ``log_time``, the series before and after (``.../separate``
+  under ``--motion separate``);
 * ``/compensated/<METHOD>/<MODEL>/decisions`` (starlog.CompensationRecord): one message per (rate, protocol)
   with the error magnitudes, the dominant frequency, every strategy's score, the order run,
   RMSE before/after each pass, what was rolled back, and the protocol's RMSE figures.
@@ -32,25 +35,32 @@ import numpy.typing as npt
 
 from starlog.compensate import (
     Evaluation,
+    MotionMode,
     ScoringProtocol,
     decimation_indices,
     effective_rate,
     evaluate,
     protocols_for,
 )
-from starlog.errors import ChannelNotFoundError, InvalidInputError, InvalidParameterError
+from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
+from starlog.motion import star_reference
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
+from starlog.stages._channels import select_track_channels
 from starlog.stages._stage import StageOutput, extend_log
+from starlog.stages.motion import estimate_track_motion
 
-__all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "evaluate_series", "read_brightest_series"]
+__all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "evaluate_series", "read_brightest_series",
+           "select_track_channels"]
 
 
 @dataclass(frozen=True)
 class BrightestSeries:
-    """The brightest star's track over the whole log (native rate), with its truth when simulated."""
+    """The brightest star's track over the whole log (native rate), with its truth when simulated, and
+    with (:func:`with_platform_reference`) its static position, its displacement by the platform motion
+    fitted from the other stars (NaN where they give none) and that reference's radial variance (px²)."""
 
     method: str
     model: str
@@ -63,31 +73,14 @@ class BrightestSeries:
     native_rate: float
     truth_fixed: npt.NDArray[np.float64] | None = None
     truth_series: npt.NDArray[np.float64] | None = None
+    static: npt.NDArray[np.float64] | None = None
+    displacement: npt.NDArray[np.float64] | None = None
+    reference_variance: npt.NDArray[np.float64] | None = None
 
-
-def select_track_channels(log: LogReader, track: str | Sequence[str] | None) -> list[ChannelSummary]:
-    """Track channels named by ``track``: a topic (``/track/M/MODEL`` or ``M/MODEL``), a list, ``"all"``,
-    or None for the only one."""
-    channels = [c for c in log.channels() if c.schema_name == "starlog.Tracks"]
-    if not channels:
-        raise InvalidInputError(f"{log.path} has no track channel; run `starlog track` on it first.")
-    if track is None:
-        if len(channels) == 1:
-            return channels
-        raise InvalidParameterError(
-            "the log has several track channels; choose with --track (or 'all'): "
-            + ", ".join(c.topic for c in channels))
-    names = [track] if isinstance(track, str) else list(track)
-    if [n.lower() for n in names] == ["all"]:
-        return channels
-    by_topic = {c.topic: c for c in channels}
-    chosen = []
-    for name in names:
-        topic = name if name.startswith("/") else f"/track/{name}"
-        if topic not in by_topic:
-            raise ChannelNotFoundError(log.path, topic, list(by_topic))
-        chosen.append(by_topic[topic])
-    return chosen
+    @property
+    def has_motion(self) -> bool:
+        """The platform motion from the other stars is attached (:func:`with_platform_reference`)."""
+        return self.displacement is not None
 
 
 #: Truth of one simulated star: its fixed position (2,), and the times (n,) and positions (n, 2) of every frame.
@@ -171,18 +164,51 @@ def _with_truth(log: LogReader, series: BrightestSeries, cache: dict[int, StarTr
     return BrightestSeries(**{**series.__dict__, "truth_fixed": fixed, "truth_series": xy[at]})
 
 
+def with_platform_reference(log: LogReader, series: BrightestSeries, topic: str, *,
+                            fit: str = "rigid") -> BrightestSeries:
+    """``series`` with its reference from the other stars of ``topic`` (:func:`starlog.motion.star_reference`)."""
+    data, est = estimate_track_motion(log, topic, model=fit)
+    slot = int(np.searchsorted(data.track_ids, series.track))
+    if slot >= data.track_ids.size or data.track_ids[slot] != series.track:
+        raise InvalidInputError(f"{topic}: the brightest track {series.track} has no measurement to fit.")
+    frames = np.searchsorted(data.log_time, series.log_time).astype(np.int64)
+    reference, variance = star_reference(data.obs, est, slot, frames)
+    static = est.static[slot].copy()
+    return BrightestSeries(**{**series.__dict__, "static": static, "displacement": reference - static,
+                              "reference_variance": variance})
+
+
 def evaluate_series(series: BrightestSeries, idx: npt.NDArray[np.int64], *, rate_hz: float,
-                    protocol: ScoringProtocol, **options: Any) -> Evaluation:
+                    protocol: ScoringProtocol, motion: MotionMode | str = MotionMode.KEEP,
+                    **options: Any) -> Evaluation:
     """:func:`starlog.compensate.evaluate` on the samples ``idx`` of ``series`` (sampled at ``rate_hz``).
 
-    The truth goes with every protocol but ``paper`` when the series has it; ``options`` are
-    :func:`~starlog.compensate.evaluate`'s keyword options.
+    The truth goes with every protocol but ``paper`` when the series has it, the platform
+    reference whenever it is attached; ``options`` are :func:`~starlog.compensate.evaluate`'s
+    keyword options.
     """
     truth: dict[str, Any] = {}
     if protocol is not ScoringProtocol.PAPER and series.truth_series is not None:
         truth = {"truth_fixed": series.truth_fixed, "truth_series": series.truth_series[idx]}
+    if series.displacement is not None and series.reference_variance is not None:
+        truth |= {"static_position": series.static, "platform_displacement": series.displacement[idx],
+                  "reference_variance": series.reference_variance[idx]}
     return evaluate(series.xy[idx], rate_hz=rate_hz, protocol=protocol, flux=series.flux[idx],
-                    sigma=series.sigma[idx], **truth, **options)
+                    sigma=series.sigma[idx], motion=motion, **truth, **options)
+
+
+def parse_motion_modes(spec: str | Sequence[str]) -> list[MotionMode]:
+    """``"keep"``, ``"separate"``, ``"keep,separate"`` (or a list) → motion modes."""
+    names = spec.split(",") if isinstance(spec, str) else list(spec)
+    out = []
+    for name in names:
+        try:
+            out.append(MotionMode(name.strip().lower()))
+        except ValueError:
+            raise InvalidParameterError(f"unknown motion mode {name!r}; choose keep, separate or both.") from None
+    if not out:
+        raise InvalidParameterError("give a motion mode: keep, separate or keep,separate.")
+    return list(dict.fromkeys(out))
 
 
 @dataclass
@@ -196,7 +222,7 @@ class CompensateSummary:
 
 
 def parse_protocols(spec: str | Sequence[str], *, has_truth: bool) -> list[ScoringProtocol]:
-    """``"all"`` (paper, truth when simulated, leakfree) or names → protocols."""
+    """``"all"`` (paper, truth when simulated, leakfree) or names (also ``relative``) → protocols."""
     names = spec.split(",") if isinstance(spec, str) else list(spec)
     if [n.strip().lower() for n in names] == ["all"]:
         return list(protocols_for(has_truth=has_truth))
@@ -206,7 +232,7 @@ def parse_protocols(spec: str | Sequence[str], *, has_truth: bool) -> list[Scori
             out.append(ScoringProtocol(name.strip().lower()))
         except ValueError:
             raise InvalidParameterError(
-                f"unknown protocol {name!r}; choose paper, truth, leakfree or all.") from None
+                f"unknown protocol {name!r}; choose paper, truth, leakfree, relative or all.") from None
     if ScoringProtocol.TRUTH in out and not has_truth:
         raise InvalidInputError("the truth protocol needs /sim/truth: this log was not simulated.")
     return list(dict.fromkeys(out))
@@ -220,6 +246,8 @@ def compensate_log(
     track: str | Sequence[str] | None = None,
     protocols: str | Sequence[str] = "all",
     options: dict[str, Any] | None = None,
+    motion: str | Sequence[str] = "keep",
+    motion_fit: str = "rigid",
     workers: int = 1,
     show_progress: bool = False,
     force: bool = False,
@@ -235,10 +263,16 @@ def compensate_log(
         Track channel(s) (``/track/GAUSSFIT/STATIC`` or ``GAUSSFIT/STATIC``), or ``"all"``;
         default: the only one.
     protocols : str or sequence of str
-        ``"all"`` or any of ``paper``, ``truth``, ``leakfree``.
+        ``"all"`` (paper, truth when simulated, leakfree) or any of ``paper``, ``truth``,
+        ``leakfree``, ``relative``.
     options : dict, optional
         Keyword options of :func:`starlog.compensate.evaluate` (accuracy_source,
         calibration_fraction, top_k, rollback_threshold, leakfree_reference).
+    motion : str or sequence of str
+        ``keep`` (default, the paper's), ``separate``, or both: what the strategies compensate.
+    motion_fit : str
+        Platform motion fitted to the other stars for ``relative`` and ``separate``:
+        ``translation``, ``rigid`` (default) or ``similarity``.
     workers : int
         Processes for the evaluations (1: in this process) and threads for chunk compression;
         the output does not depend on it.
@@ -255,14 +289,18 @@ def compensate_log(
         channels = select_track_channels(probe, track)
         has_truth = probe.has_topic(topics.TRUTH)
     chosen = parse_protocols(protocols, has_truth=has_truth)
+    modes = parse_motion_modes(motion)
     parameters = {"tracks": [c.topic for c in channels], "rates": [float(r) for r in rates],
                   "protocols": [p.value for p in chosen], "options": options}
-    n_jobs = len(channels) * len(rates) * len(chosen)
+    fit = motion_fit if (ScoringProtocol.RELATIVE in chosen or MotionMode.SEPARATE in modes) else None
+    if modes != [MotionMode.KEEP] or fit is not None:
+        parameters |= {"motion": [m.value for m in modes], "motion_fit": fit}
+    n_jobs = len(channels) * len(rates) * len(chosen) * len(modes)
     parallel = workers > 1 and n_jobs > 1
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force,
                     compression=compression, workers=workers) as (log, out), \
             (process_pool(workers, preload=[__name__]) if parallel else nullcontext()) as pool:
-        jobs = _plan_jobs(log, channels, rates, chosen)
+        jobs = _plan_jobs(log, channels, rates, chosen, modes, fit)
         done = _evaluated(jobs, options, pool, window=2 * workers)
         decisions: dict[str, int] = {}
         for job, evaluation in progress(done, total=n_jobs, description="compensate", enabled=show_progress,
@@ -277,7 +315,7 @@ def compensate_log(
 
 @dataclass(frozen=True)
 class _Job:
-    """One evaluation: the brightest series of ``track_topic`` at one rate, under one protocol."""
+    """One evaluation: the brightest series of ``track_topic`` at one rate, under one protocol and motion mode."""
 
     track_topic: str
     series: BrightestSeries
@@ -285,14 +323,18 @@ class _Job:
     idx: npt.NDArray[np.int64]
     rate_hz: float
     protocol: ScoringProtocol
+    motion: MotionMode = MotionMode.KEEP
 
 
 def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[float],
-               chosen: list[ScoringProtocol]) -> Iterator[_Job]:
-    """Every (track channel, rate, protocol), in output order; each channel's series read when reached."""
+               chosen: list[ScoringProtocol], modes: list[MotionMode], fit: str | None) -> Iterator[_Job]:
+    """Every (track channel, rate, protocol, motion mode), in output order; each channel's series read when
+    reached (with its platform reference when ``fit`` is given)."""
     truth_cache: dict[int, StarTruth] = {}
     for channel in channels:
         series = read_brightest_series(log, channel.topic, truth_cache=truth_cache)
+        if fit is not None:
+            series = with_platform_reference(log, series, channel.topic, fit=fit)
         jobs = []
         for rate in rates:
             if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
@@ -300,17 +342,18 @@ def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[f
                     f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
             idx = decimation_indices(series.log_time.size, native_rate=series.native_rate, target_rate=rate)
             rate_hz = effective_rate(native_rate=series.native_rate, target_rate=rate)
-            jobs += [_Job(channel.topic, series, float(rate), idx, rate_hz, p) for p in chosen]
+            jobs += [_Job(channel.topic, series, float(rate), idx, rate_hz, p, m) for p in chosen for m in modes]
         yield from jobs
 
 
 def _evaluate_job(job: _Job, options: dict[str, Any]) -> Evaluation:
     """Run one job (in a worker process when parallel); errors say which job failed."""
     try:
-        return evaluate_series(job.series, job.idx, rate_hz=job.rate_hz, protocol=job.protocol, **options)
+        return evaluate_series(job.series, job.idx, rate_hz=job.rate_hz, protocol=job.protocol, motion=job.motion,
+                               **options)
     except (InvalidInputError, InvalidParameterError) as err:
         raise type(err)(f"{job.track_topic} at {job.rate:g} Hz ({job.idx.size} samples), protocol "
-                        f"{job.protocol.value}: {err}") from err
+                        f"{job.protocol.value}, motion {job.motion.value}: {err}") from err
 
 
 def _evaluated(jobs: Iterable[_Job], options: dict[str, Any], pool: Executor | None, *,
@@ -335,8 +378,10 @@ def _write_evaluation(out: StageOutput, decision_channel: int, job: _Job, evalua
     """Write the series before/after and the decision record of one job; return the record."""
     series, idx = job.series, job.idx
     topic = topics.compensated_topic(series.method, series.model, job.rate, job.protocol.value)
+    if job.motion is MotionMode.SEPARATE:
+        topic += "/separate"
     sample_ch = out.add_channel(topic, json_message_type("starlog.CompensatedSample"))
-    after = evaluation.result.compensated
+    after = evaluation.compensated
     for k, i in enumerate(idx):
         sample = {"sample": k, "frame": int(series.frame[i]), "track": series.track,
                   "x_before": float(series.xy[i, 0]), "y_before": float(series.xy[i, 1]),

@@ -53,6 +53,8 @@ def simulate_log(
             ]
             truth = {"frame": frame.index, "platform_dx": frame.platform_dx, "platform_dy": frame.platform_dy,
                      "stars": stars}
+            if config.roll_amplitude_rad:
+                truth["platform_roll"] = frame.platform_roll
             log.write(truth_ch, log_time=t, data=encode_json(truth))
         provenance = Provenance(stage="simulate", version=__version__, parameters=config.to_dict(),
                                 channels=[topics.IMAGE, topics.FRAME_INFO, topics.TRUTH])
