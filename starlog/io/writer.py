@@ -5,9 +5,10 @@ Why not :class:`mcap.writer.Writer` directly? Two things it cannot do:
 * **append without re-compressing** — the Python writer has no append mode. A stage that adds
   a few kilobytes of centroids to a gigabyte of images must not decompress and re-compress
   the images. :class:`LogWriter` started with ``base=INPUT`` copies the input's data section
-  byte for byte (every chunk, message index and metadata record keeps its offset), writes
-  the new chunks after it, and ends with a summary that merges the input's (schemas,
-  channels, chunk/metadata/attachment indexes, statistics) with the new records — what the
+  byte for byte (every chunk, message index and metadata record keeps its offset; the kernel
+  copies it, see :func:`~starlog.io.bytecopy.copy_range`), writes the new chunks after it,
+  and ends with a summary that merges the input's (schemas, channels, chunk/metadata/attachment
+  indexes, statistics) with the new records — what the
   MCAP specification allows and what the TypeScript library's ``InitializeForAppending``
   does, except that the result goes to a *new* file so the input is never touched;
 * **compress on several cores** — chunks are compressed on a thread pool (zstd and lz4
@@ -64,6 +65,7 @@ from mcap.records import (
 
 from starlog import __version__
 from starlog.errors import CorruptLogError, InvalidInputError, InvalidParameterError, OutputExistsError, TruncatedLogError
+from starlog.io.bytecopy import copy_range
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.schemas import MessageType
@@ -504,14 +506,8 @@ class LogWriter:
                     summary = synthesize_summary(base, src, data_end, known=summary).summary
                 except ValueError as err:
                     raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
-            src.seek(0)
-            remaining = data_end
-            while remaining:
-                block = src.read(min(remaining, 4 * 1024 * 1024))
-                if not block:
-                    raise TruncatedLogError(base, "it ended while its data section was being copied")
-                self._file.write(block)
-                remaining -= len(block)
+            if copy_range(src, self._file, 0, data_end) < data_end:
+                raise TruncatedLogError(base, "it ended while its data section was being copied")
         self._inherit(summary)
 
     def _start_from_stack(self, base: StackedLog) -> None:
