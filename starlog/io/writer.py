@@ -34,6 +34,7 @@ import json
 import os
 import struct
 import tempfile
+import threading
 import zlib
 from collections import defaultdict, deque
 from collections.abc import Callable
@@ -200,6 +201,7 @@ class LogWriter:
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
+        self._writeback: _Writeback | None = None
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or ".")
         umask = os.umask(0)
         os.umask(umask)
@@ -390,6 +392,8 @@ class LogWriter:
             self._drain(all_of_them=True)
             self._write_summary()
             self._file.flush()
+            if self._writeback is not None:
+                self._writeback.wait()
             os.fsync(self._file.fileno())
             self._file.close()
             os.replace(self._tmp_path, self.path)
@@ -410,6 +414,8 @@ class LogWriter:
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
         try:
+            if self._writeback is not None:
+                self._writeback.join()
             self._file.close()
         finally:
             self._tmp_path.unlink(missing_ok=True)
@@ -508,6 +514,7 @@ class LogWriter:
                     raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
             if copy_range(src, self._file, 0, data_end) < data_end:
                 raise TruncatedLogError(base, "it ended while its data section was being copied")
+        self._writeback = _Writeback(self._file.fileno())
         self._inherit(summary)
 
     def _start_from_stack(self, base: StackedLog) -> None:
@@ -586,6 +593,36 @@ class LogWriter:
         self._flush_records()
         self._file.write(MCAP_MAGIC)
 
+
+
+class _Writeback:
+    """``fdatasync`` of the copied base on a thread, so the disk writes overlap the stage's work.
+
+    The final ``fsync`` in :meth:`LogWriter.close` then has only the new records left to write.
+    An error is kept and raised by :meth:`wait`: Linux reports a failed write-back once per
+    file, so it must not be lost on this thread.
+    """
+
+    def __init__(self, fd: int) -> None:
+        self._error: OSError | None = None
+        self._thread = threading.Thread(target=self._sync, args=(fd,), name="starlog-writeback", daemon=True)
+        self._thread.start()
+
+    def _sync(self, fd: int) -> None:
+        try:
+            getattr(os, "fdatasync", os.fsync)(fd)  # macOS has no fdatasync
+        except OSError as err:
+            self._error = err
+
+    def join(self) -> None:
+        """Wait for the thread (its error, if any, is dropped: the output is being discarded)."""
+        self._thread.join()
+
+    def wait(self) -> None:
+        """Wait for the thread and raise its error."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
 
 
 _CHECKERS: dict[bytes, Callable[[Any], str | None]] = {}
