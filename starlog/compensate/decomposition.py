@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import optimize, stats
+from scipy import special
 
 from starlog.compensate._series import as_reference, as_series, check_int, check_rate, radial_rms
 from starlog.errors import InvalidInputError, InvalidParameterError
@@ -68,7 +68,7 @@ __all__ = [
 MIN_SAMPLES = 16
 """Shortest series (samples) :func:`decompose` and the selection accept."""
 
-_GAMMA2_MEDIAN = float(stats.gamma.median(2.0))
+_GAMMA2_MEDIAN = float(special.gammaincinv(2.0, 0.5))  # median of Gamma(2, 1)
 
 _MAX_PHASE_RESULTANT = 0.9
 """S-curve fitted on an axis only when ``|mean(exp(2 pi i phi))| <= 0.9`` (phases spread over
@@ -191,7 +191,7 @@ def _strongest_peak(
         p_sel, half, mode="edge"
     )
     floor = np.median(sliding_window_view(padded, 2 * half + 1), axis=1) / _GAMMA2_MEDIAN
-    threshold = floor * float(stats.gamma.isf(false_alarm / p_sel.size, 2.0))
+    threshold = floor * float(special.gammainccinv(2.0, false_alarm / p_sel.size))  # Gamma(2) upper quantile
     excess = p_sel / np.maximum(threshold, np.finfo(float).tiny)
     top = int(np.argmax(excess))
     if excess[top] <= 1.0:
@@ -207,6 +207,8 @@ def _refine(
     hi = min(f0 + df, 0.5 * rate_hz * (1 - 1e-9))
     if hi <= lo:
         return f0
+    from scipy import optimize  # imported when first needed: it is most of scipy's import time
+
     res = optimize.minimize_scalar(
         lambda f: -_periodogram_power(r, t, f),
         bounds=(lo, hi),
@@ -223,7 +225,7 @@ def _f_significant(ss: float, q: int, ss_w: float, dof_w: int, false_alarm: floa
     if ss_w <= 0:
         return True
     stat = (ss / q) / (ss_w / dof_w)
-    return bool(stat > stats.f.isf(false_alarm, q, dof_w))
+    return bool(stat > special.fdtri(q, dof_w, 1.0 - false_alarm))  # F(q, dof_w) upper quantile
 
 
 @dataclass(frozen=True)

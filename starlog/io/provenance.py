@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from starlog.io.stack import StackedLog
 
-__all__ = ["PROVENANCE_METADATA_NAME", "Provenance", "file_digest"]
+__all__ = ["PROVENANCE_METADATA_NAME", "BackgroundDigest", "Provenance", "file_digest"]
 
 #: Name of the MCAP Metadata records that hold one stage's provenance each.
 PROVENANCE_METADATA_NAME = "starlog.provenance"
@@ -22,6 +23,60 @@ def file_digest(path: str | Path | StackedLog) -> str:
         return path.digest()
     with open(path, "rb") as f:
         return "sha256:" + hashlib.file_digest(f, "sha256").hexdigest()
+
+
+class BackgroundDigest:
+    """:func:`file_digest` of a log, computed on a thread while the caller works.
+
+    A stage needs its input's SHA-256 only for the provenance it writes last; hashing hundreds
+    of MB (``hashlib`` and file reads release the GIL) then overlaps the stage's own work
+    instead of preceding it. :meth:`result` waits for the digest, :meth:`cancel` stops it.
+    """
+
+    _BLOCK = 1024 * 1024
+
+    def __init__(self, path: str | Path | StackedLog) -> None:
+        self._digest: str | None = None
+        self._error: BaseException | None = None
+        self._stop = threading.Event()
+        if isinstance(path, StackedLog):  # hashes only its newest layer's tail: no thread needed
+            self._digest = path.digest()
+            self._thread = None
+        else:
+            self._thread = threading.Thread(target=self._hash, args=(Path(path),), name="starlog-digest",
+                                            daemon=True)
+            self._thread.start()
+
+    def _hash(self, path: Path) -> None:
+        try:
+            digest = hashlib.sha256()
+            block = bytearray(self._BLOCK)
+            view = memoryview(block)
+            with open(path, "rb", buffering=0) as f:
+                while not self._stop.is_set():
+                    count = f.readinto(block)
+                    if not count:
+                        self._digest = "sha256:" + digest.hexdigest()
+                        return
+                    digest.update(view[:count])
+        except BaseException as err:  # handed to the caller by result()
+            self._error = err
+
+    def result(self) -> str:
+        """``"sha256:<hex>"`` of the file (waits for the thread; re-raises its error)."""
+        if self._thread is not None:
+            self._thread.join()
+        if self._error is not None:
+            raise self._error
+        if self._digest is None:
+            raise RuntimeError("the digest was cancelled")
+        return self._digest
+
+    def cancel(self) -> None:
+        """Stop hashing (within one block) and wait for the thread."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from starlog.errors import CorruptLogError, InvalidParameterError, LogNotFoundError, OutputExistsError
+from starlog.io.bytecopy import copy_range
 from starlog.io.layout import DATA_END_RECORD_LEN, FOOTER_RECORD_LEN, MCAP_MAGIC, locate_data_end
 
 __all__ = ["StackedLog"]
@@ -176,17 +177,8 @@ class StackedLog:
 
 def _copy_range(segment: _Segment, dst: BinaryIO) -> None:
     with open(segment.path, "rb") as src:
-        offset, remaining = segment.offset, segment.length
-        while remaining:
-            try:  # kernel-side copy: the bytes do not pass through Python
-                sent = os.copy_file_range(src.fileno(), dst.fileno(), remaining, offset)
-            except (AttributeError, OSError):
-                src.seek(offset)
-                sent = dst.write(src.read(min(remaining, _COPY_BLOCK)))
-            if sent <= 0:
-                raise CorruptLogError(segment.path, "it ended while it was being copied")
-            offset += sent
-            remaining -= sent
+        if copy_range(src, dst, segment.offset, segment.length) < segment.length:
+            raise CorruptLogError(segment.path, "it ended while it was being copied")
 
 
 class _ConcatenatedFile(io.RawIOBase):

@@ -5,9 +5,10 @@ Why not :class:`mcap.writer.Writer` directly? Two things it cannot do:
 * **append without re-compressing** — the Python writer has no append mode. A stage that adds
   a few kilobytes of centroids to a gigabyte of images must not decompress and re-compress
   the images. :class:`LogWriter` started with ``base=INPUT`` copies the input's data section
-  byte for byte (every chunk, message index and metadata record keeps its offset), writes
-  the new chunks after it, and ends with a summary that merges the input's (schemas,
-  channels, chunk/metadata/attachment indexes, statistics) with the new records — what the
+  byte for byte (every chunk, message index and metadata record keeps its offset; the kernel
+  copies it, see :func:`~starlog.io.bytecopy.copy_range`), writes the new chunks after it,
+  and ends with a summary that merges the input's (schemas, channels, chunk/metadata/attachment
+  indexes, statistics) with the new records — what the
   MCAP specification allows and what the TypeScript library's ``InitializeForAppending``
   does, except that the result goes to a *new* file so the input is never touched;
 * **compress on several cores** — chunks are compressed on a thread pool (zstd and lz4
@@ -33,6 +34,7 @@ import json
 import os
 import struct
 import tempfile
+import threading
 import zlib
 from collections import defaultdict, deque
 from collections.abc import Callable
@@ -64,6 +66,7 @@ from mcap.records import (
 
 from starlog import __version__
 from starlog.errors import CorruptLogError, InvalidInputError, InvalidParameterError, OutputExistsError, TruncatedLogError
+from starlog.io.bytecopy import copy_range
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.schemas import MessageType
@@ -198,6 +201,7 @@ class LogWriter:
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
+        self._writeback: _Writeback | None = None
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or ".")
         umask = os.umask(0)
         os.umask(umask)
@@ -388,6 +392,8 @@ class LogWriter:
             self._drain(all_of_them=True)
             self._write_summary()
             self._file.flush()
+            if self._writeback is not None:
+                self._writeback.wait()
             os.fsync(self._file.fileno())
             self._file.close()
             os.replace(self._tmp_path, self.path)
@@ -408,6 +414,8 @@ class LogWriter:
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
         try:
+            if self._writeback is not None:
+                self._writeback.join()
             self._file.close()
         finally:
             self._tmp_path.unlink(missing_ok=True)
@@ -504,14 +512,9 @@ class LogWriter:
                     summary = synthesize_summary(base, src, data_end, known=summary).summary
                 except ValueError as err:
                     raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
-            src.seek(0)
-            remaining = data_end
-            while remaining:
-                block = src.read(min(remaining, 4 * 1024 * 1024))
-                if not block:
-                    raise TruncatedLogError(base, "it ended while its data section was being copied")
-                self._file.write(block)
-                remaining -= len(block)
+            if copy_range(src, self._file, 0, data_end) < data_end:
+                raise TruncatedLogError(base, "it ended while its data section was being copied")
+        self._writeback = _Writeback(self._file.fileno())
         self._inherit(summary)
 
     def _start_from_stack(self, base: StackedLog) -> None:
@@ -590,6 +593,36 @@ class LogWriter:
         self._flush_records()
         self._file.write(MCAP_MAGIC)
 
+
+
+class _Writeback:
+    """``fdatasync`` of the copied base on a thread, so the disk writes overlap the stage's work.
+
+    The final ``fsync`` in :meth:`LogWriter.close` then has only the new records left to write.
+    An error is kept and raised by :meth:`wait`: Linux reports a failed write-back once per
+    file, so it must not be lost on this thread.
+    """
+
+    def __init__(self, fd: int) -> None:
+        self._error: OSError | None = None
+        self._thread = threading.Thread(target=self._sync, args=(fd,), name="starlog-writeback", daemon=True)
+        self._thread.start()
+
+    def _sync(self, fd: int) -> None:
+        try:
+            getattr(os, "fdatasync", os.fsync)(fd)  # macOS has no fdatasync
+        except OSError as err:
+            self._error = err
+
+    def join(self) -> None:
+        """Wait for the thread (its error, if any, is dropped: the output is being discarded)."""
+        self._thread.join()
+
+    def wait(self) -> None:
+        """Wait for the thread and raise its error."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
 
 
 _CHECKERS: dict[bytes, Callable[[Any], str | None]] = {}

@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from starlog import __version__
-from starlog.io import LogReader, LogWriter, Provenance, file_digest
-from starlog.io.provenance import PROVENANCE_METADATA_NAME
+from starlog.io import LogReader, LogWriter, Provenance
+from starlog.io.provenance import PROVENANCE_METADATA_NAME, BackgroundDigest
 from starlog.io.schemas import MessageType
 from starlog.io.stack import StackedLog
 
@@ -50,18 +50,23 @@ def extend_log(
 ) -> Iterator[tuple[LogReader, StageOutput]]:
     """Open ``input_path`` for reading and a new log at ``output_path`` that starts as its copy.
 
-    The input's data section is copied byte for byte (no re-compression); the stage adds its
-    channels; on success its provenance (name, version, parameters, the input's SHA-256 and
-    the channels it added) is recorded and the output renamed into place. On any error the
-    output is discarded and the input is untouched. With a :class:`StackedLog` as input, the
+    The input's data section is copied byte for byte (no re-compression, by the kernel); the
+    stage adds its channels; on success its provenance (name, version, parameters, the input's
+    SHA-256, hashed on a thread while the stage works, and the channels it added) is recorded
+    and the output renamed into place. On any error the output is discarded and the input is
+    untouched. With a :class:`StackedLog` as input, the
     output is a sidecar to stack on it: the same records, without the copy of the input's data.
     """
-    digest = file_digest(input_path)
     with LogReader(input_path) as reader:
-        with LogWriter(output_path, base=input_path, force=force, compression=compression, workers=workers) as writer:
-            out = StageOutput(writer)
-            yield reader, out
-            record = Provenance(stage=stage, version=__version__, parameters=parameters, input_digest=digest,
-                                channels=out.channels)
-            writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
+        digest = BackgroundDigest(input_path)
+        try:
+            with LogWriter(output_path, base=input_path, force=force, compression=compression,
+                           workers=workers) as writer:
+                out = StageOutput(writer)
+                yield reader, out
+                record = Provenance(stage=stage, version=__version__, parameters=parameters,
+                                    input_digest=digest.result(), channels=out.channels)
+                writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
+        finally:
+            digest.cancel()
 

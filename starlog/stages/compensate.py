@@ -87,12 +87,13 @@ class BrightestSeries:
 StarTruth = tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], npt.NDArray[np.float64]]
 
 
-def read_brightest_series(log: LogReader, topic: str, *,
-                          truth_cache: dict[int, StarTruth] | None = None) -> BrightestSeries:
+def read_brightest_series(log: LogReader, topic: str, *, truth_cache: dict[int, StarTruth] | None = None,
+                          with_truth: bool = True) -> BrightestSeries:
     """The brightest star's track from ``topic``, and its true positions when ``/sim/truth`` exists.
 
     Pass the same ``truth_cache`` dict for several track channels of one log: the truth of each
-    star is then read from the log once, not once per channel.
+    star is then read from the log once, not once per channel. ``with_truth=False`` leaves the
+    truth unread (only the ``paper`` protocol runs: it never sees the truth).
     """
     times, frames, xy, flux, sigma = [], [], [], [], []
     method = model = ""
@@ -120,7 +121,7 @@ def read_brightest_series(log: LogReader, topic: str, *,
                              frame=np.asarray(frames, dtype=np.int64), xy=np.asarray(xy, dtype=np.float64),
                              flux=np.asarray(flux, dtype=np.float64), sigma=np.asarray(sigma, dtype=np.float64),
                              native_rate=float(native))
-    if not log.has_topic(topics.TRUTH):
+    if not with_truth or not log.has_topic(topics.TRUTH):
         return series
     return _with_truth(log, series, {} if truth_cache is None else truth_cache)
 
@@ -331,8 +332,9 @@ def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[f
     """Every (track channel, rate, protocol, motion mode), in output order; each channel's series read when
     reached (with its platform reference when ``fit`` is given)."""
     truth_cache: dict[int, StarTruth] = {}
+    with_truth = any(p is not ScoringProtocol.PAPER for p in chosen)
     for channel in channels:
-        series = read_brightest_series(log, channel.topic, truth_cache=truth_cache)
+        series = read_brightest_series(log, channel.topic, truth_cache=truth_cache, with_truth=with_truth)
         if fit is not None:
             series = with_platform_reference(log, series, channel.topic, fit=fit)
         jobs = []

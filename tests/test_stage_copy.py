@@ -1,0 +1,125 @@
+"""A stage's fixed costs: the kernel copy of its input, the digest on a thread, the early write-back."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+import pytest
+
+from starlog.errors import TruncatedLogError
+from starlog.io import LogReader, LogWriter, Provenance, file_digest, json_message_type
+from starlog.io.bytecopy import copy_range
+from starlog.io.layout import locate_data_end
+from starlog.io.provenance import BackgroundDigest
+from starlog.stages import compensate as compensate_stage
+from starlog.stages.compensate import compensate_log
+from starlog.stages.simulate import simulate_log
+from starlog.stages.track import track_log
+from tests.conftest import small_config
+
+
+def _extend(base: Path, out: Path) -> None:
+    with LogWriter(out, base=base) as writer:
+        channel = writer.add_channel("/extra", json_message_type("starlog.FrameInfo"))
+        writer.write(channel, log_time=10**12, data=b'{"frame":0,"width":4,"height":4,"encoding":"mono8",'
+                                                    b'"bit_depth":8,"source":""}')
+
+
+@pytest.fixture()
+def refuse_kernel_copy(monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(*args: object, **kwargs: object) -> int:
+        raise OSError(18, "Invalid cross-device link")
+
+    monkeypatch.setattr(os, "copy_file_range", refuse)
+
+
+def test_copy_range_copies_a_range_after_what_is_there(tmp_path: Path) -> None:
+    src = tmp_path / "src.bin"
+    src.write_bytes(bytes(range(256)) * 1000)
+    with open(src, "rb") as s, open(tmp_path / "dst.bin", "w+b") as d:
+        d.write(b"head")
+        assert copy_range(s, d, 1000, 50_000) == 50_000
+        d.write(b"tail")  # the buffered file continues after the copied bytes
+    assert (tmp_path / "dst.bin").read_bytes() == b"head" + src.read_bytes()[1000:51_000] + b"tail"
+
+
+@pytest.mark.usefixtures("refuse_kernel_copy")
+def test_copy_range_falls_back_to_plain_reads_and_stops_at_the_source_end(tmp_path: Path) -> None:
+    src = tmp_path / "src.bin"
+    src.write_bytes(os.urandom(9 * 1024 * 1024))
+    with open(src, "rb") as s, open(tmp_path / "dst.bin", "w+b") as d:
+        d.write(b"x")
+        assert copy_range(s, d, 5, 10 * 1024 * 1024) == 9 * 1024 * 1024 - 5
+        d.write(b"y")
+    assert (tmp_path / "dst.bin").read_bytes() == b"x" + src.read_bytes()[5:] + b"y"
+
+
+def test_an_extended_log_is_the_same_with_or_without_the_kernel_copy(
+        sim_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    _extend(sim_log, tmp_path / "kernel.mcap")
+    monkeypatch.setattr(os, "copy_file_range", lambda *a, **k: (_ for _ in ()).throw(OSError(38, "ENOSYS")))
+    _extend(sim_log, tmp_path / "plain.mcap")
+    assert (tmp_path / "kernel.mcap").read_bytes() == (tmp_path / "plain.mcap").read_bytes()
+    with open(sim_log, "rb") as f:
+        data_end = locate_data_end(sim_log, f)
+    assert (tmp_path / "kernel.mcap").read_bytes()[:data_end] == sim_log.read_bytes()[:data_end]
+
+
+def test_a_base_cut_short_while_copied_is_refused(sim_log: Path, tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr("starlog.io.writer.copy_range", lambda src, dst, offset, length: length - 1)
+    with pytest.raises(TruncatedLogError):
+        LogWriter(tmp_path / "out.mcap", base=sim_log)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_background_digest_is_the_file_sha256(sim_log: Path) -> None:
+    expected = "sha256:" + hashlib.sha256(sim_log.read_bytes()).hexdigest()
+    assert BackgroundDigest(sim_log).result() == expected == file_digest(sim_log)
+
+
+def test_a_digest_hands_over_the_error_of_its_thread(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError):
+        BackgroundDigest(tmp_path / "missing.mcap").result()
+
+
+def test_a_failed_write_back_fails_the_close_and_leaves_no_output(
+        sim_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def fail(fd: int) -> None:
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(os, "fdatasync", fail)
+    with pytest.raises(OSError, match="Input/output"):
+        _extend(sim_log, tmp_path / "out.mcap")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_stage_provenance_names_the_input_digest(sim_log: Path, tmp_path: Path) -> None:
+    from starlog.stages.centroid import centroid_log
+
+    out = tmp_path / "cen.mcap"
+    centroid_log(sim_log, out, methods=["MOMENT"])
+    with LogReader(out) as log:
+        record: Provenance = log.provenance()[-1]
+    assert record.input_digest == file_digest(sim_log)
+
+
+def test_the_paper_protocol_never_reads_the_truth(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from starlog.stages.centroid import centroid_log
+
+    sim, cen, trk = tmp_path / "sim.mcap", tmp_path / "cen.mcap", tmp_path / "trk.mcap"
+    simulate_log(small_config(width=96, height=80, n_stars=4, n_frames=160, margin=12.0), sim)
+    centroid_log(sim, cen, methods=["MOMENT"])
+    track_log(cen, trk, method="MOMENT", models=["STATIC"])
+    paper = compensate_log(trk, tmp_path / "paper.mcap", rates=[50], protocols="paper")
+
+    def unread(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the truth was read")
+
+    monkeypatch.setattr(compensate_stage, "_star_truth", unread)
+    monkeypatch.setattr(compensate_stage, "_nearest_star", unread)
+    assert compensate_log(trk, tmp_path / "again.mcap", rates=[50], protocols="paper").records == paper.records
+    with pytest.raises(AssertionError, match="truth was read"):
+        compensate_log(trk, tmp_path / "truth.mcap", rates=[50], protocols="truth")
