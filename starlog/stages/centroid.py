@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -30,7 +32,7 @@ from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._stage import extend_log
 
-__all__ = ["CentroidSummary", "centroid_log", "parse_methods", "rows"]
+__all__ = ["CentroidSummary", "centroid_log", "parse_methods", "structured_to_dicts"]
 
 
 def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
@@ -54,8 +56,8 @@ def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
     return list(dict.fromkeys(out))
 
 
-def rows(array: npt.NDArray[np.void]) -> list[dict[str, Any]]:
-    """Structured array → list of JSON-ready dicts (Python scalars)."""
+def structured_to_dicts(array: npt.NDArray[np.void]) -> list[dict[str, Any]]:
+    """Structured array → one JSON-ready dict (field name → Python scalar) per row."""
     names = array.dtype.names or ()
     return [dict(zip(names, values)) for values in array.tolist()]
 
@@ -127,7 +129,7 @@ def centroid_log(
     chosen = parse_methods(methods)
     options = dict(options or {})
     digest_params: dict[str, Any] = {"methods": [m.value for m in chosen], "options": options}
-    with LogReader(input_path) as probe:
+    with _opencv_threads(1), LogReader(input_path) as probe:
         camera = _camera_from_provenance(probe)
         gain = gain if gain is not None else camera.get("gain", 1.0)
         if read_noise is None:
@@ -143,8 +145,8 @@ def centroid_log(
 
     extract = _Extractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options)
 
-    with extend_log(input_path, output_path, stage="centroid", parameters=digest_params, force=force,
-                    compression=compression, workers=workers) as (log, out):
+    with _opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=digest_params,
+                                        force=force, compression=compression, workers=workers) as (log, out):
         n_frames = log.channel(topics.IMAGE).message_count
         det_ch = out.add_channel(topics.DETECTIONS, json_message_type("starlog.Detections"))
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))
@@ -211,9 +213,9 @@ class _Extractor:
         per_method = [centroids[m] for m in self.methods]
         return _FrameMessages(
             log_time=log_time,
-            detections=encode_json({"frame": frame, "stars": rows(detections)}),
+            detections=encode_json({"frame": frame, "stars": structured_to_dicts(detections)}),
             annotations=encode_image_annotations(first["x"], first["y"], log_time=log_time, diameter=diameter),
-            centroids=tuple(encode_json({"frame": frame, "method": m.value, "stars": rows(c)})
+            centroids=tuple(encode_json({"frame": frame, "method": m.value, "stars": structured_to_dicts(c)})
                             for m, c in zip(self.methods, per_method)),
             n_detections=int(detections.size),
             n_centroids=tuple(int(c.size) for c in per_method),
@@ -221,9 +223,24 @@ class _Extractor:
         )
 
 
+@contextmanager
+def _opencv_threads(count: int) -> Iterator[None]:
+    """OpenCV's own thread pool limited to ``count`` while the block runs.
+
+    Each process does its frames on one core (``workers`` sets the number of cores): OpenCV's
+    threads would only add overhead there, or compete with the other workers.
+    """
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(count)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def _extract_block(path: str, start: int, end: int, first_index: int, extract: _Extractor) -> list[_FrameMessages]:
     """Worker: every frame with ``start <= log_time < end`` (opens the log itself; no image crosses processes)."""
-    with LogReader(path) as log:
+    with _opencv_threads(1), LogReader(path) as log:
         return [extract(frame, t, image) for frame, t, image in
                 log.frames(start=start, end=end, first_index=first_index)]
 
