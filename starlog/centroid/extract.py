@@ -327,23 +327,31 @@ def measure_centroids(
     if n == 0:
         return empty_centroids()
     psf = float(psf_sigma) if psf_sigma is not None else estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
-    noise = np.asarray(det["noise"], np.float64)
-    if read_noise is not None:
-        noise = np.maximum(noise, read_noise / gain)
-    noise = np.where(np.isfinite(noise) & (noise > 0), noise, 1.0)
-    bg = np.asarray(det["background"], np.float64)
-    x_det = np.asarray(det["x"], np.float64)
-    y_det = np.asarray(det["y"], np.float64)
-    st = gather_stamps(arr, x_det, y_det, _window(psf, window), np.where(np.isfinite(bg), bg, 0.0), noise, gain,
-                       _default_saturation(arr, saturation))
-    dx0, dy0 = x_det - st.xc, y_det - st.yc
+    st = _star_stamps(arr, det, _window(psf, window), gain, read_noise, _default_saturation(arr, saturation))
+    dx0, dy0 = np.asarray(det["x"], np.float64) - st.xc, np.asarray(det["y"], np.float64) - st.yc
     psf_arr = np.full(n, psf)
     f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64), iterations=1)
     if meth is CentroidMethod.GAUSSFIT:
         measured = _fit(st, dx0, dy0, f0, psf_arr, fit_psf_sigma)
     else:
         measured = _estimate(meth, st, dx0, dy0, f0, psf_arr, gain=gain, weighting=weighting, debias=debias)
-    m = _with_fallback(measured, st, dx0, dy0, f0)
+    return _centroid_table(det, st, _with_fallback(measured, st, dx0, dy0, f0))
+
+
+def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: float, read_noise: float | None,
+                 saturation: float) -> Stamps:
+    """Windows of half-size ``h`` around the detections, with their background and noise (read-noise floor)."""
+    noise = np.asarray(det["noise"], np.float64)
+    if read_noise is not None:
+        noise = np.maximum(noise, read_noise / gain)
+    noise = np.where(np.isfinite(noise) & (noise > 0), noise, 1.0)
+    bg = np.asarray(det["background"], np.float64)
+    return gather_stamps(arr, np.asarray(det["x"], np.float64), np.asarray(det["y"], np.float64), h,
+                         np.where(np.isfinite(bg), bg, 0.0), noise, gain, saturation)
+
+
+def _centroid_table(det: npt.NDArray[Any], st: Stamps, m: _Measured) -> npt.NDArray[np.void]:
+    """The CENTROID_DTYPE rows: positions, flux, SNR, sigma, peak, background and flags."""
     snr = np.where(np.isfinite(m.flux_err), m.flux / m.flux_err, 0.0)
     flags = np.asarray(det["flags"], np.uint16).copy()
     flags &= np.uint16(~int(CentroidFlag.FIT_FAILED | CentroidFlag.LOW_SNR) & 0xFFFF)
@@ -352,7 +360,7 @@ def measure_centroids(
     flags[st.masked] |= np.uint16(CentroidFlag.MASKED)
     flags[~m.ok] |= np.uint16(CentroidFlag.FIT_FAILED)
     flags[snr < 5.0] |= np.uint16(CentroidFlag.LOW_SNR)
-    out = np.zeros(n, dtype=CENTROID_DTYPE)
+    out = np.zeros(det.size, dtype=CENTROID_DTYPE)
     out["star"] = det["star"]
     out["x"] = st.xc + m.dx
     out["y"] = st.yc + m.dy
@@ -360,7 +368,7 @@ def measure_centroids(
     out["snr"] = snr
     out["sigma"] = m.sigma
     out["peak"] = _peak_near(st, m.dx, m.dy)
-    out["background"] = bg + m.background
+    out["background"] = np.asarray(det["background"], np.float64) + m.background
     out["psf_sigma"] = m.psf
     out["flags"] = flags
     return out

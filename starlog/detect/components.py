@@ -27,8 +27,7 @@ __all__ = ["Components", "Peaks", "component_peaks", "find_components"]
 I64 = npt.NDArray[np.intp]
 F64 = npt.NDArray[np.float64]
 
-# the 8-neighbourhood without the centre, and its forward half (each pixel pair once)
-_NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
+# the forward half of the 8-neighbourhood (each pixel pair once)
 _FORWARD = [(0, 1), (1, -1), (1, 0), (1, 1)]
 
 
@@ -53,6 +52,10 @@ class Components:
     @property
     def count(self) -> int:
         return int(self.area.size)
+
+    def box_centres(self) -> tuple[F64, F64]:
+        """(x, y) centres of the bounding boxes, px."""
+        return self.x_min + 0.5 * (self.x_max - self.x_min), self.y_min + 0.5 * (self.y_max - self.y_min)
 
 
 def _box_pixels(rects: I64) -> tuple[I64, I64, I64]:
@@ -154,15 +157,23 @@ def _local_maxima(comp: Components, filtered: npt.NDArray[np.float32]) -> npt.ND
     even when a brighter pixel lies just outside it; a component with no such pixel (its top
     sits on a pixel the opening removed) gets its brightest pixel (first in raster order).
     """
-    rows, cols = filtered.shape
+    cols = filtered.shape[1]
     c = comp.label
-    f = filtered[comp.y, comp.x]
-    top = np.full(f.shape, -np.inf, np.float32)
-    for dy, dx in _NEIGHBOURS:
-        qy, qx = comp.y + dy, comp.x + dx
-        inside = (qy >= comp.y_min[c]) & (qy <= comp.y_max[c]) & (qx >= comp.x_min[c]) & (qx <= comp.x_max[c])
-        value = filtered[np.clip(qy, 0, rows - 1), np.clip(qx, 0, cols - 1)]
-        np.maximum(top, np.where(inside, value, -np.inf), out=top)
+    flat = filtered.ravel()
+    index = comp.y * cols + comp.x
+    f = flat[index]
+    # which of the rows y-1, y, y+1 and columns x-1, x, x+1 lie in the pixel's box
+    rows_in = [comp.y > comp.y_min[c], None, comp.y < comp.y_max[c]]
+    cols_in = [comp.x > comp.x_min[c], None, comp.x < comp.x_max[c]]
+    top = f.copy()
+    # one neighbour at a time over all pixels (long vectors: numpy reduces short rows slowly)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == dx == 0:
+                continue
+            inside = rows_in[dy + 1] if dx == 0 else cols_in[dx + 1] if dy == 0 else rows_in[dy + 1] & cols_in[dx + 1]
+            value = flat.take(index + (dy * cols + dx), mode="clip")  # off-frame neighbours are outside the box
+            np.maximum(top, np.where(inside, value, f), out=top)
     peak = f >= top
     lonely = np.bincount(c[peak], minlength=comp.count) == 0
     if lonely.any():

@@ -146,14 +146,11 @@ def detect_stars(
     mesh : int
         Background cell size, px (see :func:`estimate_background`).
     sharpness_ratio : float
-        Hot-pixel / cosmic-ray test: reject a candidate whose peak pixel (the filtered image's
-        maximum) stands more than 8 noise sigma above the mean of its two horizontal or of its
-        two vertical neighbours, that mean being below this fraction of it. 0.2 accepts Gaussian PSFs with
-        sigma >= ~0.55 px.
-    max_elongation : float
-        Reject candidates with a larger axis ratio (cosmic-ray tracks); blends are exempt.
-    elongation_flag : float
-        Flag ``ELONGATED`` above this axis ratio.
+        Hot-pixel / cosmic-ray test (:func:`starlog.detect.screening.is_spike`); 0.2 accepts
+        Gaussian PSFs with sigma >= ~0.55 px.
+    max_elongation, elongation_flag : float
+        Reject candidates with a larger axis ratio (cosmic-ray tracks; blends are exempt) /
+        flag ``ELONGATED`` above the second.
     deblend : bool
         Split components with several significant peaks.
     deblend_nsigma, deblend_contrast : float
@@ -174,37 +171,45 @@ def detect_stars(
     arr = np.asarray(image)
     _check_parameters(arr, threshold, filter_sigma, min_area, max_area, border, sharpness_ratio, max_elongation,
                       elongation_flag)
-    if saturation is None:
-        saturation = float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) else np.inf
+    saturation = _default_saturation(arr) if saturation is None else saturation
     frame = _prepare(arr, background, mesh)
     if frame is None:
         return empty_detections()
     work, bg, missing = frame
     filtered, k1 = matched_filter(work, filter_sigma)
     knorm = float(np.sum(k1**2))  # filtered white-noise sigma = noise * sum(k1^2)
-    # the smooth background passes through the filter unchanged, so the threshold map is
-    # level + k * filtered noise (both interpolated from the cell grids)
-    above = cv2.compare(filtered, bg.map(bg.mesh_level, plus=np.float32(threshold * knorm) * bg.mesh_noise), cv2.CMP_GT)
-    comp = find_components(cv2.morphologyEx(above, cv2.MORPH_OPEN, _CROSS), min_area, max_area)
+    comp = find_components(_foreground(filtered, bg, threshold * knorm), min_area, max_area)
     if comp.count == 0:
         return empty_detections()
-    cx = comp.x_min + 0.5 * (comp.x_max - comp.x_min)
-    cy = comp.y_min + 0.5 * (comp.y_max - comp.y_min)
-    level = bg.level_at(cx, cy)
-    peaks = component_peaks(comp, filtered, work, level, bg.noise_at(cx, cy) * knorm, deblend=deblend,
-                            nsigma=deblend_nsigma, contrast=deblend_contrast)
+    cx, cy = comp.box_centres()
+    peaks = component_peaks(comp, filtered, work, bg.level_at(cx, cy), bg.noise_at(cx, cy) * knorm,
+                            deblend=deblend, nsigma=deblend_nsigma, contrast=deblend_contrast)
     table, keep = _candidates(peaks, comp, work, filtered, bg, k1, knorm, saturation=saturation,
                               sharpness_ratio=sharpness_ratio, max_elongation=max_elongation,
                               elongation_flag=elongation_flag, threshold=threshold, border=border)
     if missing is not None:
-        masked = gather(missing.view(np.uint8), table["y_peak"], table["x_peak"], 2).reshape(table.size, -1).any(axis=1)
-        table["flags"][masked] |= np.uint16(StarFlag.MASKED)
+        masked = gather(missing.view(np.uint8), table["y_peak"], table["x_peak"], 2).reshape(table.size, -1)
+        table["flags"][masked.any(axis=1)] |= np.uint16(StarFlag.MASKED)
     out = table[keep]
-    out = out[np.argsort(-out["flux"], kind="stable")]
-    if max_stars is not None:
-        out = out[: max(0, int(max_stars))]
+    out = out[np.argsort(-out["flux"], kind="stable")][: None if max_stars is None else max(0, int(max_stars))]
     out["star"] = np.arange(out.size, dtype=np.int32)
     return out
+
+
+def _foreground(filtered: npt.NDArray[np.float32], bg: Background, filtered_threshold: float) -> npt.NDArray[np.uint8]:
+    """Pixels of the filtered frame above level + k * filtered noise, opened by a 3x3 cross.
+
+    The smooth background passes through the filter unchanged, so the threshold map is the
+    level plus ``filtered_threshold`` times the noise (both interpolated from the cell grids);
+    the opening removes one-pixel bridges and specks.
+    """
+    above = cv2.compare(filtered, bg.map(bg.mesh_level, plus=np.float32(filtered_threshold) * bg.mesh_noise),
+                        cv2.CMP_GT)
+    return cv2.morphologyEx(above, cv2.MORPH_OPEN, _CROSS)
+
+
+def _default_saturation(arr: npt.NDArray[Any]) -> float:
+    return float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) else np.inf
 
 
 def _check_parameters(arr: npt.NDArray[Any], threshold: float, filter_sigma: float, min_area: int, max_area: int,

@@ -12,6 +12,8 @@ the output does not depend on the number of workers.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -128,6 +130,7 @@ def centroid_log(
     """
     chosen = parse_methods(methods)
     options = dict(options or {})
+    _reuse_frame_buffers()
     digest_params: dict[str, Any] = {"methods": [m.value for m in chosen], "options": options}
     with _opencv_threads(1), LogReader(input_path) as probe:
         camera = _camera_from_provenance(probe)
@@ -223,6 +226,28 @@ class _Extractor:
         )
 
 
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+
+
+def _reuse_frame_buffers() -> None:
+    """Let the C allocator (glibc) recycle the frame-sized arrays each frame allocates and frees.
+
+    By default every block above ~128 KiB is mapped from the system on allocation and returned
+    on release, so each frame's images (decoded frame, float copy, filtered image, maps, masks)
+    arrive as fresh zero pages: thousands of page faults a frame, a third of detection's time
+    at 1024x1024. Blocks below 64 MiB now come from the heap and stay there for the next
+    frame (the working set, hence the peak memory, does not grow with the log). Elsewhere than
+    glibc nothing changes. The setting is process-wide and kept.
+    """
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt(_M_MMAP_THRESHOLD, 64 << 20)
+    mallopt(_M_TRIM_THRESHOLD, 256 << 20)
+
+
 @contextmanager
 def _opencv_threads(count: int) -> Iterator[None]:
     """OpenCV's own thread pool limited to ``count`` while the block runs.
@@ -240,6 +265,7 @@ def _opencv_threads(count: int) -> Iterator[None]:
 
 def _extract_block(path: str, start: int, end: int, first_index: int, extract: _Extractor) -> list[_FrameMessages]:
     """Worker: every frame with ``start <= log_time < end`` (opens the log itself; no image crosses processes)."""
+    _reuse_frame_buffers()
     with _opencv_threads(1), LogReader(path) as log:
         return [extract(frame, t, image) for frame, t, image in
                 log.frames(start=start, end=end, first_index=first_index)]
