@@ -19,6 +19,7 @@ Run: python tools/bench_centroid_stage.py [--frames 300] [--size 1024] [--method
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import resource
 import subprocess
@@ -76,7 +77,7 @@ def in_process_parts(log: Path, methods: list[str], count: int) -> dict[str, flo
     """CPU s per frame of SEP and of the stage's parts, on the first ``count`` frames."""
     c0 = time.process_time()
     with LogReader(log) as reader:
-        frames = [img for i, _, img in reader.frames() if i < count]
+        frames = [img for _, _, img in itertools.islice(reader.frames(), count)]
     out = {"decode": (time.process_time() - c0) / len(frames), "SEP": per_frame_cpu(sep_frame, frames)}
     cv2.setNumThreads(1)  # as the stage runs them, allocator setting included
     _reuse_frame_buffers()
