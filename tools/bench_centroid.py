@@ -120,95 +120,107 @@ def photutils_2dg(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, bkg: np.ndarr
     return out
 
 
-def run_regime(name, flux_range, psf, args, rng, artifacts=False):
+def _truth_and_bound(flux_range, psf, args, rng):
+    """A fixed star field of the regime, its expected image and each star's Cramer-Rao bound."""
     shape = (args.size, args.size)
     tx, ty = star_field(rng, shape, args.nstars)
     tf = rng.uniform(*flux_range, tx.size)
     expected = SKY + render_stars(shape, tx, ty, tf, psf)
+    px, py = tx - np.rint(tx), ty - np.rint(ty)
+    crb_x = centroid_crb(flux=tf, psf_sigma=psf, sky=SKY, read_noise=RN, x_phase=px, y_phase=py)
+    crb_y = centroid_crb(flux=tf, psf_sigma=psf, sky=SKY, read_noise=RN, x_phase=py, y_phase=px)
+    return tx, ty, expected, np.sqrt(0.5 * (crb_x**2 + crb_y**2))
+
+
+def _record(err, r, key, idx, x, y, tx, ty):
+    """Errors of the positions (x, y) matched to the truth by ``idx`` (-1: unmatched)."""
+    ok = idx >= 0
+    err[key][r, ok, 0] = x[idx[ok]] - tx[ok]
+    err[key][r, ok, 1] = y[idx[ok]] - ty[ok]
+
+
+def _measure_frame(img, r, psf, tx, ty, args, acc):
+    """Detection, PSF estimate, every method, SEP (and photutils) on one realisation."""
+    t0 = time.perf_counter()
+    det = detect_stars(img)
+    t1 = time.perf_counter()
+    psf_est = estimate_psf_sigma(img, det, gain=GAIN) if det.size else psf
+    acc["t_det"].append(t1 - t0)
+    acc["t_psf"].append(time.perf_counter() - t1)
+    idx = match(det["x"], det["y"], tx, ty)
+    acc["found"][r] = (idx >= 0).sum()
+    acc["false"][r] = det.size - (idx >= 0).sum()
+    for m in METHODS:
+        t0 = time.perf_counter()
+        c = measure_centroids(img, det, method=m, gain=GAIN, psf_sigma=psf_est)
+        acc["tm"][m.value].append(time.perf_counter() - t0)
+        _record(acc["err"], r, m.value, idx, c["x"], c["y"], tx, ty)
+        ok = idx >= 0
+        acc["sig"][m.value][r, ok] = c["sigma"][idx[ok]]
+    t0 = time.perf_counter()
+    sx, sy = sep_extract(img)
+    acc["tm"]["SEP winpos"].append(time.perf_counter() - t0)
+    sidx = match(sx, sy, tx, ty)
+    acc["sep_found"][r] = (sidx >= 0).sum()
+    acc["sep_false"][r] = sx.size - (sidx >= 0).sum()
+    _record(acc["err"], r, "SEP winpos", sidx, sx, sy, tx, ty)
+    if args.photutils and r < args.photutils_reps:
+        sel = np.flatnonzero(idx >= 0)[: args.photutils_stars]
+        t0 = time.perf_counter()
+        pc = photutils_2dg(img, det["x"][idx[sel]], det["y"][idx[sel]], det["background"][idx[sel]], psf)
+        acc["tm"]["photutils 2dg"].append((time.perf_counter() - t0) * (det.size / max(sel.size, 1)))
+        acc["err"]["photutils 2dg"][r, sel, 0] = pc[:, 0] - tx[sel]
+        acc["err"]["photutils 2dg"][r, sel, 1] = pc[:, 1] - ty[sel]
+
+
+def _summary_row(k, acc, crb, n_true, reps, args):
+    """(method, compl, false, rmse, bias, rmse/crb, sig/rmse, fps, fps*) of one method over the realisations."""
+    nreps = reps if k != "photutils 2dg" else min(reps, args.photutils_reps)
+    e = acc["err"][k][:nreps]
+    sig = acc["sig"]
+    per_star_n = np.isfinite(e[:, :, 0]).sum(axis=0)
+    use = per_star_n >= max(2, nreps // 2)
+    sq = 0.5 * (e[:, :, 0] ** 2 + e[:, :, 1] ** 2)
+    rmse = float(np.sqrt(np.nanmean(sq))) if np.isfinite(sq).any() else np.nan
+    bias = (float(np.nanmean(e[:, :, 0])), float(np.nanmean(e[:, :, 1]))) if np.isfinite(sq).any() else (np.nan, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        star_rmse = np.sqrt(np.nanmean(sq, axis=0))
+        ratio = float(np.nanmedian((star_rmse / crb)[use])) if use.any() else np.nan
+        if k in sig and np.isfinite(sig[k]).any():
+            star_sig = np.sqrt(np.nanmean(sig[k] ** 2, axis=0))
+            sr = float(np.nanmedian((star_sig / star_rmse)[use])) if use.any() else np.nan
+        else:
+            sr = np.nan
+    # frame times: the median over realisations (robust to other load on the machine)
+    td, tp = float(np.median(acc["t_det"])), float(np.median(acc["t_psf"]))
+    if k == "SEP winpos":
+        fps = fps_known = 1.0 / float(np.median(acc["tm"][k]))
+        compl, fal = acc["sep_found"].sum() / (n_true * reps), acc["sep_false"].mean()
+    else:
+        tk = float(np.median(acc["tm"][k]))
+        fps = 1.0 / (td + tp + tk)
+        fps_known = 1.0 / (td + tk)
+        compl, fal = acc["found"].sum() / (n_true * reps), acc["false"].mean()
+    return (k, compl, fal, rmse, bias, ratio, sr, fps, fps_known)
+
+
+def run_regime(name, flux_range, psf, args, rng, artifacts=False):
+    tx, ty, expected, crb = _truth_and_bound(flux_range, psf, args, rng)
     cam = CameraModel(read_noise=RN, gain=GAIN, bias=BIAS, adc_bits=16)
-    crb_x = centroid_crb(flux=tf, psf_sigma=psf, sky=SKY, read_noise=RN, x_phase=tx - np.rint(tx), y_phase=ty - np.rint(ty))
-    crb_y = centroid_crb(flux=tf, psf_sigma=psf, sky=SKY, read_noise=RN, x_phase=ty - np.rint(ty), y_phase=tx - np.rint(tx))
-    crb = np.sqrt(0.5 * (crb_x**2 + crb_y**2))
     reps = args.reps
     keys = [m.value for m in METHODS] + ["SEP winpos"] + (["photutils 2dg"] if args.photutils else [])
-    err = {k: np.full((reps, tx.size, 2), np.nan) for k in keys}
-    sig = {k: np.full((reps, tx.size), np.nan) for k in keys}
-    tm: dict[str, list[float]] = {k: [] for k in keys}
-    t_det: list[float] = []
-    t_psf: list[float] = []
-    found = np.zeros(reps)
-    false = np.zeros(reps)
-    sep_found = np.zeros(reps)
-    sep_false = np.zeros(reps)
+    acc = {
+        "err": {k: np.full((reps, tx.size, 2), np.nan) for k in keys},
+        "sig": {k: np.full((reps, tx.size), np.nan) for k in keys},
+        "tm": {k: [] for k in keys},
+        "t_det": [], "t_psf": [],
+        "found": np.zeros(reps), "false": np.zeros(reps), "sep_found": np.zeros(reps), "sep_false": np.zeros(reps),
+    }
     for r in range(reps):
         exp_r = add_artifacts(expected, rng, 200, 40) if artifacts else expected
-        img = cam.expose(exp_r, rng)
-        t0 = time.perf_counter()
-        det = detect_stars(img)
-        t1 = time.perf_counter()
-        psf_est = estimate_psf_sigma(img, det, gain=GAIN) if det.size else psf
-        t_det.append(t1 - t0)
-        t_psf.append(time.perf_counter() - t1)
-        idx = match(det["x"], det["y"], tx, ty)
-        found[r] = (idx >= 0).sum()
-        false[r] = det.size - (idx >= 0).sum()
-        for m in METHODS:
-            t0 = time.perf_counter()
-            c = measure_centroids(img, det, method=m, gain=GAIN, psf_sigma=psf_est)
-            tm[m.value].append(time.perf_counter() - t0)
-            ok = idx >= 0
-            err[m.value][r, ok, 0] = c["x"][idx[ok]] - tx[ok]
-            err[m.value][r, ok, 1] = c["y"][idx[ok]] - ty[ok]
-            sig[m.value][r, ok] = c["sigma"][idx[ok]]
-        t0 = time.perf_counter()
-        sx, sy = sep_extract(img)
-        tm["SEP winpos"].append(time.perf_counter() - t0)
-        sidx = match(sx, sy, tx, ty)
-        sep_found[r] = (sidx >= 0).sum()
-        sep_false[r] = sx.size - (sidx >= 0).sum()
-        ok = sidx >= 0
-        err["SEP winpos"][r, ok, 0] = sx[sidx[ok]] - tx[ok]
-        err["SEP winpos"][r, ok, 1] = sy[sidx[ok]] - ty[ok]
-        if args.photutils and r < args.photutils_reps:
-            ok = idx >= 0
-            sel = np.flatnonzero(ok)[: args.photutils_stars]
-            t0 = time.perf_counter()
-            pc = photutils_2dg(img, det["x"][idx[sel]], det["y"][idx[sel]], det["background"][idx[sel]], psf)
-            tm["photutils 2dg"].append((time.perf_counter() - t0) * (det.size / max(sel.size, 1)))
-            err["photutils 2dg"][r, sel, 0] = pc[:, 0] - tx[sel]
-            err["photutils 2dg"][r, sel, 1] = pc[:, 1] - ty[sel]
-    rows = []
-    n_true = tx.size
-    for k in keys:
-        e = err[k]
-        nreps = reps if k != "photutils 2dg" else min(reps, args.photutils_reps)
-        e = e[:nreps]
-        per_star_n = np.isfinite(e[:, :, 0]).sum(axis=0)
-        use = per_star_n >= max(2, nreps // 2)
-        sq = 0.5 * (e[:, :, 0] ** 2 + e[:, :, 1] ** 2)
-        rmse = float(np.sqrt(np.nanmean(sq))) if np.isfinite(sq).any() else np.nan
-        bias = (float(np.nanmean(e[:, :, 0])), float(np.nanmean(e[:, :, 1]))) if np.isfinite(sq).any() else (np.nan, np.nan)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            star_rmse = np.sqrt(np.nanmean(sq, axis=0))
-            ratio = float(np.nanmedian((star_rmse / crb)[use])) if use.any() else np.nan
-            if k in sig and np.isfinite(sig[k]).any():
-                star_sig = np.sqrt(np.nanmean(sig[k] ** 2, axis=0))
-                sr = float(np.nanmedian((star_sig / star_rmse)[use])) if use.any() else np.nan
-            else:
-                sr = np.nan
-        # frame times: the median over realisations (robust to other load on the machine)
-        td, tp = float(np.median(t_det)), float(np.median(t_psf))
-        if k == "SEP winpos":
-            fps = fps_known = 1.0 / float(np.median(tm[k]))
-            compl, fal = sep_found.sum() / (n_true * reps), sep_false.mean()
-        else:
-            tk = float(np.median(tm[k]))
-            fps = 1.0 / (td + tp + tk)
-            fps_known = 1.0 / (td + tk)
-            compl, fal = found.sum() / (n_true * reps), false.mean()
-        rows.append((k, compl, fal, rmse, bias, ratio, sr, fps, fps_known))
-    return rows, float(np.median(crb))
+        _measure_frame(cam.expose(exp_r, rng), r, psf, tx, ty, args, acc)
+    return [_summary_row(k, acc, crb, tx.size, reps, args) for k in keys], float(np.median(crb))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,6 +12,7 @@ Coordinates: x = column, y = row, 0-based, (0, 0) at the centre of the top-left 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -52,6 +53,7 @@ benchmark's regimes, ``tools/bench_centroid.py``); ``sigma`` = bound x this fact
 GAUSSFIT takes its sigma from the fit covariance instead."""
 
 _SQUARED_SMOOTH = 0.5
+_GRADIENT_SMOOTH = 0.75
 _REQUIRED = ("star", "x", "y", "background", "noise", "flux", "flags")
 
 
@@ -141,21 +143,132 @@ def estimate_psf_sigma(
     return float(np.median(fit.psf_sigma[good]))
 
 
-def _run(method: CentroidMethod, data: F64, st: Stamps, ctx: dict[str, Any], x0: F64, y0: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
-    if method is CentroidMethod.NONE:
-        return log_parabola_peak(data, st, smooth_sigma=ctx["smooth"])
-    if method is CentroidMethod.MOMENT:
-        return weighted_centroid(
-            data, st, dx0=x0, dy0=y0, flux=ctx["flux"], psf_sigma=ctx["psf"], weighting=ctx["weighting"],
-            iterations=ctx.get("iterations", 10),
-        )
-    if method is CentroidMethod.MOMENT_SQUARED:
-        return squared_centroid(data, st, smooth_sigma=ctx["smooth_squared"])
-    if method is CentroidMethod.BICUBIC:
-        return bicubic_peak(data, st, smooth_sigma=ctx["smooth"])
-    if method is CentroidMethod.GRADIENT:
-        return radial_symmetry_centre(data, st, smooth_sigma=ctx["smooth_gradient"])
-    raise InvalidParameterError(f"no estimator for method {method!r}.")  # pragma: no cover
+@dataclass(frozen=True)
+class _Estimator:
+    """A non-fit method with what it needs besides the windows (one value per star, fixed for a frame).
+
+    ``smooth`` is the noise-optimal smoothing width (:func:`optimal_smoothing`); the radial-
+    symmetry centre and the squared centre of gravity take a narrower one (measured best
+    widths, ``tools/bench_centroid.py``). ``iterations`` bounds MOMENT's re-weighting.
+    """
+
+    method: CentroidMethod
+    flux: F64
+    psf: F64
+    smooth: F64
+    weighting: str
+    iterations: int = 10
+
+    def __call__(self, data: F64, st: Stamps, x0: F64, y0: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+        """Offsets (dx, dy) from the window centres and where they are valid; ``x0, y0``: start (MOMENT)."""
+        method = self.method
+        if method is CentroidMethod.NONE:
+            return log_parabola_peak(data, st, smooth_sigma=self.smooth)
+        if method is CentroidMethod.MOMENT:
+            return weighted_centroid(data, st, dx0=x0, dy0=y0, flux=self.flux, psf_sigma=self.psf,
+                                     weighting=self.weighting, iterations=self.iterations)
+        if method is CentroidMethod.MOMENT_SQUARED:
+            return squared_centroid(data, st, smooth_sigma=_SQUARED_SMOOTH * self.smooth)
+        if method is CentroidMethod.BICUBIC:
+            return bicubic_peak(data, st, smooth_sigma=self.smooth)
+        if method is CentroidMethod.GRADIENT:
+            return radial_symmetry_centre(data, st, smooth_sigma=_GRADIENT_SMOOTH * self.smooth)
+        raise InvalidParameterError(f"no estimator for method {method!r}.")  # pragma: no cover
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """One method's result for every star: offsets from the window centres, flux, errors, fitted background."""
+
+    dx: F64
+    dy: F64
+    ok: npt.NDArray[np.bool_]
+    flux: F64
+    flux_err: F64
+    sigma: F64
+    psf: F64
+    background: F64
+
+
+def _fit(st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, fit_psf_sigma: bool) -> _Measured:
+    """GAUSSFIT: every value from the weighted least-squares fit (sigma from its covariance)."""
+    fit = fit_gaussians(st, dx0, dy0, f0, psf, fit_sigma=fit_psf_sigma)
+    return _Measured(fit.dx, fit.dy, fit.ok, fit.flux, fit.flux_err, fit.sigma, fit.psf_sigma,
+                     np.where(fit.ok, fit.background, 0.0))
+
+
+def _estimate(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,
+              weighting: str, debias: bool) -> _Measured:
+    """A non-fit method, debiased with the star's model; flux from a PSF fit at the centroid."""
+    fm = np.maximum(f0, 0)
+    estimator = _Estimator(meth, fm, psf, optimal_smoothing(fm, st.noise, gain, psf), weighting)
+    # saturated pixels enter the non-fit estimators at their clipped value (and the model
+    # used for debiasing is clipped the same way)
+    se = with_saturated(st)
+    ex, ey, ok = estimator(se.data, se, dx0, dy0)
+    dx, dy = ex.copy(), ey.copy()
+    if debias:
+        on_model = replace(estimator, iterations=4)  # the model's estimate starts next to its fixed point
+        # MOMENT's raw bias is already < 3e-4 px: one pass leaves ~1e-7 px
+        for _ in range(1 if meth is CentroidMethod.MOMENT else 2):
+            mdl = np.minimum(fm[:, None, None] * model(st, dx, dy, psf), se.clip[:, None, None]) * se.valid
+            mx, my, mok = on_model(mdl, se, dx, dy)
+            good = ok & mok & np.isfinite(mx) & np.isfinite(my)
+            dx = np.where(good, dx + (ex - mx), dx)
+            dy = np.where(good, dy + (ey - my), dy)
+    ok &= np.isfinite(dx) & np.isfinite(dy) & (np.abs(dx) < st.h) & (np.abs(dy) < st.h)
+    cx, cy = np.where(ok, dx, dx0), np.where(ok, dy, dy0)
+    flux, ferr = linear_flux(st, model(st, cx, cy, psf), f0, iterations=1)
+    sig = fisher_sigma(st, cx, cy, np.maximum(flux, 0), psf) * EFFICIENCY[meth]
+    return _Measured(dx, dy, ok, flux, ferr, sig, psf, np.zeros_like(flux))
+
+
+def _with_fallback(m: _Measured, st: Stamps, dx0: F64, dy0: F64, f0: F64) -> _Measured:
+    """Failed stars keep the coarse position, a flux fitted there and twice the bound as sigma."""
+    ok = m.ok & np.isfinite(m.dx) & np.isfinite(m.dy)
+    dx, dy = np.where(ok, m.dx, dx0), np.where(ok, m.dy, dy0)
+    flux, ferr, sig = m.flux, m.flux_err, m.sigma
+    if not ok.all():
+        fl2, fe2 = linear_flux(st, model(st, dx, dy, m.psf), np.maximum(f0, 0))
+        flux = np.where(ok, flux, fl2)
+        ferr = np.where(ok, ferr, fe2)
+        sig = np.where(ok, sig, fisher_sigma(st, dx, dy, np.maximum(flux, 0), m.psf) * 2.0)
+    sig = np.where(np.isfinite(sig) & (sig > 0), sig, m.psf)
+    ferr = np.where(np.isfinite(ferr) & (ferr > 0), ferr, np.inf)
+    return replace(m, dx=dx, dy=dy, ok=ok, flux=flux, flux_err=ferr, sigma=sig)
+
+
+def _peak_near(st: Stamps, dx: F64, dy: F64) -> F64:
+    """Highest background-subtracted pixel within one pixel of the centroid (a saturated one at its clipped level)."""
+    n, h = dx.size, st.h
+    ix = np.clip(np.rint(dx).astype(np.intp) + h, 1, 2 * h - 1)
+    iy = np.clip(np.rint(dy).astype(np.intp) + h, 1, 2 * h - 1)
+    ar = np.arange(n)[:, None]
+    d3 = np.arange(-1, 2)
+    sp = with_saturated(st)
+    raw = np.where(sp.valid, sp.data, -np.inf)
+    p3 = raw[ar[:, :, None], (iy[:, None] + d3)[:, :, None], (ix[:, None] + d3)[:, None, :]]
+    peak = p3.reshape(n, -1).max(axis=1)
+    return np.where(np.isfinite(peak), peak, 0.0)
+
+
+def _check_options(method: CentroidMethod | str, gain: float, read_noise: float | None, psf_sigma: float | None,
+                   weighting: str) -> CentroidMethod:
+    try:
+        meth = CentroidMethod(method)
+    except ValueError as err:
+        raise InvalidParameterError(
+            f"unknown centroid method {method!r}; choose one of {[m.value for m in CentroidMethod]}."
+        ) from err
+    if not (gain > 0 and np.isfinite(gain)):
+        raise InvalidParameterError(f"gain must be finite and > 0 (e-/DN), got {gain!r}.")
+    if read_noise is not None and not (read_noise >= 0):
+        raise InvalidParameterError(f"read_noise must be >= 0 e-, got {read_noise!r}.")
+    if psf_sigma is not None and not (psf_sigma > 0 and np.isfinite(psf_sigma)):
+        raise InvalidParameterError(f"psf_sigma must be finite and > 0 px, got {psf_sigma!r}.")
+    if weighting not in ("optimal", "gaussian", "none"):
+        raise InvalidParameterError(f"weighting must be 'optimal', 'gaussian' or 'none', got {weighting!r}.")
+    return meth
 
 
 def measure_centroids(
@@ -209,109 +322,54 @@ def measure_centroids(
     """
     arr = _check_image(image)
     det = _check_detections(detections)
-    try:
-        meth = CentroidMethod(method)
-    except ValueError as err:
-        raise InvalidParameterError(
-            f"unknown centroid method {method!r}; choose one of {[m.value for m in CentroidMethod]}."
-        ) from err
-    if not (gain > 0 and np.isfinite(gain)):
-        raise InvalidParameterError(f"gain must be finite and > 0 (e-/DN), got {gain!r}.")
-    if read_noise is not None and not (read_noise >= 0):
-        raise InvalidParameterError(f"read_noise must be >= 0 e-, got {read_noise!r}.")
-    if psf_sigma is not None and not (psf_sigma > 0 and np.isfinite(psf_sigma)):
-        raise InvalidParameterError(f"psf_sigma must be finite and > 0 px, got {psf_sigma!r}.")
-    if weighting not in ("optimal", "gaussian", "none"):
-        raise InvalidParameterError(f"weighting must be 'optimal', 'gaussian' or 'none', got {weighting!r}.")
+    meth = _check_options(method, gain, read_noise, psf_sigma, weighting)
     n = det.size
     if n == 0:
         return empty_centroids()
-    sat = _default_saturation(arr, saturation)
     psf = float(psf_sigma) if psf_sigma is not None else estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
-    h = _window(psf, window)
+    st = _star_stamps(arr, det, _window(psf, window), gain, read_noise, _default_saturation(arr, saturation))
+    dx0, dy0 = np.asarray(det["x"], np.float64) - st.xc, np.asarray(det["y"], np.float64) - st.yc
+    psf_arr = np.full(n, psf)
+    f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64), iterations=1)
+    if meth is CentroidMethod.GAUSSFIT:
+        measured = _fit(st, dx0, dy0, f0, psf_arr, fit_psf_sigma)
+    else:
+        measured = _estimate(meth, st, dx0, dy0, f0, psf_arr, gain=gain, weighting=weighting, debias=debias)
+    return _centroid_table(det, st, _with_fallback(measured, st, dx0, dy0, f0))
+
+
+def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: float, read_noise: float | None,
+                 saturation: float) -> Stamps:
+    """Windows of half-size ``h`` around the detections, with their background and noise (read-noise floor)."""
     noise = np.asarray(det["noise"], np.float64)
     if read_noise is not None:
         noise = np.maximum(noise, read_noise / gain)
     noise = np.where(np.isfinite(noise) & (noise > 0), noise, 1.0)
     bg = np.asarray(det["background"], np.float64)
-    x_det = np.asarray(det["x"], np.float64)
-    y_det = np.asarray(det["y"], np.float64)
-    st = gather_stamps(arr, x_det, y_det, h, np.where(np.isfinite(bg), bg, 0.0), noise, gain, sat)
-    dx0, dy0 = x_det - st.xc, y_det - st.yc
-    psf_arr = np.full(n, psf)
-    f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64), iterations=1)
-    bkg = bg.copy()
-    if meth is CentroidMethod.GAUSSFIT:
-        fit = fit_gaussians(st, dx0, dy0, f0, psf_arr, fit_sigma=fit_psf_sigma)
-        dx, dy, ok = fit.dx, fit.dy, fit.ok
-        flux, ferr, sig = fit.flux, fit.flux_err, fit.sigma
-        psf_arr = fit.psf_sigma
-        bkg = bg + np.where(ok, fit.background, 0.0)
-    else:
-        ctx: dict[str, Any] = {"flux": np.maximum(f0, 0), "psf": psf_arr, "weighting": weighting}
-        sm = optimal_smoothing(np.maximum(f0, 0), noise, gain, psf_arr)
-        ctx["smooth"] = sm
-        # measured best widths (tools/bench_centroid.py): the radial-symmetry centre wants a
-        # slightly narrower smoothing than the peak-finding methods
-        ctx["smooth_gradient"] = 0.75 * sm
-        ctx["smooth_squared"] = _SQUARED_SMOOTH * sm
-        # saturated pixels enter the non-fit estimators at their clipped value (and the model
-        # used for debiasing is clipped the same way)
-        se = with_saturated(st)
-        ex, ey, ok = _run(meth, se.data, se, ctx, dx0, dy0)
-        dx, dy = ex.copy(), ey.copy()
-        if debias:
-            fm = np.maximum(f0, 0)
-            ctx["iterations"] = 4  # the model's estimate starts next to its fixed point
-            # MOMENT's raw bias is already < 3e-4 px: one pass leaves ~1e-7 px
-            for _ in range(1 if meth is CentroidMethod.MOMENT else 2):
-                mdl = np.minimum(fm[:, None, None] * model(st, dx, dy, psf_arr), se.clip[:, None, None]) * se.valid
-                mx, my, mok = _run(meth, mdl, se, ctx, dx, dy)
-                good = ok & mok & np.isfinite(mx) & np.isfinite(my)
-                dx = np.where(good, dx + (ex - mx), dx)
-                dy = np.where(good, dy + (ey - my), dy)
-        ok &= np.isfinite(dx) & np.isfinite(dy) & (np.abs(dx) < h) & (np.abs(dy) < h)
-        flux, ferr = linear_flux(st, model(st, np.where(ok, dx, dx0), np.where(ok, dy, dy0), psf_arr), f0, iterations=1)
-        sig = fisher_sigma(st, np.where(ok, dx, dx0), np.where(ok, dy, dy0), np.maximum(flux, 0), psf_arr) * EFFICIENCY[meth]
-    ok &= np.isfinite(dx) & np.isfinite(dy)
-    dx = np.where(ok, dx, dx0)
-    dy = np.where(ok, dy, dy0)
-    if not ok.all():
-        fl2, fe2 = linear_flux(st, model(st, dx, dy, psf_arr), np.maximum(f0, 0))
-        flux = np.where(ok, flux, fl2)
-        ferr = np.where(ok, ferr, fe2)
-        sig_fb = fisher_sigma(st, dx, dy, np.maximum(flux, 0), psf_arr) * 2.0
-        sig = np.where(ok, sig, sig_fb)
-    sig = np.where(np.isfinite(sig) & (sig > 0), sig, psf_arr)
-    ferr = np.where(np.isfinite(ferr) & (ferr > 0), ferr, np.inf)
-    snr = np.where(np.isfinite(ferr), flux / ferr, 0.0)
-    # peak: highest background-subtracted pixel within one pixel of the centroid
-    ix = np.clip(np.rint(dx).astype(np.intp) + h, 1, 2 * h - 1)
-    iy = np.clip(np.rint(dy).astype(np.intp) + h, 1, 2 * h - 1)
-    ar = np.arange(n)[:, None]
-    d3 = np.arange(-1, 2)
-    sp = with_saturated(st)  # a saturated star's peak is its clipped level
-    raw = np.where(sp.valid, sp.data, -np.inf)
-    p3 = raw[ar[:, :, None], (iy[:, None] + d3)[:, :, None], (ix[:, None] + d3)[:, None, :]]
-    peak = p3.reshape(n, -1).max(axis=1)
-    peak = np.where(np.isfinite(peak), peak, 0.0)
+    return gather_stamps(arr, np.asarray(det["x"], np.float64), np.asarray(det["y"], np.float64), h,
+                         np.where(np.isfinite(bg), bg, 0.0), noise, gain, saturation)
+
+
+def _centroid_table(det: npt.NDArray[Any], st: Stamps, m: _Measured) -> npt.NDArray[np.void]:
+    """The CENTROID_DTYPE rows: positions, flux, SNR, sigma, peak, background and flags."""
+    snr = np.where(np.isfinite(m.flux_err), m.flux / m.flux_err, 0.0)
     flags = np.asarray(det["flags"], np.uint16).copy()
     flags &= np.uint16(~int(CentroidFlag.FIT_FAILED | CentroidFlag.LOW_SNR) & 0xFFFF)
     flags[st.saturated] |= np.uint16(CentroidFlag.SATURATED)
     flags[st.cut] |= np.uint16(CentroidFlag.BORDER)
     flags[st.masked] |= np.uint16(CentroidFlag.MASKED)
-    flags[~ok] |= np.uint16(CentroidFlag.FIT_FAILED)
+    flags[~m.ok] |= np.uint16(CentroidFlag.FIT_FAILED)
     flags[snr < 5.0] |= np.uint16(CentroidFlag.LOW_SNR)
-    out = np.zeros(n, dtype=CENTROID_DTYPE)
+    out = np.zeros(det.size, dtype=CENTROID_DTYPE)
     out["star"] = det["star"]
-    out["x"] = st.xc + dx
-    out["y"] = st.yc + dy
-    out["flux"] = flux
+    out["x"] = st.xc + m.dx
+    out["y"] = st.yc + m.dy
+    out["flux"] = m.flux
     out["snr"] = snr
-    out["sigma"] = sig
-    out["peak"] = peak
-    out["background"] = bkg
-    out["psf_sigma"] = psf_arr
+    out["sigma"] = m.sigma
+    out["peak"] = _peak_near(st, m.dx, m.dy)
+    out["background"] = np.asarray(det["background"], np.float64) + m.background
+    out["psf_sigma"] = m.psf
     out["flags"] = flags
     return out
 

@@ -19,10 +19,13 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import median_filter, uniform_filter
+from scipy.special import erf
 
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = ["Background", "estimate_background"]
+
+F64 = npt.NDArray[np.float64]
 
 
 def _interp_weights(c: npt.NDArray[np.float64], n: int, mesh: int, extrapolate: bool) -> npt.NDArray[np.float32]:
@@ -112,7 +115,8 @@ class Background:
         """Background noise (1 sigma) per pixel, DN (computed on each access)."""
         return self.map(self.mesh_noise, extrapolate=False)
 
-    def _interp(self, grid: npt.NDArray[np.float32], x: npt.ArrayLike, y: npt.ArrayLike, extrapolate: bool) -> npt.NDArray[np.float64]:
+    def _interp(self, grid: npt.NDArray[np.float32], x: npt.ArrayLike, y: npt.ArrayLike,
+                extrapolate: bool) -> npt.NDArray[np.float64]:
         xs = np.asarray(x, np.float64)
         ys = np.asarray(y, np.float64)
         ny, nx = grid.shape
@@ -142,6 +146,60 @@ def _cells(img: npt.NDArray[np.float32], mesh: int, sub: int) -> tuple[npt.NDArr
         s = np.pad(s, ((0, py), (0, px)), constant_values=np.nan)
     cells = s.reshape(ny, m, nx, m).transpose(0, 2, 1, 3).reshape(ny * nx, m * m)
     return cells, ny, nx
+
+
+def _robust_start(cells: npt.NDArray[np.float32]) -> tuple[F64, F64, npt.NDArray[np.float32]]:
+    """Per cell: median, robust sigma (median - 15.9th percentile: the lower half of the
+    distribution is free of stars) and the values with non-finite ones as NaN."""
+    finite = np.isfinite(cells)
+    if finite.all():
+        npx = cells.shape[1]
+        k16, k50 = int(0.15865 * (npx - 1)), (npx - 1) // 2
+        ordered = np.sort(cells, axis=1)  # a vectorised sort beats a per-cell partition many times over
+        med, q = ordered[:, k50], ordered[:, k16]
+        vals = cells
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(cells, axis=1)
+            q = np.nanpercentile(cells, 15.865, axis=1)
+        vals = np.where(finite, cells, np.float32(np.nan))
+    return med.astype(np.float64), (med - q).astype(np.float64), vals
+
+
+def _fit_planes(vals: npt.NDArray[np.float32], med: F64, sig: F64, iterations: int,
+                clip_sigma: float) -> tuple[F64, F64, F64, F64]:
+    """Sigma-clipped plane (level + x, y slopes) per cell, so that gradients and vignetting do
+    not inflate the noise: level, slopes and residual sigma (not yet corrected for clipping)."""
+    m = int(round(np.sqrt(vals.shape[1])))
+    cx = np.tile(np.arange(m, dtype=np.float32) - (m - 1) / 2, m)
+    cy = np.repeat(np.arange(m, dtype=np.float32) - (m - 1) / 2, m)
+    bx = np.zeros_like(med)
+    by = np.zeros_like(med)
+    cx2, cy2 = cx * cx, cy * cy
+    for _ in range(iterations):
+        plane = (med.astype(np.float32)[:, None] + bx.astype(np.float32)[:, None] * cx
+                 + by.astype(np.float32)[:, None] * cy)
+        resid = vals - plane
+        lim = (clip_sigma * np.maximum(sig, 1e-12)).astype(np.float32)[:, None]
+        keep = (np.abs(resid) <= lim).astype(np.float32)  # NaN compares False
+        v0 = np.where(keep > 0, resid, np.float32(0))
+        n = keep.sum(axis=1, dtype=np.float64)
+        with np.errstate(all="ignore"):
+            d0 = v0.sum(axis=1, dtype=np.float64) / n
+            sxx = (keep @ cx2).astype(np.float64)
+            syy = (keep @ cy2).astype(np.float64)
+            dbx = (v0 @ cx).astype(np.float64) / sxx
+            dby = (v0 @ cy).astype(np.float64) / syy
+            s2 = np.einsum("ij,ij->i", v0, v0, dtype=np.float64)
+            # residual variance about the refitted plane (x, y nearly orthogonal in a cell)
+            var = (s2 - n * d0**2 - dbx**2 * sxx - dby**2 * syy) / np.maximum(n - 3, 1)
+        good = (n >= 8) & np.isfinite(d0) & np.isfinite(dbx) & np.isfinite(dby) & (var > 0)
+        med = np.where(good, med + d0, med)
+        bx = np.where(good, bx + dbx, bx)
+        by = np.where(good, by + dby, by)
+        sig = np.where(good, np.sqrt(np.where(good, var, 1.0)), sig)
+    return med, bx, by, sig
 
 
 def estimate_background(
@@ -198,63 +256,28 @@ def estimate_background(
     mesh = min(mesh, max(8, subsample * -(-max(img.shape) // subsample)))
     mesh = -(-mesh // subsample) * subsample
     cells, ny, nx = _cells(img, mesh, subsample)
-    finite = np.isfinite(cells)
-    if finite.all():
-        npx = cells.shape[1]
-        k16, k50 = int(0.15865 * (npx - 1)), (npx - 1) // 2
-        part = np.partition(cells, [k16, k50], axis=1)
-        med, q = part[:, k50], part[:, k16]
-    else:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(cells, axis=1)
-            q = np.nanpercentile(cells, 15.865, axis=1)
-    # the lower half of the distribution is free of stars: its width is a robust sigma
-    sig = (med - q).astype(np.float64)
-    med = med.astype(np.float64)
-    vals = np.where(finite, cells, np.float32(np.nan)) if not finite.all() else cells
-    # a plane per cell (level + slopes) so that gradients and vignetting do not inflate the noise
-    m = int(round(np.sqrt(cells.shape[1])))
-    cx = np.tile(np.arange(m, dtype=np.float32) - (m - 1) / 2, m)
-    cy = np.repeat(np.arange(m, dtype=np.float32) - (m - 1) / 2, m)
-    bx = np.zeros_like(med)
-    by = np.zeros_like(med)
-    cx2, cy2 = cx * cx, cy * cy
-    for _ in range(iterations):
-        plane = med.astype(np.float32)[:, None] + bx.astype(np.float32)[:, None] * cx + by.astype(np.float32)[:, None] * cy
-        resid = vals - plane
-        lim = (clip_sigma * np.maximum(sig, 1e-12)).astype(np.float32)[:, None]
-        keep = (np.abs(resid) <= lim).astype(np.float32)  # NaN compares False
-        v0 = np.where(keep > 0, resid, np.float32(0))
-        n = keep.sum(axis=1, dtype=np.float64)
-        with np.errstate(all="ignore"):
-            d0 = v0.sum(axis=1, dtype=np.float64) / n
-            sxx = (keep @ cx2).astype(np.float64)
-            syy = (keep @ cy2).astype(np.float64)
-            dbx = (v0 @ cx).astype(np.float64) / sxx
-            dby = (v0 @ cy).astype(np.float64) / syy
-            s2 = np.einsum("ij,ij->i", v0, v0, dtype=np.float64)
-            # residual variance about the refitted plane (x, y nearly orthogonal in a cell)
-            var = (s2 - n * d0**2 - dbx**2 * sxx - dby**2 * syy) / np.maximum(n - 3, 1)
-        good = (n >= 8) & np.isfinite(d0) & np.isfinite(dbx) & np.isfinite(dby) & (var > 0)
-        med = np.where(good, med + d0, med)
-        bx = np.where(good, bx + dbx, bx)
-        by = np.where(good, by + dby, by)
-        # clipping at +-k sigma removes the tails of a Gaussian: corrected below
-        sig = np.where(good, np.sqrt(np.where(good, var, 1.0)), sig)
+    med, sig, vals = _robust_start(cells)
+    med, bx, by, sig = _fit_planes(vals, med, sig, iterations, clip_sigma)
     # the sub-sampled pixels are centred (m-1)/2 samples from the cell's corner, not on the
     # cell's centre: move the fitted plane's level to the true cell centre
+    m = int(round(np.sqrt(cells.shape[1])))
     delta = ((mesh - 1) / 2.0 - subsample * (m - 1) / 2.0) / subsample
     med = med + (bx + by) * delta
-    from scipy.special import erf
-
+    # clipping at +-k sigma removes the tails of a Gaussian
     k = clip_sigma
     trunc = np.sqrt(1.0 - 2.0 * k * np.exp(-0.5 * k * k) / np.sqrt(2 * np.pi) / erf(k / np.sqrt(2)))
     sig = sig / trunc
-    level_grid = med.reshape(ny, nx)
-    noise_grid = sig.reshape(ny, nx)
-    ok = np.isfinite(level_grid) & np.isfinite(noise_grid)
     shape = (int(arr.shape[0]), int(arr.shape[1]))
+    return _background(med.reshape(ny, nx), sig.reshape(ny, nx), mesh, shape, filter_size,
+                       min_noise if min_noise is not None else (1.0 / np.sqrt(12.0) if integer else None))
+
+
+def _background(level_grid: F64, noise_grid: F64, mesh: int, shape: tuple[int, int], filter_size: int,
+                min_noise: float | None) -> Background:
+    """The Background of the cell grids: failed cells filled by the median, optional median
+    filter, 3x3 mean of the noise, noise floor (``None``: ``1e-6 * max(1, |level|)``)."""
+    ny, nx = level_grid.shape
+    ok = np.isfinite(level_grid) & np.isfinite(noise_grid)
     if not ok.any():
         g = np.full((ny, nx), np.nan, dtype=np.float32)
         return Background(g, g.copy(), mesh, shape, float("nan"), float("nan"))
@@ -268,7 +291,7 @@ def estimate_background(
     noise_grid = uniform_filter(noise_grid, size=3, mode="nearest") if min(ny, nx) >= 3 else noise_grid
     glevel = float(np.median(level_grid))
     if min_noise is None:
-        min_noise = 1.0 / np.sqrt(12.0) if integer else 1e-6 * max(1.0, abs(glevel))
+        min_noise = 1e-6 * max(1.0, abs(glevel))
     noise_grid = np.maximum(noise_grid, min_noise)
     lg = level_grid.astype(np.float32)
     ng = noise_grid.astype(np.float32)
