@@ -189,6 +189,33 @@ def _resync(f: BinaryIO, start: int, size: int, hints: list[int]) -> int | None:
     return None
 
 
+def _replay_chunk(stream: ReadDataStream, length: int, offset: int, report: RecoveryReport,
+                  rebuild: _Rebuilder) -> LostChunk | None:
+    """Hand the records of the chunk record at ``offset`` to ``rebuild``; a damaged chunk is reported lost.
+
+    Returns the :class:`LostChunk` (its message index records that follow then name what it held).
+    """
+    chunk = Chunk.read(stream)
+    if stream.count != length:
+        raise ValueError(f"its fields take {stream.count} bytes, its record {length}")
+    try:
+        if chunk.compression not in ("", "zstd", "lz4"):
+            raise ValueError(f"unknown compression {chunk.compression!r}")
+        records = breakup_chunk(chunk, validate_crc=True)
+    except Exception as err:  # CRC mismatch, damaged compressed data, bad inner record
+        lost = LostChunk(offset, f"{type(err).__name__}: {err}", chunk.message_start_time, chunk.message_end_time)
+        report.lost_chunks.append(lost)
+        return lost
+    for record in records:
+        if isinstance(record, Schema):
+            rebuild.schema(record)
+        elif isinstance(record, Channel):
+            rebuild.channel(record)
+        elif isinstance(record, Message):
+            rebuild.message(record)
+    return None
+
+
 def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebuilder,
                   hints: list[int] | None = None) -> None:
     offset = len(MCAP_MAGIC)
@@ -217,26 +244,7 @@ def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebu
                 elif opcode == Opcode.MESSAGE:
                     rebuild.message(Message.read(stream, length))
                 elif opcode == Opcode.CHUNK:
-                    chunk = Chunk.read(stream)
-                    if stream.count != length:
-                        raise ValueError(f"its fields take {stream.count} bytes, its record {length}")
-                    pending_lost = None
-                    try:
-                        if chunk.compression not in ("", "zstd", "lz4"):
-                            raise ValueError(f"unknown compression {chunk.compression!r}")
-                        records = breakup_chunk(chunk, validate_crc=True)
-                    except Exception as err:  # CRC mismatch, damaged compressed data, bad inner record
-                        pending_lost = LostChunk(offset, f"{type(err).__name__}: {err}", chunk.message_start_time,
-                                                 chunk.message_end_time)
-                        report.lost_chunks.append(pending_lost)
-                    else:
-                        for record in records:
-                            if isinstance(record, Schema):
-                                rebuild.schema(record)
-                            elif isinstance(record, Channel):
-                                rebuild.channel(record)
-                            elif isinstance(record, Message):
-                                rebuild.message(record)
+                    pending_lost = _replay_chunk(stream, length, offset, report, rebuild)
                 elif opcode == Opcode.MESSAGE_INDEX:
                     if pending_lost is not None:
                         index = MessageIndex.read(stream)
