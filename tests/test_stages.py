@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import jsonschema
 import numpy as np
@@ -301,3 +302,27 @@ def test_paper_claim_holds_under_its_protocol_and_honest_figures_are_reported(pi
         else:
             assert set(figures) == {"heldout_mean", "truth_fixed", "truth_series"}
         assert all(np.isfinite([f["rmse_before"], f["rmse_after"]]).all() for f in figures.values())
+
+
+@pytest.mark.parametrize("stage", ["track", "compensate", "motion"])
+def test_stage_refuses_to_read_fewer_messages_than_the_channel_holds(
+        pipeline_logs: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, stage: str) -> None:
+    """When the statistics promise more messages than the reader delivers, the stage says so and fails."""
+    import dataclasses
+
+    real_channel = LogReader.channel
+    source = {"track": "/stars/centroids/GAUSSFIT", "compensate": "/track/GAUSSFIT/STATIC",
+              "motion": "/track/GAUSSFIT/STATIC"}[stage]
+
+    def inflated(self: LogReader, topic: str) -> Any:
+        found = real_channel(self, topic)
+        return dataclasses.replace(found, message_count=found.message_count + 1) if topic == source else found
+
+    monkeypatch.setattr(LogReader, "channel", inflated)
+    args = {"track": ["--centroids", "GAUSSFIT", "--model", "STATIC"],
+            "compensate": ["--track", "GAUSSFIT/STATIC", "--rate", "50", "--protocol", "paper"],
+            "motion": ["--track", "GAUSSFIT/STATIC"]}[stage]
+    log = pipeline_logs["cen" if stage == "track" else "trk"]
+    result = CliRunner().invoke(cli, [stage, str(log), "-o", str(tmp_path / "o.mcap"), *args])
+    assert result.exit_code == 1 and "were read but the channel holds" in result.output, result.output
+    assert not (tmp_path / "o.mcap").exists()

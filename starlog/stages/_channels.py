@@ -1,13 +1,13 @@
-"""Choosing the track channels a stage reads (``--track``)."""
+"""Choosing the channels a stage reads (``--track``), and checking it read every message of them."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-from starlog.errors import ChannelNotFoundError, InvalidInputError, InvalidParameterError
+from starlog.errors import ChannelNotFoundError, CorruptLogError, InvalidInputError, InvalidParameterError
 from starlog.io.reader import ChannelSummary, LogReader
 
-__all__ = ["select_track_channels"]
+__all__ = ["check_messages_read", "select_track_channels"]
 
 
 def select_track_channels(log: LogReader, track: str | Sequence[str] | None) -> list[ChannelSummary]:
@@ -33,3 +33,17 @@ def select_track_channels(log: LogReader, track: str | Sequence[str] | None) -> 
             raise ChannelNotFoundError(log.path, topic, list(by_topic))
         chosen.append(by_topic[topic])
     return chosen
+
+
+def check_messages_read(log: LogReader, topic: str, read: int, *, what: str = "messages") -> int:
+    """The channel's message count (from the log's statistics), when ``read`` accounts for all of them.
+
+    A stage never processes fewer messages than the channel holds without saying so: a mismatch
+    means the log's indexes disagree with its contents, and is an error.
+    """
+    held = log.channel(topic).message_count
+    if read != held:
+        raise CorruptLogError(
+            log.path, f"{read} {what} of {topic!r} were read but the channel holds {held} messages (by its "
+            f"statistics): the log's indexes disagree with its contents. Check it with: starlog verify {log.path}")
+    return held

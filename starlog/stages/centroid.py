@@ -29,11 +29,12 @@ import numpy.typing as npt
 
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars
 from starlog.detect import detect_stars
-from starlog.errors import CorruptLogError, InvalidParameterError
+from starlog.errors import InvalidParameterError
 from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader
+from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._stage import extend_log
@@ -203,12 +204,7 @@ def centroid_log(
 
 def _check_frame_count(log: LogReader, topic: str, summary: CentroidSummary) -> None:
     """Frames read plus frames skipped (each named) must be every message of the channel."""
-    read = summary.frames + len(summary.skipped)
-    if read != summary.channel_messages:
-        raise CorruptLogError(
-            log.path, f"{read} frames of {topic!r} were read but the channel holds {summary.channel_messages} "
-            f"messages (by its statistics): the log's indexes disagree with its contents. Check it with: "
-            f"starlog verify {log.path}")
+    check_messages_read(log, topic, summary.frames + len(summary.skipped), what="frames")
 
 
 def _log_psf_sigma(log: LogReader, topic: str, *, gain: float, detect_options: dict[str, Any] | None,

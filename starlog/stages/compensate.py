@@ -48,7 +48,7 @@ from starlog.io.reader import ChannelSummary, LogReader
 from starlog.motion import star_reference
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
-from starlog.stages._channels import select_track_channels
+from starlog.stages._channels import check_messages_read, select_track_channels
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.motion import estimate_track_motion
 
@@ -98,7 +98,9 @@ def read_brightest_series(log: LogReader, topic: str, *, truth_cache: dict[int, 
     times, frames, xy, flux, sigma = [], [], [], [], []
     method = model = ""
     track_id = -1
+    read = 0
     for message in log.messages(topic):
+        read += 1
         msg = message.payload
         method, model = msg["method"], msg["model"]
         for row in msg["tracks"]:
@@ -109,6 +111,7 @@ def read_brightest_series(log: LogReader, topic: str, *, truth_cache: dict[int, 
                 xy.append((row["x"], row["y"]))
                 flux.append(row["flux"])
                 sigma.append(row["meas_sigma"])
+    check_messages_read(log, topic, read)
     if not times:
         raise InvalidInputError(f"{topic} has no row of a brightest track; nothing to compensate.")
     t = np.asarray(times, dtype=np.int64)

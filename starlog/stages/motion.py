@@ -29,7 +29,7 @@ from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import LogReader
 from starlog.motion import Observations, PlatformEstimate, PlatformModel, estimate_platform
-from starlog.stages._channels import select_track_channels
+from starlog.stages._channels import check_messages_read, select_track_channels
 from starlog.stages._stage import StageOutput, extend_log
 
 __all__ = ["MotionSummary", "TrackObservations", "image_centre", "motion_log", "read_track_observations",
@@ -73,6 +73,7 @@ def read_track_observations(log: LogReader, topic: str) -> TrackObservations:
             raise InvalidInputError(f"{topic} at log_time {message.log_time}: not a starlog.Tracks message ({err!r}); "
                                     "`starlog verify` lists every problem of the log.") from err
         times.append(message.log_time)
+    check_messages_read(log, topic, len(times))
     if not rows:
         raise InvalidInputError(f"{topic} has no associated measurement; nothing to fit.")
     table = np.asarray(rows, dtype=np.float64)

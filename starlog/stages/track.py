@@ -34,6 +34,7 @@ import numpy as np
 from starlog.errors import InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import LogReader
+from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._spool import Spool, opened, read_block, read_blocks, write_block
@@ -72,6 +73,7 @@ class TrackSummary:
 
     method: str
     frames: int = 0
+    channel_messages: int = 0
     brightest: dict[str, int] = field(default_factory=dict)
     tracks: dict[str, int] = field(default_factory=dict)
     confirmed: dict[str, int] = field(default_factory=dict)
@@ -82,6 +84,7 @@ class TrackSummary:
         return {
             "method": self.method,
             "frames": self.frames,
+            "channel_messages": self.channel_messages,
             "models": {
                 model: {
                     "brightest_track": self.brightest[model],
@@ -318,6 +321,7 @@ def track_log(
             _spools(chosen, Path(output_path), shared=processes > 1) as spools, \
             (process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else nullcontext()) as pool:
         summary.frames = _spool_centroids(log, source, spools.centroids, show_progress=show_progress)
+        summary.channel_messages = check_messages_read(log, source, summary.frames)
         runs = _track_models(configs, source, spools, pool)
         _write_tracks(out, runs, method, summary.frames, pool, show_progress=show_progress)
     for m, run in runs.items():
