@@ -75,7 +75,10 @@ def dask_client(*, scheduler: str | None, workers: int) -> Iterator[Any]:
         return
     if workers < 1:
         raise InvalidParameterError(f"workers must be >= 1, got {workers}.")
+    # No dashboard, and the scheduler's HTTP server (metrics) on a free loopback port, not 8787:
+    # two runs on one machine must not collide.
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                           scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
                            silence_logs=logging.ERROR)
     client = Client(cluster)
     try:
