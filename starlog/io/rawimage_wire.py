@@ -90,7 +90,7 @@ def _skip(buf: memoryview, pos: int, end: int, wire_type: int) -> int:
     return pos
 
 
-def _fields(buf: memoryview, pos: int, end: int) -> tuple[int, int, int, int]:
+def _next_field(buf: memoryview, pos: int, end: int) -> tuple[int, int, int, int]:
     """``(field number, wire type, value start, value end)`` of the next field; for a varint, the value itself
     is returned in place of the value start."""
     tag, after = _varint(buf, pos, end)
@@ -112,7 +112,7 @@ def _fields(buf: memoryview, pos: int, end: int) -> tuple[int, int, int, int]:
 def _timestamp(buf: memoryview, pos: int, end: int, seconds: int, nanos: int) -> tuple[int, int]:
     """Merge one occurrence of the ``timestamp`` submessage into ``(seconds, nanos)``."""
     while pos < end:
-        number, wire_type, start, pos = _fields(buf, pos, end)
+        number, wire_type, start, pos = _next_field(buf, pos, end)
         if number in (1, 2):
             if wire_type != _VARINT:
                 raise _Unusual
@@ -144,7 +144,7 @@ def parse_raw_image(data: bytes | memoryview) -> RawImageFields | None:
     pos, end = 0, len(buf)
     try:
         while pos < end:
-            number, wire_type, start, pos = _fields(buf, pos, end)
+            number, wire_type, start, pos = _next_field(buf, pos, end)
             expected = _WIRE_TYPE.get(number)
             if expected is None:
                 continue

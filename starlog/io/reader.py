@@ -104,7 +104,8 @@ class ChannelSummary:
 
 @dataclass(frozen=True)
 class DecodedMessage:
-    """A message and its decoded payload: a dict (JSON), a 2-D array (RawImage) or a protobuf object."""
+    """A message and its decoded payload: a dict (JSON), a 2-D array (an image; read-only when it is a view of
+    the log's bytes) or a protobuf object."""
 
     topic: str
     log_time: int
