@@ -27,13 +27,13 @@ class MessageSource(Protocol):
 
     path: Path
 
-    def raw_messages(self, topics: Iterable[str], *, start: int | None = None,
-                     end: int | None = None) -> Iterator[tuple[Schema | None, Channel, Message]]: ...
+    def raw_messages(self, topics: Iterable[str], *, start: int | None = None, end: int | None = None,
+                     views: bool = False) -> Iterator[tuple[Schema | None, Channel, Message]]: ...
 
     def add_note(self, note: str) -> None: ...
 
 
-_IMAGE_DECODERS: dict[tuple[str, str, str, bytes], Callable[[bytes], DecodedImage] | None] = {}
+_IMAGE_DECODERS: dict[tuple[str, str, str, bytes], Callable[[bytes | memoryview], DecodedImage] | None] = {}
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,8 @@ class SkippedFrame:
         return {"index": self.index, "log_time": self.log_time, "reason": self.reason}
 
 
-def cached_image_decoder(schema: Schema | None, message_encoding: str) -> Callable[[bytes], DecodedImage] | None:
+def cached_image_decoder(schema: Schema | None, message_encoding: str
+                         ) -> Callable[[bytes | memoryview], DecodedImage] | None:
     """:func:`~starlog.io.images.image_decoder`, built once per schema (process-wide).
 
     Raises :class:`InvalidInputError` when the schema itself cannot be parsed.
@@ -75,7 +76,8 @@ def cached_image_decoder(schema: Schema | None, message_encoding: str) -> Callab
     return _IMAGE_DECODERS[key]
 
 
-def decode_image_message(schema: Schema | None, message_encoding: str, data: bytes) -> DecodedImage | None:
+def decode_image_message(schema: Schema | None, message_encoding: str, data: bytes | memoryview
+                         ) -> DecodedImage | None:
     """Decode one message of an image channel (None when the schema is no image type starlog reads).
 
     Raises :class:`InvalidInputError` when the bytes (or the schema) do not decode.
@@ -92,12 +94,13 @@ def iter_frames(log: MessageSource, topic: str, *, start: int | None = None, end
     does not come strictly after the previous one raises :class:`MessageDecodeError` /
     :class:`InvalidMessageError` naming it; with ``on_bad`` it is handed to ``on_bad`` instead
     and left out (its index stays taken, so frame numbers do not depend on what was skipped).
+    An image may be a read-only view of the log's bytes (:mod:`starlog.io.images`): copy it to write into it.
     """
     first: tuple[tuple[int, ...], np.dtype[Any], int] | None = None
     last = -1
     index = first_index - 1
-    decoders: dict[int, Callable[[bytes], DecodedImage] | None] = {}
-    for schema, channel, message in log.raw_messages([topic], start=start, end=end):
+    decoders: dict[int, Callable[[bytes | memoryview], DecodedImage] | None] = {}
+    for schema, channel, message in log.raw_messages([topic], start=start, end=end, views=True):
         index += 1
         t = message.log_time
         try:
@@ -140,7 +143,7 @@ def stamp_disagreement(log: MessageSource, topic: str, *, sample: int = 64) -> s
     """
     times: list[int] = []
     offsets: list[int] = []
-    for schema, channel, message in log.raw_messages([topic]):
+    for schema, channel, message in log.raw_messages([topic], views=True):
         if len(times) >= sample:
             break
         try:

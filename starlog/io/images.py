@@ -3,7 +3,7 @@
 Image types read (schema name → how):
 
 =====================================  ==========  ===========================================
-``foxglove.RawImage``                  protobuf    compiled foxglove classes; also ``json``
+``foxglove.RawImage``                  protobuf    wire format read directly; also ``json``
 ``foxglove.CompressedImage``           protobuf    PNG / JPEG / TIFF via OpenCV; also ``json``
 ``sensor_msgs/msg/Image``              cdr         ROS 2, via mcap-ros2-support
 ``sensor_msgs/msg/CompressedImage``    cdr         ROS 2
@@ -15,6 +15,8 @@ Pixel encodings: ``mono8``, ``mono16``, ``8UC1``, ``16UC1`` (big-endian when a R
 ``is_bigendian``), ``rgb8``/``bgr8``/``rgba8``/``bgra8`` (and their 16-bit forms) converted to
 luma, and the Bayer patterns ``bayer_{rggb,bggr,gbrg,grbg}{8,16}`` demosaiced to grey by
 OpenCV. A colour frame turned into mono carries a one-line note (:attr:`DecodedImage.note`).
+A mono frame without row padding is a read-only view of the message's bytes (no copy); no
+stage writes into a frame it reads.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from mcap.records import Schema
 from starlog.errors import ChannelNotFoundError, InvalidInputError, InvalidParameterError
 from starlog.io.foreign import message_decoder
 from starlog.io.messages import decode_json
+from starlog.io.rawimage_wire import parse_raw_image
 
 __all__ = [
     "IMAGE_SCHEMAS",
@@ -91,6 +94,8 @@ def pixels_to_mono(data: bytes | memoryview, width: int, height: int, step: int,
                    big_endian: bool = False) -> tuple[npt.NDArray[Any], str | None]:
     """Raw pixel rows → 2-D native-endian uint8/uint16 array and a note if converted.
 
+    Mono rows without padding in the machine's byte order come back as a view of ``data``
+    (read-only when ``data`` is); every other layout as a new array.
     Raises :class:`InvalidInputError` for an unsupported encoding or a geometry that does not fit the data.
     """
     key = encoding.lower()
@@ -118,6 +123,8 @@ def pixels_to_mono(data: bytes | memoryview, width: int, height: int, step: int,
         raise InvalidInputError(f"image data has {len(data)} bytes, expected step × height = {step} × {height}"
                                 f" = {step * height}.")
     dtype = np.dtype(">u2" if big_endian else "<u2") if depth == 2 else np.dtype("u1")
+    if channels == 1 and bayer is None and step == row_bytes and dtype.isnative:
+        return np.frombuffer(data, dtype=dtype).reshape(height, width), None  # the message's own bytes, no copy
     rows = np.frombuffer(data, dtype=np.uint8).reshape(height, step)[:, :row_bytes]
     pixels = rows.copy().view(dtype).astype(dtype.newbyteorder("="), copy=False)
     if channels == 1 and bayer is None:
@@ -205,8 +212,14 @@ def _fields(msg: Any, schema_name: str) -> dict[str, Any]:
     return out
 
 
-def image_decoder(schema: Schema | None, message_encoding: str) -> Callable[[bytes], DecodedImage] | None:
-    """A function decoding one message of this image schema to a :class:`DecodedImage` (None if not an image)."""
+def image_decoder(schema: Schema | None, message_encoding: str
+                  ) -> Callable[[bytes | memoryview], DecodedImage] | None:
+    """A function decoding one message of this image schema to a :class:`DecodedImage` (None if not an image).
+
+    A protobuf ``foxglove.RawImage`` is read from the wire format (:mod:`starlog.io.rawimage_wire`)
+    and a mono frame comes back as a read-only view of the message's bytes; whatever that
+    reader does not take goes to the protobuf parser, as every other type does.
+    """
     if schema is None or schema.name not in IMAGE_SCHEMAS:
         return None
     kind = IMAGE_SCHEMAS[schema.name]
@@ -218,9 +231,9 @@ def image_decoder(schema: Schema | None, message_encoding: str) -> Callable[[byt
             return None
         parse = found
 
-    def decode(data: bytes) -> DecodedImage:
+    def decode(data: bytes | memoryview) -> DecodedImage:
         try:
-            f = _fields(parse(data), schema.name)
+            f = _fields(parse(data if isinstance(data, bytes) else bytes(data)), schema.name)
         except InvalidInputError:
             raise
         except Exception as err:  # protobuf DecodeError, struct.error, ROS deserialisation errors, binascii
@@ -231,6 +244,23 @@ def image_decoder(schema: Schema | None, message_encoding: str) -> Callable[[byt
         else:
             image, note = decompress_to_mono(f["data"], f["format"])
         return DecodedImage(image, f["stamp"], f["frame_id"], note)
+
+    if schema.name == "foxglove.RawImage" and message_encoding == "protobuf" and schema.encoding == "protobuf":
+        return _raw_image_from_wire(decode)
+    return decode
+
+
+def _raw_image_from_wire(fallback: Callable[[bytes | memoryview], DecodedImage]
+                         ) -> Callable[[bytes | memoryview], DecodedImage]:
+    """Decode a protobuf ``foxglove.RawImage`` from its wire format; ``fallback`` (the protobuf parser's path)
+    for anything the wire reader leaves to it. Both give the same image, stamp, frame id and errors."""
+
+    def decode(data: bytes | memoryview) -> DecodedImage:
+        f = parse_raw_image(data)
+        if f is None:
+            return fallback(data)
+        image, note = pixels_to_mono(f.data, f.width, f.height, f.step, f.encoding)
+        return DecodedImage(image, _ns(f.seconds, f.nanos), f.frame_id, note)
 
     return decode
 

@@ -12,6 +12,7 @@ import numpy.typing as npt
 import orjson
 
 from starlog.errors import InvalidInputError
+from starlog.io.rawimage_wire import parse_raw_image
 
 __all__ = [
     "encode_json",
@@ -115,14 +116,11 @@ def encode_raw_image(image: npt.NDArray[Any], *, log_time: int, frame_id: str = 
     return msg.SerializeToString()
 
 
-def decode_raw_image(data: bytes | memoryview) -> npt.NDArray[Any]:
-    """Decode a ``foxglove.RawImage`` (mono8 / mono16) to a 2-D native-endian array.
-
-    Raises
-    ------
-    InvalidInputError
-        Unsupported encoding, or data length that does not match width × height × depth.
-    """
+def _raw_image_fields(data: bytes | memoryview) -> tuple[int, int, int, str, bytes | memoryview]:
+    """``(width, height, step, encoding, data)`` of a serialized ``foxglove.RawImage``."""
+    fields = parse_raw_image(data)
+    if fields is not None:
+        return fields.width, fields.height, fields.step, fields.encoding, fields.data
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
     msg = RawImage()
@@ -130,30 +128,46 @@ def decode_raw_image(data: bytes | memoryview) -> npt.NDArray[Any]:
         msg.ParseFromString(bytes(data))
     except Exception as err:  # protobuf raises its own DecodeError hierarchy
         raise InvalidInputError(f"not a valid foxglove.RawImage: {err}") from err
-    dtype = IMAGE_ENCODINGS.get(msg.encoding)
+    return msg.width, msg.height, msg.step, msg.encoding, msg.data
+
+
+def decode_raw_image(data: bytes | memoryview) -> npt.NDArray[Any]:
+    """Decode a ``foxglove.RawImage`` (mono8 / mono16) to a 2-D native-endian array.
+
+    Rows without padding, in the machine's byte order, come back as a read-only view of ``data``.
+
+    Raises
+    ------
+    InvalidInputError
+        Unsupported encoding, or data length that does not match width × height × depth.
+    """
+    width, height, step, encoding, pixels = _raw_image_fields(data)
+    dtype = IMAGE_ENCODINGS.get(encoding)
     if dtype is None:
-        if msg.encoding.lower() in _FOREIGN_BYTE_ORDER:
+        if encoding.lower() in _FOREIGN_BYTE_ORDER:
             raise InvalidInputError(
-                f"image encoding {msg.encoding!r} is big-endian; foxglove.RawImage mono16/16UC1 is little-endian. "
+                f"image encoding {encoding!r} is big-endian; foxglove.RawImage mono16/16UC1 is little-endian. "
                 "Swap the bytes when recording (numpy: image.astype('<u2'))."
             )
         raise InvalidInputError(
-            f"unsupported image encoding {msg.encoding!r}; starlog reads {', '.join(IMAGE_ENCODINGS)}."
+            f"unsupported image encoding {encoding!r}; starlog reads {', '.join(IMAGE_ENCODINGS)}."
         )
-    row_bytes = msg.width * dtype.itemsize
-    if msg.width == 0 or msg.height == 0 or msg.step < row_bytes:
-        raise InvalidInputError(f"invalid image geometry: {msg.width}x{msg.height}, step {msg.step}.")
-    if dtype.itemsize > 1 and msg.step % dtype.itemsize:
+    row_bytes = width * dtype.itemsize
+    if width == 0 or height == 0 or step < row_bytes:
+        raise InvalidInputError(f"invalid image geometry: {width}x{height}, step {step}.")
+    if dtype.itemsize > 1 and step % dtype.itemsize:
         raise InvalidInputError(
-            f"row step {msg.step} is not a whole number of {dtype.itemsize}-byte pixels ({msg.encoding})."
+            f"row step {step} is not a whole number of {dtype.itemsize}-byte pixels ({encoding})."
         )
-    if len(msg.data) != msg.step * msg.height:
+    if len(pixels) != step * height:
         raise InvalidInputError(
-            f"image data has {len(msg.data)} bytes, expected step × height = {msg.step} × {msg.height}"
-            f" = {msg.step * msg.height}."
+            f"image data has {len(pixels)} bytes, expected step × height = {step} × {height}"
+            f" = {step * height}."
         )
-    rows = np.frombuffer(msg.data, dtype=np.uint8).reshape(msg.height, msg.step)[:, :row_bytes]
-    return rows.copy().view(dtype).astype(dtype.newbyteorder("="), copy=False).reshape(msg.height, msg.width)
+    if step == row_bytes and dtype.isnative:
+        return np.frombuffer(pixels, dtype=dtype).reshape(height, width)
+    rows = np.frombuffer(pixels, dtype=np.uint8).reshape(height, step)[:, :row_bytes]
+    return rows.copy().view(dtype).astype(dtype.newbyteorder("="), copy=False).reshape(height, width)
 
 
 def encode_image_annotations(

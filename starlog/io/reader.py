@@ -51,7 +51,7 @@ from starlog.io.images import is_image_schema
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
-from starlog.io.scan import LooseRun, find_loose_runs, read_loose, synthesize_summary
+from starlog.io.scan import LooseRun, decompress, find_loose_runs, read_loose, synthesize_summary
 from starlog.io.stack import StackedLog
 from starlog.io.writer import VALIDATED_METADATA_KEY
 
@@ -64,21 +64,6 @@ _FOOTER = struct.Struct("<BQQQI")  # opcode, length, summary_start, summary_offs
 def _hint(path: Path) -> str:
     return f"Rebuild a readable copy with: starlog recover {path} -o RECOVERED.mcap"
 
-
-def _decompress(compression: str, data: bytes, size: int) -> bytes:
-    """Decompress at most ``size`` + 1 bytes (a damaged frame header cannot make us allocate more)."""
-    if compression == "":
-        return data
-    if compression == "zstd":
-        import zstandard
-
-        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
-            return reader.read(size + 1)
-    if compression == "lz4":
-        import lz4.frame
-
-        return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
-    raise ValueError(f"unsupported chunk compression {compression!r}")
 
 __all__ = ["ChannelSummary", "DecodedMessage", "LogReader"]
 
@@ -119,7 +104,8 @@ class ChannelSummary:
 
 @dataclass(frozen=True)
 class DecodedMessage:
-    """A message and its decoded payload: a dict (JSON), a 2-D array (RawImage) or a protobuf object."""
+    """A message and its decoded payload: a dict (JSON), a 2-D array (an image; read-only when it is a view of
+    the log's bytes) or a protobuf object."""
 
     topic: str
     log_time: int
@@ -154,7 +140,7 @@ def decode_payload(
             return value
         decoder = message_decoder(schema, channel.message_encoding)
         if decoder is not None:
-            return decoder(message.data)
+            return decoder(bytes(message.data))
     except InvalidMessageError:
         raise
     except (InvalidInputError, ValueError) as err:
@@ -479,7 +465,7 @@ class LogReader:
             if (start, end) != (ci.message_start_time, ci.message_end_time) or size != ci.uncompressed_size \
                     or compression != ci.compression:
                 raise ValueError("its header disagrees with the summary's chunk index")
-            data = _decompress(compression, raw[pos:], size)
+            data = decompress(compression, memoryview(raw)[pos:], size)
         except Exception as err:  # struct.error, UnicodeDecodeError, ZstdError, lz4 RuntimeError ...
             raise self._chunk_error(ci, f"{type(err).__name__}: {err}") from err
         if len(data) != size:
@@ -489,6 +475,7 @@ class LogReader:
             raise self._chunk_error(ci, f"CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(data):#010x})")
         messages: list[tuple[int, int, int, Message]] = []
         offsets: dict[int, list[tuple[int, int]]] = {}
+        view = memoryview(data).toreadonly()  # payloads are slices of it, not copies
         pos = 0
         try:
             while pos < size:
@@ -503,7 +490,7 @@ class LogReader:
                                          f"{'its index' if ci.message_index_offsets else 'the log'} does not list")
                     if not start <= log_time <= end:
                         raise ValueError(f"a message at log_time {log_time} lies outside its range {start}..{end}")
-                    payload = data[body + _MESSAGE_HEADER.size: body + length]
+                    payload = view[body + _MESSAGE_HEADER.size: body + length]
                     messages.append((log_time, len(messages), cid, Message(cid, log_time, payload, publish_time, seq)))
                     offsets.setdefault(cid, []).append((log_time, pos))
                 pos = body + length
@@ -537,15 +524,19 @@ class LogReader:
                                             "the chunk's messages")
 
     def raw_messages(
-        self, topics: Iterable[str], *, start: int | None = None, end: int | None = None
+        self, topics: Iterable[str], *, start: int | None = None, end: int | None = None, views: bool = False,
     ) -> Iterator[tuple[Schema | None, Channel, Message]]:
         """Undecoded messages of ``topics`` in ``log_time`` order (ties: file order), streamed chunk by chunk.
 
         ``start`` is inclusive, ``end`` exclusive. Only the chunks holding these topics are read,
         and only those whose time ranges overlap are held in memory at once. A damaged chunk
-        raises :class:`CorruptChunkError` naming it.
+        raises :class:`CorruptChunkError` naming it. Each ``message.data`` is ``bytes``; with
+        ``views``, a read-only ``memoryview`` into the decompressed chunk instead (no copy; it
+        keeps the chunk's bytes alive as long as it lives).
         """
         for schema, channel, message, _ in self._merged_messages(topics, start=start, end=end):
+            if not views and not isinstance(message.data, bytes):
+                message.data = bytes(message.data)
             yield schema, channel, message
 
     def _merged_messages(

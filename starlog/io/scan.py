@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import io
 import struct
+import threading
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -79,13 +80,40 @@ class ChunkContents:
     data: bytes
 
 
-def decompress(compression: str, data: bytes, size: int) -> bytes:
-    """Decompress at most ``size`` + 1 bytes (a damaged frame header cannot make us allocate more)."""
+_ZSTD = threading.local()  # a decompression context per thread (one is not safe to share between threads)
+
+
+def _zstd_one_shot(data: bytes | memoryview, size: int) -> bytes | None:
+    """Decompress a zstd frame that says it holds exactly ``size`` bytes in one call, reusing this thread's
+    decompressor; None for anything else (the frame says another size or nothing, or does not decode)."""
+    import zstandard
+
+    decompressor = getattr(_ZSTD, "decompressor", None)
+    if decompressor is None:
+        decompressor = _ZSTD.decompressor = zstandard.ZstdDecompressor()
+    try:
+        if zstandard.frame_content_size(data) != size:
+            return None
+        return decompressor.decompress(data)
+    except zstandard.ZstdError:
+        return None
+
+
+def decompress(compression: str, data: bytes | memoryview, size: int) -> bytes | memoryview:
+    """Decompress at most ``size`` + 1 bytes (a damaged frame header cannot make us allocate more).
+
+    A zstd chunk written whole (its frame header gives its size, as every MCAP writer's does) is
+    decompressed in one call; any other, or one that fails to, goes through the stream reader,
+    which reads the same bytes and gives the same errors. ``compression == ""`` returns ``data``.
+    """
     if compression == "":
         return data
     if compression == "zstd":
         import zstandard
 
+        whole = _zstd_one_shot(data, size)
+        if whole is not None:
+            return whole
         with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
             return reader.read(size + 1)
     if compression == "lz4":
