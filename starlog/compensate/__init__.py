@@ -5,7 +5,7 @@ in pixels (x = column, y = row, (0, 0) at the centre of the top-left pixel).  Mo
 importing only those above it:
 
 * :mod:`~starlog.compensate._series` — input validation, eq. 15 of a residual, eq. 13;
-* :mod:`~starlog.compensate.decimate` — equidistant decimation to 10–100 Hz;
+* :mod:`~starlog.compensate.decimate` — equidistant (nearest-frame) decimation to 10–100 Hz;
 * :mod:`~starlog.compensate.references` — the ``paper`` / ``truth`` / ``leakfree`` scoring
   protocols and the reference ``M`` each gives the strategies;
 * :mod:`~starlog.compensate.decomposition` — the five error categories and ``f_d``;
@@ -20,8 +20,8 @@ from __future__ import annotations
 from starlog.compensate.decimate import (
     decimate,
     decimation_indices,
-    decimation_step,
     effective_rate,
+    sampled_rate,
 )
 from starlog.compensate.decomposition import (
     MIN_SAMPLES,
@@ -97,7 +97,6 @@ __all__ = [
     "confidence_weighted",
     "decimate",
     "decimation_indices",
-    "decimation_step",
     "decompose",
     "effective_rate",
     "evaluate",
@@ -108,6 +107,7 @@ __all__ = [
     "rank_strategies",
     "rmse",
     "running_mean_reference",
+    "sampled_rate",
     "scored_start",
     "strategy_scores",
     "trend_window",

@@ -19,8 +19,8 @@ the output directory):
 Which samples are scored (``window_s``)
     The paper's "Image number" column (60 samples at 10 Hz, 300 at 50 Hz) implies about 6 s
     of data, not the 10.8 s / 15.1 s its frame counts give.  Each decimated sequence is scored
-    over its first ``floor(window_s · f_eff + 0.5)`` samples (``window_s`` = 6 s by default:
-    60 at 10 Hz, 300 at 50 Hz, 600 at 100 Hz; 180 at 30 Hz where the paper prints 200), and
+    over its first ``floor(window_s · f + 0.5)`` samples, ``f`` the requested rate (``window_s``
+    = 6 s by default: 60 at 10 Hz, 300 at 50 Hz, 600 at 100 Hz; 180 at 30 Hz where the paper prints 200), and
     every run is *also* scored over the whole sequence (``window = "full"``); the tables use
     the 6 s window, ``results.parquet`` has both.
 
@@ -43,9 +43,9 @@ from starlog.compensate import (
     Evaluation,
     ScoringProtocol,
     decimation_indices,
-    effective_rate,
     protocol_figures,
     protocols_for,
+    sampled_rate,
     scored_start,
 )
 from starlog.io.reader import LogReader
@@ -106,7 +106,7 @@ RESULT_FIELDS: dict[str, str] = {
     "model": "UKF motion model",
     "window": "scored samples: '6s' (first window_s seconds, the paper's image numbers) or 'full'",
     "rate_hz": "requested down-sample rate, Hz",
-    "effective_rate_hz": "native rate / decimation step, Hz",
+    "effective_rate_hz": "mean rate of the kept samples, native rate × (N - 1) / (last - first frame index), Hz",
     "n_samples": "decimated samples in the window",
     "compensated": "True when the adaptive compensation was run (False: uncompensated rate)",
     "protocol": "evaluation protocol: paper, truth or leakfree",
@@ -146,8 +146,7 @@ def _window_indices(n: int, *, native_rate: float, rate: float, window_s: float 
     idx = decimation_indices(n, native_rate=native_rate, target_rate=rate)
     if window_s is None:
         return idx
-    rate_hz = effective_rate(native_rate=native_rate, target_rate=rate)
-    return idx[: int(math.floor(window_s * rate_hz + 0.5))]
+    return idx[: int(math.floor(window_s * rate + 0.5))]
 
 
 def uncompensated_figures(
@@ -229,7 +228,7 @@ def _score_series(series: BrightestSeries, *, dataset: str, rates_uncompensated:
     for window, wsec in windows:
         for rate in sorted({*rates_uncompensated, *rates_compensated}):
             idx = _window_indices(n, native_rate=series.native_rate, rate=rate, window_s=wsec)
-            rate_hz = effective_rate(native_rate=series.native_rate, target_rate=rate)
+            rate_hz = sampled_rate(idx, native_rate=series.native_rate)
             base = {"dataset": dataset, "method": series.method, "model": series.model, "window": window,
                     "rate_hz": float(rate), "effective_rate_hz": float(rate_hz), "n_samples": int(idx.size)}
             if rate not in rates_compensated:

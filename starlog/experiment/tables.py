@@ -47,7 +47,7 @@ TABLE_FIELDS: dict[str, tuple[pa.DataType, str]] = {
     "model": (pa.string(), "UKF motion model"),
     "window": (pa.string(), "scored samples: first N seconds ('6s') or 'full'"),
     "rate_hz": (pa.float64(), "requested down-sample rate, Hz"),
-    "effective_rate_hz": (pa.float64(), "native rate / decimation step, Hz"),
+    "effective_rate_hz": (pa.float64(), "mean rate of the kept samples (nearest-frame decimation), Hz"),
     "n_samples": (pa.int64(), "decimated samples in the window"),
     "n_scored": (pa.int64(), "samples scored"),
     "compensated": (pa.bool_(), "whether compensation was run"),
@@ -150,6 +150,11 @@ def _pct(value: float | None) -> str:
     return "—" if value is None else f"{100 * value:+.0f}%"
 
 
+def _n(row: dict[str, Any] | None) -> str:
+    """The number of scored samples of a cell ('—' when there is no cell)."""
+    return "—" if row is None else str(row["n_scored"])
+
+
 def _md(header: Sequence[str], body: Sequence[Sequence[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(row) + " |" for row in body]
@@ -168,7 +173,7 @@ def _table2_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
     header = ["UKF model"]
     for ds in datasets:
         for rate in TABLE2_RATES:
-            header.append(f"{ds} RMSE_{rate:g}Hz")
+            header += [f"{ds} RMSE_{rate:g}Hz", "N"]
             if with_paper:
                 header.append("paper")
     body = []
@@ -177,7 +182,7 @@ def _table2_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
         for ds in datasets:
             for rate in TABLE2_RATES:
                 c = cell(ds, "NONE", model, rate)
-                line.append(_f(c and c["rmse_before"]))
+                line += [_f(c and c["rmse_before"]), _n(c)]
                 if with_paper:
                     line.append(_f(paper_tables.TABLE2[model][ds][int(rate)]))
         body.append(line)
@@ -185,9 +190,9 @@ def _table2_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
 
 
 def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
-    header = ["Sub-pixel method", "Rate/Hz", "N (paper)"]
+    header = ["Sub-pixel method", "Rate/Hz", "paper N"]
     for ds in datasets:
-        header += [f"{ds} before", f"{ds} after", "gain"]
+        header += [f"{ds} N", f"{ds} before", f"{ds} after", "gain"]
         if with_paper:
             header += ["paper before", "paper after"]
     body = []
@@ -196,14 +201,12 @@ def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
             cells = [cell(ds, method, "STATIC", rate) for ds in datasets]
             if not any(cells):
                 continue
-            first = next(c for c in cells if c)
             paper_n = paper_tables.TABLE3_IMAGE_NUMBER.get(int(rate))
             has_paper = paper_tables.paper_value("table3", dataset=datasets[0], method=method,
                                                  rate_hz=rate)[0] is not None
-            n_text = f"{first['n_samples']}" + (f" ({paper_n})" if has_paper and paper_n else "")
-            line = [method, f"{rate:g}", n_text]
+            line = [method, f"{rate:g}", str(paper_n) if has_paper and paper_n else "—"]
             for ds, c in zip(datasets, cells):
-                line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
+                line += [_n(c), _f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
                 if with_paper:
                     pb, pa_ = paper_tables.paper_value("table3", dataset=ds, method=method, rate_hz=rate)
                     line += [_f(pb), _f(pa_)]
@@ -214,7 +217,7 @@ def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
 def _table4_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
     header = ["UKF model"]
     for ds in datasets:
-        header += [f"{ds} before", f"{ds} after", "gain"]
+        header += [f"{ds} N", f"{ds} before", f"{ds} after", "gain"]
         if with_paper:
             header += ["paper before", "paper after"]
     body = []
@@ -222,7 +225,7 @@ def _table4_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
         line = [model]
         for ds in datasets:
             c = cell(ds, "NONE", model, TABLE4_RATE)
-            line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
+            line += [_n(c), _f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
             if with_paper:
                 pb, pa_ = paper_tables.TABLE4[model][ds]
                 line += [_f(pb), _f(pa_)]
@@ -238,7 +241,7 @@ def _figure5_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tup
             line = [ds, model]
             for rate in FIGURE5_RATES:
                 c = cell(ds, "NONE", model, rate)
-                line.append("—" if c is None else f"{_f(c['rmse_before'])}→{_f(c['rmse_after'])}")
+                line.append("—" if c is None else f"{_f(c['rmse_before'])}→{_f(c['rmse_after'])} ({_n(c)})")
             body.append(line)
     return header, body
 

@@ -2,7 +2,8 @@
 
 Reads one track channel (``/track/<METHOD>/<MODEL>``), takes the brightest star's track (the
 paper's centroid sequence: its filtered ``x``, ``y``, flux and centroid ``sigma``), decimates
-it equidistantly to each requested rate, and runs :func:`starlog.compensate.evaluate` under
+it to each requested rate (the frame nearest each ideal sample time,
+:func:`starlog.compensate.decimation_indices`), and runs :func:`starlog.compensate.evaluate` under
 each protocol (``paper``; ``truth`` when the log has ``/sim/truth``; ``leakfree``). It writes
 
 * ``/compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>`` (starlog.CompensatedSample): one message
@@ -34,9 +35,9 @@ from starlog.compensate import (
     Evaluation,
     ScoringProtocol,
     decimation_indices,
-    effective_rate,
     evaluate,
     protocols_for,
+    sampled_rate,
 )
 from starlog.errors import ChannelNotFoundError, InvalidInputError, InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
@@ -230,7 +231,7 @@ def compensate_log(
     Parameters
     ----------
     rates : sequence of float
-        Target rates in Hz (equidistant decimation from the frame rate).
+        Target rates in Hz (nearest-frame equidistant decimation from the frame rate).
     track : str or sequence of str, optional
         Track channel(s) (``/track/GAUSSFIT/STATIC`` or ``GAUSSFIT/STATIC``), or ``"all"``;
         default: the only one.
@@ -299,7 +300,7 @@ def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[f
                 raise InvalidParameterError(
                     f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
             idx = decimation_indices(series.log_time.size, native_rate=series.native_rate, target_rate=rate)
-            rate_hz = effective_rate(native_rate=series.native_rate, target_rate=rate)
+            rate_hz = sampled_rate(idx, native_rate=series.native_rate)
             jobs += [_Job(channel.topic, series, float(rate), idx, rate_hz, p) for p in chosen]
         yield from jobs
 
