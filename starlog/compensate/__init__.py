@@ -5,6 +5,7 @@ in pixels (x = column, y = row, (0, 0) at the centre of the top-left pixel).  Mo
 importing only those above it:
 
 * :mod:`~starlog.compensate._series` — input validation, eq. 15 of a residual, eq. 13;
+* :mod:`~starlog.compensate.burnin` — where the tracking filter's start-up ends;
 * :mod:`~starlog.compensate.decimate` — equidistant (nearest-frame) decimation to 10–100 Hz;
 * :mod:`~starlog.compensate.references` — the ``paper`` / ``truth`` / ``leakfree`` scoring
   protocols and the reference ``M`` each gives the strategies;
@@ -17,6 +18,7 @@ importing only those above it:
 
 from __future__ import annotations
 
+from starlog.compensate.burnin import BURN_IN_RATIO, MAX_BURN_IN_S, BurnIn, burn_in
 from starlog.compensate.decimate import (
     decimate,
     decimation_indices,
@@ -72,11 +74,14 @@ from starlog.compensate.strategies import (
 
 __all__ = [
     "AR_THETA",
+    "BURN_IN_RATIO",
     "FIGURE_DTYPE",
+    "MAX_BURN_IN_S",
     "MIN_SAMPLES",
     "PASS_DTYPE",
     "TABLE_1",
     "AccuracySource",
+    "BurnIn",
     "CompensationPass",
     "CompensationResult",
     "ErrorCategory",
@@ -91,6 +96,7 @@ __all__ = [
     "adaptive_median",
     "adaptive_window_trend",
     "apply_strategy",
+    "burn_in",
     "ar_prediction",
     "compensate",
     "confidence",
