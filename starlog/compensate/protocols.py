@@ -255,6 +255,7 @@ def evaluate(
     calibration_fraction: float = 0.5,
     top_k: int = 3,
     rollback_threshold: float = 0.01,
+    select_positive: bool = True,
 ) -> Evaluation:
     """Compensate a decimated centroid series and score it under one protocol.
 
@@ -280,7 +281,7 @@ def evaluate(
         ``calibration`` (default) or ``running_mean``; only for ``leakfree``.
     calibration_fraction : float
         Fraction of the samples in the unscored calibration segment (``leakfree`` only).
-    top_k, rollback_threshold
+    top_k, rollback_threshold, select_positive
         Passed to :func:`~starlog.compensate.selection.compensate`.
 
     Returns
@@ -306,6 +307,7 @@ def evaluate(
         accuracy_source=accuracy_source,
         top_k=top_k,
         rollback_threshold=rollback_threshold,
+        select_positive=select_positive,
         protocol=proto,
     )
     start = scored_start(proto, n, calibration_fraction=calibration_fraction)
