@@ -48,3 +48,11 @@ def test_settled_from_the_start_and_edge_cases() -> None:
 def test_rejects(kwargs: dict[str, object], error: type) -> None:
     with pytest.raises(error):
         burn_in(**kwargs)  # type: ignore[arg-type]
+
+
+def test_cap_is_half_a_second_or_a_tenth_of_the_log() -> None:
+    from starlog.compensate import burn_in_cap
+
+    assert burn_in_cap(3248, native_rate=300.0) == 150
+    assert burn_in_cap(3027, native_rate=200.0) == 100
+    assert burn_in_cap(160, native_rate=100.0) == 16

@@ -18,7 +18,14 @@ importing only those above it:
 
 from __future__ import annotations
 
-from starlog.compensate.burnin import BURN_IN_RATIO, MAX_BURN_IN_S, BurnIn, burn_in
+from starlog.compensate.burnin import (
+    BURN_IN_RATIO,
+    MAX_BURN_IN_FRACTION,
+    MAX_BURN_IN_S,
+    BurnIn,
+    burn_in,
+    burn_in_cap,
+)
 from starlog.compensate.decimate import (
     decimate,
     decimation_indices,
@@ -76,6 +83,7 @@ __all__ = [
     "AR_THETA",
     "BURN_IN_RATIO",
     "FIGURE_DTYPE",
+    "MAX_BURN_IN_FRACTION",
     "MAX_BURN_IN_S",
     "MIN_SAMPLES",
     "PASS_DTYPE",
@@ -97,6 +105,7 @@ __all__ = [
     "adaptive_window_trend",
     "apply_strategy",
     "burn_in",
+    "burn_in_cap",
     "ar_prediction",
     "compensate",
     "confidence",

@@ -13,7 +13,8 @@ with ``P[n]`` the filter's posterior position variance (``(cov_xx + cov_yy) / 2`
 the sequence.  A model without process noise (STATIC) never reaches a steady state — its
 variance keeps falling like ``1 / n`` — so the test alone would skip half the sequence; the
 burn-in is capped at ``max_samples`` (the experiment and the ``compensate`` stage use
-:data:`MAX_BURN_IN_S` seconds of frames).  The result says whether the cap applied.
+:data:`MAX_BURN_IN_S` seconds of frames, and at most :data:`MAX_BURN_IN_FRACTION` of the
+sequence).  The result says whether the cap applied.
 """
 
 from __future__ import annotations
@@ -28,12 +29,14 @@ import numpy.typing as npt
 from starlog.compensate._series import as_samples
 from starlog.errors import InvalidParameterError
 
-__all__ = ["BURN_IN_RATIO", "MAX_BURN_IN_S", "BurnIn", "burn_in"]
+__all__ = ["BURN_IN_RATIO", "MAX_BURN_IN_FRACTION", "MAX_BURN_IN_S", "BurnIn", "burn_in", "burn_in_cap"]
 
 #: The filter has settled once its position variance is within this factor of the steady state.
 BURN_IN_RATIO = 2.0
 #: Longest burn-in skipped, s (a filter without process noise never settles).
 MAX_BURN_IN_S = 0.5
+#: Longest burn-in skipped, as a fraction of the sequence (short logs keep most of their samples).
+MAX_BURN_IN_FRACTION = 0.1
 _TAIL = 0.05
 
 
@@ -87,3 +90,9 @@ def burn_in(variance: npt.ArrayLike, *, max_samples: int, ratio: float = BURN_IN
     if first > max_samples:
         return BurnIn(samples=int(max_samples), steady_variance=steady, capped=True)
     return BurnIn(samples=first, steady_variance=steady, capped=False)
+
+
+def burn_in_cap(n: int, *, native_rate: float) -> int:
+    """The cap on the burn-in of ``n`` samples at ``native_rate`` Hz:
+    ``min(floor(MAX_BURN_IN_S · rate + 0.5), floor(MAX_BURN_IN_FRACTION · n))``."""
+    return max(0, min(int(math.floor(MAX_BURN_IN_S * native_rate + 0.5)), int(math.floor(MAX_BURN_IN_FRACTION * n))))

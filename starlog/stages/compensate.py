@@ -20,7 +20,6 @@ same order, so the output does not depend on ``workers``.
 
 from __future__ import annotations
 
-import math
 import os
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
@@ -33,10 +32,10 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.compensate import (
-    MAX_BURN_IN_S,
     BurnIn,
     Evaluation,
     burn_in,
+    burn_in_cap,
     ScoringProtocol,
     decimation_indices,
     evaluate,
@@ -74,12 +73,11 @@ class BrightestSeries:
     """The filter's posterior position variance per sample, ``(cov_xx + cov_yy) / 2``, px²."""
 
     def burn_in(self) -> BurnIn:
-        """The filter's start-up (:func:`starlog.compensate.burn_in`, capped at ``MAX_BURN_IN_S``);
+        """The filter's start-up (:func:`starlog.compensate.burn_in`, capped by :func:`~starlog.compensate.burn_in_cap`);
         no burn-in when the variances are unknown."""
         if self.position_var is None:
             return BurnIn(samples=0, steady_variance=0.0, capped=False)
-        cap = int(math.floor(MAX_BURN_IN_S * self.native_rate + 0.5))
-        return burn_in(self.position_var, max_samples=min(cap, max(self.xy.shape[0] - 1, 0)))
+        return burn_in(self.position_var, max_samples=burn_in_cap(self.xy.shape[0], native_rate=self.native_rate))
 
     def indices(self, rate: float, *, skip_burn_in: bool = True) -> npt.NDArray[np.int64]:
         """The samples kept at ``rate`` Hz (:func:`starlog.compensate.decimation_indices`), starting
