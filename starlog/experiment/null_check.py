@@ -8,7 +8,7 @@ exactly as the sweep compensates the datasets (same rates, window, burn-in and o
     error, no dynamics.  The truth is that position.
 ``motionless_star``
     The regime's camera and star field with the platform perturbations switched off
-    (48×48 px, 2 stars), through ``centroid`` (NONE) and ``track`` (STATIC, the regime's
+    (48×48 px, 2 stars, the window plus the start-up, at most the dataset's length), through ``centroid`` (NONE) and ``track`` (STATIC, the regime's
     tracker settings): the only errors are the centroid's noise and its fixed pixel-phase bias.
 
 A protocol that reports a large gain on these reports the smoothing of noise about its own
@@ -73,8 +73,9 @@ def _white_noise(regime: str, *, window_s: float | None, compensation: dict[str,
 def _motionless_config(dataset: dict[str, Any], window_s: float | None) -> SimulationConfig:
     config = SimulationConfig.from_dict(dataset["config"])
     seconds = (window_s if window_s is not None else 6.0) + MAX_BURN_IN_S + 0.2
+    n_frames = min(config.n_frames, int(round(seconds * config.fps)))  # no longer than the dataset
     return replace(config, width=48, height=48, n_stars=2, jitter=(), random_walk_px_per_sqrt_s=0.0,
-                   drift_px_per_s=(0.0, 0.0), n_frames=int(round(seconds * config.fps)))
+                   drift_px_per_s=(0.0, 0.0), n_frames=n_frames)
 
 
 def run_null_check(dataset: dict[str, Any], logs_dir: str, *, compensation: dict[str, Any] | None = None,
