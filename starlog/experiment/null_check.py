@@ -104,7 +104,7 @@ def run_null_check(dataset: dict[str, Any], logs_dir: str, *, compensation: dict
     rows += [{"regime": regime, "case": "motionless_star", "rate_hz": r["rate_hz"], "protocol": r["protocol"],
               "reference": r["reference"], "n_scored": r["n_scored"], "rmse_before": r["rmse_before"],
               "rmse_after": r["rmse_after"], "effective": r["effective"], "kept": r["kept"]}
-             for r in result["rows"] if r["window"] == window and r["burn_in"] == "skipped"]
+             for r in result["rows"] if r["window"] == window and r["burn_in"] == "skipped" and r["compensated"]]
     return rows
 
 

@@ -41,6 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.compensate import (
+    MIN_SAMPLES,
     Evaluation,
     ScoringProtocol,
     protocol_figures,
@@ -59,6 +60,7 @@ __all__ = [
     "COMPENSATED_RATES",
     "FIGURE5_RATES",
     "METHODS",
+    "MIN_COMPENSATED",
     "MODELS",
     "PROTOCOL_REFERENCES",
     "RESULT_FIELDS",
@@ -92,6 +94,9 @@ FIGURE5_RATES: tuple[float, ...] = tuple(float(r) for r in range(10, 101, 10))
 UNCOMPENSATED_RATES: tuple[float, ...] = (5.0,)
 #: Rates scored before and after compensation.
 COMPENSATED_RATES: tuple[float, ...] = FIGURE5_RATES
+#: Fewest samples a compensated rate needs: 16 calibration + 16 scored samples under ``leakfree``
+#: (:data:`starlog.compensate.MIN_SAMPLES` each); shorter series are scored uncompensated.
+MIN_COMPENSATED: int = 2 * MIN_SAMPLES
 #: The two burn-in variants: (label, skip the filter's start-up); ``kept`` is scored on the
 #: tables' window only.
 BURN_IN_VARIANTS: tuple[tuple[str, bool], ...] = (("skipped", True), ("kept", False))
@@ -115,7 +120,7 @@ RESULT_FIELDS: dict[str, str] = {
     "rate_hz": "requested down-sample rate, Hz",
     "effective_rate_hz": "mean rate of the kept samples, native rate × (N - 1) / (last - first frame index), Hz",
     "n_samples": "decimated samples in the window",
-    "compensated": "True when the adaptive compensation was run (False: uncompensated rate)",
+    "compensated": "True when the adaptive compensation was run (False: uncompensated rate, or fewer than 32 samples)",
     "protocol": "evaluation protocol: paper, truth or leakfree",
     "reference": "what the RMSE is measured about: global_mean, truth_fixed, truth_series, heldout_mean",
     "n_scored": "samples scored (the held-out part under leakfree)",
@@ -249,7 +254,8 @@ def _score_series(series: BrightestSeries, *, dataset: str, regime: str, rates_u
                 base = {"regime": regime, "dataset": dataset, "method": series.method, "model": series.model, "window": window,
                         "burn_in": burn_in, "burn_in_samples": burn.samples if skip else 0,
                         "rate_hz": float(rate), "effective_rate_hz": float(rate_hz), "n_samples": int(idx.size)}
-                if rate not in rates_compensated:
+                if rate not in rates_compensated or idx.size < MIN_COMPENSATED:
+                    # too short to compensate (e.g. a fragmented brightest track): scored uncompensated
                     rows += _uncompensated_rows(base, series, idx, calibration_fraction=calibration_fraction)
                     continue
                 for protocol in protocols_for(has_truth=has_truth):
