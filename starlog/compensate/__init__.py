@@ -11,7 +11,7 @@ importing only those above it:
   protocols and the reference ``M`` each gives the strategies;
 * :mod:`~starlog.compensate.decomposition` — the five error categories and ``f_d``;
 * :mod:`~starlog.compensate.strategies` — the five compensation strategies (eq. 1–11);
-* :mod:`~starlog.compensate.selection` — scores (eq. 12), top-three run with rollback (eq. 13);
+* :mod:`~starlog.compensate.selection` — scores (eq. 12), the positive-score strategies (at most three) run with rollback (eq. 13);
 * :mod:`~starlog.compensate.protocols` — RMSE (eq. 15), the figures of each protocol and
   :func:`evaluate`.
 """
