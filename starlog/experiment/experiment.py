@@ -211,7 +211,7 @@ def run_experiment(
     files["null_check"] = null_check.write_parquet(summary.null_checks, out / "null_check.parquet").name
     if plot:
         _write_plots(summary, sweep.series, out, files)
-    files.update(_log_files(datasets))
+    files.update({k: v for k, v in _log_files(datasets).items() if (out / v).exists()})
     files["summary"] = "summary.json"
     files["report"] = "report.md"
     summary.files = files

@@ -49,6 +49,7 @@ from starlog.compensate import (
     sampled_rate,
     scored_start,
 )
+from starlog.errors import InvalidInputError
 from starlog.io.reader import LogReader
 from starlog.sim import SimulationConfig
 from starlog.stages import simulate_log
@@ -326,8 +327,11 @@ def compensate_showcase(
 
     Returns ``{"dataset", "path", "records": [{method, model, rate_hz, protocol, figures}]}``.
     """
-    summary = compensate_log(track_path, output_path, rates=list(rates), track=track_topic, protocols="all",
-                             force=force)
+    try:
+        summary = compensate_log(track_path, output_path, rates=list(rates), track=track_topic, protocols="all",
+                                 force=force)
+    except InvalidInputError as err:  # a brightest track too short to compensate (fragmented, faint star)
+        return {"regime": regime, "dataset": dataset, "path": None, "records": [], "skipped": str(err)}
     records = [{"method": r["method"], "model": r["model"], "rate_hz": r["rate_hz"], "protocol": r["protocol"],
                 "n_samples": r["n_samples"], "figures": r["figures"]} for r in summary.records]
     return {"regime": regime, "dataset": dataset, "path": output_path, "records": records}
