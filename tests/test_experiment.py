@@ -22,6 +22,7 @@ from starlog.experiment.runner import (
     PROTOCOL_REFERENCES,
     TABLE2_RATES,
     TABLE3_RATES,
+    best_table2_model,
     sort_rows,
     uncompensated_figures,
 )
@@ -29,6 +30,7 @@ from starlog.experiment.runner import (
 pytest.importorskip("matplotlib")
 
 DATASETS = ("300Hz", "200Hz")
+REGIMES = ("paper", "modern")
 N_REFERENCES = sum(len(v) for v in PROTOCOL_REFERENCES.values())
 
 
@@ -63,10 +65,11 @@ def test_table_files_and_columns(quick_run: ExperimentSummary, name: str) -> Non
     ("figure5", len(DATASETS) * len(MODELS) * len(FIGURE5_RATES)),
 ])
 def test_table_layout(quick_run: ExperimentSummary, name: str, cells: int) -> None:
+    # both regimes by default, each with every cell
     rows = quick_run.tables[name]
-    assert len(rows) == cells * N_REFERENCES
-    keys = {(r["dataset"], r["method"], r["model"], r["rate_hz"]) for r in rows}
-    assert len(keys) == cells
+    assert len(rows) == len(REGIMES) * cells * N_REFERENCES
+    keys = {(r["regime"], r["dataset"], r["method"], r["model"], r["rate_hz"]) for r in rows}
+    assert len(keys) == len(REGIMES) * cells
 
 
 @pytest.mark.parametrize(("name", "dataset", "method", "model", "rate", "before", "after"), [
@@ -80,9 +83,9 @@ def test_table_layout(quick_run: ExperimentSummary, name: str, cells: int) -> No
 ])
 def test_paper_numbers_beside_ours(quick_run: ExperimentSummary, name: str, dataset: str, method: str,
                                    model: str, rate: float, before: float, after: float | None) -> None:
-    rows = [r for r in quick_run.tables[name] if (r["dataset"], r["method"], r["model"], r["rate_hz"])
-            == (dataset, method, model, rate)]
-    assert len(rows) == N_REFERENCES
+    rows = [r for r in quick_run.tables[name] if (r["dataset"], r["method"], r["rate_hz"]) == (dataset, method, rate)
+            and (r["model"] == model or name == "table3")]  # Table 3 uses Table 2's best model
+    assert len(rows) == len(REGIMES) * N_REFERENCES
     for r in rows:
         assert r["paper_rmse_before"] == before
         assert r["paper_rmse_after"] == after
@@ -94,14 +97,17 @@ def test_paper_numbers_beside_ours(quick_run: ExperimentSummary, name: str, data
 def test_plots_report_and_logs(quick_run: ExperimentSummary) -> None:
     out = quick_run.output_dir
     pngs = [rel for rel in quick_run.files.values() if rel.endswith(".png")]
-    assert {"figure4.png", "figure5.png", "trajectory_static.png"} <= set(pngs)
+    assert {f"{f}_{g}.png" for f in ("figure4", "figure5", "trajectory") for g in REGIMES
+            if f != "trajectory"} <= set(pngs)
+    assert {f"trajectory_{g}_static.png" for g in REGIMES} <= set(pngs)
     for rel in pngs:
         data = (out / rel).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and 1_000 < len(data) < 150_000
     for rel in quick_run.files.values():
         assert (out / rel).is_file(), rel
     report = (out / "report.md").read_text(encoding="utf-8")
-    assert "sigma_floor" in report and "![figure5](figure5.png)" in report
+    assert "sigma_floor" in report and "![figure5_paper](figure5_paper.png)" in report
+    assert "## Null check" in report
     assert quick_run.showcase_check is not None and quick_run.showcase_check < 1e-12
     assert all(h["before"] is not None and math.isfinite(h["before"]) for h in quick_run.headline)
 
@@ -147,3 +153,36 @@ def test_paper_value_lookup() -> None:
 def test_experiment_command_rejects_bad_workers(tmp_path: Path) -> None:
     with pytest.raises(InvalidParameterError, match="workers"):
         experiment_command(tmp_path, quick=True, workers=0)
+
+
+def test_regimes_burn_in_and_rates_in_results(quick_run: ExperimentSummary) -> None:
+    rows = pq.read_table(quick_run.output_dir / "results.parquet").to_pylist()
+    assert {r["regime"] for r in rows} == set(REGIMES)
+    assert {r["burn_in"] for r in rows} == {"skipped", "kept"}
+    assert all(r["burn_in_samples"] == 0 for r in rows if r["burn_in"] == "kept")
+    assert any(r["burn_in_samples"] > 0 for r in rows if r["burn_in"] == "skipped")
+    for regime in REGIMES:
+        for ds in DATASETS:
+            f5 = [r for r in quick_run.tables["figure5"] if (r["regime"], r["dataset"], r["model"]) == (regime, ds, "STATIC")]
+            rates = {r["rate_hz"]: r["effective_rate_hz"] for r in f5}
+            assert sorted(rates) == list(FIGURE5_RATES)
+            assert all(abs(eff / rate - 1.0) < 0.01 for rate, eff in rates.items())
+    for name in ("table2", "table3", "table4", "figure5"):
+        assert pq.read_table(quick_run.output_dir / f"{name}.parquet").column("regime").to_pylist()
+
+
+def test_table3_uses_the_best_model_of_table2(quick_run: ExperimentSummary) -> None:
+    for regime in REGIMES:
+        rows = [r for r in quick_run.rows if r["regime"] == regime]
+        best = best_table2_model(rows, window="6s")
+        assert quick_run.table3_models[regime] == best
+        assert {r["model"] for r in quick_run.tables["table3"] if r["regime"] == regime} == {best}
+
+
+def test_null_check_covers_every_protocol(quick_run: ExperimentSummary) -> None:
+    rows = pq.read_table(quick_run.output_dir / "null_check.parquet").to_pylist()
+    for regime in REGIMES:
+        for case in ("white_noise", "motionless_star"):
+            got = {(r["protocol"], r["reference"]) for r in rows if (r["regime"], r["case"]) == (regime, case)}
+            assert got == {(p, ref) for p, refs in PROTOCOL_REFERENCES.items() for ref in refs}
+    assert all(math.isfinite(r["effective"]) for r in rows)

@@ -11,8 +11,6 @@ from numpy.testing import assert_allclose, assert_array_equal
 from starlog.compensate.decimate import (
     decimate,
     decimation_indices,
-    decimation_step,
-    effective_rate,
 )
 from starlog.compensate.protocols import FIGURE_DTYPE, evaluate, rmse
 from starlog.compensate.references import (
@@ -68,33 +66,32 @@ def test_running_mean_uses_only_the_past() -> None:
 
 
 @pytest.mark.parametrize(
-    ("native", "target", "k", "rate"),
+    ("native", "target", "first"),
     [
-        (300.0, 100.0, 3, 100.0),
-        (300.0, 50.0, 6, 50.0),
-        (300.0, 40.0, 8, 37.5),  # 7.5 rounds half up to 8
-        (200.0, 30.0, 7, 200.0 / 7.0),  # 6.67 -> 7
-        (200.0, 40.0, 5, 40.0),
-        (300.0, 10.0, 30, 10.0),
-        (300.0, 300.0, 1, 300.0),
-        (200.0, 150.0, 1, 200.0),  # 1.33 -> 1
+        (300.0, 100.0, [0, 3, 6, 9]),
+        (300.0, 50.0, [0, 6, 12, 18]),
+        (300.0, 40.0, [0, 8, 15, 23, 30]),  # 7.5 frames per sample: nearest frame, ties later
+        (300.0, 70.0, [0, 4, 9, 13, 17, 21, 26, 30]),  # 30 frames per 7 samples
+        (200.0, 30.0, [0, 7, 13, 20, 27]),
+        (300.0, 300.0, [0, 1, 2, 3]),
     ],
 )
-def test_decimation_rule(native: float, target: float, k: int, rate: float) -> None:
-    assert decimation_step(native_rate=native, target_rate=target) == k
-    assert_allclose(effective_rate(native_rate=native, target_rate=target), rate, rtol=0,
-                    atol=1e-12)
+def test_decimation_takes_the_nearest_frame(native: float, target: float, first: list[int]) -> None:
+    idx = decimation_indices(len(first) * 10, native_rate=native, target_rate=target)
+    assert idx[: len(first)].tolist() == first
+    ideal = np.arange(idx.size) * native / target
+    assert np.abs(idx - ideal).max() <= 0.5 + 1e-9
 
 
 def test_decimation_rejects_upsampling() -> None:
     with pytest.raises(InvalidParameterError, match="above the native rate"):
-        decimation_step(native_rate=200.0, target_rate=300.0)
+        decimation_indices(10, native_rate=200.0, target_rate=300.0)
 
 
 @pytest.mark.parametrize("rate", [0.0, -10.0, float("nan")])
 def test_decimation_rejects_bad_rates(rate: float) -> None:
     with pytest.raises(InvalidParameterError):
-        decimation_step(native_rate=300.0, target_rate=rate)
+        decimation_indices(10, native_rate=300.0, target_rate=rate)
 
 
 def test_decimate_keeps_every_kth_sample() -> None:

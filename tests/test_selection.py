@@ -14,6 +14,7 @@ from numpy.testing import assert_allclose, assert_array_equal
 from starlog.compensate.decomposition import ErrorCategory
 from starlog.compensate.references import ReferenceMode, ScoringProtocol
 from starlog.compensate.selection import (
+    StrategyProfile,
     PASS_DTYPE,
     TABLE_1,
     compensate,
@@ -101,7 +102,7 @@ def _replay(xy: np.ndarray, result) -> np.ndarray:  # type: ignore[no-untyped-de
 
 def test_top_three_run_in_score_order_and_record_matches() -> None:
     xy = _noise_series(0, 0.3)
-    res = compensate(xy, rate_hz=50.0)
+    res = compensate(xy, rate_hz=50.0, select_positive=False)  # the top three whatever their score
     ranked = rank_strategies(res.scores)
     assert res.order == ranked[:3]
     assert tuple(p.strategy for p in res.passes) == res.order
@@ -159,14 +160,14 @@ def test_constant_series_rolls_everything_back() -> None:
 
 
 def test_top_k() -> None:
-    res = compensate(_noise_series(3, 0.2), rate_hz=50.0, top_k=5)
+    res = compensate(_noise_series(3, 0.2), rate_hz=50.0, top_k=5, select_positive=False)
     assert len(res.passes) == 5
     assert set(res.order) == set(Strategy)
 
 
 def test_record_is_json_ready_and_table() -> None:
     xy = _noise_series(4, 0.2)
-    res = compensate(xy, rate_hz=50.0, flux=np.linspace(100, 200, len(xy)))
+    res = compensate(xy, rate_hz=50.0, flux=np.linspace(100, 200, len(xy)), select_positive=False)
     d = res.to_dict()
     text = json.dumps(d, allow_nan=False)
     assert json.loads(text) == d
@@ -255,3 +256,25 @@ def test_compensate_properties(xy: np.ndarray) -> None:
     # Rollback keeps only improving passes: the RMSE about M never grows.
     assert res.rmse_after <= res.rmse_before * (1.0 + 1e-12) + 1e-12
     json.dumps(res.to_dict(), allow_nan=False)
+
+
+def test_zero_score_strategies_are_not_run() -> None:
+    # Only measurement noise: AR_PREDICTION and the trend strategies target categories the
+    # decomposition sets to 0, so only positive-score strategies run (fewer than three here).
+    xy = _noise_series(7, 0.2)
+    res = compensate(xy, rate_hz=50.0, top_k=5)
+    positive = tuple(s for s in rank_strategies(res.scores) if res.scores[s] > 0.0)
+    assert res.order == positive
+    assert all(res.scores[s] > 0.0 for s in res.order)
+    assert res.select_positive and res.to_dict()["select_positive"] is True
+    forced = compensate(xy, rate_hz=50.0, top_k=5, select_positive=False)
+    assert len(forced.order) == 5 and not forced.select_positive
+
+
+def test_nothing_to_run_when_every_score_is_zero() -> None:
+    zero = tuple(StrategyProfile(row.strategy, 0.0, row.cost, row.targets) for row in TABLE_1)
+    xy = _noise_series(8, 0.2)
+    res = compensate(xy, rate_hz=50.0, table=zero)
+    assert res.order == () and res.passes == () and res.kept == ()
+    assert_array_equal(res.compensated, xy)
+    assert compensate(xy, rate_hz=50.0, table=zero, select_positive=False).order != ()

@@ -5,24 +5,33 @@ in pixels (x = column, y = row, (0, 0) at the centre of the top-left pixel).  Mo
 importing only those above it:
 
 * :mod:`~starlog.compensate._series` — input validation, eq. 15 of a residual, eq. 13;
-* :mod:`~starlog.compensate.decimate` — equidistant decimation to 10–100 Hz;
+* :mod:`~starlog.compensate.burnin` — where the tracking filter's start-up ends;
+* :mod:`~starlog.compensate.decimate` — equidistant (nearest-frame) decimation to 10–100 Hz;
 * :mod:`~starlog.compensate.references` — the ``paper`` / ``truth`` / ``leakfree`` / ``relative``
   scoring protocols, the reference ``M`` each gives the strategies, and the motion modes
   (``keep`` / ``separate``);
 * :mod:`~starlog.compensate.decomposition` — the five error categories and ``f_d``;
 * :mod:`~starlog.compensate.strategies` — the five compensation strategies (eq. 1–11);
-* :mod:`~starlog.compensate.selection` — scores (eq. 12), top-three run with rollback (eq. 13);
+* :mod:`~starlog.compensate.selection` — scores (eq. 12), the positive-score strategies (at most three) run with rollback (eq. 13);
 * :mod:`~starlog.compensate.protocols` — RMSE (eq. 15), the figures of each protocol and
   :func:`evaluate`.
 """
 
 from __future__ import annotations
 
+from starlog.compensate.burnin import (
+    BURN_IN_RATIO,
+    MAX_BURN_IN_FRACTION,
+    MAX_BURN_IN_S,
+    BurnIn,
+    burn_in,
+    burn_in_cap,
+)
 from starlog.compensate.decimate import (
     decimate,
     decimation_indices,
-    decimation_step,
     effective_rate,
+    sampled_rate,
 )
 from starlog.compensate.decomposition import (
     MIN_SAMPLES,
@@ -74,11 +83,15 @@ from starlog.compensate.strategies import (
 
 __all__ = [
     "AR_THETA",
+    "BURN_IN_RATIO",
     "FIGURE_DTYPE",
+    "MAX_BURN_IN_FRACTION",
+    "MAX_BURN_IN_S",
     "MIN_SAMPLES",
     "PASS_DTYPE",
     "TABLE_1",
     "AccuracySource",
+    "BurnIn",
     "CompensationPass",
     "CompensationResult",
     "ErrorCategory",
@@ -94,13 +107,14 @@ __all__ = [
     "adaptive_median",
     "adaptive_window_trend",
     "apply_strategy",
+    "burn_in",
+    "burn_in_cap",
     "ar_prediction",
     "compensate",
     "confidence",
     "confidence_weighted",
     "decimate",
     "decimation_indices",
-    "decimation_step",
     "decompose",
     "effective_rate",
     "evaluate",
@@ -111,6 +125,7 @@ __all__ = [
     "rank_strategies",
     "rmse",
     "running_mean_reference",
+    "sampled_rate",
     "scored_start",
     "strategy_scores",
     "trend_window",

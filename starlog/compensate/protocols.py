@@ -316,6 +316,7 @@ def evaluate(
     static_position: npt.ArrayLike | None = None,
     platform_displacement: npt.ArrayLike | None = None,
     reference_variance: npt.ArrayLike | None = None,
+    select_positive: bool = True,
 ) -> Evaluation:
     """Compensate a decimated centroid series and score it under one protocol.
 
@@ -341,7 +342,7 @@ def evaluate(
         ``calibration`` (default) or ``running_mean``; only for ``leakfree``.
     calibration_fraction : float
         Fraction of the samples in the unscored calibration segment (``leakfree`` only).
-    top_k, rollback_threshold
+    top_k, rollback_threshold, select_positive
         Passed to :func:`~starlog.compensate.selection.compensate`.
     motion : MotionMode or str
         ``keep`` (paper): compensate the positions.  ``separate``: compensate the residual
@@ -396,6 +397,7 @@ def evaluate(
         accuracy_source=accuracy_source,
         top_k=top_k,
         rollback_threshold=rollback_threshold,
+        select_positive=select_positive,
         protocol=proto,
     )
     start = scored_start(proto, n, calibration_fraction=calibration_fraction)

@@ -8,8 +8,11 @@ with ``A_k`` the magnitude (px) of error category ``k`` from the decomposition a
 ``D_j`` and the targets from Table 1 (:data:`TABLE_1`; its first row is the trend-estimation
 strategy, the paper repeats the median filter's name by mistake).
 
-The ``top_k`` (3) highest-scoring strategies run one after the other in descending score;
-ties keep Table 1's order (a stable sort), so the ranking is deterministic.  Each pass is
+The highest-scoring strategies whose score is > 0 — at most ``top_k`` (3), fewer when fewer
+apply — run one after the other in descending score; ties keep Table 1's order (a stable sort),
+so the ranking is deterministic.  A strategy scored 0 targets no error the decomposition found,
+so the paper's selection does not run it; ``select_positive=False`` runs the ``top_k`` best
+whatever their score (an ablation).  Each pass is
 applied to the output of the previous kept pass, with the decomposition (``f_d``) of the
 input; after each pass eq. 13 ``Effective = (RMSE_before - RMSE_after) / RMSE_before`` is
 computed about the selection reference (eq. 15), and the pass is rolled back when
@@ -214,7 +217,8 @@ class CompensationResult:
     scores : dict[Strategy, float]
         Eq. 12 score of every strategy, Table 1 order.
     order : tuple of Strategy
-        Strategies run, in order (the ``top_k`` best).
+        Strategies run, in order (the best ``top_k`` with a score > 0, or the ``top_k`` best
+        when ``select_positive`` is False).
     passes : tuple of CompensationPass
         One record per strategy run (scores, RMSEs, eq. 13, kept / rolled back).
     protocol : ScoringProtocol
@@ -238,6 +242,9 @@ class CompensationResult:
     rollback_threshold : float
     accuracy_source : AccuracySource
         ``A`` of eq. 10.
+    select_positive : bool
+        Only strategies with a score > 0 were run.
+        ``A`` of eq. 10.
     """
 
     compensated: npt.NDArray[np.float64]
@@ -256,6 +263,7 @@ class CompensationResult:
     top_k: int
     rollback_threshold: float
     accuracy_source: AccuracySource
+    select_positive: bool = True
 
     @property
     def kept(self) -> tuple[Strategy, ...]:
@@ -274,7 +282,7 @@ class CompensationResult:
         """JSON-ready decision record (no arrays, no NaN).
 
         Layout: ``{"protocol", "reference_mode", "reference_point": [x, y] | null,
-        "n_samples", "n_selection", "fs", "top_k", "rollback_threshold", "accuracy_source",
+        "n_samples", "n_selection", "fs", "top_k", "select_positive", "rollback_threshold", "accuracy_source",
         "rmse_before", "rmse_after", "scores": {STRATEGY: score}, "order": [STRATEGY, ...],
         "kept": [STRATEGY, ...], "passes": [PASS_DTYPE dict, ...],
         "decomposition": ErrorDecomposition.to_dict()}``, with ``fs`` the sampling rate
@@ -291,6 +299,7 @@ class CompensationResult:
             "n_selection": self.n_selection,
             "fs": self.rate_hz,
             "top_k": self.top_k,
+            "select_positive": self.select_positive,
             "rollback_threshold": self.rollback_threshold,
             "accuracy_source": str(self.accuracy_source),
             "rmse_before": self.rmse_before,
@@ -312,11 +321,12 @@ class _Settings:
     protocol: ScoringProtocol
     top_k: int
     rollback_threshold: float
+    select_positive: bool
 
 
 def _check_settings(reference_mode: ReferenceMode | str, accuracy_source: AccuracySource | str,
                     protocol: ScoringProtocol | str | None, top_k: int, rollback_threshold: float,
-                    n_strategies: int) -> _Settings:
+                    n_strategies: int, select_positive: bool) -> _Settings:
     mode = parse_choice(ReferenceMode, reference_mode, name="reference_mode")
     acc_src = parse_choice(AccuracySource, accuracy_source, name="accuracy_source")
     if protocol is None:
@@ -335,8 +345,10 @@ def _check_settings(reference_mode: ReferenceMode | str, accuracy_source: Accura
         raise InvalidParameterError(
             f"rollback_threshold must be finite; got {rollback_threshold!r}."
         )
+    if not isinstance(select_positive, (bool, np.bool_)):
+        raise InvalidParameterError(f"select_positive must be True or False; got {select_positive!r}.")
     return _Settings(mode=mode, accuracy_source=acc_src, protocol=proto, top_k=k,
-                     rollback_threshold=thr)
+                     rollback_threshold=thr, select_positive=bool(select_positive))
 
 
 def _per_sample_inputs(
@@ -413,6 +425,7 @@ def compensate(
     rollback_threshold: float = 0.01,
     protocol: ScoringProtocol | str | None = None,
     table: tuple[StrategyProfile, ...] = TABLE_1,
+    select_positive: bool = True,
 ) -> CompensationResult:
     """Decompose, score, and run the best strategies with rollback (§2.4, Figure 1).
 
@@ -438,7 +451,7 @@ def compensate(
     accuracy_source : AccuracySource or str
         ``zero`` (``A = 0``, paper) or ``sigma``.
     top_k : int
-        Strategies to run (1..5), default 3.
+        Most strategies to run (1..5), default 3.
     rollback_threshold : float
         Minimum eq. 13 improvement to keep a pass, default 0.01.
     protocol : ScoringProtocol or str, optional
@@ -447,6 +460,9 @@ def compensate(
         mode.
     table : tuple of StrategyProfile
         Table 1 (override for experiments).
+    select_positive : bool
+        Run only strategies whose eq. 12 score is > 0 (default, the paper's selection); False
+        runs the ``top_k`` best whatever their score.
 
     Returns
     -------
@@ -456,7 +472,7 @@ def compensate(
     n = p.shape[0]
     rate_hz = check_rate(rate_hz)
     cfg = _check_settings(reference_mode, accuracy_source, protocol, top_k, rollback_threshold,
-                          len(table))
+                          len(table), select_positive)
     if n < MIN_SAMPLES:
         raise InvalidInputError(
             f"compensation needs at least {MIN_SAMPLES} samples; got {n}. Use a longer "
@@ -469,7 +485,10 @@ def compensate(
     sel_xy, sel_ref = p[:n_sel], ref.values[:n_sel]
     decomposition = decompose(sel_xy, rate_hz=rate_hz, reference=sel_ref)
     scores = strategy_scores(decomposition.magnitudes, table=table)
-    order = rank_strategies(scores, table=table)[: cfg.top_k]
+    ranked = rank_strategies(scores, table=table)
+    if cfg.select_positive:
+        ranked = tuple(s for s in ranked if scores[s] > 0.0)
+    order = ranked[: cfg.top_k]
     current, passes = _run_passes(
         sel_xy, sel_ref, rate_hz=rate_hz, decomposition=decomposition, order=order,
         scores=scores, flux=_head(flux_a, n_sel), accuracy=_head(accuracy, n_sel),
@@ -505,4 +524,5 @@ def _result(compensated: npt.NDArray[np.float64], decomposition: ErrorDecomposit
         top_k=cfg.top_k,
         rollback_threshold=cfg.rollback_threshold,
         accuracy_source=cfg.accuracy_source,
+        select_positive=cfg.select_positive,
     )

@@ -1,6 +1,10 @@
-"""The two simulated "laboratory" datasets of the paper's §3.1 (docs/PAPER.md, "Experiments").
+"""The two simulated "laboratory" datasets of the paper's §3.1, in two regimes (docs/PAPER.md, "Experiments").
 
-A static star field seen at 300 Hz (3248 frames) and 200 Hz (3027 frames) by a camera on a
+Regime ``paper`` (:mod:`~starlog.experiment.paper_regime`, derived from the paper's own numbers
+in docs/PAPER_REGIME.md): an under-sampled PSF at low SNR, whose uncompensated RMSE is of the
+paper's size.  Regime ``modern``, described below: a well-sampled PSF at high SNR.
+
+Regime ``modern``: a static star field seen at 300 Hz (3248 frames) and 200 Hz (3027 frames) by a camera on a
 platform with small perturbations: two sinusoidal vibrations (3.7 Hz, 0.08 px and 17 Hz,
 0.04 px peak per axis) and a slow random walk (0.01 px/√s).  The jitter's RMS is 0.063 px per
 axis; the experiment sets the trackers' ``sigma_floor`` to :data:`SIGMA_FLOOR_PX` = 0.06 px
@@ -14,7 +18,8 @@ the first seed (from the dataset's base seed upwards) whose stars are at least
 centroid by ~1 px and would make the truth protocols meaningless).  Everything is
 deterministic.
 
-``quick`` datasets (CI): 48×48 px, 2 stars, 3.2 s of data (960 / 640 frames): enough for 32
+``quick`` datasets (CI): 48×48 px, 2 stars, 3.7 s of data (1110 / 740 frames): after the
+filter's start-up (at most :data:`~starlog.compensate.MAX_BURN_IN_S` = 0.5 s) enough for 32
 samples at 10 Hz, i.e. 16 calibration + 16 scored samples under the ``leakfree`` protocol
 (the compensation needs at least 16).
 """
@@ -23,22 +28,29 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from starlog.compensate import MAX_BURN_IN_S
+from starlog.experiment import paper_regime
 from starlog.sim import PRESETS, Jitter, SimulationConfig, Simulator
 
 __all__ = [
     "JITTER",
+    "REGIMES",
     "MIN_SEPARATION_PX",
     "RANDOM_WALK_PX_PER_SQRT_S",
     "SIGMA_FLOOR_PX",
     "Dataset",
     "jitter_rms_px",
     "paper_datasets",
+    "regime_datasets",
 ]
+
+#: The dataset regimes, in report order: the paper's (derived from its numbers) and today's.
+REGIMES: tuple[str, ...] = ("paper", "modern")
 
 #: Platform vibration of both datasets.
 JITTER: tuple[Jitter, ...] = (Jitter(frequency_hz=3.7, amplitude_px=0.08), Jitter(frequency_hz=17.0, amplitude_px=0.04))
@@ -50,19 +62,32 @@ SIGMA_FLOOR_PX = 0.06
 MIN_SEPARATION_PX = 12.0
 
 _BASE_SEEDS = {"300Hz": 300, "200Hz": 200}
-_QUICK_SECONDS = 3.2
+_QUICK_SECONDS = 3.2 + MAX_BURN_IN_S
 
 
 @dataclass(frozen=True)
 class Dataset:
-    """One simulated dataset: its name (``"300Hz"`` / ``"200Hz"``) and simulator configuration."""
+    """One simulated dataset: its name (``"300Hz"`` / ``"200Hz"``), simulator configuration, regime,
+    and the stages' settings for it (``tracker``: StarTracker options, ``motion``: motion-model
+    options, ``centroid``: centroid-stage options)."""
 
     name: str
     config: SimulationConfig
+    regime: str = "modern"
+    tracker: dict[str, Any] = field(default_factory=dict)
+    motion: dict[str, Any] = field(default_factory=dict)
+    centroid: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def stem(self) -> str:
+        """File-name stem of the dataset's logs, ``<regime>_<name>``."""
+        return f"{self.regime}_{self.name}"
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready description (name, configuration, duration)."""
-        return {"name": self.name, "duration_s": self.config.duration_s, "config": self.config.to_dict()}
+        """JSON-ready description (name, regime, configuration, duration, tracker settings)."""
+        return {"name": self.name, "regime": self.regime, "duration_s": self.config.duration_s,
+                "config": self.config.to_dict(), "tracker": dict(self.tracker), "motion": dict(self.motion),
+                "centroid": dict(self.centroid)}
 
 
 def jitter_rms_px(jitter: tuple[Jitter, ...]) -> float:
@@ -87,8 +112,11 @@ def _separated(params: dict[str, Any], base_seed: int) -> SimulationConfig:
     raise AssertionError("unreachable")  # pragma: no cover
 
 
-def paper_datasets(*, quick: bool = False) -> tuple[Dataset, ...]:
-    """The 300 Hz and 200 Hz datasets (in that order), full size or ``quick``."""
+def paper_datasets(*, quick: bool = False, regime: str = "modern",
+                   sigma_floor: float = SIGMA_FLOOR_PX) -> tuple[Dataset, ...]:
+    """The 300 Hz and 200 Hz datasets of one regime (in that order), full size or ``quick``."""
+    if regime not in REGIMES:
+        raise ValueError(f"unknown regime {regime!r}; choose from {REGIMES}.")
     out = []
     for name, preset in (("300Hz", PRESETS["paper300"]), ("200Hz", PRESETS["paper200"])):
         fps = float(preset["fps"])
@@ -106,5 +134,20 @@ def paper_datasets(*, quick: bool = False) -> tuple[Dataset, ...]:
             "random_walk_px_per_sqrt_s": RANDOM_WALK_PX_PER_SQRT_S,
             "margin": 10.0,
         }
-        out.append(Dataset(name=name, config=_separated(params, _BASE_SEEDS[name])))
+        motion: dict[str, Any] = {}
+        centroid: dict[str, Any] = {}
+        if regime == "paper":
+            params.update({k: v for k, v in paper_regime.SIMULATION.items()
+                           if not (quick and k in ("width", "height", "n_stars"))})
+            motion = paper_regime.motion_for(fps)
+            centroid = dict(paper_regime.CENTROID)
+        out.append(Dataset(name=name, config=_separated(params, _BASE_SEEDS[name]), regime=regime,
+                           tracker={"sigma_floor": float(sigma_floor)}, motion=motion, centroid=centroid))
     return tuple(out)
+
+
+def regime_datasets(regimes: tuple[str, ...] = REGIMES, *, quick: bool = False,
+                    sigma_floor: float = SIGMA_FLOOR_PX) -> tuple[Dataset, ...]:
+    """The dataset pair of every regime in ``regimes`` (regime order, then 300 Hz before 200 Hz)."""
+    return tuple(ds for regime in regimes
+                 for ds in paper_datasets(quick=quick, regime=regime, sigma_floor=sigma_floor))

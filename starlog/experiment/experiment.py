@@ -16,8 +16,8 @@ from tqdm import tqdm
 
 from starlog.batch import executor_for
 from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.experiment import plots, report, tables
-from starlog.experiment.datasets import JITTER, SIGMA_FLOOR_PX, Dataset, jitter_rms_px, paper_datasets
+from starlog.experiment import null_check, plots, report, tables
+from starlog.experiment.datasets import JITTER, REGIMES, SIGMA_FLOOR_PX, Dataset, jitter_rms_px, regime_datasets
 from starlog.experiment.regime import RegimeSummary, run_regime_map
 from starlog.experiment.runner import (
     COMPENSATED_RATES,
@@ -27,6 +27,7 @@ from starlog.experiment.runner import (
     TABLE4_RATE,
     UNCOMPENSATED_RATES,
     WINDOW_S,
+    best_table2_model,
     compensate_showcase,
     path_str,
     simulate_and_centroid,
@@ -38,6 +39,7 @@ __all__ = ["ExperimentSummary", "experiment_command", "run_experiment"]
 
 _SHOWCASE_RATES = (10.0, 50.0)
 _TRAJECTORY = ("300Hz", "NONE", ("STATIC", "RANDOM_WALK"), 50.0)
+_Key = tuple[str, str, str, str]  # kind, regime, dataset, detail
 
 
 @dataclass
@@ -78,6 +80,10 @@ class ExperimentSummary:
     tables: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     headline: list[dict[str, Any]] = field(default_factory=list)
     showcase_check: float | None = None
+    regimes: tuple[str, ...] = REGIMES
+    table3_models: dict[str, str] = field(default_factory=dict)
+    null_checks: list[dict[str, Any]] = field(default_factory=list)
+    compensation: dict[str, Any] = field(default_factory=dict)
 
     @property
     def window_note(self) -> str:
@@ -94,14 +100,16 @@ class ExperimentSummary:
             "executor": self.executor, "datasets": self.datasets, "sigma_floor_px": self.sigma_floor_px,
             "jitter_rms_px": jitter_rms_px(JITTER), "window_s": self.window_s, "window_note": self.window_note,
             "files": dict(self.files), "tracks": self.tracks, "headline": self.headline,
-            "showcase_check": self.showcase_check, "n_rows": len(self.rows),
+            "showcase_check": self.showcase_check, "n_rows": len(self.rows), "regimes": list(self.regimes),
+            "table3_models": dict(self.table3_models), "null_checks": self.null_checks,
+            "compensation": dict(self.compensation),
         }
 
     def text(self) -> str:
         """A short plain-text summary for the command line."""
-        lines = [f"experiment ({'quick' if self.quick else 'full'}) in {self.wall_time_s:.0f} s "
-                 f"[{self.executor}] -> {self.output_dir}",
-                 f"{'table':7} {'protocol':9} {'reference':13} {'ours before':>11} {'after':>7} "
+        lines = [f"experiment ({'quick' if self.quick else 'full'}, regimes {', '.join(self.regimes)}) in "
+                 f"{self.wall_time_s:.0f} s [{self.executor}] -> {self.output_dir}",
+                 f"{'regime':7} {'table':7} {'protocol':9} {'reference':13} {'ours before':>11} {'after':>7} "
                  f"{'paper before':>12} {'after':>7}"]
         for h in self.headline:
             if h["table"] == "table2":
@@ -110,8 +118,9 @@ class ExperimentSummary:
             def f(v: float | None) -> str:
                 return "—" if v is None else f"{v:.4f}"
 
-            lines.append(f"{h['table']:7} {h['protocol']:9} {h['reference']:13} {f(h['before']):>11} "
+            lines.append(f"{h['regime']:7} {h['table']:7} {h['protocol']:9} {h['reference']:13} {f(h['before']):>11} "
                          f"{f(h['after']):>7} {f(h['paper_before']):>12} {f(h['paper_after']):>7}")
+        lines += null_check.text_lines(self.null_checks)
         lines.append(f"report: {self.output_dir / self.files.get('report', 'report.md')}")
         return "\n".join(lines)
 
@@ -138,6 +147,8 @@ def run_experiment(
     window_s: float | None = WINDOW_S,
     sigma_floor: float = SIGMA_FLOOR_PX,
     plot: bool = True,
+    regimes: tuple[str, ...] | list[str] = REGIMES,
+    compensation: dict[str, Any] | None = None,
 ) -> ExperimentSummary:
     """Regenerate the paper's Tables 2–4 and Figure 5 under the ``paper``, ``truth`` and ``leakfree`` protocols.
 
@@ -146,10 +157,10 @@ def run_experiment(
     output_dir : path
         Created if needed. Receives ``logs/`` (simulated, centroid, track and compensate
         logs), ``table2.md/.parquet``, ``table3.*``, ``table4.*``, ``figure5.md/.parquet``,
-        ``results.parquet`` (every row), ``figure4.png``, ``figure5.png``, ``trajectory.png``,
-        ``summary.json`` and ``report.md``.
+        ``results.parquet`` (every row), ``figure4_<regime>.png``, ``figure5_<regime>.png``,
+        ``trajectory_<regime>_<model>.png``, ``summary.json`` and ``report.md``.
     quick : bool
-        CI-sized datasets (48×48 px, 2 stars, 3.2 s): every table and plot, in well under a minute
+        CI-sized datasets (48×48 px, 2 stars, 3.7 s): every table and plot, in about a minute
         on 2 cores.
     executor : concurrent.futures.Executor, optional
         Runs the independent tasks (per dataset, per dataset × centroid method); e.g.
@@ -166,36 +177,42 @@ def run_experiment(
         Trackers' measurement-sigma floor, px (default ≈ the simulated jitter RMS).
     plot : bool
         Write the PNGs (needs matplotlib).
+    regimes : sequence of str
+        Dataset regimes to run, ``paper`` and/or ``modern`` (default both;
+        :mod:`starlog.experiment.datasets`).
+    compensation : dict, optional
+        Keyword options of :func:`starlog.compensate.evaluate` for every run (e.g.
+        ``{"top_k": 3, "select_positive": False}`` for the forced-three ablation).
     """
     t0 = time.perf_counter()
     if window_s is not None and not window_s > 0:
         raise InvalidParameterError(f"window_s must be > 0 s or None, got {window_s!r}.")
+    chosen = _check_regimes(regimes)
     out = Path(output_dir)
-    datasets = paper_datasets(quick=quick)
+    datasets = list(regime_datasets(chosen, quick=quick, sigma_floor=sigma_floor))
     _prepare_output(out, datasets, force=force)
-    track_results, showcases = _run_sweep(
-        executor if executor is not None else _Serial(), datasets, out / "logs",
-        tracker={"sigma_floor": float(sigma_floor)}, window_s=window_s, force=force, show_progress=show_progress)
-
-    rows = sort_rows([r for t in track_results for r in t["rows"]])
-    series: dict[str, Any] = {}
-    for t in track_results:
-        series.update(t["series"])
     summary = ExperimentSummary(
         output_dir=out, quick=quick, wall_time_s=0.0,
         executor="serial" if executor is None else type(executor).__name__,
         datasets=[d.to_dict() for d in datasets], sigma_floor_px=float(sigma_floor), window_s=window_s,
-        rows=rows,
-        tracks={f"{t['dataset']}/{t['method']}": t["track"] for t in sorted(
-            track_results, key=lambda t: (t["dataset"], t["method"]))},
+        regimes=chosen, compensation=dict(compensation or {}),
     )
-    summary.showcase_check = _cross_check(rows, showcases)
-    _write_results(rows, out / "results.parquet")
+    sweep = _Sweep(datasets, out / "logs", window_s=window_s, force=force, compensation=summary.compensation,
+                   quick=quick)
+    sweep.run(executor if executor is not None else _Serial(), show_progress=show_progress)
+    summary.rows = sort_rows([r for t in sweep.track_results for r in t["rows"]])
+    summary.tracks = {f"{t['regime']}/{t['dataset']}/{t['method']}": t["track"] for t in sorted(
+        sweep.track_results, key=lambda t: (t["regime"], t["dataset"], t["method"]))}
+    summary.table3_models = dict(sorted(sweep.best_models.items()))
+    summary.null_checks = null_check.sort_records([r for n in sweep.null_results for r in n])
+    summary.showcase_check = _cross_check(summary.rows, sweep.showcases)
+    _write_results(summary.rows, out / "results.parquet")
     files: dict[str, str] = {"results": "results.parquet"}
     tables_md = _write_tables(summary, out, files)
+    files["null_check"] = null_check.write_parquet(summary.null_checks, out / "null_check.parquet").name
     if plot:
-        _write_plots(summary, series, out, files)
-    files.update(_log_files(datasets))
+        _write_plots(summary, sweep.series, out, files)
+    files.update({k: v for k, v in _log_files(datasets).items() if (out / v).exists()})
     files["summary"] = "summary.json"
     files["report"] = "report.md"
     summary.files = files
@@ -207,6 +224,14 @@ def run_experiment(
     return summary
 
 
+def _check_regimes(regimes: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    chosen = tuple(dict.fromkeys(str(r) for r in regimes))
+    bad = [r for r in chosen if r not in REGIMES]
+    if not chosen or bad:
+        raise InvalidParameterError(f"regimes must be a non-empty subset of {list(REGIMES)}; got {list(regimes)!r}.")
+    return tuple(r for r in REGIMES if r in chosen)
+
+
 def _prepare_output(out: Path, datasets: list[Dataset], *, force: bool) -> None:
     """Create ``out/logs``; refuse to overwrite a previous run's outputs unless ``force``."""
     logs = out / "logs"
@@ -214,74 +239,122 @@ def _prepare_output(out: Path, datasets: list[Dataset], *, force: bool) -> None:
     logs.mkdir(exist_ok=True)
     guard = [out / "report.md", out / "results.parquet"]
     for ds in datasets:
-        guard += [logs / f"{ds.name}_sim.mcap", logs / f"{ds.name}_centroids.mcap"]
+        guard += [logs / f"{ds.stem}_sim.mcap", logs / f"{ds.stem}_centroids.mcap"]
     if not force:
         for p in guard:
             if p.exists():
                 raise OutputExistsError(p)
 
 
-def _run_sweep(pool: Any, datasets: list[Dataset], logs: Path, *, tracker: dict[str, Any],
-               window_s: float | None, force: bool,
-               show_progress: bool) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Every task on ``pool``: each finished centroid run submits its track runs, each ``NONE``
-    track run its compensate showcase.  Returns the track results and the showcases."""
-    n_tasks = len(datasets) * (2 + len(METHODS))
-    bar = tqdm(total=n_tasks, desc="experiment", unit="run", disable=None if show_progress else True,
-               dynamic_ncols=True)
-    futures: dict[Future[Any], tuple[str, str, str]] = {}
+class _Sweep:
+    """Every task of one experiment, submitted as its inputs become ready.
 
-    def submit(kind: str, ds: str, key: str, fn: Any, *args: Any, **kwargs: Any) -> None:
-        futures[pool.submit(fn, *args, **kwargs)] = (kind, ds, key)
+    Per dataset: centroid → NONE track (all models) → once both datasets of a regime have
+    their NONE tracks, Table 2's best model is known: the other methods are tracked with it,
+    and the ``compensate`` showcase runs on NONE/best.  Per regime: the null check.
+    """
 
-    centroid_paths = {ds.name: path_str(logs / f"{ds.name}_centroids.mcap") for ds in datasets}
-    track_results: list[dict[str, Any]] = []
-    showcases: list[dict[str, Any]] = []
-    try:
-        for ds in datasets:
-            submit("centroid", ds.name, "", simulate_and_centroid, ds.to_dict(), path_str(logs / f"{ds.name}_sim.mcap"),
-                   centroid_paths[ds.name], methods=list(METHODS), force=force)
-        while futures:
-            done, _ = wait(list(futures), return_when=FIRST_COMPLETED)
-            for fut in sorted(done, key=lambda f: futures[f]):
-                kind, ds_name, key = futures.pop(fut)
-                result = fut.result()
-                bar.update(1)
-                bar.set_postfix_str(f"{kind} {ds_name} {key}".strip())
-                if kind == "centroid":
-                    for method in METHODS:
-                        models = list(MODELS) if method == "NONE" else ["STATIC"]
-                        keep = (TABLE4_RATE,) if (ds_name, method) == _TRAJECTORY[:2] else ()
-                        submit("track", ds_name, method, track_and_score, centroid_paths[ds_name],
-                               path_str(logs / f"{ds_name}_track_{method}.mcap"), dataset=ds_name, method=method,
-                               models=models, tracker=tracker, rates_uncompensated=list(UNCOMPENSATED_RATES),
-                               rates_compensated=list(COMPENSATED_RATES), window_s=window_s,
-                               keep_series=list(keep), force=force)
-                elif kind == "track":
-                    track_results.append(result)
-                    if key == "NONE":
-                        submit("compensate", ds_name, "NONE/STATIC", compensate_showcase, result["track_path"],
-                               path_str(logs / f"{ds_name}_compensated.mcap"), dataset=ds_name,
-                               track_topic="/track/NONE/STATIC", rates=list(_SHOWCASE_RATES), force=force)
-                else:
-                    showcases.append(result)
-    except BaseException:
-        for fut in futures:
-            fut.cancel()
-        raise
-    finally:
-        bar.close()
-    return track_results, showcases
+    def __init__(self, datasets: list[Dataset], logs: Path, *, window_s: float | None, force: bool,
+                 compensation: dict[str, Any], quick: bool) -> None:
+        self.datasets = {(d.regime, d.name): d for d in datasets}
+        self.logs, self.window_s, self.force, self.compensation, self.quick = logs, window_s, force, compensation, quick
+        self.track_results: list[dict[str, Any]] = []
+        self.showcases: list[dict[str, Any]] = []
+        self.null_results: list[list[dict[str, Any]]] = []
+        self.series: dict[str, Any] = {}
+        self.best_models: dict[str, str] = {}
+        self._none_rows: dict[str, dict[str, list[dict[str, Any]]]] = {}
+        self._futures: dict[Future[Any], _Key] = {}
+
+    def _path(self, ds: Dataset, kind: str) -> str:
+        return path_str(self.logs / f"{ds.stem}_{kind}.mcap")
+
+    def run(self, pool: Any, *, show_progress: bool) -> None:
+        regimes = sorted({d.regime for d in self.datasets.values()})
+        n_tasks = len(self.datasets) * (2 + len(METHODS)) + len(regimes)
+        bar = tqdm(total=n_tasks, desc="experiment", unit="run", disable=None if show_progress else True,
+                   dynamic_ncols=True)
+        self._pool = pool
+        try:
+            for ds in self.datasets.values():
+                self._submit(("centroid", ds.regime, ds.name, ""), simulate_and_centroid,
+                             ds.to_dict(),
+                             self._path(ds, "sim"), self._path(ds, "centroids"), methods=list(METHODS),
+                             force=self.force)
+            for regime in regimes:
+                first = next(d for d in self.datasets.values() if d.regime == regime)
+                self._submit(("null", regime, first.name, ""), null_check.run_null_check, first.to_dict(),
+                             str(self.logs), compensation=self.compensation, window_s=self.window_s,
+                             force=self.force)
+            while self._futures:
+                done, _ = wait(list(self._futures), return_when=FIRST_COMPLETED)
+                for fut in sorted(done, key=lambda f: self._futures[f]):
+                    key = self._futures.pop(fut)
+                    result = fut.result()
+                    bar.update(1)
+                    bar.set_postfix_str(" ".join(k for k in key if k))
+                    self._on_done(key, result)
+        except BaseException:
+            for fut in self._futures:
+                fut.cancel()
+            raise
+        finally:
+            bar.close()
+
+    def _submit(self, key: _Key, fn: Any, *args: Any, **kwargs: Any) -> None:
+        self._futures[self._pool.submit(fn, *args, **kwargs)] = key
+
+    def _track(self, ds: Dataset, method: str, models: list[str]) -> None:
+        keep = (TABLE4_RATE,) if (ds.name, method) == _TRAJECTORY[:2] else ()
+        self._submit(("track", ds.regime, ds.name, method), track_and_score, self._path(ds, "centroids"),
+                     self._path(ds, f"track_{method}"), dataset=ds.name, regime=ds.regime, method=method,
+                     models=models, tracker=dict(ds.tracker), motion=dict(ds.motion),
+                     rates_uncompensated=list(UNCOMPENSATED_RATES), rates_compensated=list(COMPENSATED_RATES),
+                     window_s=self.window_s, keep_series=list(keep), compensation=self.compensation,
+                     force=self.force)
+
+    def _on_done(self, key: _Key, result: Any) -> None:
+        kind, regime, name, detail = key
+        if kind == "centroid":
+            self._track(self.datasets[(regime, name)], "NONE", list(MODELS))
+        elif kind == "track":
+            self.track_results.append(result)
+            self.series.update(result["series"])
+            if detail == "NONE":
+                self._none_done(regime, name, result["rows"])
+        elif kind == "compensate":
+            self.showcases.append(result)
+        else:
+            self.null_results.append(result)
+
+    def _none_done(self, regime: str, name: str, rows: list[dict[str, Any]]) -> None:
+        """Once every dataset of ``regime`` has its NONE rows: pick Table 2's best model, run the rest."""
+        done = self._none_rows.setdefault(regime, {})
+        done[name] = rows
+        members = [d for d in self.datasets.values() if d.regime == regime]
+        if len(done) < len(members):
+            return
+        window = f"{self.window_s:g}s" if self.window_s is not None else "full"
+        best = best_table2_model([r for v in done.values() for r in v], window=window)
+        self.best_models[regime] = best
+        for ds in members:
+            for method in METHODS[1:]:
+                self._track(ds, method, [best])
+            self._submit(("compensate", regime, ds.name, f"NONE/{best}"), compensate_showcase,
+                         self._path(ds, "track_NONE"), self._path(ds, "compensated"), dataset=ds.name,
+                         regime=regime, track_topic=f"/track/NONE/{best}", rates=list(_SHOWCASE_RATES),
+                         force=self.force)
 
 
 def _write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) -> dict[str, str]:
     """Tables 2-4 and Figure 5 as Parquet and Markdown; returns the Markdown by table name."""
     tables_md: dict[str, str] = {}
     for name in ("table2", "table3", "table4", "figure5"):
-        trows = tables.build_table(name, summary.rows)
+        trows = tables.build_table(name, summary.rows, table3_models=summary.table3_models)
         summary.tables[name] = trows
         tables.write_parquet(trows, out / f"{name}.parquet", description=tables.TABLE_TITLES[name])
-        tables_md[name] = tables.table_markdown(name, trows, note=f"Scored samples: {summary.window_note}.")
+        tables_md[name] = tables.table_markdown(name, trows, note=f"Scored samples: {summary.window_note}.",
+                                                table3_models=summary.table3_models)
         (out / f"{name}.md").write_text(tables_md[name], encoding="utf-8")
         files[f"{name}.parquet"] = f"{name}.parquet"
         files[f"{name}.md"] = f"{name}.md"
@@ -289,19 +362,24 @@ def _write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) 
 
 
 def _write_plots(summary: ExperimentSummary, series: dict[str, Any], out: Path, files: dict[str, str]) -> None:
-    """Figures 4 and 5, and the trajectory of the brightest star (before/after) per model."""
-    files["figure4"] = plots.plot_figure4(summary.tables["table3"], out / "figure4.png").name
-    files["figure5"] = plots.plot_figure5(summary.tables["figure5"], out / "figure5.png").name
+    """Per regime: Figures 4 and 5, and the trajectory of the brightest star (before/after) per model."""
     ds_name, method, models, rate = _TRAJECTORY
     window_s = summary.window_s
-    for m in models:
-        key = f"{ds_name}/{method}/{m}/{rate:g}Hz/{window_s:g}s" if window_s is not None else ""
-        if key not in series:
-            continue
-        name = f"trajectory_{m.lower()}"
-        files[name] = plots.plot_trajectory(
-            series[key], out / f"{name}.png",
-            title=f"{ds_name} dataset, {method} centroids, {m} UKF, {rate:g} Hz — brightest star").name
+    for regime in summary.regimes:
+        t3 = [r for r in summary.tables["table3"] if r["regime"] == regime]
+        f5 = [r for r in summary.tables["figure5"] if r["regime"] == regime]
+        files[f"figure4_{regime}"] = plots.plot_figure4(
+            t3, out / f"figure4_{regime}.png", model=summary.table3_models.get(regime, "STATIC"),
+            label=f"regime {regime}").name
+        files[f"figure5_{regime}"] = plots.plot_figure5(f5, out / f"figure5_{regime}.png").name
+        for m in models:
+            key = f"{regime}/{ds_name}/{method}/{m}/{rate:g}Hz/{window_s:g}s" if window_s is not None else ""
+            if key not in series:
+                continue
+            name = f"trajectory_{regime}_{m.lower()}"
+            files[name] = plots.plot_trajectory(
+                series[key], out / f"{name}.png",
+                title=f"{regime} {ds_name} dataset, {method} centroids, {m} UKF, {rate:g} Hz — brightest star").name
 
 
 def _log_files(datasets: list[Dataset]) -> dict[str, str]:
@@ -309,23 +387,26 @@ def _log_files(datasets: list[Dataset]) -> dict[str, str]:
     files: dict[str, str] = {}
     for ds in datasets:
         for kind in ("sim", "centroids"):
-            files[f"{ds.name}_{kind}"] = f"logs/{ds.name}_{kind}.mcap"
+            files[f"{ds.stem}_{kind}"] = f"logs/{ds.stem}_{kind}.mcap"
         for method in METHODS:
-            files[f"{ds.name}_track_{method}"] = f"logs/{ds.name}_track_{method}.mcap"
-        files[f"{ds.name}_compensated"] = f"logs/{ds.name}_compensated.mcap"
+            files[f"{ds.stem}_track_{method}"] = f"logs/{ds.stem}_track_{method}.mcap"
+        files[f"{ds.stem}_compensated"] = f"logs/{ds.stem}_compensated.mcap"
+    for regime in sorted({d.regime for d in datasets}):
+        for kind in ("sim", "centroids", "track"):
+            files[f"{regime}_null_{kind}"] = f"logs/{regime}_null_{kind}.mcap"
     return files
 
 
 def _cross_check(rows: list[dict[str, Any]], showcases: list[dict[str, Any]]) -> float | None:
     """Largest |difference| between the compensate stage's figures and the sweep's (full window)."""
-    index = {(r["dataset"], r["method"], r["model"], r["rate_hz"], r["protocol"], r["reference"]): r
-             for r in rows if r["window"] == "full" and r["compensated"]}
+    index = {(r["regime"], r["dataset"], r["method"], r["model"], r["rate_hz"], r["protocol"], r["reference"]): r
+             for r in rows if r["window"] == "full" and r["compensated"] and r["burn_in"] == "skipped"}
     worst: float | None = None
     for sc in showcases:
         for rec in sc["records"]:
             for fig in rec["figures"]:
-                r = index.get((sc["dataset"], rec["method"], rec["model"], rec["rate_hz"], rec["protocol"],
-                               fig["reference"]))
+                r = index.get((sc["regime"], sc["dataset"], rec["method"], rec["model"], rec["rate_hz"],
+                               rec["protocol"], fig["reference"]))
                 if r is None:
                     continue
                 d = max(abs(r["rmse_before"] - fig["rmse_before"]), abs(r["rmse_after"] - fig["rmse_after"]))
@@ -334,7 +415,7 @@ def _cross_check(rows: list[dict[str, Any]], showcases: list[dict[str, Any]]) ->
 
 
 def _write_results(rows: list[dict[str, Any]], path: Path) -> None:
-    types = {"rate_hz": pa.float64(), "effective_rate_hz": pa.float64(), "n_samples": pa.int64(),
+    types = {"burn_in_samples": pa.int64(), "rate_hz": pa.float64(), "effective_rate_hz": pa.float64(), "n_samples": pa.int64(),
              "compensated": pa.bool_(), "n_scored": pa.int64(), "rmse_before": pa.float64(),
              "rmse_after": pa.float64(), "effective": pa.float64(), "dominant_frequency_hz": pa.float64()}
     fields = [pa.field(n, types.get(n, pa.string()), metadata={"description": d}) for n, d in RESULT_FIELDS.items()]
@@ -351,10 +432,14 @@ def experiment_command(
     force: bool = False,
     show_progress: bool = True,
     sweep: bool = False,
+    regimes: tuple[str, ...] | list[str] = REGIMES,
+    compensation: dict[str, Any] | None = None,
 ) -> ExperimentSummary | RegimeSummary:
-    """What ``starlog experiment -o DIR [--quick] [--sweep] [--workers N] [--scheduler ADDR] [--force]`` calls.
+    """What ``starlog experiment -o DIR [--quick] [--sweep] [--regime R] [--top-k K] [--force-top-k] [--workers N]
+    [--scheduler ADDR] [--force]`` calls.
 
-    ``sweep`` runs the regime map (:mod:`starlog.experiment.regime`) instead of the paper's tables.
+    ``sweep`` runs the regime map (:mod:`starlog.experiment.regime`) instead of the paper's tables
+    (``regimes`` and ``compensation`` are then not used).
 
     ``scheduler`` sends the independent runs to that Dask cluster; otherwise ``workers > 1``
     starts a local Dask cluster of that many processes (:func:`starlog.batch.executor_for`);
@@ -366,4 +451,5 @@ def experiment_command(
         if sweep:
             return run_regime_map(output_dir, quick=quick, executor=executor, force=force,
                                   show_progress=show_progress)
-        return run_experiment(output_dir, quick=quick, executor=executor, force=force, show_progress=show_progress)
+        return run_experiment(output_dir, quick=quick, executor=executor, force=force, show_progress=show_progress,
+                              regimes=regimes, compensation=compensation)

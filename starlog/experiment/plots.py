@@ -46,8 +46,9 @@ def _lookup(rows: Sequence[dict[str, Any]]) -> dict[tuple[Any, ...], dict[str, A
     return {(r["protocol"], r["reference"], r["dataset"], r["method"], r["model"], r["rate_hz"]): r for r in rows}
 
 
-def plot_figure4(rows: Sequence[dict[str, Any]], path: str | Path, *, dataset: str = "300Hz") -> Path:
-    """Bar chart: RMSE before/after per sub-pixel method × rate (STATIC), per protocol. ``rows``: table3 rows."""
+def plot_figure4(rows: Sequence[dict[str, Any]], path: str | Path, *, dataset: str = "300Hz",
+                 model: str = "STATIC", label: str = "") -> Path:
+    """Bar chart: RMSE before/after per sub-pixel method × rate (``model``), per protocol. ``rows``: table3 rows."""
     plt = _pyplot()
     idx = _lookup(rows)
     fig, axes = plt.subplots(len(_PRIMARY), 1, figsize=(9, 7.5), sharex=True)
@@ -56,7 +57,7 @@ def plot_figure4(rows: Sequence[dict[str, Any]], path: str | Path, *, dataset: s
         labels, before, after = [], [], []
         for method in METHODS:
             for rate in TABLE3_RATES:
-                r = idx.get((protocol, reference, dataset, method, "STATIC", rate))
+                r = idx.get((protocol, reference, dataset, method, model, rate))
                 if r is None:
                     continue
                 labels.append(f"{method}\n{rate:g}")
@@ -66,7 +67,8 @@ def plot_figure4(rows: Sequence[dict[str, Any]], path: str | Path, *, dataset: s
         ax.bar([i - width / 2 for i in x], before, width, label="before", color="#9aa5b1")
         ax.bar([i + width / 2 for i in x], after, width, label="after", color="#2f6db5")
         ax.set_ylabel("RMSE (px)")
-        ax.set_title(f"{dataset}, STATIC UKF — protocol {protocol}, reference {reference}", fontsize=9)
+        ax.set_title(f"{label + ', ' if label else ''}{dataset}, {model} UKF — protocol {protocol}, "
+                     f"reference {reference}", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
         ax.set_xticks(x)
         ax.set_xticklabels(labels, fontsize=6)

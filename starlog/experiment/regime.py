@@ -30,7 +30,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from starlog.compensate import MotionMode, ScoringProtocol, decimation_indices, effective_rate
+from starlog.compensate import MotionMode, ScoringProtocol, sampled_rate
 from starlog.errors import OutputExistsError
 from starlog.experiment.plots import plot_regime_map
 from starlog.experiment.runner import MODELS
@@ -150,8 +150,8 @@ def regime_task(spec: dict[str, Any], work: str) -> list[dict[str, Any]]:
 def _score(series: Any, head: dict[str, Any]) -> list[dict[str, Any]]:
     rows = []
     for rate in RATES:
-        idx = decimation_indices(series.log_time.size, native_rate=series.native_rate, target_rate=rate)
-        rate_hz = effective_rate(native_rate=series.native_rate, target_rate=rate)
+        idx = series.indices(rate)
+        rate_hz = sampled_rate(idx, native_rate=series.native_rate)
         for protocol in PROTOCOLS:
             for motion in MotionMode:
                 ev = evaluate_series(series, idx, rate_hz=rate_hz, protocol=protocol, motion=motion,

@@ -8,19 +8,20 @@ the output directory):
 1. :func:`simulate_and_centroid` — per dataset: ``simulate`` then ``centroid`` (all five
    sub-pixel methods);
 2. :func:`track_and_score` — per dataset × centroid method: ``track`` (all five UKF models
-   for ``NONE``, STATIC for the other methods; Table 3 only needs STATIC), then, for each
+   for ``NONE``; for the other methods only the model that did best in Table 2 of the same
+   regime, :func:`best_table2_model` — what Table 3 uses), then, for each
    model, the brightest star's series is decimated to every rate and scored under the
    ``paper``, ``truth`` and ``leakfree`` protocols, uncompensated and compensated
    (:func:`starlog.stages.compensate.evaluate_series`, the ``compensate`` stage's own scoring);
-3. :func:`compensate_showcase` — per dataset: the ``compensate`` stage on ``NONE/STATIC``
+3. :func:`compensate_showcase` — per dataset: the ``compensate`` stage on NONE and the best model
    at the paper's rates, leaving a log with every decision record and compensated series
    (for Foxglove), and a cross-check of the sweep.
 
 Which samples are scored (``window_s``)
     The paper's "Image number" column (60 samples at 10 Hz, 300 at 50 Hz) implies about 6 s
     of data, not the 10.8 s / 15.1 s its frame counts give.  Each decimated sequence is scored
-    over its first ``floor(window_s · f_eff + 0.5)`` samples (``window_s`` = 6 s by default:
-    60 at 10 Hz, 300 at 50 Hz, 600 at 100 Hz; 180 at 30 Hz where the paper prints 200), and
+    over its first ``floor(window_s · f + 0.5)`` samples, ``f`` the requested rate (``window_s``
+    = 6 s by default: 60 at 10 Hz, 300 at 50 Hz, 600 at 100 Hz; 180 at 30 Hz where the paper prints 200), and
     every run is *also* scored over the whole sequence (``window = "full"``); the tables use
     the 6 s window, ``results.parquet`` has both.
 
@@ -40,14 +41,15 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.compensate import (
+    MIN_SAMPLES,
     Evaluation,
     ScoringProtocol,
-    decimation_indices,
-    effective_rate,
     protocol_figures,
     protocols_for,
+    sampled_rate,
     scored_start,
 )
+from starlog.errors import InvalidInputError
 from starlog.io.reader import LogReader
 from starlog.sim import SimulationConfig
 from starlog.stages import simulate_log
@@ -59,6 +61,7 @@ __all__ = [
     "COMPENSATED_RATES",
     "FIGURE5_RATES",
     "METHODS",
+    "MIN_COMPENSATED",
     "MODELS",
     "PROTOCOL_REFERENCES",
     "RESULT_FIELDS",
@@ -67,6 +70,7 @@ __all__ = [
     "TABLE4_RATE",
     "UNCOMPENSATED_RATES",
     "WINDOW_S",
+    "best_table2_model",
     "compensate_showcase",
     "path_str",
     "simulate_and_centroid",
@@ -91,6 +95,12 @@ FIGURE5_RATES: tuple[float, ...] = tuple(float(r) for r in range(10, 101, 10))
 UNCOMPENSATED_RATES: tuple[float, ...] = (5.0,)
 #: Rates scored before and after compensation.
 COMPENSATED_RATES: tuple[float, ...] = FIGURE5_RATES
+#: Fewest samples a compensated rate needs: 16 calibration + 16 scored samples under ``leakfree``
+#: (:data:`starlog.compensate.MIN_SAMPLES` each); shorter series are scored uncompensated.
+MIN_COMPENSATED: int = 2 * MIN_SAMPLES
+#: The two burn-in variants: (label, skip the filter's start-up); ``kept`` is scored on the
+#: tables' window only.
+BURN_IN_VARIANTS: tuple[tuple[str, bool], ...] = (("skipped", True), ("kept", False))
 #: Default scoring window, s (the paper's "Image number" column).
 WINDOW_S: float = 6.0
 #: The RMSE figures of each protocol, primary first (:func:`starlog.compensate.protocol_figures`).
@@ -101,14 +111,17 @@ PROTOCOL_REFERENCES: dict[str, tuple[str, ...]] = {
 }
 
 RESULT_FIELDS: dict[str, str] = {
+    "regime": "dataset regime: 'paper' (derived from the paper's numbers) or 'modern'",
     "dataset": "dataset name, '300Hz' or '200Hz' (native frame rate)",
     "method": "sub-pixel centroid method (NONE, BICUBIC, GAUSSFIT, GRADIENT, MOMENT)",
     "model": "UKF motion model",
     "window": "scored samples: '6s' (first window_s seconds, the paper's image numbers) or 'full'",
+    "burn_in": "'skipped': the decimated series starts after the filter's start-up (the tables); 'kept': at frame 0",
+    "burn_in_samples": "native frames skipped as the filter's start-up (0 when kept)",
     "rate_hz": "requested down-sample rate, Hz",
-    "effective_rate_hz": "native rate / decimation step, Hz",
+    "effective_rate_hz": "mean rate of the kept samples, native rate × (N - 1) / (last - first frame index), Hz",
     "n_samples": "decimated samples in the window",
-    "compensated": "True when the adaptive compensation was run (False: uncompensated rate)",
+    "compensated": "True when the adaptive compensation was run (False: uncompensated rate, or fewer than 32 samples)",
     "protocol": "evaluation protocol: paper, truth or leakfree",
     "reference": "what the RMSE is measured about: global_mean, truth_fixed, truth_series, heldout_mean",
     "n_scored": "samples scored (the held-out part under leakfree)",
@@ -117,6 +130,7 @@ RESULT_FIELDS: dict[str, str] = {
     "effective": "eq. 13 improvement (before - after) / before (null when not compensated)",
     "order": "strategies run, best score first, '>'-separated ('' when not compensated)",
     "kept": "strategies kept after the 1 % rollback rule, '>'-separated",
+    "accuracy_from": "A of eq. 10: where it came from ('' when not compensated)",
     "dominant_frequency_hz": "dominant error frequency f_d of the decomposition, Hz (null when not compensated)",
 }
 """Fields of one result row (one dataset × method × model × window × rate × protocol × reference)."""
@@ -132,22 +146,25 @@ def simulate_and_centroid(
 ) -> dict[str, Any]:
     """Task 1: simulate one dataset and measure its centroids by every method.
 
-    ``dataset`` is :meth:`Dataset.to_dict` (``name``, ``config``).  Returns the paths and the
-    centroid stage's summary.
+    ``dataset`` is :meth:`Dataset.to_dict` (``name``, ``config``, optional ``centroid`` options of
+    the centroid stage).  Returns the paths and the centroid stage's summary.
     """
     config = SimulationConfig.from_dict(dataset["config"])
     simulate_log(config, sim_path, force=force)
-    summary = centroid_log(sim_path, centroid_path, methods=list(methods), force=force)
+    summary = centroid_log(sim_path, centroid_path, methods=list(methods), options=dataset.get("centroid"),
+                           force=force)
     return {"dataset": dataset["name"], "sim_path": sim_path, "centroid_path": centroid_path,
             "centroid": summary.to_dict()}
 
 
-def _window_indices(n: int, *, native_rate: float, rate: float, window_s: float | None) -> npt.NDArray[np.int64]:
-    idx = decimation_indices(n, native_rate=native_rate, target_rate=rate)
+def _window_indices(series: BrightestSeries, *, rate: float, window_s: float | None,
+                    skip_burn_in: bool) -> npt.NDArray[np.int64]:
+    """The decimated samples of one window (:meth:`BrightestSeries.indices`, then the first
+    ``floor(window_s · rate + 0.5)``)."""
+    idx = series.indices(rate, skip_burn_in=skip_burn_in)
     if window_s is None:
         return idx
-    rate_hz = effective_rate(native_rate=native_rate, target_rate=rate)
-    return idx[: int(math.floor(window_s * rate_hz + 0.5))]
+    return idx[: int(math.floor(window_s * rate + 0.5))]
 
 
 def uncompensated_figures(
@@ -183,15 +200,17 @@ def _uncompensated_rows(base: dict[str, Any], series: BrightestSeries, idx: npt.
     ts = None if series.truth_series is None else series.truth_series[idx]
     figures = uncompensated_figures(series.xy[idx], truth_fixed=series.truth_fixed, truth_series=ts,
                                     calibration_fraction=calibration_fraction)
-    return [{**base, "compensated": False, "protocol": protocol, "reference": reference, "n_scored": n_scored,
+    return [{**base, "compensated": False, "accuracy_from": "", "protocol": protocol, "reference": reference, "n_scored": n_scored,
              "rmse_before": value, "rmse_after": None, "effective": None, "order": "", "kept": "",
              "dominant_frequency_hz": None}
             for protocol, figs in figures.items() for reference, value, n_scored in figs]
 
 
-def _compensated_rows(base: dict[str, Any], protocol: ScoringProtocol, ev: Evaluation) -> list[dict[str, Any]]:
+def _compensated_rows(base: dict[str, Any], protocol: ScoringProtocol, ev: Evaluation,
+                      sigma_source: str) -> list[dict[str, Any]]:
     res = ev.result
-    return [{**base, "compensated": True, "protocol": protocol.value, "reference": fig.reference,
+    accuracy_from = sigma_source if res.accuracy_source == "sigma" else "none (A = 0)"
+    return [{**base, "compensated": True, "accuracy_from": accuracy_from, "protocol": protocol.value, "reference": fig.reference,
              "n_scored": int(fig.n_scored), "rmse_before": float(fig.rmse_before),
              "rmse_after": float(fig.rmse_after), "effective": float(fig.effective),
              "order": ">".join(str(s) for s in res.order), "kept": ">".join(str(s) for s in res.kept),
@@ -214,34 +233,39 @@ def _keep_series(kept: dict[str, Any], key: str, series: BrightestSeries, idx: n
     entry["scored_start"][protocol.value] = int(ev.scored_start)
 
 
-def _score_series(series: BrightestSeries, *, dataset: str, rates_uncompensated: Sequence[float],
+def _score_series(series: BrightestSeries, *, dataset: str, regime: str, rates_uncompensated: Sequence[float],
                   rates_compensated: Sequence[float], window_s: float | None,
-                  calibration_fraction: float, keep_series: Sequence[float]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """Rows for one brightest-star series; and the series of the ``keep_series`` rates (6 s window)."""
+                  calibration_fraction: float, keep_series: Sequence[float],
+                  options: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Rows for one brightest-star series (burn-in skipped: every window; kept: the first window
+    only — the tables' — to bound the cost), every rate; and
+    the series of the ``keep_series`` rates (burn-in skipped, short window)."""
     rows: list[dict[str, Any]] = []
     kept_series: dict[str, Any] = {}
-    accuracy = "zero" if series.method == "NONE" else "sigma"
     windows: list[tuple[str, float | None]] = [("full", None)]
     if window_s is not None:
         windows.insert(0, (f"{window_s:g}s", window_s))
     has_truth = series.truth_fixed is not None or series.truth_series is not None
-    n = series.xy.shape[0]
-    for window, wsec in windows:
-        for rate in sorted({*rates_uncompensated, *rates_compensated}):
-            idx = _window_indices(n, native_rate=series.native_rate, rate=rate, window_s=wsec)
-            rate_hz = effective_rate(native_rate=series.native_rate, target_rate=rate)
-            base = {"dataset": dataset, "method": series.method, "model": series.model, "window": window,
-                    "rate_hz": float(rate), "effective_rate_hz": float(rate_hz), "n_samples": int(idx.size)}
-            if rate not in rates_compensated:
-                rows += _uncompensated_rows(base, series, idx, calibration_fraction=calibration_fraction)
-                continue
-            for protocol in protocols_for(has_truth=has_truth):
-                ev = evaluate_series(series, idx, rate_hz=rate_hz, protocol=protocol, accuracy_source=accuracy,
-                                     calibration_fraction=calibration_fraction)
-                rows += _compensated_rows(base, protocol, ev)
-                if window != "full" and rate in keep_series:
-                    key = f"{dataset}/{series.method}/{series.model}/{rate:g}Hz/{window}"
-                    _keep_series(kept_series, key, series, idx, protocol, ev)
+    burn = series.burn_in()
+    for burn_in, skip in BURN_IN_VARIANTS:
+        for window, wsec in (windows if skip else windows[:1]):
+            for rate in sorted({*rates_uncompensated, *rates_compensated}):
+                idx = _window_indices(series, rate=rate, window_s=wsec, skip_burn_in=skip)
+                rate_hz = sampled_rate(idx, native_rate=series.native_rate)
+                base = {"regime": regime, "dataset": dataset, "method": series.method, "model": series.model, "window": window,
+                        "burn_in": burn_in, "burn_in_samples": burn.samples if skip else 0,
+                        "rate_hz": float(rate), "effective_rate_hz": float(rate_hz), "n_samples": int(idx.size)}
+                if rate not in rates_compensated or idx.size < MIN_COMPENSATED:
+                    # too short to compensate (e.g. a fragmented brightest track): scored uncompensated
+                    rows += _uncompensated_rows(base, series, idx, calibration_fraction=calibration_fraction)
+                    continue
+                for protocol in protocols_for(has_truth=has_truth):
+                    ev = evaluate_series(series, idx, rate_hz=rate_hz, protocol=protocol,
+                                         calibration_fraction=calibration_fraction, **options)
+                    rows += _compensated_rows(base, protocol, ev, series.sigma_source)
+                    if window != "full" and skip and rate in keep_series:
+                        key = f"{regime}/{dataset}/{series.method}/{series.model}/{rate:g}Hz/{window}"
+                        _keep_series(kept_series, key, series, idx, protocol, ev)
     return rows, kept_series
 
 
@@ -250,6 +274,7 @@ def track_and_score(
     track_path: str,
     *,
     dataset: str,
+    regime: str = "modern",
     method: str,
     models: Sequence[str],
     tracker: dict[str, Any],
@@ -259,11 +284,15 @@ def track_and_score(
     window_s: float | None = WINDOW_S,
     calibration_fraction: float = 0.5,
     keep_series: Sequence[float] = (),
+    compensation: dict[str, Any] | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
     """Task 2: track one centroid channel under ``models`` and score every model's brightest series.
 
-    Returns ``{"dataset", "method", "track_path", "track": TrackSummary.to_dict(), "rows": [...],
+    ``compensation``: keyword options of :func:`starlog.compensate.evaluate` (``A`` of eq. 10 is
+    the centroid's own ``sigma`` unless ``accuracy_source`` is given).
+
+    Returns ``{"regime", "dataset", "method", "track_path", "track": TrackSummary.to_dict(), "rows": [...],
     "series": {...}}`` — plain data (rows of :data:`RESULT_FIELDS`).
     """
     summary = track_log(centroid_path, track_path, method=method, models=list(models), tracker=dict(tracker),
@@ -274,13 +303,14 @@ def track_and_score(
         truth_cache: dict[int, Any] = {}
         for model in models:
             series = read_brightest_series(log, f"/track/{method}/{model}", truth_cache=truth_cache)
-            r, s = _score_series(series, dataset=dataset, rates_uncompensated=rates_uncompensated,
+            r, s = _score_series(series, dataset=dataset, regime=regime, rates_uncompensated=rates_uncompensated,
                                  rates_compensated=rates_compensated, window_s=window_s,
-                                 calibration_fraction=calibration_fraction, keep_series=keep_series)
+                                 calibration_fraction=calibration_fraction, keep_series=keep_series,
+                                 options=dict(compensation or {}))
             rows.extend(r)
             series_out.update(s)
-    return {"dataset": dataset, "method": method, "track_path": track_path, "track": summary.to_dict(),
-            "rows": rows, "series": series_out}
+    return {"regime": regime, "dataset": dataset, "method": method, "track_path": track_path,
+            "track": summary.to_dict(), "rows": rows, "series": series_out}
 
 
 def compensate_showcase(
@@ -290,20 +320,25 @@ def compensate_showcase(
     dataset: str,
     track_topic: str,
     rates: Sequence[float],
+    regime: str = "modern",
     force: bool = False,
 ) -> dict[str, Any]:
     """Task 3: the ``compensate`` stage on one track channel (whole sequence, every protocol).
 
     Returns ``{"dataset", "path", "records": [{method, model, rate_hz, protocol, figures}]}``.
     """
-    summary = compensate_log(track_path, output_path, rates=list(rates), track=track_topic, protocols="all",
-                             force=force)
+    try:
+        summary = compensate_log(track_path, output_path, rates=list(rates), track=track_topic, protocols="all",
+                                 force=force)
+    except InvalidInputError as err:  # a brightest track too short to compensate (fragmented, faint star)
+        return {"regime": regime, "dataset": dataset, "path": None, "records": [], "skipped": str(err)}
     records = [{"method": r["method"], "model": r["model"], "rate_hz": r["rate_hz"], "protocol": r["protocol"],
                 "n_samples": r["n_samples"], "figures": r["figures"]} for r in summary.records]
-    return {"dataset": dataset, "path": output_path, "records": records}
+    return {"regime": regime, "dataset": dataset, "path": output_path, "records": records}
 
 
 _ORDER = {
+    "regime": {"paper": 0, "modern": 1},
     "dataset": {"300Hz": 0, "200Hz": 1},
     "method": {m: i for i, m in enumerate(METHODS)},
     "model": {m: i for i, m in enumerate(MODELS)},
@@ -316,11 +351,28 @@ def sort_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Result rows in a canonical order (independent of task completion order)."""
 
     def key(r: dict[str, Any]) -> tuple[Any, ...]:
-        return (_ORDER["dataset"].get(r["dataset"], 9), r["dataset"], _ORDER["method"].get(r["method"], 9),
-                _ORDER["model"].get(r["model"], 9), 0 if r["window"] != "full" else 1, r["rate_hz"],
+        return (_ORDER["regime"].get(r["regime"], 9), r["regime"], _ORDER["dataset"].get(r["dataset"], 9), r["dataset"], _ORDER["method"].get(r["method"], 9),
+                _ORDER["model"].get(r["model"], 9), r["burn_in"] != "skipped", 0 if r["window"] != "full" else 1,
+                r["rate_hz"],
                 _ORDER["protocol"][r["protocol"]], _ORDER["reference"][r["reference"]])
 
     return sorted(rows, key=key)
+
+
+def best_table2_model(rows: Sequence[dict[str, Any]], *, window: str) -> str:
+    """The UKF model with the lowest uncompensated RMSE in Table 2 (paper §3.2.1), as the paper picks it.
+
+    Mean over the datasets and Table 2's rates of the ``paper`` protocol's figure (sub-pixel
+    method NONE, burn-in skipped, scored ``window``); ties keep :data:`MODELS` order.
+    """
+    values: dict[str, list[float]] = {}
+    for r in rows:
+        if (r["method"] == "NONE" and r["rate_hz"] in TABLE2_RATES and r["window"] == window
+                and r["burn_in"] == "skipped" and r["protocol"] == "paper"):
+            values.setdefault(r["model"], []).append(r["rmse_before"])
+    if not values:
+        raise ValueError("no Table 2 rows to choose a model from.")
+    return min((m for m in MODELS if m in values), key=lambda m: sum(values[m]) / len(values[m]))
 
 
 def path_str(path: str | os.PathLike[str]) -> str:

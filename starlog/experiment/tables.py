@@ -40,6 +40,7 @@ __all__ = [
 
 TABLE_FIELDS: dict[str, tuple[pa.DataType, str]] = {
     "table": (pa.string(), "table2, table3, table4 or figure5"),
+    "regime": (pa.string(), "dataset regime: paper (derived from the paper's numbers) or modern"),
     "protocol": (pa.string(), "evaluation protocol: paper, truth, leakfree"),
     "reference": (pa.string(), "RMSE reference: global_mean, truth_fixed, truth_series, heldout_mean"),
     "dataset": (pa.string(), "300Hz or 200Hz"),
@@ -47,7 +48,8 @@ TABLE_FIELDS: dict[str, tuple[pa.DataType, str]] = {
     "model": (pa.string(), "UKF motion model"),
     "window": (pa.string(), "scored samples: first N seconds ('6s') or 'full'"),
     "rate_hz": (pa.float64(), "requested down-sample rate, Hz"),
-    "effective_rate_hz": (pa.float64(), "native rate / decimation step, Hz"),
+    "effective_rate_hz": (pa.float64(), "mean rate of the kept samples (nearest-frame decimation), Hz"),
+    "burn_in_samples": (pa.int64(), "native frames skipped as the filter's start-up before the first sample"),
     "n_samples": (pa.int64(), "decimated samples in the window"),
     "n_scored": (pa.int64(), "samples scored"),
     "compensated": (pa.bool_(), "whether compensation was run"),
@@ -64,7 +66,7 @@ TABLE_FIELDS: dict[str, tuple[pa.DataType, str]] = {
 
 TABLE_TITLES: dict[str, str] = {
     "table2": "Table 2 — uncompensated RMSE of the five UKF models (sub-pixel method NONE), 5 and 10 Hz",
-    "table3": "Table 3 — STATIC UKF, sub-pixel methods × 10–50 Hz, RMSE before/after compensation",
+    "table3": "Table 3 — Table 2's best UKF model, sub-pixel methods × 10–50 Hz, RMSE before/after compensation",
     "table4": "Table 4 — five UKF models at 50 Hz (sub-pixel method NONE), RMSE before/after compensation",
     "figure5": "Figure 5 — RMSE before/after compensation, 10–100 Hz, five UKF models (NONE)",
 }
@@ -85,11 +87,11 @@ def primary_window(rows: Sequence[dict[str, Any]]) -> str:
     return short[0] if short else "full"
 
 
-def _select(table: str, r: dict[str, Any]) -> bool:
+def _select(table: str, r: dict[str, Any], table3_models: dict[str, str]) -> bool:
     if table == "table2":
         return r["method"] == "NONE" and r["rate_hz"] in TABLE2_RATES
     if table == "table3":
-        return r["model"] == "STATIC" and r["rate_hz"] in TABLE3_RATES
+        return r["model"] == table3_models.get(r["regime"], "STATIC") and r["rate_hz"] in TABLE3_RATES
     if table == "table4":
         return r["method"] == "NONE" and r["rate_hz"] == TABLE4_RATE
     if table == "figure5":
@@ -97,12 +99,18 @@ def _select(table: str, r: dict[str, Any]) -> bool:
     raise KeyError(table)
 
 
-def build_table(table: str, rows: Sequence[dict[str, Any]], *, window: str | None = None) -> list[dict[str, Any]]:
-    """Long-format rows of ``table`` (columns :data:`TABLE_FIELDS`) from the sweep's result rows."""
+def build_table(table: str, rows: Sequence[dict[str, Any]], *, window: str | None = None,
+                table3_models: dict[str, str] | None = None) -> list[dict[str, Any]]:
+    """Long-format rows of ``table`` (columns :data:`TABLE_FIELDS`) from the sweep's result rows.
+
+    Burn-in skipped, scored ``window`` (default :func:`primary_window`); Table 3 uses each
+    regime's ``table3_models`` entry (Table 2's best model; STATIC when not given).
+    """
     window = window or primary_window(rows)
+    models = dict(table3_models or {})
     out = []
     for r in rows:
-        if r["window"] != window or not _select(table, r):
+        if r["window"] != window or r["burn_in"] != "skipped" or not _select(table, r, models):
             continue
         before = after = None
         n_paper = None
@@ -114,9 +122,9 @@ def build_table(table: str, rows: Sequence[dict[str, Any]], *, window: str | Non
             elif table == "table4":
                 n_paper = paper_tables.TABLE3_IMAGE_NUMBER[paper_tables.TABLE4_RATE]
         out.append({
-            "table": table, "protocol": r["protocol"], "reference": r["reference"], "dataset": r["dataset"],
+            "table": table, "regime": r["regime"], "protocol": r["protocol"], "reference": r["reference"], "dataset": r["dataset"],
             "method": r["method"], "model": r["model"], "window": r["window"], "rate_hz": r["rate_hz"],
-            "effective_rate_hz": r["effective_rate_hz"], "n_samples": r["n_samples"], "n_scored": r["n_scored"],
+            "effective_rate_hz": r["effective_rate_hz"], "burn_in_samples": r["burn_in_samples"], "n_samples": r["n_samples"], "n_scored": r["n_scored"],
             "compensated": r["compensated"], "rmse_before": r["rmse_before"], "rmse_after": r["rmse_after"],
             "effective": r["effective"], "paper_rmse_before": before, "paper_rmse_after": after,
             "paper_n_samples": n_paper, "order": r["order"], "kept": r["kept"],
@@ -150,14 +158,22 @@ def _pct(value: float | None) -> str:
     return "—" if value is None else f"{100 * value:+.0f}%"
 
 
+def _n(row: dict[str, Any] | None) -> str:
+    """The number of scored samples of a cell ('—' when there is no cell)."""
+    return "—" if row is None else str(row["n_scored"])
+
+
 def _md(header: Sequence[str], body: Sequence[Sequence[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(row) + " |" for row in body]
     return "\n".join(lines)
 
 
-def _index(rows: Sequence[dict[str, Any]]) -> dict[tuple[Any, ...], dict[str, Any]]:
-    return {(r["protocol"], r["reference"], r["dataset"], r["method"], r["model"], r["rate_hz"]): r for r in rows}
+def _index(rows: Sequence[dict[str, Any]], *, any_model: bool) -> dict[tuple[Any, ...], dict[str, Any]]:
+    """Rows by (protocol, reference, dataset, method, model, rate); model '' when ``any_model``
+    (Table 3 has one model per regime)."""
+    return {(r["protocol"], r["reference"], r["dataset"], r["method"], "" if any_model else r["model"],
+             r["rate_hz"]): r for r in rows}
 
 
 Cell = Callable[[str, str, str, float], "dict[str, Any] | None"]
@@ -168,7 +184,7 @@ def _table2_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
     header = ["UKF model"]
     for ds in datasets:
         for rate in TABLE2_RATES:
-            header.append(f"{ds} RMSE_{rate:g}Hz")
+            header += [f"{ds} RMSE_{rate:g}Hz", "N"]
             if with_paper:
                 header.append("paper")
     body = []
@@ -177,7 +193,7 @@ def _table2_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
         for ds in datasets:
             for rate in TABLE2_RATES:
                 c = cell(ds, "NONE", model, rate)
-                line.append(_f(c and c["rmse_before"]))
+                line += [_f(c and c["rmse_before"]), _n(c)]
                 if with_paper:
                     line.append(_f(paper_tables.TABLE2[model][ds][int(rate)]))
         body.append(line)
@@ -185,25 +201,23 @@ def _table2_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
 
 
 def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
-    header = ["Sub-pixel method", "Rate/Hz", "N (paper)"]
+    header = ["Sub-pixel method", "Rate/Hz", "paper N"]
     for ds in datasets:
-        header += [f"{ds} before", f"{ds} after", "gain"]
+        header += [f"{ds} N", f"{ds} before", f"{ds} after", "gain"]
         if with_paper:
             header += ["paper before", "paper after"]
     body = []
     for method in METHODS:
         for rate in TABLE3_RATES:
-            cells = [cell(ds, method, "STATIC", rate) for ds in datasets]
+            cells = [cell(ds, method, "", rate) for ds in datasets]
             if not any(cells):
                 continue
-            first = next(c for c in cells if c)
             paper_n = paper_tables.TABLE3_IMAGE_NUMBER.get(int(rate))
             has_paper = paper_tables.paper_value("table3", dataset=datasets[0], method=method,
                                                  rate_hz=rate)[0] is not None
-            n_text = f"{first['n_samples']}" + (f" ({paper_n})" if has_paper and paper_n else "")
-            line = [method, f"{rate:g}", n_text]
+            line = [method, f"{rate:g}", str(paper_n) if has_paper and paper_n else "—"]
             for ds, c in zip(datasets, cells):
-                line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
+                line += [_n(c), _f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
                 if with_paper:
                     pb, pa_ = paper_tables.paper_value("table3", dataset=ds, method=method, rate_hz=rate)
                     line += [_f(pb), _f(pa_)]
@@ -214,7 +228,7 @@ def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
 def _table4_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
     header = ["UKF model"]
     for ds in datasets:
-        header += [f"{ds} before", f"{ds} after", "gain"]
+        header += [f"{ds} N", f"{ds} before", f"{ds} after", "gain"]
         if with_paper:
             header += ["paper before", "paper after"]
     body = []
@@ -222,7 +236,7 @@ def _table4_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
         line = [model]
         for ds in datasets:
             c = cell(ds, "NONE", model, TABLE4_RATE)
-            line += [_f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
+            line += [_n(c), _f(c and c["rmse_before"]), _f(c and c["rmse_after"]), _pct(c and c["effective"])]
             if with_paper:
                 pb, pa_ = paper_tables.TABLE4[model][ds]
                 line += [_f(pb), _f(pa_)]
@@ -238,7 +252,7 @@ def _figure5_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tup
             line = [ds, model]
             for rate in FIGURE5_RATES:
                 c = cell(ds, "NONE", model, rate)
-                line.append("—" if c is None else f"{_f(c['rmse_before'])}→{_f(c['rmse_after'])}")
+                line.append("—" if c is None else f"{_f(c['rmse_before'])}→{_f(c['rmse_after'])} ({_n(c)})")
             body.append(line)
     return header, body
 
@@ -249,7 +263,7 @@ _LINES = {"table2": _table2_lines, "table3": _table3_lines, "table4": _table4_li
 def _section(table: str, rows: Sequence[dict[str, Any]], protocol: str, reference: str,
              datasets: Sequence[str]) -> str | None:
     """Markdown of one table under one protocol and reference (None when it has no value)."""
-    idx = _index(rows)
+    idx = _index(rows, any_model=table == "table3")
 
     def cell(ds: str, method: str, model: str, rate: float) -> dict[str, Any] | None:
         return idx.get((protocol, reference, ds, method, model, rate))
@@ -257,21 +271,30 @@ def _section(table: str, rows: Sequence[dict[str, Any]], protocol: str, referenc
     header, body = _LINES[table](cell, datasets, protocol == "paper")
     if not any(any(v not in ("—",) for v in line[1:]) for line in body):
         return None
-    title = f"### Protocol `{protocol}` — reference `{reference}`\n\n{REFERENCE_TEXT[reference]}."
+    title = f"#### Protocol `{protocol}` — reference `{reference}`\n\n{REFERENCE_TEXT[reference]}."
     return title + "\n\n" + _md(header, body)
 
 
-def table_markdown(table: str, rows: Sequence[dict[str, Any]], *, note: str = "") -> str:
-    """Markdown of one table: a section per protocol and reference (paper's numbers in ``paper``)."""
-    datasets = [d for d in paper_tables.DATASETS if any(r["dataset"] == d for r in rows)]
+def table_markdown(table: str, rows: Sequence[dict[str, Any]], *, note: str = "",
+                   table3_models: dict[str, str] | None = None) -> str:
+    """Markdown of one table: per regime, a section per protocol and reference (paper's numbers
+    in ``paper``)."""
     parts = [f"## {TABLE_TITLES[table]}",
              f"Reproduction of the paper's {table.replace('table', 'Table ').replace('figure', 'Figure ')} "
-             f"({paper_tables.PAPER_REFERENCE}). RMSE in pixels."]
+             f"({paper_tables.PAPER_REFERENCE}). RMSE in pixels; N = samples scored per dataset."]
     if note:
         parts.append(note)
-    for protocol, references in PROTOCOL_REFERENCES.items():
-        for reference in references:
-            section = _section(table, rows, protocol, reference, datasets)
-            if section:
-                parts.append(section)
+    regimes = sorted({r["regime"] for r in rows}, key=lambda g: ({"paper": 0, "modern": 1}.get(g, 9), g))
+    for regime in regimes:
+        sub = [r for r in rows if r["regime"] == regime]
+        head = f"### Regime `{regime}`"
+        if table == "table3" and table3_models and regime in table3_models:
+            head += f"\n\nUKF model: {table3_models[regime]} (the best of Table 2 in this run)."
+        parts.append(head)
+        datasets = [d for d in paper_tables.DATASETS if any(r["dataset"] == d for r in sub)]
+        for protocol, references in PROTOCOL_REFERENCES.items():
+            for reference in references:
+                section = _section(table, sub, protocol, reference, datasets)
+                if section:
+                    parts.append(section)
     return "\n\n".join(parts) + "\n"

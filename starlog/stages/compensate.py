@@ -2,7 +2,8 @@
 
 Reads one track channel (``/track/<METHOD>/<MODEL>``), takes the brightest star's track (the
 paper's centroid sequence: its filtered ``x``, ``y``, flux and centroid ``sigma``), decimates
-it equidistantly to each requested rate, and runs :func:`starlog.compensate.evaluate` under
+it to each requested rate (the frame nearest each ideal sample time,
+:func:`starlog.compensate.decimation_indices`), and runs :func:`starlog.compensate.evaluate` under
 each protocol (``paper``; ``truth`` when the log has ``/sim/truth``; ``leakfree``; ``relative`` when
 asked for) and each motion mode (``keep``, the paper's; ``separate``: compensate the star's
 residual from the platform motion fitted to the other stars, :mod:`starlog.motion`). It writes
@@ -34,13 +35,16 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.compensate import (
+    BurnIn,
     Evaluation,
     MotionMode,
+    burn_in,
+    burn_in_cap,
     ScoringProtocol,
     decimation_indices,
-    effective_rate,
     evaluate,
     protocols_for,
+    sampled_rate,
 )
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
@@ -76,6 +80,23 @@ class BrightestSeries:
     static: npt.NDArray[np.float64] | None = None
     displacement: npt.NDArray[np.float64] | None = None
     reference_variance: npt.NDArray[np.float64] | None = None
+    sigma_source: str = "track meas_sigma (floored)"
+    """Where ``sigma`` (``A`` of eq. 10) comes from: the centroid channel or the track's ``meas_sigma``."""
+    position_var: npt.NDArray[np.float64] | None = None
+    """The filter's posterior position variance per sample, ``(cov_xx + cov_yy) / 2``, px²."""
+
+    def burn_in(self) -> BurnIn:
+        """The filter's start-up (:func:`starlog.compensate.burn_in`, capped by :func:`~starlog.compensate.burn_in_cap`);
+        no burn-in when the variances are unknown."""
+        if self.position_var is None:
+            return BurnIn(samples=0, steady_variance=0.0, capped=False)
+        return burn_in(self.position_var, max_samples=burn_in_cap(self.xy.shape[0], native_rate=self.native_rate))
+
+    def indices(self, rate: float, *, skip_burn_in: bool = True) -> npt.NDArray[np.int64]:
+        """The samples kept at ``rate`` Hz (:func:`starlog.compensate.decimation_indices`), starting
+        after the filter's burn-in when ``skip_burn_in``."""
+        start = self.burn_in().samples if skip_burn_in else 0
+        return decimation_indices(self.xy.shape[0], native_rate=self.native_rate, target_rate=rate, start=start)
 
     @property
     def has_motion(self) -> bool:
@@ -95,7 +116,7 @@ def read_brightest_series(log: LogReader, topic: str, *, truth_cache: dict[int, 
     star is then read from the log once, not once per channel. ``with_truth=False`` leaves the
     truth unread (only the ``paper`` protocol runs: it never sees the truth).
     """
-    times, frames, xy, flux, sigma = [], [], [], [], []
+    times, frames, xy, flux, meas, var = [], [], [], [], [], []
     method = model = ""
     track_id = -1
     read = 0
@@ -110,7 +131,8 @@ def read_brightest_series(log: LogReader, topic: str, *, truth_cache: dict[int, 
                 frames.append(msg["frame"])
                 xy.append((row["x"], row["y"]))
                 flux.append(row["flux"])
-                sigma.append(row["meas_sigma"])
+                meas.append((row["meas_x"], row["meas_y"], row["meas_sigma"], row["measured"] or row["gated"]))
+                var.append(0.5 * (row["cov_xx"] + row["cov_yy"]))
     check_messages_read(log, topic, read)
     if not times:
         raise InvalidInputError(f"{topic} has no row of a brightest track; nothing to compensate.")
@@ -120,13 +142,43 @@ def read_brightest_series(log: LogReader, topic: str, *, truth_cache: dict[int, 
     native = image_rate if image_rate > 0 else ((t.size - 1) / span if span > 0 else 0.0)
     if native <= 0:
         raise InvalidInputError(f"{topic}: cannot tell the frame rate from fewer than two samples.")
+    sigma, sigma_source = _accuracy(log, method, t, meas)
     series = BrightestSeries(method=method, model=model, track=track_id, log_time=t,
                              frame=np.asarray(frames, dtype=np.int64), xy=np.asarray(xy, dtype=np.float64),
-                             flux=np.asarray(flux, dtype=np.float64), sigma=np.asarray(sigma, dtype=np.float64),
-                             native_rate=float(native))
+                             flux=np.asarray(flux, dtype=np.float64), sigma=sigma, sigma_source=sigma_source,
+                             native_rate=float(native), position_var=np.asarray(var, dtype=np.float64))
     if not with_truth or not log.has_topic(topics.TRUTH):
         return series
     return _with_truth(log, series, {} if truth_cache is None else truth_cache)
+
+
+def _accuracy(log: LogReader, method: str, times: npt.NDArray[np.int64],
+              meas: list[tuple[float, float, float, bool]]) -> tuple[npt.NDArray[np.float64], str]:
+    """``A`` of eq. 10 per sample and where it came from.
+
+    The centroid's own ``sigma`` (``/stars/centroids/<METHOD>``, the centroid at the track's
+    ``meas_x``, ``meas_y`` in the same frame) when the log has that channel; otherwise the
+    track's ``meas_sigma`` (the tracker's ``sigma_floor`` applied).  0 where no centroid was
+    associated.
+    """
+    fallback = np.array([m[2] for m in meas], dtype=np.float64)
+    topic = topics.centroid_topic(method)
+    if not log.has_topic(topic):
+        return fallback, "track meas_sigma (floored)"
+    wanted = {int(t): k for k, t in enumerate(times)}
+    out = np.zeros(len(meas))
+    for message in log.messages(topic):
+        k = wanted.get(message.log_time)
+        if k is None or not meas[k][3]:
+            continue
+        mx, my = meas[k][0], meas[k][1]
+        for star in message.payload["stars"]:
+            if star["x"] == mx and star["y"] == my:
+                out[k] = star["sigma"]
+                break
+        else:
+            return fallback, "track meas_sigma (floored)"
+    return out, f"{topic} sigma"
 
 
 def _nearest_star(log: LogReader, point: npt.NDArray[np.float64]) -> int | None:
@@ -189,8 +241,10 @@ def evaluate_series(series: BrightestSeries, idx: npt.NDArray[np.int64], *, rate
 
     The truth goes with every protocol but ``paper`` when the series has it, the platform
     reference whenever it is attached; ``options`` are :func:`~starlog.compensate.evaluate`'s
-    keyword options.
+    keyword options.  ``A`` of eq. 10 is the series' ``sigma`` (the centroid's own,
+    :attr:`BrightestSeries.sigma_source`) unless ``accuracy_source`` says otherwise.
     """
+    options = {"accuracy_source": "sigma", **options}
     truth: dict[str, Any] = {}
     if protocol is not ScoringProtocol.PAPER and series.truth_series is not None:
         truth = {"truth_fixed": series.truth_fixed, "truth_series": series.truth_series[idx]}
@@ -252,6 +306,7 @@ def compensate_log(
     options: dict[str, Any] | None = None,
     motion: str | Sequence[str] = "keep",
     motion_fit: str = "rigid",
+    skip_burn_in: bool = True,
     workers: int = 1,
     show_progress: bool = False,
     force: bool = False,
@@ -262,7 +317,7 @@ def compensate_log(
     Parameters
     ----------
     rates : sequence of float
-        Target rates in Hz (equidistant decimation from the frame rate).
+        Target rates in Hz (nearest-frame equidistant decimation from the frame rate).
     track : str or sequence of str, optional
         Track channel(s) (``/track/GAUSSFIT/STATIC`` or ``GAUSSFIT/STATIC``), or ``"all"``;
         default: the only one.
@@ -271,12 +326,16 @@ def compensate_log(
         ``leakfree``, ``relative``.
     options : dict, optional
         Keyword options of :func:`starlog.compensate.evaluate` (accuracy_source,
-        calibration_fraction, top_k, rollback_threshold, leakfree_reference).
+        calibration_fraction, top_k, rollback_threshold, leakfree_reference, select_positive).
+        ``A`` of eq. 10 is the centroid's own ``sigma`` unless ``accuracy_source`` is given.
     motion : str or sequence of str
         ``keep`` (default, the paper's), ``separate``, or both: what the strategies compensate.
     motion_fit : str
         Platform motion fitted to the other stars for ``relative`` and ``separate``:
         ``translation``, ``rigid`` (default) or ``similarity``.
+    skip_burn_in : bool
+        Start each decimated series after the filter's start-up
+        (:meth:`BrightestSeries.burn_in`; default), or at the first frame.
     workers : int
         Processes for the evaluations (1: in this process) and threads for chunk compression;
         the output does not depend on it.
@@ -295,7 +354,7 @@ def compensate_log(
     chosen = parse_protocols(protocols, has_truth=has_truth)
     modes = parse_motion_modes(motion)
     parameters = {"tracks": [c.topic for c in channels], "rates": [float(r) for r in rates],
-                  "protocols": [p.value for p in chosen], "options": options}
+                  "protocols": [p.value for p in chosen], "options": options, "skip_burn_in": skip_burn_in}
     fit = motion_fit if (ScoringProtocol.RELATIVE in chosen or MotionMode.SEPARATE in modes) else None
     if modes != [MotionMode.KEEP] or fit is not None:
         parameters |= {"motion": [m.value for m in modes], "motion_fit": fit}
@@ -304,7 +363,7 @@ def compensate_log(
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force,
                     compression=compression, workers=workers) as (log, out), \
             (process_pool(workers, preload=[__name__]) if parallel else nullcontext()) as pool:
-        jobs = _plan_jobs(log, channels, rates, chosen, modes, fit)
+        jobs = _plan_jobs(log, channels, rates, chosen, modes, fit, skip_burn_in=skip_burn_in)
         done = _evaluated(jobs, options, pool, window=2 * workers)
         decisions: dict[str, int] = {}
         for job, evaluation in progress(done, total=n_jobs, description="compensate", enabled=show_progress,
@@ -331,7 +390,8 @@ class _Job:
 
 
 def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[float],
-               chosen: list[ScoringProtocol], modes: list[MotionMode], fit: str | None) -> Iterator[_Job]:
+               chosen: list[ScoringProtocol], modes: list[MotionMode], fit: str | None, *,
+               skip_burn_in: bool) -> Iterator[_Job]:
     """Every (track channel, rate, protocol, motion mode), in output order; each channel's series read when
     reached (with its platform reference when ``fit`` is given)."""
     truth_cache: dict[int, StarTruth] = {}
@@ -345,8 +405,8 @@ def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[f
             if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
                 raise InvalidParameterError(
                     f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
-            idx = decimation_indices(series.log_time.size, native_rate=series.native_rate, target_rate=rate)
-            rate_hz = effective_rate(native_rate=series.native_rate, target_rate=rate)
+            idx = series.indices(rate, skip_burn_in=skip_burn_in)
+            rate_hz = sampled_rate(idx, native_rate=series.native_rate)
             jobs += [_Job(channel.topic, series, float(rate), idx, rate_hz, p, m) for p in chosen for m in modes]
         yield from jobs
 
@@ -398,7 +458,10 @@ def _write_evaluation(out: StageOutput, decision_channel: int, job: _Job, evalua
         "track_topic": job.track_topic, "series_topic": topic, "rate_hz": job.rate,
         "effective_rate_hz": job.rate_hz, "native_rate_hz": series.native_rate,
         "n_samples": int(idx.size), "first_log_time": int(series.log_time[idx[0]]),
-        "last_log_time": int(series.log_time[idx[-1]]), **evaluation.to_dict(),
+        "last_log_time": int(series.log_time[idx[-1]]),
+        "burn_in": {**series.burn_in().to_dict(), "skipped": bool(idx[0] > 0)},
+        "accuracy_from": series.sigma_source if evaluation.result.accuracy_source == "sigma" else "none (A = 0)",
+        **evaluation.to_dict(),
     }
     out.writer.write(decision_channel, log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
     return record
