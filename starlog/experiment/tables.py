@@ -200,12 +200,18 @@ def _table2_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
     return header, body
 
 
-def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
-    header = ["Sub-pixel method", "Rate/Hz", "paper N"]
+def _before_after_header(first: list[str], datasets: Sequence[str], with_paper: bool) -> list[str]:
+    """``first`` columns, then per dataset its N, before, after and gain (and the paper's before/after)."""
+    header = list(first)
     for ds in datasets:
         header += [f"{ds} N", f"{ds} before", f"{ds} after", "gain"]
         if with_paper:
             header += ["paper before", "paper after"]
+    return header
+
+
+def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
+    header = _before_after_header(["Sub-pixel method", "Rate/Hz", "paper N"], datasets, with_paper)
     body = []
     for method in METHODS:
         for rate in TABLE3_RATES:
@@ -226,11 +232,7 @@ def _table3_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tupl
 
 
 def _table4_lines(cell: Cell, datasets: Sequence[str], with_paper: bool) -> tuple[list[str], list[list[str]]]:
-    header = ["UKF model"]
-    for ds in datasets:
-        header += [f"{ds} N", f"{ds} before", f"{ds} after", "gain"]
-        if with_paper:
-            header += ["paper before", "paper after"]
+    header = _before_after_header(["UKF model"], datasets, with_paper)
     body = []
     for model in MODELS:
         line = [model]
