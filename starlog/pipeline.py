@@ -150,12 +150,14 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
 
 def _frame_channel(config: PipelineConfig) -> tuple[Any, dict[str, Any]]:
     """The first stage's ``frame_topic(log, options)`` and its options: the channel ``frame:N`` counts."""
+    stage: Any
     if config.centroid is not None:
-        return centroid_log.frame_topic, {"image_topic": config.centroid.get("image_topic")}  # type: ignore[attr-defined]
-    if config.track is not None:
-        return track_log.frame_topic, {"method": _list(config.track.get("methods", ["GAUSSFIT"]))[0]}  # type: ignore[attr-defined]
-    tracks = (config.compensate or {}).get("tracks", "all")
-    return compensate_log.frame_topic, {"track": tracks}  # type: ignore[attr-defined]
+        stage, options = centroid_log, {"image_topic": config.centroid.get("image_topic")}
+    elif config.track is not None:
+        stage, options = track_log, {"method": _list(config.track.get("methods", ["GAUSSFIT"]))[0]}
+    else:
+        stage, options = compensate_log, {"track": (config.compensate or {}).get("tracks", "all")}
+    return stage.frame_topic, options
 
 
 def run_pipeline(

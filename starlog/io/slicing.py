@@ -33,7 +33,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import AttachmentIndex, ChunkIndex, Header, MetadataIndex, Schema
 
-from starlog.errors import CorruptChunkError, InvalidParameterError
+from starlog.errors import CorruptChunkError, CorruptLogError, InvalidParameterError
 from starlog.io.bytecopy import copy_range
 from starlog.io.layout import MCAP_MAGIC
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
@@ -206,7 +206,7 @@ class _SliceWriter(LogWriter):
         """Copy one top-level record (metadata, attachment) byte for byte; returns its new offset."""
         start = self._tell()
         if copy_range(src, self._file, offset, length) != length:
-            raise InvalidParameterError(f"the record at offset {offset} is cut off")
+            raise CorruptLogError(getattr(src, "name", "the input"), f"the record at offset {offset} is cut off")
         return start
 
     def add_metadata_index(self, index: MetadataIndex) -> None:
