@@ -75,7 +75,7 @@ def test_centroid_with_frame_range_keeps_only_that_range(long_log: Path, tmp_pat
                                           "end_ns": times[60], "frame_topic": "/camera/image"}
     assert record.input_digest == file_digest(long_log)  # the log the slice was cut from
     info = CliRunner().invoke(cli, ["info", str(out)])
-    assert f"range [frame:10, frame:60): log_time {times[10]} ns to {times[60]} (exclusive)" in info.output
+    assert f"range [frame:10, frame:60): log_time {times[10]} to {times[60]} ns (end exclusive)" in info.output
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "no hidden slice left behind"
 
 
