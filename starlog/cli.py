@@ -69,6 +69,26 @@ def json_option(f: F) -> F:
 input_log = click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 
 
+RANGE_HELP = ("log time in ns (1234567), seconds on the same clock with an 's' suffix (12.5s), or frame:N "
+              "(the N-th message, 0-based, of {what})")
+
+
+def time_range_options(what: str) -> Callable[[F], F]:
+    """--start / --end: the half-open range [start, end) of log_time to process and keep."""
+
+    def add(f: F) -> F:
+        f = click.option("--end", metavar="TIME",
+                         help=f"Keep and process only messages before this time (exclusive): {RANGE_HELP.format(what=what)}. "
+                              "Default: after the last message.")(f)
+        f = click.option("--start", metavar="TIME",
+                         help=f"Keep and process only messages from this time on (inclusive): "
+                              f"{RANGE_HELP.format(what=what)}. The output holds [start, end) of every channel. "
+                              "Default: the first message.")(f)
+        return f
+
+    return add
+
+
 def image_topic_option(f: F) -> F:
     return click.option("--image-topic", metavar="TOPIC",
                         help="Image channel to read [default: /camera/image, else the log's only image channel]. "
@@ -358,11 +378,12 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @image_topic_option
 @click.option("--skip-bad", is_flag=True, help="Leave out frames that do not decode or do not fit (each named) "
                                               "instead of stopping.")
+@time_range_options("the image channel")
 @json_option
 @write_options
 def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noise: float | None,
-             settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, as_json: bool, force: bool,
-             compression: str, workers: int, quiet: bool) -> None:
+             settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, start: str | None, end: str | None,
+             as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
 
     Adds /stars/detections, /stars/centroids/<METHOD> per method and /stars/annotations
@@ -372,12 +393,14 @@ def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noi
     Example:
       starlog centroid sim.mcap -o cen.mcap --method GAUSSFIT,MOMENT
       starlog centroid lab.mcap -o cen.mcap --method all --gain 2.1 --workers 2
+      starlog centroid sim.mcap -o cen.mcap --start 0.5s --end frame:300
     """
     from starlog.stages.centroid import centroid_log
 
     summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise,
                            options=_key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
-                           workers=workers, force=force, compression=compression, show_progress=not quiet)
+                           workers=workers, force=force, compression=compression, show_progress=not quiet,
+                           start=start, end=end)
     d = summary.to_dict()
     for note in d["notes"]:
         click.echo(f"note: {note}", err=True)
@@ -406,10 +429,12 @@ def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noi
                    "sigma_floor). Repeatable.")
 @click.option("--motion", "motion", multiple=True, metavar="KEY=VALUE",
               help="Process noise (q_floor, q_position, q_velocity, tau, q_acceleration, q_jerk). Repeatable.")
+@time_range_options("the centroid channel")
 @json_option
 @write_options
 def track(log: Path, output: Path, method: str, models: str, settings: tuple[str, ...], motion: tuple[str, ...],
-          as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
+          start: str | None, end: str | None, as_json: bool, force: bool, compression: str, workers: int,
+          quiet: bool) -> None:
     """Track every star with an Unscented Kalman Filter under each motion model.
 
     Adds /track/<METHOD>/<MODEL> per model: filtered position, covariance, innovation, NIS,
@@ -424,7 +449,7 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
 
     summary = track_log(log, output, method=method, models=models, tracker=_key_values(settings, "--set"),
                         motion=_key_values(motion, "--motion"), force=force, compression=compression,
-                        workers=workers, show_progress=not quiet)
+                        workers=workers, show_progress=not quiet, start=start, end=end)
     d = summary.to_dict()
     _status(quiet, f"wrote {output}: {d['frames']} frames of {d['method']} centroids")
     if as_json:
@@ -446,10 +471,11 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Option of starlog.motion.estimate_platform (k_sigma, min_stars, min_star_frames, max_iterations, "
                    "tol, max_rejections). Repeatable.")
+@time_range_options("the (first) track channel")
 @json_option
 @write_options
-def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings: tuple[str, ...], as_json: bool,
-           force: bool, compression: str, workers: int, quiet: bool) -> None:
+def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings: tuple[str, ...], start: str | None,
+           end: str | None, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
     """Fit the platform motion to all tracked stars; each star's residual is its centroid error alone.
 
     Per frame, a weighted least-squares fit of the stars' measured positions (meas_x, meas_y of
@@ -467,7 +493,7 @@ def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings:
     from starlog.stages.motion import motion_log
 
     summary = motion_log(log, output, track=track_topic, model=fit, options=_key_values(settings, "--set"),
-                         force=force, compression=compression, workers=workers)
+                         force=force, compression=compression, workers=workers, start=start, end=end)
     d = summary.to_dict()
     _status(quiet, f"wrote {output}: {fit} platform motion of {len(d['channels'])} track channel(s)")
     if as_json:
@@ -517,6 +543,7 @@ def format_records(records: list[dict[str, Any]]) -> str:
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Option of starlog.compensate.evaluate (accuracy_source, calibration_fraction, top_k, "
                    "rollback_threshold, leakfree_reference). Repeatable.")
+@time_range_options("the (first) track channel")
 @json_option
 @click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
 @click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
@@ -526,8 +553,8 @@ def format_records(records: list[dict[str, Any]]) -> str:
                    "the tracks dominates otherwise). The output does not depend on it.")
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str, motion: str,
-               settings: tuple[str, ...], as_json: bool, force: bool, compression: str, workers: int,
-               quiet: bool) -> None:
+               settings: tuple[str, ...], start: str | None, end: str | None, as_json: bool, force: bool,
+               compression: str, workers: int, quiet: bool) -> None:
     """Decompose the brightest star's error, select strategies and compensate (paper 2.2-2.5).
 
     For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
@@ -548,7 +575,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
         raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
                              options=_key_values(settings, "--set"), motion=motion, workers=workers,
-                             show_progress=not quiet, force=force, compression=compression)
+                             show_progress=not quiet, force=force, compression=compression, start=start, end=end)
     _status(quiet, f"wrote {output}: {len(summary.records)} decision records")
     if as_json:
         _print_json(summary.to_dict())
@@ -564,11 +591,13 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Pipeline config (TOML) [default: the built-in config, see --print-config].")
 @click.option("--print-config", is_flag=True, help="Print the built-in config (a starting point) and exit.")
+@time_range_options("the first stage's input channel (the image channel for centroid)")
 @scheduler_option
 @json_option
 @write_options
 def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, print_config: bool,
-        scheduler: str | None, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
+        start: str | None, end: str | None, scheduler: str | None, as_json: bool, force: bool, compression: str,
+        workers: int, quiet: bool) -> None:
     """Replay logs through several stages (centroid, track, compensate) from one config file.
 
     Each stage's parameters come from its table in the TOML config; the result equals running
@@ -581,6 +610,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
       starlog run --print-config > pipeline.toml
       starlog run sim.mcap -o result.mcap --config pipeline.toml
       starlog run logs/*.mcap -o results/ --config pipeline.toml --scheduler tcp://10.0.0.5:8786
+      starlog run sim.mcap -o first-second.mcap --start 0s --end 1s
     """
     from starlog.pipeline import DEFAULT_CONFIG_TOML, load_config, run_pipeline, run_pipeline_task
 
@@ -595,7 +625,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
 
         output.mkdir(parents=True, exist_ok=True)
         tasks = [BatchTask(str(log), run_pipeline_task, (str(log), str(output / log.name), config),
-                           {"force": force, "compression": compression}) for log in logs]
+                           {"force": force, "compression": compression, "start": start, "end": end}) for log in logs]
         outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet,
                              description="run")
         _report_batch(outcomes, as_json, lambda r: f"wrote {r['output']} ({len(r['stages'])} stages)")
@@ -613,7 +643,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
             click.echo(f"track {result['method']}: brightest star under {models}", err=True)
 
     result = run_pipeline(logs[0], output, config, workers=workers, force=force, compression=compression,
-                          show_progress=not quiet, on_stage=report)
+                          show_progress=not quiet, on_stage=report, start=start, end=end)
     _status(quiet, f"wrote {output}; inspect it with: starlog info {output}; tables: starlog export {output} -o DIR")
     if as_json:
         _print_json(result.to_dict())
@@ -673,6 +703,98 @@ def experiment(output: Path, quick: bool, sweep: bool, regimes: tuple[str, ...],
         _print_json(summary.to_dict())
     else:
         click.echo(summary.text())
+
+
+# ---------------------------------------------------------------- filter, cat
+def topic_selection_options(f: F) -> F:
+    """--topic / --exclude-topic globs and --frame-topic."""
+    f = click.option("--frame-topic", metavar="TOPIC",
+                     help="Channel whose messages frame:N counts [default: the only channel selected, else the log's "
+                          "image channel].")(f)
+    f = click.option("--exclude-topic", "exclude_topics", multiple=True, metavar="GLOB",
+                     help="Leave out the channels matching this glob (fnmatch: * matches / too). Repeatable.")(f)
+    f = click.option("--topic", "topics", multiple=True, metavar="GLOB",
+                     help="Keep the channels matching this glob, e.g. '/camera/*' (fnmatch: * matches / too). "
+                          "Repeatable. Default: every channel.")(f)
+    return f
+
+
+@cli.command(name="filter", context_settings=CONTEXT)
+@input_log
+@output_option()
+@topic_selection_options
+@time_range_options("--frame-topic")
+@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+@click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
+              help="Compression of the chunks that must be re-encoded (those only partly kept); chunks kept whole "
+                   "are copied as they are.")
+@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@json_option
+def filter_command(log: Path, output: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...],
+                   frame_topic: str | None, start: str | None, end: str | None, force: bool, compression: str,
+                   quiet: bool, as_json: bool) -> None:
+    """Copy some channels and a time range of any MCAP log into a new log.
+
+    Keeps the schemas, metadata and provenance records (and attachments in the range) and adds
+    a provenance record of its own (stage "filter"). A chunk whose every message is kept is
+    copied byte for byte, never re-compressed; a chunk only partly kept is re-encoded. The
+    range is half-open: [start, end). Works on ROS 2 bags, Foxglove logs and logs without
+    indexes as on starlog logs; the output is fully indexed.
+
+    \b
+    Example:
+      starlog filter sim.mcap -o images.mcap --topic '/camera/*'
+      starlog filter trk.mcap -o small.mcap --exclude-topic '/camera/image' --start 1s --end 2.5s
+      starlog filter bag.mcap -o first100.mcap --end frame:100
+    """
+    from starlog.stages.filter import filter_log
+
+    report = filter_log(log, output, topics=topics, exclude_topics=exclude_topics, start=start, end=end,
+                        frame_topic=frame_topic, force=force, compression=compression)
+    d = report.to_dict()
+    _status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} channels; "
+                   f"{d['chunks_copied']} chunks copied as they are, {d['chunks_reencoded']} re-encoded")
+    if as_json:
+        _print_json(d)
+    else:
+        for topic, count in d["messages"].items():
+            click.echo(f"  {topic}: {count} messages")
+
+
+@cli.command(context_settings=CONTEXT)
+@input_log
+@topic_selection_options
+@time_range_options("--frame-topic")
+@click.option("--limit", type=click.IntRange(0), help="Stop after this many messages.")
+def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], frame_topic: str | None,
+        start: str | None, end: str | None, limit: int | None) -> None:
+    """Print messages as JSON lines, in log_time order, for jq and scripts.
+
+    Each line is {"topic", "log_time", "publish_time", "sequence", "message"}. starlog's JSON
+    messages come out as they are; images as {width, height, encoding, bytes, sha256} instead of
+    pixels; other protobuf, ROS 1 and ROS 2 messages decoded to objects (long byte fields as
+    {bytes, sha256}); anything else as {schema, encoding, bytes}.
+
+    \b
+    Example:
+      starlog cat sim.mcap --topic /sim/truth --limit 3
+      starlog cat cen.mcap --topic '/stars/centroids/*' --start frame:10 --end frame:20 | jq '.message.stars | length'
+      starlog cat bag.mcap --topic /camera/image_raw | head -n 5
+    """
+    from starlog.stages.filter import cat_messages
+
+    lines = cat_messages(log, topics=topics, exclude_topics=exclude_topics, start=start, end=end,
+                         frame_topic=frame_topic, limit=limit)
+    out = sys.stdout
+    try:
+        for line in lines:
+            out.write(json.dumps(line, separators=(",", ":"), allow_nan=False))
+            out.write("\n")
+        out.flush()
+    except BrokenPipeError:  # the reader (head, jq ...) has what it wanted: stop quietly
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, out.fileno())  # the interpreter's final flush must not fail again
+        lines.close()
 
 
 # ---------------------------------------------------------------- recover

@@ -19,8 +19,10 @@ from typing import Any
 
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.io.stack import StackedLog
+from starlog.io.timerange import TimeRange
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
+from starlog.stages._slice import sliced_stack
 from starlog.stages.track import track_log
 
 __all__ = ["DEFAULT_CONFIG_TOML", "PipelineConfig", "load_config", "run_pipeline", "run_pipeline_task"]
@@ -146,6 +148,18 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
     return steps
 
 
+def _frame_channel(config: PipelineConfig) -> tuple[Any, dict[str, Any]]:
+    """The first stage's ``frame_topic(log, options)`` and its options: the channel ``frame:N`` counts."""
+    stage: Any
+    if config.centroid is not None:
+        stage, options = centroid_log, {"image_topic": config.centroid.get("image_topic")}
+    elif config.track is not None:
+        stage, options = track_log, {"method": _list(config.track.get("methods", ["GAUSSFIT"]))[0]}
+    else:
+        stage, options = compensate_log, {"track": (config.compensate or {}).get("tracks", "all")}
+    return stage.frame_topic, options
+
+
 def run_pipeline(
     input_path: str | os.PathLike[str],
     output_path: str | os.PathLike[str],
@@ -156,12 +170,17 @@ def run_pipeline(
     compression: str = "zstd",
     show_progress: bool = False,
     on_stage: Callable[[str, dict[str, Any]], None] | None = None,
+    start: str | int | None = None,
+    end: str | int | None = None,
 ) -> PipelineResult:
     """Run the stages of ``config`` on ``input_path``; the final log goes to ``output_path``.
 
     Each stage reads the input and the sidecars of the stages before it as one log
     (:class:`~starlog.io.stack.StackedLog`) and writes only its own records; the output is
     written once, at the end, and is the file the stages run one by one would have made.
+    With ``start`` / ``end`` the input is sliced once (:mod:`starlog.stages._slice`; ``frame:N``
+    counts the first stage's input channel) and every stage sees only the slice: the output
+    equals the first stage run with the same range, then the others without.
     """
     output = Path(output_path)
     if output.exists() and not force:
@@ -170,7 +189,16 @@ def run_pipeline(
     if not steps:
         raise InvalidParameterError(f"{config.source}: the config runs no stage.")
     result = PipelineResult(output=output)
-    stack = StackedLog.of(input_path)
+    frame_topic, options = _frame_channel(config)
+    with sliced_stack(input_path, output, TimeRange.parse(start, end), frame_topic, options,
+                      compression=compression) as stack:
+        _run_steps(stack, steps, output, result, force=force, on_stage=on_stage)
+    return result
+
+
+def _run_steps(stack: StackedLog, steps: list[tuple[str, Step]], output: Path, result: PipelineResult, *,
+               force: bool, on_stage: Callable[[str, dict[str, Any]], None] | None) -> None:
+    """Each step on the stack of the ones before; the output written once from the last stack."""
     sidecars: list[Path] = []
     try:
         for name, step in steps:
@@ -186,11 +214,11 @@ def run_pipeline(
     finally:
         for path in sidecars:
             path.unlink(missing_ok=True)
-    return result
 
 
 def run_pipeline_task(input_path: str, output_path: str, config: PipelineConfig, *, force: bool = False,
-                      compression: str = "zstd") -> dict[str, Any]:
+                      compression: str = "zstd", start: str | int | None = None,
+                      end: str | int | None = None) -> dict[str, Any]:
     """One log of a batch (a picklable top-level function for Dask): serial per-frame work, JSON-ready result."""
     return run_pipeline(input_path, output_path, config, workers=1, force=force,
-                        compression=compression).to_dict()
+                        compression=compression, start=start, end=end).to_dict()

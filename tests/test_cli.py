@@ -147,6 +147,7 @@ QUIET_COMMANDS = {
     "motion": (["motion", "trk.mcap", "-o", "OUT.mcap", "--workers", "1"], True),
     "run": (["run", "sim.mcap", "-o", "OUT.mcap", "--config", "p.toml", "--workers", "1"], True),
     "export": (["export", "sim.mcap", "cen.mcap", "-o", "OUT", "--workers", "1"], False),
+    "filter": (["filter", "sim.mcap", "-o", "OUT.mcap", "--topic", "/camera/*", "--end", "frame:10"], True),
 }
 
 

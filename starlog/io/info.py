@@ -65,6 +65,11 @@ def format_description(info: dict[str, Any]) -> str:
             lines.append(f"     input {p['input_digest']}")
         if params:
             lines.append(f"     {params}")
+        time_range = p["parameters"].get("range")
+        if isinstance(time_range, dict):  # a stage run on a time slice (--start/--end)
+            span = (f"log_time from {time_range.get('start_ns')} ns" if time_range.get("end_ns") is None else
+                    f"log_time {time_range.get('start_ns')} to {time_range['end_ns']} ns (end exclusive)")
+            lines.append(f"     range [{time_range.get('start') or 'start'}, {time_range.get('end') or 'end'}): {span}")
     for note in info.get("notes", []):
         lines.append(f"note: {note}")
     return "\n".join(lines)

@@ -13,6 +13,7 @@ from starlog.io import LogReader, LogWriter, Provenance
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, BackgroundDigest
 from starlog.io.schemas import MessageType
 from starlog.io.stack import StackedLog
+from starlog.stages._slice import slice_origin
 
 __all__ = ["StageOutput", "extend_log"]
 
@@ -56,9 +57,14 @@ def extend_log(
     and the output renamed into place. On any error the output is discarded and the input is
     untouched. With a :class:`StackedLog` as input, the
     output is a sidecar to stack on it: the same records, without the copy of the input's data.
+    An input that is a time slice (``--start``/``--end``) adds its range to the parameters and
+    hashes the log the slice was cut from.
     """
+    origin = slice_origin(input_path)
+    if origin is not None:
+        parameters = {**parameters, "range": origin.time_range.to_dict()}
     with LogReader(input_path) as reader:
-        digest = BackgroundDigest(input_path)
+        digest = BackgroundDigest(input_path if origin is None else origin.source)
         try:
             with LogWriter(output_path, base=input_path, force=force, compression=compression,
                            workers=workers) as writer:

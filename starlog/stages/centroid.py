@@ -37,6 +37,7 @@ from starlog.io.reader import LogReader
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
+from starlog.stages._slice import time_sliced
 from starlog.stages._stage import extend_log
 
 __all__ = ["CentroidSummary", "centroid_log", "parse_methods", "structured_to_dicts"]
@@ -109,6 +110,7 @@ def _camera_from_provenance(log: LogReader) -> dict[str, float]:
     return {}
 
 
+@time_sliced(lambda log, options: choose_image_topic(log.path, log.channels(), options.get("image_topic"))[0])
 def centroid_log(
     input_path: str | os.PathLike[str],
     output_path: str | os.PathLike[str],
@@ -147,6 +149,9 @@ def centroid_log(
     workers : int
         Processes extracting blocks of frames in parallel (and threads compressing chunks);
         the output bytes do not depend on it.
+    start, end : str or int, optional
+        Only the frames with ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the
+        image channel; :mod:`starlog.io.timerange`): the output holds that range of every channel.
     """
     chosen = parse_methods(methods)
     options = dict(options or {})

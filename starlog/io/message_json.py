@@ -1,0 +1,114 @@
+"""Any message of any log as a JSON-ready value, for ``starlog cat`` and scripts.
+
+* starlog's own (JSON) channels → the decoded object, as written;
+* camera frames (``foxglove.RawImage`` / ``CompressedImage``, ROS 1 and ROS 2 ``sensor_msgs``
+  ``Image`` / ``CompressedImage``) → ``{width, height, encoding, bytes, sha256}`` of the pixel
+  (or compressed) data instead of the pixels: ``encoding`` is the pixel encoding (``mono16``) or
+  the compression format (``png``), ``bytes`` its size and ``sha256`` its checksum;
+* other protobuf, ROS 2 (``cdr``) and ROS 1 messages → their fields, decoded by the support
+  libraries (byte fields up to 1 KiB as base64 text, longer ones as ``{bytes, sha256}``);
+* anything else (or a message that does not decode) → ``{schema, encoding, bytes}`` (plus ``error``).
+
+Non-finite floats become ``null`` so every line is strict JSON (``jq`` reads it).
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import math
+from collections.abc import Callable
+from typing import Any
+
+from mcap.records import Channel, Schema
+
+from starlog.io.flatten import to_plain
+from starlog.io.foreign import message_decoder
+from starlog.io.images import IMAGE_SCHEMAS, RAW, _fields, decompress_to_mono
+from starlog.io.messages import decode_json
+from starlog.io.rawimage_wire import parse_raw_image
+
+__all__ = ["MessageRenderer", "image_summary"]
+
+_INLINE_BYTES = 1024
+
+
+def _digest(data: bytes | memoryview) -> str:
+    return "sha256:" + hashlib.sha256(data).hexdigest()
+
+
+def _json_safe(value: Any) -> Any:
+    """Plain values → strict-JSON values (bytes summarised or base64, NaN/inf → None)."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        data = bytes(value)
+        if len(data) <= _INLINE_BYTES:
+            return base64.b64encode(data).decode("ascii")
+        return {"bytes": len(data), "sha256": _digest(data)}
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def image_summary(schema: Schema, message_encoding: str, data: bytes | memoryview) -> dict[str, Any]:
+    """``{width, height, encoding, bytes, sha256}`` of one image message (pixels not kept).
+
+    A compressed frame is decoded for its size (``encoding`` is its format).
+    """
+    if schema.name == "foxglove.RawImage" and message_encoding == "protobuf":
+        wire = parse_raw_image(data)
+        if wire is not None:
+            return {"width": wire.width, "height": wire.height, "encoding": wire.encoding,
+                    "bytes": len(wire.data), "sha256": _digest(wire.data)}
+    parse = decode_json if message_encoding == "json" else message_decoder(schema, message_encoding)
+    if parse is None:
+        raise ValueError(f"no decoder for {schema.name} in {message_encoding}")
+    fields = _fields(parse(bytes(data)), schema.name)
+    pixels = fields["data"]
+    if IMAGE_SCHEMAS[schema.name] == RAW:
+        width, height, encoding = int(fields["width"]), int(fields["height"]), str(fields["encoding"])
+    else:
+        image, _ = decompress_to_mono(pixels, fields["format"])
+        height, width = image.shape[:2]
+        encoding = str(fields["format"])
+    return {"width": int(width), "height": int(height), "encoding": encoding, "bytes": len(pixels),
+            "sha256": _digest(pixels)}
+
+
+class MessageRenderer:
+    """Turns messages into JSON-ready values, with one decoder per channel built on first use."""
+
+    def __init__(self) -> None:
+        self._render: dict[int, Callable[[bytes | memoryview], Any]] = {}
+
+    def __call__(self, schema: Schema | None, channel: Channel, data: bytes | memoryview) -> Any:
+        render = self._render.get(channel.id)
+        if render is None:
+            render = self._render[channel.id] = self._renderer(schema, channel)
+        try:
+            return render(data)
+        except Exception as err:  # a message that does not decode: say so, keep streaming
+            return {**_opaque(schema, channel, data), "error": f"{type(err).__name__}: {err}"}
+
+    @staticmethod
+    def _renderer(schema: Schema | None, channel: Channel) -> Callable[[bytes | memoryview], Any]:
+        encoding = channel.message_encoding
+        if schema is not None and schema.name in IMAGE_SCHEMAS:
+            return lambda data: image_summary(schema, encoding, data)
+        if encoding == "json":
+            return lambda data: _json_safe(decode_json(data))
+        try:
+            decode = message_decoder(schema, encoding)
+        except Exception:  # a schema its support library cannot parse
+            decode = None
+        if decode is None:
+            return lambda data: _opaque(schema, channel, data)
+        return lambda data: _json_safe(to_plain(decode(bytes(data))))
+
+
+def _opaque(schema: Schema | None, channel: Channel, data: bytes | memoryview) -> dict[str, Any]:
+    return {"schema": schema.name if schema is not None else "", "encoding": channel.message_encoding,
+            "bytes": len(data)}

@@ -1,0 +1,125 @@
+"""Benchmark of ``starlog filter``: copying kept chunks against a plain disk copy of the same bytes.
+
+Generates a simulated log of 1024x1024 mono16 frames (~300 MB of image chunks; ``--quick``:
+512x512, ~40 MB) in a temporary folder, then times, in this one run and on the same warm page
+cache:
+
+* ``shutil.copyfile`` of the log (the kernel's copy; no fsync), and the same followed by
+  ``fsync`` (what ``filter`` does before renaming its output into place);
+* ``filter --topic '/camera/*'`` (every image chunk kept whole, ``/sim/truth`` dropped);
+* ``filter --start/--end`` on chunk boundaries (every chunk in the range copied whole);
+* ``filter --start/--end`` off the boundaries (the two boundary chunk groups re-encoded).
+
+Each row is the best of ``--repeat`` runs; MB/s counts the bytes written. The target: ``filter``
+copies kept chunks at >= 50 % of the disk copy's speed.
+
+Usage::
+
+    python tools/bench_filter.py            # ~300 MB log
+    python tools/bench_filter.py --quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from starlog.io import LogReader
+from starlog.sim import SimulationConfig
+from starlog.stages import simulate_log
+from starlog.stages.filter import filter_log
+
+
+def _best(action: Callable[[], Path], repeat: int) -> tuple[float, int]:
+    """Fastest wall time of ``action`` and the size of what it wrote."""
+    times = []
+    size = 0
+    for _ in range(repeat):
+        start = time.perf_counter()
+        written = action()
+        times.append(time.perf_counter() - start)
+        size = written.stat().st_size
+        written.unlink()
+    return min(times), size
+
+
+def _copy(src: Path, dst: Path, *, sync: bool) -> Callable[[], Path]:
+    def run() -> Path:
+        shutil.copyfile(src, dst)
+        if sync:
+            with open(dst, "rb+") as f:
+                os.fsync(f.fileno())
+        return dst
+
+    return run
+
+
+def _filter(src: Path, dst: Path, **options: object) -> Callable[[], Path]:
+    def run() -> Path:
+        filter_log(src, dst, force=True, **options)  # type: ignore[arg-type]
+        return dst
+
+    return run
+
+
+def _ranges(log: Path) -> tuple[tuple[int, int], tuple[int, int]]:
+    """A range on image-chunk boundaries (the 2nd image chunk's start to the last one's) and one off them.
+
+    On the boundaries every image chunk in the range is copied whole (the small frame-info and
+    truth chunks that straddle a boundary are re-encoded); off them, two image chunks are too.
+    """
+    with LogReader(log) as f:
+        image = next(c.id for c in f.summary.channels.values() if c.topic == "/camera/image")
+        starts = sorted(ci.message_start_time for ci in f.summary.chunk_indexes if image in ci.message_index_offsets)
+        first, last = f.time_range()
+    step = (last - first) // 50
+    return (starts[1], starts[-1]), (starts[1] + step, starts[-1] - step)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="512x512 frames, a ~40 MB log")
+    parser.add_argument("--repeat", type=int, default=3, help="runs per row (the best is kept)")
+    parser.add_argument("--dir", type=Path, help="folder for the logs [default: a temporary folder]")
+    args = parser.parse_args()
+    size, frames = (512, 80) if args.quick else (1024, 160)
+    with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
+        folder = Path(tmp)
+        log = folder / "sim.mcap"
+        simulate_log(SimulationConfig(width=size, height=size, n_stars=50, n_frames=frames, seed=1), log,
+                     workers=os.cpu_count() or 1)
+        log.read_bytes()  # the same warm page cache for every row
+        aligned, unaligned = _ranges(log)
+        out = folder / "out.mcap"
+        rows = [
+            ("shutil.copyfile", _copy(log, out, sync=False)),
+            ("shutil.copyfile + fsync", _copy(log, out, sync=True)),
+            ("filter --topic '/camera/*'", _filter(log, out, topics=["/camera/*"])),
+            ("filter --start/--end on chunk boundaries", _filter(log, out, start=aligned[0], end=aligned[1])),
+            ("filter --start/--end off chunk boundaries", _filter(log, out, start=unaligned[0], end=unaligned[1])),
+        ]
+        results = [(name, *_best(action, args.repeat)) for name, action in rows]
+    copy_speed = results[0][2] / results[0][1]
+    synced_speed = results[1][2] / results[1][1]
+    print(f"log: {frames} frames {size}x{size} mono16, {log_size(results):.0f} MB; best of {args.repeat}; "
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(f"| {'operation':<42} | {'MB written':>10} | {'s':>6} | {'MB/s':>7} | {'vs copyfile':>11} | "
+          f"{'vs copy+fsync':>13} |")
+    print(f"|{'-' * 44}|{'-' * 12}|{'-' * 8}|{'-' * 9}|{'-' * 13}|{'-' * 15}|")
+    for name, seconds, written in results:
+        speed = written / seconds
+        print(f"| {name:<42} | {written / 1e6:>10.1f} | {seconds:>6.3f} | {speed / 1e6:>7.0f} | "
+              f"{100 * speed / copy_speed:>10.0f}% | {100 * speed / synced_speed:>12.0f}% |")
+
+
+def log_size(results: list[tuple[str, float, int]]) -> float:
+    return results[0][2] / 1e6
+
+
+if __name__ == "__main__":
+    main()
