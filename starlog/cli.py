@@ -811,9 +811,10 @@ def stage_command(declared: Any, name: str) -> click.Command:
     options = ", ".join(f"{k}={json.dumps(v)}" for k, v in declared.options.items())
     options += "".join(f", {k} (required)" for k in declared.required_options)
     writes = ", ".join(o.topic for o in declared.outputs)
+    templated = " ({name}: the last part of the input topic)" if "{name}" in writes else ""
     help_text = (f"{declared.description or 'A declared stage.'}\n\n"
                  f"Stage {declared.name} {declared.version} ({declared.reference}): reads {declared.reads}, writes "
-                 f"{writes} ({{name}}: the last part of the input topic). Options: {options.strip(', ') or 'none'}."
+                 f"{writes}{templated}. Options: {options.strip(', ') or 'none'}."
                  f"\n\n\b\nExample:\n  starlog {name} LOG -o OUT.mcap")
 
     @click.command(name=name, context_settings=CONTEXT, help=help_text)

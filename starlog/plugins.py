@@ -1,7 +1,7 @@
 """Finding declared stages: ``uses = "package.module:function"`` references and installed entry points.
 
 An installed package registers its stages in the entry-point group ``starlog.stages``
-(:data:`starlog.stage_api.ENTRY_POINT_GROUP`), e.g. in its ``pyproject.toml``::
+(:data:`ENTRY_POINT_GROUP`), e.g. in its ``pyproject.toml``::
 
     [project.entry-points."starlog.stages"]
     flux_fwhm = "my_package.stages:flux_fwhm"
@@ -18,12 +18,17 @@ import sys
 from collections.abc import Sequence
 from functools import lru_cache
 from importlib.metadata import EntryPoint, entry_points
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from starlog.errors import InvalidParameterError
-from starlog.stage_api import ENTRY_POINT_GROUP, Stage
 
-__all__ = ["load_reference", "load_registered", "registered_stages", "resolve_stage"]
+if TYPE_CHECKING:  # imported when a stage is loaded: listing installed stages stays light (starlog --help)
+    from starlog.stage_api import Stage
+
+__all__ = ["ENTRY_POINT_GROUP", "load_reference", "load_registered", "registered_stages", "resolve_stage"]
+
+#: The entry-point group under which installed packages register their stages.
+ENTRY_POINT_GROUP = "starlog.stages"
 
 
 def registered_stages() -> dict[str, EntryPoint]:
@@ -89,6 +94,8 @@ def cached_reference(reference: str, search_path: tuple[str, ...]) -> Stage:
 
 
 def _as_stage(target: Any, reference: str) -> Stage:
+    from starlog.stage_api import Stage
+
     if not isinstance(target, Stage):
         raise InvalidParameterError(f"{reference} is not a declared stage: decorate the function with "
                                     "@starlog.stage_api.stage(name=..., version=..., reads=..., writes=...).")

@@ -35,14 +35,13 @@ from typing import TYPE_CHECKING, Any
 from starlog.errors import InvalidParameterError
 from starlog.io.messages import compile_json_schema
 from starlog.io.schemas import MessageType
+from starlog.plugins import ENTRY_POINT_GROUP
 
 if TYPE_CHECKING:
     from starlog.stages.custom import StageSummary
 
 __all__ = ["ENTRY_POINT_GROUP", "Message", "Output", "Stage", "run_stage", "stage"]
 
-#: The entry-point group under which installed packages register their stages.
-ENTRY_POINT_GROUP = "starlog.stages"
 
 #: What ``reads`` may name besides a topic ("/...") or a schema name: the channel kinds of a starlog log.
 KINDS: dict[str, str | None] = {
