@@ -46,11 +46,10 @@ class _StarlogGroup(click.Group):
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         """Built-in commands, then installed stages in a section of their own."""
-        builtin = super().list_commands(ctx)
-        rows = [(name, self.commands[name].get_short_help_str(limit=formatter.width - 6 - len(name)))
-                for name in builtin if not self.commands[name].hidden]
+        builtin = [name for name in super().list_commands(ctx) if not self.commands[name].hidden]
+        limit = formatter.width - 6 - max(map(len, builtin), default=0)
         with formatter.section("Commands"):
-            formatter.write_dl(rows)
+            formatter.write_dl([(name, self.commands[name].get_short_help_str(limit)) for name in builtin])
         installed = _installed_stages()
         for name in sorted(set(installed) & set(builtin)):
             click.echo(f"warning: the stage {name!r} installed by {installed[name]} is hidden by the built-in "

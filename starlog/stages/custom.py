@@ -12,6 +12,7 @@ with the stage's provenance, and its bytes depend neither on ``workers`` nor on 
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 from collections.abc import Iterable, Iterator
@@ -274,6 +275,7 @@ def _structured(rows: list[dict[str, Any]], kind: str) -> np.ndarray:
         raise InvalidInputError(f"a {kind} row lacks the field {err}.") from err
 
 
+@functools.cache
 def _dtype(kind: str) -> np.dtype[Any]:
     if kind == "centroids":
         from starlog.centroid.table import CENTROID_DTYPE
