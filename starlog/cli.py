@@ -820,7 +820,8 @@ def stage_command(declared: Any, name: str) -> click.Command:
     @input_log
     @output_option()
     @click.option("--input", "input_topic", metavar="TOPIC",
-                  help=f"Channel to read [default: the log's only {declared.reads} channel].")
+                  help=f"Channel to read, or all: each {declared.reads} channel in turn [default: the log's only "
+                       f"{declared.reads} channel].")
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
                   help="Option of the stage (values parsed as JSON when they can be). Repeatable.")
     @json_option
@@ -835,7 +836,7 @@ def stage_command(declared: Any, name: str) -> click.Command:
         for note in d["notes"]:
             click.echo(f"note: {note}", err=True)
         written = ", ".join(f"{n} records on {t}" for t, n in d["records"].items())
-        _status(quiet, f"wrote {output}: {d['messages']} messages of {d['input']} read; {written}")
+        _status(quiet, f"wrote {output}: {d['messages']} messages of {', '.join(d['inputs'])} read; {written}")
         if as_json:
             _print_json(d)
 

@@ -174,7 +174,7 @@ def stage(*, name: str, version: str, reads: str, writes: Mapping[str, Any],
         The channel read: a topic (``"/stars/centroids/GAUSSFIT"``), a kind (``"image"``,
         ``"centroids"``, ``"detections"``, ``"tracks"``) or a schema name
         (``"starlog.Centroids"``). A kind or schema matching several channels needs the run's
-        ``input`` (``--input TOPIC``).
+        ``input`` (``--input TOPIC``, or ``--input all`` to read each in turn).
     writes : mapping
         Topic → JSON Schema of its records: a dict, or a ``.json`` file (a path relative to the
         function's module). A :class:`~starlog.io.schemas.MessageType` declares any other

@@ -147,7 +147,22 @@ def test_several_matching_channels_need_the_input_named(stage_folder: Path, cent
     with pytest.raises(InvalidParameterError, match="has schema 'foxglove.RawImage'"):
         run_stage(_stage(stage_folder, "brightest_flux"), centroid_log_path, tmp_path / "out.mcap",
                   input_topic="/camera/image")
+    with pytest.raises(InvalidParameterError, match=r"output topics \['/stars/bad', '/stars/bad'\] collide"):
+        run_stage(_stage(stage_folder, "bad_record"), centroid_log_path, tmp_path / "out.mcap", input_topic="all")
     assert not list(tmp_path.iterdir())
+
+
+def test_input_all_reads_each_matching_channel_in_turn(stage_folder: Path, centroid_log_path: Path,
+                                                       tmp_path: Path) -> None:
+    brightest = _stage(stage_folder, "brightest_flux")
+    summary = run_stage(brightest, centroid_log_path, tmp_path / "all.mcap", input_topic="all", workers=2)
+    assert summary.to_dict()["records"] == {"/stars/brightest/NONE": 80, "/stars/brightest/GAUSSFIT": 80}
+    for method in ("NONE", "GAUSSFIT"):
+        run_stage(brightest, centroid_log_path, tmp_path / f"{method}.mcap", input_topic=f"/stars/centroids/{method}")
+        assert _payloads(tmp_path / "all.mcap", f"/stars/brightest/{method}") == \
+            _payloads(tmp_path / f"{method}.mcap", f"/stars/brightest/{method}")
+    with LogReader(tmp_path / "all.mcap") as log:
+        assert log.provenance()[-1].parameters["input"] == ["/stars/centroids/NONE", "/stars/centroids/GAUSSFIT"]
 
 
 def test_workers_give_the_same_bytes_from_worker_processes(stage_folder: Path, centroid_log_path: Path,

@@ -23,18 +23,25 @@ from typing import Any
 import numpy as np
 from mcap.records import Channel, Message as McapMessage, Schema
 
-from starlog.errors import InvalidInputError, InvalidParameterError, StageFunctionError, StarlogError
+from starlog.errors import (
+    ChannelNotFoundError,
+    InvalidInputError,
+    InvalidParameterError,
+    StageFunctionError,
+    StarlogError,
+)
 from starlog.io.frames import iter_frames
 from starlog.io.images import choose_image_topic, is_image_schema
 from starlog.io.messages import encode_json
 from starlog.io.reader import ChannelSummary, LogReader, decode_payload
+from starlog.io.writer import LogWriter
 from starlog.stage_api import KINDS, Message, Output, Stage
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._stage import extend_log
 
-__all__ = ["StageSummary", "choose_input", "run_stage"]
+__all__ = ["StageSummary", "choose_inputs", "run_stage"]
 
 #: Messages per batch: what a worker gets at once (and what the serial path decodes at once).
 BATCH_MESSAGES = 32
@@ -48,13 +55,13 @@ class StageSummary:
 
     stage: str
     version: str
-    input_topic: str
+    inputs: list[str]
     messages: int = 0
     records: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"stage": self.stage, "version": self.version, "input": self.input_topic,
+        return {"stage": self.stage, "version": self.version, "inputs": list(self.inputs),
                 "messages": self.messages, "records": dict(self.records), "notes": list(self.notes)}
 
 
@@ -70,75 +77,96 @@ def run_stage(
     compression: str = "zstd",
     show_progress: bool = False,
 ) -> StageSummary:
-    """Run ``stage`` on every message of its input channel; the output is the input plus the stage's channels.
+    """Run ``stage`` on every message of its input channel(s); the output is the input plus the stage's channels.
 
     ``options`` override the stage's defaults; ``input_topic`` chooses the channel when the
-    stage's ``reads`` matches several (see :func:`choose_input`). ``input_path`` may be a path or
-    a :class:`~starlog.io.StackedLog`. With ``workers > 1`` batches run in worker processes
-    (the stage must be importable by :attr:`Stage.reference`, else it runs here); the bytes
-    written do not depend on ``workers``.
+    stage's ``reads`` matches several, or ``"all"`` reads each of them in turn (see
+    :func:`choose_inputs`). ``input_path`` may be a path or a :class:`~starlog.io.StackedLog`.
+    With ``workers > 1`` batches run in worker processes (the stage must be importable by
+    :attr:`Stage.reference`, else it runs here); the bytes written do not depend on ``workers``.
     """
     chosen = stage.resolve_options(options)
     with LogReader(input_path) as probe:
-        topic, note = choose_input(stage, probe, input_topic)
-        image = is_image_schema(probe.channel(topic).schema_name)
-    outputs = [(out.topic_for(topic), out) for out in stage.outputs]
-    if len({t for t, _ in outputs}) < len(outputs):
-        raise InvalidParameterError(f"stage {stage.name!r}: its output topics {[t for t, _ in outputs]} collide.")
-    parameters = {"stage_version": stage.version, "function": stage.reference, "input": topic, "options": chosen}
-    summary = StageSummary(stage.name, stage.version, topic, notes=[note] if note else [])
-    summary.records = {t: 0 for t, _ in outputs}
-    batch = _Batch(stage.reference, tuple(sys.path), str(input_path), topic, image, chosen, tuple(outputs))
+        topics, note = choose_inputs(stage, probe, input_topic)
+        images = {topic: is_image_schema(probe.channel(topic).schema_name) for topic in topics}
+    plan = [(topic, tuple((out.topic_for(topic), out) for out in stage.outputs)) for topic in topics]
+    written = [t for _, outputs in plan for t, _ in outputs]
+    if len(set(written)) < len(written):
+        raise InvalidParameterError(f"stage {stage.name!r}: its output topics {written} collide (to read several "
+                                    "channels, its topics need {name}, the last part of the input topic).")
+    parameters = {"stage_version": stage.version, "function": stage.reference,
+                  "input": topics[0] if len(topics) == 1 else topics, "options": chosen}
+    summary = StageSummary(stage.name, stage.version, topics, records=dict.fromkeys(written, 0),
+                           notes=[note] if note else [])
     with extend_log(input_path, output_path, stage=stage.name, parameters=parameters, force=force,
                     compression=compression, workers=workers) as (log, out):
-        ids = [out.add_channel(t, o.message_type) for t, o in outputs]
-        total = log.channel(topic).message_count
-        parallel = workers > 1 and total > BATCH_MESSAGES and stage.importable()
-        batches = _raw_batches(log, topic, copy=parallel)
-        results = _run_parallel(batch, batches, workers) if parallel else (batch.run(first, raws, stage) for first, raws in batches)
-        for log_time, records in progress((r for done in results for r in done), total=total,
-                                          description=stage.name, enabled=show_progress):
-            summary.messages += 1
-            for channel_id, (t, _), data in zip(ids, outputs, records):
-                if data is not None:
-                    out.writer.write(channel_id, log_time=log_time, data=data)
-                    summary.records[t] += 1
-        check_messages_read(log, topic, summary.messages)
+        for topic, outputs in plan:
+            ids = [out.add_channel(t, o.message_type) for t, o in outputs]
+            batch = _Batch(stage.reference, tuple(sys.path), str(input_path), topic, images[topic], chosen, outputs)
+            summary.messages += _run_channel(log, out.writer, stage, batch, ids, summary.records, workers=workers,
+                                             show_progress=show_progress)
         summary.notes += [n for n in log.notes if n not in summary.notes]
     return summary
 
 
-def choose_input(stage: Stage, log: LogReader, requested: str | None) -> tuple[str, str | None]:
-    """The channel a run reads, and a note when it was chosen for the user.
+def _run_channel(log: LogReader, writer: LogWriter, stage: Stage, batch: _Batch, ids: list[int],
+                 records_written: dict[str, int], *, workers: int, show_progress: bool) -> int:
+    """Every message of ``batch.topic`` through the stage, its records written in order; the messages read."""
+    total = log.channel(batch.topic).message_count
+    parallel = workers > 1 and total > BATCH_MESSAGES and stage.importable()
+    batches = _raw_batches(log, batch.topic, copy=parallel)
+    if parallel:
+        results = _run_parallel(batch, batches, workers)
+    else:
+        results = (batch.run(first, raws, stage) for first, raws in batches)
+    read = 0
+    for log_time, records in progress((r for done in results for r in done), total=total,
+                                      description=f"{stage.name} {batch.topic}", enabled=show_progress):
+        read += 1
+        for channel_id, (topic, _), data in zip(ids, batch.outputs, records):
+            if data is not None:
+                writer.write(channel_id, log_time=log_time, data=data)
+                records_written[topic] += 1
+    return check_messages_read(log, batch.topic, read)
 
-    ``requested`` must exist and match the stage's ``reads``. Without it: the topic ``reads``
-    names; for ``"image"``, ``/camera/image`` else the log's only image channel; for a kind or
-    schema, its only channel (several: an error listing them).
+
+def choose_inputs(stage: Stage, log: LogReader, requested: str | None) -> tuple[list[str], str | None]:
+    """The channel(s) a run reads, and a note when they were chosen for the user.
+
+    ``requested`` must exist and match the stage's ``reads``; ``"all"``: every channel that
+    matches. Without it: the topic ``reads`` names; for ``"image"``, ``/camera/image`` else the
+    log's only image channel; for a kind or schema, its only channel (several: an error listing them).
     """
     channels = log.channels()
     reads = stage.reads
+    if requested == "all":
+        matching = [c.topic for c in channels if (c.topic == reads if reads.startswith("/") else _matches(c, reads))]
+        if not matching:
+            raise InvalidInputError(f"{log.path} has no {reads} channel for stage {stage.name!r} "
+                                    f"(channels: {', '.join(c.topic for c in channels) or 'none'}).")
+        return matching, None
     if reads == "image":
-        return choose_image_topic(log.path, channels, requested)
+        topic, note = choose_image_topic(log.path, channels, requested)
+        return [topic], note
     if requested is None and reads.startswith("/"):
         requested = reads
     by_topic = {c.topic: c for c in channels}
     if requested is not None:
         if requested not in by_topic:
-            from starlog.errors import ChannelNotFoundError
-
             raise ChannelNotFoundError(log.path, requested, list(by_topic))
         if not reads.startswith("/") and not _matches(by_topic[requested], reads):
             raise InvalidParameterError(f"{log.path}: channel {requested!r} has schema "
                                         f"{by_topic[requested].schema_name!r}; stage {stage.name!r} reads {reads}.")
-        return requested, None
+        return [requested], None
     matching = [c.topic for c in channels if _matches(c, reads)]
     if len(matching) == 1:
-        return matching[0], f"{stage.name} reads {matching[0]}, the log's only {reads} channel."
+        return matching, f"{stage.name} reads {matching[0]}, the log's only {reads} channel."
     if not matching:
         raise InvalidInputError(f"{log.path} has no {reads} channel for stage {stage.name!r} "
                                 f"(channels: {', '.join(by_topic) or 'none'}).")
     raise InvalidParameterError(f"{log.path} has several {reads} channels ({', '.join(matching)}); choose one for "
-                                f"stage {stage.name!r} with --input TOPIC (in a run config: input = \"TOPIC\").")
+                                f"stage {stage.name!r} with --input TOPIC, or read each with --input all "
+                                '(in a run config: input = "TOPIC" or "all").')
 
 
 def _matches(channel: ChannelSummary, reads: str) -> bool:
