@@ -1,14 +1,16 @@
 """``starlog run``: replay a log through several stages from one TOML config file.
 
 A config has one table per stage, run in the order centroid → track → compensate; a stage
-whose table is absent is skipped. Your own stages (:mod:`starlog.stage_api`) follow, one table
-``[stages.NAME]`` each with ``uses = "package.module:function"`` (or an installed stage's name),
-optionally ``input = "TOPIC"`` (or ``"all"``), and the stage's options; they run after the built-in stages, in
-the order of their tables, so each can read what the stages before it wrote. Each stage writes only what it adds (a sidecar beside the
+whose table is absent is skipped. Each stage writes only what it adds (a sidecar beside the
 output, removed at the end) and reads its input and the sidecars before it as one log; the
 output is written once and has the same bytes as running the stages one by one with the same
 options. The built-in config is :data:`DEFAULT_CONFIG_TOML` (``starlog run --print-config``
 prints it).
+
+Your own stages (:mod:`starlog.stage_api`) come after the built-in ones: one table
+``[stages.NAME]`` each, with ``uses = "package.module:function"`` (or an installed stage's
+name), optionally ``input = "TOPIC"`` (or ``"all"``), and the stage's options. They run in the
+order of their tables, so each can read what the stages before it wrote.
 """
 
 from __future__ import annotations
