@@ -74,7 +74,8 @@ class Message:
         plus ``brightest``). Any other JSON channel: the decoded dict; protobuf and ROS
         channels: the decoded object.
     fields : dict
-        The message's other JSON fields (e.g. ``{"frame": 12, "method": "GAUSSFIT"}``).
+        A per-star table's other JSON fields (e.g. ``{"frame": 12, "method": "GAUSSFIT"}``); for
+        any other JSON channel the whole decoded dict, as in ``data``.
     """
 
     topic: str
