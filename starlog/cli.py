@@ -6,6 +6,7 @@ Errors starlog raises on purpose are printed as one sentence with exit status 1.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import sys
@@ -31,6 +32,32 @@ class _StarlogGroup(click.Group):
             return super().invoke(ctx)
         except StarlogError as err:
             raise click.ClickException(str(err)) from err
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        """The built-in commands, then the stages installed packages register (not imported to list them)."""
+        builtin = super().list_commands(ctx)
+        return [*builtin, *sorted(set(_installed_stages()) - set(builtin))]
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        command = super().get_command(ctx, cmd_name)
+        if command is None and cmd_name in _installed_stages():
+            return _LazyStageCommand(cmd_name)
+        return command
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """Built-in commands, then installed stages in a section of their own."""
+        builtin = [name for name in super().list_commands(ctx) if not self.commands[name].hidden]
+        limit = formatter.width - 6 - max(map(len, builtin), default=0)
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, self.commands[name].get_short_help_str(limit)) for name in builtin])
+        installed = _installed_stages()
+        for name in sorted(set(installed) & set(builtin)):
+            click.echo(f"warning: the stage {name!r} installed by {installed[name]} is hidden by the built-in "
+                       f"command {name!r}.", err=True)
+        extra = [(name, _LazyStageCommand(name).get_short_help_str()) for name in sorted(set(installed) - set(builtin))]
+        if extra:
+            with formatter.section("Installed stages (entry points 'starlog.stages'; STAGE --help for more)"):
+                formatter.write_dl(extra)
 
 
 def _print_json(data: Any) -> None:
@@ -869,6 +896,73 @@ def verify(log: Path, as_json: bool) -> None:
         click.echo(report.verdict())
     if not report.ok:
         sys.exit(1)
+
+
+# ---------------------------------------------------------------- installed stages
+@functools.cache
+def _installed_stages() -> dict[str, str]:
+    """Name → ``"package version"`` of every stage installed packages register (their metadata only, once)."""
+    from starlog.plugins import distribution_of, registered_stages
+
+    return {name: distribution_of(point) for name, point in registered_stages().items()}
+
+
+class _LazyStageCommand(click.Command):
+    """An installed stage's command, listed without importing it; imported when it runs or shows its help."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name, context_settings=CONTEXT)
+
+    def get_short_help_str(self, limit: int = 45) -> str:
+        return f"Stage from {_installed_stages().get(self.name or '', '?')} (run STAGE --help)."
+
+    def make_context(self, info_name: str | None, args: list[str], parent: click.Context | None = None,
+                     **extra: Any) -> click.Context:
+        from starlog.plugins import load_registered
+
+        try:
+            declared = load_registered(self.name or "")
+        except StarlogError as err:
+            raise click.ClickException(str(err)) from err
+        return stage_command(declared, self.name or declared.name).make_context(info_name, args, parent, **extra)
+
+
+def stage_command(declared: Any, name: str) -> click.Command:
+    """The ``starlog NAME LOG -o OUT`` command of a declared stage (:mod:`starlog.stage_api`)."""
+    options = ", ".join(f"{k}={json.dumps(v)}" for k, v in declared.options.items())
+    options += "".join(f", {k} (required)" for k in declared.required_options)
+    writes = ", ".join(o.topic for o in declared.outputs)
+    templated = " ({name}: the last part of the input topic)" if "{name}" in writes else ""
+    help_text = (f"{declared.description or 'A declared stage.'}\n\n"
+                 f"Stage {declared.name} {declared.version} ({declared.reference}): reads {declared.reads}, writes "
+                 f"{writes}{templated}. Options: {options.strip(', ') or 'none'}."
+                 f"\n\n\b\nExample:\n  starlog {name} LOG -o OUT.mcap")
+
+    @click.command(name=name, context_settings=CONTEXT, help=help_text)
+    @input_log
+    @output_option()
+    @click.option("--input", "input_topic", metavar="TOPIC",
+                  help=f"Channel to read, or all: each {declared.reads} channel in turn [default: the log's only "
+                       f"{declared.reads} channel].")
+    @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+                  help="Option of the stage (values parsed as JSON when they can be). Repeatable.")
+    @json_option
+    @write_options
+    def command(log: Path, output: Path, input_topic: str | None, settings: tuple[str, ...], as_json: bool,
+                force: bool, compression: str, workers: int, quiet: bool) -> None:
+        from starlog.stages.custom import run_stage
+
+        summary = run_stage(declared, log, output, options=_key_values(settings, "--set"), input_topic=input_topic,
+                            workers=workers, force=force, compression=compression, show_progress=not quiet)
+        d = summary.to_dict()
+        for note in d["notes"]:
+            click.echo(f"note: {note}", err=True)
+        written = ", ".join(f"{n} records on {t}" for t, n in d["records"].items())
+        _status(quiet, f"wrote {output}: {d['messages']} messages of {', '.join(d['inputs'])} read; {written}")
+        if as_json:
+            _print_json(d)
+
+    return command
 
 
 class _Terminated(BaseException):

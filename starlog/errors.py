@@ -22,6 +22,7 @@ __all__ = [
     "OutputExistsError",
     "ImageFolderError",
     "FitError",
+    "StageFunctionError",
 ]
 
 
@@ -155,3 +156,7 @@ class InvalidMessageError(LogError):
         self.topic = topic
         self.log_time = log_time
         super().__init__(path, f"message on {topic!r} at log_time {log_time} is invalid: {detail}")
+
+
+class StageFunctionError(StarlogError):
+    """A declared stage's own function failed, or returned what its channels cannot take."""

@@ -6,6 +6,11 @@ output, removed at the end) and reads its input and the sidecars before it as on
 output is written once and has the same bytes as running the stages one by one with the same
 options. The built-in config is :data:`DEFAULT_CONFIG_TOML` (``starlog run --print-config``
 prints it).
+
+Your own stages (:mod:`starlog.stage_api`) come after the built-in ones: one table
+``[stages.NAME]`` each, with ``uses = "package.module:function"`` (or an installed stage's
+name), optionally ``input = "TOPIC"`` (or ``"all"``), and the stage's options. They run in the
+order of their tables, so each can read what the stages before it wrote.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.io.stack import StackedLog
@@ -23,9 +28,14 @@ from starlog.io.timerange import TimeRange
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
 from starlog.stages._slice import sliced_stack
+from starlog.stages.custom import run_stage
 from starlog.stages.track import track_log
 
-__all__ = ["DEFAULT_CONFIG_TOML", "PipelineConfig", "load_config", "run_pipeline", "run_pipeline_task"]
+if TYPE_CHECKING:
+    from starlog.stage_api import Stage
+
+__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "load_config", "run_pipeline",
+           "run_pipeline_task"]
 
 #: The built-in config, a starting point for your own (``starlog run --print-config``).
 DEFAULT_CONFIG_TOML = """\
@@ -65,14 +75,19 @@ class PipelineConfig:
     track: dict[str, Any] | None = None
     compensate: dict[str, Any] | None = None
     source: str = "<default>"
+    stages: tuple[CustomStageConfig, ...] = ()
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any], *, source: str = "<dict>") -> PipelineConfig:
-        """Validate a config mapping (unknown tables or keys are errors, named with their place)."""
-        unknown = sorted(set(data) - set(_STAGE_KEYS))
+    def from_dict(cls, data: dict[str, Any], *, source: str = "<dict>", folder: str | None = None) -> PipelineConfig:
+        """Validate a config mapping (unknown tables or keys are errors, named with their place).
+
+        ``folder`` (the config file's) is searched, after ``sys.path``, for the modules ``uses`` names.
+        """
+        unknown = sorted(set(data) - set(_STAGE_KEYS) - {"stages"})
         if unknown:
             raise InvalidParameterError(
-                f"{source}: unknown table(s) {unknown}; a pipeline config has [centroid], [track], [compensate].")
+                f"{source}: unknown table(s) {unknown}; a pipeline config has [centroid], [track], [compensate] "
+                "and [stages.NAME] tables.")
         stages: dict[str, dict[str, Any] | None] = {}
         for stage, keys in _STAGE_KEYS.items():
             table = data.get(stage)
@@ -88,7 +103,8 @@ class PipelineConfig:
             stages[stage] = dict(table)
         if stages["compensate"] is not None and "rates" not in stages["compensate"]:
             raise InvalidParameterError(f"{source}: [compensate] needs rates = [..] (Hz).")
-        return cls(**stages, source=source)  # type: ignore[arg-type]
+        custom = _custom_stages(data.get("stages"), source=source, folder=folder)
+        return cls(**stages, source=source, stages=custom)  # type: ignore[arg-type]
 
 
 def load_config(path: str | os.PathLike[str] | None) -> PipelineConfig:
@@ -103,7 +119,7 @@ def load_config(path: str | os.PathLike[str] | None) -> PipelineConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise InvalidParameterError(f"{path}: not valid TOML ({err}).") from err
-    return PipelineConfig.from_dict(data, source=str(path))
+    return PipelineConfig.from_dict(data, source=str(path), folder=str(Path(path).resolve().parent))
 
 
 def _list(value: Any) -> list[str]:
@@ -145,6 +161,10 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
         steps.append(("compensate", lambda i, o: compensate_log(
             i, o, rates=k["rates"], track=k.get("tracks", "all"), protocols=k.get("protocols", "all"),
             options=k.get("options"), show_progress=show_progress, **common).to_dict()))
+    for custom in config.stages:
+        steps.append((custom.label, lambda i, o, c=custom: run_stage(
+            c.load(), i, o, options=c.options, input_topic=c.input, workers=workers, show_progress=show_progress,
+            **common).to_dict()))
     return steps
 
 
@@ -222,3 +242,48 @@ def run_pipeline_task(input_path: str, output_path: str, config: PipelineConfig,
     """One log of a batch (a picklable top-level function for Dask): serial per-frame work, JSON-ready result."""
     return run_pipeline(input_path, output_path, config, workers=1, force=force,
                         compression=compression, start=start, end=end).to_dict()
+
+
+# ---------------------------------------------------------------- your own stages
+@dataclass(frozen=True)
+class CustomStageConfig:
+    """A ``[stages.NAME]`` table: the stage it uses, the channel it reads (None: chosen), its options."""
+
+    label: str
+    uses: str
+    input: str | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+    search_path: tuple[str, ...] = ()
+
+    def load(self) -> Stage:
+        """The declared stage ``uses`` names (imported on first use)."""
+        from starlog.plugins import resolve_stage
+
+        return resolve_stage(self.uses, search_path=self.search_path)
+
+
+def _custom_stages(tables: Any, *, source: str, folder: str | None) -> tuple[CustomStageConfig, ...]:
+    """The ``[stages.NAME]`` tables, in config order; each stage is loaded and its options checked now."""
+    if tables is None:
+        return ()
+    if not isinstance(tables, dict):
+        raise InvalidParameterError(f"{source}: [stages] holds one table per stage, [stages.NAME].")
+    out = []
+    for label, table in tables.items():
+        where = f"{source}: [stages.{label}]"
+        if not isinstance(table, dict):
+            raise InvalidParameterError(f"{where} must be a table.")
+        uses, topic = table.get("uses"), table.get("input")
+        if not isinstance(uses, str) or not uses:
+            raise InvalidParameterError(f'{where} needs uses = "package.module:function" (or an installed '
+                                        "stage's name).")
+        if topic is not None and not isinstance(topic, str):
+            raise InvalidParameterError(f'{where}: input must be a topic, e.g. input = "/stars/centroids/GAUSSFIT".')
+        options = {k: v for k, v in table.items() if k not in ("uses", "input")}
+        config = CustomStageConfig(str(label), uses, topic, options, (folder,) if folder else ())
+        try:
+            config.load().resolve_options(options, where=where)
+        except InvalidParameterError as err:
+            raise InvalidParameterError(str(err) if str(err).startswith(where) else f"{where}: {err}") from err
+        out.append(config)
+    return tuple(out)
