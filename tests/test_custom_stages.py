@@ -304,7 +304,7 @@ def test_the_readme_stage_runs_from_its_config_and_as_an_installed_command(tmp_p
     dist.mkdir()
     (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: flux-fwhm-example\nVersion: 1.0\n")
     (dist / "entry_points.txt").write_text("[starlog.stages]\nflux_fwhm = flux_fwhm:flux_fwhm\n"
-                                           "broken = flux_fwhm_missing_module:stage\n")
+                                           "broken = flux_fwhm_missing_module:stage\ncentroid = flux_fwhm:flux_fwhm\n")
     run_command = _block("bash", "starlog run ").strip()
     installed_command = _block("bash", "starlog flux_fwhm ").strip()
 
@@ -338,6 +338,7 @@ def test_the_readme_stage_runs_from_its_config_and_as_an_installed_command(tmp_p
     # starlog --help lists installed stages without importing them; a broken one fails alone, clearly
     done = _starlog("--help", tmp_path, installed=True)
     assert done.returncode == 0 and re.search(r"Installed stages.*\n\s+broken .*\n\s+flux_fwhm ", done.stdout)
+    assert "the stage 'centroid' installed by flux-fwhm-example 1.0 is hidden by the built-in command" in done.stderr
     done = _starlog("broken demo.mcap -o x.mcap", tmp_path, installed=True)
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert "the stage 'broken' registered by flux-fwhm-example 1.0 (flux_fwhm_missing_module:stage) cannot be " \
