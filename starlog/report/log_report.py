@@ -4,6 +4,7 @@ error decomposition, compensation before/after per protocol, the strategy decisi
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from html import escape
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,11 @@ def amplitude_spectrum(error: np.ndarray, rate_hz: float) -> tuple[np.ndarray, n
     return np.fft.rfftfreq(e.size, 1.0 / rate_hz), amp
 
 
+def _words(names: Iterable[str]) -> list[str]:
+    """``SYSTEMATIC_LOW_FREQ`` -> ``systematic low freq`` (table headers that wrap)."""
+    return [n.replace("_", " ").lower() for n in names]
+
+
 def _label(record: dict[str, Any]) -> str:
     motion = record.get("motion", "keep")
     return f"{record['rate_hz']:g} Hz {record['protocol']}" + ("" if motion == "keep" else f" {motion}")
@@ -40,7 +46,8 @@ def _overview(data: ReportData) -> str:
     notes = "".join(f"<p>note: {escape(n)}</p>" for n in data.notes)
     return (f'<p class="stat">{len(data.channels)} channels, {(t1 - t0) * 1e-9:.3f} s of log time '
             f"(log_time {t0} .. {t1} ns), {len(data.provenance)} stages recorded.</p>{notes}"
-            + table(["topic", "schema", "messages", "rate (Hz)"], rows))
+            f"<details><summary>channels</summary>{table(['topic', 'schema', 'messages', 'rate (Hz)'], rows)}"
+            "</details>")
 
 
 def _frame_section(data: ReportData) -> str:
@@ -64,23 +71,20 @@ def _tracks_section(data: ReportData) -> str:
     tp = data.tracks
     if not tp.tracks:
         return missing(f"{tp.topic} has no confirmed track: the tracker confirmed no star (see `starlog track --help`).")
+    shown = (f"{len(tp.tracks)} of {tp.total_tracks} confirmed tracks (the longest)" if tp.total_tracks > len(tp.tracks)
+             else f"all {tp.total_tracks} confirmed tracks")
+    sampled = f", every {tp.stride}th frame" if tp.stride > 1 else ""
+    caption = (f"{shown} of {escape(tp.topic)}{sampled}, each about its own mean; the thick line is the brightest "
+               f"star (track {tp.brightest}). The y range leaves out the top and bottom 1 % (the filter's start-up).")
     charts = []
     for axis, k in (("x", 1), ("y", 2)):
         series = [Series(f"track {i}" + (" (brightest)" if i == tp.brightest else ""), v[0], v[k] - np.mean(v[k]),
-                         PALETTE[n % len(PALETTE)], 2.0 if i == tp.brightest else 1.0)
+                         PALETTE[n % len(PALETTE)], 2.2 if i == tp.brightest else 1.0)
                   for n, (i, v) in enumerate(tp.tracks.items())]
         title = f"{axis} of every star minus its mean, {tp.topic}"
         charts.append(figure(line_chart(series, title=title, x_label="time (s)", y_label=f"{axis} − mean (px)",
-                                        legend=len(series) <= 6), escape(title), f"tracks_{axis}"))
-    paths = [Series(f"track {i}", v[1], v[2], PALETTE[n % len(PALETTE)], 1.5) for n, (i, v) in enumerate(tp.tracks.items())]
-    shown = (f"{len(tp.tracks)} of {tp.total_tracks} confirmed tracks" if tp.total_tracks > len(tp.tracks)
-             else f"all {tp.total_tracks} confirmed tracks")
-    sampled = f", every {tp.stride}th frame" if tp.stride > 1 else ""
-    caption = (f"Paths (x, y) in the frame: {shown}{sampled}; the brightest is track {tp.brightest}. "
-               "The y axis points down the image, as in the frame above.")
-    charts.append(figure(line_chart(paths, title="star paths in the frame (y down)", x_label="x (px)",
-                                    y_label="y (px)", legend=False), escape(caption), "tracks_paths"))
-    return "".join(charts) + f"<p>{escape(caption)}</p>"
+                                        legend=len(series) <= 6, robust=True), caption, f"tracks_{axis}"))
+    return "".join(charts)
 
 
 def _error_section(data: ReportData) -> str:
@@ -121,11 +125,11 @@ def _decomposition_section(data: ReportData) -> str:
     title = f"error decomposition (paper §2.2), {data.primary_decisions}"
     rows = [[_label(r), *[r["compensation"]["decomposition"]["magnitudes"][c] for c in CATEGORIES],
              r["compensation"]["decomposition"]["dominant_frequency"],
-             ", ".join(c for c in CATEGORIES if r["compensation"]["decomposition"].get("significant", {}).get(c))]
+             ", ".join(_words(c for c in CATEGORIES if r["compensation"]["decomposition"].get("significant", {}).get(c)))]
             for r in records]
     return (figure(bar_chart(groups, bars, title=title, y_label="RMS magnitude (px)"),
                    "RMS magnitude of each error category per rate and protocol.", "decomposition")
-            + table(["run", *CATEGORIES, "f_d (Hz)", "significant"], rows))
+            + table(["run", *_words(CATEGORIES), "f_d (Hz)", "significant"], rows))
 
 
 def _compensation_section(data: ReportData) -> str:
@@ -167,7 +171,7 @@ def _decisions_section(data: ReportData) -> str:
              " > ".join(r["compensation"]["kept"]) or "—"] for r in records]
     return (f"<p>Eq. 12 scores of each strategy, the passes run in score order and the eq. 13 rollback "
             f"(a pass improving by less than the threshold is undone), {escape(data.primary_decisions or '')}.</p>"
-            + table(["run", "samples", "f_d (Hz)", *STRATEGIES, "passes", "kept"], rows))
+            + table(["run", "samples", "f_d (Hz)", *_words(STRATEGIES), "passes (eq. 13)", "kept"], rows))
 
 
 def _provenance_section(data: ReportData) -> str:

@@ -24,7 +24,7 @@ th{background:#f4f4f4} td.num{text-align:right;font-variant-numeric:tabular-nums
 .kept{color:#05753d;font-weight:bold} .rolled{color:#a33}
 code,pre{font-family:ui-monospace,Menlo,Consolas,monospace;font-size:.92em}
 pre{white-space:pre-wrap;margin:0;max-width:560px}
-details{margin:6px 0} .stat{font-size:1.05em;margin:6px 0}
+details{margin:6px 0} .scroll{overflow-x:auto;max-width:100%} .stat{font-size:1.05em;margin:6px 0}
 """
 
 
@@ -77,4 +77,4 @@ def table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     """An HTML table; numbers right-aligned, dicts and lists as indented JSON."""
     head = "".join(f"<th>{escape(h)}</th>" for h in header)
     body = "".join("<tr>" + "".join(_cell(v) for v in row) + "</tr>" for row in rows)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    return f'<div class="scroll"><table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table></div>'

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import base64
 import math
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from html import escape
@@ -23,7 +24,7 @@ __all__ = ["PALETTE", "Series", "Bars", "bar_chart", "envelope", "frame_figure",
 PALETTE = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#000000", "#F0E442")
 
 _W, _H = 720, 280
-_LEFT, _RIGHT, _TOP, _BOTTOM = 64, 16, 28, 44
+_LEFT, _RIGHT, _TOP, _BOTTOM = 64, 16, 44, 44
 _MAX_POINTS = 1200
 
 
@@ -128,7 +129,7 @@ def _frame(ax: _Axes, title: str, x_label: str, y_label: str) -> list[str]:
     out.append(f'<text x="{(w + _LEFT) / 2:.0f}" y="{h - 8}" text-anchor="middle">{escape(x_label)}</text>')
     out.append(f'<text transform="translate(14 {(h - _BOTTOM + _TOP) / 2:.0f}) rotate(-90)" '
                f'text-anchor="middle">{escape(y_label)}</text>')
-    out.append(f'<text x="{_LEFT}" y="{_TOP - 10}" class="title">{escape(title)}</text>')
+    out.append(f'<text x="{_LEFT}" y="16" class="title">{escape(title)}</text>')
     return out
 
 
@@ -139,28 +140,39 @@ def _svg(width: int, height: int, body: list[str], label: str) -> str:
 
 
 def _legend(labels: Sequence[tuple[str, str]], width: int) -> list[str]:
-    out, x = [], float(width - _RIGHT)
-    for label, color in reversed(labels):
-        x -= 14 + 6.2 * len(label)
-        out.append(f'<rect x="{x:.0f}" y="{_TOP - 19}" width="10" height="10" fill="{color}"/>'
-                   f'<text x="{x + 13:.0f}" y="{_TOP - 10}">{escape(label)}</text>')
+    """One row of coloured keys between the title and the plot."""
+    out, x = [], float(_LEFT)
+    for label, color in labels:
+        out.append(f'<rect x="{x:.0f}" y="{_TOP - 17}" width="10" height="10" fill="{color}"/>'
+                   f'<text x="{x + 13:.0f}" y="{_TOP - 8}">{escape(label)}</text>')
+        x += 22 + 6.2 * len(label)
     return out
 
 
 def line_chart(series: Sequence[Series], *, title: str, x_label: str, y_label: str,
-               markers: Sequence[tuple[float, str]] = (), legend: bool = True,
+               markers: Sequence[tuple[float, str]] = (), legend: bool = True, robust: bool = False,
                width: int = _W, height: int = _H) -> str:
-    """Lines on shared axes; ``markers`` are labelled vertical lines at given x (e.g. a frequency)."""
+    """Lines on shared axes; ``markers`` are labelled vertical lines at given x (e.g. a frequency).
+
+    ``robust``: the y range spans the 1st-99th percentile of the points (a start-up transient does
+    not flatten the rest); lines are clipped to the plot.
+    """
     reduced = [(s, *envelope(s.x, s.y)) for s in series]
     xs = np.concatenate([r[1] for r in reduced] + [np.array([m for m, _ in markers], float)])
     ys = np.concatenate([r[2] for r in reduced])
     xs, ys = xs[np.isfinite(xs)], ys[np.isfinite(ys)]
     x_ticks = nice_ticks(float(xs.min()), float(xs.max())) if xs.size else [0.0, 1.0]
-    y_ticks = nice_ticks(float(ys.min()), float(ys.max()), 5) if ys.size else [0.0, 1.0]
+    y_lo, y_hi = (np.percentile(ys, [1.0, 99.0]) if robust else (ys.min(), ys.max())) if ys.size else (0.0, 1.0)
+    if robust:
+        y_lo, y_hi = y_lo - 0.15 * (y_hi - y_lo), y_hi + 0.15 * (y_hi - y_lo)
+    y_ticks = nice_ticks(float(y_lo), float(y_hi), 5)
     ax = _Axes(float(xs.min()) if xs.size else 0.0, float(xs.max()) if xs.size else 1.0,
                y_ticks[0], y_ticks[-1], width, height, [t for t in x_ticks if xs.size and xs.min() <= t <= xs.max()],
                y_ticks)
     body = _frame(ax, title, x_label, y_label)
+    clip = f"clip{zlib.crc32(f'{title} {x_label} {y_label}'.encode()):08x}"
+    body.append(f'<clipPath id="{clip}"><rect x="{_LEFT}" y="{_TOP}" width="{width - _LEFT - _RIGHT}" '
+                f'height="{height - _TOP - _BOTTOM}"/></clipPath><g clip-path="url(#{clip})">')
     colors = []
     for k, (s, x, y) in enumerate(reduced):
         color = s.color or PALETTE[k % len(PALETTE)]
@@ -172,11 +184,14 @@ def line_chart(series: Sequence[Series], *, title: str, x_label: str, y_label: s
         if ok.sum() == 1:
             body.append(f'<circle cx="{pts.split(",")[0]}" cy="{pts.split(",")[1]}" r="2" fill="{color}"/>')
         body.append(f'<polyline points="{pts}" fill="none" stroke="{color}" stroke-width="{s.width}"/>')
+    body.append("</g>")
     for value, label in markers:
         x = float(ax.px(value))
+        right = x > 0.7 * width  # label on the side with room
         body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{_TOP}" y2="{height - _BOTTOM}" stroke="#c00" '
                     f'stroke-dasharray="4 3" stroke-width="1.5"/>'
-                    f'<text x="{x + 4:.1f}" y="{_TOP + 14}" fill="#c00">{escape(label)}</text>')
+                    f'<text x="{x - 4 if right else x + 4:.1f}" y="{_TOP + 14}" fill="#c00" '
+                    f'text-anchor="{"end" if right else "start"}">{escape(label)}</text>')
     if legend and len(series) > 1:
         body += _legend(colors, width)
     return _svg(width, height, body, title)
@@ -240,11 +255,11 @@ def frame_figure(image: npt.NDArray[np.generic], points: Sequence[tuple[float, f
         raise RuntimeError("PNG encoding failed")
     uri = "data:image/png;base64," + base64.b64encode(png.tobytes()).decode("ascii")
     scale = display / max(w, h)
-    r = max(w, h) / 60
+    r = max(w, h) / 40
     body = [f'<image href="{uri}" x="-0.5" y="-0.5" width="{w}" height="{h}" preserveAspectRatio="none" '
             'style="image-rendering:pixelated"/>']
     for x, y, label in points:
         body.append(f'<circle cx="{x:.2f}" cy="{y:.2f}" r="{r:.2f}" fill="none" stroke="#ff3b30" '
-                    f'stroke-width="{r / 6:.2f}"><title>{escape(label)}</title></circle>')
+                    f'stroke-width="{r / 8:.2f}"><title>{escape(label)}</title></circle>')
     return (f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="-0.5 -0.5 {w} {h}" width="{w * scale:.0f}" '
             f'height="{h * scale:.0f}" role="img" aria-label="{escape(title)}">' + "".join(body) + "</svg>")
