@@ -557,6 +557,17 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 
 
 # ---------------------------------------------------------------- run
+def _batch_report(output: Path, force: bool) -> str:
+    """Write the HTML report beside one output of a batch ``run``; the text saying so."""
+    from starlog.report import write_report
+
+    report = output.with_suffix(".html")
+    if report.exists() and not force:
+        return f"; {report.name} exists (kept; --force replaces it)"
+    write_report(output, report)
+    return f"; report {report}"
+
+
 @cli.command(context_settings=CONTEXT)
 @click.argument("logs", nargs=-1, type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(path_type=Path),
@@ -602,7 +613,8 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
                            {"force": force, "compression": compression}) for log in logs]
         outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet,
                              description="run")
-        _report_batch(outcomes, as_json, lambda r: f"wrote {r['output']} ({len(r['stages'])} stages)")
+        reports = {o.result["output"]: _batch_report(Path(o.result["output"]), force) for o in outcomes if o.ok}
+        _report_batch(outcomes, as_json, lambda r: f"wrote {r['output']} ({len(r['stages'])} stages){reports[r['output']]}")
         return
 
     def report(stage: str, result: dict[str, Any]) -> None:

@@ -86,6 +86,21 @@ def test_run_does_not_overwrite_a_report_without_force(logs: dict[str, Path], tm
     assert (tmp_path / "r.html").read_text() == "mine"
 
 
+def test_a_batch_run_writes_a_report_beside_each_output(logs: dict[str, Path], tmp_path: Path) -> None:
+    config = tmp_path / "c.toml"
+    config.write_text('[centroid]\nmethods = ["MOMENT"]\n')
+    inputs = [tmp_path / "a.mcap", tmp_path / "b.mcap"]
+    for path in inputs:
+        path.write_bytes(logs["sim"].read_bytes())
+    result = CliRunner().invoke(cli, ["run", *map(str, inputs), "-o", str(tmp_path / "out"), "--config", str(config),
+                                      "--workers", "1", "-q"])
+    assert result.exit_code == 0, result.output
+    for name in ("a", "b"):
+        report = tmp_path / "out" / f"{name}.html"
+        assert f"; report {report}" in result.stdout
+        assert _figures(report.read_text(encoding="utf-8")) == ["frame"]
+
+
 # ---------------------------------------------------------------- the report of a full run
 def test_report_of_a_run_has_every_section_and_figure(logs: dict[str, Path]) -> None:
     html = logs["run"].with_suffix(".html").read_text(encoding="utf-8")

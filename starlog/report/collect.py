@@ -220,7 +220,7 @@ def collect_report_data(path: str | os.PathLike[str]) -> ReportData:
                                       "`starlog track` makes one from the centroids.")
         else:
             _read_tracks(log, data, track_topic)
-        if record is not None:
+        if record is not None and log.has_topic(record["series_topic"]):
             data.error = _error_from_record(log, record)
         elif track_topic is not None:
             data.error = _error_from_track(log, track_topic)
