@@ -21,6 +21,7 @@ from starlog.errors import StarlogError
 from starlog.io.images import choose_image_topic
 from starlog.io.provenance import Provenance
 from starlog.io.reader import ChannelSummary, LogReader
+from starlog.io.topics import FRAME_INFO
 
 __all__ = ["MAX_SERIES_SAMPLES", "MAX_TRACK_SAMPLES", "ErrorSeries", "FrameView", "ReportData", "TrackPaths",
            "collect_report_data"]
@@ -95,7 +96,7 @@ def _pick(topics: list[str], prefix: str) -> str | None:
     found = sorted(t for t in topics if t.startswith(prefix))
     for wanted in (_PREFERRED, _PREFERRED[:1]):
         for t in found:
-            if all(f"/{w}" in t + "/" for w in wanted):
+            if set(wanted) <= set(t.split("/")):
                 return t
     return found[0] if found else None
 
@@ -130,6 +131,8 @@ def _read_frame(log: LogReader, data: ReportData, track_topic: str | None) -> No
     else:
         data.missing["overlay"] = ("This log has no centroids (/stars/centroids/<METHOD>) to draw on the frame: "
                                    "`starlog centroid` makes them.")
+    if index is None and log.has_topic(FRAME_INFO):
+        index = next((m.payload["frame"] for m in log.messages(FRAME_INFO, start=log_time, end=log_time + 1)), None)
     data.frame = FrameView(topic, index, log_time, np.array(image), points, overlay)
 
 

@@ -109,7 +109,7 @@ def _error_section(data: ReportData) -> str:
     marker = [(fd, f"f_d = {fd:.3g} Hz")] if fd > 0 else []
     out += figure(line_chart([Series("x", freq, ax), Series("y", freq, ay)], title="amplitude spectrum of the error",
                              x_label="frequency (Hz)", y_label="amplitude (px)", markers=marker),
-                  f"Single-sided amplitude spectrum 2|FFT|/N of each axis; dashed: the dominant frequency.",
+                  "Single-sided amplitude spectrum 2|FFT|/N of each axis; dashed: the dominant frequency.",
                   "error_spectrum")
     stated = (f"Dominant frequency f_d = <b>{fd:.4g} Hz</b>, from {escape(source).replace('`', '')}"
               if fd > 0 else f"No spectral peak stands out (f_d = 0, from {escape(source)})")

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from html import escape
 from typing import Any
 
-__all__ = ["figure", "html_page", "missing", "section", "table"]
+__all__ = ["Raw", "figure", "html_page", "missing", "table"]
 
 _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0 auto;max-width:1100px;
@@ -46,10 +46,6 @@ def figure(svg: str, caption: str, name: str) -> str:
 def missing(text: str) -> str:
     """The box that stands where data is missing: what is missing and which stage makes it."""
     return f'<div class="missing">{escape(text).replace("`", "")}</div>'
-
-
-def section(*parts: str) -> str:
-    return "".join(parts)
 
 
 def _cell(value: Any) -> str:
