@@ -32,7 +32,7 @@ def run_summary_lines(output: Path, stages: list[tuple[str, dict[str, Any]]], re
     records = next((r["records"] for n, r in stages if n == "compensate"), [])
     best = _best(records)
     if best:
-        figures = ", ".join(f"{r['protocol']} {r['figures'][0]['rmse_before']:.4f} -> {r['figures'][0]['rmse_after']:.4f}"
+        figures = ", ".join(f"{r['protocol']} {r['figures'][0]['rmse_before']:.3g} -> {r['figures'][0]['rmse_after']:.3g}"
                             for r in best)
         f_d = best[0]["compensation"]["decomposition"]["dominant_frequency"]
         lines.append(f"  compensate: {len(records)} runs; {best[0]['method']}/{best[0]['model']} at "
