@@ -632,7 +632,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
     from starlog.report import write_report
     from starlog.report.summary import run_summary_lines
 
-    report_path = output.with_suffix(".html")
+    report_path = output.with_suffix(".html") if output.suffix != ".html" else output.with_name(output.name + ".html")
     if report_path.exists() and not force:
         raise OutputExistsError(report_path)
     result = run_pipeline(logs[0], output, config, workers=workers, force=force, compression=compression,
