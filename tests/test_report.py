@@ -27,7 +27,7 @@ from tests.conftest import small_config
 CONFIG = ('[centroid]\nmethods = ["GAUSSFIT"]\n[track]\nmethods = ["GAUSSFIT"]\nmodels = ["STATIC", "RANDOM_WALK"]\n'
           '[track.tracker]\nsigma_floor = 0.05\n[compensate]\nrates = [25, 50]\nprotocols = "all"\n')
 FIGURES = ["frame", "tracks_x", "tracks_y", "error_series", "error_spectrum", "decomposition",
-           "compensation"]
+           "compensation", "compensated_paper", "compensated_truth", "compensated_leakfree"]
 
 
 @pytest.fixture(scope="module")

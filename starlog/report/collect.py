@@ -82,6 +82,10 @@ class ReportData:
     error: ErrorSeries | None = None
     records: list[dict[str, Any]] = field(default_factory=list)
     primary_decisions: str | None = None
+    #: protocol -> (t s, before (n, 2), after (n, 2)) of the series at the rate the error figures show
+    compensated: dict[str, tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]] = \
+        field(default_factory=dict)
+    compensated_rate_hz: float | None = None
     missing: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
@@ -192,6 +196,23 @@ def _error_from_track(log: LogReader, topic: str) -> ErrorSeries | None:
     return ErrorSeries(topic, rate, times, err[:, 0], err[:, 1], None, "", truncated)
 
 
+def _read_compensated(log: LogReader, data: ReportData, shown: dict[str, Any]) -> None:
+    """Before/after series of every protocol at the rate and motion mode of the ``shown`` record."""
+    data.compensated_rate_hz = float(shown["rate_hz"])
+    for record in data.primary_records:
+        same = record["rate_hz"] == shown["rate_hz"] and record.get("motion", "keep") == shown.get("motion", "keep")
+        if not same or not log.has_topic(record["series_topic"]):
+            continue
+        t, before, after = [], [], []
+        for message in log.messages(record["series_topic"]):
+            p = message.payload
+            t.append((message.log_time - data.time_range[0]) * 1e-9)
+            before.append((p["x_before"], p["y_before"]))
+            after.append((p["x_after"], p["y_after"]))
+        data.compensated[record["protocol"]] = (np.asarray(t, float), np.asarray(before, float).reshape(-1, 2),
+                                                np.asarray(after, float).reshape(-1, 2))
+
+
 def _read_records(log: LogReader, data: ReportData) -> None:
     decision_topics = _schema_topics(data.channels, "starlog.CompensationRecord")
     for topic in sorted(decision_topics):
@@ -225,6 +246,7 @@ def collect_report_data(path: str | os.PathLike[str]) -> ReportData:
             _read_tracks(log, data, track_topic)
         if record is not None and log.has_topic(record["series_topic"]):
             data.error = _error_from_record(log, record)
+            _read_compensated(log, data, record)
         elif track_topic is not None:
             data.error = _error_from_track(log, track_topic)
         if data.error is None:

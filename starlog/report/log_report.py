@@ -142,6 +142,16 @@ def _compensation_section(data: ReportData) -> str:
     out = figure(bar_chart(groups, bars, title=f"RMSE before/after compensation (eq. 15), {data.primary_decisions}",
                            y_label="RMSE (px)"),
                  "Each protocol's primary figure: the RMSE against its own reference, before and after.", "compensation")
+    for protocol, (t, before, after) in data.compensated.items():
+        centre = before.mean(axis=0)
+        title = f"{protocol} protocol: distance from the mean position, before/after"
+        series = [Series("before", t, np.hypot(*(before - centre).T), "#888888", 1.0),
+                  Series("after", t, np.hypot(*(after - centre).T), "#0072B2", 1.6)]
+        out += figure(line_chart(series, title=title, x_label="time (s)", y_label="distance (px)", width=540,
+                                 height=240),
+                      f"The brightest star's series at {data.compensated_rate_hz:g} Hz under the {escape(protocol)} "
+                      "protocol, before and after its kept passes, as distance from the mean position before.",
+                      f"compensated_{protocol}")
     rows = [[r["_topic"].split("/")[2] + "/" + r["_topic"].split("/")[3], _label(r), f["reference"], f["rmse_before"],
              f["rmse_after"], f"{100 * f['effective']:+.1f} %", f["n_scored"]]
             for r in data.records for f in r["figures"]]
