@@ -6,6 +6,7 @@ import math
 import random
 import re
 from concurrent.futures import ProcessPoolExecutor
+from html import escape
 from pathlib import Path
 
 import numpy as np
@@ -196,7 +197,7 @@ def test_html_report_and_short_summary(quick_run: ExperimentSummary) -> None:
     panels = re.findall(r'data-figure="(figure5_[^"]+)"', html)
     assert len(panels) == len(REGIMES) * len(DATASETS) * 4 and '<div class="missing">' not in html
     for name in ("table2", "table3", "table4"):
-        assert TABLE_TITLES[name] in html
+        assert escape(TABLE_TITLES[name]) in html
     text = quick_run.text().splitlines()
     assert len(text) == 2 + 2 * len(REGIMES) and text[-1].startswith(f"report: {out / 'report.html'} ")
     assert all("Table 3" in line for line in text[1:-1])
