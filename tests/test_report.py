@@ -158,6 +158,16 @@ def test_a_track_log_shows_tracks_and_the_spectrum_peak_without_a_decomposition(
     assert all("starlog compensate" in m for m in _missing(html)) and len(_missing(html)) == 3
 
 
+def test_a_foreign_log_is_reported_from_its_own_image_channel(logs: dict[str, Path], tmp_path: Path) -> None:
+    from tests.foreign_logs import write_ros2
+
+    bag = write_ros2(logs["sim"], tmp_path / "bag.mcap", compressed="png")
+    data = collect_report_data(bag)
+    assert data.frame is not None and data.frame.topic == "/camera/image_raw" and data.frame.image.shape == (80, 96)
+    html = render_report(data)
+    assert _figures(html) == ["frame"] and "no provenance record: it was not written by a starlog stage" in html
+
+
 def test_long_channels_are_sampled(logs: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(collect, "MAX_TRACK_SAMPLES", 40)
     monkeypatch.setattr(collect, "MAX_SERIES_SAMPLES", 100)
