@@ -611,6 +611,17 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 
 
 # ---------------------------------------------------------------- run
+def _batch_report(output: Path, force: bool) -> str:
+    """Write the HTML report beside one output of a batch ``run``; the text saying so."""
+    from starlog.report import write_report
+
+    report = output.with_suffix(".html")
+    if report.exists() and not force:
+        return f"; {report.name} exists (kept; --force replaces it)"
+    write_report(output, report)
+    return f"; report {report}"
+
+
 @cli.command(context_settings=CONTEXT)
 @click.argument("logs", nargs=-1, type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(path_type=Path),
@@ -618,17 +629,21 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 @click.option("--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Pipeline config (TOML) [default: the built-in config, see --print-config].")
 @click.option("--print-config", is_flag=True, help="Print the built-in config (a starting point) and exit.")
+@click.option("--table", "full_table", is_flag=True,
+              help="Print every compensation row (one log), not only the short summary.")
 @time_range_options("the first stage's input channel (the image channel for centroid)")
 @scheduler_option
 @json_option
 @write_options
-def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, print_config: bool,
+def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, print_config: bool, full_table: bool,
         start: str | None, end: str | None, scheduler: str | None, as_json: bool, force: bool, compression: str,
         workers: int, quiet: bool) -> None:
     """Replay logs through several stages (centroid, track, compensate) from one config file.
 
     Each stage's parameters come from its table in the TOML config; the result equals running
-    the stages one by one. One log: --workers sets the cores for per-frame work. Several logs:
+    the stages one by one. One log: --workers sets the cores for per-frame work, and an HTML
+    report (figures of every stage, see `starlog report`) is written beside the output with
+    the suffix .html; a short summary points to it. Several logs:
     they run in parallel on a Dask cluster (--scheduler, or a local one with --workers), a
     failed log is reported and the others complete.
 
@@ -655,7 +670,8 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
                            {"force": force, "compression": compression, "start": start, "end": end}) for log in logs]
         outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet,
                              description="run")
-        _report_batch(outcomes, as_json, lambda r: f"wrote {r['output']} ({len(r['stages'])} stages)")
+        reports = {o.result["output"]: _batch_report(Path(o.result["output"]), force) for o in outcomes if o.ok}
+        _report_batch(outcomes, as_json, lambda r: f"wrote {r['output']} ({len(r['stages'])} stages){reports[r['output']]}")
         return
 
     def report(stage: str, result: dict[str, Any]) -> None:
@@ -669,15 +685,26 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
                                for m, v in result["models"].items())
             click.echo(f"track {result['method']}: brightest star under {models}", err=True)
 
+    from starlog.errors import OutputExistsError
+    from starlog.report import write_report
+    from starlog.report.summary import run_summary_lines
+
+    report_path = output.with_suffix(".html") if output.suffix != ".html" else output.with_name(output.name + ".html")
+    if report_path.exists() and not force:
+        raise OutputExistsError(report_path)
     result = run_pipeline(logs[0], output, config, workers=workers, force=force, compression=compression,
                           show_progress=not quiet, on_stage=report, start=start, end=end)
     _status(quiet, f"wrote {output}; inspect it with: starlog info {output}; tables: starlog export {output} -o DIR")
+    write_report(output, report_path)
+    _status(quiet, f"wrote {report_path}")
     if as_json:
-        _print_json(result.to_dict())
+        _print_json({**result.to_dict(), "report": str(report_path)})
         return
-    for stage, summary in result.stages:
-        if stage == "compensate":
-            click.echo(format_records(summary["records"]))
+    if full_table:
+        for stage, summary in result.stages:
+            if stage == "compensate":
+                click.echo(format_records(summary["records"]))
+    click.echo("\n".join(run_summary_lines(output, result.stages, report_path)))
 
 
 # ---------------------------------------------------------------- experiment
@@ -822,6 +849,38 @@ def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], fra
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, out.fileno())  # the interpreter's final flush must not fail again
         lines.close()
+
+
+# ---------------------------------------------------------------- report
+@cli.command(name="report", context_settings=CONTEXT)
+@input_log
+@output_option("Output HTML file; one self-contained file (no network needed to view it). Written atomically.")
+@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+@json_option
+def report_command(log: Path, output: Path, force: bool, as_json: bool) -> None:
+    """Write an HTML report of a log: figures and tables of every stage it holds.
+
+    A frame with its centroids, the tracks of every star, the brightest star's error and its
+    amplitude spectrum (dominant frequency marked), the error decomposition, RMSE before/after
+    compensation per protocol, the strategy decisions and the provenance of every stage. A
+    section whose channels the log lacks says so and names the stage that makes them. Long
+    logs are sampled, so the file stays small; it needs no network to view.
+
+    \b
+    Example:
+      starlog report result.mcap -o result.html
+      starlog report sim.mcap -o sim.html --force
+    """
+    from starlog.report import collect_report_data, render_report
+    from starlog.report.log_report import write_text_atomic
+
+    data = collect_report_data(log)
+    write_text_atomic(output, render_report(data), force=force)
+    if as_json:
+        _print_json({"output": str(output), "missing": data.missing})
+    else:
+        click.echo(f"wrote {output}" + (f" ({len(data.missing)} parts missing: {', '.join(data.missing)})"
+                                        if data.missing else ""))
 
 
 # ---------------------------------------------------------------- recover

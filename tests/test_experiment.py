@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import math
 import random
+import re
 from concurrent.futures import ProcessPoolExecutor
+from html import escape
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,7 @@ from numpy.testing import assert_allclose
 from starlog.compensate import evaluate
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.experiment import TABLE_FIELDS, ExperimentSummary, experiment_command, paper_tables, run_experiment
+from starlog.experiment.tables import TABLE_TITLES
 from starlog.experiment.runner import (
     FIGURE5_RATES,
     METHODS,
@@ -186,3 +189,28 @@ def test_null_check_covers_every_protocol(quick_run: ExperimentSummary) -> None:
             got = {(r["protocol"], r["reference"]) for r in rows if (r["regime"], r["case"]) == (regime, case)}
             assert got == {(p, ref) for p, refs in PROTOCOL_REFERENCES.items() for ref in refs}
     assert all(math.isfinite(r["effective"]) for r in rows)
+
+
+def test_html_report_and_short_summary(quick_run: ExperimentSummary) -> None:
+    out = quick_run.output_dir
+    html = (out / "report.html").read_text(encoding="utf-8")
+    panels = re.findall(r'data-figure="(figure5_[^"]+)"', html)
+    assert len(panels) == len(REGIMES) * len(DATASETS) * 4 and '<div class="missing">' not in html
+    for name in ("table2", "table3", "table4"):
+        assert escape(TABLE_TITLES[name]) in html
+    text = quick_run.text().splitlines()
+    assert len(text) == 2 + 2 * len(REGIMES) and text[-1].startswith(f"report: {out / 'report.html'} ")
+    assert all("Table 3" in line for line in text[1:-1])
+
+
+def test_html_report_renders_in_chromium(quick_run: ExperimentSummary) -> None:
+    from tests.chromium import INSTALL_HINT, Browser, find_chromium
+    from tests.test_report import _render
+
+    executable = find_chromium()
+    if executable is None:
+        pytest.skip(INSTALL_HINT)
+    with Browser(executable, timeout=60) as browser:
+        drawn = _render(browser, quick_run.output_dir / "report.html")
+        assert len(drawn) == len(REGIMES) * len(DATASETS) * 4 and min(drawn.values()) > 0.02, drawn
+        assert browser.errors() == []

@@ -241,8 +241,10 @@ def test_run_cli_with_a_config_file(pipeline_logs: dict[str, Path], tmp_path: Pa
     config = tmp_path / "p.toml"
     config.write_text('[centroid]\nmethods = ["NONE"]\n[track]\nmethods = ["NONE"]\nmodels = "STATIC"\n'
                       '[track.tracker]\nsigma_floor = 0.05\n[compensate]\nrates = [50]\nprotocols = "paper,truth"\n')
-    output = _invoke("run", str(pipeline_logs["sim"]), "-o", str(tmp_path / "r.mcap"), "--config", str(config), "-q")
+    output = _invoke("run", str(pipeline_logs["sim"]), "-o", str(tmp_path / "r.mcap"), "--config", str(config), "-q",
+                     "--table")
     assert "NONE      STATIC" in output and "truth_series" in output
+    assert f"report: {tmp_path / 'r.html'}" in output and (tmp_path / "r.html").is_file()
     assert "[centroid]" in _invoke("run", "--print-config")
 
 

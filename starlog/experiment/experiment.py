@@ -17,6 +17,8 @@ from tqdm import tqdm
 from starlog.batch import executor_for
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.experiment import null_check, plots, report, tables
+from starlog.report.experiment_report import render_experiment_report
+from starlog.report.log_report import write_text_atomic
 from starlog.experiment.datasets import JITTER, REGIMES, SIGMA_FLOOR_PX, Dataset, jitter_rms_px, regime_datasets
 from starlog.experiment.regime import RegimeSummary, run_regime_map
 from starlog.experiment.runner import (
@@ -106,22 +108,21 @@ class ExperimentSummary:
         }
 
     def text(self) -> str:
-        """A short plain-text summary for the command line."""
+        """A short plain-text summary for the command line: Table 3's headline per regime, and where the report is."""
         lines = [f"experiment ({'quick' if self.quick else 'full'}, regimes {', '.join(self.regimes)}) in "
-                 f"{self.wall_time_s:.0f} s [{self.executor}] -> {self.output_dir}",
-                 f"{'regime':7} {'table':7} {'protocol':9} {'reference':13} {'ours before':>11} {'after':>7} "
-                 f"{'paper before':>12} {'after':>7}"]
+                 f"{self.wall_time_s:.0f} s [{self.executor}] -> {self.output_dir}"]
+
+        def f(v: float | None) -> str:
+            return "—" if v is None else f"{v:.4f}"
+
         for h in self.headline:
-            if h["table"] == "table2":
-                continue
-
-            def f(v: float | None) -> str:
-                return "—" if v is None else f"{v:.4f}"
-
-            lines.append(f"{h['regime']:7} {h['table']:7} {h['protocol']:9} {h['reference']:13} {f(h['before']):>11} "
-                         f"{f(h['after']):>7} {f(h['paper_before']):>12} {f(h['paper_after']):>7}")
-        lines += null_check.text_lines(self.null_checks)
-        lines.append(f"report: {self.output_dir / self.files.get('report', 'report.md')}")
+            if h["table"] == "table3" and (h["protocol"], h["reference"]) in (("paper", "global_mean"),
+                                                                             ("truth", "truth_fixed")):
+                paper = f" (paper: {f(h['paper_before'])} -> {f(h['paper_after'])})" if h["protocol"] == "paper" else ""
+                lines.append(f"  {h['regime']} regime, Table 3, {h['protocol']}/{h['reference']}: median RMSE "
+                             f"{f(h['before'])} -> {f(h['after'])} px{paper}")
+        lines.append(f"report: {self.output_dir / self.files.get('report_html', 'report.html')} (open it in a browser; "
+                     f"Markdown: {self.files.get('report', 'report.md')}, tables: table2-4.md, figure5.md)")
         return "\n".join(lines)
 
 
@@ -215,12 +216,14 @@ def run_experiment(
     files.update({k: v for k, v in _log_files(datasets).items() if (out / v).exists()})
     files["summary"] = "summary.json"
     files["report"] = "report.md"
+    files["report_html"] = "report.html"
     summary.files = files
     summary.headline = report.headline_rows(summary.tables)
     summary.wall_time_s = time.perf_counter() - t0
     data = summary.to_dict()
     (out / "summary.json").write_text(json.dumps(data, indent=1), encoding="utf-8")
     (out / "report.md").write_text(report.render_report(data, tables_md, summary.headline), encoding="utf-8")
+    write_text_atomic(out / "report.html", render_experiment_report(data, summary.tables))
     return summary
 
 

@@ -1,0 +1,44 @@
+"""The few lines ``starlog run`` prints at the end, pointing to the report instead of listing every row."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+__all__ = ["run_summary_lines"]
+
+
+def _best(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The records of one track channel (GAUSSFIT/STATIC if run, else the first), at its highest rate, keep mode."""
+    if not records:
+        return []
+    channels = list(dict.fromkeys((r["method"], r["model"]) for r in records))
+    chosen = ("GAUSSFIT", "STATIC") if ("GAUSSFIT", "STATIC") in channels else channels[0]
+    mine = [r for r in records if (r["method"], r["model"]) == chosen and r.get("motion", "keep") == "keep"]
+    top = max((r["rate_hz"] for r in mine), default=None)
+    return [r for r in mine if r["rate_hz"] == top]
+
+
+def run_summary_lines(output: Path, stages: list[tuple[str, dict[str, Any]]], report: Path | None) -> list[str]:
+    """What ran, the headline compensation figures of one track channel, and where the report and the rows are."""
+    lines = [f"{output}: " + ", ".join(name for name, _ in stages)]
+    for name, result in stages:
+        if name == "centroid":
+            lines.append(f"  centroid: {result['frames']} frames, {result['detections_per_frame']:.1f} stars/frame")
+        elif name.startswith("track") and result.get("models"):
+            model, figures = next(iter(result["models"].items()))
+            lines.append(f"  {name}: {len(result['models'])} models, brightest star = track "
+                         f"{figures['brightest_track']} ({model}: {figures['confirmed_tracks']} confirmed tracks)")
+    records = next((r["records"] for n, r in stages if n == "compensate"), [])
+    best = _best(records)
+    if best:
+        figures = ", ".join(f"{r['protocol']} {r['figures'][0]['rmse_before']:.3g} -> {r['figures'][0]['rmse_after']:.3g}"
+                            for r in best)
+        f_d = best[0]["compensation"]["decomposition"]["dominant_frequency"]
+        lines.append(f"  compensate: {len(records)} runs; {best[0]['method']}/{best[0]['model']} at "
+                     f"{best[0]['rate_hz']:g} Hz, RMSE px {figures}; f_d = {f_d:.3g} Hz")
+    if report is not None:
+        lines.append(f"report: {report} (open it in a browser)")
+    if records:
+        lines.append("every row: --table (text) or --json")
+    return lines
