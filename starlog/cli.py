@@ -350,7 +350,12 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @input_log
 @output_option()
 @click.option("--method", "methods", default="all", show_default=True,
-              help="Sub-pixel methods, comma-separated: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, or all.")
+              help="Sub-pixel methods, comma-separated: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, "
+                   "PSFFIT, or all (all but MOMENT_SQUARED and PSFFIT).")
+@click.option("--psf", type=click.Choice(["gaussian", "empirical"]),
+              help="PSF model of PSFFIT. empirical: an ePSF built once from the log's bright isolated stars, stored "
+                   "in the output (metadata starlog.epsf, shown by info). gaussian: the pixel-integrated Gaussian. "
+                   "[default: empirical when PSFFIT is among the methods]")
 @click.option("--gain", type=float, help="Camera gain e-/DN [default: from the simulator's provenance, else 1].")
 @click.option("--read-noise", type=float, help="Read noise e- [default: from the simulator's provenance, else estimated].")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
@@ -360,7 +365,7 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
                                               "instead of stopping.")
 @json_option
 @write_options
-def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noise: float | None,
+def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float | None, read_noise: float | None,
              settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, as_json: bool, force: bool,
              compression: str, workers: int, quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
@@ -372,10 +377,11 @@ def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noi
     Example:
       starlog centroid sim.mcap -o cen.mcap --method GAUSSFIT,MOMENT
       starlog centroid lab.mcap -o cen.mcap --method all --gain 2.1 --workers 2
+      starlog centroid sim.mcap -o cen.mcap --method PSFFIT,GAUSSFIT --psf empirical
     """
     from starlog.stages.centroid import centroid_log
 
-    summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise,
+    summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise, psf=psf,
                            options=_key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
                            workers=workers, force=force, compression=compression, show_progress=not quiet)
     d = summary.to_dict()
