@@ -10,11 +10,13 @@ nodes by the interpolating bicubic B-spline; it is normalised so that its sum ov
 sub-lattice (one star's pixels) is 1 on average.
 
 :func:`build_epsf` learns it from star windows, in the manner of Anderson & King (2000) and
-photutils ``EPSFBuilder``: starting from a pixel-integrated Gaussian, it repeats (1) fit every
-star's centre, flux and background with the current ePSF (:func:`starlog.centroid.psffit.fit_psf`),
-(2) place each star's normalised residual pixels on the oversampled grid at their offsets from
-the star's centre, (3) take a sigma-clipped, noise-weighted mean per node, smooth it lightly
-and add it to the ePSF, (4) re-centre the ePSF on its own centroid and re-normalise it.
+photutils ``EPSFBuilder``: starting from a pixel-integrated Gaussian ``G``, it repeats (1) fit every
+star's centre and flux with the current ePSF (:func:`starlog.centroid.psffit.fit_psf`), (2) place
+each star's pixels, normalised by its flux, minus ``G``, on the oversampled grid at their offsets
+from the star's centre, (3) take a sigma-clipped, noise-weighted mean per node, smooth it
+lightly, shrink it where it is not above its noise (Wiener) and add it to ``G``, (4) re-centre the
+result on its own centroid and re-normalise it. Residuals are taken from the fixed ``G``, not
+from the previous ePSF, so the shrinkage regularises instead of slowing a convergence to the noise.
 
 Storage in a log (``starlog centroid --psf empirical``): one MCAP metadata record named
 :data:`EPSF_METADATA_NAME`, a string map (see :meth:`EPSF.to_metadata`).
@@ -285,7 +287,8 @@ def _normalised(data: F64, ov: int) -> F64:
 
 
 def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, oversampling: int = 4,
-               iterations: int = 10, clip: float = 3.0, smoothing: float = 0.25, tol: float = 1e-5) -> EPSF:
+               iterations: int = 10, clip: float = 3.0, smoothing: float = 0.25, tol: float = 1e-5,
+               max_centre_error: float = 0.05) -> EPSF:
     """Learn the ePSF of star windows ``st`` (half-size = the ePSF's), see the module docstring.
 
     Parameters
@@ -306,6 +309,10 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
     smoothing : float
         Sigma (px) of the Gaussian smoothing of each correction (normalised convolution, so
         empty nodes take their neighbours' correction).
+    max_centre_error : float
+        Only stars whose fitted centre is this precise (1-sigma, px) shape the ePSF: a less
+        precise centre places the star's pixels at wrong offsets and blurs the ePSF. Without
+        any such star the ePSF stays the starting Gaussian (``n_stars`` = 0).
     """
     from starlog.centroid.psffit import fit_psf  # the fit uses pixel PSF models defined here
 
@@ -315,18 +322,19 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
     if oversampling < 1 or iterations < 1:
         raise InvalidParameterError(f"oversampling and iterations must be >= 1, got {oversampling}, {iterations}.")
     ov, h = int(oversampling), st.h
-    epsf = gaussian_epsf(psf_sigma, h + 1, ov)  # one pixel wider than the windows: room for the centres' shifts
-    side = epsf.data.shape[0]
+    prior = gaussian_epsf(psf_sigma, h + 1, ov)  # one pixel wider than the windows: room for the centres' shifts
+    epsf, side = prior, prior.data.shape[0]
     cx, cy, f = dx0.astype(np.float64), dy0.astype(np.float64), np.asarray(flux0, np.float64)
     used = np.ones(n, bool)
     for _ in range(iterations):
         fit = fit_psf(st, cx, cy, f, epsf, fit_background=False)
-        used = fit.ok
+        used = fit.ok & (fit.sigma <= max_centre_error)
         if not used.any():
+            epsf = prior
             break
         cx, cy, f = np.where(fit.ok, fit.dx, cx), np.where(fit.ok, fit.dy, cy), np.where(fit.ok, fit.flux, f)
-        correction = _correction(st, epsf, cx[used], cy[used], f[used], fit.background[used], used, clip, smoothing)
-        data = _normalised(_recentred(epsf.data + correction, ov, epsf.fwhm), ov)
+        correction = _correction(st, prior, cx[used], cy[used], f[used], fit.background[used], used, clip, smoothing)
+        data = _normalised(_recentred(prior.data + correction, ov, prior.fwhm), ov)
         change = float(np.abs(data - epsf.data).max())
         epsf = EPSF(data, ov)
         if change < tol * data.max():
@@ -337,7 +345,7 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
 
 def _correction(st: Stamps, epsf: EPSF, cx: F64, cy: F64, f: F64, b: F64, used: npt.NDArray[np.bool_],
                 clip: float, smoothing: float) -> F64:
-    """Smoothed per-node mean of the stars' normalised residuals from the current ePSF (step 2-3)."""
+    """Smoothed, noise-shrunk per-node mean of the stars' normalised residuals from ``epsf`` (steps 2-3)."""
     ov, side, u = epsf.oversampling, epsf.data.shape[0], st.u
     dxg, dyg = np.broadcast_arrays(u[None, None, :] - cx[:, None, None], u[None, :, None] - cy[:, None, None])
     e, _, _ = epsf.evaluate_grid(u, cx, cy)
@@ -354,7 +362,14 @@ def _correction(st: Stamps, epsf: EPSF, cx: F64, cy: F64, f: F64, b: F64, used: 
     s = smoothing * ov
     num = gaussian_filter(mean * wsum, s, mode="constant")
     den = gaussian_filter(wsum, s, mode="constant")
-    return np.where(den > 1e-12 * max(float(den.max()), 1e-300), num / np.where(den > 0, den, 1.0), 0.0)
+    has = den > 1e-12 * max(float(den.max()), 1e-300)
+    smoothed = np.where(has, num / np.where(has, den, 1.0), 0.0)
+    # Wiener shrinkage towards the starting Gaussian: a correction buried in its own noise is not
+    # applied (faint stars give a smooth ePSF rather than their noise); the variance of the
+    # normalised convolution uses the squared kernel (a Gaussian of s / sqrt 2)
+    var = gaussian_filter(wsum, s / np.sqrt(2.0), mode="constant") / (4.0 * np.pi * s * s)
+    var = np.where(has, var / np.where(has, den, 1.0) ** 2, np.inf)
+    return smoothed * smoothed**2 / (smoothed**2 + var)
 
 
 def select_epsf_stars(detections: npt.NDArray[Any], half_size: int, min_snr: float = 20.0) -> npt.NDArray[np.intp]:
