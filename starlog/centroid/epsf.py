@@ -287,7 +287,7 @@ def _normalised(data: F64, ov: int) -> F64:
 
 
 def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, oversampling: int = 4,
-               iterations: int = 10, clip: float = 3.0, smoothing: float = 0.25, tol: float = 1e-5,
+               iterations: int = 10, clip: float = 3.0, smoothing: float = 0.5, tol: float = 1e-5,
                max_centre_error: float = 0.05) -> EPSF:
     """Learn the ePSF of star windows ``st`` (half-size = the ePSF's), see the module docstring.
 
