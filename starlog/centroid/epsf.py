@@ -287,7 +287,7 @@ def _normalised(data: F64, ov: int) -> F64:
 
 
 def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, oversampling: int = 4,
-               iterations: int = 10, clip: float = 3.0, smoothing: float = 0.5, tol: float = 1e-5,
+               iterations: int = 10, clip: float = 3.0, smoothing: float = 0.25, tol: float = 1e-5,
                max_centre_error: float = 0.05) -> EPSF:
     """Learn the ePSF of star windows ``st`` (half-size = the ePSF's), see the module docstring.
 
@@ -322,16 +322,38 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
     if oversampling < 1 or iterations < 1:
         raise InvalidParameterError(f"oversampling and iterations must be >= 1, got {oversampling}, {iterations}.")
     ov, h = int(oversampling), st.h
-    prior = gaussian_epsf(psf_sigma, h + 1, ov)  # one pixel wider than the windows: room for the centres' shifts
-    epsf, side = prior, prior.data.shape[0]
     cx, cy, f = dx0.astype(np.float64), dy0.astype(np.float64), np.asarray(flux0, np.float64)
-    used = np.ones(n, bool)
+    # two rounds: the second starts from the Gaussian of the first round's FWHM, so the
+    # correction it smooths and shrinks is small for a near-Gaussian PSF
+    epsf, used, cx, cy, f = _build_round(st, float(psf_sigma), cx, cy, f, fit_psf, ov, iterations, clip, smoothing,
+                                         tol, max_centre_error)
+    if used.any():
+        epsf, used, cx, cy, f = _build_round(st, _sigma_of_fwhm(epsf.fwhm, float(psf_sigma), h + 1, ov), cx, cy, f,
+                                             fit_psf, ov, iterations, clip, smoothing, tol, max_centre_error)
+    return EPSF(epsf.data, ov, int(used.sum()))
+
+
+def _sigma_of_fwhm(fwhm: float, default: float, half_size: int, ov: int) -> float:
+    """Sigma of the pixel-integrated Gaussian of FWHM ``fwhm`` (secant steps from the continuous relation)."""
+    if not (np.isfinite(fwhm) and fwhm > 1.0):
+        return default
+    s = float(np.sqrt(max((fwhm / 2.3548200450309493) ** 2 - 1.0 / 12.0, 0.04)))
+    for _ in range(3):
+        s = float(np.clip(s * fwhm / gaussian_epsf(s, half_size, ov).fwhm, 0.2, 50.0))
+    return s
+
+
+def _build_round(st: Stamps, sigma: float, cx: F64, cy: F64, f: F64, fit_psf: Any, ov: int, iterations: int,
+                 clip: float, smoothing: float, tol: float, max_centre_error: float
+                 ) -> tuple[EPSF, npt.NDArray[np.bool_], F64, F64, F64]:
+    """Steps (1)-(4) from the Gaussian of ``sigma`` until the ePSF changes by less than ``tol``."""
+    prior = gaussian_epsf(sigma, st.h + 1, ov)  # one pixel wider than the windows: room for the centres' shifts
+    epsf, used = prior, np.zeros(cx.size, bool)
     for _ in range(iterations):
         fit = fit_psf(st, cx, cy, f, epsf, fit_background=False)
         used = fit.ok & (fit.sigma <= max_centre_error)
         if not used.any():
-            epsf = prior
-            break
+            return prior, used, cx, cy, f
         cx, cy, f = np.where(fit.ok, fit.dx, cx), np.where(fit.ok, fit.dy, cy), np.where(fit.ok, fit.flux, f)
         correction = _correction(st, prior, cx[used], cy[used], f[used], fit.background[used], used, clip, smoothing)
         data = _normalised(_recentred(prior.data + correction, ov, prior.fwhm), ov)
@@ -339,8 +361,7 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
         epsf = EPSF(data, ov)
         if change < tol * data.max():
             break
-    assert epsf.data.shape == (side, side)
-    return EPSF(epsf.data, ov, int(used.sum()))
+    return epsf, used, cx, cy, f
 
 
 def _correction(st: Stamps, epsf: EPSF, cx: F64, cy: F64, f: F64, b: F64, used: npt.NDArray[np.bool_],
@@ -359,17 +380,25 @@ def _correction(st: Stamps, epsf: EPSF, cx: F64, cy: F64, f: F64, b: F64, used: 
     node = (ky * side + kx)[keep]
     mean, wsum = _node_means(node, r[keep], w[keep], side * side, clip)
     mean, wsum = mean.reshape(side, side), wsum.reshape(side, side)
-    s = smoothing * ov
+    smoothed, var, _ = _normalised_convolution(mean, wsum, smoothing * ov)
+    # Wiener shrinkage towards the starting Gaussian: a correction buried in its own noise is not
+    # applied (faint stars give a smooth ePSF rather than their noise)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(var), smoothed * smoothed**2 / (smoothed**2 + var), 0.0)
+
+
+def _normalised_convolution(mean: F64, wsum: F64, s: float) -> tuple[F64, F64, F64]:
+    """Weighted Gaussian smoothing of node means (sigma ``s`` nodes): value, its variance, summed weight.
+
+    The variance of the normalised convolution uses the squared kernel (a Gaussian of ``s / sqrt 2``).
+    """
     num = gaussian_filter(mean * wsum, s, mode="constant")
     den = gaussian_filter(wsum, s, mode="constant")
     has = den > 1e-12 * max(float(den.max()), 1e-300)
-    smoothed = np.where(has, num / np.where(has, den, 1.0), 0.0)
-    # Wiener shrinkage towards the starting Gaussian: a correction buried in its own noise is not
-    # applied (faint stars give a smooth ePSF rather than their noise); the variance of the
-    # normalised convolution uses the squared kernel (a Gaussian of s / sqrt 2)
+    safe = np.where(has, den, 1.0)
+    value = np.where(has, num / safe, 0.0)
     var = gaussian_filter(wsum, s / np.sqrt(2.0), mode="constant") / (4.0 * np.pi * s * s)
-    var = np.where(has, var / np.where(has, den, 1.0) ** 2, np.inf)
-    return smoothed * smoothed**2 / (smoothed**2 + var)
+    return value, np.where(has, var / safe**2, np.inf), np.where(has, den, 0.0)
 
 
 def select_epsf_stars(detections: npt.NDArray[Any], half_size: int, min_snr: float = 20.0) -> npt.NDArray[np.intp]:
