@@ -11,12 +11,15 @@ sub-lattice (one star's pixels) is 1 on average.
 
 :func:`build_epsf` learns it from star windows, in the manner of Anderson & King (2000) and
 photutils ``EPSFBuilder``: starting from a pixel-integrated Gaussian ``G``, it repeats (1) fit every
-star's centre and flux with the current ePSF (:func:`starlog.centroid.psffit.fit_psf`), (2) place
-each star's pixels, normalised by its flux, minus ``G``, on the oversampled grid at their offsets
-from the star's centre, (3) take a sigma-clipped, noise-weighted mean per node, smooth it
+star's centre and flux with the current ePSF (:func:`starlog.centroid.psffit.fit_psf`; the
+background is the detection's), keeping the stars whose centre is precise enough not to blur the
+grid, (2) place each star's pixels, normalised by its flux, minus ``G``, on the oversampled grid
+at their offsets from the star's centre, (3) take a sigma-clipped, noise-weighted mean per node, smooth it
 lightly, shrink it where it is not above its noise (Wiener) and add it to ``G``, (4) re-centre the
 result on its own centroid and re-normalise it. Residuals are taken from the fixed ``G``, not
 from the previous ePSF, so the shrinkage regularises instead of slowing a convergence to the noise.
+This runs twice: from the Gaussian of the given width, then from the Gaussian of the first
+result's FWHM, so that for a near-Gaussian PSF the smoothed correction is small.
 
 Storage in a log (``starlog centroid --psf empirical``): one MCAP metadata record named
 :data:`EPSF_METADATA_NAME`, a string map (see :meth:`EPSF.to_metadata`).
@@ -36,6 +39,7 @@ from scipy.ndimage import shift as spline_shift
 from scipy.special import erf
 
 from starlog.centroid._stamps import Stamps, gather_stamps
+from starlog.centroid.psffit import fit_psf
 from starlog.detect._flags import StarFlag
 from starlog.errors import InvalidInputError, InvalidParameterError
 
@@ -314,8 +318,6 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
         precise centre places the star's pixels at wrong offsets and blurs the ePSF. Without
         any such star the ePSF stays the starting Gaussian (``n_stars`` = 0).
     """
-    from starlog.centroid.psffit import fit_psf  # the fit uses pixel PSF models defined here
-
     n = st.data.shape[0]
     if n == 0:
         raise InvalidInputError("building an ePSF needs at least one star window.")
@@ -325,11 +327,11 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
     cx, cy, f = dx0.astype(np.float64), dy0.astype(np.float64), np.asarray(flux0, np.float64)
     # two rounds: the second starts from the Gaussian of the first round's FWHM, so the
     # correction it smooths and shrinks is small for a near-Gaussian PSF
-    epsf, used, cx, cy, f = _build_round(st, float(psf_sigma), cx, cy, f, fit_psf, ov, iterations, clip, smoothing,
-                                         tol, max_centre_error)
+    epsf, used, cx, cy, f = _build_round(st, float(psf_sigma), cx, cy, f, ov, iterations, clip, smoothing, tol,
+                                         max_centre_error)
     if used.any():
         epsf, used, cx, cy, f = _build_round(st, _sigma_of_fwhm(epsf.fwhm, float(psf_sigma), h + 1, ov), cx, cy, f,
-                                             fit_psf, ov, iterations, clip, smoothing, tol, max_centre_error)
+                                             ov, iterations, clip, smoothing, tol, max_centre_error)
     return EPSF(epsf.data, ov, int(used.sum()))
 
 
@@ -343,7 +345,7 @@ def _sigma_of_fwhm(fwhm: float, default: float, half_size: int, ov: int) -> floa
     return s
 
 
-def _build_round(st: Stamps, sigma: float, cx: F64, cy: F64, f: F64, fit_psf: Any, ov: int, iterations: int,
+def _build_round(st: Stamps, sigma: float, cx: F64, cy: F64, f: F64, ov: int, iterations: int,
                  clip: float, smoothing: float, tol: float, max_centre_error: float
                  ) -> tuple[EPSF, npt.NDArray[np.bool_], F64, F64, F64]:
     """Steps (1)-(4) from the Gaussian of ``sigma`` until the ePSF changes by less than ``tol``."""
