@@ -18,8 +18,6 @@ at their offsets from the star's centre, (3) take a sigma-clipped, noise-weighte
 lightly, shrink it where it is not above its noise (Wiener) and add it to ``G``, (4) re-centre the
 result on its own centroid and re-normalise it. Residuals are taken from the fixed ``G``, not
 from the previous ePSF, so the shrinkage regularises instead of slowing a convergence to the noise.
-This runs twice: from the Gaussian of the given width, then from the Gaussian of the first
-result's FWHM, so that for a near-Gaussian PSF the smoothed correction is small.
 
 Storage in a log (``starlog centroid --psf empirical``): one MCAP metadata record named
 :data:`EPSF_METADATA_NAME`, a string map (see :meth:`EPSF.to_metadata`).
@@ -323,26 +321,11 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
         raise InvalidInputError("building an ePSF needs at least one star window.")
     if oversampling < 1 or iterations < 1:
         raise InvalidParameterError(f"oversampling and iterations must be >= 1, got {oversampling}, {iterations}.")
-    ov, h = int(oversampling), st.h
+    ov = int(oversampling)
     cx, cy, f = dx0.astype(np.float64), dy0.astype(np.float64), np.asarray(flux0, np.float64)
-    # two rounds: the second starts from the Gaussian of the first round's FWHM, so the
-    # correction it smooths and shrinks is small for a near-Gaussian PSF
-    epsf, used, cx, cy, f = _build_round(st, float(psf_sigma), cx, cy, f, ov, iterations, clip, smoothing, tol,
-                                         max_centre_error)
-    if used.any():
-        epsf, used, cx, cy, f = _build_round(st, _sigma_of_fwhm(epsf.fwhm, float(psf_sigma), h + 1, ov), cx, cy, f,
-                                             ov, iterations, clip, smoothing, tol, max_centre_error)
+    epsf, used, _, _, _ = _build_round(st, float(psf_sigma), cx, cy, f, ov, iterations, clip, smoothing, tol,
+                                       max_centre_error)
     return EPSF(epsf.data, ov, int(used.sum()))
-
-
-def _sigma_of_fwhm(fwhm: float, default: float, half_size: int, ov: int) -> float:
-    """Sigma of the pixel-integrated Gaussian of FWHM ``fwhm`` (secant steps from the continuous relation)."""
-    if not (np.isfinite(fwhm) and fwhm > 1.0):
-        return default
-    s = float(np.sqrt(max((fwhm / 2.3548200450309493) ** 2 - 1.0 / 12.0, 0.04)))
-    for _ in range(3):
-        s = float(np.clip(s * fwhm / gaussian_epsf(s, half_size, ov).fwhm, 0.2, 50.0))
-    return s
 
 
 def _build_round(st: Stamps, sigma: float, cx: F64, cy: F64, f: F64, ov: int, iterations: int,
