@@ -165,6 +165,16 @@ def _parse_jitter(values: tuple[str, ...]) -> tuple[Any, ...]:
 @click.option("--frames", "n_frames", type=click.IntRange(1), help="Number of frames [default: 300, or the preset's].")
 @click.option("--duration", type=float, help="Duration in seconds (instead of --frames).")
 @click.option("--psf-sigma", type=float, default=1.2, show_default=True, help="Gaussian PSF sigma in pixels.")
+@click.option("--psf", "psf_model", type=click.Choice(["gaussian", "moffat", "airy"]), default="gaussian",
+              show_default=True, help="PSF shape, integrated over pixels.")
+@click.option("--psf-fwhm", type=click.FloatRange(min=0), default=0.0,
+              help="Moffat / Airy FWHM in pixels [default: 2.3548 x --psf-sigma].")
+@click.option("--moffat-beta", type=click.FloatRange(min=1, min_open=True), default=2.5, show_default=True,
+              help="Moffat power index beta.")
+@click.option("--airy-lambda-d", type=click.FloatRange(min=0), default=0.0,
+              help="Airy lambda/D in pixels (instead of --psf-fwhm).")
+@click.option("--airy-zero", type=click.FloatRange(min=0), default=0.0,
+              help="Airy first-dark-ring radius in pixels, 1.22 lambda/D (instead of --airy-lambda-d).")
 @click.option("--sky", type=float, default=20.0, show_default=True, help="Sky background, e-/pixel/frame.")
 @click.option("--read-noise", type=float, default=3.0, show_default=True, help="Read noise, e- RMS.")
 @click.option("--gain", type=float, default=1.0, show_default=True, help="Gain, e-/DN.")
@@ -183,13 +193,14 @@ def _parse_jitter(values: tuple[str, ...]) -> tuple[Any, ...]:
 @click.option("--start-ns", type=click.IntRange(0), default=0, show_default=True, help="log_time of frame 0.")
 @write_options
 def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: str, fps: float | None,
-             n_frames: int | None, duration: float | None, psf_sigma: float, sky: float, read_noise: float,
+             n_frames: int | None, duration: float | None, psf_sigma: float, psf_model: str, psf_fwhm: float,
+             moffat_beta: float, airy_lambda_d: float, airy_zero: float, sky: float, read_noise: float,
              gain: float, bias: float, adc_bits: int, hot_pixels: int, cosmic_rays: float, jitter: tuple[str, ...],
              drift: str, random_walk: float, roll: str | None, seed: int, start_ns: int, force: bool,
              compression: str, workers: int, quiet: bool) -> None:
     """Write a simulated star-camera log.
 
-    Stars are pixel-integrated Gaussians on a sky background, with Poisson shot noise, read
+    Stars are pixel-integrated Gaussians (or Moffat or Airy PSFs, --psf) on a sky background, with Poisson shot noise, read
     noise, gain, bias, quantisation and saturation; the platform may jitter, drift and random-walk.
     Frames go to /camera/image (foxglove.RawImage mono16), true positions to /sim/truth.
     Same options and seed give identical bytes.
@@ -221,6 +232,13 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
     elif n_frames is not None:
         params["n_frames"] = n_frames
     camera = CameraModel(read_noise=read_noise, gain=gain, bias=bias, adc_bits=adc_bits)
+    if psf_model != "gaussian":
+        from starlog.sim.profiles import AIRY_ZERO_PER_LAMBDA_D
+
+        if airy_zero and airy_lambda_d:
+            raise click.UsageError("give --airy-lambda-d or --airy-zero, not both.")
+        params.update(psf_model=psf_model, psf_fwhm=psf_fwhm, moffat_beta=moffat_beta,
+                      airy_lambda_d=airy_lambda_d or airy_zero / AIRY_ZERO_PER_LAMBDA_D)
     config = SimulationConfig(width=width, height=height, n_stars=n_stars, flux_min=flux_min, flux_max=flux_max,
                               psf_sigma=psf_sigma, sky=sky, camera=camera, hot_pixels=hot_pixels,
                               cosmic_rays_per_frame=cosmic_rays, jitter=_parse_jitter(jitter),
@@ -397,7 +415,12 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @input_log
 @output_option()
 @click.option("--method", "methods", default="all", show_default=True,
-              help="Sub-pixel methods, comma-separated: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, or all.")
+              help="Sub-pixel methods, comma-separated: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, "
+                   "PSFFIT, or all (all but MOMENT_SQUARED and PSFFIT).")
+@click.option("--psf", type=click.Choice(["gaussian", "empirical"]),
+              help="PSF model of PSFFIT. empirical: an ePSF built once from the log's bright isolated stars, stored "
+                   "in the output (metadata starlog.epsf, shown by info). gaussian: the pixel-integrated Gaussian. "
+                   "[default: empirical when PSFFIT is among the methods]")
 @click.option("--gain", type=float, help="Camera gain e-/DN [default: from the simulator's provenance, else 1].")
 @click.option("--read-noise", type=float, help="Read noise e- [default: from the simulator's provenance, else estimated].")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
@@ -408,7 +431,7 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @time_range_options("the image channel")
 @json_option
 @write_options
-def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noise: float | None,
+def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float | None, read_noise: float | None,
              settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, start: str | None, end: str | None,
              as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
@@ -421,10 +444,11 @@ def centroid(log: Path, output: Path, methods: str, gain: float | None, read_noi
       starlog centroid sim.mcap -o cen.mcap --method GAUSSFIT,MOMENT
       starlog centroid lab.mcap -o cen.mcap --method all --gain 2.1 --workers 2
       starlog centroid sim.mcap -o cen.mcap --start 0.5s --end frame:300
+      starlog centroid sim.mcap -o cen.mcap --method PSFFIT,GAUSSFIT --psf empirical
     """
     from starlog.stages.centroid import centroid_log
 
-    summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise,
+    summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise, psf=psf,
                            options=_key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
                            workers=workers, force=force, compression=compression, show_progress=not quiet,
                            start=start, end=end)

@@ -61,7 +61,7 @@ protocols = "all"
 """
 
 _STAGE_KEYS: dict[str, set[str]] = {
-    "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad"},
+    "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad", "psf"},
     "track": {"methods", "models", "tracker", "motion"},
     "compensate": {"tracks", "rates", "protocols", "options"},
 }
@@ -149,7 +149,7 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
         steps.append(("centroid", lambda i, o: centroid_log(
             i, o, methods=c.get("methods", "all"), gain=c.get("gain"), read_noise=c.get("read_noise"),
             options=c.get("options"), image_topic=c.get("image_topic"), skip_bad=bool(c.get("skip_bad", False)),
-            workers=workers, show_progress=show_progress, **common).to_dict()))
+            workers=workers, show_progress=show_progress, psf=c.get("psf"), **common).to_dict()))
     if config.track is not None:
         t = config.track
         for method in _list(t.get("methods", ["GAUSSFIT"])):

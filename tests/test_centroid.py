@@ -30,6 +30,7 @@ NOISE_FREE_TOL = {
     CentroidMethod.BICUBIC: 2e-3,
     CentroidMethod.GAUSSFIT: 1e-4,
     CentroidMethod.GRADIENT: 1e-3,
+    CentroidMethod.PSFFIT: 1e-4,
 }
 
 

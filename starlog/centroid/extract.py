@@ -29,9 +29,11 @@ from starlog.centroid._stamps import (
 )
 from starlog.centroid.bicubic import bicubic_peak
 from starlog.centroid.coarse import log_parabola_peak
+from starlog.centroid.epsf import EPSF, GaussianPSF
 from starlog.centroid.gaussfit import fit_gaussians
 from starlog.centroid.gradient import radial_symmetry_centre
 from starlog.centroid.moment import squared_centroid, weighted_centroid
+from starlog.centroid.psffit import fit_psf
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
@@ -47,10 +49,11 @@ EFFICIENCY: dict[CentroidMethod, float] = {
     CentroidMethod.BICUBIC: 1.0,
     CentroidMethod.GAUSSFIT: 1.0,
     CentroidMethod.GRADIENT: 1.08,
+    CentroidMethod.PSFFIT: 1.0,
 }
 """Ratio of each method's measured RMS error to the Cramer-Rao bound (median over the
 benchmark's regimes, ``tools/bench_centroid.py``); ``sigma`` = bound x this factor.
-GAUSSFIT takes its sigma from the fit covariance instead."""
+GAUSSFIT and PSFFIT take their sigma from the fit covariance instead."""
 
 _SQUARED_SMOOTH = 0.5
 _GRADIENT_SMOOTH = 0.75
@@ -197,6 +200,13 @@ def _fit(st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, fit_psf_sigma: bool)
                      np.where(fit.ok, fit.background, 0.0))
 
 
+def _psf_fit(st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, epsf: EPSF | None) -> _Measured:
+    """PSFFIT: every value from the weighted least-squares fit of the ePSF (or the Gaussian of ``psf``)."""
+    fit = fit_psf(st, dx0, dy0, f0, epsf if epsf is not None else GaussianPSF(float(psf[0])))
+    return _Measured(fit.dx, fit.dy, fit.ok, fit.flux, fit.flux_err, fit.sigma, psf,
+                     np.where(fit.ok, fit.background, 0.0))
+
+
 def _estimate(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,
               weighting: str, debias: bool) -> _Measured:
     """A non-fit method, debiased with the star's model; flux from a PSF fit at the centroid."""
@@ -284,6 +294,7 @@ def measure_centroids(
     debias: bool = True,
     weighting: str = "optimal",
     fit_psf_sigma: bool = False,
+    epsf: EPSF | None = None,
 ) -> npt.NDArray[np.void]:
     """Sub-pixel centroids of detected stars.
 
@@ -295,7 +306,7 @@ def measure_centroids(
         From :func:`starlog.detect.detect_stars` (fields star, x, y, background, noise, flux,
         flags are used).
     method : CentroidMethod or str
-        NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT or GRADIENT.
+        NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT or PSFFIT.
     gain : float
         Camera gain, e-/DN (for the star's shot noise in weights and ``sigma``).
     read_noise : float, optional
@@ -314,6 +325,9 @@ def measure_centroids(
         MOMENT weighting (see :mod:`starlog.centroid.moment`).
     fit_psf_sigma : bool
         GAUSSFIT: fit the PSF sigma per star too (default: fixed to ``psf_sigma``).
+    epsf : EPSF, optional
+        PSFFIT: the empirical PSF to fit (:func:`starlog.centroid.epsf.build_epsf`); without
+        it, PSFFIT fits the pixel-integrated Gaussian of ``psf_sigma``. Other methods ignore it.
 
     Returns
     -------
@@ -327,12 +341,17 @@ def measure_centroids(
     if n == 0:
         return empty_centroids()
     psf = float(psf_sigma) if psf_sigma is not None else estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
-    st = _star_stamps(arr, det, _window(psf, window), gain, read_noise, _default_saturation(arr, saturation))
+    h = _window(psf, window)
+    if meth is CentroidMethod.PSFFIT and epsf is not None:
+        h = max(2, min(h, epsf.half_size - 1))  # the ePSF covers every pixel of the window at any sub-pixel shift
+    st = _star_stamps(arr, det, h, gain, read_noise, _default_saturation(arr, saturation))
     dx0, dy0 = np.asarray(det["x"], np.float64) - st.xc, np.asarray(det["y"], np.float64) - st.yc
     psf_arr = np.full(n, psf)
     f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64), iterations=1)
     if meth is CentroidMethod.GAUSSFIT:
         measured = _fit(st, dx0, dy0, f0, psf_arr, fit_psf_sigma)
+    elif meth is CentroidMethod.PSFFIT:
+        measured = _psf_fit(st, dx0, dy0, f0, psf_arr, epsf)
     else:
         measured = _estimate(meth, st, dx0, dy0, f0, psf_arr, gain=gain, weighting=weighting, debias=debias)
     return _centroid_table(det, st, _with_fallback(measured, st, dx0, dy0, f0))
@@ -385,6 +404,7 @@ def extract_stars(
     saturation: float | None = None,
     detect_options: Mapping[str, Any] | None = None,
     centroid_options: Mapping[str, Any] | None = None,
+    epsf: EPSF | None = None,
 ) -> tuple[npt.NDArray[np.void], dict[CentroidMethod, npt.NDArray[np.void]]]:
     """Detect the stars of a frame and centroid them with each method.
 
@@ -401,6 +421,8 @@ def extract_stars(
         Extra keyword options of :func:`starlog.detect.detect_stars` (threshold, ...).
     centroid_options : mapping, optional
         Extra keyword options of :func:`measure_centroids` (debias, weighting, ...).
+    epsf : EPSF, optional
+        The empirical PSF PSFFIT fits (see :func:`measure_centroids`).
 
     Returns
     -------
@@ -418,6 +440,7 @@ def extract_stars(
         out[m] = measure_centroids(
             arr, det, method=m, gain=gain, read_noise=read_noise, psf_sigma=psf_sigma,
             window=window, saturation=saturation, **dict(centroid_options or {}),
+            **({"epsf": epsf} if epsf is not None else {}),
         )
     return det, out
 

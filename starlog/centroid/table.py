@@ -42,10 +42,14 @@ class CentroidMethod(enum.StrEnum):
         circular Gaussian plus a constant background; sigma from the fit covariance.
     GRADIENT
         Radial-symmetry centre (Parthasarathy 2012) of the (adaptively smoothed) window.
+    PSFFIT
+        Weighted least-squares fit of a pixel PSF model (position, flux, background; sigma
+        from the fit covariance): the log's empirical PSF (:mod:`starlog.centroid.epsf`, built
+        by ``starlog centroid``) when given, else the pixel-integrated Gaussian of the PSF sigma.
 
     Notes
     -----
-    Every method except GAUSSFIT has its pixel-phase bias (S-curve) and window-truncation
+    Every method except GAUSSFIT and PSFFIT has its pixel-phase bias (S-curve) and window-truncation
     bias removed by default (``debias=True`` in :func:`starlog.centroid.measure_centroids`):
     the same estimator is run on the pixel-integrated Gaussian model of the star and the
     difference is subtracted (two fixed-point iterations).
@@ -57,6 +61,7 @@ class CentroidMethod(enum.StrEnum):
     BICUBIC = "BICUBIC"
     GAUSSFIT = "GAUSSFIT"
     GRADIENT = "GRADIENT"
+    PSFFIT = "PSFFIT"
 
 
 CENTROID_DTYPE = np.dtype(
@@ -90,13 +95,13 @@ snr : float64
     ``flux`` divided by its 1-sigma uncertainty (shot noise of the star and background noise).
 sigma : float64
     The centroid's own 1-sigma uncertainty per axis, px (the mean of the x and y variances,
-    square-rooted). GAUSSFIT: from the fit covariance. Other methods: the Cramer-Rao bound of
+    square-rooted). GAUSSFIT, PSFFIT: from the fit covariance. Other methods: the Cramer-Rao bound of
     the star (from its measured flux, background noise, gain and PSF width) times the
     method's measured efficiency factor (see ``EFFICIENCY``); never NaN, always > 0.
 peak : float64
     Highest background-subtracted pixel value within one pixel of the centroid, DN.
 background : float64
-    Local background level under the star, DN (pedestal + sky; GAUSSFIT: fitted).
+    Local background level under the star, DN (pedestal + sky; GAUSSFIT, PSFFIT: fitted).
 psf_sigma : float64
     Gaussian PSF sigma used for the star, px (given or estimated from the frame).
 flags : uint16

@@ -36,7 +36,21 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "channels": channels,
             "provenance": [p.to_dict() for p in log.provenance()],
             "notes": list(log.notes),
-        }
+        } | _epsf_summaries(log)
+
+
+def _epsf_summaries(log: LogReader) -> dict[str, Any]:
+    """``{"epsf": [...]}``: size, oversampling, stars used and FWHM of each stored empirical PSF (none: {})."""
+    from starlog.centroid.epsf import EPSF, EPSF_METADATA_NAME
+
+    records = log.metadata(EPSF_METADATA_NAME)
+    out = []
+    for _, meta in records:
+        try:
+            out.append(EPSF.from_metadata(meta).summary())
+        except (ValueError, KeyError) as err:
+            out.append({"error": f"unreadable ePSF record: {err}"})
+    return {"epsf": out} if out else {}
 
 
 def format_description(info: dict[str, Any]) -> str:
@@ -70,6 +84,12 @@ def format_description(info: dict[str, Any]) -> str:
             span = (f"log_time from {time_range.get('start_ns')} ns" if time_range.get("end_ns") is None else
                     f"log_time {time_range.get('start_ns')} to {time_range['end_ns']} ns (end exclusive)")
             lines.append(f"     range [{time_range.get('start') or 'start'}, {time_range.get('end') or 'end'}): {span}")
+    for e in info.get("epsf", []):
+        if "error" in e:
+            lines.append(f"epsf       {e['error']}")
+        else:
+            lines.append(f"epsf       {e['size_px']}x{e['size_px']} px, oversampling {e['oversampling']} "
+                         f"(grid {e['grid'][0]}x{e['grid'][1]}), {e['n_stars']} stars, FWHM {e['fwhm_px']:.3f} px")
     for note in info.get("notes", []):
         lines.append(f"note: {note}")
     return "\n".join(lines)

@@ -5,7 +5,8 @@ Physics per frame ``n`` at time ``t = n / fps``:
 1. every star sits at its fixed focal-plane position plus the platform offset
    ``(dx(t), dy(t))`` = jitter (sum of sinusoids) + drift (constant rate) + random walk,
    rotated first, when a roll is set, by ``roll(t)`` about the image centre;
-2. its signal is a circular Gaussian PSF integrated over each pixel (erf), over a uniform sky;
+2. its signal is a circular PSF integrated over each pixel (Gaussian: erf; Moffat or Airy:
+   quadrature, :mod:`starlog.sim.profiles`), over a uniform sky;
 3. hot pixels (fixed positions, constant extra charge) and cosmic-ray hits (random, sharp, 1–3
    pixel tracks) are added;
 4. the camera (:class:`~starlog.sim.camera.CameraModel`) applies Poisson shot noise, read
@@ -27,6 +28,7 @@ import numpy.typing as npt
 
 from starlog.errors import InvalidParameterError
 from starlog.sim.camera import CameraModel
+from starlog.sim.profiles import AIRY_FWHM_PER_LAMBDA_D, AiryPSF, MoffatPSF, render_profile_stars
 from starlog.sim.psf import render_stars
 
 __all__ = ["PRESETS", "SimulationConfig", "SimulatedFrame", "StarField", "Simulator", "Jitter"]
@@ -71,6 +73,16 @@ class SimulationConfig:
         ``log_time`` of frame 0; frame ``n`` is at ``start + round(n * 1e9 / fps)``.
     psf_sigma : float
         Gaussian PSF standard deviation in pixels.
+    psf_model : {"gaussian", "moffat", "airy"}
+        The PSF: pixel-integrated Gaussian of ``psf_sigma`` (default), Moffat of ``psf_fwhm`` and
+        ``moffat_beta``, or Airy of ``airy_lambda_d`` (lambda/D in px; first dark ring at 1.22
+        lambda/D) or, when that is 0, of FWHM ``psf_fwhm``.
+    psf_fwhm : float
+        Moffat / Airy FWHM, px; 0 (default): that of the Gaussian, ``2.3548 psf_sigma``.
+    moffat_beta : float
+        Moffat power index (> 1; 2.5 by default, typical of seeing).
+    airy_lambda_d : float
+        Airy lambda/D, px (0: from ``psf_fwhm``).
     sky : float
         Sky background, photo-electrons per pixel per frame.
     camera : CameraModel
@@ -105,6 +117,10 @@ class SimulationConfig:
     n_frames: int = 300
     start_time_ns: int = 0
     psf_sigma: float = 1.2
+    psf_model: str = "gaussian"
+    psf_fwhm: float = 0.0
+    moffat_beta: float = 2.5
+    airy_lambda_d: float = 0.0
     sky: float = 20.0
     camera: CameraModel = field(default_factory=CameraModel)
     hot_pixels: int = 0
@@ -131,6 +147,11 @@ class SimulationConfig:
         need(self.n_frames >= 1, f"n_frames must be >= 1, got {self.n_frames}.")
         need(self.start_time_ns >= 0, f"start_time_ns must be >= 0, got {self.start_time_ns}.")
         need(0.2 <= self.psf_sigma <= 50, f"psf_sigma must be within 0.2..50 px, got {self.psf_sigma}.")
+        need(self.psf_model in ("gaussian", "moffat", "airy"),
+             f"psf_model must be 'gaussian', 'moffat' or 'airy', got {self.psf_model!r}.")
+        need(self.psf_fwhm >= 0 and self.airy_lambda_d >= 0 and self.moffat_beta > 1,
+             f"need psf_fwhm >= 0, airy_lambda_d >= 0 and moffat_beta > 1, got {self.psf_fwhm}, "
+             f"{self.airy_lambda_d}, {self.moffat_beta}.")
         need(self.sky >= 0, f"sky must be >= 0 e-/px, got {self.sky}.")
         need(self.hot_pixels >= 0, f"hot_pixels must be >= 0, got {self.hot_pixels}.")
         need(self.cosmic_rays_per_frame >= 0, f"cosmic_rays_per_frame must be >= 0, got {self.cosmic_rays_per_frame}.")
@@ -151,9 +172,22 @@ class SimulationConfig:
         """``log_time`` of frame(s) ``frame`` (exposure time, integer ns)."""
         return self.start_time_ns + np.rint(np.asarray(frame, dtype=np.float64) * 1e9 / self.fps).astype(np.int64)
 
+    def psf_profile(self) -> MoffatPSF | AiryPSF | None:
+        """The Moffat or Airy PSF of the configuration (None: the Gaussian of ``psf_sigma``)."""
+        fwhm = self.psf_fwhm or 2.0 * np.sqrt(2.0 * np.log(2.0)) * self.psf_sigma
+        if self.psf_model == "moffat":
+            return MoffatPSF(fwhm=fwhm, beta=self.moffat_beta)
+        if self.psf_model == "airy":
+            return AiryPSF(lambda_d=self.airy_lambda_d or fwhm / AIRY_FWHM_PER_LAMBDA_D)
+        return None
+
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready parameters (recorded as the simulate stage's provenance)."""
+        """JSON-ready parameters (recorded as the simulate stage's provenance; a Gaussian PSF's
+        configuration leaves out the other PSFs' parameters)."""
         d = asdict(self)
+        if self.psf_model == "gaussian":
+            for key in ("psf_model", "psf_fwhm", "moffat_beta", "airy_lambda_d"):
+                d.pop(key)
         d["jitter"] = [asdict(j) for j in self.jitter]
         d["drift_px_per_s"] = list(self.drift_px_per_s)
         return d
@@ -272,7 +306,11 @@ class Simulator:
         dx, dy = self.platform_offset(frame)
         x, y = self.true_positions(frame)
         image = np.full((c.height, c.width), float(c.sky))
-        render_stars(image.shape, x, y, self.field.flux, c.psf_sigma, out=image)
+        profile = c.psf_profile()
+        if profile is None:
+            render_stars(image.shape, x, y, self.field.flux, c.psf_sigma, out=image)
+        else:
+            render_profile_stars(image.shape, x, y, self.field.flux, profile, out=image)
         if c.hot_pixels:
             image[self._hot_rows, self._hot_cols] += c.hot_pixel_charge
         return image, dx, dy

@@ -8,7 +8,10 @@ the frames in Foxglove), each message at its frame's ``log_time``. Frames are pr
 a time (memory flat in log length). With ``workers > 1`` the log is split into blocks of
 consecutive image chunks; each worker process opens the log itself, decodes and extracts its
 block (so no image crosses a process boundary), and the results are written in frame order:
-the output does not depend on the number of workers. The summary says how many frames were
+the output does not depend on the number of workers. With PSFFIT (or ``psf="empirical"``) an
+empirical PSF is built once from the log's first frames before that, stored as the metadata
+record ``starlog.epsf`` (:meth:`starlog.centroid.epsf.EPSF.to_metadata`) and fitted by PSFFIT
+in every frame. The summary says how many frames were
 read against how many messages the channel holds; they must agree unless ``skip_bad`` names
 every frame left out.
 """
@@ -28,8 +31,10 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars
+from starlog.centroid.epsf import EPSF, EPSF_METADATA_NAME, epsf_from_frames
+from starlog.centroid.extract import _window
 from starlog.detect import detect_stars
-from starlog.errors import InvalidParameterError
+from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
@@ -84,8 +89,10 @@ class CentroidSummary:
     channel_messages: int = 0
     skipped: list[SkippedFrame] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    epsf: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
+        extra = {"epsf": self.epsf} if self.epsf is not None else {}
         return {
             "methods": self.methods,
             "image_topic": self.image_topic,
@@ -98,7 +105,7 @@ class CentroidSummary:
             "centroids": dict(self.centroids),
             "fit_failed": dict(self.failed),
             "gain": self.gain,
-        }
+        } | extra
 
 
 def _camera_from_provenance(log: LogReader) -> dict[str, float]:
@@ -125,6 +132,7 @@ def centroid_log(
     force: bool = False,
     compression: str = "zstd",
     show_progress: bool = False,
+    psf: str | None = None,
 ) -> CentroidSummary:
     """Detect stars and measure their centroids by each method, for every frame of the log.
 
@@ -152,6 +160,12 @@ def centroid_log(
     start, end : str or int, optional
         Only the frames with ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the
         image channel; :mod:`starlog.io.timerange`): the output holds that range of every channel.
+    psf : {"gaussian", "empirical"}, optional
+        The PSF model PSFFIT fits. ``"empirical"``: an ePSF built once from the bright,
+        isolated, unsaturated stars of the log's first frames (:func:`_log_epsf`), stored in
+        the output (metadata ``starlog.epsf``) and recorded in the provenance, even when PSFFIT
+        is not among the methods. ``"gaussian"``: PSFFIT fits the pixel-integrated Gaussian of
+        the PSF sigma. Default: empirical when PSFFIT is among the methods, else none.
     """
     chosen = parse_methods(methods)
     options = dict(options or {})
@@ -169,14 +183,23 @@ def centroid_log(
             options["psf_sigma"] = _log_psf_sigma(probe, topic, gain=gain,
                                                   detect_options=options.get("detect_options"))
     digest_params.update({"gain": gain, "read_noise": read_noise})
+    epsf = _epsf_for(input_path, topic, chosen, psf, gain=gain, read_noise=read_noise, options=options)
+    if psf is not None:
+        digest_params["psf"] = psf
+    if epsf is not None:
+        digest_params["epsf"] = epsf.summary()
     if topic != topics.IMAGE:  # a foreign log: the provenance names the channel the stars come from
         digest_params["image_topic"] = topic
     summary = CentroidSummary(methods=[m.value for m in chosen], gain=gain, image_topic=topic)
     summary.notes = [chosen_note] if chosen_note else []
+    if epsf is not None:
+        summary.epsf = epsf.summary()
+        if CentroidMethod.PSFFIT not in chosen:
+            summary.notes.append("the empirical PSF is stored, but only PSFFIT fits it and it is not among the methods.")
     summary.centroids = {m.value: 0 for m in chosen}
     summary.failed = {m.value: 0 for m in chosen}
 
-    extract = _Extractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options)
+    extract = _Extractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options, epsf=epsf)
 
     with _opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=digest_params,
                                         force=force, compression=compression, workers=workers) as (log, out):
@@ -204,7 +227,42 @@ def centroid_log(
             summary.detections += encoded.n_detections
         _check_frame_count(log, topic, summary)
         summary.notes += [n for n in log.notes if n not in summary.notes]
+        if epsf is not None:
+            out.writer.add_metadata(EPSF_METADATA_NAME, epsf.to_metadata())
     return summary
+
+
+def _epsf_for(path: str | os.PathLike[str], topic: str, chosen: list[CentroidMethod], psf: str | None, *,
+              gain: float, read_noise: float | None, options: dict[str, Any]) -> EPSF | None:
+    """The log's ePSF when ``psf`` asks for it, or by default when PSFFIT is chosen (see :func:`centroid_log`)."""
+    if psf not in (None, "gaussian", "empirical"):
+        raise InvalidParameterError(f"psf must be 'gaussian' or 'empirical', got {psf!r}.")
+    if psf == "gaussian" or (psf is None and CentroidMethod.PSFFIT not in chosen):
+        return None
+    with _opencv_threads(1), LogReader(path) as log:
+        return _log_epsf(log, topic, gain=gain, read_noise=read_noise, psf_sigma=float(options["psf_sigma"]),
+                         window=options.get("window"), saturation=options.get("saturation"),
+                         detect_options=options.get("detect_options"))
+
+
+def _log_epsf(log: LogReader, topic: str, *, gain: float, read_noise: float | None, psf_sigma: float,
+              window: int | None, saturation: float | None, detect_options: dict[str, Any] | None,
+              max_frames: int = 20, max_stars: int = 2000) -> EPSF:
+    """The ePSF of the first ``max_frames`` frames' bright, isolated, unsaturated stars (at most
+    ``max_stars``), on windows of the centroid window's half-size (an ePSF one pixel wider)."""
+
+    def frames() -> Iterator[tuple[npt.NDArray[Any], npt.NDArray[Any]]]:
+        for index, _, image in log.frames(topic, on_bad=lambda skipped: None):
+            if index >= max_frames:
+                break
+            yield image, detect_stars(image, saturation=saturation, **(detect_options or {}))
+
+    try:
+        return epsf_from_frames(frames(), psf_sigma=psf_sigma, half_size=_window(psf_sigma, window), gain=gain,
+                                read_noise=read_noise, saturation=saturation, max_stars=max_stars)
+    except InvalidInputError as err:
+        raise InvalidInputError(f"cannot build an empirical PSF from the first {max_frames} frames of {topic}: "
+                                f"{err} Use psf='gaussian' (--psf gaussian) or other methods.") from None
 
 
 def _check_frame_count(log: LogReader, topic: str, summary: CentroidSummary) -> None:
@@ -247,12 +305,13 @@ class _Extractor:
     gain: float
     read_noise: float | None
     options: dict[str, Any]
+    epsf: EPSF | None = None
 
     def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any], stamp: int | None = None
                  ) -> _FrameMessages:
         """``stamp``: the image message's own time, given to the annotations so Foxglove pairs them with it."""
         detections, centroids = extract_stars(image, methods=self.methods, gain=self.gain,
-                                              read_noise=self.read_noise, **self.options)
+                                              read_noise=self.read_noise, epsf=self.epsf, **self.options)
         first = centroids[self.methods[0]]
         diameter = float(max(6.0, 6.0 * np.median(first["psf_sigma"]))) if first.size else 6.0
         per_method = [centroids[m] for m in self.methods]
