@@ -32,6 +32,7 @@ from starlog.centroid.coarse import log_parabola_peak
 from starlog.centroid.gaussfit import fit_gaussians
 from starlog.centroid.gradient import radial_symmetry_centre
 from starlog.centroid.moment import squared_centroid, weighted_centroid
+from starlog.centroid.robust import gaussian_predictor, mask_outliers, outlier_pixels, take_stamps
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
@@ -284,6 +285,7 @@ def measure_centroids(
     debias: bool = True,
     weighting: str = "optimal",
     fit_psf_sigma: bool = False,
+    robust: bool = True,
 ) -> npt.NDArray[np.void]:
     """Sub-pixel centroids of detected stars.
 
@@ -314,6 +316,11 @@ def measure_centroids(
         MOMENT weighting (see :mod:`starlog.centroid.moment`).
     fit_psf_sigma : bool
         GAUSSFIT: fit the PSF sigma per star too (default: fixed to ``psf_sigma``).
+    robust : bool
+        Leave out the pixels of a star's window that its fitted profile plus noise cannot
+        explain (cosmic ray, hot pixel, a neighbour's wing) and measure the star again
+        (:mod:`starlog.centroid.robust`); such stars are flagged ``MASKED``, with the count in
+        ``n_masked``.
 
     Returns
     -------
@@ -331,11 +338,66 @@ def measure_centroids(
     dx0, dy0 = np.asarray(det["x"], np.float64) - st.xc, np.asarray(det["y"], np.float64) - st.yc
     psf_arr = np.full(n, psf)
     f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64), iterations=1)
+    options = {"gain": gain, "weighting": weighting, "debias": debias, "fit_psf_sigma": fit_psf_sigma}
+    measured = _measure(meth, st, dx0, dy0, f0, psf_arr, **options)
+    n_masked = _left_out(st, arr.shape)
+    if robust:
+        measured, st, n_outliers = _remeasure_robust(meth, st, measured, dx0, dy0, f0, psf_arr, **options)
+        n_masked += n_outliers
+    return _centroid_table(det, st, _with_fallback(measured, st, dx0, dy0, f0), n_masked)
+
+
+def _measure(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,
+             weighting: str, debias: bool, fit_psf_sigma: bool) -> _Measured:
+    """One method on every window."""
     if meth is CentroidMethod.GAUSSFIT:
-        measured = _fit(st, dx0, dy0, f0, psf_arr, fit_psf_sigma)
-    else:
-        measured = _estimate(meth, st, dx0, dy0, f0, psf_arr, gain=gain, weighting=weighting, debias=debias)
-    return _centroid_table(det, st, _with_fallback(measured, st, dx0, dy0, f0))
+        return _fit(st, dx0, dy0, f0, psf, fit_psf_sigma)
+    return _estimate(meth, st, dx0, dy0, f0, psf, gain=gain, weighting=weighting, debias=debias)
+
+
+def _left_out(st: Stamps, shape: tuple[int, ...]) -> npt.NDArray[np.int32]:
+    """Pixels of each window inside the frame that are invalid but not saturated (non-finite, hot)."""
+    d = np.arange(-st.h, st.h + 1)
+    rows = ((st.yc[:, None] + d >= 0) & (st.yc[:, None] + d < shape[0])).sum(axis=1)
+    cols = ((st.xc[:, None] + d >= 0) & (st.xc[:, None] + d < shape[1])).sum(axis=1)
+    invalid = (~st.valid & ~st.satpix).sum(axis=(1, 2))
+    return (invalid - (d.size**2 - rows * cols)).astype(np.int32)
+
+
+def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, dy0: F64, f0: F64, psf: F64,
+                      **options: Any) -> tuple[_Measured, Stamps, npt.NDArray[np.int32]]:
+    """Stars whose window holds pixels their model at the method's centroid cannot explain are
+    measured again without the pixels :func:`mask_outliers` leaves out.
+
+    Clean windows cost one model evaluation; only suspect ones are fitted and re-measured.
+    Returns the results, the stamps (masked pixels invalid) and the masked pixels per star.
+    """
+    n_out = np.zeros(st.xc.size, np.int32)
+    ok = m.ok & np.isfinite(m.dx) & np.isfinite(m.dy)
+    cx, cy = np.where(ok, m.dx, dx0), np.where(ok, m.dy, dy0)
+    flux = np.where(ok & np.isfinite(m.flux), m.flux, f0)
+    mu = np.maximum(flux, 0)[:, None, None] * model(st, cx, cy, m.psf) + m.background[:, None, None]
+    suspect = outlier_pixels(st, mu)
+    rows = np.flatnonzero(suspect.any(axis=(1, 2)))
+    if rows.size == 0:
+        return m, st, n_out
+    sub = take_stamps(st, rows)
+    clean, mask = mask_outliers(sub, gaussian_predictor(psf[rows]), cx[rows], cy[rows], flux[rows],
+                                first=suspect[rows])
+    hit = mask.any(axis=(1, 2))
+    rows, clean = rows[hit], take_stamps(clean, np.flatnonzero(hit))
+    if rows.size == 0:
+        return m, st, n_out
+    f1, _ = linear_flux(clean, model(clean, dx0[rows], dy0[rows], psf[rows]), f0[rows], iterations=1)
+    again = _measure(meth, clean, dx0[rows], dy0[rows], f1, psf[rows], **options)
+    n_out[rows] = mask[hit].sum(axis=(1, 2))
+    out = replace(st, valid=st.valid.copy(), data=st.data.copy(), satpix=st.satpix.copy())
+    out.valid[rows], out.data[rows], out.satpix[rows] = clean.valid, clean.data, clean.satpix
+    merged = {name: getattr(m, name).copy() for name in ("dx", "dy", "ok", "flux", "flux_err", "sigma", "psf",
+                                                         "background")}
+    for name, values in merged.items():
+        values[rows] = getattr(again, name)
+    return _Measured(**merged), out, n_out
 
 
 def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: float, read_noise: float | None,
@@ -350,8 +412,9 @@ def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: flo
                          np.where(np.isfinite(bg), bg, 0.0), noise, gain, saturation)
 
 
-def _centroid_table(det: npt.NDArray[Any], st: Stamps, m: _Measured) -> npt.NDArray[np.void]:
-    """The CENTROID_DTYPE rows: positions, flux, SNR, sigma, peak, background and flags."""
+def _centroid_table(det: npt.NDArray[Any], st: Stamps, m: _Measured,
+                    n_masked: npt.NDArray[np.int32] | None = None) -> npt.NDArray[np.void]:
+    """The CENTROID_DTYPE rows: positions, flux, SNR, sigma, peak, background, flags, masked pixels."""
     snr = np.where(np.isfinite(m.flux_err), m.flux / m.flux_err, 0.0)
     flags = np.asarray(det["flags"], np.uint16).copy()
     flags &= np.uint16(~int(CentroidFlag.FIT_FAILED | CentroidFlag.LOW_SNR) & 0xFFFF)
@@ -370,6 +433,9 @@ def _centroid_table(det: npt.NDArray[Any], st: Stamps, m: _Measured) -> npt.NDAr
     out["peak"] = _peak_near(st, m.dx, m.dy)
     out["background"] = np.asarray(det["background"], np.float64) + m.background
     out["psf_sigma"] = m.psf
+    if n_masked is not None:
+        out["n_masked"] = n_masked
+        flags[n_masked > 0] |= np.uint16(CentroidFlag.MASKED)
     out["flags"] = flags
     return out
 
