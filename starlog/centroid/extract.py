@@ -31,6 +31,7 @@ from starlog.centroid.bicubic import bicubic_peak
 from starlog.centroid.coarse import log_parabola_peak
 from starlog.centroid.gaussfit import fit_gaussians
 from starlog.centroid.gradient import radial_symmetry_centre
+from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.moment import squared_centroid, weighted_centroid
 from starlog.centroid.robust import gaussian_predictor, mask_outliers, outlier_pixels, take_stamps
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
@@ -451,6 +452,7 @@ def extract_stars(
     saturation: float | None = None,
     detect_options: Mapping[str, Any] | None = None,
     centroid_options: Mapping[str, Any] | None = None,
+    hot_pixels: npt.NDArray[np.bool_] | None = None,
 ) -> tuple[npt.NDArray[np.void], dict[CentroidMethod, npt.NDArray[np.void]]]:
     """Detect the stars of a frame and centroid them with each method.
 
@@ -467,6 +469,9 @@ def extract_stars(
         Extra keyword options of :func:`starlog.detect.detect_stars` (threshold, ...).
     centroid_options : mapping, optional
         Extra keyword options of :func:`measure_centroids` (debias, weighting, ...).
+    hot_pixels : (rows, cols) bool array, optional
+        Hot-pixel map (:mod:`starlog.centroid.hotpixels`): these pixels are never detections
+        and are left out of every star's window (counted in ``n_masked``).
 
     Returns
     -------
@@ -475,6 +480,10 @@ def extract_stars(
         ``{CentroidMethod: ndarray of CENTROID_DTYPE}`` with one row per detection.
     """
     meths = [CentroidMethod(m) for m in methods]
+    if hot_pixels is not None:
+        raw = np.asarray(image)
+        saturation = _default_saturation(raw, saturation)  # of the frame's own type, before the float copy
+        image = without_hot_pixels(raw, hot_pixels)
     det = detect_stars(image, saturation=saturation, **dict(detect_options or {}))
     arr = np.asarray(image)
     if det.size and psf_sigma is None:
