@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from starlog.centroid import CentroidFlag, CentroidMethod, measure_centroids
-from starlog.centroid._stamps import gather_stamps
-from starlog.centroid.robust import clip_level, gaussian_predictor, mask_outliers
+from starlog.centroid._stamps import gather_stamps, model
+from starlog.centroid.robust import clip_level, core_flux, gaussian_predictor, mask_outliers, model_error
 from starlog.detect import detect_stars
 from starlog.sim.camera import CameraModel
 from starlog.sim.psf import render_stars
@@ -92,7 +92,8 @@ def test_hot_pixel_next_to_the_core_is_masked_by_the_fit():
     st = gather_stamps(img, det["x"], det["y"], 5, det["background"], det["noise"], 1.0, np.inf)
     dx0, dy0 = det["x"] - st.xc, det["y"] - st.yc
     psf = np.full(det.size, sigma)
-    clean, mask = mask_outliers(st, gaussian_predictor(psf), dx0, dy0, det["flux"].astype(np.float64))
+    unit = model(st, dx0, dy0, psf)
+    clean, mask, _, _ = mask_outliers(st, gaussian_predictor(psf), dx0, dy0, core_flux(st, unit)[:, None, None] * unit)
     assert np.all(mask.sum(axis=(1, 2)) >= 1)
     assert np.all(mask.sum(axis=(1, 2)) <= 3)  # the hot pixel (and at most a grown neighbour)
     assert not np.any(clean.valid & mask)
@@ -101,3 +102,23 @@ def test_hot_pixel_next_to_the_core_is_masked_by_the_fit():
     assert np.all(mask[np.arange(det.size), rows[k] - st.yc + 5, cols[k] - st.xc + 5])
     ex, ey, _ = _matched(measure_centroids(img, det, psf_sigma=sigma), x, y)
     assert np.sqrt(np.mean(np.concatenate([ex, ey]) ** 2)) < 0.05
+
+
+def test_model_error_is_zero_for_the_true_model_and_measures_a_wrong_one():
+    rng = np.random.default_rng(4)
+    sigma = 1.0
+    expected, x, y = _star_grid(rng, 4, 4e4, sigma)
+    img = CAMERA.expose(expected, rng).astype(np.float64)
+    det = detect_stars(img)
+    st = gather_stamps(img, det["x"], det["y"], 5, det["background"], det["noise"], 1.0, np.inf)
+    _, _, k = _matched(np.rec.fromarrays([det["x"], det["y"]], names="x,y"), x, y)
+    cx, cy = x[k] - st.xc, y[k] - st.yc
+    true = 4e4 * model(st, cx, cy, np.full(det.size, sigma))
+    assert model_error(st, true) < 0.02
+    wide = 4e4 * model(st, cx, cy, np.full(det.size, 1.3 * sigma))  # a PSF 30 % too wide
+    assert model_error(st, wide) > 0.1
+    # with the measured error, the mismatch is not mistaken for artefacts
+    from starlog.centroid.robust import outlier_pixels
+
+    assert outlier_pixels(st, wide).sum() > 10
+    assert outlier_pixels(st, wide, epsilon=model_error(st, wide)).sum() <= 2

@@ -33,7 +33,13 @@ from starlog.centroid.gaussfit import fit_gaussians
 from starlog.centroid.gradient import radial_symmetry_centre
 from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.moment import squared_centroid, weighted_centroid
-from starlog.centroid.robust import gaussian_predictor, mask_outliers, outlier_pixels, take_stamps
+from starlog.centroid.robust import (
+    core_flux,
+    gaussian_predictor,
+    mask_outliers,
+    suspect_pixels,
+    take_stamps,
+)
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
@@ -200,7 +206,7 @@ def _fit(st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, fit_psf_sigma: bool)
 
 
 def _estimate(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,
-              weighting: str, debias: bool) -> _Measured:
+              weighting: str, debias: bool, passes: int | None = None) -> _Measured:
     """A non-fit method, debiased with the star's model; flux from a PSF fit at the centroid."""
     fm = np.maximum(f0, 0)
     estimator = _Estimator(meth, fm, psf, optimal_smoothing(fm, st.noise, gain, psf), weighting)
@@ -212,7 +218,7 @@ def _estimate(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf
     if debias:
         on_model = replace(estimator, iterations=4)  # the model's estimate starts next to its fixed point
         # MOMENT's raw bias is already < 3e-4 px: one pass leaves ~1e-7 px
-        for _ in range(1 if meth is CentroidMethod.MOMENT else 2):
+        for _ in range(passes or (1 if meth is CentroidMethod.MOMENT else 2)):
             mdl = np.minimum(fm[:, None, None] * model(st, dx, dy, psf), se.clip[:, None, None]) * se.valid
             mx, my, mok = on_model(mdl, se, dx, dy)
             good = ok & mok & np.isfinite(mx) & np.isfinite(my)
@@ -349,11 +355,11 @@ def measure_centroids(
 
 
 def _measure(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,
-             weighting: str, debias: bool, fit_psf_sigma: bool) -> _Measured:
-    """One method on every window."""
+             weighting: str, debias: bool, fit_psf_sigma: bool, passes: int | None = None) -> _Measured:
+    """One method on every window; ``passes``: debiasing passes of a non-fit method (default: its own)."""
     if meth is CentroidMethod.GAUSSFIT:
         return _fit(st, dx0, dy0, f0, psf, fit_psf_sigma)
-    return _estimate(meth, st, dx0, dy0, f0, psf, gain=gain, weighting=weighting, debias=debias)
+    return _estimate(meth, st, dx0, dy0, f0, psf, gain=gain, weighting=weighting, debias=debias, passes=passes)
 
 
 def _left_out(st: Stamps, shape: tuple[int, ...]) -> npt.NDArray[np.int32]:
@@ -378,19 +384,22 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     cx, cy = np.where(ok, m.dx, dx0), np.where(ok, m.dy, dy0)
     flux = np.where(ok & np.isfinite(m.flux), m.flux, f0)
     mu = np.maximum(flux, 0)[:, None, None] * model(st, cx, cy, m.psf) + m.background[:, None, None]
-    suspect = outlier_pixels(st, mu)
+    suspect, epsilon = suspect_pixels(st, mu)
     rows = np.flatnonzero(suspect.any(axis=(1, 2)))
     if rows.size == 0:
         return m, st, n_out
     sub = take_stamps(st, rows)
-    clean, mask = mask_outliers(sub, gaussian_predictor(psf[rows]), cx[rows], cy[rows], flux[rows],
-                                first=suspect[rows])
+    unit = model(sub, dx0[rows], dy0[rows], psf[rows])
+    start = core_flux(sub, unit)[:, None, None] * unit
+    clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), dx0[rows], dy0[rows], start,
+                                        epsilon=epsilon)
     hit = mask.any(axis=(1, 2))
-    rows, clean = rows[hit], take_stamps(clean, np.flatnonzero(hit))
+    rows, clean, fx, fy = rows[hit], take_stamps(clean, np.flatnonzero(hit)), fx[hit], fy[hit]
     if rows.size == 0:
         return m, st, n_out
-    f1, _ = linear_flux(clean, model(clean, dx0[rows], dy0[rows], psf[rows]), f0[rows], iterations=1)
-    again = _measure(meth, clean, dx0[rows], dy0[rows], f1, psf[rows], **options)
+    f1, _ = linear_flux(clean, model(clean, fx, fy, psf[rows]), f0[rows], iterations=1)
+    # a window with holes is far from symmetric: the debiasing needs more fixed-point passes
+    again = _measure(meth, clean, fx, fy, f1, psf[rows], passes=3, **options)
     n_out[rows] = mask[hit].sum(axis=(1, 2))
     out = replace(st, valid=st.valid.copy(), data=st.data.copy(), satpix=st.satpix.copy())
     out.valid[rows], out.data[rows], out.satpix[rows] = clean.valid, clean.data, clean.satpix

@@ -4,10 +4,11 @@ A cosmic-ray track, a hot pixel or a neighbour's wing inside a star's window add
 star's profile does not predict. Each pixel's residual over the predicted star (its fitted
 profile, ``mu``) is compared with the pixel's predicted noise,
 
-    z = (d - mu) / sqrt(noise^2 + mu / gain + (EPSILON_MODEL * mu)^2),
+    z = (d - mu) / sqrt(noise^2 + mu / gain + (epsilon * mu)^2),
 
-(background noise, the star's shot noise, and a model-error floor for PSFs that are not exactly
-the model), and pixels with ``z > k`` are masked, their 8-neighbours with ``z > GROW_SIGMA``
+(background noise, the star's shot noise, and the model's own error for PSFs that are not
+exactly the model: ``epsilon`` is measured on the frame's bright star cores by
+:func:`model_error`, 0 when the model fits), and pixels with ``z > k`` are masked, their 8-neighbours with ``z > GROW_SIGMA``
 too (the faint edge of a track). The star is re-fitted without them and the test repeated, a
 few times at most (:func:`mask_outliers`). Only excesses are masked: every artefact named
 above adds charge, and a dead pixel belongs in a bad-pixel map.
@@ -33,15 +34,17 @@ from starlog.centroid._stamps import Stamps, model, variance
 from starlog.centroid.gaussfit import fit_gaussians
 
 __all__ = [
-    "EPSILON_MODEL",
     "FALSE_MASK_PROBABILITY",
     "GROW_SIGMA",
     "Predictor",
     "clip_level",
+    "core_flux",
     "gaussian_predictor",
     "mask_outliers",
+    "model_error",
     "outlier_pixels",
     "skew_corrected",
+    "suspect_pixels",
     "take_stamps",
     "without_pixels",
 ]
@@ -55,10 +58,8 @@ FALSE_MASK_PROBABILITY = 1e-3
 GROW_SIGMA = 2.0
 """Neighbours of a masked pixel are masked from this many sigma of excess (a track's faint edge)."""
 
-EPSILON_MODEL = 0.1
-"""Fraction of the predicted star signal added (in quadrature) to a pixel's noise: a real PSF
-departs from the model by up to ~10 % of the local signal near the core (a Gaussian fit of a
-Moffat or Airy-plus-pixel profile), which must not read as an artefact on bright stars."""
+_MEDIAN_CHI2_1 = 0.45494
+"""Median of a chi-square variable with one degree of freedom."""
 
 Predictor = Callable[[Stamps, F64, F64, F64], tuple[F64, F64, F64]]
 """``predict(stamps, dx, dy, flux) -> (mu, dx, dy)``: each star's fitted model (DN above the
@@ -99,22 +100,53 @@ def skew_corrected(k: F64, sd: F64, gain: float) -> F64:
     return k + (k * k - 1.0) * skew / 6.0
 
 
-def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None) -> Mask:
+def model_error(st: Stamps, mu: F64, min_snr: float = 10.0) -> float:
+    """The model's relative error ``epsilon`` on the frame: how far the star cores depart from it beyond noise.
+
+    Over the pixels where the predicted star is ``min_snr`` times its noise (where a model error
+    shows at all), the median of ``(r^2 / m1 - var) / mu^2`` (``m1``: the median of a chi-square
+    with one degree of freedom, so pure noise gives 0). An artefact touches a few pixels and
+    does not move the median; a PSF the model does not describe moves every core pixel.
+    """
+    var = variance(st, mu)
+    core = st.valid & (mu > min_snr * np.sqrt(var))
+    if not core.any():
+        return 0.0
+    r = (st.data - mu)[core]
+    excess = (r * r / _MEDIAN_CHI2_1 - var[core]) / (mu[core] ** 2)
+    return float(np.sqrt(max(float(np.median(excess)), 0.0)))
+
+
+def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, epsilon: float = 0.0) -> Mask:
     """Valid pixels whose excess over ``mu`` is above ``k`` sigma of their predicted noise (plus grown edges).
 
     ``k`` default: :func:`clip_level` of each window's number of valid pixels, moved to the
-    shot-noise tail (:func:`skew_corrected`).
+    shot-noise tail (:func:`skew_corrected`); ``epsilon``: the model's relative error (:func:`model_error`).
     """
     if k is None:
         k = clip_level(st.valid.sum(axis=(1, 2)))
     kk = np.broadcast_to(np.asarray(k, np.float64), (st.data.shape[0],))[:, None, None]
     sd = np.sqrt(variance(st, mu))
     excess = np.where(st.valid, st.data - mu, 0.0)
-    z = excess / np.sqrt(sd * sd + (EPSILON_MODEL * np.clip(mu, 0.0, None)) ** 2)
+    z = excess / np.sqrt(sd * sd + (epsilon * np.clip(mu, 0.0, None)) ** 2)
     core = z > skew_corrected(kk, sd, st.gain)
     if not core.any():
         return core
     return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA)))
+
+
+def suspect_pixels(st: Stamps, mu: F64) -> tuple[Mask, float]:
+    """:func:`outlier_pixels` of the model ``mu`` with the frame's :func:`model_error`, and that error.
+
+    A clean frame costs one comparison: no pixel above the plain ``k``-sigma level (a lower
+    bound of the full test's level) means no outlier, and the rest is skipped.
+    """
+    k = clip_level(st.valid.sum(axis=(1, 2)))[:, None, None]
+    r = st.data - mu
+    if not np.any(st.valid & (r > 0) & (r * r > k * k * variance(st, mu))):
+        return np.zeros_like(st.valid), 0.0
+    epsilon = model_error(st, mu)
+    return outlier_pixels(st, mu, epsilon=epsilon), epsilon
 
 
 def take_stamps(st: Stamps, rows: npt.NDArray[np.intp]) -> Stamps:
@@ -144,22 +176,35 @@ def gaussian_predictor(psf_sigma: F64) -> Predictor:
     return predict
 
 
-def mask_outliers(st: Stamps, predict: Predictor, dx: F64, dy: F64, flux: F64, *,
-                  first: Mask | None = None, iterations: int = 3) -> tuple[Stamps, Mask]:
+def core_flux(st: Stamps, unit: F64) -> F64:
+    """Each star's flux from its core alone: the median of data / model where the unit model is at
+    least half its peak (an artefact on the wing does not enter; one in the core is outvoted)."""
+    core = st.valid & (unit >= 0.5 * unit.max(axis=(1, 2), keepdims=True)) & (unit > 0)
+    ratio = np.where(core, st.data / np.where(core, unit, 1.0), np.nan)
+    with np.errstate(all="ignore"):
+        flux = np.nanmedian(ratio.reshape(ratio.shape[0], -1), axis=1)
+    return np.where(np.isfinite(flux), np.maximum(flux, 0.0), 0.0)
+
+
+def mask_outliers(st: Stamps, predict: Predictor, dx: F64, dy: F64, start: F64, *, epsilon: float = 0.0,
+                  iterations: int = 5) -> tuple[Stamps, Mask, F64, F64]:
     """Mask the pixels the star's fitted model cannot explain, re-fitting after each pass.
 
-    ``first``: outliers already suspected (e.g. against the star's model at a method's own
-    centroid), left out of the first fit. Each pass fits ``predict`` without the current mask
+    ``start``: a first prediction of each star (N, W, W), e.g. the model at the coarse
+    position scaled to :func:`core_flux`, not fitted to the window (an artefact can pull a
+    fit onto itself). Each pass fits ``predict`` (from ``(dx, dy)``) without the current mask
     and tests every pixel of the window against that fit again (a pixel wrongly suspected
     comes back); it stops when the mask no longer changes or after ``iterations`` fits.
-    Returns the stamps without the masked pixels and the mask, (N, W, W).
+    ``epsilon``: the model's relative error (:func:`model_error`).
+    Returns the stamps without the masked pixels, the mask (N, W, W) and the last fitted centre.
     """
-    mask = np.zeros_like(st.valid) if first is None else first & st.valid
+    mask = outlier_pixels(st, start, epsilon=epsilon)
     cx, cy = dx, dy
+    flux = np.maximum(start.sum(axis=(1, 2)), 0.0)
     for _ in range(iterations):
         mu, cx, cy = predict(without_pixels(st, mask), cx, cy, flux)
-        new = outlier_pixels(st, mu)
+        new = outlier_pixels(st, mu, epsilon=epsilon)
         if np.array_equal(new, mask):
             break
         mask = new
-    return without_pixels(st, mask), mask
+    return without_pixels(st, mask), mask, cx, cy
