@@ -384,7 +384,7 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     cx, cy = np.where(ok, m.dx, dx0), np.where(ok, m.dy, dy0)
     flux = np.where(ok & np.isfinite(m.flux), m.flux, f0)
     mu = np.maximum(flux, 0)[:, None, None] * model(st, cx, cy, m.psf) + m.background[:, None, None]
-    suspect, epsilon = suspect_pixels(st, mu)
+    suspect, error = suspect_pixels(st, mu)
     rows = np.flatnonzero(suspect.any(axis=(1, 2)))
     if rows.size == 0:
         return m, st, n_out
@@ -392,7 +392,7 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     unit = model(sub, dx0[rows], dy0[rows], psf[rows])
     start = core_flux(sub, unit)[:, None, None] * unit
     clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), dx0[rows], dy0[rows], start,
-                                        epsilon=epsilon)
+                                        error=error)
     hit = mask.any(axis=(1, 2))
     rows, clean, fx, fy = rows[hit], take_stamps(clean, np.flatnonzero(hit)), fx[hit], fy[hit]
     if rows.size == 0:

@@ -4,11 +4,11 @@ A cosmic-ray track, a hot pixel or a neighbour's wing inside a star's window add
 star's profile does not predict. Each pixel's residual over the predicted star (its fitted
 profile, ``mu``) is compared with the pixel's predicted noise,
 
-    z = (d - mu) / sqrt(noise^2 + mu / gain + (epsilon * mu)^2),
+    z = (d - mu) / sqrt(noise^2 + mu / gain + (e_core * mu)^2 + (e_halo * peak)^2),
 
 (background noise, the star's shot noise, and the model's own error for PSFs that are not
-exactly the model: ``epsilon`` is measured on the frame's bright star cores by
-:func:`model_error`, 0 when the model fits), and pixels with ``z > k`` are masked, their 8-neighbours with ``z > GROW_SIGMA``
+exactly the model: ``e_core`` and ``e_halo`` are measured on the frame's bright stars, cores
+and wings, by :func:`model_error`, 0 when the model fits), and pixels with ``z > k`` are masked, their 8-neighbours with ``z > GROW_SIGMA``
 too (the faint edge of a track). The star is re-fitted without them and the test repeated, a
 few times at most (:func:`mask_outliers`). Only excesses are masked: every artefact named
 above adds charge, and a dead pixel belongs in a bad-pixel map.
@@ -23,8 +23,10 @@ default (:func:`gaussian_predictor`); another PSF model (an empirical PSF) plugs
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
-from dataclasses import fields, replace
+from typing import Any
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -36,6 +38,7 @@ from starlog.centroid.gaussfit import fit_gaussians
 __all__ = [
     "FALSE_MASK_PROBABILITY",
     "GROW_SIGMA",
+    "ModelError",
     "Predictor",
     "clip_level",
     "core_flux",
@@ -100,43 +103,114 @@ def skew_corrected(k: F64, sd: F64, gain: float) -> F64:
     return k + (k * k - 1.0) * skew / 6.0
 
 
-def model_error(st: Stamps, mu: F64, min_snr: float = 10.0) -> float:
-    """The model's relative error ``epsilon`` on the frame: how far the star cores depart from it beyond noise.
+@dataclass(frozen=True)
+class ModelError:
+    """How far the frame's stars depart from their model beyond noise (:func:`model_error`).
 
-    Over the pixels where the predicted star is ``min_snr`` times its noise (where a model error
-    shows at all), the median of ``(r^2 / m1 - var) / mu^2`` (``m1``: the median of a chi-square
-    with one degree of freedom, so pure noise gives 0). An artefact touches a few pixels and
-    does not move the median; a PSF the model does not describe moves every core pixel.
+    ``core``: relative to the local model (a core shape the model lacks); ``halo``: relative to
+    the star's peak (wings the model lacks, e.g. a real PSF's halo around a Gaussian core).
+    """
+
+    core: float = 0.0
+    halo: float = 0.0
+
+    def variance(self, mu: F64) -> F64:
+        """The model error's variance at each pixel of the predicted stars ``mu``, DN^2."""
+        base = mu.min(axis=(1, 2), keepdims=True)
+        star = np.clip(mu - base, 0.0, None)
+        peak = star.max(axis=(1, 2), keepdims=True)
+        return (self.core * star) ** 2 + (self.halo * peak) ** 2
+
+
+def _excess_level(r: F64, var: F64, scale: F64) -> float:
+    """sqrt of the median of ``(r^2 / m1 - var) / scale^2``: 0 for pure noise, else the departure per ``scale``."""
+    if r.size == 0:
+        return 0.0
+    return float(np.sqrt(max(float(np.median((r * r / _MEDIAN_CHI2_1 - var) / scale**2)), 0.0)))
+
+
+def model_error(st: Stamps, mu: F64, min_snr: float = 10.0) -> ModelError:
+    """The model's error on the frame, measured on its stars: how far they depart from ``mu`` beyond noise.
+
+    ``core``: over the pixels where the predicted star is ``min_snr`` times its noise (where a
+    model error shows at all), the median of ``(r^2 / m1 - var) / mu^2`` (``m1``: the median of a
+    chi-square with one degree of freedom, so pure noise gives 0). ``halo``: the same relative
+    to the star's peak over the wing (model 1e-4 to 0.1 of the peak) of stars whose peak is
+    ``min_snr`` times the noise. An artefact touches a few pixels and does not move a median;
+    a PSF the model does not describe moves every core or wing pixel.
     """
     var = variance(st, mu)
-    core = st.valid & (mu > min_snr * np.sqrt(var))
-    if not core.any():
-        return 0.0
-    r = (st.data - mu)[core]
-    excess = (r * r / _MEDIAN_CHI2_1 - var[core]) / (mu[core] ** 2)
-    return float(np.sqrt(max(float(np.median(excess)), 0.0)))
+    r = st.data - mu
+    base = mu.min(axis=(1, 2), keepdims=True)
+    star = mu - base
+    core = st.valid & (star > min_snr * np.sqrt(var))
+    eps = _excess_level(r[core], var[core], star[core]) if core.any() else 0.0
+    peak = star.max(axis=(1, 2), keepdims=True)
+    rel = star / np.where(peak > 0, peak, 1.0)
+    wing = st.valid & (rel >= 1e-4) & (rel <= 0.1) & (peak > min_snr * st.noise[:, None, None])
+    if not wing.any():
+        return ModelError(eps, 0.0)
+    var_wing = var + (eps * star) ** 2
+    halo = _excess_level(r[wing], var_wing[wing], np.broadcast_to(peak, star.shape)[wing])
+    return ModelError(eps, halo)
 
 
-def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, epsilon: float = 0.0) -> Mask:
+def _mirrored(a: npt.NDArray[Any], mu: F64) -> tuple[npt.NDArray[Any], Mask]:
+    """Each window point-reflected about its star's centre (the centroid of ``mu``, to the half pixel):
+    the value at the mirror pixel of every pixel, and where that mirror pixel lies inside the window."""
+    n, w, _ = a.shape
+    h = (w - 1) // 2
+    star = np.clip(mu - mu.min(axis=(1, 2), keepdims=True), 0.0, None)
+    total = np.maximum(star.sum(axis=(1, 2)), 1e-300)
+    u = np.arange(-h, h + 1, dtype=np.float64)
+    shift_x = np.rint(2.0 * (star.sum(axis=1) * u).sum(axis=1) / total).astype(np.intp)
+    shift_y = np.rint(2.0 * (star.sum(axis=2) * u).sum(axis=1) / total).astype(np.intp)
+    idx = np.arange(w)
+    jx = 2 * h + shift_x[:, None] - idx[None, :]
+    jy = 2 * h + shift_y[:, None] - idx[None, :]
+    inside = ((jy >= 0) & (jy < w))[:, :, None] & ((jx >= 0) & (jx < w))[:, None, :]
+    rows = np.arange(n)[:, None, None]
+    return a[rows, np.clip(jy, 0, w - 1)[:, :, None], np.clip(jx, 0, w - 1)[:, None, :]], inside
+
+
+def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, error: ModelError = ModelError(),
+                   symmetric: bool = True) -> Mask:
     """Valid pixels whose excess over ``mu`` is above ``k`` sigma of their predicted noise (plus grown edges).
 
-    ``k`` default: :func:`clip_level` of each window's number of valid pixels, moved to the
-    shot-noise tail (:func:`skew_corrected`); ``epsilon``: the model's relative error (:func:`model_error`).
+    An outlier must also stand above its mirror pixel (point reflection about the star's centre,
+    the model's difference between the two subtracted) by ``k`` sigma of the pair: a star's own
+    light is symmetric even where the model is not (a trailed or elongated PSF, a halo), an
+    artefact is not. A pixel whose mirror is outside the window or invalid is judged on the
+    model alone (and every pixel with ``symmetric`` False). ``k`` default: :func:`clip_level` of each window's number of valid pixels, moved
+    to the shot-noise tail (:func:`skew_corrected`); ``error``: the model's own error
+    (:func:`model_error`).
     """
     if k is None:
         k = clip_level(st.valid.sum(axis=(1, 2)))
     kk = np.broadcast_to(np.asarray(k, np.float64), (st.data.shape[0],))[:, None, None]
     sd = np.sqrt(variance(st, mu))
     excess = np.where(st.valid, st.data - mu, 0.0)
-    z = excess / np.sqrt(sd * sd + (epsilon * np.clip(mu, 0.0, None)) ** 2)
-    core = z > skew_corrected(kk, sd, st.gain)
+    var = sd * sd + error.variance(mu)
+    z = excess / np.sqrt(var)
+    level = skew_corrected(kk, sd, st.gain)
+    core = z > level
+    if not core.any():
+        return core
+    if not symmetric:
+        return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA)))
+    mirror_excess, inside = _mirrored(excess, mu)
+    mirror_var, _ = _mirrored(var, mu)
+    mirror_valid, _ = _mirrored(st.valid, mu)
+    judged = inside & mirror_valid
+    core &= ~judged | ((excess - mirror_excess) / np.sqrt(var + mirror_var) > level)
     if not core.any():
         return core
     return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA)))
 
 
-def suspect_pixels(st: Stamps, mu: F64) -> tuple[Mask, float]:
-    """:func:`outlier_pixels` of the model ``mu`` with the frame's :func:`model_error`, and that error.
+def suspect_pixels(st: Stamps, mu: F64) -> tuple[Mask, ModelError]:
+    """:func:`outlier_pixels` of the model ``mu`` with the frame's :func:`model_error` (model test
+    only: ``mu`` may be centred on an artefact, its mirror pixels with it), and that error.
 
     A clean frame costs one comparison: no pixel above the plain ``k``-sigma level (a lower
     bound of the full test's level) means no outlier, and the rest is skipped.
@@ -144,9 +218,9 @@ def suspect_pixels(st: Stamps, mu: F64) -> tuple[Mask, float]:
     k = clip_level(st.valid.sum(axis=(1, 2)))[:, None, None]
     r = st.data - mu
     if not np.any(st.valid & (r > 0) & (r * r > k * k * variance(st, mu))):
-        return np.zeros_like(st.valid), 0.0
-    epsilon = model_error(st, mu)
-    return outlier_pixels(st, mu, epsilon=epsilon), epsilon
+        return np.zeros_like(st.valid), ModelError()
+    error = model_error(st, mu)
+    return outlier_pixels(st, mu, error=error, symmetric=False), error
 
 
 def take_stamps(st: Stamps, rows: npt.NDArray[np.intp]) -> Stamps:
@@ -181,12 +255,13 @@ def core_flux(st: Stamps, unit: F64) -> F64:
     least half its peak (an artefact on the wing does not enter; one in the core is outvoted)."""
     core = st.valid & (unit >= 0.5 * unit.max(axis=(1, 2), keepdims=True)) & (unit > 0)
     ratio = np.where(core, st.data / np.where(core, unit, 1.0), np.nan)
-    with np.errstate(all="ignore"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a window without a valid core pixel: 0 below
         flux = np.nanmedian(ratio.reshape(ratio.shape[0], -1), axis=1)
     return np.where(np.isfinite(flux), np.maximum(flux, 0.0), 0.0)
 
 
-def mask_outliers(st: Stamps, predict: Predictor, dx: F64, dy: F64, start: F64, *, epsilon: float = 0.0,
+def mask_outliers(st: Stamps, predict: Predictor, dx: F64, dy: F64, start: F64, *, error: ModelError = ModelError(),
                   iterations: int = 5) -> tuple[Stamps, Mask, F64, F64]:
     """Mask the pixels the star's fitted model cannot explain, re-fitting after each pass.
 
@@ -195,15 +270,15 @@ def mask_outliers(st: Stamps, predict: Predictor, dx: F64, dy: F64, start: F64, 
     fit onto itself). Each pass fits ``predict`` (from ``(dx, dy)``) without the current mask
     and tests every pixel of the window against that fit again (a pixel wrongly suspected
     comes back); it stops when the mask no longer changes or after ``iterations`` fits.
-    ``epsilon``: the model's relative error (:func:`model_error`).
+    ``error``: the model's own error on the frame (:func:`model_error`).
     Returns the stamps without the masked pixels, the mask (N, W, W) and the last fitted centre.
     """
-    mask = outlier_pixels(st, start, epsilon=epsilon)
+    mask = outlier_pixels(st, start, error=error)
     cx, cy = dx, dy
     flux = np.maximum(start.sum(axis=(1, 2)), 0.0)
     for _ in range(iterations):
         mu, cx, cy = predict(without_pixels(st, mask), cx, cy, flux)
-        new = outlier_pixels(st, mu, epsilon=epsilon)
+        new = outlier_pixels(st, mu, error=error)
         if np.array_equal(new, mask):
             break
         mask = new
