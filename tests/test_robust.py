@@ -7,7 +7,14 @@ import pytest
 
 from starlog.centroid import CentroidFlag, CentroidMethod, measure_centroids
 from starlog.centroid._stamps import gather_stamps, model
-from starlog.centroid.robust import clip_level, core_flux, gaussian_predictor, mask_outliers, model_error
+from starlog.centroid.robust import (
+    clip_level,
+    core_flux,
+    gaussian_predictor,
+    mask_outliers,
+    model_error,
+    symmetry_centre,
+)
 from starlog.detect import detect_stars
 from starlog.sim.camera import CameraModel
 from starlog.sim.psf import render_stars
@@ -92,8 +99,9 @@ def test_hot_pixel_next_to_the_core_is_masked_by_the_fit():
     st = gather_stamps(img, det["x"], det["y"], 5, det["background"], det["noise"], 1.0, np.inf)
     dx0, dy0 = det["x"] - st.xc, det["y"] - st.yc
     psf = np.full(det.size, sigma)
-    unit = model(st, dx0, dy0, psf)
-    clean, mask, _, _ = mask_outliers(st, gaussian_predictor(psf), dx0, dy0, core_flux(st, unit)[:, None, None] * unit)
+    sx, sy = symmetry_centre(st)
+    unit = model(st, sx, sy, psf)
+    clean, mask, _, _ = mask_outliers(st, gaussian_predictor(psf), sx, sy, core_flux(st, unit)[:, None, None] * unit)
     assert np.all(mask.sum(axis=(1, 2)) >= 1)
     assert np.all(mask.sum(axis=(1, 2)) <= 3)  # the hot pixel (and at most a grown neighbour)
     assert not np.any(clean.valid & mask)
@@ -120,5 +128,27 @@ def test_model_error_is_zero_for_the_true_model_and_measures_a_wrong_one():
     # with the measured error, the mismatch is not mistaken for artefacts
     from starlog.centroid.robust import outlier_pixels
 
-    assert outlier_pixels(st, wide).sum() > 10
-    assert outlier_pixels(st, wide, error=model_error(st, wide)).sum() <= 2
+    assert outlier_pixels(st, wide, symmetric=False).sum() > 10
+    assert outlier_pixels(st, wide, error=model_error(st, wide), symmetric=False).sum() <= 2
+    assert outlier_pixels(st, wide).sum() <= 2  # the mismatch is symmetric: the star's own light
+
+
+def test_trailed_stars_are_not_mistaken_for_artefacts():
+    # a bright star trailed over 3 px: light the circular model lacks, but symmetric about the centre
+    rng = np.random.default_rng(9)
+    sigma = 0.8
+    c = 30 + 40 * np.arange(5)
+    cx, cy = np.meshgrid(c, c)
+    x = cx.ravel() + rng.uniform(-0.5, 0.5, cx.size)
+    y = cy.ravel() + rng.uniform(-0.5, 0.5, cy.size)
+    expected = np.full((230, 230), SKY)
+    for t in np.linspace(-1.5, 1.5, 7):
+        expected += render_stars(expected.shape, x + t * 0.8, y + t * 0.6, np.full(x.size, 3e4 / 7), sigma)
+    img = CAMERA.expose(expected, rng)
+    det = detect_stars(img)
+    robust = measure_centroids(img, det, method=CentroidMethod.GAUSSFIT, psf_sigma=sigma)
+    plain = measure_centroids(img, det, method=CentroidMethod.GAUSSFIT, psf_sigma=sigma, robust=False)
+    assert det.size == x.size
+    assert np.count_nonzero(robust["n_masked"]) <= 1
+    same = robust["n_masked"] == 0
+    assert np.array_equal(robust["x"][same], plain["x"][same])

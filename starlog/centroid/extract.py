@@ -38,6 +38,7 @@ from starlog.centroid.robust import (
     gaussian_predictor,
     mask_outliers,
     suspect_pixels,
+    symmetry_centre,
     take_stamps,
 )
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
@@ -389,10 +390,10 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     if rows.size == 0:
         return m, st, n_out
     sub = take_stamps(st, rows)
-    unit = model(sub, dx0[rows], dy0[rows], psf[rows])
+    sx, sy = symmetry_centre(sub)  # not pulled by an artefact, unlike the coarse position
+    unit = model(sub, sx, sy, psf[rows])
     start = core_flux(sub, unit)[:, None, None] * unit
-    clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), dx0[rows], dy0[rows], start,
-                                        error=error)
+    clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), sx, sy, start, error=error)
     hit = mask.any(axis=(1, 2))
     rows, clean, fx, fy = rows[hit], take_stamps(clean, np.flatnonzero(hit)), fx[hit], fy[hit]
     if rows.size == 0:

@@ -48,6 +48,7 @@ __all__ = [
     "outlier_pixels",
     "skew_corrected",
     "suspect_pixels",
+    "symmetry_centre",
     "take_stamps",
     "without_pixels",
 ]
@@ -78,6 +79,17 @@ def clip_level(n_pixels: int | npt.NDArray[np.integer], probability: float = FAL
     """
     n = np.maximum(np.asarray(n_pixels, np.float64), 1.0)
     return np.asarray(-ndtri(probability / n), np.float64)
+
+
+def _max3x3(a: F64) -> F64:
+    """Each window's maximum over every pixel's 3x3 neighbourhood (inside the window)."""
+    out = a.copy()
+    out[:, 1:, :] = np.maximum(out[:, 1:, :], a[:, :-1, :])
+    out[:, :-1, :] = np.maximum(out[:, :-1, :], a[:, 1:, :])
+    rows = out.copy()
+    out[:, :, 1:] = np.maximum(out[:, :, 1:], rows[:, :, :-1])
+    out[:, :, :-1] = np.maximum(out[:, :, :-1], rows[:, :, 1:])
+    return out
 
 
 def _dilate(mask: Mask) -> Mask:
@@ -155,19 +167,49 @@ def model_error(st: Stamps, mu: F64, min_snr: float = 10.0) -> ModelError:
     return ModelError(eps, halo)
 
 
-def _mirrored(a: npt.NDArray[Any], mu: F64) -> tuple[npt.NDArray[Any], Mask]:
-    """Each window point-reflected about its star's centre (the centroid of ``mu``, to the half pixel):
+def _symmetry_shifts(st: Stamps) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """Each star's centre of symmetry, as twice its offset from the window centre (-2..2 per axis).
+
+    The reflection that changes the window least (mean absolute difference between the inner
+    pixels and their mirrors, over valid pairs): a star's light decides it whatever its shape,
+    an artefact changes every candidate alike.
+    """
+    n, w, _ = st.data.shape
+    h = (w - 1) // 2
+    inner = np.arange(2, w - 2)
+    data, valid = st.data[:, 2:-2, 2:-2], st.valid[:, 2:-2, 2:-2]
+    best = np.full(n, np.inf)
+    shift_x = np.zeros(n, np.intp)
+    shift_y = np.zeros(n, np.intp)
+    for sy in range(-2, 3):
+        for sx in range(-2, 3):
+            rows, cols = (2 * h + sy - inner)[:, None], (2 * h + sx - inner)[None, :]  # mirrors of the inner pixels
+            pair = valid & st.valid[:, rows, cols]
+            diff = np.abs(data - st.data[:, rows, cols]) * pair
+            cost = diff.sum(axis=(1, 2)) / np.maximum(pair.sum(axis=(1, 2)), 1)
+            better = cost < best
+            best = np.where(better, cost, best)
+            shift_x = np.where(better, sx, shift_x)
+            shift_y = np.where(better, sy, shift_y)
+    return shift_x, shift_y
+
+
+def symmetry_centre(st: Stamps) -> tuple[F64, F64]:
+    """Each star's centre of symmetry (offsets from the window centre, to the half pixel): a start
+    that an artefact does not pull, unlike a centroid or a fit over the whole window."""
+    shift_x, shift_y = _symmetry_shifts(st)
+    return 0.5 * shift_x, 0.5 * shift_y
+
+
+def _mirrored(a: npt.NDArray[Any], shifts: tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]
+              ) -> tuple[npt.NDArray[Any], Mask]:
+    """Each window point-reflected about its star's centre of symmetry (:func:`_symmetry_shifts`):
     the value at the mirror pixel of every pixel, and where that mirror pixel lies inside the window."""
     n, w, _ = a.shape
     h = (w - 1) // 2
-    star = np.clip(mu - mu.min(axis=(1, 2), keepdims=True), 0.0, None)
-    total = np.maximum(star.sum(axis=(1, 2)), 1e-300)
-    u = np.arange(-h, h + 1, dtype=np.float64)
-    shift_x = np.rint(2.0 * (star.sum(axis=1) * u).sum(axis=1) / total).astype(np.intp)
-    shift_y = np.rint(2.0 * (star.sum(axis=2) * u).sum(axis=1) / total).astype(np.intp)
     idx = np.arange(w)
-    jx = 2 * h + shift_x[:, None] - idx[None, :]
-    jy = 2 * h + shift_y[:, None] - idx[None, :]
+    jx = 2 * h + shifts[0][:, None] - idx[None, :]
+    jy = 2 * h + shifts[1][:, None] - idx[None, :]
     inside = ((jy >= 0) & (jy < w))[:, :, None] & ((jx >= 0) & (jx < w))[:, None, :]
     rows = np.arange(n)[:, None, None]
     return a[rows, np.clip(jy, 0, w - 1)[:, :, None], np.clip(jx, 0, w - 1)[:, None, :]], inside
@@ -177,11 +219,11 @@ def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, error: Mod
                    symmetric: bool = True) -> Mask:
     """Valid pixels whose excess over ``mu`` is above ``k`` sigma of their predicted noise (plus grown edges).
 
-    An outlier must also stand above its mirror pixel (point reflection about the star's centre,
-    the model's difference between the two subtracted) by ``k`` sigma of the pair: a star's own
+    An outlier must also stand ``k`` sigma above the brightest pixel around its mirror pixel
+    (point reflection about the star's centre of symmetry, within one pixel): a star's own
     light is symmetric even where the model is not (a trailed or elongated PSF, a halo), an
-    artefact is not. A pixel whose mirror is outside the window or invalid is judged on the
-    model alone (and every pixel with ``symmetric`` False). ``k`` default: :func:`clip_level` of each window's number of valid pixels, moved
+    artefact is not. A pixel whose mirror is outside the window is judged on the model alone,
+    as every pixel with ``symmetric`` False. ``k`` default: :func:`clip_level` of each window's number of valid pixels, moved
     to the shot-noise tail (:func:`skew_corrected`); ``error``: the model's own error
     (:func:`model_error`).
     """
@@ -198,11 +240,11 @@ def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, error: Mod
         return core
     if not symmetric:
         return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA)))
-    mirror_excess, inside = _mirrored(excess, mu)
-    mirror_var, _ = _mirrored(var, mu)
-    mirror_valid, _ = _mirrored(st.valid, mu)
-    judged = inside & mirror_valid
-    core &= ~judged | ((excess - mirror_excess) / np.sqrt(var + mirror_var) > level)
+    # the star's own light is mirrored about its centre: a pixel no brighter (beyond noise) than
+    # the brightest pixel around its mirror is that light, not an artefact
+    mirror_max, inside = _mirrored(_max3x3(np.where(st.valid, st.data, -np.inf)), _symmetry_shifts(st))
+    mirror_max = np.where(inside, mirror_max, -np.inf)
+    core &= (st.data - mirror_max) > level * np.sqrt(2.0 * var)
     if not core.any():
         return core
     return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA)))
@@ -265,9 +307,9 @@ def mask_outliers(st: Stamps, predict: Predictor, dx: F64, dy: F64, start: F64, 
                   iterations: int = 5) -> tuple[Stamps, Mask, F64, F64]:
     """Mask the pixels the star's fitted model cannot explain, re-fitting after each pass.
 
-    ``start``: a first prediction of each star (N, W, W), e.g. the model at the coarse
-    position scaled to :func:`core_flux`, not fitted to the window (an artefact can pull a
-    fit onto itself). Each pass fits ``predict`` (from ``(dx, dy)``) without the current mask
+    ``start``: a first prediction of each star (N, W, W), e.g. the model at its
+    :func:`symmetry_centre` scaled to :func:`core_flux`, not fitted to the window (an artefact
+    can pull a fit onto itself); ``(dx, dy)``: its centre. Each pass fits ``predict`` (from ``(dx, dy)``) without the current mask
     and tests every pixel of the window against that fit again (a pixel wrongly suspected
     comes back); it stops when the mask no longer changes or after ``iterations`` fits.
     ``error``: the model's own error on the frame (:func:`model_error`).
