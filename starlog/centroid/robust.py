@@ -126,6 +126,12 @@ class ModelError:
     core: float = 0.0
     halo: float = 0.0
 
+    @property
+    def significant(self) -> bool:
+        """The model misses the stars' light by more than 2 % of the core signal (or 0.2 % of the
+        peak in the wings): then only light that is not mirrored about the star can be an artefact."""
+        return self.core > 0.02 or self.halo > 0.002
+
     def variance(self, mu: F64) -> F64:
         """The model error's variance at each pixel of the predicted stars ``mu``, DN^2."""
         base = mu.min(axis=(1, 2), keepdims=True)
@@ -170,23 +176,20 @@ def model_error(st: Stamps, mu: F64, min_snr: float = 10.0) -> ModelError:
 def _symmetry_shifts(st: Stamps) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     """Each star's centre of symmetry, as twice its offset from the window centre (-2..2 per axis).
 
-    The reflection that changes the window least (mean absolute difference between the inner
-    pixels and their mirrors, over valid pairs): a star's light decides it whatever its shape,
-    an artefact changes every candidate alike.
+    The reflection that changes the window least (mean absolute difference between the pixels
+    and their mirrors, over the valid pairs inside the window): a star's light decides it
+    whatever its shape, and an artefact weighs on every candidate alike.
     """
-    n, w, _ = st.data.shape
-    h = (w - 1) // 2
-    inner = np.arange(2, w - 2)
-    data, valid = st.data[:, 2:-2, 2:-2], st.valid[:, 2:-2, 2:-2]
+    n = st.data.shape[0]
     best = np.full(n, np.inf)
     shift_x = np.zeros(n, np.intp)
     shift_y = np.zeros(n, np.intp)
     for sy in range(-2, 3):
         for sx in range(-2, 3):
-            rows, cols = (2 * h + sy - inner)[:, None], (2 * h + sx - inner)[None, :]  # mirrors of the inner pixels
-            pair = valid & st.valid[:, rows, cols]
-            diff = np.abs(data - st.data[:, rows, cols]) * pair
-            cost = diff.sum(axis=(1, 2)) / np.maximum(pair.sum(axis=(1, 2)), 1)
+            mirror, inside = _mirrored(st.data, (np.full(n, sx), np.full(n, sy)))
+            mirror_valid, _ = _mirrored(st.valid, (np.full(n, sx), np.full(n, sy)))
+            pair = st.valid & mirror_valid & inside
+            cost = (np.abs(st.data - mirror) * pair).sum(axis=(1, 2)) / np.maximum(pair.sum(axis=(1, 2)), 1)
             better = cost < best
             best = np.where(better, cost, best)
             shift_x = np.where(better, sx, shift_x)
@@ -216,15 +219,17 @@ def _mirrored(a: npt.NDArray[Any], shifts: tuple[npt.NDArray[np.intp], npt.NDArr
 
 
 def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, error: ModelError = ModelError(),
-                   symmetric: bool = True) -> Mask:
+                   symmetric: bool | None = None) -> Mask:
     """Valid pixels whose excess over ``mu`` is above ``k`` sigma of their predicted noise (plus grown edges).
 
-    An outlier must also stand ``k`` sigma above the brightest pixel around its mirror pixel
-    (point reflection about the star's centre of symmetry, within one pixel): a star's own
-    light is symmetric even where the model is not (a trailed or elongated PSF, a halo), an
-    artefact is not. A pixel whose mirror is outside the window is judged on the model alone,
-    as every pixel with ``symmetric`` False. ``k`` default: :func:`clip_level` of each window's number of valid pixels, moved
-    to the shot-noise tail (:func:`skew_corrected`); ``error``: the model's own error
+    With ``symmetric``, an outlier must also stand ``k`` sigma above the brightest pixel around
+    its mirror pixel (point reflection about the star's centre of symmetry, within one pixel):
+    a star's own light is symmetric even where the model is not (a trailed or elongated PSF, a
+    halo), an artefact is not; a pixel whose mirror is outside the window is judged on the
+    model alone. ``symmetric`` default: only when the model misses the frame's stars
+    (:attr:`ModelError.significant`); where the model fits, it alone is the best judge.
+    ``k`` default: :func:`clip_level` of each window's number of valid pixels, moved to the
+    shot-noise tail (:func:`skew_corrected`); ``error``: the model's own error
     (:func:`model_error`).
     """
     if k is None:
@@ -238,7 +243,7 @@ def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, error: Mod
     core = z > level
     if not core.any():
         return core
-    if not symmetric:
+    if not (error.significant if symmetric is None else symmetric):
         return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA)))
     # the star's own light is mirrored about its centre: a pixel no brighter (beyond noise) than
     # the brightest pixel around its mirror is that light, not an artefact
@@ -315,7 +320,7 @@ def mask_outliers(st: Stamps, predict: Predictor, dx: F64, dy: F64, start: F64, 
     ``error``: the model's own error on the frame (:func:`model_error`).
     Returns the stamps without the masked pixels, the mask (N, W, W) and the last fitted centre.
     """
-    mask = outlier_pixels(st, start, error=error)
+    mask = outlier_pixels(st, start, error=error, symmetric=False)  # the start is no fit: every suspect out
     cx, cy = dx, dy
     flux = np.maximum(start.sum(axis=(1, 2)), 0.0)
     for _ in range(iterations):
