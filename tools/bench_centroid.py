@@ -17,7 +17,14 @@ frame time over the realisations; fps* = the same with the PSF sigma known (no e
 speed targets are judged on fps*, because that is how `starlog centroid` runs: it estimates the
 PSF width once per log and passes it to every frame (fps shows the cost of re-estimating it).
 
-Run: python tools/bench_centroid.py [--quick] [--reps N] [--no-photutils]
+Artefact run (200 hot pixels + 40 cosmic-ray tracks per frame, ``add_artifacts``): every
+realisation is exposed twice from one noise seed, clean and with artefacts, and every method
+runs with its robust windows (the default) and without (``robust=False``) on both: RMSE clean
+vs with artefacts, false detections per frame, RMSE against SEP on the same frames (and on the
+stars both matched), and the cost of the masking on the clean frames (median method time with
+and without, in the same run).
+
+Run: python tools/bench_centroid.py [--quick] [--reps N] [--no-photutils] [--artifacts-only]
 """
 
 from __future__ import annotations
