@@ -120,17 +120,21 @@ class ModelError:
     """How far the frame's stars depart from their model beyond noise (:func:`model_error`).
 
     ``core``: relative to the local model (a core shape the model lacks); ``halo``: relative to
-    the star's peak (wings the model lacks, e.g. a real PSF's halo around a Gaussian core).
+    the star's peak (wings the model lacks, e.g. a real PSF's halo around a Gaussian core);
+    ``misfit``: how much the bright stars' residuals exceed their noise, in variance.
     """
 
     core: float = 0.0
     halo: float = 0.0
+    misfit: float = 1.0
 
     @property
     def significant(self) -> bool:
-        """The model misses the stars' light by more than 2 % of the core signal (or 0.2 % of the
-        peak in the wings): then only light that is not mirrored about the star can be an artefact."""
-        return self.core > 0.02 or self.halo > 0.002
+        """The bright stars' residuals exceed their noise by half its variance or more (``misfit``:
+        the typical star's median of ``r^2 / var`` over a chi-square's, 1 when the model fits; its
+        spread over ten stars is ~0.1): then only light that is not mirrored about the star can
+        be an artefact."""
+        return self.misfit > 1.5
 
     def variance(self, mu: F64) -> F64:
         """The model error's variance at each pixel of the predicted stars ``mu``, DN^2."""
@@ -140,11 +144,13 @@ class ModelError:
         return (self.core * star) ** 2 + (self.halo * peak) ** 2
 
 
-def _excess_level(r: F64, var: F64, scale: F64) -> float:
-    """sqrt of the median of ``(r^2 / m1 - var) / scale^2``: 0 for pure noise, else the departure per ``scale``."""
-    if r.size == 0:
+def _excess_level(r: F64, var: F64, scale: F64, use: Mask) -> float:
+    """sqrt of the median of ``(r^2 / m1 - var) / scale^2`` over the ``use`` pixels: 0 for pure noise,
+    else the departure per ``scale``."""
+    if not use.any():
         return 0.0
-    return float(np.sqrt(max(float(np.median((r * r / _MEDIAN_CHI2_1 - var) / scale**2)), 0.0)))
+    t = (r[use] ** 2 / _MEDIAN_CHI2_1 - var[use]) / scale[use] ** 2
+    return float(np.sqrt(max(float(np.median(t)), 0.0)))
 
 
 def model_error(st: Stamps, mu: F64, min_snr: float = 10.0) -> ModelError:
@@ -162,19 +168,23 @@ def model_error(st: Stamps, mu: F64, min_snr: float = 10.0) -> ModelError:
     base = mu.min(axis=(1, 2), keepdims=True)
     star = mu - base
     core = st.valid & (star > min_snr * np.sqrt(var))
-    eps = _excess_level(r[core], var[core], star[core]) if core.any() else 0.0
+    eps = _excess_level(r, var, star, core)
     peak = star.max(axis=(1, 2), keepdims=True)
     rel = star / np.where(peak > 0, peak, 1.0)
     wing = st.valid & (rel >= 1e-4) & (rel <= 0.1) & (peak > min_snr * st.noise[:, None, None])
-    if not wing.any():
-        return ModelError(eps, 0.0)
-    var_wing = var + (eps * star) ** 2
-    halo = _excess_level(r[wing], var_wing[wing], np.broadcast_to(peak, star.shape)[wing])
-    return ModelError(eps, halo)
+    halo = _excess_level(r, var + (eps * star) ** 2, np.broadcast_to(peak, star.shape), wing)
+    lit = core | (wing & (star > np.sqrt(var)))  # where the star is above its noise
+    bright = lit.any(axis=(1, 2))
+    if not bright.any():
+        return ModelError(eps, halo)
+    ratio = np.where(lit, r * r / (_MEDIAN_CHI2_1 * var), np.nan)[bright]
+    misfit = float(np.median(np.nanmedian(ratio.reshape(ratio.shape[0], -1), axis=1)))
+    return ModelError(eps, halo, misfit)
 
 
-def _symmetry_shifts(st: Stamps) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
-    """Each star's centre of symmetry, as twice its offset from the window centre (-2..2 per axis).
+def _symmetry_shifts(st: Stamps, reach: int = 2) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """Each star's centre of symmetry, as twice its offset from the window centre (up to ``reach``
+    half pixels per axis: a window may be centred on an artefact next to its star).
 
     The reflection that changes the window least (mean absolute difference between the pixels
     and their mirrors, over the valid pairs inside the window): a star's light decides it
@@ -184,8 +194,8 @@ def _symmetry_shifts(st: Stamps) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.i
     best = np.full(n, np.inf)
     shift_x = np.zeros(n, np.intp)
     shift_y = np.zeros(n, np.intp)
-    for sy in range(-2, 3):
-        for sx in range(-2, 3):
+    for sy in range(-reach, reach + 1):
+        for sx in range(-reach, reach + 1):
             mirror, inside = _mirrored(st.data, (np.full(n, sx), np.full(n, sy)))
             mirror_valid, _ = _mirrored(st.valid, (np.full(n, sx), np.full(n, sy)))
             pair = st.valid & mirror_valid & inside
