@@ -97,7 +97,6 @@ def test_hot_pixel_next_to_the_core_is_masked_by_the_fit():
     img = CAMERA.expose(expected, rng).astype(np.float64)
     det = detect_stars(img)
     st = gather_stamps(img, det["x"], det["y"], 5, det["background"], det["noise"], 1.0, np.inf)
-    dx0, dy0 = det["x"] - st.xc, det["y"] - st.yc
     psf = np.full(det.size, sigma)
     sx, sy = symmetry_centre(st)
     unit = model(st, sx, sy, psf)

@@ -8,14 +8,18 @@ profile, ``mu``) is compared with the pixel's predicted noise,
 
 (background noise, the star's shot noise, and the model's own error for PSFs that are not
 exactly the model: ``e_core`` and ``e_halo`` are measured on the frame's bright stars, cores
-and wings, by :func:`model_error`, 0 when the model fits), and pixels with ``z > k`` are masked, their 8-neighbours with ``z > GROW_SIGMA``
-too (the faint edge of a track). The star is re-fitted without them and the test repeated, a
-few times at most (:func:`mask_outliers`). Only excesses are masked: every artefact named
-above adds charge, and a dead pixel belongs in a bad-pixel map.
+and wings, by :func:`model_error`, 0 when the model fits), and pixels with ``z > k`` are
+masked, their 8-neighbours with ``z > GROW_SIGMA`` too (the faint edge of a track). The star
+is re-fitted without them and the test repeated, five fits at most (:func:`mask_outliers`).
+Only excesses are masked: every artefact named above adds charge, and a dead pixel belongs in
+a bad-pixel map. Where the model misses the frame's stars (:attr:`ModelError.significant`),
+an outlier must also be light that is not mirrored about the star (a star's own light is
+symmetric, a trail or a halo included; an artefact is not).
 
 ``k`` is not a tuning constant: it is the level a window of ``n`` clean pixels exceeds by
-chance with probability :data:`FALSE_MASK_PROBABILITY` (:func:`clip_level`), so a clean star
-is masked in about one window in a hundred whatever the window size, the camera or the PSF.
+chance with probability :data:`FALSE_MASK_PROBABILITY` (:func:`clip_level`), moved to the
+skewed tail of shot noise (:func:`skew_corrected`), so a clean star is masked in about one
+window in a thousand whatever the window size, the camera or the PSF.
 
 The star's model is a parameter (:data:`Predictor`): the pixel-integrated Gaussian fit by
 default (:func:`gaussian_predictor`); another PSF model (an empirical PSF) plugs in the same way.
@@ -25,8 +29,8 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
-from typing import Any
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
