@@ -428,12 +428,17 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
 @image_topic_option
 @click.option("--skip-bad", is_flag=True, help="Leave out frames that do not decode or do not fit (each named) "
                                               "instead of stopping.")
+@click.option("--hot-pixels", "hot_pixels", metavar="auto|FILE",
+              help="Hot-pixel map: 'auto' learns it from the log (pixels that are single-pixel spikes in most "
+                   "of its first frames), or a FILE: .npy boolean mask of the frame's shape, or text/CSV lines "
+                   "'x,y' (column,row). Hot pixels are never stars and are left out of the star windows.")
 @time_range_options("the image channel")
 @json_option
 @write_options
 def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float | None, read_noise: float | None,
-             settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, start: str | None, end: str | None,
-             as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
+             settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, hot_pixels: str | None,
+             start: str | None, end: str | None, as_json: bool, force: bool, compression: str, workers: int,
+             quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
 
     Adds /stars/detections, /stars/centroids/<METHOD> per method and /stars/annotations
@@ -445,13 +450,14 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
       starlog centroid lab.mcap -o cen.mcap --method all --gain 2.1 --workers 2
       starlog centroid sim.mcap -o cen.mcap --start 0.5s --end frame:300
       starlog centroid sim.mcap -o cen.mcap --method PSFFIT,GAUSSFIT --psf empirical
+      starlog centroid lab.mcap -o cen.mcap --hot-pixels auto
     """
     from starlog.stages.centroid import centroid_log
 
     summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise, psf=psf,
                            options=_key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
                            workers=workers, force=force, compression=compression, show_progress=not quiet,
-                           start=start, end=end)
+                           hot_pixels=hot_pixels, start=start, end=end)
     d = summary.to_dict()
     for note in d["notes"]:
         click.echo(f"note: {note}", err=True)

@@ -77,8 +77,9 @@ def _per_star_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]
 
 
 def _centroid_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    """One row per star; logs written before ``n_masked`` existed read as 0 masked pixels."""
     for star in msg["stars"]:
-        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], **star}
+        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], "n_masked": 0, **star}
 
 
 def _track_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:

@@ -32,8 +32,17 @@ from starlog.centroid.coarse import log_parabola_peak
 from starlog.centroid.epsf import EPSF, GaussianPSF
 from starlog.centroid.gaussfit import fit_gaussians
 from starlog.centroid.gradient import radial_symmetry_centre
+from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.moment import squared_centroid, weighted_centroid
 from starlog.centroid.psffit import fit_psf
+from starlog.centroid.robust import (
+    core_flux,
+    gaussian_predictor,
+    mask_outliers,
+    suspect_pixels,
+    symmetry_centre,
+    take_stamps,
+)
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
@@ -208,7 +217,7 @@ def _psf_fit(st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, epsf: EPSF | Non
 
 
 def _estimate(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,
-              weighting: str, debias: bool) -> _Measured:
+              weighting: str, debias: bool, passes: int | None = None) -> _Measured:
     """A non-fit method, debiased with the star's model; flux from a PSF fit at the centroid."""
     fm = np.maximum(f0, 0)
     estimator = _Estimator(meth, fm, psf, optimal_smoothing(fm, st.noise, gain, psf), weighting)
@@ -220,7 +229,7 @@ def _estimate(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf
     if debias:
         on_model = replace(estimator, iterations=4)  # the model's estimate starts next to its fixed point
         # MOMENT's raw bias is already < 3e-4 px: one pass leaves ~1e-7 px
-        for _ in range(1 if meth is CentroidMethod.MOMENT else 2):
+        for _ in range(passes or (1 if meth is CentroidMethod.MOMENT else 2)):
             mdl = np.minimum(fm[:, None, None] * model(st, dx, dy, psf), se.clip[:, None, None]) * se.valid
             mx, my, mok = on_model(mdl, se, dx, dy)
             good = ok & mok & np.isfinite(mx) & np.isfinite(my)
@@ -295,6 +304,7 @@ def measure_centroids(
     weighting: str = "optimal",
     fit_psf_sigma: bool = False,
     epsf: EPSF | None = None,
+    robust: bool = True,
 ) -> npt.NDArray[np.void]:
     """Sub-pixel centroids of detected stars.
 
@@ -328,6 +338,11 @@ def measure_centroids(
     epsf : EPSF, optional
         PSFFIT: the empirical PSF to fit (:func:`starlog.centroid.epsf.build_epsf`); without
         it, PSFFIT fits the pixel-integrated Gaussian of ``psf_sigma``. Other methods ignore it.
+    robust : bool
+        Leave out the pixels of a star's window that its fitted profile plus noise cannot
+        explain (cosmic ray, hot pixel, a neighbour's wing) and measure the star again
+        (:mod:`starlog.centroid.robust`); such stars are flagged ``MASKED``, with the count in
+        ``n_masked``.
 
     Returns
     -------
@@ -348,13 +363,73 @@ def measure_centroids(
     dx0, dy0 = np.asarray(det["x"], np.float64) - st.xc, np.asarray(det["y"], np.float64) - st.yc
     psf_arr = np.full(n, psf)
     f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64), iterations=1)
+    options = {"gain": gain, "weighting": weighting, "debias": debias, "fit_psf_sigma": fit_psf_sigma, "epsf": epsf}
+    measured = _measure(meth, st, dx0, dy0, f0, psf_arr, **options)
+    n_masked = _left_out(st, arr.shape)
+    if robust:
+        measured, st, n_outliers = _remeasure_robust(meth, st, measured, dx0, dy0, f0, psf_arr, **options)
+        n_masked += n_outliers
+    return _centroid_table(det, st, _with_fallback(measured, st, dx0, dy0, f0), n_masked)
+
+
+def _measure(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,
+             weighting: str, debias: bool, fit_psf_sigma: bool, epsf: EPSF | None = None,
+             passes: int | None = None) -> _Measured:
+    """One method on every window; ``epsf``: the PSF PSFFIT fits; ``passes``: debiasing passes of a
+    non-fit method (default: its own)."""
     if meth is CentroidMethod.GAUSSFIT:
-        measured = _fit(st, dx0, dy0, f0, psf_arr, fit_psf_sigma)
-    elif meth is CentroidMethod.PSFFIT:
-        measured = _psf_fit(st, dx0, dy0, f0, psf_arr, epsf)
-    else:
-        measured = _estimate(meth, st, dx0, dy0, f0, psf_arr, gain=gain, weighting=weighting, debias=debias)
-    return _centroid_table(det, st, _with_fallback(measured, st, dx0, dy0, f0))
+        return _fit(st, dx0, dy0, f0, psf, fit_psf_sigma)
+    if meth is CentroidMethod.PSFFIT:
+        return _psf_fit(st, dx0, dy0, f0, psf, epsf)
+    return _estimate(meth, st, dx0, dy0, f0, psf, gain=gain, weighting=weighting, debias=debias, passes=passes)
+
+
+def _left_out(st: Stamps, shape: tuple[int, ...]) -> npt.NDArray[np.int32]:
+    """Pixels of each window inside the frame that are invalid but not saturated (non-finite, hot)."""
+    d = np.arange(-st.h, st.h + 1)
+    rows = ((st.yc[:, None] + d >= 0) & (st.yc[:, None] + d < shape[0])).sum(axis=1)
+    cols = ((st.xc[:, None] + d >= 0) & (st.xc[:, None] + d < shape[1])).sum(axis=1)
+    invalid = (~st.valid & ~st.satpix).sum(axis=(1, 2))
+    return (invalid - (d.size**2 - rows * cols)).astype(np.int32)
+
+
+def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, dy0: F64, f0: F64, psf: F64,
+                      **options: Any) -> tuple[_Measured, Stamps, npt.NDArray[np.int32]]:
+    """Stars whose window holds pixels their model at the method's centroid cannot explain are
+    measured again without the pixels :func:`mask_outliers` leaves out.
+
+    Clean windows cost one model evaluation; only suspect ones are fitted and re-measured.
+    Returns the results, the stamps (masked pixels invalid) and the masked pixels per star.
+    """
+    n_out = np.zeros(st.xc.size, np.int32)
+    ok = m.ok & np.isfinite(m.dx) & np.isfinite(m.dy)
+    cx, cy = np.where(ok, m.dx, dx0), np.where(ok, m.dy, dy0)
+    flux = np.where(ok & np.isfinite(m.flux), m.flux, f0)
+    mu = np.maximum(flux, 0)[:, None, None] * model(st, cx, cy, m.psf) + m.background[:, None, None]
+    suspect, error = suspect_pixels(st, mu)
+    rows = np.flatnonzero(suspect.any(axis=(1, 2)))
+    if rows.size == 0:
+        return m, st, n_out
+    sub = take_stamps(st, rows)
+    sx, sy = symmetry_centre(sub)  # not pulled by an artefact, unlike the coarse position
+    unit = model(sub, sx, sy, psf[rows])
+    start = core_flux(sub, unit)[:, None, None] * unit
+    clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), sx, sy, start, error=error)
+    hit = mask.any(axis=(1, 2))
+    rows, clean, fx, fy = rows[hit], take_stamps(clean, np.flatnonzero(hit)), fx[hit], fy[hit]
+    if rows.size == 0:
+        return m, st, n_out
+    f1, _ = linear_flux(clean, model(clean, fx, fy, psf[rows]), f0[rows], iterations=1)
+    # a window with holes is far from symmetric: the debiasing needs more fixed-point passes
+    again = _measure(meth, clean, fx, fy, f1, psf[rows], passes=3, **options)
+    n_out[rows] = mask[hit].sum(axis=(1, 2))
+    out = replace(st, valid=st.valid.copy(), data=st.data.copy(), satpix=st.satpix.copy())
+    out.valid[rows], out.data[rows], out.satpix[rows] = clean.valid, clean.data, clean.satpix
+    merged = {name: getattr(m, name).copy() for name in ("dx", "dy", "ok", "flux", "flux_err", "sigma", "psf",
+                                                         "background")}
+    for name, values in merged.items():
+        values[rows] = getattr(again, name)
+    return _Measured(**merged), out, n_out
 
 
 def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: float, read_noise: float | None,
@@ -369,8 +444,9 @@ def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: flo
                          np.where(np.isfinite(bg), bg, 0.0), noise, gain, saturation)
 
 
-def _centroid_table(det: npt.NDArray[Any], st: Stamps, m: _Measured) -> npt.NDArray[np.void]:
-    """The CENTROID_DTYPE rows: positions, flux, SNR, sigma, peak, background and flags."""
+def _centroid_table(det: npt.NDArray[Any], st: Stamps, m: _Measured,
+                    n_masked: npt.NDArray[np.int32] | None = None) -> npt.NDArray[np.void]:
+    """The CENTROID_DTYPE rows: positions, flux, SNR, sigma, peak, background, flags, masked pixels."""
     snr = np.where(np.isfinite(m.flux_err), m.flux / m.flux_err, 0.0)
     flags = np.asarray(det["flags"], np.uint16).copy()
     flags &= np.uint16(~int(CentroidFlag.FIT_FAILED | CentroidFlag.LOW_SNR) & 0xFFFF)
@@ -389,6 +465,9 @@ def _centroid_table(det: npt.NDArray[Any], st: Stamps, m: _Measured) -> npt.NDAr
     out["peak"] = _peak_near(st, m.dx, m.dy)
     out["background"] = np.asarray(det["background"], np.float64) + m.background
     out["psf_sigma"] = m.psf
+    if n_masked is not None:
+        out["n_masked"] = n_masked
+        flags[n_masked > 0] |= np.uint16(CentroidFlag.MASKED)
     out["flags"] = flags
     return out
 
@@ -405,6 +484,7 @@ def extract_stars(
     detect_options: Mapping[str, Any] | None = None,
     centroid_options: Mapping[str, Any] | None = None,
     epsf: EPSF | None = None,
+    hot_pixels: npt.NDArray[np.bool_] | None = None,
 ) -> tuple[npt.NDArray[np.void], dict[CentroidMethod, npt.NDArray[np.void]]]:
     """Detect the stars of a frame and centroid them with each method.
 
@@ -423,6 +503,9 @@ def extract_stars(
         Extra keyword options of :func:`measure_centroids` (debias, weighting, ...).
     epsf : EPSF, optional
         The empirical PSF PSFFIT fits (see :func:`measure_centroids`).
+    hot_pixels : (rows, cols) bool array, optional
+        Hot-pixel map (:mod:`starlog.centroid.hotpixels`): these pixels are never detections
+        and are left out of every star's window (counted in ``n_masked``).
 
     Returns
     -------
@@ -431,6 +514,10 @@ def extract_stars(
         ``{CentroidMethod: ndarray of CENTROID_DTYPE}`` with one row per detection.
     """
     meths = [CentroidMethod(m) for m in methods]
+    if hot_pixels is not None:
+        raw = np.asarray(image)
+        saturation = _default_saturation(raw, saturation)  # of the frame's own type, before the float copy
+        image = without_hot_pixels(raw, hot_pixels)
     det = detect_stars(image, saturation=saturation, **dict(detect_options or {}))
     arr = np.asarray(image)
     if det.size and psf_sigma is None:

@@ -76,6 +76,7 @@ CENTROID_DTYPE = np.dtype(
         ("background", np.float64),
         ("psf_sigma", np.float64),
         ("flags", np.uint16),
+        ("n_masked", np.int32),
     ]
 )
 """Structured dtype of :func:`starlog.centroid.measure_centroids` results, one row per star.
@@ -105,7 +106,11 @@ background : float64
 psf_sigma : float64
     Gaussian PSF sigma used for the star, px (given or estimated from the frame).
 flags : uint16
-    :class:`CentroidFlag` bits.
+    :class:`CentroidFlag` bits. ``MASKED``: pixels of the window were left out (``n_masked``).
+n_masked : int32
+    Pixels of the star's window left out of its measurement: non-finite or hot pixels, and
+    pixels its fitted profile plus noise cannot explain (cosmic ray, hot pixel, a neighbour's
+    wing; see :mod:`starlog.centroid.robust`). Saturated pixels are not counted.
 """
 
 

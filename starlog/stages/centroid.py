@@ -33,6 +33,7 @@ import numpy.typing as npt
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars
 from starlog.centroid.epsf import EPSF, EPSF_METADATA_NAME, epsf_from_frames
 from starlog.centroid.extract import _window
+from starlog.centroid.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
@@ -133,6 +134,7 @@ def centroid_log(
     compression: str = "zstd",
     show_progress: bool = False,
     psf: str | None = None,
+    hot_pixels: str | os.PathLike[str] | None = None,
 ) -> CentroidSummary:
     """Detect stars and measure their centroids by each method, for every frame of the log.
 
@@ -166,6 +168,11 @@ def centroid_log(
         the output (metadata ``starlog.epsf``) and recorded in the provenance, even when PSFFIT
         is not among the methods. ``"gaussian"``: PSFFIT fits the pixel-integrated Gaussian of
         the PSF sigma. Default: empirical when PSFFIT is among the methods, else none.
+    hot_pixels : "auto" or path, optional
+        A hot-pixel map (:mod:`starlog.centroid.hotpixels`): ``"auto"`` learns it from the
+        log's first frames, a path reads it (``.npy`` boolean mask or ``x,y`` text lines). Hot
+        pixels are never detections and are left out of the star windows; the map (source,
+        count, SHA-256, pixels) is recorded in the provenance.
     """
     chosen = parse_methods(methods)
     options = dict(options or {})
@@ -182,12 +189,15 @@ def centroid_log(
         if options.get("psf_sigma") is None:
             options["psf_sigma"] = _log_psf_sigma(probe, topic, gain=gain,
                                                   detect_options=options.get("detect_options"))
+        hot_map = _hot_pixel_map(probe, topic, hot_pixels)
     digest_params.update({"gain": gain, "read_noise": read_noise})
     epsf = _epsf_for(input_path, topic, chosen, psf, gain=gain, read_noise=read_noise, options=options)
     if psf is not None:
         digest_params["psf"] = psf
     if epsf is not None:
         digest_params["epsf"] = epsf.summary()
+    if hot_map is not None:
+        digest_params["hot_pixels"] = describe_hot_pixels(hot_map, _hot_pixel_source(hot_pixels))
     if topic != topics.IMAGE:  # a foreign log: the provenance names the channel the stars come from
         digest_params["image_topic"] = topic
     summary = CentroidSummary(methods=[m.value for m in chosen], gain=gain, image_topic=topic)
@@ -199,7 +209,8 @@ def centroid_log(
     summary.centroids = {m.value: 0 for m in chosen}
     summary.failed = {m.value: 0 for m in chosen}
 
-    extract = _Extractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options, epsf=epsf)
+    extract = _Extractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options, epsf=epsf,
+                         hot_pixels=hot_map)
 
     with _opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=digest_params,
                                         force=force, compression=compression, workers=workers) as (log, out):
@@ -284,6 +295,29 @@ def _log_psf_sigma(log: LogReader, topic: str, *, gain: float, detect_options: d
     return float(np.median(finite)) if finite else 1.0
 
 
+HOT_PIXEL_FRAMES = 16
+"""Frames ``--hot-pixels auto`` learns the map from (the log's first ones)."""
+
+
+def _hot_pixel_source(spec: str | os.PathLike[str] | None) -> str:
+    if isinstance(spec, str) and spec == "auto":
+        return f"auto: spikes in most of the first {HOT_PIXEL_FRAMES} frames"
+    return f"file: {os.fspath(spec)}" if spec is not None else ""
+
+
+def _hot_pixel_map(log: LogReader, topic: str, spec: str | os.PathLike[str] | None) -> npt.NDArray[np.bool_] | None:
+    """The hot-pixel map asked for: learnt from the log's first frames (``"auto"``), read from a file, or none."""
+    if spec is None:
+        return None
+    first = (image for index, _, image in log.frames(topic, on_bad=lambda skipped: None) if index < HOT_PIXEL_FRAMES)
+    if isinstance(spec, str) and spec == "auto":
+        return learn_hot_pixels(first)
+    image = next(first, None)
+    if image is None:
+        raise InvalidParameterError(f"the log has no frame on {topic} to apply the hot-pixel map to.")
+    return load_hot_pixels(spec, image.shape)
+
+
 @dataclass(frozen=True)
 class _FrameMessages:
     """One frame's encoded messages (detections, annotations, centroids per method) and counts."""
@@ -306,12 +340,14 @@ class _Extractor:
     read_noise: float | None
     options: dict[str, Any]
     epsf: EPSF | None = None
+    hot_pixels: npt.NDArray[np.bool_] | None = None
 
     def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any], stamp: int | None = None
                  ) -> _FrameMessages:
         """``stamp``: the image message's own time, given to the annotations so Foxglove pairs them with it."""
         detections, centroids = extract_stars(image, methods=self.methods, gain=self.gain,
-                                              read_noise=self.read_noise, epsf=self.epsf, **self.options)
+                                              read_noise=self.read_noise, epsf=self.epsf, hot_pixels=self.hot_pixels,
+                                              **self.options)
         first = centroids[self.methods[0]]
         diameter = float(max(6.0, 6.0 * np.median(first["psf_sigma"]))) if first.size else 6.0
         per_method = [centroids[m] for m in self.methods]
