@@ -1035,14 +1035,16 @@ def stage_command(declared: Any, name: str) -> click.Command:
                        f"{declared.reads} channel].")
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
                   help="Option of the stage (values parsed as JSON when they can be). Repeatable.")
+    @time_range_options(f"the {declared.reads} channel the stage reads")
     @json_option
     @write_options
-    def command(log: Path, output: Path, input_topic: str | None, settings: tuple[str, ...], as_json: bool,
-                force: bool, compression: str, workers: int, quiet: bool) -> None:
+    def command(log: Path, output: Path, input_topic: str | None, settings: tuple[str, ...], start: str | None,
+                end: str | None, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
         from starlog.stages.custom import run_stage
 
         summary = run_stage(declared, log, output, options=_key_values(settings, "--set"), input_topic=input_topic,
-                            workers=workers, force=force, compression=compression, show_progress=not quiet)
+                            workers=workers, force=force, compression=compression, show_progress=not quiet,
+                            start=start, end=end)
         d = summary.to_dict()
         for note in d["notes"]:
             click.echo(f"note: {note}", err=True)

@@ -140,6 +140,25 @@ def test_a_stage_reads_the_centroid_table_and_records_its_provenance(stage_folde
     assert verify_log(out).ok
 
 
+def test_a_stage_runs_on_a_time_slice_and_records_the_range(stage_folder: Path, centroid_log_path: Path,
+                                                             tmp_path: Path) -> None:
+    brightest = _stage(stage_folder, "brightest_flux")
+    out = tmp_path / "slice.mcap"
+    summary = run_stage(brightest, centroid_log_path, out, options={"min_snr": 5}, workers=1,
+                        input_topic="/stars/centroids/GAUSSFIT", start="frame:10", end="frame:30")
+    assert summary.to_dict()["records"] == {"/stars/brightest/GAUSSFIT": 20}
+    records = _payloads(out, "/stars/brightest/GAUSSFIT")
+    assert [r["frame"] for r in records] == list(range(10, 30))
+    with LogReader(out) as log:
+        assert log.channel("/stars/centroids/GAUSSFIT").message_count == 20  # the input is sliced too
+        last = log.provenance()[-1]
+    assert last.stage == "brightest_flux"
+    assert (last.parameters["range"]["start"], last.parameters["range"]["end"]) == ("frame:10", "frame:30")
+    with pytest.raises(InvalidParameterError):
+        run_stage(brightest, centroid_log_path, tmp_path / "none.mcap", input_topic="/stars/centroids/GAUSSFIT",
+                  start="frame:30", end="frame:10")
+
+
 def test_several_matching_channels_need_the_input_named(stage_folder: Path, centroid_log_path: Path,
                                                         tmp_path: Path) -> None:
     with pytest.raises(InvalidParameterError, match=r"several centroids channels .*GAUSSFIT.*--input"):

@@ -39,6 +39,7 @@ from starlog.stage_api import KINDS, Message, Output, Stage
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
+from starlog.stages._slice import time_sliced
 from starlog.stages._stage import extend_log
 
 __all__ = ["StageSummary", "choose_inputs", "run_stage"]
@@ -76,8 +77,14 @@ def run_stage(
     force: bool = False,
     compression: str = "zstd",
     show_progress: bool = False,
+    start: str | int | None = None,
+    end: str | int | None = None,
 ) -> StageSummary:
     """Run ``stage`` on every message of its input channel(s); the output is the input plus the stage's channels.
+
+    With ``start`` / ``end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the first input channel;
+    :mod:`starlog.io.timerange`) the stage runs on that slice of the log, as the built-in
+    stages do, and the output holds only that range of every channel.
 
     ``options`` override the stage's defaults; ``input_topic`` chooses the channel when the
     stage's ``reads`` matches several, or ``"all"`` reads each of them in turn (see
@@ -85,6 +92,18 @@ def run_stage(
     With ``workers > 1`` batches run in worker processes (the stage must be importable by
     :attr:`Stage.reference`, else it runs here); the bytes written do not depend on ``workers``.
     """
+    def first_input(log: LogReader, _: dict[str, Any]) -> str:
+        return choose_inputs(stage, log, input_topic)[0][0]
+
+    run = time_sliced(first_input)(_run_whole)
+    return run(input_path, output_path, stage, options=options, input_topic=input_topic, workers=workers, force=force,
+               compression=compression, show_progress=show_progress, start=start, end=end)
+
+
+def _run_whole(input_path: Any, output_path: str | os.PathLike[str], stage: Stage, *, options: dict[str, Any] | None,
+               input_topic: str | None, workers: int, force: bool, compression: str,
+               show_progress: bool) -> StageSummary:
+    """:func:`run_stage` on the whole of ``input_path`` (a slice already cut, when a range was asked for)."""
     chosen = stage.resolve_options(options)
     with LogReader(input_path) as probe:
         topics, note = choose_inputs(stage, probe, input_topic)
