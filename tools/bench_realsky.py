@@ -1,0 +1,524 @@
+"""Real sky as a test: centroid accuracy of starlog and SEP against a star catalogue, on real frames.
+
+Benchmark-only dependencies: sep, and cedar-solve (import name ``tetra3``; it ships a
+Hipparcos pattern database for fields of view 10-30 deg, stars to magnitude ~8, so solving
+needs no network).
+
+Protocol, per frame:
+
+1. The image is read as a grey array: TIFF/FITS-free 16/8-bit greyscale as it is; a colour
+   JPEG/PNG as the plain sum of its colour channels (every channel's photons count; no colour
+   weighting, no tone curve undone: the camera's is unknown), a pixel saturated when any of
+   its channels is at the file's maximum.
+2. Centroids: starlog's detection and every method of ``starlog.centroid.CentroidMethod``
+   (``starlog.centroid.extract_stars``, the library call of the centroid stage, with the
+   stage's defaults for an unknown camera: gain 1 e-/DN, read noise from the frame's measured
+   background noise, the PSF width estimated from the frame); SEP ``sep.extract`` (isophotal
+   barycentre) and ``sep.winpos`` (sig = 2/2.35 x half-flux radius) at detection thresholds
+   of 1.5 and 5 times the global background RMS.
+3. Plate solve once (lost in space, no field-of-view hint) from starlog's GAUSSFIT centroids,
+   brightest first; the solver's matched stars give a first camera: pinhole, principal point at
+   the image centre, pointing + roll (a rotation), focal length and one radial distortion term
+   ``x_d = x_u (1 + k r^2)``, r in units of the half-width (the solver fits one such term too).
+4. Every catalogue star (database, magnitude <= ~8) projected into the frame at least
+   ``--margin`` px inside the edges, with no other catalogue star within twice the match
+   radius, is matched one-to-one to each centroider's nearest detection within
+   ``--match-radius`` px.
+5. The stars matched by ALL compared centroiders form the common set. The camera (rotation,
+   focal length, distortion) is refitted to each centroider's positions of the common stars
+   separately (least squares), and the residual RMSE (per axis, px: sqrt(mean(dx^2 + dy^2)/2))
+   is that centroider's figure for the frame. Pooled: all frames' residuals together.
+6. The ratio best starlog method / best SEP setting is computed on the pooled RMSEs.
+
+A per-magnitude table (``--by-mag``) shows where the centroiders differ.
+
+Run: python tools/bench_realsky.py [--images DIR] [--json OUT] [--by-mag]
+(default images: ../shared/data/real-sky/ relative to the repository's root, read in place)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from starlog.centroid import CentroidFlag, CentroidMethod, extract_stars  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+REAL_SKY = Path("shared") / "data" / "real-sky"
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+SEP_THRESHOLDS = (1.5, 5.0)
+MAG_BINS = (-2.0, 4.0, 5.0, 6.0, 7.0, 9.0)
+
+
+# ----------------------------------------------------------------------------- images
+
+def load_grey(path: Path) -> tuple[np.ndarray, float]:
+    """A grey image (integers kept as they are, colour summed over channels) and its saturation level, DN."""
+    suffix = path.suffix.lower()
+    if suffix in (".tif", ".tiff"):
+        import tifffile
+
+        raw = tifffile.imread(str(path))
+    else:
+        import cv2
+
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise ValueError(f"cannot read image {str(path)!r}.")
+    return to_grey(np.asarray(raw))
+
+
+def to_grey(raw: np.ndarray) -> tuple[np.ndarray, float]:
+    """Grey version of a (rows, cols) or (rows, cols, channels) array, and the saturation level.
+
+    Colour: the sum of the colour channels (alpha dropped), as float; a pixel with any channel
+    at the integer maximum is set to the saturation level (channels x maximum).
+    """
+    if raw.ndim == 2:
+        full = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else float("inf")
+        return raw, full
+    if raw.ndim != 3 or raw.shape[2] not in (3, 4):
+        raise ValueError(f"expected a grey or colour image, got shape {raw.shape}.")
+    colour = raw[:, :, :3]
+    top = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else float("inf")
+    grey = colour.astype(np.float64).sum(axis=2)
+    saturation = 3.0 * top
+    if math.isfinite(top):
+        grey[(colour >= top).any(axis=2)] = saturation
+    return grey, saturation
+
+
+def default_images(repo: Path = REPO) -> Path:
+    """``../shared/data/real-sky`` beside the repository (for a git worktree: beside its main checkout)."""
+    candidates = [repo.parent / REAL_SKY]
+    dot_git = repo / ".git"
+    if dot_git.is_file():  # a worktree: "gitdir: <main>/.git/worktrees/<name>"
+        gitdir = Path(dot_git.read_text().partition("gitdir:")[2].strip())
+        candidates.append(gitdir.parent.parent.parent.parent / REAL_SKY)
+    return next((c for c in candidates if c.is_dir()), candidates[0])
+
+
+def list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+# ----------------------------------------------------------------------------- centroiders
+
+@dataclass(frozen=True)
+class Positions:
+    """One centroider's stars in a frame: x, y (px, 0-based, pixel-centre origin) and flux (any unit)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    flux: np.ndarray
+
+
+def starlog_positions(image: np.ndarray, saturation: float, *, gain: float, read_noise: float | None,
+                      options: dict) -> dict[str, Positions]:
+    """starlog's detection and every CentroidMethod on one frame (failed fits left out)."""
+    methods = list(CentroidMethod)
+    _, centroids = extract_stars(image, methods=methods, gain=gain, read_noise=read_noise,
+                                 saturation=saturation, **options)
+    out = {}
+    for method, c in centroids.items():
+        keep = ((c["flags"] & int(CentroidFlag.FIT_FAILED)) == 0) & np.isfinite(c["x"]) & np.isfinite(c["y"])
+        out[method.value] = Positions(c["x"][keep], c["y"][keep], c["flux"][keep])
+    return out
+
+
+def sep_positions(image: np.ndarray, threshold: float) -> dict[str, Positions]:
+    """SEP at ``threshold`` x global RMS: isophotal barycentres and ``sep.winpos`` (bench_centroid's settings)."""
+    import sep
+
+    data = np.ascontiguousarray(image, dtype=np.float64)
+    bkg = sep.Background(data)
+    sub = data - bkg.back()
+    objs = sep.extract(sub, threshold, err=bkg.globalrms)
+    tag = f"{threshold:g}s"
+    if len(objs) == 0:
+        empty = Positions(np.zeros(0), np.zeros(0), np.zeros(0))
+        return {f"SEP iso {tag}": empty, f"SEP winpos {tag}": empty}
+    radius, _ = sep.flux_radius(sub, objs["x"], objs["y"], 6.0 * objs["a"], 0.5, subpix=5)
+    sig = 2.0 / 2.35 * np.where(radius > 0, radius, 1.0)
+    xw, yw, _ = sep.winpos(sub, objs["x"], objs["y"], sig)
+    flux = np.asarray(objs["flux"], np.float64)
+    return {f"SEP iso {tag}": Positions(np.asarray(objs["x"], np.float64), np.asarray(objs["y"], np.float64), flux),
+            f"SEP winpos {tag}": Positions(np.asarray(xw, np.float64), np.asarray(yw, np.float64), flux)}
+
+
+# ----------------------------------------------------------------------------- camera model
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera with one radial distortion term.
+
+    A unit vector ``v`` (catalogue frame) maps to ``u = rotation @ v``; the undistorted focal-plane
+    offsets are ``(parity * f u_x / u_z, f u_y / u_z)`` px from the principal point ``(cx, cy)``
+    (the image centre), scaled by ``1 + k r^2`` with r the offset in units of ``half_width``.
+    """
+
+    rotation: np.ndarray
+    focal: float
+    k: float
+    cx: float
+    cy: float
+    half_width: float
+    parity: float = 1.0
+
+    def project(self, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel (x, y) of unit vectors (n, 3), and whether each is in front of the camera."""
+        u = vectors @ self.rotation.T
+        front = u[:, 2] > 1e-6
+        z = np.where(front, u[:, 2], 1.0)
+        xu = self.parity * self.focal * u[:, 0] / z
+        yu = self.focal * u[:, 1] / z
+        scale = 1.0 + self.k * (xu * xu + yu * yu) / (self.half_width * self.half_width)
+        return self.cx + xu * scale, self.cy + yu * scale, front
+
+
+def camera_for_image(shape: tuple[int, int], focal: float, *, parity: float = 1.0) -> Camera:
+    rows, cols = shape
+    return Camera(np.eye(3), float(focal), 0.0, (cols - 1) / 2.0, (rows - 1) / 2.0, cols / 2.0, parity)
+
+
+def initial_rotation(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Best proper rotation taking catalogue vectors onto the pixels' undistorted view directions (Kabsch)."""
+    p = np.column_stack([cam.parity * (x - cam.cx), y - cam.cy, np.full(x.size, cam.focal)])
+    p /= np.linalg.norm(p, axis=1)[:, None]
+    u, _, vt = np.linalg.svd(vectors.T @ p)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+
+
+def fit_camera(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray, *,
+               fit_distortion: bool = True) -> Camera:
+    """Least-squares refit of the rotation, focal length (and distortion) to observed pixels."""
+
+    def unpack(p: np.ndarray) -> Camera:
+        rot = Rotation.from_rotvec(p[:3]).as_matrix() @ cam.rotation
+        return replace(cam, rotation=rot, focal=cam.focal * (1.0 + p[3]), k=p[4] if fit_distortion else cam.k)
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        px, py, _ = unpack(p).project(vectors)
+        return np.concatenate([px - x, py - y])
+
+    start = np.array([0.0, 0.0, 0.0, 0.0, cam.k])
+    fit = least_squares(residuals if fit_distortion else (lambda p: residuals(np.append(p, cam.k))),
+                        start if fit_distortion else start[:4], x_scale=1e-3, method="lm")
+    return unpack(fit.x if fit_distortion else np.append(fit.x, cam.k))
+
+
+def camera_from_pairs(shape: tuple[int, int], focal: float, vectors: np.ndarray, x: np.ndarray,
+                      y: np.ndarray) -> Camera:
+    """The camera fitted to matched (catalogue vector, pixel) pairs; both parities tried, the better kept."""
+    best, best_rms = None, np.inf
+    for parity in (1.0, -1.0):
+        cam = camera_for_image(shape, focal, parity=parity)
+        cam = replace(cam, rotation=initial_rotation(cam, vectors, x, y))
+        cam = fit_camera(cam, vectors, x, y)
+        rms = residual_rmse(cam, vectors, x, y)
+        if rms < best_rms:
+            best, best_rms = cam, rms
+    assert best is not None
+    return best
+
+
+def residual_rmse(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
+    """Per-axis RMS of the residuals, px: sqrt(mean(dx^2 + dy^2) / 2)."""
+    px, py, _ = cam.project(vectors)
+    return float(np.sqrt(np.mean((px - x) ** 2 + (py - y) ** 2) / 2.0))
+
+
+# ----------------------------------------------------------------------------- matching
+
+def match_nearest(cat_x: np.ndarray, cat_y: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float) -> np.ndarray:
+    """Greedy one-to-one nearest matching: the index of the detection per catalogue star (-1: none)."""
+    out = np.full(cat_x.size, -1)
+    if x.size == 0 or cat_x.size == 0:
+        return out
+    d = np.hypot(x[None, :] - cat_x[:, None], y[None, :] - cat_y[:, None])
+    used = np.zeros(x.size, bool)
+    for i in np.argsort(d.min(axis=1)):
+        j = int(np.argmin(np.where(used, np.inf, d[i])))
+        if d[i, j] <= radius:
+            out[i] = j
+            used[j] = True
+    return out
+
+
+def isolated(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
+    """True for points with no other point closer than ``distance``."""
+    if x.size < 2:
+        return np.ones(x.size, bool)
+    d = np.hypot(x[None, :] - x[:, None], y[None, :] - y[:, None])
+    np.fill_diagonal(d, np.inf)
+    return d.min(axis=1) >= distance
+
+
+@dataclass(frozen=True)
+class FrameComparison:
+    """Per centroider: RMSE on the common stars after its own refit, its residuals and matches."""
+
+    common: np.ndarray  # indices into the field's catalogue stars
+    rmse: dict[str, float]
+    residuals: dict[str, np.ndarray]  # (n_common, 2)
+    matched: dict[str, int]
+
+
+def compare_centroiders(cam: Camera, vectors: np.ndarray, positions: dict[str, Positions], *,
+                        radius: float, fit_distortion: bool = True) -> FrameComparison:
+    """Match the catalogue stars to every centroider, keep the stars all matched, refit each (steps 4-5)."""
+    cat_x, cat_y, _ = cam.project(vectors)
+    idx = {name: match_nearest(cat_x, cat_y, p.x, p.y, radius) for name, p in positions.items()}
+    common = np.flatnonzero(np.all([i >= 0 for i in idx.values()], axis=0)) if idx else np.zeros(0, int)
+    rmse, res = {}, {}
+    for name, p in positions.items():
+        sel = idx[name][common]
+        x, y = p.x[sel], p.y[sel]
+        if common.size >= 6:
+            fitted = fit_camera(cam, vectors[common], x, y, fit_distortion=fit_distortion)
+        else:
+            fitted = cam
+        px, py, _ = fitted.project(vectors[common])
+        res[name] = np.column_stack([x - px, y - py])
+        rmse[name] = float(np.sqrt(np.mean(res[name] ** 2))) if common.size else float("nan")
+    return FrameComparison(common, rmse, res, {n: int((i >= 0).sum()) for n, i in idx.items()})
+
+
+def field_stars(cam: Camera, catalogue: np.ndarray, shape: tuple[int, int], *, margin: float,
+                isolation: float) -> np.ndarray:
+    """Indices of catalogue rows (columns 2:5 = unit vector) inside the frame and isolated."""
+    x, y, front = cam.project(catalogue[:, 2:5])
+    rows, cols = shape
+    inside = front & (x >= margin) & (x <= cols - 1 - margin) & (y >= margin) & (y <= rows - 1 - margin)
+    near = np.flatnonzero(front & (x > -10) & (x < cols + 10) & (y > -10) & (y < rows + 10))
+    alone = isolated(x[near], y[near], isolation)
+    keep = np.zeros(x.size, bool)
+    keep[near[alone]] = True
+    return np.flatnonzero(inside & keep)
+
+
+# ----------------------------------------------------------------------------- plate solving
+
+def radec_vectors(ra_deg: np.ndarray, dec_deg: np.ndarray) -> np.ndarray:
+    ra, dec = np.radians(ra_deg), np.radians(dec_deg)
+    return np.column_stack([np.cos(ra) * np.cos(dec), np.sin(ra) * np.cos(dec), np.sin(dec)])
+
+
+def load_solver():
+    """cedar-solve's Tetra3 with its shipped database (no download)."""
+    import numpy
+
+    if not hasattr(numpy, "math"):  # cedar-solve 0.5 calls np.math.factorial, gone in NumPy 2
+        numpy.math = math
+    import tetra3
+
+    return tetra3.Tetra3()
+
+
+def solve_frame(solver, positions: Positions, shape: tuple[int, int], *, brightest: int = 50,
+                timeout_ms: int = 10000) -> Camera | None:
+    """Lost-in-space solve from the brightest centroids; the camera fitted to the solver's matches.
+
+    Solved without distortion first (fast, and the solver's distortion estimate from its coarse
+    matches can be off), with a searched distortion range when that fails. The solver's own
+    matches use a radius of 1 % of the image width and may hold mismatches: :func:`refine_camera`
+    re-matches before any comparison.
+    """
+    order = np.argsort(-positions.flux)[:brightest]
+    # the solver's pixel convention puts (0.5, 0.5) at the top-left pixel's centre, (y, x) order
+    yx = np.column_stack([positions.y[order] + 0.5, positions.x[order] + 0.5])
+    for distortion in (0.0, (-0.2, 0.1)):
+        sol = solver.solve_from_centroids(yx, size=shape, distortion=distortion, return_matches=True,
+                                          match_threshold=1e-7, solve_timeout=timeout_ms)
+        if sol.get("RA") is not None:
+            break
+    else:
+        return None
+    stars = np.asarray(sol["matched_stars"], np.float64)
+    yx_m = np.asarray(sol["matched_centroids"], np.float64)
+    focal = shape[1] / 2.0 / math.tan(math.radians(float(sol["FOV"])) / 2.0)
+    return camera_from_pairs(shape, focal, radec_vectors(stars[:, 0], stars[:, 1]), yx_m[:, 1] - 0.5,
+                             yx_m[:, 0] - 0.5)
+
+
+def refine_camera(cam: Camera, vectors: np.ndarray, magnitudes: np.ndarray, positions: Positions, *,
+                  brightest: int = 50) -> tuple[Camera, int]:
+    """Re-match catalogue stars to the positions with shrinking radii, refitting each time; (camera, matches).
+
+    The first, wide-radius rounds pair only the brightest catalogue stars with the brightest
+    detections, so that chance coincidences in a dense field cannot pull the fit.
+    """
+    bright_cat = np.argsort(magnitudes)[:brightest]
+    bright_det = np.argsort(-positions.flux)[:brightest]
+    n = 0
+    for radius, cat, det in ((8.0, bright_cat, bright_det), (4.0, bright_cat, bright_det),
+                             (2.0, slice(None), slice(None)), (2.0, slice(None), slice(None))):
+        v = vectors[cat]
+        x, y = positions.x[det], positions.y[det]
+        px, py, _ = cam.project(v)
+        idx = match_nearest(px, py, x, y, radius)
+        ok = idx >= 0
+        n = int(ok.sum())
+        if n < 6:
+            return cam, n
+        cam = fit_camera(cam, v[ok], x[idx[ok]], y[idx[ok]])
+    return cam, n
+
+
+# ----------------------------------------------------------------------------- run and report
+
+@dataclass(frozen=True)
+class FrameResult:
+    name: str
+    detections: dict[str, int]
+    field: int
+    comparison: FrameComparison | None
+    magnitudes: np.ndarray  # of the common stars
+    note: str = ""
+
+
+def run_frame(path: Path, solver, args) -> FrameResult:
+    """Steps 1-5 on one image file."""
+    image, saturation = load_grey(path)
+    gain = args.gain if args.gain is not None else 1.0
+    positions = starlog_positions(image, saturation, gain=gain, read_noise=args.read_noise,
+                                  options=args.starlog_options)
+    for threshold in SEP_THRESHOLDS:
+        positions.update(sep_positions(image, threshold))
+    detections = {name: int(p.x.size) for name, p in positions.items()}
+    reference = positions[CentroidMethod.GAUSSFIT.value]
+    cam = solve_frame(solver, reference, image.shape)
+    if cam is None:
+        return FrameResult(path.name, detections, 0, None, np.zeros(0), "not solved")
+    catalogue = solver.star_table
+    field = field_stars(cam, catalogue, image.shape, margin=args.margin, isolation=2.0 * args.match_radius)
+    cam, matched = refine_camera(cam, catalogue[field, 2:5], catalogue[field, 5], reference)
+    if matched < 10:
+        return FrameResult(path.name, detections, 0, None, np.zeros(0), f"solution not confirmed ({matched} stars)")
+    field = field_stars(cam, catalogue, image.shape, margin=args.margin, isolation=2.0 * args.match_radius)
+    comparison = compare_centroiders(cam, catalogue[field, 2:5], positions, radius=args.match_radius,
+                                     fit_distortion=not args.no_distortion)
+    return FrameResult(path.name, detections, int(field.size), comparison, catalogue[field[comparison.common], 5])
+
+
+def pooled_rmse(results: list[FrameResult], name: str) -> float:
+    res = [r.comparison.residuals[name] for r in results if r.comparison is not None and r.comparison.common.size]
+    return float(np.sqrt(np.mean(np.concatenate(res) ** 2))) if res else float("nan")
+
+
+def best_ratio(pooled: dict[str, float]) -> tuple[str, str, float]:
+    """(best starlog method, best SEP setting, ratio of their pooled RMSEs)."""
+    ours = {k: v for k, v in pooled.items() if not k.startswith("SEP")}
+    theirs = {k: v for k, v in pooled.items() if k.startswith("SEP")}
+    a = min(ours, key=ours.get)
+    b = min(theirs, key=theirs.get)
+    return a, b, ours[a] / theirs[b]
+
+
+def print_table(results: list[FrameResult], names: list[str]) -> dict[str, float]:
+    width = max(len(n) for n in names) + 2
+    print(f"{'frame':<34}{'field':>6}{'common':>7}  " + "".join(f"{n:>{width}}" for n in names))
+    for r in results:
+        if r.comparison is None:
+            print(f"{r.name[:33]:<34}{'':>6}{'':>7}  {r.note}")
+            continue
+        c = r.comparison
+        print(f"{r.name[:33]:<34}{r.field:>6}{c.common.size:>7}  " + "".join(f"{c.rmse[n]:>{width}.4f}" for n in names))
+    n_common = sum(r.comparison.common.size for r in results if r.comparison is not None)
+    pooled = {n: pooled_rmse(results, n) for n in names}
+    print(f"{'pooled RMSE px':<34}{'':>6}{n_common:>7}  " + "".join(f"{pooled[n]:>{width}.4f}" for n in names))
+    det = {n: sum(r.detections[n] for r in results) / max(len(results), 1) for n in names}
+    print(f"{'detections / frame':<34}{'':>6}{'':>7}  " + "".join(f"{det[n]:>{width}.1f}" for n in names))
+    return pooled
+
+
+def print_by_magnitude(results: list[FrameResult], names: list[str]) -> None:
+    """Pooled RMSE of the common stars per catalogue-magnitude bin."""
+    done = [r for r in results if r.comparison is not None and r.comparison.common.size]
+    if not done:
+        return
+    mags = np.concatenate([r.magnitudes for r in done])
+    width = max(len(n) for n in names) + 2
+    print(f"\n{'magnitude':<16}{'stars':>6}  " + "".join(f"{n:>{width}}" for n in names))
+    for lo, hi in zip(MAG_BINS[:-1], MAG_BINS[1:]):
+        sel = (mags >= lo) & (mags < hi)
+        if not sel.any():
+            continue
+        row = []
+        for n in names:
+            res = np.concatenate([r.comparison.residuals[n] for r in done])[sel]
+            row.append(float(np.sqrt(np.mean(res**2))))
+        print(f"{f'{lo:g} .. {hi:g}':<16}{int(sel.sum()):>6}  " + "".join(f"{v:>{width}.4f}" for v in row))
+
+
+def parse_options(pairs: list[str]) -> dict:
+    """KEY=VALUE pairs (VALUE as JSON, else a string) for extract_stars."""
+    out = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--images", type=Path, default=None, help="folder of TIFF/PNG/JPEG frames")
+    ap.add_argument("--gain", type=float, default=None, help="camera gain e-/DN (default: unknown camera, 1)")
+    ap.add_argument("--read-noise", type=float, default=None, help="read noise e- (default: from the frame)")
+    ap.add_argument("--match-radius", type=float, default=2.0, help="catalogue match radius, px")
+    ap.add_argument("--margin", type=float, default=8.0, help="catalogue stars kept this far inside the edges, px")
+    ap.add_argument("--no-distortion", action="store_true", help="refit without the radial distortion term")
+    ap.add_argument("--starlog-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra keyword option of starlog.centroid.extract_stars (JSON value), repeatable")
+    ap.add_argument("--by-mag", action="store_true", help="also print the RMSE per catalogue magnitude")
+    ap.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    args = ap.parse_args(argv)
+    args.starlog_options = parse_options(args.starlog_option)
+    args.images = args.images or default_images()
+    paths = list_images(args.images)
+    if not paths:
+        print(f"no images in {args.images}", file=sys.stderr)
+        return 2
+    solver = load_solver()
+    t0 = time.perf_counter()
+    results = [run_frame(p, solver, args) for p in paths]
+    names = list(results[0].detections)
+    print(f"# {len(paths)} frames from {args.images}; gain {args.gain if args.gain is not None else '1 (unknown)'} "
+          f"e-/DN, read noise {args.read_noise if args.read_noise is not None else 'from the frame'}; match radius "
+          f"{args.match_radius} px, margin {args.margin} px, distortion {'off' if args.no_distortion else 'k r^2'}; "
+          f"starlog options {args.starlog_options or 'defaults'}")
+    print("# RMSE px per axis on the stars matched by every centroider, camera refitted per centroider")
+    pooled = print_table(results, names)
+    best, best_sep, ratio = best_ratio(pooled)
+    print(f"\nbest starlog {best} {pooled[best]:.4f} px / best SEP {best_sep} {pooled[best_sep]:.4f} px = {ratio:.3f}")
+    if args.by_mag:
+        print_by_magnitude(results, names)
+    print(f"# {time.perf_counter() - t0:.1f} s; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    if args.json:
+        payload = {"frames": [{"name": r.name, "field": r.field, "note": r.note, "detections": r.detections,
+                               "common": int(r.comparison.common.size) if r.comparison else 0,
+                               "rmse": r.comparison.rmse if r.comparison else {}} for r in results],
+                   "pooled": pooled, "best_starlog": best, "best_sep": best_sep, "ratio": ratio}
+        args.json.write_text(json.dumps(payload, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
