@@ -203,9 +203,27 @@ def initial_rotation(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndar
     return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
 
 
+def plate_basis(x: np.ndarray, y: np.ndarray, cam: Camera, order: int) -> np.ndarray:
+    """Monomials u^i v^j, i + j <= order, of the offsets (u, v) from the image centre in half-widths."""
+    u, v = (x - cam.cx) / cam.half_width, (y - cam.cy) / cam.half_width
+    return np.column_stack([u**i * v ** (t - i) for t in range(order + 1) for i in range(t + 1)])
+
+
+def without_plate_terms(res: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Residuals (n, 2) less their least-squares polynomial field pattern (each axis)."""
+    if basis.shape[0] <= basis.shape[1]:
+        return res
+    return res - basis @ np.linalg.lstsq(basis, res, rcond=None)[0]
+
+
 def fit_camera(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray, *,
-               fit_distortion: bool = True) -> Camera:
-    """Least-squares refit of the rotation, focal length (and distortion) to observed pixels."""
+               fit_distortion: bool = True, plate_order: int = 0) -> Camera:
+    """Least-squares refit of the rotation, focal length (and distortion) to observed pixels.
+
+    With ``plate_order`` > 0 a polynomial field pattern (:func:`plate_basis` of the observed
+    positions) is fitted jointly: its coefficients are projected out of the residuals.
+    """
+    basis = plate_basis(x, y, cam, plate_order) if plate_order > 0 else None
 
     def unpack(p: np.ndarray) -> Camera:
         rot = Rotation.from_rotvec(p[:3]).as_matrix() @ cam.rotation
@@ -213,7 +231,8 @@ def fit_camera(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray, *
 
     def residuals(p: np.ndarray) -> np.ndarray:
         px, py, _ = unpack(p).project(vectors)
-        return np.concatenate([px - x, py - y])
+        res = np.column_stack([px - x, py - y])
+        return (res if basis is None else without_plate_terms(res, basis)).ravel()
 
     start = np.array([0.0, 0.0, 0.0, 0.0, cam.k])
     fit = least_squares(residuals if fit_distortion else (lambda p: residuals(np.append(p, cam.k))),
@@ -273,14 +292,19 @@ class FrameComparison:
     """Per centroider: RMSE on the common stars after its own refit, its residuals and matches."""
 
     common: np.ndarray  # indices into the field's catalogue stars
+    xy: np.ndarray  # (n_common, 2) catalogue positions of the common stars under the solved camera, px
     rmse: dict[str, float]
     residuals: dict[str, np.ndarray]  # (n_common, 2)
     matched: dict[str, int]
 
 
 def compare_centroiders(cam: Camera, vectors: np.ndarray, positions: dict[str, Positions], *,
-                        radius: float, fit_distortion: bool = True) -> FrameComparison:
-    """Match the catalogue stars to every centroider, keep the stars all matched, refit each (steps 4-5)."""
+                        radius: float, fit_distortion: bool = True, plate_order: int = 0) -> FrameComparison:
+    """Match the catalogue stars to every centroider, keep the stars all matched, refit each (steps 4-5).
+
+    ``plate_order`` > 0 also fits, per centroider, a polynomial field pattern of that order in
+    (x, y) with the camera (plate constants: differential refraction, tilt, any smooth pattern).
+    """
     cat_x, cat_y, _ = cam.project(vectors)
     idx = {name: match_nearest(cat_x, cat_y, p.x, p.y, radius) for name, p in positions.items()}
     common = np.flatnonzero(np.all([i >= 0 for i in idx.values()], axis=0)) if idx else np.zeros(0, int)
@@ -289,13 +313,16 @@ def compare_centroiders(cam: Camera, vectors: np.ndarray, positions: dict[str, P
         sel = idx[name][common]
         x, y = p.x[sel], p.y[sel]
         if common.size >= 6:
-            fitted = fit_camera(cam, vectors[common], x, y, fit_distortion=fit_distortion)
+            fitted = fit_camera(cam, vectors[common], x, y, fit_distortion=fit_distortion, plate_order=plate_order)
         else:
             fitted = cam
         px, py, _ = fitted.project(vectors[common])
         res[name] = np.column_stack([x - px, y - py])
+        if plate_order > 0:
+            res[name] = without_plate_terms(res[name], plate_basis(x, y, cam, plate_order))
         rmse[name] = float(np.sqrt(np.mean(res[name] ** 2))) if common.size else float("nan")
-    return FrameComparison(common, rmse, res, {n: int((i >= 0).sum()) for n, i in idx.items()})
+    xy = np.column_stack([cat_x[common], cat_y[common]])
+    return FrameComparison(common, xy, rmse, res, {n: int((i >= 0).sum()) for n, i in idx.items()})
 
 
 def field_stars(cam: Camera, catalogue: np.ndarray, shape: tuple[int, int], *, margin: float,
@@ -399,8 +426,10 @@ def run_frame(path: Path, solver, args) -> FrameResult:
                                   options=args.starlog_options)
     for threshold in SEP_THRESHOLDS:
         positions.update(sep_positions(image, threshold))
-    detections = {name: int(p.x.size) for name, p in positions.items()}
     reference = positions[CentroidMethod.GAUSSFIT.value]
+    if args.only:
+        positions = {k: v for k, v in positions.items() if k in args.only}
+    detections = {name: int(p.x.size) for name, p in positions.items()}
     cam = solve_frame(solver, reference, image.shape)
     if cam is None:
         return FrameResult(path.name, detections, 0, None, np.zeros(0), "not solved")
@@ -411,7 +440,7 @@ def run_frame(path: Path, solver, args) -> FrameResult:
         return FrameResult(path.name, detections, 0, None, np.zeros(0), f"solution not confirmed ({matched} stars)")
     field = field_stars(cam, catalogue, image.shape, margin=args.margin, isolation=2.0 * args.match_radius)
     comparison = compare_centroiders(cam, catalogue[field, 2:5], positions, radius=args.match_radius,
-                                     fit_distortion=not args.no_distortion)
+                                     fit_distortion=not args.no_distortion, plate_order=args.plate_order)
     return FrameResult(path.name, detections, int(field.size), comparison, catalogue[field[comparison.common], 5])
 
 
@@ -443,7 +472,27 @@ def print_table(results: list[FrameResult], names: list[str]) -> dict[str, float
     print(f"{'pooled RMSE px':<34}{'':>6}{n_common:>7}  " + "".join(f"{pooled[n]:>{width}.4f}" for n in names))
     det = {n: sum(r.detections[n] for r in results) / max(len(results), 1) for n in names}
     print(f"{'detections / frame':<34}{'':>6}{'':>7}  " + "".join(f"{det[n]:>{width}.1f}" for n in names))
+    solved = [r for r in results if r.comparison is not None]
+    n_field = sum(r.field for r in solved)
+    matched = {n: sum(r.comparison.matched[n] for r in solved) / max(n_field, 1) for n in names}
+    print(f"{'catalogue stars matched':<34}{n_field:>6}{'':>7}  " + "".join(f"{matched[n]:>{width}.3f}" for n in names))
     return pooled
+
+
+def bootstrap_ratio(results: list[FrameResult], best: str, best_sep: str, *, draws: int = 2000,
+                    seed: int = 1) -> tuple[float, float]:
+    """95 % interval of the pooled-RMSE ratio, resampling the common stars (the refits held fixed)."""
+    done = [r.comparison for r in results if r.comparison is not None and r.comparison.common.size]
+    if not done:
+        return float("nan"), float("nan")
+    a = np.concatenate([c.residuals[best] for c in done])
+    b = np.concatenate([c.residuals[best_sep] for c in done])
+    sa, sb = (a**2).sum(axis=1), (b**2).sum(axis=1)
+    rng = np.random.default_rng(seed)
+    pick = rng.integers(0, sa.size, (draws, sa.size))
+    ratios = np.sqrt(sa[pick].sum(axis=1) / sb[pick].sum(axis=1))
+    lo, hi = np.percentile(ratios, [2.5, 97.5])
+    return float(lo), float(hi)
 
 
 def print_by_magnitude(results: list[FrameResult], names: list[str]) -> None:
@@ -487,6 +536,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-distortion", action="store_true", help="refit without the radial distortion term")
     ap.add_argument("--starlog-option", action="append", default=[], metavar="KEY=VALUE",
                     help="extra keyword option of starlog.centroid.extract_stars (JSON value), repeatable")
+    ap.add_argument("--plate-order", type=int, default=0,
+                    help="also remove a polynomial field pattern of this order per centroider (investigation)")
+    ap.add_argument("--only", nargs="+", default=None, metavar="NAME",
+                    help="compare only these centroiders (names as in the table's header)")
     ap.add_argument("--by-mag", action="store_true", help="also print the RMSE per catalogue magnitude")
     ap.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
     args = ap.parse_args(argv)
@@ -502,12 +555,15 @@ def main(argv: list[str] | None = None) -> int:
     names = list(results[0].detections)
     print(f"# {len(paths)} frames from {args.images}; gain {args.gain if args.gain is not None else '1 (unknown)'} "
           f"e-/DN, read noise {args.read_noise if args.read_noise is not None else 'from the frame'}; match radius "
-          f"{args.match_radius} px, margin {args.margin} px, distortion {'off' if args.no_distortion else 'k r^2'}; "
+          f"{args.match_radius} px, margin {args.margin} px, distortion {'off' if args.no_distortion else 'k r^2'}, "
+          f"plate terms of order {args.plate_order}; "
           f"starlog options {args.starlog_options or 'defaults'}")
     print("# RMSE px per axis on the stars matched by every centroider, camera refitted per centroider")
     pooled = print_table(results, names)
     best, best_sep, ratio = best_ratio(pooled)
-    print(f"\nbest starlog {best} {pooled[best]:.4f} px / best SEP {best_sep} {pooled[best_sep]:.4f} px = {ratio:.3f}")
+    lo, hi = bootstrap_ratio(results, best, best_sep)
+    print(f"\nbest starlog {best} {pooled[best]:.4f} px / best SEP {best_sep} {pooled[best_sep]:.4f} px = {ratio:.3f} "
+          f"(95 % bootstrap over stars {lo:.3f} .. {hi:.3f})")
     if args.by_mag:
         print_by_magnitude(results, names)
     print(f"# {time.perf_counter() - t0:.1f} s; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
@@ -515,7 +571,8 @@ def main(argv: list[str] | None = None) -> int:
         payload = {"frames": [{"name": r.name, "field": r.field, "note": r.note, "detections": r.detections,
                                "common": int(r.comparison.common.size) if r.comparison else 0,
                                "rmse": r.comparison.rmse if r.comparison else {}} for r in results],
-                   "pooled": pooled, "best_starlog": best, "best_sep": best_sep, "ratio": ratio}
+                   "pooled": pooled, "best_starlog": best, "best_sep": best_sep, "ratio": ratio,
+                   "ratio_95": [lo, hi]}
         args.json.write_text(json.dumps(payload, indent=2))
     return 0
 
