@@ -172,3 +172,22 @@ def test_plate_solve_of_a_projected_catalogue_gives_zero_residual(bench):
     comp = bench.compare_centroiders(refined, vec, {"exact": stars}, radius=2.0)
     assert comp.common.size == field.size
     assert comp.rmse["exact"] < 1e-5
+
+
+def test_gain_from_the_background_photon_transfer_of_a_vignetted_frame(bench):
+    rng = np.random.default_rng(2)
+    rows, cols = SHAPE
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    r2 = ((xx - cols / 2) ** 2 + (yy - rows / 2) ** 2) / (cols / 2) ** 2
+    sky_e = 600.0 * (1.0 - 0.45 * r2)  # electrons, vignetted
+    gain = 0.25  # e-/DN
+    frame = (rng.poisson(sky_e) + rng.normal(0, 3.0, SHAPE)) / gain + 500.0  # read noise 3 e-, pedestal 500 DN
+    assert bench.estimate_gain(frame) == pytest.approx(gain, rel=0.05)
+
+
+def test_gain_is_unknown_on_a_flat_background(bench):
+    rng = np.random.default_rng(4)
+    frame = rng.poisson(400.0, SHAPE).astype(np.float64)
+    assert bench.estimate_gain(frame) is None
+    assert bench.frame_gain(frame, "auto") == 1.0
+    assert bench.frame_gain(frame, "0.5") == 0.5

@@ -115,15 +115,56 @@ def list_images(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
 
+def estimate_gain(image: np.ndarray, *, cell: int = 32, min_span: float = 1.2, max_error: float = 0.1) -> float | None:
+    """Gain (e-/DN) from the frame's own photon transfer: background variance against level over cells.
+
+    Each ``cell`` x ``cell`` block gives its median level and its noise variance (from the MAD of
+    horizontal neighbour differences, blind to smooth gradients and to most stars). Shot noise
+    makes ``variance = const + level / gain`` whatever the pedestal and read noise; the slope is
+    fitted with 3-sigma clipping. None when the levels span less than ``min_span`` (max/min, 2nd to
+    98th percentile: no lever arm) or the slope's relative error exceeds ``max_error``.
+    """
+    a = np.asarray(image, np.float64)
+    rows, cols = (a.shape[0] // cell) * cell, (a.shape[1] // cell) * cell
+    if rows == 0 or cols < 2 * cell:
+        return None
+    blocks = a[:rows, :cols].reshape(rows // cell, cell, cols // cell, cell).swapaxes(1, 2)
+    blocks = blocks.reshape(-1, cell, cell)
+    level = np.median(blocks.reshape(blocks.shape[0], -1), axis=1)
+    diff = np.diff(blocks, axis=2).reshape(blocks.shape[0], -1)
+    mad = np.median(np.abs(diff - np.median(diff, axis=1)[:, None]), axis=1)
+    var = (1.4826 * mad) ** 2 / 2.0
+    lo, hi = np.percentile(level, [2, 98])
+    if not (lo > 0 and hi / lo >= min_span):
+        return None
+    keep = (level >= lo) & (level <= hi)
+    for _ in range(5):
+        design = np.column_stack([np.ones(keep.sum()), level[keep]])
+        coef, *_ = np.linalg.lstsq(design, var[keep], rcond=None)
+        resid = var - (coef[0] + coef[1] * level)
+        scale = 1.4826 * np.median(np.abs(resid[keep]))
+        keep = (level >= lo) & (level <= hi) & (np.abs(resid) <= 3.0 * scale)
+    design = np.column_stack([np.ones(keep.sum()), level[keep]])
+    coef, res, *_ = np.linalg.lstsq(design, var[keep], rcond=None)
+    dof = max(int(keep.sum()) - 2, 1)
+    cov = np.linalg.inv(design.T @ design) * (float(res[0]) / dof if res.size else 0.0)
+    slope, err = float(coef[1]), float(np.sqrt(max(cov[1, 1], 0.0)))
+    if not (slope > 0 and err / slope <= max_error):
+        return None
+    return 1.0 / slope
+
+
 # ----------------------------------------------------------------------------- centroiders
 
 @dataclass(frozen=True)
 class Positions:
-    """One centroider's stars in a frame: x, y (px, 0-based, pixel-centre origin) and flux (any unit)."""
+    """One centroider's stars in a frame: x, y (px, 0-based, pixel-centre origin), flux (any unit), and
+    for starlog the SNR of unsaturated stars (0 for saturated ones)."""
 
     x: np.ndarray
     y: np.ndarray
     flux: np.ndarray
+    snr: np.ndarray | None = None
 
 
 def starlog_positions(image: np.ndarray, saturation: float, *, gain: float, read_noise: float | None,
@@ -135,7 +176,8 @@ def starlog_positions(image: np.ndarray, saturation: float, *, gain: float, read
     out = {}
     for method, c in centroids.items():
         keep = ((c["flags"] & int(CentroidFlag.FIT_FAILED)) == 0) & np.isfinite(c["x"]) & np.isfinite(c["y"])
-        out[method.value] = Positions(c["x"][keep], c["y"][keep], c["flux"][keep])
+        snr = np.where((c["flags"] & int(CentroidFlag.SATURATED)) == 0, c["snr"], 0.0)
+        out[method.value] = Positions(c["x"][keep], c["y"][keep], c["flux"][keep], snr[keep])
     return out
 
 
@@ -416,32 +458,92 @@ class FrameResult:
     comparison: FrameComparison | None
     magnitudes: np.ndarray  # of the common stars
     note: str = ""
+    gain: float = float("nan")  # e-/DN used for starlog
 
 
-def run_frame(path: Path, solver, args) -> FrameResult:
-    """Steps 1-5 on one image file."""
+def frame_gain(image: np.ndarray, choice: str) -> float:
+    """``--gain``: a number (e-/DN), or "auto": :func:`estimate_gain`, 1 e-/DN when it cannot tell."""
+    if choice != "auto":
+        return float(choice)
+    gain = estimate_gain(image)
+    return 1.0 if gain is None else gain
+
+
+@dataclass(frozen=True)
+class MeasuredFrame:
+    name: str
+    shape: tuple[int, int]
+    gain: float
+    positions: dict[str, Positions]
+
+
+def measure_frame(path: Path, args) -> MeasuredFrame:
+    """Steps 1-2 on one image file: every centroider's positions."""
     image, saturation = load_grey(path)
-    gain = args.gain if args.gain is not None else 1.0
+    gain = frame_gain(image, args.gain)
     positions = starlog_positions(image, saturation, gain=gain, read_noise=args.read_noise,
                                   options=args.starlog_options)
     for threshold in SEP_THRESHOLDS:
         positions.update(sep_positions(image, threshold))
+    return MeasuredFrame(path.name, image.shape, gain, positions)
+
+
+def phase_equalised(frames: list[MeasuredFrame], *, min_snr: float = 30.0) -> list[MeasuredFrame]:
+    """Investigation: every centroider also with its pixel-phase bias removed by phase-histogram equalisation.
+
+    True sub-pixel phases of stars are uniform; a centroider biased towards (or away from) pixel
+    centres bunches its measured phases. The empirical distribution F of one centroider's measured
+    phases (x and y pooled, bright stars, all frames) maps each of its measured phases ``p`` to
+    ``F(p) - 1/2``. Bright: starlog's unsaturated stars with SNR >= ``min_snr``; for SEP, as many of
+    its brightest stars per frame as GAUSSFIT has bright ones. No catalogue is used: a
+    self-calibration, like the per-log PSF width.
+    """
+    names = [n for n in frames[0].positions if not n.endswith("+eq")]
+    maps = {}
+    for n in names:
+        phases = []
+        for f in frames:
+            p = f.positions[n]
+            if p.snr is not None:
+                bright = p.snr >= min_snr
+            else:
+                count = int((f.positions[CentroidMethod.GAUSSFIT.value].snr >= min_snr).sum())
+                bright = np.argsort(-p.flux)[:count]
+            phases += [p.x[bright] - np.rint(p.x[bright]), p.y[bright] - np.rint(p.y[bright])]
+        maps[n] = np.sort(np.concatenate(phases))
+
+    def equalise(v: np.ndarray, table: np.ndarray) -> np.ndarray:
+        return np.rint(v) + np.searchsorted(table, v - np.rint(v)) / table.size - 0.5
+
+    out = []
+    for f in frames:
+        extra = {f"{n}+eq": replace(f.positions[n], x=equalise(f.positions[n].x, maps[n]),
+                                    y=equalise(f.positions[n].y, maps[n])) for n in names if maps[n].size >= 50}
+        out.append(replace(f, positions={**f.positions, **extra}))
+    return out
+
+
+def compare_frame(frame: MeasuredFrame, solver, args) -> FrameResult:
+    """Steps 3-5 on one measured frame."""
+    positions = frame.positions
     reference = positions[CentroidMethod.GAUSSFIT.value]
     if args.only:
         positions = {k: v for k, v in positions.items() if k in args.only}
     detections = {name: int(p.x.size) for name, p in positions.items()}
-    cam = solve_frame(solver, reference, image.shape)
+    cam = solve_frame(solver, reference, frame.shape)
     if cam is None:
-        return FrameResult(path.name, detections, 0, None, np.zeros(0), "not solved")
+        return FrameResult(frame.name, detections, 0, None, np.zeros(0), "not solved", frame.gain)
     catalogue = solver.star_table
-    field = field_stars(cam, catalogue, image.shape, margin=args.margin, isolation=2.0 * args.match_radius)
+    field = field_stars(cam, catalogue, frame.shape, margin=args.margin, isolation=2.0 * args.match_radius)
     cam, matched = refine_camera(cam, catalogue[field, 2:5], catalogue[field, 5], reference)
     if matched < 10:
-        return FrameResult(path.name, detections, 0, None, np.zeros(0), f"solution not confirmed ({matched} stars)")
-    field = field_stars(cam, catalogue, image.shape, margin=args.margin, isolation=2.0 * args.match_radius)
+        return FrameResult(frame.name, detections, 0, None, np.zeros(0), f"solution not confirmed ({matched} stars)",
+                           frame.gain)
+    field = field_stars(cam, catalogue, frame.shape, margin=args.margin, isolation=2.0 * args.match_radius)
     comparison = compare_centroiders(cam, catalogue[field, 2:5], positions, radius=args.match_radius,
                                      fit_distortion=not args.no_distortion, plate_order=args.plate_order)
-    return FrameResult(path.name, detections, int(field.size), comparison, catalogue[field[comparison.common], 5])
+    return FrameResult(frame.name, detections, int(field.size), comparison, catalogue[field[comparison.common], 5],
+                       gain=frame.gain)
 
 
 def pooled_rmse(results: list[FrameResult], name: str) -> float:
@@ -451,8 +553,8 @@ def pooled_rmse(results: list[FrameResult], name: str) -> float:
 
 def best_ratio(pooled: dict[str, float]) -> tuple[str, str, float]:
     """(best starlog method, best SEP setting, ratio of their pooled RMSEs)."""
-    ours = {k: v for k, v in pooled.items() if not k.startswith("SEP")}
-    theirs = {k: v for k, v in pooled.items() if k.startswith("SEP")}
+    ours = {k: v for k, v in pooled.items() if not k.startswith("SEP") and not k.endswith("+eq")}
+    theirs = {k: v for k, v in pooled.items() if k.startswith("SEP") and not k.endswith("+eq")}
     a = min(ours, key=ours.get)
     b = min(theirs, key=theirs.get)
     return a, b, ours[a] / theirs[b]
@@ -460,22 +562,24 @@ def best_ratio(pooled: dict[str, float]) -> tuple[str, str, float]:
 
 def print_table(results: list[FrameResult], names: list[str]) -> dict[str, float]:
     width = max(len(n) for n in names) + 2
-    print(f"{'frame':<34}{'field':>6}{'common':>7}  " + "".join(f"{n:>{width}}" for n in names))
+    print(f"{'frame':<34}{'gain':>6}{'field':>6}{'common':>7}  " + "".join(f"{n:>{width}}" for n in names))
     for r in results:
         if r.comparison is None:
-            print(f"{r.name[:33]:<34}{'':>6}{'':>7}  {r.note}")
+            print(f"{r.name[:33]:<34}{r.gain:>6.3f}{'':>6}{'':>7}  {r.note}")
             continue
         c = r.comparison
-        print(f"{r.name[:33]:<34}{r.field:>6}{c.common.size:>7}  " + "".join(f"{c.rmse[n]:>{width}.4f}" for n in names))
+        print(f"{r.name[:33]:<34}{r.gain:>6.3f}{r.field:>6}{c.common.size:>7}  "
+              + "".join(f"{c.rmse[n]:>{width}.4f}" for n in names))
     n_common = sum(r.comparison.common.size for r in results if r.comparison is not None)
     pooled = {n: pooled_rmse(results, n) for n in names}
-    print(f"{'pooled RMSE px':<34}{'':>6}{n_common:>7}  " + "".join(f"{pooled[n]:>{width}.4f}" for n in names))
+    print(f"{'pooled RMSE px':<40}{'':>6}{n_common:>7}  " + "".join(f"{pooled[n]:>{width}.4f}" for n in names))
     det = {n: sum(r.detections[n] for r in results) / max(len(results), 1) for n in names}
-    print(f"{'detections / frame':<34}{'':>6}{'':>7}  " + "".join(f"{det[n]:>{width}.1f}" for n in names))
+    print(f"{'detections / frame':<40}{'':>6}{'':>7}  " + "".join(f"{det[n]:>{width}.1f}" for n in names))
     solved = [r for r in results if r.comparison is not None]
     n_field = sum(r.field for r in solved)
     matched = {n: sum(r.comparison.matched[n] for r in solved) / max(n_field, 1) for n in names}
-    print(f"{'catalogue stars matched':<34}{n_field:>6}{'':>7}  " + "".join(f"{matched[n]:>{width}.3f}" for n in names))
+    print(f"{'catalogue stars matched (fraction)':<40}{n_field:>6}{'':>7}  "
+          + "".join(f"{matched[n]:>{width}.3f}" for n in names))
     return pooled
 
 
@@ -529,7 +633,9 @@ def parse_options(pairs: list[str]) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--images", type=Path, default=None, help="folder of TIFF/PNG/JPEG frames")
-    ap.add_argument("--gain", type=float, default=None, help="camera gain e-/DN (default: unknown camera, 1)")
+    ap.add_argument("--gain", default="auto",
+                    help="camera gain e-/DN, or 'auto' (default): from each frame's background photon transfer, "
+                         "1 when that cannot tell")
     ap.add_argument("--read-noise", type=float, default=None, help="read noise e- (default: from the frame)")
     ap.add_argument("--match-radius", type=float, default=2.0, help="catalogue match radius, px")
     ap.add_argument("--margin", type=float, default=8.0, help="catalogue stars kept this far inside the edges, px")
@@ -538,6 +644,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="extra keyword option of starlog.centroid.extract_stars (JSON value), repeatable")
     ap.add_argument("--plate-order", type=int, default=0,
                     help="also remove a polynomial field pattern of this order per centroider (investigation)")
+    ap.add_argument("--phase-equalise", action="store_true",
+                    help="also every starlog method with its pixel-phase bias self-calibrated (investigation)")
     ap.add_argument("--only", nargs="+", default=None, metavar="NAME",
                     help="compare only these centroiders (names as in the table's header)")
     ap.add_argument("--by-mag", action="store_true", help="also print the RMSE per catalogue magnitude")
@@ -551,10 +659,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     solver = load_solver()
     t0 = time.perf_counter()
-    results = [run_frame(p, solver, args) for p in paths]
+    frames = [measure_frame(p, args) for p in paths]
+    if args.phase_equalise:
+        frames = phase_equalised(frames)
+    results = [compare_frame(f, solver, args) for f in frames]
     names = list(results[0].detections)
-    print(f"# {len(paths)} frames from {args.images}; gain {args.gain if args.gain is not None else '1 (unknown)'} "
-          f"e-/DN, read noise {args.read_noise if args.read_noise is not None else 'from the frame'}; match radius "
+    print(f"# {len(paths)} frames from {args.images}; gain {args.gain} e-/DN, read noise {args.read_noise if args.read_noise is not None else 'from the frame'}; match radius "
           f"{args.match_radius} px, margin {args.margin} px, distortion {'off' if args.no_distortion else 'k r^2'}, "
           f"plate terms of order {args.plate_order}; "
           f"starlog options {args.starlog_options or 'defaults'}")
@@ -564,11 +674,18 @@ def main(argv: list[str] | None = None) -> int:
     lo, hi = bootstrap_ratio(results, best, best_sep)
     print(f"\nbest starlog {best} {pooled[best]:.4f} px / best SEP {best_sep} {pooled[best_sep]:.4f} px = {ratio:.3f} "
           f"(95 % bootstrap over stars {lo:.3f} .. {hi:.3f})")
+    equalised = {k[:-3]: v for k, v in pooled.items() if k.endswith("+eq")}
+    if equalised:
+        eq, eq_sep, eq_ratio = best_ratio(equalised)
+        print(f"investigation, both phase-equalised: best starlog {eq}+eq {equalised[eq]:.4f} px / best SEP "
+              f"{eq_sep}+eq {equalised[eq_sep]:.4f} px = {eq_ratio:.3f}; against SEP as it is: "
+              f"{equalised[eq] / pooled[best_sep]:.3f}")
     if args.by_mag:
         print_by_magnitude(results, names)
     print(f"# {time.perf_counter() - t0:.1f} s; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     if args.json:
         payload = {"frames": [{"name": r.name, "field": r.field, "note": r.note, "detections": r.detections,
+                               "gain": r.gain,
                                "common": int(r.comparison.common.size) if r.comparison else 0,
                                "rmse": r.comparison.rmse if r.comparison else {}} for r in results],
                    "pooled": pooled, "best_starlog": best, "best_sep": best_sep, "ratio": ratio,
