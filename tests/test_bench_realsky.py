@@ -191,3 +191,24 @@ def test_gain_is_unknown_on_a_flat_background(bench):
     assert bench.estimate_gain(frame) is None
     assert bench.frame_gain(frame, "auto") == 1.0
     assert bench.frame_gain(frame, "0.5") == 0.5
+
+
+def test_phase_equalisation_removes_a_pixel_phase_bias_without_the_truth(bench):
+    rng = np.random.default_rng(9)
+    frames, truth = [], []
+    for _ in range(3):
+        tx, ty = rng.uniform(20, 1000, 400), rng.uniform(20, 740, 400)
+
+        def pulled(v):  # biased towards pixel centres, as an undersampled star's centroid is
+            p = v - np.rint(v)
+            return np.rint(v) + p - 0.06 * np.sin(2 * np.pi * p)
+
+        star = bench.Positions(pulled(tx), pulled(ty), np.ones(400), np.full(400, 100.0))
+        frames.append(bench.MeasuredFrame("f", SHAPE, 1.0, {"GAUSSFIT": star}))
+        truth.append((tx, ty))
+    out = bench.phase_equalised(frames)
+    for f, (tx, ty) in zip(out, truth):
+        before = f.positions["GAUSSFIT"].x - tx
+        after = f.positions["GAUSSFIT+eq"].x - tx
+        assert np.sqrt(np.mean(before**2)) > 0.04
+        assert np.sqrt(np.mean(after**2)) < 0.01

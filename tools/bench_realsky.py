@@ -259,13 +259,8 @@ def without_plate_terms(res: np.ndarray, basis: np.ndarray) -> np.ndarray:
 
 
 def fit_camera(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray, *,
-               fit_distortion: bool = True, plate_order: int = 0) -> Camera:
-    """Least-squares refit of the rotation, focal length (and distortion) to observed pixels.
-
-    With ``plate_order`` > 0 a polynomial field pattern (:func:`plate_basis` of the observed
-    positions) is fitted jointly: its coefficients are projected out of the residuals.
-    """
-    basis = plate_basis(x, y, cam, plate_order) if plate_order > 0 else None
+               fit_distortion: bool = True) -> Camera:
+    """Least-squares refit of the rotation, focal length (and distortion) to observed pixels."""
 
     def unpack(p: np.ndarray) -> Camera:
         rot = Rotation.from_rotvec(p[:3]).as_matrix() @ cam.rotation
@@ -273,8 +268,7 @@ def fit_camera(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray, *
 
     def residuals(p: np.ndarray) -> np.ndarray:
         px, py, _ = unpack(p).project(vectors)
-        res = np.column_stack([px - x, py - y])
-        return (res if basis is None else without_plate_terms(res, basis)).ravel()
+        return np.concatenate([px - x, py - y])
 
     start = np.array([0.0, 0.0, 0.0, 0.0, cam.k])
     fit = least_squares(residuals if fit_distortion else (lambda p: residuals(np.append(p, cam.k))),
@@ -344,8 +338,10 @@ def compare_centroiders(cam: Camera, vectors: np.ndarray, positions: dict[str, P
                         radius: float, fit_distortion: bool = True, plate_order: int = 0) -> FrameComparison:
     """Match the catalogue stars to every centroider, keep the stars all matched, refit each (steps 4-5).
 
-    ``plate_order`` > 0 also fits, per centroider, a polynomial field pattern of that order in
-    (x, y) with the camera (plate constants: differential refraction, tilt, any smooth pattern).
+    ``plate_order`` > 0 instead keeps the solved camera and fits, per centroider, a polynomial
+    field pattern of that order in (x, y) to its residuals (plate constants: its linear terms
+    take the place of the pointing, roll and scale refit; the rest absorbs differential
+    refraction, tilt, any smooth pattern).
     """
     cat_x, cat_y, _ = cam.project(vectors)
     idx = {name: match_nearest(cat_x, cat_y, p.x, p.y, radius) for name, p in positions.items()}
@@ -354,8 +350,8 @@ def compare_centroiders(cam: Camera, vectors: np.ndarray, positions: dict[str, P
     for name, p in positions.items():
         sel = idx[name][common]
         x, y = p.x[sel], p.y[sel]
-        if common.size >= 6:
-            fitted = fit_camera(cam, vectors[common], x, y, fit_distortion=fit_distortion, plate_order=plate_order)
+        if common.size >= 6 and plate_order == 0:
+            fitted = fit_camera(cam, vectors[common], x, y, fit_distortion=fit_distortion)
         else:
             fitted = cam
         px, py, _ = fitted.project(vectors[common])
