@@ -6,20 +6,25 @@ needs no network).
 
 Protocol, per frame:
 
-1. The image is read as a grey array: TIFF/FITS-free 16/8-bit greyscale as it is; a colour
-   JPEG/PNG as the plain sum of its colour channels (every channel's photons count; no colour
+1. The image is read as a grey array: a grey TIFF/PNG/JPEG as it is (8 or 16 bit); a colour
+   one as the plain sum of its colour channels (every channel's photons count; no colour
    weighting, no tone curve undone: the camera's is unknown), a pixel saturated when any of
    its channels is at the file's maximum.
 2. Centroids: starlog's detection and every method of ``starlog.centroid.CentroidMethod``
-   (``starlog.centroid.extract_stars``, the library call of the centroid stage, with the
-   stage's defaults for an unknown camera: gain 1 e-/DN, read noise from the frame's measured
-   background noise, the PSF width estimated from the frame); SEP ``sep.extract`` (isophotal
-   barycentre) and ``sep.winpos`` (sig = 2/2.35 x half-flux radius) at detection thresholds
-   of 1.5 and 5 times the global background RMS.
-3. Plate solve once (lost in space, no field-of-view hint) from starlog's GAUSSFIT centroids,
-   brightest first; the solver's matched stars give a first camera: pinhole, principal point at
-   the image centre, pointing + roll (a rotation), focal length and one radial distortion term
-   ``x_d = x_u (1 + k r^2)``, r in units of the half-width (the solver fits one such term too).
+   (``starlog.centroid.extract_stars``, the library call of the centroid stage; read noise from
+   the frame's measured background noise, the PSF width estimated from the frame). The gain of
+   an unknown camera is measured, not assumed (``--gain auto``, :func:`estimate_gain`): the
+   background's noise variance against its level over the frame (vignetting, sky gradient) has
+   slope 1/gain whatever the pedestal and read noise; 1 e-/DN, the stage's default, when the
+   levels span too little or the relation is not linear (tone-mapped JPEGs). SEP:
+   ``sep.extract`` (isophotal barycentre) and ``sep.winpos`` (sig = 2/2.35 x half-flux radius)
+   at detection thresholds of 1.5 and 5 times the global background RMS.
+3. Plate solve once (lost in space, no field-of-view hint) from starlog's 50 brightest GAUSSFIT
+   centroids. The solver's matched stars give a first camera: pinhole, principal point at the
+   image centre, pointing + roll (a rotation), focal length and one radial distortion term
+   ``x_d = x_u (1 + k r^2)``, r in units of the half-width (the solver fits one such term
+   too); it is refined by re-matching the catalogue to the same centroids with shrinking radii
+   (8, 4, 2 px; the brightest stars first), and a frame with fewer than 10 matches is left out.
 4. Every catalogue star (database, magnitude <= ~8) projected into the frame at least
    ``--margin`` px inside the edges, with no other catalogue star within twice the match
    radius, is matched one-to-one to each centroider's nearest detection within
@@ -28,9 +33,14 @@ Protocol, per frame:
    focal length, distortion) is refitted to each centroider's positions of the common stars
    separately (least squares), and the residual RMSE (per axis, px: sqrt(mean(dx^2 + dy^2)/2))
    is that centroider's figure for the frame. Pooled: all frames' residuals together.
-6. The ratio best starlog method / best SEP setting is computed on the pooled RMSEs.
+6. The ratio best starlog method / best SEP setting is computed on the pooled RMSEs, with a
+   95 % bootstrap interval over the common stars.
 
-A per-magnitude table (``--by-mag``) shows where the centroiders differ.
+Investigation options (none changes the figures above unless given): ``--by-mag`` (RMSE per
+catalogue magnitude), ``--only NAME ...`` (compare fewer centroiders: a larger common set),
+``--plate-order N`` (a polynomial field pattern fitted instead of the camera refit),
+``--phase-equalise`` (each centroider also with its pixel-phase bias self-calibrated),
+``--gain`` / ``--starlog-option KEY=VALUE`` (other settings of starlog).
 
 Run: python tools/bench_realsky.py [--images DIR] [--json OUT] [--by-mag]
 (default images: ../shared/data/real-sky/ relative to the repository's root, read in place)
@@ -626,7 +636,7 @@ def parse_options(pairs: list[str]) -> dict:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--images", type=Path, default=None, help="folder of TIFF/PNG/JPEG frames")
     ap.add_argument("--gain", default="auto",
@@ -639,9 +649,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--starlog-option", action="append", default=[], metavar="KEY=VALUE",
                     help="extra keyword option of starlog.centroid.extract_stars (JSON value), repeatable")
     ap.add_argument("--plate-order", type=int, default=0,
-                    help="also remove a polynomial field pattern of this order per centroider (investigation)")
+                    help="fit a polynomial field pattern of this order instead of the camera refit (investigation)")
     ap.add_argument("--phase-equalise", action="store_true",
-                    help="also every starlog method with its pixel-phase bias self-calibrated (investigation)")
+                    help="also every centroider with its pixel-phase bias self-calibrated (investigation)")
     ap.add_argument("--only", nargs="+", default=None, metavar="NAME",
                     help="compare only these centroiders (names as in the table's header)")
     ap.add_argument("--by-mag", action="store_true", help="also print the RMSE per catalogue magnitude")
@@ -649,6 +659,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     args.starlog_options = parse_options(args.starlog_option)
     args.images = args.images or default_images()
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     paths = list_images(args.images)
     if not paths:
         print(f"no images in {args.images}", file=sys.stderr)
