@@ -624,6 +624,18 @@ def print_by_magnitude(results: list[FrameResult], names: list[str]) -> None:
         print(f"{f'{lo:g} .. {hi:g}':<16}{int(sel.sum()):>6}  " + "".join(f"{v:>{width}.4f}" for v in row))
 
 
+def frame_record(r: FrameResult) -> dict:
+    """A frame's figures for ``--json``, with every common star: catalogue x, y, magnitude, residuals (dx, dy)."""
+    c = r.comparison
+    stars = [] if c is None else [
+        {"x": float(c.xy[i, 0]), "y": float(c.xy[i, 1]), "mag": float(r.magnitudes[i]),
+         "residual": {n: [float(v) for v in res[i]] for n, res in c.residuals.items()}}
+        for i in range(c.common.size)]
+    return {"name": r.name, "gain": r.gain, "field": r.field, "note": r.note, "detections": r.detections,
+            "matched": c.matched if c else {}, "common": int(c.common.size) if c else 0,
+            "rmse": c.rmse if c else {}, "stars": stars}
+
+
 def parse_options(pairs: list[str]) -> dict:
     """KEY=VALUE pairs (VALUE as JSON, else a string) for extract_stars."""
     out = {}
@@ -695,12 +707,8 @@ def main(argv: list[str] | None = None) -> int:
         print_by_magnitude(results, names)
     print(f"# {time.perf_counter() - t0:.1f} s; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     if args.json:
-        payload = {"frames": [{"name": r.name, "field": r.field, "note": r.note, "detections": r.detections,
-                               "gain": r.gain,
-                               "common": int(r.comparison.common.size) if r.comparison else 0,
-                               "rmse": r.comparison.rmse if r.comparison else {}} for r in results],
-                   "pooled": pooled, "best_starlog": best, "best_sep": best_sep, "ratio": ratio,
-                   "ratio_95": [lo, hi]}
+        payload = {"frames": [frame_record(r) for r in results], "pooled": pooled, "best_starlog": best,
+                   "best_sep": best_sep, "ratio": ratio, "ratio_95": [lo, hi]}
         args.json.write_text(json.dumps(payload, indent=2))
     return 0
 
