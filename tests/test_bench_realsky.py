@@ -1,0 +1,214 @@
+"""The real-sky benchmark's own geometry: projection, camera refit, matching, common stars, grey conversion.
+
+A fake catalogue is projected through a known camera; the benchmark's refit must give a zero
+residual for exact positions and the noise level for noisy ones. The plate-solving part runs
+only where cedar-solve (``tetra3``) is installed; no test reads the real images.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+TOOL = Path(__file__).resolve().parent.parent / "tools" / "bench_realsky.py"
+SHAPE = (768, 1024)
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_realsky", TOOL)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)
+
+
+def _camera(bench, *, parity=1.0, k=-0.02, ra=30.0, dec=40.0, roll=25.0):
+    from scipy.spatial.transform import Rotation
+
+    # boresight (camera z) at (ra, dec), rolled about it
+    rot = Rotation.from_euler("ZYZ", [ra, 90.0 - dec, roll], degrees=True).as_matrix().T
+    cam = bench.camera_for_image(SHAPE, 5000.0, parity=parity)
+    return replace(cam, rotation=rot, k=k)
+
+
+def _field(bench, cam, rng, n=60):
+    """Unit vectors of n fake stars inside the frame (10 px margin) of ``cam``."""
+    xs = rng.uniform(10, SHAPE[1] - 11, n)
+    ys = rng.uniform(10, SHAPE[0] - 11, n)
+    # invert the projection numerically: start from the undistorted direction and correct
+    vec = np.column_stack([cam.parity * (xs - cam.cx), ys - cam.cy, np.full(n, cam.focal)])
+    vec = (vec / np.linalg.norm(vec, axis=1)[:, None]) @ cam.rotation
+    for _ in range(20):
+        px, py, _ = cam.project(vec)
+        cv = vec @ cam.rotation.T
+        cv[:, 0] -= cam.parity * (px - xs) / cam.focal * cv[:, 2]
+        cv[:, 1] -= (py - ys) / cam.focal * cv[:, 2]
+        vec = (cv / np.linalg.norm(cv, axis=1)[:, None]) @ cam.rotation
+    return vec
+
+
+def _perturbed(cam):
+    from scipy.spatial.transform import Rotation
+
+    # a solved camera, off by ~0.5 px at most: what compare_centroiders starts from
+    small = Rotation.from_rotvec([2e-5, -3e-5, 1e-4]).as_matrix()
+    return replace(cam, rotation=small @ cam.rotation, focal=cam.focal * 1.0002, k=cam.k * 0.95)
+
+
+def test_projection_of_the_boresight_is_the_image_centre(bench):
+    cam = _camera(bench, ra=30.0, dec=40.0)
+    boresight = bench.radec_vectors(np.array([30.0]), np.array([40.0]))
+    x, y, front = cam.project(boresight)
+    assert front.all()
+    np.testing.assert_allclose([x[0], y[0]], [(SHAPE[1] - 1) / 2, (SHAPE[0] - 1) / 2], atol=1e-9)
+
+
+@pytest.mark.parametrize("parity", [1.0, -1.0])
+def test_camera_from_pairs_recovers_a_known_camera(bench, parity):
+    rng = np.random.default_rng(3)
+    cam = _camera(bench, parity=parity)
+    vec = _field(bench, cam, rng)
+    x, y, _ = cam.project(vec)
+    fitted = bench.camera_from_pairs(SHAPE, 4900.0, vec, x, y)
+    assert fitted.parity == parity
+    assert fitted.focal == pytest.approx(cam.focal, rel=1e-6)
+    assert fitted.k == pytest.approx(cam.k, abs=1e-6)
+    assert bench.residual_rmse(fitted, vec, x, y) < 1e-6
+
+
+def test_common_stars_and_refit_give_zero_for_exact_and_the_noise_for_noisy_positions(bench):
+    rng = np.random.default_rng(7)
+    cam = _camera(bench)
+    vec = _field(bench, cam, rng, n=200)
+    x, y, _ = cam.project(vec)
+    flux = rng.uniform(1e3, 1e5, x.size)
+    noisy_x, noisy_y = x + rng.normal(0, 0.1, x.size), y + rng.normal(0, 0.1, x.size)
+    missing = np.arange(x.size) % 10 != 0  # the third centroider misses every tenth star
+    spurious = (rng.uniform(0, SHAPE[1], 30), rng.uniform(0, SHAPE[0], 30))
+    positions = {
+        "exact": bench.Positions(np.append(x, spurious[0]), np.append(y, spurious[1]), np.append(flux, np.ones(30))),
+        "noisy": bench.Positions(noisy_x, noisy_y, flux),
+        "partial": bench.Positions(x[missing][::-1], y[missing][::-1], flux[missing][::-1]),
+    }
+    isolated = bench.isolated(x, y, 4.0)
+    comp = bench.compare_centroiders(_perturbed(cam), vec[isolated], positions, radius=2.0)
+    expected = np.flatnonzero(missing[isolated])
+    np.testing.assert_array_equal(np.sort(comp.common), expected)
+    assert comp.rmse["exact"] < 1e-6
+    assert comp.rmse["partial"] < 1e-6
+    # refitting 5 parameters on ~2 x 160 coordinates leaves ~the noise level
+    assert 0.08 < comp.rmse["noisy"] < 0.115
+    assert comp.matched["exact"] == isolated.sum()
+
+
+def test_plate_terms_remove_a_linear_field_pattern(bench):
+    rng = np.random.default_rng(11)
+    cam = _camera(bench)
+    vec = _field(bench, cam, rng, n=80)
+    x, y, _ = cam.project(vec)
+    # an anisotropic scale (what differential refraction does) that the camera cannot absorb
+    warped = bench.Positions(x, cam.cy + (y - cam.cy) * (1 + 4e-4), np.ones(x.size))
+    plain = bench.compare_centroiders(cam, vec, {"w": warped}, radius=2.0)
+    planar = bench.compare_centroiders(cam, vec, {"w": warped}, radius=2.0, plate_order=1)
+    assert plain.rmse["w"] > 0.02
+    assert planar.rmse["w"] < 1e-6
+
+
+def test_match_nearest_is_one_to_one_within_the_radius(bench):
+    cat_x, cat_y = np.array([10.0, 11.0, 50.0]), np.array([10.0, 10.0, 50.0])
+    idx = bench.match_nearest(cat_x, cat_y, np.array([10.2, 80.0]), np.array([10.0, 80.0]), 2.0)
+    np.testing.assert_array_equal(idx, [0, -1, -1])
+
+
+def test_colour_images_become_the_channel_sum_with_saturated_pixels_marked(bench):
+    raw = np.zeros((4, 5, 3), np.uint8)
+    raw[1, 2] = (10, 20, 30)
+    raw[3, 4] = (255, 0, 0)
+    grey, saturation = bench.to_grey(raw)
+    assert saturation == 765.0
+    assert grey[1, 2] == 60.0
+    assert grey[3, 4] == 765.0
+    mono = np.arange(20, dtype=np.uint16).reshape(4, 5)
+    same, full = bench.to_grey(mono)
+    assert same is mono and full == 65535.0
+
+
+def test_bootstrap_interval_brackets_the_ratio(bench):
+    rng = np.random.default_rng(5)
+    res_a = rng.normal(0, 0.08, (300, 2))
+    res_b = rng.normal(0, 0.10, (300, 2))
+    comp = bench.FrameComparison(np.arange(300), np.zeros((300, 2)), {"A": 0.08, "SEP": 0.1},
+                                 {"A": res_a, "SEP": res_b}, {"A": 300, "SEP": 300})
+    frame = bench.FrameResult("f", {"A": 300, "SEP": 300}, 300, comp, np.zeros(300))
+    lo, hi = bench.bootstrap_ratio([frame], "A", "SEP")
+    ratio = np.sqrt((res_a**2).sum() / (res_b**2).sum())
+    assert lo < ratio < hi
+    assert hi - lo < 0.2
+
+
+def test_plate_solve_of_a_projected_catalogue_gives_zero_residual(bench):
+    pytest.importorskip("tetra3")
+    solver = bench.load_solver()
+    catalogue = solver.star_table
+    cam = replace(_camera(bench, ra=83.0, dec=-2.0, roll=40.0), focal=5100.0, k=0.0)  # ~11.4 deg wide
+    field = bench.field_stars(cam, catalogue, SHAPE, margin=8.0, isolation=4.0)
+    assert field.size > 30
+    vec, mag = catalogue[field, 2:5], catalogue[field, 5]
+    x, y, _ = cam.project(vec)
+    stars = bench.Positions(x, y, 10 ** (-0.4 * mag))
+    solved = bench.solve_frame(solver, stars, SHAPE)
+    assert solved is not None
+    refined, matched = bench.refine_camera(solved, vec, mag, stars)
+    assert matched == field.size
+    comp = bench.compare_centroiders(refined, vec, {"exact": stars}, radius=2.0)
+    assert comp.common.size == field.size
+    assert comp.rmse["exact"] < 1e-5
+
+
+def test_gain_from_the_background_photon_transfer_of_a_vignetted_frame(bench):
+    rng = np.random.default_rng(2)
+    rows, cols = SHAPE
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    r2 = ((xx - cols / 2) ** 2 + (yy - rows / 2) ** 2) / (cols / 2) ** 2
+    sky_e = 600.0 * (1.0 - 0.45 * r2)  # electrons, vignetted
+    gain = 0.25  # e-/DN
+    frame = (rng.poisson(sky_e) + rng.normal(0, 3.0, SHAPE)) / gain + 500.0  # read noise 3 e-, pedestal 500 DN
+    assert bench.estimate_gain(frame) == pytest.approx(gain, rel=0.05)
+
+
+def test_gain_is_unknown_on_a_flat_background(bench):
+    rng = np.random.default_rng(4)
+    frame = rng.poisson(400.0, SHAPE).astype(np.float64)
+    assert bench.estimate_gain(frame) is None
+    assert bench.frame_gain(frame, "auto") == 1.0
+    assert bench.frame_gain(frame, "0.5") == 0.5
+
+
+def test_phase_equalisation_removes_a_pixel_phase_bias_without_the_truth(bench):
+    rng = np.random.default_rng(9)
+    frames, truth = [], []
+    for _ in range(3):
+        tx, ty = rng.uniform(20, 1000, 400), rng.uniform(20, 740, 400)
+
+        def pulled(v):  # biased towards pixel centres, as an undersampled star's centroid is
+            p = v - np.rint(v)
+            return np.rint(v) + p - 0.06 * np.sin(2 * np.pi * p)
+
+        star = bench.Positions(pulled(tx), pulled(ty), np.ones(400), np.full(400, 100.0))
+        frames.append(bench.MeasuredFrame("f", SHAPE, 1.0, {"GAUSSFIT": star}))
+        truth.append((tx, ty))
+    out = bench.phase_equalised(frames)
+    for f, (tx, ty) in zip(out, truth):
+        before = f.positions["GAUSSFIT"].x - tx
+        after = f.positions["GAUSSFIT+eq"].x - tx
+        assert np.sqrt(np.mean(before**2)) > 0.04
+        assert np.sqrt(np.mean(after**2)) < 0.01

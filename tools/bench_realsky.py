@@ -1,0 +1,717 @@
+"""Real sky as a test: centroid accuracy of starlog and SEP against a star catalogue, on real frames.
+
+Benchmark-only dependencies: sep, and cedar-solve (import name ``tetra3``; it ships a
+Hipparcos pattern database for fields of view 10-30 deg, stars to magnitude ~8, so solving
+needs no network).
+
+Protocol, per frame:
+
+1. The image is read as a grey array: a grey TIFF/PNG/JPEG as it is (8 or 16 bit); a colour
+   one as the plain sum of its colour channels (every channel's photons count; no colour
+   weighting, no tone curve undone: the camera's is unknown), a pixel saturated when any of
+   its channels is at the file's maximum.
+2. Centroids: starlog's detection and every method of ``starlog.centroid.CentroidMethod``
+   (``starlog.centroid.extract_stars``, the library call of the centroid stage; read noise from
+   the frame's measured background noise, the PSF width estimated from the frame). The gain of
+   an unknown camera is measured, not assumed (``--gain auto``, :func:`estimate_gain`): the
+   background's noise variance against its level over the frame (vignetting, sky gradient) has
+   slope 1/gain whatever the pedestal and read noise; 1 e-/DN, the stage's default, when the
+   levels span too little or the relation is not linear (tone-mapped JPEGs). SEP:
+   ``sep.extract`` (isophotal barycentre) and ``sep.winpos`` (sig = 2/2.35 x half-flux radius)
+   at detection thresholds of 1.5 and 5 times the global background RMS.
+3. Plate solve once (lost in space, no field-of-view hint) from starlog's 50 brightest GAUSSFIT
+   centroids. The solver's matched stars give a first camera: pinhole, principal point at the
+   image centre, pointing + roll (a rotation), focal length and one radial distortion term
+   ``x_d = x_u (1 + k r^2)``, r in units of the half-width (the solver fits one such term
+   too); it is refined by re-matching the catalogue to the same centroids with shrinking radii
+   (8, 4, 2 px; the brightest stars first), and a frame with fewer than 10 matches is left out.
+4. Every catalogue star (database, magnitude <= ~8) projected into the frame at least
+   ``--margin`` px inside the edges, with no other catalogue star within twice the match
+   radius, is matched one-to-one to each centroider's nearest detection within
+   ``--match-radius`` px.
+5. The stars matched by ALL compared centroiders form the common set. The camera (rotation,
+   focal length, distortion) is refitted to each centroider's positions of the common stars
+   separately (least squares), and the residual RMSE (per axis, px: sqrt(mean(dx^2 + dy^2)/2))
+   is that centroider's figure for the frame. Pooled: all frames' residuals together.
+6. The ratio best starlog method / best SEP setting is computed on the pooled RMSEs, with a
+   95 % bootstrap interval over the common stars.
+
+Investigation options (none changes the figures above unless given): ``--by-mag`` (RMSE per
+catalogue magnitude), ``--only NAME ...`` (compare fewer centroiders: a larger common set),
+``--plate-order N`` (a polynomial field pattern fitted instead of the camera refit),
+``--phase-equalise`` (each centroider also with its pixel-phase bias self-calibrated),
+``--gain`` / ``--starlog-option KEY=VALUE`` (other settings of starlog).
+
+Run: python tools/bench_realsky.py [--images DIR] [--json OUT] [--by-mag]
+(default images: ../shared/data/real-sky/ relative to the repository's root, read in place)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from starlog.centroid import CentroidFlag, CentroidMethod, extract_stars  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+REAL_SKY = Path("shared") / "data" / "real-sky"
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+SEP_THRESHOLDS = (1.5, 5.0)
+MAG_BINS = (-2.0, 4.0, 5.0, 6.0, 7.0, 9.0)
+
+
+# ----------------------------------------------------------------------------- images
+
+def load_grey(path: Path) -> tuple[np.ndarray, float]:
+    """A grey image (integers kept as they are, colour summed over channels) and its saturation level, DN."""
+    suffix = path.suffix.lower()
+    if suffix in (".tif", ".tiff"):
+        import tifffile
+
+        raw = tifffile.imread(str(path))
+    else:
+        import cv2
+
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise ValueError(f"cannot read image {str(path)!r}.")
+    return to_grey(np.asarray(raw))
+
+
+def to_grey(raw: np.ndarray) -> tuple[np.ndarray, float]:
+    """Grey version of a (rows, cols) or (rows, cols, channels) array, and the saturation level.
+
+    Colour: the sum of the colour channels (alpha dropped), as float; a pixel with any channel
+    at the integer maximum is set to the saturation level (channels x maximum).
+    """
+    if raw.ndim == 2:
+        full = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else float("inf")
+        return raw, full
+    if raw.ndim != 3 or raw.shape[2] not in (3, 4):
+        raise ValueError(f"expected a grey or colour image, got shape {raw.shape}.")
+    colour = raw[:, :, :3]
+    top = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else float("inf")
+    grey = colour.astype(np.float64).sum(axis=2)
+    saturation = 3.0 * top
+    if math.isfinite(top):
+        grey[(colour >= top).any(axis=2)] = saturation
+    return grey, saturation
+
+
+def default_images(repo: Path = REPO) -> Path:
+    """``../shared/data/real-sky`` beside the repository (for a git worktree: beside its main checkout)."""
+    candidates = [repo.parent / REAL_SKY]
+    dot_git = repo / ".git"
+    if dot_git.is_file():  # a worktree: "gitdir: <main>/.git/worktrees/<name>"
+        gitdir = Path(dot_git.read_text().partition("gitdir:")[2].strip())
+        candidates.append(gitdir.parent.parent.parent.parent / REAL_SKY)
+    return next((c for c in candidates if c.is_dir()), candidates[0])
+
+
+def list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def estimate_gain(image: np.ndarray, *, cell: int = 32, min_span: float = 1.2, max_error: float = 0.1) -> float | None:
+    """Gain (e-/DN) from the frame's own photon transfer: background variance against level over cells.
+
+    Each ``cell`` x ``cell`` block gives its median level and its noise variance (from the MAD of
+    horizontal neighbour differences, blind to smooth gradients and to most stars). Shot noise
+    makes ``variance = const + level / gain`` whatever the pedestal and read noise; the slope is
+    fitted with 3-sigma clipping. None when the levels span less than ``min_span`` (max/min, 2nd to
+    98th percentile: no lever arm) or the slope's relative error exceeds ``max_error``.
+    """
+    a = np.asarray(image, np.float64)
+    rows, cols = (a.shape[0] // cell) * cell, (a.shape[1] // cell) * cell
+    if rows == 0 or cols < 2 * cell:
+        return None
+    blocks = a[:rows, :cols].reshape(rows // cell, cell, cols // cell, cell).swapaxes(1, 2)
+    blocks = blocks.reshape(-1, cell, cell)
+    level = np.median(blocks.reshape(blocks.shape[0], -1), axis=1)
+    diff = np.diff(blocks, axis=2).reshape(blocks.shape[0], -1)
+    mad = np.median(np.abs(diff - np.median(diff, axis=1)[:, None]), axis=1)
+    var = (1.4826 * mad) ** 2 / 2.0
+    lo, hi = np.percentile(level, [2, 98])
+    if not (lo > 0 and hi / lo >= min_span):
+        return None
+    keep = (level >= lo) & (level <= hi)
+    for _ in range(5):
+        design = np.column_stack([np.ones(keep.sum()), level[keep]])
+        coef, *_ = np.linalg.lstsq(design, var[keep], rcond=None)
+        resid = var - (coef[0] + coef[1] * level)
+        scale = 1.4826 * np.median(np.abs(resid[keep]))
+        keep = (level >= lo) & (level <= hi) & (np.abs(resid) <= 3.0 * scale)
+    design = np.column_stack([np.ones(keep.sum()), level[keep]])
+    coef, res, *_ = np.linalg.lstsq(design, var[keep], rcond=None)
+    dof = max(int(keep.sum()) - 2, 1)
+    cov = np.linalg.inv(design.T @ design) * (float(res[0]) / dof if res.size else 0.0)
+    slope, err = float(coef[1]), float(np.sqrt(max(cov[1, 1], 0.0)))
+    if not (slope > 0 and err / slope <= max_error):
+        return None
+    return 1.0 / slope
+
+
+# ----------------------------------------------------------------------------- centroiders
+
+@dataclass(frozen=True)
+class Positions:
+    """One centroider's stars in a frame: x, y (px, 0-based, pixel-centre origin), flux (any unit), and
+    for starlog the SNR of unsaturated stars (0 for saturated ones)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    flux: np.ndarray
+    snr: np.ndarray | None = None
+
+
+def starlog_positions(image: np.ndarray, saturation: float, *, gain: float, read_noise: float | None,
+                      options: dict) -> dict[str, Positions]:
+    """starlog's detection and every CentroidMethod on one frame (failed fits left out)."""
+    methods = list(CentroidMethod)
+    _, centroids = extract_stars(image, methods=methods, gain=gain, read_noise=read_noise,
+                                 saturation=saturation, **options)
+    out = {}
+    for method, c in centroids.items():
+        keep = ((c["flags"] & int(CentroidFlag.FIT_FAILED)) == 0) & np.isfinite(c["x"]) & np.isfinite(c["y"])
+        snr = np.where((c["flags"] & int(CentroidFlag.SATURATED)) == 0, c["snr"], 0.0)
+        out[method.value] = Positions(c["x"][keep], c["y"][keep], c["flux"][keep], snr[keep])
+    return out
+
+
+def sep_positions(image: np.ndarray, threshold: float) -> dict[str, Positions]:
+    """SEP at ``threshold`` x global RMS: isophotal barycentres and ``sep.winpos`` (bench_centroid's settings)."""
+    import sep
+
+    data = np.ascontiguousarray(image, dtype=np.float64)
+    bkg = sep.Background(data)
+    sub = data - bkg.back()
+    objs = sep.extract(sub, threshold, err=bkg.globalrms)
+    tag = f"{threshold:g}s"
+    if len(objs) == 0:
+        empty = Positions(np.zeros(0), np.zeros(0), np.zeros(0))
+        return {f"SEP iso {tag}": empty, f"SEP winpos {tag}": empty}
+    radius, _ = sep.flux_radius(sub, objs["x"], objs["y"], 6.0 * objs["a"], 0.5, subpix=5)
+    sig = 2.0 / 2.35 * np.where(radius > 0, radius, 1.0)
+    xw, yw, _ = sep.winpos(sub, objs["x"], objs["y"], sig)
+    flux = np.asarray(objs["flux"], np.float64)
+    return {f"SEP iso {tag}": Positions(np.asarray(objs["x"], np.float64), np.asarray(objs["y"], np.float64), flux),
+            f"SEP winpos {tag}": Positions(np.asarray(xw, np.float64), np.asarray(yw, np.float64), flux)}
+
+
+# ----------------------------------------------------------------------------- camera model
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera with one radial distortion term.
+
+    A unit vector ``v`` (catalogue frame) maps to ``u = rotation @ v``; the undistorted focal-plane
+    offsets are ``(parity * f u_x / u_z, f u_y / u_z)`` px from the principal point ``(cx, cy)``
+    (the image centre), scaled by ``1 + k r^2`` with r the offset in units of ``half_width``.
+    """
+
+    rotation: np.ndarray
+    focal: float
+    k: float
+    cx: float
+    cy: float
+    half_width: float
+    parity: float = 1.0
+
+    def project(self, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel (x, y) of unit vectors (n, 3), and whether each is in front of the camera."""
+        u = vectors @ self.rotation.T
+        front = u[:, 2] > 1e-6
+        z = np.where(front, u[:, 2], 1.0)
+        xu = self.parity * self.focal * u[:, 0] / z
+        yu = self.focal * u[:, 1] / z
+        scale = 1.0 + self.k * (xu * xu + yu * yu) / (self.half_width * self.half_width)
+        return self.cx + xu * scale, self.cy + yu * scale, front
+
+
+def camera_for_image(shape: tuple[int, int], focal: float, *, parity: float = 1.0) -> Camera:
+    rows, cols = shape
+    return Camera(np.eye(3), float(focal), 0.0, (cols - 1) / 2.0, (rows - 1) / 2.0, cols / 2.0, parity)
+
+
+def initial_rotation(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Best proper rotation taking catalogue vectors onto the pixels' undistorted view directions (Kabsch)."""
+    p = np.column_stack([cam.parity * (x - cam.cx), y - cam.cy, np.full(x.size, cam.focal)])
+    p /= np.linalg.norm(p, axis=1)[:, None]
+    u, _, vt = np.linalg.svd(vectors.T @ p)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+
+
+def plate_basis(x: np.ndarray, y: np.ndarray, cam: Camera, order: int) -> np.ndarray:
+    """Monomials u^i v^j, i + j <= order, of the offsets (u, v) from the image centre in half-widths."""
+    u, v = (x - cam.cx) / cam.half_width, (y - cam.cy) / cam.half_width
+    return np.column_stack([u**i * v ** (t - i) for t in range(order + 1) for i in range(t + 1)])
+
+
+def without_plate_terms(res: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Residuals (n, 2) less their least-squares polynomial field pattern (each axis)."""
+    if basis.shape[0] <= basis.shape[1]:
+        return res
+    return res - basis @ np.linalg.lstsq(basis, res, rcond=None)[0]
+
+
+def fit_camera(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray, *,
+               fit_distortion: bool = True) -> Camera:
+    """Least-squares refit of the rotation, focal length (and distortion) to observed pixels."""
+
+    def unpack(p: np.ndarray) -> Camera:
+        rot = Rotation.from_rotvec(p[:3]).as_matrix() @ cam.rotation
+        return replace(cam, rotation=rot, focal=cam.focal * (1.0 + p[3]), k=p[4] if fit_distortion else cam.k)
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        px, py, _ = unpack(p).project(vectors)
+        return np.concatenate([px - x, py - y])
+
+    start = np.array([0.0, 0.0, 0.0, 0.0, cam.k])
+    fit = least_squares(residuals if fit_distortion else (lambda p: residuals(np.append(p, cam.k))),
+                        start if fit_distortion else start[:4], x_scale=1e-3, method="lm")
+    return unpack(fit.x if fit_distortion else np.append(fit.x, cam.k))
+
+
+def camera_from_pairs(shape: tuple[int, int], focal: float, vectors: np.ndarray, x: np.ndarray,
+                      y: np.ndarray) -> Camera:
+    """The camera fitted to matched (catalogue vector, pixel) pairs; both parities tried, the better kept."""
+    best, best_rms = None, np.inf
+    for parity in (1.0, -1.0):
+        cam = camera_for_image(shape, focal, parity=parity)
+        cam = replace(cam, rotation=initial_rotation(cam, vectors, x, y))
+        cam = fit_camera(cam, vectors, x, y)
+        rms = residual_rmse(cam, vectors, x, y)
+        if rms < best_rms:
+            best, best_rms = cam, rms
+    assert best is not None
+    return best
+
+
+def residual_rmse(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
+    """Per-axis RMS of the residuals, px: sqrt(mean(dx^2 + dy^2) / 2)."""
+    px, py, _ = cam.project(vectors)
+    return float(np.sqrt(np.mean((px - x) ** 2 + (py - y) ** 2) / 2.0))
+
+
+# ----------------------------------------------------------------------------- matching
+
+def match_nearest(cat_x: np.ndarray, cat_y: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float) -> np.ndarray:
+    """Greedy one-to-one nearest matching: the index of the detection per catalogue star (-1: none)."""
+    out = np.full(cat_x.size, -1)
+    if x.size == 0 or cat_x.size == 0:
+        return out
+    d = np.hypot(x[None, :] - cat_x[:, None], y[None, :] - cat_y[:, None])
+    used = np.zeros(x.size, bool)
+    for i in np.argsort(d.min(axis=1)):
+        j = int(np.argmin(np.where(used, np.inf, d[i])))
+        if d[i, j] <= radius:
+            out[i] = j
+            used[j] = True
+    return out
+
+
+def isolated(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
+    """True for points with no other point closer than ``distance``."""
+    if x.size < 2:
+        return np.ones(x.size, bool)
+    d = np.hypot(x[None, :] - x[:, None], y[None, :] - y[:, None])
+    np.fill_diagonal(d, np.inf)
+    return d.min(axis=1) >= distance
+
+
+@dataclass(frozen=True)
+class FrameComparison:
+    """Per centroider: RMSE on the common stars after its own refit, its residuals and matches."""
+
+    common: np.ndarray  # indices into the field's catalogue stars
+    xy: np.ndarray  # (n_common, 2) catalogue positions of the common stars under the solved camera, px
+    rmse: dict[str, float]
+    residuals: dict[str, np.ndarray]  # (n_common, 2)
+    matched: dict[str, int]
+
+
+def compare_centroiders(cam: Camera, vectors: np.ndarray, positions: dict[str, Positions], *,
+                        radius: float, fit_distortion: bool = True, plate_order: int = 0) -> FrameComparison:
+    """Match the catalogue stars to every centroider, keep the stars all matched, refit each (steps 4-5).
+
+    ``plate_order`` > 0 instead keeps the solved camera and fits, per centroider, a polynomial
+    field pattern of that order in (x, y) to its residuals (plate constants: its linear terms
+    take the place of the pointing, roll and scale refit; the rest absorbs differential
+    refraction, tilt, any smooth pattern).
+    """
+    cat_x, cat_y, _ = cam.project(vectors)
+    idx = {name: match_nearest(cat_x, cat_y, p.x, p.y, radius) for name, p in positions.items()}
+    common = np.flatnonzero(np.all([i >= 0 for i in idx.values()], axis=0)) if idx else np.zeros(0, int)
+    rmse, res = {}, {}
+    for name, p in positions.items():
+        sel = idx[name][common]
+        x, y = p.x[sel], p.y[sel]
+        if common.size >= 6 and plate_order == 0:
+            fitted = fit_camera(cam, vectors[common], x, y, fit_distortion=fit_distortion)
+        else:
+            fitted = cam
+        px, py, _ = fitted.project(vectors[common])
+        res[name] = np.column_stack([x - px, y - py])
+        if plate_order > 0:
+            res[name] = without_plate_terms(res[name], plate_basis(x, y, cam, plate_order))
+        rmse[name] = float(np.sqrt(np.mean(res[name] ** 2))) if common.size else float("nan")
+    xy = np.column_stack([cat_x[common], cat_y[common]])
+    return FrameComparison(common, xy, rmse, res, {n: int((i >= 0).sum()) for n, i in idx.items()})
+
+
+def field_stars(cam: Camera, catalogue: np.ndarray, shape: tuple[int, int], *, margin: float,
+                isolation: float) -> np.ndarray:
+    """Indices of catalogue rows (columns 2:5 = unit vector) inside the frame and isolated."""
+    x, y, front = cam.project(catalogue[:, 2:5])
+    rows, cols = shape
+    inside = front & (x >= margin) & (x <= cols - 1 - margin) & (y >= margin) & (y <= rows - 1 - margin)
+    near = np.flatnonzero(front & (x > -10) & (x < cols + 10) & (y > -10) & (y < rows + 10))
+    alone = isolated(x[near], y[near], isolation)
+    keep = np.zeros(x.size, bool)
+    keep[near[alone]] = True
+    return np.flatnonzero(inside & keep)
+
+
+# ----------------------------------------------------------------------------- plate solving
+
+def radec_vectors(ra_deg: np.ndarray, dec_deg: np.ndarray) -> np.ndarray:
+    ra, dec = np.radians(ra_deg), np.radians(dec_deg)
+    return np.column_stack([np.cos(ra) * np.cos(dec), np.sin(ra) * np.cos(dec), np.sin(dec)])
+
+
+def load_solver():
+    """cedar-solve's Tetra3 with its shipped database (no download)."""
+    import numpy
+
+    if not hasattr(numpy, "math"):  # cedar-solve 0.5 calls np.math.factorial, gone in NumPy 2
+        numpy.math = math
+    import tetra3
+
+    return tetra3.Tetra3()
+
+
+def solve_frame(solver, positions: Positions, shape: tuple[int, int], *, brightest: int = 50,
+                timeout_ms: int = 10000) -> Camera | None:
+    """Lost-in-space solve from the brightest centroids; the camera fitted to the solver's matches.
+
+    Solved without distortion first (fast, and the solver's distortion estimate from its coarse
+    matches can be off), with a searched distortion range when that fails. The solver's own
+    matches use a radius of 1 % of the image width and may hold mismatches: :func:`refine_camera`
+    re-matches before any comparison.
+    """
+    order = np.argsort(-positions.flux)[:brightest]
+    # the solver's pixel convention puts (0.5, 0.5) at the top-left pixel's centre, (y, x) order
+    yx = np.column_stack([positions.y[order] + 0.5, positions.x[order] + 0.5])
+    for distortion in (0.0, (-0.2, 0.1)):
+        sol = solver.solve_from_centroids(yx, size=shape, distortion=distortion, return_matches=True,
+                                          match_threshold=1e-7, solve_timeout=timeout_ms)
+        if sol.get("RA") is not None:
+            break
+    else:
+        return None
+    stars = np.asarray(sol["matched_stars"], np.float64)
+    yx_m = np.asarray(sol["matched_centroids"], np.float64)
+    focal = shape[1] / 2.0 / math.tan(math.radians(float(sol["FOV"])) / 2.0)
+    return camera_from_pairs(shape, focal, radec_vectors(stars[:, 0], stars[:, 1]), yx_m[:, 1] - 0.5,
+                             yx_m[:, 0] - 0.5)
+
+
+def refine_camera(cam: Camera, vectors: np.ndarray, magnitudes: np.ndarray, positions: Positions, *,
+                  brightest: int = 50) -> tuple[Camera, int]:
+    """Re-match catalogue stars to the positions with shrinking radii, refitting each time; (camera, matches).
+
+    The first, wide-radius rounds pair only the brightest catalogue stars with the brightest
+    detections, so that chance coincidences in a dense field cannot pull the fit.
+    """
+    bright_cat = np.argsort(magnitudes)[:brightest]
+    bright_det = np.argsort(-positions.flux)[:brightest]
+    n = 0
+    for radius, cat, det in ((8.0, bright_cat, bright_det), (4.0, bright_cat, bright_det),
+                             (2.0, slice(None), slice(None)), (2.0, slice(None), slice(None))):
+        v = vectors[cat]
+        x, y = positions.x[det], positions.y[det]
+        px, py, _ = cam.project(v)
+        idx = match_nearest(px, py, x, y, radius)
+        ok = idx >= 0
+        n = int(ok.sum())
+        if n < 6:
+            return cam, n
+        cam = fit_camera(cam, v[ok], x[idx[ok]], y[idx[ok]])
+    return cam, n
+
+
+# ----------------------------------------------------------------------------- run and report
+
+@dataclass(frozen=True)
+class FrameResult:
+    name: str
+    detections: dict[str, int]
+    field: int
+    comparison: FrameComparison | None
+    magnitudes: np.ndarray  # of the common stars
+    note: str = ""
+    gain: float = float("nan")  # e-/DN used for starlog
+
+
+def frame_gain(image: np.ndarray, choice: str) -> float:
+    """``--gain``: a number (e-/DN), or "auto": :func:`estimate_gain`, 1 e-/DN when it cannot tell."""
+    if choice != "auto":
+        return float(choice)
+    gain = estimate_gain(image)
+    return 1.0 if gain is None else gain
+
+
+@dataclass(frozen=True)
+class MeasuredFrame:
+    name: str
+    shape: tuple[int, int]
+    gain: float
+    positions: dict[str, Positions]
+
+
+def measure_frame(path: Path, args) -> MeasuredFrame:
+    """Steps 1-2 on one image file: every centroider's positions."""
+    image, saturation = load_grey(path)
+    gain = frame_gain(image, args.gain)
+    positions = starlog_positions(image, saturation, gain=gain, read_noise=args.read_noise,
+                                  options=args.starlog_options)
+    for threshold in SEP_THRESHOLDS:
+        positions.update(sep_positions(image, threshold))
+    return MeasuredFrame(path.name, image.shape, gain, positions)
+
+
+def phase_equalised(frames: list[MeasuredFrame], *, min_snr: float = 30.0) -> list[MeasuredFrame]:
+    """Investigation: every centroider also with its pixel-phase bias removed by phase-histogram equalisation.
+
+    True sub-pixel phases of stars are uniform; a centroider biased towards (or away from) pixel
+    centres bunches its measured phases. The empirical distribution F of one centroider's measured
+    phases (x and y pooled, bright stars, all frames) maps each of its measured phases ``p`` to
+    ``F(p) - 1/2``. Bright: starlog's unsaturated stars with SNR >= ``min_snr``; for SEP, as many of
+    its brightest stars per frame as GAUSSFIT has bright ones. No catalogue is used: a
+    self-calibration, like the per-log PSF width.
+    """
+    names = [n for n in frames[0].positions if not n.endswith("+eq")]
+    maps = {}
+    for n in names:
+        phases = []
+        for f in frames:
+            p = f.positions[n]
+            if p.snr is not None:
+                bright = p.snr >= min_snr
+            else:
+                count = int((f.positions[CentroidMethod.GAUSSFIT.value].snr >= min_snr).sum())
+                bright = np.argsort(-p.flux)[:count]
+            phases += [p.x[bright] - np.rint(p.x[bright]), p.y[bright] - np.rint(p.y[bright])]
+        maps[n] = np.sort(np.concatenate(phases))
+
+    def equalise(v: np.ndarray, table: np.ndarray) -> np.ndarray:
+        return np.rint(v) + np.searchsorted(table, v - np.rint(v)) / table.size - 0.5
+
+    out = []
+    for f in frames:
+        extra = {f"{n}+eq": replace(f.positions[n], x=equalise(f.positions[n].x, maps[n]),
+                                    y=equalise(f.positions[n].y, maps[n])) for n in names if maps[n].size >= 50}
+        out.append(replace(f, positions={**f.positions, **extra}))
+    return out
+
+
+def compare_frame(frame: MeasuredFrame, solver, args) -> FrameResult:
+    """Steps 3-5 on one measured frame."""
+    positions = frame.positions
+    reference = positions[CentroidMethod.GAUSSFIT.value]
+    if args.only:
+        positions = {k: v for k, v in positions.items() if k in args.only}
+    detections = {name: int(p.x.size) for name, p in positions.items()}
+    cam = solve_frame(solver, reference, frame.shape)
+    if cam is None:
+        return FrameResult(frame.name, detections, 0, None, np.zeros(0), "not solved", frame.gain)
+    catalogue = solver.star_table
+    field = field_stars(cam, catalogue, frame.shape, margin=args.margin, isolation=2.0 * args.match_radius)
+    cam, matched = refine_camera(cam, catalogue[field, 2:5], catalogue[field, 5], reference)
+    if matched < 10:
+        return FrameResult(frame.name, detections, 0, None, np.zeros(0), f"solution not confirmed ({matched} stars)",
+                           frame.gain)
+    field = field_stars(cam, catalogue, frame.shape, margin=args.margin, isolation=2.0 * args.match_radius)
+    comparison = compare_centroiders(cam, catalogue[field, 2:5], positions, radius=args.match_radius,
+                                     fit_distortion=not args.no_distortion, plate_order=args.plate_order)
+    return FrameResult(frame.name, detections, int(field.size), comparison, catalogue[field[comparison.common], 5],
+                       gain=frame.gain)
+
+
+def pooled_rmse(results: list[FrameResult], name: str) -> float:
+    res = [r.comparison.residuals[name] for r in results if r.comparison is not None and r.comparison.common.size]
+    return float(np.sqrt(np.mean(np.concatenate(res) ** 2))) if res else float("nan")
+
+
+def best_ratio(pooled: dict[str, float]) -> tuple[str, str, float]:
+    """(best starlog method, best SEP setting, ratio of their pooled RMSEs)."""
+    ours = {k: v for k, v in pooled.items() if not k.startswith("SEP") and not k.endswith("+eq")}
+    theirs = {k: v for k, v in pooled.items() if k.startswith("SEP") and not k.endswith("+eq")}
+    a = min(ours, key=ours.get)
+    b = min(theirs, key=theirs.get)
+    return a, b, ours[a] / theirs[b]
+
+
+def print_table(results: list[FrameResult], names: list[str]) -> dict[str, float]:
+    width = max(len(n) for n in names) + 2
+    print(f"{'frame':<34}{'gain':>6}{'field':>6}{'common':>7}  " + "".join(f"{n:>{width}}" for n in names))
+    for r in results:
+        if r.comparison is None:
+            print(f"{r.name[:33]:<34}{r.gain:>6.3f}{'':>6}{'':>7}  {r.note}")
+            continue
+        c = r.comparison
+        print(f"{r.name[:33]:<34}{r.gain:>6.3f}{r.field:>6}{c.common.size:>7}  "
+              + "".join(f"{c.rmse[n]:>{width}.4f}" for n in names))
+    n_common = sum(r.comparison.common.size for r in results if r.comparison is not None)
+    pooled = {n: pooled_rmse(results, n) for n in names}
+    print(f"{'pooled RMSE px':<40}{'':>6}{n_common:>7}  " + "".join(f"{pooled[n]:>{width}.4f}" for n in names))
+    det = {n: sum(r.detections[n] for r in results) / max(len(results), 1) for n in names}
+    print(f"{'detections / frame':<40}{'':>6}{'':>7}  " + "".join(f"{det[n]:>{width}.1f}" for n in names))
+    solved = [r for r in results if r.comparison is not None]
+    n_field = sum(r.field for r in solved)
+    matched = {n: sum(r.comparison.matched[n] for r in solved) / max(n_field, 1) for n in names}
+    print(f"{'catalogue stars matched (fraction)':<40}{n_field:>6}{'':>7}  "
+          + "".join(f"{matched[n]:>{width}.3f}" for n in names))
+    return pooled
+
+
+def bootstrap_ratio(results: list[FrameResult], best: str, best_sep: str, *, draws: int = 2000,
+                    seed: int = 1) -> tuple[float, float]:
+    """95 % interval of the pooled-RMSE ratio, resampling the common stars (the refits held fixed)."""
+    done = [r.comparison for r in results if r.comparison is not None and r.comparison.common.size]
+    if not done:
+        return float("nan"), float("nan")
+    a = np.concatenate([c.residuals[best] for c in done])
+    b = np.concatenate([c.residuals[best_sep] for c in done])
+    sa, sb = (a**2).sum(axis=1), (b**2).sum(axis=1)
+    rng = np.random.default_rng(seed)
+    pick = rng.integers(0, sa.size, (draws, sa.size))
+    ratios = np.sqrt(sa[pick].sum(axis=1) / sb[pick].sum(axis=1))
+    lo, hi = np.percentile(ratios, [2.5, 97.5])
+    return float(lo), float(hi)
+
+
+def print_by_magnitude(results: list[FrameResult], names: list[str]) -> None:
+    """Pooled RMSE of the common stars per catalogue-magnitude bin."""
+    done = [r for r in results if r.comparison is not None and r.comparison.common.size]
+    if not done:
+        return
+    mags = np.concatenate([r.magnitudes for r in done])
+    width = max(len(n) for n in names) + 2
+    print(f"\n{'magnitude':<16}{'stars':>6}  " + "".join(f"{n:>{width}}" for n in names))
+    for lo, hi in zip(MAG_BINS[:-1], MAG_BINS[1:]):
+        sel = (mags >= lo) & (mags < hi)
+        if not sel.any():
+            continue
+        row = []
+        for n in names:
+            res = np.concatenate([r.comparison.residuals[n] for r in done])[sel]
+            row.append(float(np.sqrt(np.mean(res**2))))
+        print(f"{f'{lo:g} .. {hi:g}':<16}{int(sel.sum()):>6}  " + "".join(f"{v:>{width}.4f}" for v in row))
+
+
+def frame_record(r: FrameResult) -> dict:
+    """A frame's figures for ``--json``, with every common star: catalogue x, y, magnitude, residuals (dx, dy)."""
+    c = r.comparison
+    stars = [] if c is None else [
+        {"x": float(c.xy[i, 0]), "y": float(c.xy[i, 1]), "mag": float(r.magnitudes[i]),
+         "residual": {n: [float(v) for v in res[i]] for n, res in c.residuals.items()}}
+        for i in range(c.common.size)]
+    return {"name": r.name, "gain": r.gain, "field": r.field, "note": r.note, "detections": r.detections,
+            "matched": c.matched if c else {}, "common": int(c.common.size) if c else 0,
+            "rmse": c.rmse if c else {}, "stars": stars}
+
+
+def parse_options(pairs: list[str]) -> dict:
+    """KEY=VALUE pairs (VALUE as JSON, else a string) for extract_stars."""
+    out = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--images", type=Path, default=None, help="folder of TIFF/PNG/JPEG frames")
+    ap.add_argument("--gain", default="auto",
+                    help="camera gain e-/DN, or 'auto' (default): from each frame's background photon transfer, "
+                         "1 when that cannot tell")
+    ap.add_argument("--read-noise", type=float, default=None, help="read noise e- (default: from the frame)")
+    ap.add_argument("--match-radius", type=float, default=2.0, help="catalogue match radius, px")
+    ap.add_argument("--margin", type=float, default=8.0, help="catalogue stars kept this far inside the edges, px")
+    ap.add_argument("--no-distortion", action="store_true", help="refit without the radial distortion term")
+    ap.add_argument("--starlog-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra keyword option of starlog.centroid.extract_stars (JSON value), repeatable")
+    ap.add_argument("--plate-order", type=int, default=0,
+                    help="fit a polynomial field pattern of this order instead of the camera refit (investigation)")
+    ap.add_argument("--phase-equalise", action="store_true",
+                    help="also every centroider with its pixel-phase bias self-calibrated (investigation)")
+    ap.add_argument("--only", nargs="+", default=None, metavar="NAME",
+                    help="compare only these centroiders (names as in the table's header)")
+    ap.add_argument("--by-mag", action="store_true", help="also print the RMSE per catalogue magnitude")
+    ap.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    args = ap.parse_args(argv)
+    args.starlog_options = parse_options(args.starlog_option)
+    args.images = args.images or default_images()
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    paths = list_images(args.images)
+    if not paths:
+        print(f"no images in {args.images}", file=sys.stderr)
+        return 2
+    solver = load_solver()
+    t0 = time.perf_counter()
+    frames = [measure_frame(p, args) for p in paths]
+    if args.phase_equalise:
+        frames = phase_equalised(frames)
+    results = [compare_frame(f, solver, args) for f in frames]
+    names = list(results[0].detections)
+    print(f"# {len(paths)} frames from {args.images}; gain {args.gain} e-/DN, read noise {args.read_noise if args.read_noise is not None else 'from the frame'}; match radius "
+          f"{args.match_radius} px, margin {args.margin} px, distortion {'off' if args.no_distortion else 'k r^2'}, "
+          f"plate terms of order {args.plate_order}; "
+          f"starlog options {args.starlog_options or 'defaults'}")
+    print("# RMSE px per axis on the stars matched by every centroider, camera refitted per centroider")
+    pooled = print_table(results, names)
+    best, best_sep, ratio = best_ratio(pooled)
+    lo, hi = bootstrap_ratio(results, best, best_sep)
+    print(f"\nbest starlog {best} {pooled[best]:.4f} px / best SEP {best_sep} {pooled[best_sep]:.4f} px = {ratio:.3f} "
+          f"(95 % bootstrap over stars {lo:.3f} .. {hi:.3f})")
+    equalised = {k[:-3]: v for k, v in pooled.items() if k.endswith("+eq")}
+    if equalised:
+        eq, eq_sep, eq_ratio = best_ratio(equalised)
+        print(f"investigation, both phase-equalised: best starlog {eq}+eq {equalised[eq]:.4f} px / best SEP "
+              f"{eq_sep}+eq {equalised[eq_sep]:.4f} px = {eq_ratio:.3f}; against SEP as it is: "
+              f"{equalised[eq] / pooled[best_sep]:.3f}")
+    if args.by_mag:
+        print_by_magnitude(results, names)
+    print(f"# {time.perf_counter() - t0:.1f} s; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    if args.json:
+        payload = {"frames": [frame_record(r) for r in results], "pooled": pooled, "best_starlog": best,
+                   "best_sep": best_sep, "ratio": ratio, "ratio_95": [lo, hi]}
+        args.json.write_text(json.dumps(payload, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
