@@ -170,3 +170,19 @@ def test_uint8_and_float_frames():
 def test_invalid_input_raises(image, kwargs, error):
     with pytest.raises(error, match="must"):
         detect_stars(image, **kwargs)
+
+
+def test_without_the_opening_a_faint_undersampled_star_of_one_pixel_is_found() -> None:
+    # PSF sigma 0.4 px, F / sigma_bg = 7: the matched-filtered peak is ~4 sigma and only the
+    # central pixel or two pass the threshold, which the 3x3 cross opening erases
+    rng = np.random.default_rng(5)
+    x, y = np.array([20.0, 44.0]), np.array([20.0, 40.0])
+    found = {True: 0, False: 0}
+    for _ in range(40):
+        img = _frame(rng, (64, 64), x, y, np.full(2, 7.0 * np.sqrt(SKY + 9.0)), 0.4)
+        for opening in (True, False):
+            det = detect_stars(img, filter_sigma=0.49, threshold=4.0, sharpness_ratio=0.0, min_area=1,
+                               opening=opening)
+            found[opening] += int(np.sum(_match(det, x, y)))
+    assert found[False] > 2 * found[True]
+    assert found[False] >= 0.25 * 80

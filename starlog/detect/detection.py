@@ -126,6 +126,7 @@ def detect_stars(
     deblend_contrast: float = 0.05,
     max_stars: int | None = None,
     background: Background | None = None,
+    opening: bool = True,
 ) -> npt.NDArray[np.void]:
     """Detect stars in one frame.
 
@@ -160,6 +161,10 @@ def detect_stars(
         Keep only the brightest ``max_stars`` detections.
     background : Background, optional
         A precomputed background; estimated otherwise.
+    opening : bool
+        Open the foreground by a 3x3 cross (step 4). An under-sampled faint star (PSF sigma
+        well below a pixel) can have a footprint of one or two pixels, which the opening
+        would erase: turn it off (with ``min_area=1``) for such stars.
 
     Returns
     -------
@@ -178,7 +183,7 @@ def detect_stars(
     work, bg, missing = frame
     filtered, k1 = matched_filter(work, filter_sigma)
     knorm = float(np.sum(k1**2))  # filtered white-noise sigma = noise * sum(k1^2)
-    comp = find_components(_foreground(filtered, bg, threshold * knorm), min_area, max_area)
+    comp = find_components(_foreground(filtered, bg, threshold * knorm, opening=opening), min_area, max_area)
     if comp.count == 0:
         return empty_detections()
     cx, cy = comp.box_centres()
@@ -196,7 +201,8 @@ def detect_stars(
     return out
 
 
-def _foreground(filtered: npt.NDArray[np.float32], bg: Background, filtered_threshold: float) -> npt.NDArray[np.uint8]:
+def _foreground(filtered: npt.NDArray[np.float32], bg: Background, filtered_threshold: float, *,
+                opening: bool = True) -> npt.NDArray[np.uint8]:
     """Pixels of the filtered frame above level + k * filtered noise, opened by a 3x3 cross.
 
     The smooth background passes through the filter unchanged, so the threshold map is the
@@ -205,7 +211,7 @@ def _foreground(filtered: npt.NDArray[np.float32], bg: Background, filtered_thre
     """
     above = cv2.compare(filtered, bg.map(bg.mesh_level, plus=np.float32(filtered_threshold) * bg.mesh_noise),
                         cv2.CMP_GT)
-    return cv2.morphologyEx(above, cv2.MORPH_OPEN, _CROSS)
+    return cv2.morphologyEx(above, cv2.MORPH_OPEN, _CROSS) if opening else above
 
 
 def _default_saturation(arr: npt.NDArray[Any]) -> float:
