@@ -239,9 +239,15 @@ def _score_series(series: BrightestSeries, *, dataset: str, regime: str, rates_u
                   options: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows for one brightest-star series (burn-in skipped: every window; kept: the first window
     only — the tables' — to bound the cost), every rate; and
-    the series of the ``keep_series`` rates (burn-in skipped, short window)."""
+    the series of the ``keep_series`` rates (burn-in skipped, short window).
+
+    A window whose samples are those of one already scored (the whole sequence is shorter than
+    ``window_s``; no burn-in to skip) reuses its figures: the evaluation depends on the samples only.
+    """
     rows: list[dict[str, Any]] = []
     kept_series: dict[str, Any] = {}
+    scored: dict[tuple[float, bytes], list[dict[str, Any]]] = {}
+    labels = ("window", "burn_in", "burn_in_samples")
     windows: list[tuple[str, float | None]] = [("full", None)]
     if window_s is not None:
         windows.insert(0, (f"{window_s:g}s", window_s))
@@ -255,17 +261,24 @@ def _score_series(series: BrightestSeries, *, dataset: str, regime: str, rates_u
                 base = {"regime": regime, "dataset": dataset, "method": series.method, "model": series.model, "window": window,
                         "burn_in": burn_in, "burn_in_samples": burn.samples if skip else 0,
                         "rate_hz": float(rate), "effective_rate_hz": float(rate_hz), "n_samples": int(idx.size)}
+                key = (rate, idx.tobytes())
+                if key in scored:
+                    rows += [{**r, **{k: base[k] for k in labels}} for r in scored[key]]
+                    continue
                 if rate not in rates_compensated or idx.size < MIN_COMPENSATED:
                     # too short to compensate (e.g. a fragmented brightest track): scored uncompensated
-                    rows += _uncompensated_rows(base, series, idx, calibration_fraction=calibration_fraction)
-                    continue
-                for protocol in protocols_for(has_truth=has_truth):
-                    ev = evaluate_series(series, idx, rate_hz=rate_hz, protocol=protocol,
-                                         calibration_fraction=calibration_fraction, **options)
-                    rows += _compensated_rows(base, protocol, ev, series.sigma_source)
-                    if window != "full" and skip and rate in keep_series:
-                        key = f"{regime}/{dataset}/{series.method}/{series.model}/{rate:g}Hz/{window}"
-                        _keep_series(kept_series, key, series, idx, protocol, ev)
+                    cell = _uncompensated_rows(base, series, idx, calibration_fraction=calibration_fraction)
+                else:
+                    cell = []
+                    for protocol in protocols_for(has_truth=has_truth):
+                        ev = evaluate_series(series, idx, rate_hz=rate_hz, protocol=protocol,
+                                             calibration_fraction=calibration_fraction, **options)
+                        cell += _compensated_rows(base, protocol, ev, series.sigma_source)
+                        if window != "full" and skip and rate in keep_series:
+                            name = f"{regime}/{dataset}/{series.method}/{series.model}/{rate:g}Hz/{window}"
+                            _keep_series(kept_series, name, series, idx, protocol, ev)
+                scored[key] = cell
+                rows += cell
     return rows, kept_series
 
 
