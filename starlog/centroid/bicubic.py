@@ -34,6 +34,19 @@ def keys_kernel(t: F64) -> tuple[F64, F64, F64]:
     return k, d1, d2
 
 
+def _keys_value_or_slope(t: F64, slope: bool) -> F64:
+    """The Keys kernel (``slope`` False) or its first derivative at ``t``: :func:`keys_kernel`'s
+    expressions, one of them only (the peak search needs one per axis and call)."""
+    a = np.abs(t)
+    in1 = a <= 1
+    in2 = (a > 1) & (a < 2)
+    if not slope:
+        return np.where(in1, (_A + 2) * a**3 - (_A + 3) * a**2 + 1,
+                        np.where(in2, _A * a**3 - 5 * _A * a**2 + 8 * _A * a - 4 * _A, 0.0))
+    return np.where(in1, 3 * (_A + 2) * a**2 - 2 * (_A + 3) * a,
+                    np.where(in2, 3 * _A * a**2 - 10 * _A * a + 8 * _A, 0.0)) * np.sign(t)
+
+
 def bicubic_peak(
     data: F64, st: Stamps, *, smooth_sigma: F64, iterations: int = 20, rounds: int = 2, reach: int = 2
 ) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
@@ -48,15 +61,16 @@ def bicubic_peak(
     ok = np.ones(n, bool)
     off = np.arange(-1, 3)
 
-    def grad(x: F64, y: F64) -> tuple[F64, F64]:
+    def grad(x: F64, y: F64, axis: int) -> F64:
+        """d/dx (axis 0) or d/dy (axis 1) of the bicubic surface at (x, y)."""
         x0 = np.clip(np.floor(x).astype(np.intp), 1, w - 3)
         y0 = np.clip(np.floor(y).astype(np.intp), 1, w - 3)
         cols = x0[:, None] + off[None, :]
         rows = y0[:, None] + off[None, :]
         p = sm[ar[:, None, None], rows[:, :, None], cols[:, None, :]]  # (n, 4, 4)
-        kx, dkx, _ = keys_kernel(x[:, None] - cols)
-        ky, dky, _ = keys_kernel(y[:, None] - rows)
-        return np.einsum("ni,nij,nj->n", ky, p, dkx), np.einsum("ni,nij,nj->n", dky, p, kx)
+        kx = _keys_value_or_slope(x[:, None] - cols, slope=axis == 0)
+        ky = _keys_value_or_slope(y[:, None] - rows, slope=axis == 1)
+        return np.einsum("ni,nij,nj->n", ky, p, kx)
 
     # the Keys surface's second derivative jumps at the pixel centres, so Newton steps with
     # the analytic Hessian stall there. Instead each axis in turn is solved for a zero of the
@@ -67,7 +81,7 @@ def bicubic_peak(
             lo, hi = np.clip(c - 1.0, 1.0, w - 2.0), np.clip(c + 1.0, 1.0, w - 2.0)
 
             def g_at(v: F64, axis: int = axis) -> F64:
-                return grad(v, y)[0] if axis == 0 else grad(x, v)[1]
+                return grad(v, y, 0) if axis == 0 else grad(x, v, 1)
 
             glo, ghi = g_at(lo), g_at(hi)
             bracket = (glo > 0) & (ghi < 0)
