@@ -183,7 +183,7 @@ def smooth(data: F64, s: F64) -> F64:
     k = np.exp(-0.5 * diff[None] ** 2 / ss**2)
     k /= np.sqrt(2 * np.pi) * ss  # unit area (approximately, for ss >~ 0.5)
     k = np.where((s > 0.05)[:, None, None], k, np.eye(w)[None])
-    return np.einsum("nij,njk,nlk->nil", k, data, k, optimize=True)
+    return np.matmul(np.matmul(k, data), k.transpose(0, 2, 1))  # k @ data @ kᵀ per window
 
 
 def optimal_smoothing(flux: F64, noise: F64, gain: float, psf_sigma: F64 | float, t_max: float = 2.5) -> F64:
