@@ -519,6 +519,22 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
 
 
 # ---------------------------------------------------------------- motion
+def _burn_in_option(value: str) -> object:
+    """``--burn-in`` as a :data:`starlog.compensate.BurnInSetting` (a bad value is a usage error)."""
+    from starlog.compensate import parse_burn_in
+    from starlog.errors import InvalidParameterError
+
+    try:
+        return parse_burn_in(value)
+    except InvalidParameterError as err:
+        raise click.BadParameter(str(err), param_hint="--burn-in") from None
+
+
+BURN_IN_HELP = ("The tracking filter's start-up skipped before scoring: auto (until its position variance is within "
+                "2x of the steady state, capped at 0.5 s), off (score from the first frame), or a number of seconds. "
+                "Recorded in every decision record.")
+
+
 @cli.command(context_settings=CONTEXT)
 @input_log
 @output_option()
@@ -609,9 +625,10 @@ def format_records(records: list[dict[str, Any]]) -> str:
               help="Processes for the (track, rate, protocol) evaluations; pays off for many of them (reading "
                    "the tracks dominates otherwise). The output does not depend on it.")
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@click.option("--burn-in", "burn_in", default="auto", show_default=True, metavar="auto|off|SECONDS", help=BURN_IN_HELP)
 def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str, motion: str,
                settings: tuple[str, ...], start: str | None, end: str | None, as_json: bool, force: bool,
-               compression: str, workers: int, quiet: bool) -> None:
+               compression: str, workers: int, quiet: bool, burn_in: str) -> None:
     """Decompose the brightest star's error, select strategies and compensate (paper 2.2-2.5).
 
     For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
@@ -632,7 +649,8 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
         raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
                              options=_key_values(settings, "--set"), motion=motion, workers=workers,
-                             show_progress=not quiet, force=force, compression=compression, start=start, end=end)
+                             show_progress=not quiet, force=force, compression=compression, start=start, end=end,
+                             burn_in=_burn_in_option(burn_in))
     _status(quiet, f"wrote {output}: {len(summary.records)} decision records")
     if as_json:
         _print_json(summary.to_dict())
@@ -758,8 +776,10 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
 @click.option("--force", is_flag=True, help="Overwrite an existing output folder's results.")
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 @json_option
+@click.option("--burn-in", "burn_in", default="auto", show_default=True, metavar="auto|off|SECONDS", help=BURN_IN_HELP)
 def experiment(output: Path, quick: bool, sweep: bool, regimes: tuple[str, ...], top_k: int, force_top_k: bool,
-               workers: int, scheduler: str | None, force: bool, quiet: bool, as_json: bool) -> None:
+               workers: int, scheduler: str | None, force: bool, quiet: bool, as_json: bool,
+               burn_in: str = "auto") -> None:
     """Regenerate the paper's Tables 2-4 and Figure 5 on simulated "laboratory" datasets.
 
     Simulates the two datasets (300 Hz x 3248 frames, 200 Hz x 3027 frames; static star field,
@@ -782,7 +802,7 @@ def experiment(output: Path, quick: bool, sweep: bool, regimes: tuple[str, ...],
     compensation: dict[str, object] = {"top_k": top_k, "select_positive": not force_top_k}
     summary = experiment_command(output, quick=quick, workers=workers, scheduler=scheduler, force=force,
                                  show_progress=not quiet, sweep=sweep, regimes=regimes or ("paper", "modern"),
-                                 compensation=compensation)
+                                 compensation=compensation, burn_in=_burn_in_option(burn_in))
     if as_json:
         _print_json(summary.to_dict())
     else:

@@ -56,3 +56,47 @@ def test_cap_is_half_a_second_or_a_tenth_of_the_log() -> None:
     assert burn_in_cap(3248, native_rate=300.0) == 150
     assert burn_in_cap(3027, native_rate=200.0) == 100
     assert burn_in_cap(160, native_rate=100.0) == 16
+
+
+@pytest.mark.parametrize(("value", "expected"), [(None, "auto"), ("auto", "auto"), (" OFF ", "off"), ("0", "off"),
+                                                 (0.0, "off"), ("0.25", 0.25), ("1.5 s", 1.5), (2, 2.0)])
+def test_parse_burn_in(value: object, expected: object) -> None:
+    from starlog.compensate import parse_burn_in
+
+    assert parse_burn_in(value) == expected
+
+
+@pytest.mark.parametrize("value", ["soon", "-1", -0.5, float("nan"), True])
+def test_parse_burn_in_rejects(value: object) -> None:
+    from starlog.compensate import parse_burn_in
+
+    with pytest.raises(InvalidParameterError):
+        parse_burn_in(value)
+
+
+def _series(n: int = 400, rate: float = 100.0) -> object:
+    from starlog.stages.compensate import BrightestSeries
+
+    var = 1.0 / np.arange(1, n + 1) + 0.01  # a settling filter: within 2x of 0.01 after 100 samples
+    return BrightestSeries(method="NONE", model="STATIC", track=0, log_time=np.arange(n, dtype=np.int64) * 10_000_000,
+                           frame=np.arange(n, dtype=np.int64), xy=np.zeros((n, 2)), flux=np.ones(n),
+                           sigma=np.full(n, 0.1), native_rate=rate, position_var=var)
+
+
+def test_series_burn_in_settings_decide_the_first_sample() -> None:
+    series = _series()
+    auto = series.burn_in("auto")
+    assert 0 < auto.samples <= 40  # the variance rule, capped at 10 % of 400 samples
+    assert series.burn_in("off").samples == 0
+    assert series.burn_in(0.25).samples == 25  # 0.25 s at 100 Hz
+    assert series.burn_in(100.0).samples == 399  # never past the last sample
+    assert series.indices(10.0, burn_in="off")[0] == 0
+    assert series.indices(10.0, burn_in=0.25)[0] == 25
+    assert series.indices(10.0)[0] == auto.samples
+    assert series.indices(10.0, skip_burn_in=False, burn_in=0.25)[0] == 0
+
+
+def test_label() -> None:
+    from starlog.compensate import burn_in_label
+
+    assert [burn_in_label(s) for s in ("auto", "off", 0.5)] == ["auto", "off", "0.5 s"]

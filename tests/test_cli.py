@@ -213,3 +213,24 @@ def test_help_and_every_module_work_without_docstrings() -> None:
         done = subprocess.run([sys.executable, "-OO", *args], capture_output=True, text=True, check=False)
         assert done.returncode == 0, done.stderr
     assert done.stdout == DEFAULT_CONFIG_TOML
+
+
+@pytest.mark.parametrize(("flag", "setting", "first_frame"), [("off", "off", 0), ("0.1", "0.1 s", 10)])
+def test_compensate_burn_in_switch_is_applied_and_recorded(quiet_logs: Path, flag: str, setting: str,
+                                                           first_frame: int) -> None:
+    out = quiet_logs / f"burn-{flag}.mcap"
+    result = CliRunner().invoke(cli, ["compensate", str(quiet_logs / "trk.mcap"), "-o", str(out), "--rate", "50",
+                                      "--protocol", "paper", "--burn-in", flag, "--json", "-q", "--force"])
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.stdout)["records"][0]
+    assert record["burn_in"]["setting"] == setting
+    assert record["burn_in"]["samples"] == first_frame  # 100 fps log
+    with LogReader(out) as log:
+        first = next(log.messages(record["series_topic"]))
+    assert first.payload["frame"] == first_frame
+
+
+def test_burn_in_switch_rejects_a_bad_value(quiet_logs: Path) -> None:
+    result = CliRunner().invoke(cli, ["compensate", str(quiet_logs / "trk.mcap"), "-o", str(quiet_logs / "x.mcap"),
+                                      "--rate", "50", "--burn-in", "later", "-q"])
+    assert result.exit_code == 2 and "--burn-in" in result.output

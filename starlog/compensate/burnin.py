@@ -15,6 +15,10 @@ variance keeps falling like ``1 / n`` — so the test alone would skip half the 
 burn-in is capped at ``max_samples`` (the experiment and the ``compensate`` stage use
 :data:`MAX_BURN_IN_S` seconds of frames, and at most :data:`MAX_BURN_IN_FRACTION` of the
 sequence).  The result says whether the cap applied.
+
+What is skipped is a :data:`BurnInSetting` (``--burn-in`` of ``compensate`` and ``experiment``):
+``"auto"`` (the rule above, the default), ``"off"`` (score from the first frame), or a fixed
+number of seconds (:func:`parse_burn_in`, :func:`fixed_burn_in`).
 """
 
 from __future__ import annotations
@@ -29,7 +33,8 @@ import numpy.typing as npt
 from starlog.compensate._series import as_samples
 from starlog.errors import InvalidParameterError
 
-__all__ = ["BURN_IN_RATIO", "MAX_BURN_IN_FRACTION", "MAX_BURN_IN_S", "BurnIn", "burn_in", "burn_in_cap"]
+__all__ = ["BURN_IN_RATIO", "MAX_BURN_IN_FRACTION", "MAX_BURN_IN_S", "BurnIn", "BurnInSetting", "burn_in",
+           "burn_in_cap", "burn_in_label", "fixed_burn_in", "parse_burn_in"]
 
 #: The filter has settled once its position variance is within this factor of the steady state.
 BURN_IN_RATIO = 2.0
@@ -38,6 +43,9 @@ MAX_BURN_IN_S = 0.5
 #: Longest burn-in skipped, as a fraction of the sequence (short logs keep most of their samples).
 MAX_BURN_IN_FRACTION = 0.1
 _TAIL = 0.05
+
+#: What scoring skips: ``"auto"`` (the variance rule), ``"off"`` (nothing) or a number of seconds.
+BurnInSetting = str | float
 
 
 @dataclass(frozen=True)
@@ -96,3 +104,31 @@ def burn_in_cap(n: int, *, native_rate: float) -> int:
     """The cap on the burn-in of ``n`` samples at ``native_rate`` Hz:
     ``min(floor(MAX_BURN_IN_S · rate + 0.5), floor(MAX_BURN_IN_FRACTION · n))``."""
     return max(0, min(int(math.floor(MAX_BURN_IN_S * native_rate + 0.5)), int(math.floor(MAX_BURN_IN_FRACTION * n))))
+
+
+def parse_burn_in(value: BurnInSetting | None) -> BurnInSetting:
+    """``"auto"``, ``"off"`` or seconds (>= 0; ``0`` is ``"off"``) from a CLI string or a value; None is ``"auto"``."""
+    if value is None:
+        return "auto"
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text in ("auto", "off"):
+            return text
+        try:
+            value = float(text.removesuffix("s"))
+        except ValueError:
+            raise InvalidParameterError(f"burn-in must be 'auto', 'off' or seconds >= 0; got {value!r}.") from None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+        raise InvalidParameterError(f"burn-in must be 'auto', 'off' or seconds >= 0; got {value!r}.")
+    return "off" if value == 0 else float(value)
+
+
+def burn_in_label(setting: BurnInSetting) -> str:
+    """The setting as recorded: ``auto``, ``off`` or ``<seconds> s``."""
+    return setting if isinstance(setting, str) else f"{setting:g} s"
+
+
+def fixed_burn_in(n: int, *, native_rate: float, seconds: float) -> BurnIn:
+    """A burn-in of ``seconds`` of frames (``floor(seconds · rate + 0.5)``, at most ``n - 1``); no variance test (``steady_variance`` 0)."""
+    samples = max(0, min(int(math.floor(seconds * native_rate + 0.5)), n - 1))
+    return BurnIn(samples=samples, steady_variance=0.0, capped=False)

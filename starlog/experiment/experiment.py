@@ -15,6 +15,7 @@ import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from starlog.batch import executor_for
+from starlog.compensate import BurnInSetting, burn_in_label, parse_burn_in
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.experiment import null_check, plots, report, tables
 from starlog.report.experiment_report import render_experiment_report
@@ -86,6 +87,7 @@ class ExperimentSummary:
     table3_models: dict[str, str] = field(default_factory=dict)
     null_checks: list[dict[str, Any]] = field(default_factory=list)
     compensation: dict[str, Any] = field(default_factory=dict)
+    burn_in: str = "auto"
 
     @property
     def window_note(self) -> str:
@@ -104,7 +106,7 @@ class ExperimentSummary:
             "files": dict(self.files), "tracks": self.tracks, "headline": self.headline,
             "showcase_check": self.showcase_check, "n_rows": len(self.rows), "regimes": list(self.regimes),
             "table3_models": dict(self.table3_models), "null_checks": self.null_checks,
-            "compensation": dict(self.compensation),
+            "compensation": dict(self.compensation), "burn_in": self.burn_in,
         }
 
     def text(self) -> str:
@@ -150,6 +152,7 @@ def run_experiment(
     plot: bool = True,
     regimes: tuple[str, ...] | list[str] = REGIMES,
     compensation: dict[str, Any] | None = None,
+    burn_in: BurnInSetting = "auto",
 ) -> ExperimentSummary:
     """Regenerate the paper's Tables 2–4 and Figure 5 under the ``paper``, ``truth`` and ``leakfree`` protocols.
 
@@ -184,11 +187,16 @@ def run_experiment(
     compensation : dict, optional
         Keyword options of :func:`starlog.compensate.evaluate` for every run (e.g.
         ``{"top_k": 3, "select_positive": False}`` for the forced-three ablation).
+    burn_in : str or float
+        The filter's start-up skipped before scoring: ``"auto"`` (default), ``"off"`` or seconds
+        (:func:`starlog.compensate.parse_burn_in`); recorded in ``summary.json`` and in every row
+        (``burn_in_setting``).
     """
     t0 = time.perf_counter()
     if window_s is not None and not window_s > 0:
         raise InvalidParameterError(f"window_s must be > 0 s or None, got {window_s!r}.")
     chosen = _check_regimes(regimes)
+    setting = parse_burn_in(burn_in)
     out = Path(output_dir)
     datasets = list(regime_datasets(chosen, quick=quick, sigma_floor=sigma_floor))
     _prepare_output(out, datasets, force=force)
@@ -196,10 +204,10 @@ def run_experiment(
         output_dir=out, quick=quick, wall_time_s=0.0,
         executor="serial" if executor is None else type(executor).__name__,
         datasets=[d.to_dict() for d in datasets], sigma_floor_px=float(sigma_floor), window_s=window_s,
-        regimes=chosen, compensation=dict(compensation or {}),
+        regimes=chosen, compensation=dict(compensation or {}), burn_in=burn_in_label(setting),
     )
     sweep = _Sweep(datasets, out / "logs", window_s=window_s, force=force, compensation=summary.compensation,
-                   quick=quick)
+                   quick=quick, burn_in=setting)
     sweep.run(executor if executor is not None else _Serial(), show_progress=show_progress)
     summary.rows = sort_rows([r for t in sweep.track_results for r in t["rows"]])
     summary.tracks = {f"{t['regime']}/{t['dataset']}/{t['method']}": t["track"] for t in sorted(
@@ -258,8 +266,9 @@ class _Sweep:
     """
 
     def __init__(self, datasets: list[Dataset], logs: Path, *, window_s: float | None, force: bool,
-                 compensation: dict[str, Any], quick: bool) -> None:
+                 compensation: dict[str, Any], quick: bool, burn_in: BurnInSetting = "auto") -> None:
         self.datasets = {(d.regime, d.name): d for d in datasets}
+        self.burn_in = burn_in
         self.logs, self.window_s, self.force, self.compensation, self.quick = logs, window_s, force, compensation, quick
         self.track_results: list[dict[str, Any]] = []
         self.showcases: list[dict[str, Any]] = []
@@ -288,7 +297,7 @@ class _Sweep:
                 first = next(d for d in self.datasets.values() if d.regime == regime)
                 self._submit(("null", regime, first.name, ""), null_check.run_null_check, first.to_dict(),
                              str(self.logs), compensation=self.compensation, window_s=self.window_s,
-                             force=self.force)
+                             burn_in=self.burn_in, force=self.force)
             while self._futures:
                 done, _ = wait(list(self._futures), return_when=FIRST_COMPLETED)
                 for fut in sorted(done, key=lambda f: self._futures[f]):
@@ -314,7 +323,7 @@ class _Sweep:
                      models=models, tracker=dict(ds.tracker), motion=dict(ds.motion),
                      rates_uncompensated=list(UNCOMPENSATED_RATES), rates_compensated=list(COMPENSATED_RATES),
                      window_s=self.window_s, keep_series=list(keep), compensation=self.compensation,
-                     force=self.force)
+                     burn_in=self.burn_in, force=self.force)
 
     def _on_done(self, key: _Key, result: Any) -> None:
         kind, regime, name, detail = key
@@ -346,7 +355,7 @@ class _Sweep:
             self._submit(("compensate", regime, ds.name, f"NONE/{best}"), compensate_showcase,
                          self._path(ds, "track_NONE"), self._path(ds, "compensated"), dataset=ds.name,
                          regime=regime, track_topic=f"/track/NONE/{best}", rates=list(_SHOWCASE_RATES),
-                         force=self.force)
+                         burn_in=self.burn_in, force=self.force)
 
 
 def _write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) -> dict[str, str]:
@@ -437,9 +446,10 @@ def experiment_command(
     sweep: bool = False,
     regimes: tuple[str, ...] | list[str] = REGIMES,
     compensation: dict[str, Any] | None = None,
+    burn_in: BurnInSetting = "auto",
 ) -> ExperimentSummary | RegimeSummary:
     """What ``starlog experiment -o DIR [--quick] [--sweep] [--regime R] [--top-k K] [--force-top-k] [--workers N]
-    [--scheduler ADDR] [--force]`` calls.
+    [--scheduler ADDR] [--force] [--burn-in auto|off|S]`` calls.
 
     ``sweep`` runs the regime map (:mod:`starlog.experiment.regime`) instead of the paper's tables
     (``regimes`` and ``compensation`` are then not used).
@@ -455,4 +465,4 @@ def experiment_command(
             return run_regime_map(output_dir, quick=quick, executor=executor, force=force,
                                   show_progress=show_progress)
         return run_experiment(output_dir, quick=quick, executor=executor, force=force, show_progress=show_progress,
-                              regimes=regimes, compensation=compensation)
+                              regimes=regimes, compensation=compensation, burn_in=burn_in)

@@ -79,8 +79,10 @@ def _motionless_config(dataset: dict[str, Any], window_s: float | None) -> Simul
 
 
 def run_null_check(dataset: dict[str, Any], logs_dir: str, *, compensation: dict[str, Any] | None = None,
-                   window_s: float | None = 6.0, force: bool = False) -> list[dict[str, Any]]:
-    """Task: both null cases for one regime (``dataset`` is a :meth:`Dataset.to_dict` of it).
+                   window_s: float | None = 6.0, burn_in: str | float = "auto",
+                   force: bool = False) -> list[dict[str, Any]]:
+    """Task: both null cases for one regime (``dataset`` is a :meth:`Dataset.to_dict` of it); the
+    motionless star's start-up is skipped per ``burn_in`` (:func:`starlog.compensate.parse_burn_in`).
 
     Writes ``<regime>_null_{sim,centroids,track}.mcap`` into ``logs_dir``; returns rows of
     :data:`NULL_FIELDS`.
@@ -99,7 +101,7 @@ def run_null_check(dataset: dict[str, Any], logs_dir: str, *, compensation: dict
                              method="NONE", models=["STATIC"], tracker=dict(dataset.get("tracker", {})),
                              motion=dict(dataset.get("motion", {})), rates_uncompensated=[],
                              rates_compensated=list(NULL_RATES), window_s=window_s, compensation=options,
-                             force=force)
+                             burn_in=burn_in, force=force)
     window = f"{window_s:g}s" if window_s is not None else "full"
     rows += [{"regime": regime, "case": "motionless_star", "rate_hz": r["rate_hz"], "protocol": r["protocol"],
               "reference": r["reference"], "n_scored": r["n_scored"], "rmse_before": r["rmse_before"],

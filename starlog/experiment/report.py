@@ -74,7 +74,7 @@ def render_report(summary: dict[str, Any], tables_md: dict[str, str], headline: 
         f"- mode: {'quick (CI)' if summary['quick'] else 'full'}; wall time {summary['wall_time_s']:.0f} s "
         f"({summary['executor']})",
         f"- tracker `sigma_floor` = {summary['sigma_floor_px']} px (≈ per-axis jitter RMS "
-        f"{summary['jitter_rms_px']:.3f} px); A of eq. 10 = the centroid's own `sigma` for every method (from `/stars/centroids/<METHOD>`, not the tracker's floored value); the filter's start-up is skipped before scoring (`burn_in`)",
+        f"{summary['jitter_rms_px']:.3f} px); A of eq. 10 = the centroid's own `sigma` for every method (from `/stars/centroids/<METHOD>`, not the tracker's floored value); the filter's start-up skipped before scoring: `--burn-in {summary.get('burn_in', 'auto')}` (`burn_in`, `burn_in_setting`)",
         f"- scored samples: {summary['window_note']}",
         "",
         "## Datasets",

@@ -42,8 +42,10 @@ import numpy.typing as npt
 
 from starlog.compensate import (
     MIN_SAMPLES,
+    BurnInSetting,
     Evaluation,
     ScoringProtocol,
+    burn_in_label,
     protocol_figures,
     protocols_for,
     sampled_rate,
@@ -118,6 +120,7 @@ RESULT_FIELDS: dict[str, str] = {
     "window": "scored samples: '6s' (first window_s seconds, the paper's image numbers) or 'full'",
     "burn_in": "'skipped': the decimated series starts after the filter's start-up (the tables); 'kept': at frame 0",
     "burn_in_samples": "native frames skipped as the filter's start-up (0 when kept)",
+    "burn_in_setting": "what 'skipped' skips (--burn-in): 'auto' (the filter's variance rule), 'off' or '<seconds> s'",
     "rate_hz": "requested down-sample rate, Hz",
     "effective_rate_hz": "mean rate of the kept samples, native rate × (N - 1) / (last - first frame index), Hz",
     "n_samples": "decimated samples in the window",
@@ -158,10 +161,10 @@ def simulate_and_centroid(
 
 
 def _window_indices(series: BrightestSeries, *, rate: float, window_s: float | None,
-                    skip_burn_in: bool) -> npt.NDArray[np.int64]:
+                    skip_burn_in: bool, burn_in: BurnInSetting = "auto") -> npt.NDArray[np.int64]:
     """The decimated samples of one window (:meth:`BrightestSeries.indices`, then the first
     ``floor(window_s · rate + 0.5)``)."""
-    idx = series.indices(rate, skip_burn_in=skip_burn_in)
+    idx = series.indices(rate, skip_burn_in=skip_burn_in, burn_in=burn_in)
     if window_s is None:
         return idx
     return idx[: int(math.floor(window_s * rate + 0.5))]
@@ -236,7 +239,7 @@ def _keep_series(kept: dict[str, Any], key: str, series: BrightestSeries, idx: n
 def _score_series(series: BrightestSeries, *, dataset: str, regime: str, rates_uncompensated: Sequence[float],
                   rates_compensated: Sequence[float], window_s: float | None,
                   calibration_fraction: float, keep_series: Sequence[float],
-                  options: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+                  options: dict[str, Any], burn_in: BurnInSetting = "auto") -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows for one brightest-star series (burn-in skipped: every window; kept: the first window
     only — the tables' — to bound the cost), every rate; and
     the series of the ``keep_series`` rates (burn-in skipped, short window).
@@ -252,14 +255,16 @@ def _score_series(series: BrightestSeries, *, dataset: str, regime: str, rates_u
     if window_s is not None:
         windows.insert(0, (f"{window_s:g}s", window_s))
     has_truth = series.truth_fixed is not None or series.truth_series is not None
-    burn = series.burn_in()
-    for burn_in, skip in BURN_IN_VARIANTS:
+    burn = series.burn_in(burn_in)
+    setting = burn_in_label(burn_in)
+    for variant, skip in BURN_IN_VARIANTS:
         for window, wsec in (windows if skip else windows[:1]):
             for rate in sorted({*rates_uncompensated, *rates_compensated}):
-                idx = _window_indices(series, rate=rate, window_s=wsec, skip_burn_in=skip)
+                idx = _window_indices(series, rate=rate, window_s=wsec, skip_burn_in=skip, burn_in=burn_in)
                 rate_hz = sampled_rate(idx, native_rate=series.native_rate)
                 base = {"regime": regime, "dataset": dataset, "method": series.method, "model": series.model, "window": window,
-                        "burn_in": burn_in, "burn_in_samples": burn.samples if skip else 0,
+                        "burn_in": variant, "burn_in_samples": burn.samples if skip else 0,
+                        "burn_in_setting": setting,
                         "rate_hz": float(rate), "effective_rate_hz": float(rate_hz), "n_samples": int(idx.size)}
                 key = (rate, idx.tobytes())
                 if key in scored:
@@ -298,12 +303,14 @@ def track_and_score(
     calibration_fraction: float = 0.5,
     keep_series: Sequence[float] = (),
     compensation: dict[str, Any] | None = None,
+    burn_in: BurnInSetting = "auto",
     force: bool = False,
 ) -> dict[str, Any]:
     """Task 2: track one centroid channel under ``models`` and score every model's brightest series.
 
     ``compensation``: keyword options of :func:`starlog.compensate.evaluate` (``A`` of eq. 10 is
-    the centroid's own ``sigma`` unless ``accuracy_source`` is given).
+    the centroid's own ``sigma`` unless ``accuracy_source`` is given).  ``burn_in``: what the
+    ``skipped`` rows skip (:func:`starlog.compensate.parse_burn_in`).
 
     Returns ``{"regime", "dataset", "method", "track_path", "track": TrackSummary.to_dict(), "rows": [...],
     "series": {...}}`` — plain data (rows of :data:`RESULT_FIELDS`).
@@ -319,7 +326,7 @@ def track_and_score(
             r, s = _score_series(series, dataset=dataset, regime=regime, rates_uncompensated=rates_uncompensated,
                                  rates_compensated=rates_compensated, window_s=window_s,
                                  calibration_fraction=calibration_fraction, keep_series=keep_series,
-                                 options=dict(compensation or {}))
+                                 options=dict(compensation or {}), burn_in=burn_in)
             rows.extend(r)
             series_out.update(s)
     return {"regime": regime, "dataset": dataset, "method": method, "track_path": track_path,
@@ -334,6 +341,7 @@ def compensate_showcase(
     track_topic: str,
     rates: Sequence[float],
     regime: str = "modern",
+    burn_in: BurnInSetting = "auto",
     force: bool = False,
 ) -> dict[str, Any]:
     """Task 3: the ``compensate`` stage on one track channel (whole sequence, every protocol).
@@ -342,7 +350,7 @@ def compensate_showcase(
     """
     try:
         summary = compensate_log(track_path, output_path, rates=list(rates), track=track_topic, protocols="all",
-                                 force=force)
+                                 burn_in=burn_in, force=force)
     except InvalidInputError as err:  # a brightest track too short to compensate (fragmented, faint star)
         return {"regime": regime, "dataset": dataset, "path": None, "records": [], "skipped": str(err)}
     records = [{"method": r["method"], "model": r["model"], "rate_hz": r["rate_hz"], "protocol": r["protocol"],

@@ -38,8 +38,12 @@ from starlog.compensate import (
     BurnIn,
     Evaluation,
     MotionMode,
+    BurnInSetting,
     burn_in,
     burn_in_cap,
+    burn_in_label,
+    fixed_burn_in,
+    parse_burn_in,
     ScoringProtocol,
     decimation_indices,
     evaluate,
@@ -86,17 +90,23 @@ class BrightestSeries:
     position_var: npt.NDArray[np.float64] | None = None
     """The filter's posterior position variance per sample, ``(cov_xx + cov_yy) / 2``, px²."""
 
-    def burn_in(self) -> BurnIn:
+    def burn_in(self, setting: BurnInSetting = "auto") -> BurnIn:
         """The filter's start-up (:func:`starlog.compensate.burn_in`, capped by :func:`~starlog.compensate.burn_in_cap`);
-        no burn-in when the variances are unknown."""
+        no burn-in when the variances are unknown.  ``setting``: ``"auto"`` (that rule), ``"off"``
+        (none) or a fixed number of seconds (:func:`starlog.compensate.parse_burn_in`)."""
+        if setting == "off":
+            return BurnIn(samples=0, steady_variance=0.0, capped=False)
+        if not isinstance(setting, str):
+            return fixed_burn_in(self.xy.shape[0], native_rate=self.native_rate, seconds=float(setting))
         if self.position_var is None:
             return BurnIn(samples=0, steady_variance=0.0, capped=False)
         return burn_in(self.position_var, max_samples=burn_in_cap(self.xy.shape[0], native_rate=self.native_rate))
 
-    def indices(self, rate: float, *, skip_burn_in: bool = True) -> npt.NDArray[np.int64]:
+    def indices(self, rate: float, *, skip_burn_in: bool = True,
+                burn_in: BurnInSetting = "auto") -> npt.NDArray[np.int64]:
         """The samples kept at ``rate`` Hz (:func:`starlog.compensate.decimation_indices`), starting
-        after the filter's burn-in when ``skip_burn_in``."""
-        start = self.burn_in().samples if skip_burn_in else 0
+        after the filter's burn-in (per ``burn_in``) when ``skip_burn_in``."""
+        start = self.burn_in(burn_in).samples if skip_burn_in else 0
         return decimation_indices(self.xy.shape[0], native_rate=self.native_rate, target_rate=rate, start=start)
 
     @property
@@ -309,6 +319,7 @@ def compensate_log(
     motion: str | Sequence[str] = "keep",
     motion_fit: str = "rigid",
     skip_burn_in: bool = True,
+    burn_in: BurnInSetting = "auto",
     workers: int = 1,
     show_progress: bool = False,
     force: bool = False,
@@ -338,6 +349,10 @@ def compensate_log(
     skip_burn_in : bool
         Start each decimated series after the filter's start-up
         (:meth:`BrightestSeries.burn_in`; default), or at the first frame.
+    burn_in : str or float
+        What the start-up is when ``skip_burn_in``: ``"auto"`` (the filter's variance rule,
+        default), ``"off"`` (nothing skipped) or a number of seconds; recorded in every
+        decision record.
     workers : int
         Processes for the evaluations (1: in this process) and threads for chunk compression;
         the output does not depend on it.
@@ -352,6 +367,7 @@ def compensate_log(
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
     options = dict(options or {})
+    setting = parse_burn_in(burn_in) if skip_burn_in else "off"
     summary = CompensateSummary()
     with LogReader(input_path) as probe:
         channels = select_track_channels(probe, track)
@@ -359,7 +375,8 @@ def compensate_log(
     chosen = parse_protocols(protocols, has_truth=has_truth)
     modes = parse_motion_modes(motion)
     parameters = {"tracks": [c.topic for c in channels], "rates": [float(r) for r in rates],
-                  "protocols": [p.value for p in chosen], "options": options, "skip_burn_in": skip_burn_in}
+                  "protocols": [p.value for p in chosen], "options": options, "skip_burn_in": skip_burn_in,
+                  "burn_in": burn_in_label(setting)}
     fit = motion_fit if (ScoringProtocol.RELATIVE in chosen or MotionMode.SEPARATE in modes) else None
     if modes != [MotionMode.KEEP] or fit is not None:
         parameters |= {"motion": [m.value for m in modes], "motion_fit": fit}
@@ -368,7 +385,7 @@ def compensate_log(
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force,
                     compression=compression, workers=workers) as (log, out), \
             (process_pool(workers, preload=[__name__]) if parallel else nullcontext()) as pool:
-        jobs = _plan_jobs(log, channels, rates, chosen, modes, fit, skip_burn_in=skip_burn_in)
+        jobs = _plan_jobs(log, channels, rates, chosen, modes, fit, burn_in=setting)
         done = _evaluated(jobs, options, pool, window=2 * workers)
         decisions: dict[str, int] = {}
         for job, evaluation in progress(done, total=n_jobs, description="compensate", enabled=show_progress,
@@ -392,11 +409,12 @@ class _Job:
     rate_hz: float
     protocol: ScoringProtocol
     motion: MotionMode = MotionMode.KEEP
+    burn_in: BurnInSetting = "auto"
 
 
 def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[float],
                chosen: list[ScoringProtocol], modes: list[MotionMode], fit: str | None, *,
-               skip_burn_in: bool) -> Iterator[_Job]:
+               burn_in: BurnInSetting) -> Iterator[_Job]:
     """Every (track channel, rate, protocol, motion mode), in output order; each channel's series read when
     reached (with its platform reference when ``fit`` is given)."""
     truth_cache: dict[int, StarTruth] = {}
@@ -410,9 +428,10 @@ def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[f
             if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
                 raise InvalidParameterError(
                     f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
-            idx = series.indices(rate, skip_burn_in=skip_burn_in)
+            idx = series.indices(rate, burn_in=burn_in)
             rate_hz = sampled_rate(idx, native_rate=series.native_rate)
-            jobs += [_Job(channel.topic, series, float(rate), idx, rate_hz, p, m) for p in chosen for m in modes]
+            jobs += [_Job(channel.topic, series, float(rate), idx, rate_hz, p, m, burn_in) for p in chosen
+                     for m in modes]
         yield from jobs
 
 
@@ -464,7 +483,8 @@ def _write_evaluation(out: StageOutput, decision_channel: int, job: _Job, evalua
         "effective_rate_hz": job.rate_hz, "native_rate_hz": series.native_rate,
         "n_samples": int(idx.size), "first_log_time": int(series.log_time[idx[0]]),
         "last_log_time": int(series.log_time[idx[-1]]),
-        "burn_in": {**series.burn_in().to_dict(), "skipped": bool(idx[0] > 0)},
+        "burn_in": {**series.burn_in(job.burn_in).to_dict(), "skipped": bool(idx[0] > 0),
+                    "setting": burn_in_label(job.burn_in)},
         "accuracy_from": series.sigma_source if evaluation.result.accuracy_source == "sigma" else "none (A = 0)",
         **evaluation.to_dict(),
     }
