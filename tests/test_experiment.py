@@ -214,3 +214,19 @@ def test_html_report_renders_in_chromium(quick_run: ExperimentSummary) -> None:
         drawn = _render(browser, quick_run.output_dir / "report.html")
         assert len(drawn) == len(REGIMES) * len(DATASETS) * 4 and min(drawn.values()) > 0.02, drawn
         assert browser.errors() == []
+def test_serial_run_gives_the_parallel_tables(quick_run: ExperimentSummary, tmp_path: Path) -> None:
+    # one regime serially, against the same regime's rows of the module's parallel run
+    serial = run_experiment(tmp_path / "serial", quick=True, show_progress=False, plot=False, regimes=["paper"])
+    for name in ("results", "table2", "table3", "table4", "figure5", "null_check"):
+        ours = pq.read_table(serial.output_dir / f"{name}.parquet")
+        theirs = pq.read_table(quick_run.output_dir / f"{name}.parquet")
+        assert ours.schema == theirs.schema, name
+        assert ours.to_pylist() == [r for r in theirs.to_pylist() if r["regime"] == "paper"], name
+
+
+def test_burn_in_setting_is_recorded_and_checked(quick_run: ExperimentSummary, tmp_path: Path) -> None:
+    rows = pq.read_table(quick_run.output_dir / "results.parquet").to_pylist()
+    assert {r["burn_in_setting"] for r in rows} == {"auto"}
+    assert quick_run.to_dict()["burn_in"] == "auto"
+    with pytest.raises(InvalidParameterError):
+        run_experiment(tmp_path, quick=True, show_progress=False, burn_in="later")
