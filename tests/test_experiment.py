@@ -230,3 +230,15 @@ def test_burn_in_setting_is_recorded_and_checked(quick_run: ExperimentSummary, t
     assert quick_run.to_dict()["burn_in"] == "auto"
     with pytest.raises(InvalidParameterError):
         run_experiment(tmp_path, quick=True, show_progress=False, burn_in="later")
+
+
+
+def test_best_table2_model_breaks_near_ties_in_table_order() -> None:
+    def row(model: str, value: float) -> dict[str, object]:
+        return {"method": "NONE", "rate_hz": 5.0, "window": "6s", "burn_in": "skipped", "protocol": "paper",
+                "model": model, "rmse_before": value}
+
+    near = [row("STATIC", 0.30006), row("RANDOM_WALK", 0.30000), row("CONSTANT_VELOCITY", 0.5)]
+    assert best_table2_model(near, window="6s") == "STATIC"  # 2e-4 apart: rounding, not a better model
+    clear = [row("STATIC", 0.31), row("RANDOM_WALK", 0.30)]
+    assert best_table2_model(clear, window="6s") == "RANDOM_WALK"
