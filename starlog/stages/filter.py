@@ -73,12 +73,13 @@ def filter_log(
     re-encoded with ``compression``. Works on any MCAP log (foreign, unindexed).
     """
     selection = TopicSelection(tuple(topics), tuple(exclude_topics))
-    with LogReader(input_path) as log:
-        chosen = _selected(log, selection)
-        resolved = _resolve(log, TimeRange.parse(start, end), chosen, frame_topic)
-    parameters: dict[str, Any] = {**selection.to_dict(), "range": None if resolved is None else resolved.to_dict()}
-    digest = BackgroundDigest(input_path)
+    digest = BackgroundDigest(input_path)  # the provenance's input SHA-256, hashed while the chunks are copied
     try:
+        with LogReader(input_path) as log:
+            chosen = _selected(log, selection)
+            resolved = _resolve(log, TimeRange.parse(start, end), chosen, frame_topic)
+        parameters: dict[str, Any] = {**selection.to_dict(),
+                                      "range": None if resolved is None else resolved.to_dict()}
         report = slice_log(input_path, output_path, topics=selection, time_range=resolved, force=force,
                            compression=compression,
                            provenance=lambda: Provenance(stage="filter", version=__version__, parameters=parameters,
