@@ -15,6 +15,11 @@ cache:
 Each row is the best of ``--repeat`` runs; MB/s counts the bytes written. The target: ``filter``
 copies kept chunks at >= 50 % of the disk copy's speed.
 
+A second table times what a user runs: ``starlog filter LOG -o OUT --topic '/camera/*'`` as a
+process (interpreter start-up included) against ``cp`` + ``sync`` of the same file, on the log
+and on one twice as long, so that the marginal speed (the extra bytes over the extra
+seconds) and the start-up (the intercept) are separate.
+
 Usage::
 
     python tools/bench_filter.py            # ~300 MB log
@@ -26,6 +31,8 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -130,9 +137,19 @@ def main() -> None:
             ("  of which: input SHA-256 for the provenance", _digest(log, out)),
         ]
         results = [(name, *_best(action, args.repeat)) for name, action in rows]
+        long_log = folder / "sim4.mcap"
+        simulate_log(SimulationConfig(width=size, height=size, n_stars=50, n_frames=2 * frames, seed=1), long_log,
+                     workers=os.cpu_count() or 1)
+        long_log.read_bytes()
+        report_in_process(results, frames, size, args.repeat)
+        cli_table(log, long_log, out, args.repeat)
+
+
+def report_in_process(results: list[tuple[str, float, int]], frames: int, size: int, repeat: int) -> None:
+    """The in-process table: each operation's MB/s against copyfile and copyfile + fsync."""
     copy_speed = results[0][2] / results[0][1]
     synced_speed = results[1][2] / results[1][1]
-    print(f"log: {frames} frames {size}x{size} mono16, {log_size(results):.0f} MB; best of {args.repeat}; "
+    print(f"log: {frames} frames {size}x{size} mono16, {log_size(results):.0f} MB; best of {repeat}; "
           f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"| {'operation':<46} | {'MB written':>10} | {'s':>6} | {'MB/s':>7} | {'vs copyfile':>11} | "
           f"{'vs copy+fsync':>13} |")
@@ -142,6 +159,40 @@ def main() -> None:
         speed = written / seconds
         print(f"| {name:<46} | {written / 1e6:>10.1f} | {seconds:>6.3f} | {speed / 1e6:>7.0f} | "
               f"{100 * speed / copy_speed:>10.0f}% | {100 * speed / synced_speed:>12.0f}% |")
+
+
+def _cli_filter(src: Path, dst: Path) -> Callable[[], Path]:
+    def run() -> Path:
+        subprocess.run([sys.executable, "-m", "starlog", "filter", str(src), "-o", str(dst), "--topic", "/camera/*",
+                        "--force", "-q"], check=True, stdout=subprocess.DEVNULL)
+        return dst
+
+    return run
+
+
+def _cli_copy(src: Path, dst: Path) -> Callable[[], Path]:
+    def run() -> Path:
+        subprocess.run(["cp", str(src), str(dst)], check=True)
+        subprocess.run(["sync", str(dst)], check=True)
+        return dst
+
+    return run
+
+
+def cli_table(short: Path, long: Path, out: Path, repeat: int) -> None:
+    """CLI filter against cp + sync on two log lengths: marginal MB/s and start-up."""
+    rows = {}
+    for name, make in (("starlog filter (CLI)", _cli_filter), ("cp + sync", _cli_copy)):
+        (t1, b1), (t2, b2) = _best(make(short, out), repeat), _best(make(long, out), repeat)
+        marginal = (b2 - b1) / (t2 - t1)
+        rows[name] = (t1, t2, b1, b2, marginal, t1 - b1 / marginal)
+    print(f"\n| {'command':<22} | {'s short':>7} | {'s long':>7} | {'MB short':>8} | {'MB long':>8} | "
+          f"{'marginal MB/s':>13} | {'start-up s':>10} | {'marginal vs cp+sync':>19} | {'long, total vs cp+sync':>22} |")
+    print(f"|{'-' * 24}|{'-' * 9}|{'-' * 9}|{'-' * 10}|{'-' * 10}|{'-' * 15}|{'-' * 12}|{'-' * 21}|{'-' * 24}|")
+    base = rows["cp + sync"]
+    for name, (t1, t2, b1, b2, marginal, startup) in rows.items():
+        print(f"| {name:<22} | {t1:>7.3f} | {t2:>7.3f} | {b1 / 1e6:>8.1f} | {b2 / 1e6:>8.1f} | {marginal / 1e6:>13.0f} | "
+              f"{startup:>10.2f} | {100 * marginal / base[4]:>18.0f}% | {100 * base[1] / t2:>21.0f}% |")
 
 
 def log_size(results: list[tuple[str, float, int]]) -> float:

@@ -64,7 +64,11 @@ import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from starlog.centroid import CentroidFlag, CentroidMethod, extract_stars  # noqa: E402
+from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars  # noqa: E402
+from starlog.centroid.epsf import EPSF, epsf_from_frames  # noqa: E402
+from starlog.centroid.extract import _window as centroid_window  # noqa: E402
+from starlog.detect import detect_stars  # noqa: E402
+from starlog.errors import InvalidInputError  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 REAL_SKY = Path("shared") / "data" / "real-sky"
@@ -179,16 +183,31 @@ class Positions:
 
 def starlog_positions(image: np.ndarray, saturation: float, *, gain: float, read_noise: float | None,
                       options: dict) -> dict[str, Positions]:
-    """starlog's detection and every CentroidMethod on one frame (failed fits left out)."""
+    """starlog's detection and every CentroidMethod on one frame (failed fits left out); PSFFIT fits
+    the frame's own empirical PSF, built as ``starlog centroid --psf empirical`` builds a log's."""
     methods = list(CentroidMethod)
+    epsf = frame_epsf(image, saturation, gain=gain, read_noise=read_noise, options=options)
     _, centroids = extract_stars(image, methods=methods, gain=gain, read_noise=read_noise,
-                                 saturation=saturation, **options)
+                                 saturation=saturation, epsf=epsf, **options)
     out = {}
     for method, c in centroids.items():
         keep = ((c["flags"] & int(CentroidFlag.FIT_FAILED)) == 0) & np.isfinite(c["x"]) & np.isfinite(c["y"])
         snr = np.where((c["flags"] & int(CentroidFlag.SATURATED)) == 0, c["snr"], 0.0)
         out[method.value] = Positions(c["x"][keep], c["y"][keep], c["flux"][keep], snr[keep])
     return out
+
+
+def frame_epsf(image: np.ndarray, saturation: float, *, gain: float, read_noise: float | None,
+               options: dict) -> EPSF | None:
+    """The frame's ePSF from its bright, isolated, unsaturated stars (None: no star qualifies, PSFFIT
+    then fits the Gaussian)."""
+    det = detect_stars(image, saturation=saturation, **options.get("detect_options", {}))
+    psf = options.get("psf_sigma") or estimate_psf_sigma(image, det, gain=gain, saturation=saturation)
+    try:
+        return epsf_from_frames([(image, det)], psf_sigma=psf, half_size=centroid_window(psf, options.get("window")),
+                                gain=gain, read_noise=read_noise, saturation=saturation)
+    except InvalidInputError:
+        return None
 
 
 def sep_positions(image: np.ndarray, threshold: float) -> dict[str, Positions]:
