@@ -2,26 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import sys
-from pathlib import Path
 
 import pytest
 
-TOOL = Path(__file__).resolve().parent.parent / "tools" / "bench_pipeline.py"
+from tests.tool_modules import tool_module
+
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_pipeline", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    try:
-        spec.loader.exec_module(module)
+    with tool_module("bench_pipeline") as module:
         yield module
-    finally:
-        sys.modules.pop(spec.name, None)
 
 
 def test_marginal_rate_and_start_up_of_a_known_line(bench):

@@ -7,28 +7,20 @@ only where cedar-solve (``tetra3``) is installed; no test reads the real images.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-TOOL = Path(__file__).resolve().parent.parent / "tools" / "bench_realsky.py"
+from tests.tool_modules import tool_module
+
 SHAPE = (768, 1024)
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_realsky", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    try:
-        spec.loader.exec_module(module)
+    with tool_module("bench_realsky") as module:
         yield module
-    finally:
-        sys.modules.pop(spec.name, None)
 
 
 def _camera(bench, *, parity=1.0, k=-0.02, ra=30.0, dec=40.0, roll=25.0):
