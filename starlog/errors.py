@@ -80,6 +80,27 @@ class CorruptLogError(LogError):
     """The log's bytes are damaged (CRC mismatch, invalid record)."""
 
 
+class NotMcapError(CorruptLogError):
+    """The file is not an MCAP log at all (it does not start with the MCAP magic bytes)."""
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(path, "is not an MCAP file (it does not start with the MCAP magic bytes).")
+
+
+class OutputFolderError(StarlogError, FileNotFoundError):
+    """The folder an output should be written to does not exist."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        super().__init__(f"cannot write {self.path}: the folder {self.path.parent} does not exist.")
+
+    @classmethod
+    def check(cls, path: str | Path) -> None:
+        """Raise this error when the folder ``path`` is to be written into does not exist."""
+        if not Path(path).parent.is_dir():
+            raise cls(path)
+
+
 class ChannelNotFoundError(LogError, KeyError):
     """A channel (topic) asked for is not in the log."""
 

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from starlog.io import topics
 from click.testing import CliRunner
 from numpy.testing import assert_allclose
 
@@ -15,7 +17,6 @@ from starlog.centroid import CentroidFlag, centroid_crb, measure_centroids
 from starlog.centroid.crb import centroid_crb_psf
 from starlog.centroid.epsf import (
     EPSF,
-    EPSF_METADATA_NAME,
     GaussianPSF,
     build_epsf,
     epsf_from_frames,
@@ -221,7 +222,7 @@ def test_centroid_psf_empirical_end_to_end(tmp_path: Path) -> None:
     summary = centroid_log(sim, out, methods="PSFFIT,GAUSSFIT", psf="empirical")
     assert summary.epsf is not None and summary.epsf["n_stars"] > 0 and summary.to_dict()["epsf"] == summary.epsf
     with LogReader(out) as log:
-        (_, meta), = log.metadata(EPSF_METADATA_NAME)
+        (_, meta), = log.metadata(topics.EPSF_METADATA)
         epsf = EPSF.from_metadata(meta)
         record = log.provenance()[-1]
         truth = {m.payload["frame"]: m.payload for m in log.messages("/sim/truth")}
@@ -266,6 +267,6 @@ def test_psffit_with_gaussian_psf_needs_no_epsf(sim_log: Path, tmp_path: Path) -
     summary = centroid_log(sim_log, out, methods="PSFFIT", psf="gaussian")
     assert summary.epsf is None and "epsf" not in summary.to_dict()
     with LogReader(out) as log:
-        assert log.metadata(EPSF_METADATA_NAME) == []
+        assert log.metadata(topics.EPSF_METADATA) == []
     with pytest.raises(ValueError):
         centroid_log(sim_log, tmp_path / "x.mcap", methods="PSFFIT", psf="moffat")

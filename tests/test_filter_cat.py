@@ -112,6 +112,25 @@ def test_filter_errors(logs: dict[str, Path], tmp_path: Path) -> None:
     assert not (tmp_path / "x.mcap").exists()
 
 
+def test_command_errors_are_one_line(logs: dict[str, Path], tmp_path: Path) -> None:
+    """A missing output folder, a start past the end, a file of another format: a clear line, no traceback."""
+    not_mcap = tmp_path / "notes.txt"
+    not_mcap.write_text("not a log\n")
+    cases = [
+        (["filter", str(logs["sim"]), "-o", str(tmp_path / "missing" / "x.mcap")], "the folder"),
+        (["centroid", str(logs["sim"]), "-o", str(tmp_path / "missing" / "x.mcap"), "--start", "frame:2"],
+         "does not exist"),
+        (["filter", str(logs["sim"]), "-o", str(tmp_path / "x.mcap"), "--start", "100s"], "100000000000 ns on"),
+        (["info", str(not_mcap)], "is not an MCAP file"),
+    ]
+    for args, message in cases:
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 1 and message in result.output, (args, result.output)
+        assert "Traceback" not in result.output and "starlog recover" not in result.output
+        assert result.exception is None or isinstance(result.exception, SystemExit)
+    assert not list(tmp_path.glob("**/*.partial")) and not (tmp_path / "missing").exists()
+
+
 def test_cat_streams_json_lines(logs: dict[str, Path]) -> None:
     result = CliRunner().invoke(cli, ["cat", str(logs["sim"]), "--topic", "/camera/image", "--topic", "/sim/truth",
                                       "--start", "frame:2", "--limit", "3"])
@@ -162,3 +181,13 @@ def test_cat_into_head_and_jq_exits_cleanly(tmp_path: Path) -> None:
     if jq.returncode == 127:
         pytest.skip("jq is not installed")
     assert jq.stdout.split() == ["100", "101", "102"]
+
+
+def test_info_shows_list_and_map_parameters(logs: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "kept.mcap"
+    filter_log(logs["cen"], out, exclude_topics=["/camera/*"])
+    result = CliRunner().invoke(cli, ["info", str(out)])
+    assert result.exit_code == 0, result.output
+    assert 'methods=["' in result.output  # the centroid stage's list parameter
+    assert 'exclude_topics=["/camera/*"]' in result.output and "filter (starlog" in result.output
+    assert "-> no new channel" in result.output

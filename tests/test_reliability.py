@@ -21,6 +21,7 @@ from starlog.errors import (
     CorruptLogError,
     InvalidMessageError,
     MessageDecodeError,
+    NotMcapError,
     StarlogError,
     TruncatedLogError,
 )
@@ -136,6 +137,8 @@ def check_every_command(broken: Path, original: Content, tmp: Path, *,
         assert code == 0
     elif issubclass(expect, CorruptChunkError):  # export reads only the channels of its tables
         assert code == 0 or ("starlog recover" in text and "chunk at offset" in text)
+    elif issubclass(expect, NotMcapError):  # another format: nothing to recover, so no hint to
+        assert code == 1 and "not an MCAP file" in text and "starlog recover" not in text
     elif not issubclass(expect, (MessageDecodeError, InvalidMessageError)):
         assert code == 1 and "starlog recover" in text
     rec = tmp / "recovered.mcap"
@@ -267,7 +270,7 @@ def test_corrupted_footer(good_log: Path, good_content: Content, tmp_path: Path,
 def test_not_mcap_at_all(tmp_path: Path) -> None:
     broken = tmp_path / "junk.mcap"
     broken.write_bytes(b"GIF89a" + bytes(200))
-    check_every_command(broken, {}, tmp_path, expect=CorruptLogError, match="magic")
+    check_every_command(broken, {}, tmp_path, expect=NotMcapError, match="magic")
 
 
 # ---------------------------------------------------------------- bad values

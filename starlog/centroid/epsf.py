@@ -20,7 +20,7 @@ result on its own centroid and re-normalise it. Residuals are taken from the fix
 from the previous ePSF, so the shrinkage regularises instead of slowing a convergence to the noise.
 
 Storage in a log (``starlog centroid --psf empirical``): one MCAP metadata record named
-:data:`EPSF_METADATA_NAME`, a string map (see :meth:`EPSF.to_metadata`).
+``starlog.epsf`` (:data:`starlog.io.topics.EPSF_METADATA`), a string map (see :meth:`EPSF.to_metadata`).
 """
 
 from __future__ import annotations
@@ -41,11 +41,10 @@ from starlog.centroid.psffit import fit_psf
 from starlog.detect._flags import StarFlag
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["EPSF", "EPSF_METADATA_NAME", "GaussianPSF", "build_epsf", "epsf_from_frames", "gaussian_epsf",
+__all__ = ["EPSF", "GaussianPSF", "build_epsf", "epsf_from_frames", "gaussian_epsf",
            "select_epsf_stars"]
 
 F64 = npt.NDArray[np.float64]
-EPSF_METADATA_NAME = "starlog.epsf"
 _FORMAT = "starlog.epsf/1"
 _SQ2 = np.sqrt(2.0)
 _ISQ2PI = 1.0 / np.sqrt(2.0 * np.pi)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -9,6 +10,7 @@ from typing import Any
 from starlog.io.frames import stamp_disagreement
 from starlog.io.images import is_image_schema
 from starlog.io.reader import LogReader
+from starlog.io import topics
 
 __all__ = ["describe_log", "format_description"]
 
@@ -40,17 +42,26 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def _epsf_summaries(log: LogReader) -> dict[str, Any]:
-    """``{"epsf": [...]}``: size, oversampling, stars used and FWHM of each stored empirical PSF (none: {})."""
-    from starlog.centroid.epsf import EPSF, EPSF_METADATA_NAME
+    """``{"epsf": [...]}``: size, oversampling, stars used and FWHM of each stored empirical PSF (none: {}).
 
-    records = log.metadata(EPSF_METADATA_NAME)
+    Read from the record's own fields (:data:`starlog.io.topics.EPSF_METADATA`); the grid is not decoded.
+    """
     out = []
-    for _, meta in records:
+    for _, meta in log.metadata(topics.EPSF_METADATA):
         try:
-            out.append(EPSF.from_metadata(meta).summary())
+            oversampling, half = int(meta["oversampling"]), int(meta["half_size"])
+            side = 2 * half * oversampling + 1
+            out.append({"size_px": 2 * half + 1, "grid": [side, side], "oversampling": oversampling,
+                        "n_stars": int(meta.get("n_stars", 0)), "fwhm_px": round(float(meta["fwhm_px"]), 4)})
         except (ValueError, KeyError) as err:
             out.append({"error": f"unreadable ePSF record: {err}"})
     return {"epsf": out} if out else {}
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    """A parameter's value on one line: scalars as they are, lists and maps as compact JSON, cut at ``limit``."""
+    text = json.dumps(value, separators=(",", ":"), default=str) if isinstance(value, (dict, list)) else str(value)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def format_description(info: dict[str, Any]) -> str:
@@ -73,8 +84,8 @@ def format_description(info: dict[str, Any]) -> str:
     if not info["provenance"]:
         lines.append("  (none recorded)")
     for i, p in enumerate(info["provenance"], 1):
-        params = ", ".join(f"{k}={v}" for k, v in sorted(p["parameters"].items()) if not isinstance(v, (dict, list)))
-        lines.append(f"  {i}. {p['stage']} (starlog {p['version']}) -> {', '.join(p['channels'])}")
+        params = ", ".join(f"{k}={_short(v)}" for k, v in sorted(p["parameters"].items()) if k != "range")
+        lines.append(f"  {i}. {p['stage']} (starlog {p['version']}) -> {', '.join(p['channels']) or 'no new channel'}")
         if p["input_digest"]:
             lines.append(f"     input {p['input_digest']}")
         if params:

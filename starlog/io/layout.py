@@ -9,7 +9,7 @@ from typing import BinaryIO
 
 from mcap.opcode import Opcode
 
-from starlog.errors import CorruptLogError, TruncatedLogError
+from starlog.errors import CorruptLogError, NotMcapError, TruncatedLogError
 
 __all__ = ["MCAP_MAGIC", "FOOTER_RECORD_LEN", "DATA_END_RECORD_LEN", "locate_data_end"]
 
@@ -24,12 +24,13 @@ def locate_data_end(path: Path, f: BinaryIO) -> int:
     Raises :class:`TruncatedLogError` when the file has no valid footer.
     """
     size = f.seek(0, os.SEEK_END)
+    f.seek(0)
+    head = f.read(len(MCAP_MAGIC))
+    if head != MCAP_MAGIC[: len(head)]:  # an empty file or a cut-off magic is a truncated log, not another format
+        raise NotMcapError(path)
     min_size = 2 * len(MCAP_MAGIC) + FOOTER_RECORD_LEN + DATA_END_RECORD_LEN
     if size < min_size:
         raise TruncatedLogError(path, f"only {size} bytes, shorter than any complete MCAP file")
-    f.seek(0)
-    if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-        raise CorruptLogError(path, "does not start with the MCAP magic bytes; is it an MCAP file?")
     f.seek(size - len(MCAP_MAGIC) - FOOTER_RECORD_LEN)
     tail = f.read(FOOTER_RECORD_LEN + len(MCAP_MAGIC))
     if tail[-len(MCAP_MAGIC):] != MCAP_MAGIC or tail[0] != Opcode.FOOTER:

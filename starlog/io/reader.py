@@ -43,6 +43,7 @@ from starlog.errors import (
     InvalidMessageError,
     LogNotFoundError,
     MessageDecodeError,
+    NotMcapError,
     TruncatedLogError,
 )
 from starlog.io.foreign import message_decoder
@@ -207,7 +208,7 @@ class LogReader:
         f = self._file
         try:
             data_end = locate_data_end(self.path, f)
-        except TruncatedLogError:
+        except (TruncatedLogError, NotMcapError):
             raise
         except CorruptLogError as err:
             raise CorruptLogError(self.path, f"{err.reason} {_hint(self.path)}") from err

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from starlog.errors import CorruptLogError, InvalidParameterError, LogNotFoundError, OutputExistsError
+from starlog.errors import CorruptLogError, InvalidParameterError, LogNotFoundError, OutputExistsError, OutputFolderError
 from starlog.io.bytecopy import copy_range
 from starlog.io.layout import DATA_END_RECORD_LEN, FOOTER_RECORD_LEN, MCAP_MAGIC, locate_data_end
 
@@ -147,6 +147,7 @@ class StackedLog:
         out = Path(output)
         if out.exists() and not force:
             raise OutputExistsError(out)
+        OutputFolderError.check(out)
         fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent or ".")
         try:
             umask = os.umask(0)

@@ -108,6 +108,12 @@ class ResolvedRange:
         """``[start, end)`` as written, for messages."""
         return f"[{self.start or 'the start'}, {self.end or 'the end'})"
 
+    def describe_ns(self) -> str:
+        """The resolved bounds, for messages: ``log_time A..B ns, end exclusive`` (or ``A ns on``)."""
+        if self.end_ns >= END_OF_TIME:
+            return f"log_time {self.start_ns} ns on"
+        return f"log_time {self.start_ns}..{self.end_ns} ns, end exclusive"
+
     def to_dict(self) -> dict[str, Any]:
         """The provenance form: bounds as written and resolved (``end_ns`` None when open)."""
         out: dict[str, Any] = {"start": self.start, "end": self.end, "start_ns": self.start_ns,

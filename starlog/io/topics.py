@@ -31,6 +31,7 @@ __all__ = [
     "residuals_topic",
     "compensated_topic",
     "decisions_topic",
+    "EPSF_METADATA",
 ]
 
 IMAGE = "/camera/image"
@@ -38,6 +39,10 @@ FRAME_INFO = "/camera/frame"
 TRUTH = "/sim/truth"
 DETECTIONS = "/stars/detections"
 ANNOTATIONS = "/stars/annotations"
+
+#: Name of the metadata record holding a log's empirical PSF (``starlog centroid --psf empirical``):
+#: the string map of :meth:`starlog.centroid.epsf.EPSF.to_metadata`.
+EPSF_METADATA = "starlog.epsf"
 
 
 def centroid_topic(method: str) -> str:

@@ -65,7 +65,14 @@ from mcap.records import (
 )
 
 from starlog import __version__
-from starlog.errors import CorruptLogError, InvalidInputError, InvalidParameterError, OutputExistsError, TruncatedLogError
+from starlog.errors import (
+    CorruptLogError,
+    InvalidInputError,
+    InvalidParameterError,
+    OutputExistsError,
+    OutputFolderError,
+    TruncatedLogError,
+)
 from starlog.io.bytecopy import copy_range
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import compile_json_schema, decode_json
@@ -202,6 +209,7 @@ class LogWriter:
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
         self._writeback: _Writeback | None = None
+        OutputFolderError.check(self.path)
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or ".")
         umask = os.umask(0)
         os.umask(umask)

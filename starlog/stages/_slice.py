@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.errors import InvalidParameterError, OutputExistsError, OutputFolderError
 from starlog.io.reader import LogReader
 from starlog.io.slicing import frame_time_lookup, slice_log
 from starlog.io.stack import StackedLog
@@ -77,8 +77,8 @@ def _resolve(log: LogReader, time_range: TimeRange, topic: str) -> ResolvedRange
         span = (f"log_time {channel.first_log_time}..{channel.last_log_time} ns" if channel.message_count
                 else "no message")
         raise InvalidParameterError(
-            f"{log.path}: the time range {resolved.describe()} (log_time {resolved.start_ns}.."
-            f"{resolved.end_ns} ns, end exclusive) is outside {topic} ({span}).")
+            f"{log.path}: the time range {resolved.describe()} ({resolved.describe_ns()}) is outside {topic} "
+            f"({span}).")
     return resolved
 
 
@@ -97,6 +97,7 @@ def cut_slice(source: LogSource, destination: Path, time_range: TimeRange, frame
 
 @contextmanager
 def _hidden_file(beside: Path, suffix: str) -> Iterator[Path]:
+    OutputFolderError.check(beside)
     fd, name = tempfile.mkstemp(prefix=f".{beside.name}.", suffix=suffix, dir=beside.parent or ".")
     os.close(fd)
     try:

@@ -31,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars
-from starlog.centroid.epsf import EPSF, EPSF_METADATA_NAME, epsf_from_frames
+from starlog.centroid.epsf import EPSF, epsf_from_frames
 from starlog.centroid.extract import _window
 from starlog.centroid.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
 from starlog.detect import detect_stars
@@ -239,7 +239,7 @@ def centroid_log(
         _check_frame_count(log, topic, summary)
         summary.notes += [n for n in log.notes if n not in summary.notes]
         if epsf is not None:
-            out.writer.add_metadata(EPSF_METADATA_NAME, epsf.to_metadata())
+            out.writer.add_metadata(topics.EPSF_METADATA, epsf.to_metadata())
     return summary
 
 

@@ -15,7 +15,7 @@ from collections.abc import Iterator, Sequence
 from typing import Any
 
 from starlog import __version__
-from starlog.errors import InvalidParameterError
+from starlog.errors import InvalidParameterError, StarlogError
 from starlog.io.images import choose_image_topic
 from starlog.io.message_json import MessageRenderer
 from starlog.io.provenance import BackgroundDigest, Provenance
@@ -35,6 +35,15 @@ def _selected(log: LogReader, selection: TopicSelection) -> list[str]:
     return chosen
 
 
+def _image_topic_for_frames(log: LogReader) -> str:
+    """The channel ``frame:N`` counts when several are selected: the image channel, else say how to name one."""
+    try:
+        return choose_image_topic(log.path, log.channels(), None)[0]
+    except StarlogError as err:
+        raise InvalidParameterError(f"{err} frame:N counts the messages of one channel: name it with "
+                                    "--frame-topic TOPIC, or select a single channel with --topic.") from None
+
+
 def _resolve(log: LogReader, time_range: TimeRange | None, chosen: list[str], frame_topic: str | None
              ) -> ResolvedRange | None:
     """The range in ns; an error when it lies outside every selected channel."""
@@ -42,15 +51,14 @@ def _resolve(log: LogReader, time_range: TimeRange | None, chosen: list[str], fr
         return None
     topic = None
     if time_range.counts_frames:
-        topic = frame_topic or (chosen[0] if len(chosen) == 1 else
-                                choose_image_topic(log.path, log.channels(), None)[0])
+        topic = frame_topic or (chosen[0] if len(chosen) == 1 else _image_topic_for_frames(log))
     resolved = time_range.resolve(None if topic is None else frame_time_lookup(log, topic), frame_topic=topic)
     spans = [(c.first_log_time, c.last_log_time) for c in log.channels() if c.topic in chosen and c.message_count]
     if not any(resolved.overlaps(lo, hi) for lo, hi in spans):
         first, last = min((s[0] for s in spans), default=0), max((s[1] for s in spans), default=0)
         raise InvalidParameterError(
-            f"{log.path}: the time range {resolved.describe()} (log_time {resolved.start_ns}..{resolved.end_ns} ns, "
-            f"end exclusive) is outside the selected channels (log_time {first}..{last} ns).")
+            f"{log.path}: the time range {resolved.describe()} ({resolved.describe_ns()}) is outside the selected "
+            f"channels (log_time {first}..{last} ns).")
     return resolved
 
 
