@@ -688,7 +688,8 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
         workers: int, quiet: bool) -> None:
     """Replay logs through several stages (centroid, track, compensate) from one config file.
 
-    Each stage's parameters come from its table in the TOML config; the result equals running
+    Each stage's parameters come from its table in the TOML config; your own stages run after
+    them from [stages.NAME] tables (uses = "module:function"). The result equals running
     the stages one by one. One log: --workers sets the cores for per-frame work, and an HTML
     report (figures of every stage, see `starlog report`) is written beside the output with
     the suffix .html; a short summary points to it. Several logs:
