@@ -53,7 +53,7 @@ import numpy as np  # noqa: E402
 from starlog.centroid import CentroidMethod, centroid_crb, estimate_psf_sigma, measure_centroids  # noqa: E402
 from starlog.centroid.crb import centroid_crb_psf  # noqa: E402
 from starlog.centroid.epsf import epsf_from_frames  # noqa: E402
-from starlog.centroid.extract import _window  # noqa: E402
+from starlog.centroid.extract import window_half_size  # noqa: E402
 from starlog.detect import detect_stars  # noqa: E402
 from starlog.sim.camera import CameraModel  # noqa: E402
 from starlog.sim.profiles import AIRY_FWHM_PER_LAMBDA_D, AiryPSF, MoffatPSF, render_profile_stars  # noqa: E402
@@ -165,7 +165,7 @@ def build_regime_epsf(make_expected, cam, rng, frames):
     images = [cam.expose(make_expected(), rng) for _ in range(frames)]
     dets = [detect_stars(img) for img in images]
     psf = float(np.median([estimate_psf_sigma(i, d, gain=GAIN) for i, d in zip(images, dets) if d.size]))
-    return epsf_from_frames(zip(images, dets), psf_sigma=psf, half_size=_window(psf, None), gain=GAIN)
+    return epsf_from_frames(zip(images, dets), psf_sigma=psf, half_size=window_half_size(psf, None), gain=GAIN)
 
 
 def _record(err, r, key, idx, x, y, tx, ty):

@@ -66,7 +66,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars  # noqa: E402
 from starlog.centroid.epsf import EPSF, epsf_from_frames  # noqa: E402
-from starlog.centroid.extract import _window as centroid_window  # noqa: E402
+from starlog.centroid.extract import window_half_size  # noqa: E402
 from starlog.detect import detect_stars  # noqa: E402
 from starlog.errors import InvalidInputError  # noqa: E402
 
@@ -204,7 +204,7 @@ def frame_epsf(image: np.ndarray, saturation: float, *, gain: float, read_noise:
     det = detect_stars(image, saturation=saturation, **options.get("detect_options", {}))
     psf = options.get("psf_sigma") or estimate_psf_sigma(image, det, gain=gain, saturation=saturation)
     try:
-        return epsf_from_frames([(image, det)], psf_sigma=psf, half_size=centroid_window(psf, options.get("window")),
+        return epsf_from_frames([(image, det)], psf_sigma=psf, half_size=window_half_size(psf, options.get("window")),
                                 gain=gain, read_noise=read_noise, saturation=saturation)
     except InvalidInputError:
         return None

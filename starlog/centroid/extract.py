@@ -47,7 +47,7 @@ from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod,
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["EFFICIENCY", "estimate_psf_sigma", "extract_stars", "measure_centroids"]
+__all__ = ["EFFICIENCY", "estimate_psf_sigma", "extract_stars", "measure_centroids", "window_half_size"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -96,7 +96,8 @@ def _default_saturation(arr: npt.NDArray[Any], saturation: float | None) -> floa
     return float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) else np.inf
 
 
-def _window(psf_sigma: float, window: int | None) -> int:
+def window_half_size(psf_sigma: float, window: int | None = None) -> int:
+    """Half-size of a star's window, px: ``window`` when given (>= 2), else ``max(3, ceil(3.5 psf_sigma) + 1)``."""
     if window is not None:
         if window < 2:
             raise InvalidParameterError(f"window (half-size) must be >= 2 px, got {window!r}.")
@@ -356,7 +357,7 @@ def measure_centroids(
     if n == 0:
         return empty_centroids()
     psf = float(psf_sigma) if psf_sigma is not None else estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
-    h = _window(psf, window)
+    h = window_half_size(psf, window)
     if meth is CentroidMethod.PSFFIT and epsf is not None:
         h = max(2, min(h, epsf.half_size - 1))  # the ePSF covers every pixel of the window at any sub-pixel shift
     st = _star_stamps(arr, det, h, gain, read_noise, _default_saturation(arr, saturation))

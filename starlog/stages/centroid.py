@@ -32,7 +32,7 @@ import numpy.typing as npt
 
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars
 from starlog.centroid.epsf import EPSF, epsf_from_frames
-from starlog.centroid.extract import _window
+from starlog.centroid.extract import window_half_size
 from starlog.centroid.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
@@ -269,7 +269,7 @@ def _log_epsf(log: LogReader, topic: str, *, gain: float, read_noise: float | No
             yield image, detect_stars(image, saturation=saturation, **(detect_options or {}))
 
     try:
-        return epsf_from_frames(frames(), psf_sigma=psf_sigma, half_size=_window(psf_sigma, window), gain=gain,
+        return epsf_from_frames(frames(), psf_sigma=psf_sigma, half_size=window_half_size(psf_sigma, window), gain=gain,
                                 read_noise=read_noise, saturation=saturation, max_stars=max_stars)
     except InvalidInputError as err:
         raise InvalidInputError(f"cannot build an empirical PSF from the first {max_frames} frames of {topic}: "
