@@ -13,12 +13,14 @@ density of ``q`` is ``1 + 2 sum_k c_k cos(2 pi k q)`` with ``c_k = <cos 2 pi k q
 
     p = q + sum_k c_k / (pi k) sin(2 pi k q).
 
-:func:`estimate_phase_calibration` keeps the first ``harmonics`` terms per axis (one number,
-the S-curve amplitude, by default: the full empirical mapping needs hundreds of distinct stars
-to beat its own sampling noise), corrects the coefficients for the blur of the measurement
-noise (``<cos 2 pi k (q + e)> = c_k exp(-2 pi^2 k^2 sigma^2)``), and shrinks each by
-``max(0, 1 - se^2 / c^2)`` (the positive-part James-Stein factor: an amplitude not above its
-standard error is not applied; an unbiased centroider, whose estimate is ~0, stays unchanged).
+:func:`estimate_phase_calibration` keeps the first ``harmonics`` terms (one number, the S-curve
+amplitude ``-c_1 / pi``, by default: the full empirical mapping needs many hundreds of distinct
+stars to beat its own sampling noise, the standard error of ``c_k`` being ``1 / sqrt(2 n)``),
+corrects the coefficients for the blur of the measurement noise
+(``<cos 2 pi k (q + e)> = c_k exp(-2 pi^2 k^2 sigma^2)``), pools the two axes unless they differ
+significantly, and applies an amplitude only when it exceeds three standard errors (then shrunk
+by ``1 - se^2 / a^2``, the positive-part James-Stein factor): a centroider without S-curve, whose
+estimate is ~0, stays unchanged.
 
 Each distinct star counts once: a static field shows the same phases in every frame
 (:func:`distinct_samples`). :meth:`PhaseCalibration.apply` corrects positions.
@@ -52,12 +54,16 @@ F64 = npt.NDArray[np.float64]
 MIN_STARS = 20
 """Fewest distinct stars a calibration is estimated from (below, the amplitude's standard error,
 about ``1 / (pi sqrt(2 n))`` px, exceeds 0.05 px: larger than the S-curves worth removing)."""
-MAX_SIGMA = 0.05
-"""Stars whose own centroid uncertainty exceeds this (px) are not used: their noise blurs the phases."""
+MIN_SNR = 20.0
+"""Stars of lower flux SNR are not used: their noise blurs the phases (a centroid error of about
+``psf_sigma / 10`` px and more)."""
+SIGNIFICANCE = 3.0
+"""An amplitude is applied only above this many standard errors (a centroider without S-curve stays
+unchanged in all but ~0.3 % of logs); the two axes get separate amplitudes only when they differ by
+as much."""
 DISTINCT_CELL = 0.5
 """Positions (px) closer than about this, in any frames, are one star at one phase."""
-_EXCLUDED = int(CentroidFlag.SATURATED | CentroidFlag.BORDER | CentroidFlag.FIT_FAILED | CentroidFlag.BLENDED
-                | CentroidFlag.MASKED)
+_EXCLUDED = int(CentroidFlag.SATURATED | CentroidFlag.BORDER | CentroidFlag.FIT_FAILED)
 
 
 def _phase(v: F64) -> F64:
@@ -69,9 +75,10 @@ def _phase(v: F64) -> F64:
 class PhaseCalibration:
     """A centroider's S-curve per axis: ``bias(q) = sum_k amplitude[k-1] sin(2 pi k q)`` px.
 
-    ``amplitude_x/y``: the amplitudes applied (after shrinkage; negative = positions pulled
-    towards pixel centres); ``estimate_x/y`` and ``error_x/y``: the raw estimates and their
-    standard errors; ``n_stars``: distinct stars used.
+    ``amplitude_x/y``: the amplitudes applied per harmonic (negative: positions pulled towards
+    pixel centres); ``estimate_x/y`` and ``error_x/y``: each axis's own estimate and its standard
+    error; ``n_stars``: distinct stars used; ``separate_axes``: per harmonic, whether the axes
+    differ (else one amplitude, from both axes' phases, is applied to both).
     """
 
     method: str
@@ -82,6 +89,7 @@ class PhaseCalibration:
     error_x: tuple[float, ...]
     error_y: tuple[float, ...]
     n_stars: int
+    separate_axes: tuple[bool, ...] = ()
 
     @property
     def active(self) -> bool:
@@ -102,7 +110,7 @@ class PhaseCalibration:
         return xa - self.bias(_phase(xa), "x"), ya - self.bias(_phase(ya), "y")
 
     def to_dict(self) -> dict[str, Any]:
-        return {"method": self.method, "n_stars": self.n_stars,
+        return {"method": self.method, "n_stars": self.n_stars, "separate_axes": list(self.separate_axes),
                 "amplitude_px": {"x": list(self.amplitude_x), "y": list(self.amplitude_y)},
                 "estimate_px": {"x": list(self.estimate_x), "y": list(self.estimate_y)},
                 "error_px": {"x": list(self.error_x), "y": list(self.error_y)}}
@@ -118,7 +126,8 @@ class PhaseCalibration:
                 return tuple(float(a) for a in v)
 
             return cls(str(d["method"]), floats(amp["x"]), floats(amp["y"]), floats(est["x"]), floats(est["y"]),
-                       floats(err["x"]), floats(err["y"]), int(d.get("n_stars", 0)))
+                       floats(err["x"]), floats(err["y"]), int(d.get("n_stars", 0)),
+                       tuple(bool(v) for v in d.get("separate_axes", ())))
         except (KeyError, TypeError, ValueError) as e:
             raise InvalidInputError(f"not a phase calibration record ({e!r}): {dict(d)!r:.200}") from None
 
@@ -131,48 +140,74 @@ class PhaseCalibration:
                 f"y {one(self.amplitude_y, self.estimate_y, self.error_y)}, {self.n_stars} distinct stars")
 
 
-def phase_sample_mask(centroids: npt.NDArray[np.void], *, max_sigma: float = MAX_SIGMA) -> npt.NDArray[np.bool_]:
-    """The rows of a centroid table usable for calibration: precise (``sigma <= max_sigma``),
-    finite, and not saturated, cut, failed, blended or masked."""
+def phase_sample_mask(centroids: npt.NDArray[np.void], *, min_snr: float = MIN_SNR) -> npt.NDArray[np.bool_]:
+    """The rows of one frame's centroid table a calibration may learn from.
+
+    The choice must not depend on the phase (else the phases kept are not uniform): stars with
+    ``snr >= min_snr`` (the flux's SNR varies little with phase, unlike ``sigma``), finite, not
+    cut by the border nor failed, and fainter than the frame's faintest saturated star (whether a
+    star near the saturation level saturates depends on its phase). Blended or masked stars stay.
+    """
     c = centroids
-    return ((c["flags"] & _EXCLUDED) == 0) & np.isfinite(c["x"]) & np.isfinite(c["y"]) & (c["sigma"] <= max_sigma)
+    keep = ((c["flags"] & _EXCLUDED) == 0) & np.isfinite(c["x"]) & np.isfinite(c["y"]) & (c["snr"] >= min_snr)
+    saturated = (c["flags"] & int(CentroidFlag.SATURATED)) != 0
+    if saturated.any():
+        keep &= c["flux"] < np.min(c["flux"][saturated])
+    return keep
 
 
-def phase_samples(centroids: npt.NDArray[np.void], *, max_sigma: float = MAX_SIGMA) -> tuple[F64, F64, F64]:
+def phase_samples(centroids: npt.NDArray[np.void], *, min_snr: float = MIN_SNR) -> tuple[F64, F64, F64]:
     """(x, y, sigma) of the rows :func:`phase_sample_mask` keeps."""
     c = centroids
-    keep = phase_sample_mask(c, max_sigma=max_sigma)
+    keep = phase_sample_mask(c, min_snr=min_snr)
     return (np.asarray(c["x"][keep], np.float64), np.asarray(c["y"][keep], np.float64),
             np.asarray(c["sigma"][keep], np.float64))
 
 
 def distinct_samples(x: F64, y: F64, sigma: F64, *, cell: float = DISTINCT_CELL) -> tuple[F64, F64, F64]:
-    """One sample per star position: of the samples (pooled over frames) falling in the same
-    ``cell`` x ``cell`` px square, the most precise. A static star seen in every frame counts
-    once; a star drifting over the sensor counts once per cell it crosses (distinct phases)."""
+    """One sample per star position: of the samples (pooled over frames, in frame order) falling in
+    the same ``cell`` x ``cell`` px square, the first. A static star seen in every frame counts
+    once; a star drifting over the sensor counts once per cell it crosses (distinct phases). The
+    first, not the most precise: a centroid's precision depends on its phase."""
     if x.size == 0:
         return x, y, sigma
-    order = np.argsort(sigma, kind="stable")
-    keys = np.column_stack([np.floor(x[order] / cell), np.floor(y[order] / cell)]).astype(np.int64)
+    keys = np.column_stack([np.floor(x / cell), np.floor(y / cell)]).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
-    pick = np.sort(order[first])
+    pick = np.sort(first)
     return x[pick], y[pick], sigma[pick]
 
 
-def _axis_terms(q: F64, sigma: F64, harmonics: int) -> tuple[list[float], list[float], list[float]]:
-    """Per harmonic k: the applied, estimated and standard-error amplitudes of one axis."""
-    applied, estimate, error = [], [], []
+def _harmonic(q: F64, sigma: F64, k: int) -> tuple[float, float]:
+    """Amplitude of harmonic ``k`` of the S-curve, ``-c_k / (pi k)``, and its standard error, from measured
+    phases ``q`` of uncertainty ``sigma`` (``c_k`` corrected for the noise's blur)."""
+    cos_k = np.cos(2.0 * np.pi * k * q)
+    blur = float(np.mean(np.exp(-2.0 * np.pi**2 * k**2 * sigma**2)))
+    c = float(np.mean(cos_k)) / blur
+    se = float(np.std(cos_k, ddof=1)) / np.sqrt(q.size) / blur
+    return -c / (np.pi * k), se / (np.pi * k)
+
+
+def _applied(amplitude: float, error: float) -> float:
+    """The amplitude applied: none unless it exceeds :data:`SIGNIFICANCE` standard errors, then shrunk by
+    ``1 - se^2 / a^2`` (positive-part James-Stein)."""
+    if not abs(amplitude) >= SIGNIFICANCE * error:
+        return 0.0
+    return amplitude * (1.0 - (error / amplitude) ** 2)
+
+
+def _axes_terms(qx: F64, qy: F64, sigma: F64, harmonics: int) -> dict[str, list[Any]]:
+    """Per harmonic: each axis's estimate and error, and the amplitudes applied — one for both axes
+    (their pooled phases) unless the two axes differ by more than :data:`SIGNIFICANCE` standard errors."""
+    out: dict[str, list[Any]] = {key: [] for key in ("ax", "ay", "ex", "ey", "sx", "sy", "separate")}
+    both, sigma2 = np.concatenate([qx, qy]), np.concatenate([sigma, sigma])
     for k in range(1, harmonics + 1):
-        cos_k = np.cos(2.0 * np.pi * k * q)
-        blur = float(np.mean(np.exp(-2.0 * np.pi**2 * k**2 * sigma**2)))  # the noise's attenuation of c_k
-        c = float(np.mean(cos_k)) / blur
-        se = float(np.std(cos_k, ddof=1)) / np.sqrt(q.size) / blur
-        shrink = max(0.0, 1.0 - se * se / (c * c)) if c != 0.0 else 0.0
-        # bias(q) = -c_k / (pi k) sin(2 pi k q): the mapping p = q + c_k/(pi k) sin(2 pi k q)
-        estimate.append(-c / (np.pi * k))
-        error.append(se / (np.pi * k))
-        applied.append(-c * shrink / (np.pi * k))
-    return applied, estimate, error
+        (ex, sx), (ey, sy), (eb, sb) = _harmonic(qx, sigma, k), _harmonic(qy, sigma, k), _harmonic(both, sigma2, k)
+        separate = abs(ex - ey) > SIGNIFICANCE * float(np.hypot(sx, sy))
+        out["ax"].append(_applied(ex, sx) if separate else _applied(eb, sb))
+        out["ay"].append(_applied(ey, sy) if separate else _applied(eb, sb))
+        for key, value in (("ex", ex), ("ey", ey), ("sx", sx), ("sy", sy), ("separate", separate)):
+            out[key].append(value)
+    return out
 
 
 def estimate_phase_calibration(x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.ArrayLike | None = None, *,
@@ -197,11 +232,11 @@ def estimate_phase_calibration(x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.Ar
     if xa.size < min_stars:
         raise InvalidInputError(
             f"too few distinct stars to calibrate the pixel phase{f' of {method}' if method else ''}: {xa.size} "
-            f"precise (sigma <= {MAX_SIGMA} px), unsaturated, isolated stars at distinct positions; it needs "
+            f"bright (SNR >= {MIN_SNR:g}), unsaturated stars at distinct positions; it needs "
             f"{min_stars} (each star counts once however many frames show it).")
-    ax, ex, sx = _axis_terms(_phase(xa), sa, harmonics)
-    ay, ey, sy = _axis_terms(_phase(ya), sa, harmonics)
-    return PhaseCalibration(method, tuple(ax), tuple(ay), tuple(ex), tuple(ey), tuple(sx), tuple(sy), int(xa.size))
+    t = {key: tuple(v) for key, v in _axes_terms(_phase(xa), _phase(ya), sa, harmonics).items()}
+    return PhaseCalibration(method, t["ax"], t["ay"], t["ex"], t["ey"], t["sx"], t["sy"], int(xa.size),
+                            t["separate"])
 
 
 def load_phase_calibrations(path: str | Path) -> dict[str, PhaseCalibration]:
