@@ -184,7 +184,7 @@ def _harmonic(q: F64, sigma: F64, k: int) -> tuple[float, float]:
     blur = float(np.mean(np.exp(-2.0 * np.pi**2 * k**2 * sigma**2)))
     c = float(np.mean(cos_k)) / blur
     se = float(np.std(cos_k, ddof=1)) / np.sqrt(q.size) / blur
-    return -c / (np.pi * k), se / (np.pi * k)
+    return float(-c / (np.pi * k)), float(se / (np.pi * k))
 
 
 def _applied(amplitude: float, error: float) -> float:
@@ -192,7 +192,7 @@ def _applied(amplitude: float, error: float) -> float:
     ``1 - se^2 / a^2`` (positive-part James-Stein)."""
     if not abs(amplitude) >= SIGNIFICANCE * error:
         return 0.0
-    return amplitude * (1.0 - (error / amplitude) ** 2)
+    return float(amplitude * (1.0 - (error / amplitude) ** 2))
 
 
 def _axes_terms(qx: F64, qy: F64, sigma: F64, harmonics: int) -> dict[str, list[Any]]:
@@ -202,7 +202,7 @@ def _axes_terms(qx: F64, qy: F64, sigma: F64, harmonics: int) -> dict[str, list[
     both, sigma2 = np.concatenate([qx, qy]), np.concatenate([sigma, sigma])
     for k in range(1, harmonics + 1):
         (ex, sx), (ey, sy), (eb, sb) = _harmonic(qx, sigma, k), _harmonic(qy, sigma, k), _harmonic(both, sigma2, k)
-        separate = abs(ex - ey) > SIGNIFICANCE * float(np.hypot(sx, sy))
+        separate = bool(abs(ex - ey) > SIGNIFICANCE * float(np.hypot(sx, sy)))
         out["ax"].append(_applied(ex, sx) if separate else _applied(eb, sb))
         out["ay"].append(_applied(ey, sy) if separate else _applied(eb, sb))
         for key, value in (("ex", ex), ("ey", ey), ("sx", sx), ("sy", sy), ("separate", separate)):
