@@ -408,7 +408,8 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     flux = np.where(ok & np.isfinite(m.flux), m.flux, f0)
     mu = np.maximum(flux, 0)[:, None, None] * model(st, cx, cy, m.psf) + m.background[:, None, None]
     suspect, error = suspect_pixels(st, mu)
-    rows = np.flatnonzero(suspect.any(axis=(1, 2)))
+    strayed = _strayed(cx - dx0, cy - dy0, m.psf)
+    rows = np.flatnonzero(suspect.any(axis=(1, 2)) | strayed)
     if rows.size == 0:
         return m, st, n_out
     sub = take_stamps(st, rows)
@@ -416,7 +417,7 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     unit = model(sub, sx, sy, psf[rows])
     start = core_flux(sub, unit)[:, None, None] * unit
     clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), sx, sy, start, error=error)
-    hit = mask.any(axis=(1, 2))
+    hit = mask.any(axis=(1, 2)) | strayed[rows]
     rows, clean, fx, fy = rows[hit], take_stamps(clean, np.flatnonzero(hit)), fx[hit], fy[hit]
     if rows.size == 0:
         return m, st, n_out
@@ -431,6 +432,12 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     for name, values in merged.items():
         values[rows] = getattr(again, name)
     return _Measured(**merged), out, n_out
+
+
+def _strayed(dx: F64, dy: F64, psf: F64) -> npt.NDArray[np.bool_]:
+    """Centroids farther from the detection than a star's light reaches (``max(2, 1.5 psf_sigma)`` px):
+    drawn off by an artefact in the window (a cosmic ray a re-weighted centre of gravity converged on)."""
+    return np.hypot(dx, dy) > np.maximum(2.0, 1.5 * psf)
 
 
 def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: float, read_noise: float | None,
