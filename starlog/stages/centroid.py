@@ -189,8 +189,8 @@ def centroid_log(
         Remove each method's pixel-phase bias (S-curve, :mod:`starlog.centroid.phase`) from
         every centroid. ``"auto"`` learns it from the log's own stars (the first
         :data:`PHASE_MIN_FRAMES` frames and more while they show new phases, each distinct star
-        once; no catalogue), per method; a
-        method with too few distinct precise stars is left uncorrected, with a note. A path
+        once; no catalogue), per method; a method with too few distinct bright stars is left
+        uncorrected, with a note. A path
         reads the calibrations (JSON: ``--json`` output of an earlier run, or its
         ``phase_correction`` records). The calibrations are recorded in the provenance and
         stored as the metadata record ``starlog.phase_correction`` (shown by ``info``).
@@ -419,7 +419,8 @@ def _phase_samples(log: LogReader, topic: str, extract: _Extractor) -> tuple[dic
             pooled[m.value].append(phase_samples(table))
         x, y, _ = pooled[extract.methods[0].value][-1]
         before = len(seen)
-        seen.update(zip(np.floor(x / DISTINCT_CELL).astype(int).tolist(), np.floor(y / DISTINCT_CELL).astype(int).tolist()))
+        cells = np.floor(np.column_stack([x, y]) / DISTINCT_CELL).astype(int)
+        seen.update(map(tuple, cells.tolist()))
         recent.append(len(seen) - before)
         if len(recent) >= PHASE_MIN_FRAMES and sum(recent[-PHASE_MIN_FRAMES // 2:]) < 0.02 * len(seen):
             break  # the last frames brought (almost) no new phase: a static field
