@@ -36,10 +36,18 @@ Protocol, per frame:
 6. The ratio best starlog method / best SEP setting is computed on the pooled RMSEs, with a
    95 % bootstrap interval over the common stars.
 
+Pixel phase (``--phase-correction auto``, the default): between steps 2 and 3, every centroider's
+pixel-phase S-curve is calibrated on all frames' own stars (one camera, as one log; no catalogue)
+with :mod:`starlog.centroid.phase`, as ``starlog centroid --phase-correction auto`` does, and
+removed: starlog's columns are the corrected positions, SEP's are shown as they are and corrected
+(``+pc``). The headline ratio compares starlog corrected with SEP as users run it; a second line
+with SEP corrected too.
+
 Investigation options (none changes the figures above unless given): ``--by-mag`` (RMSE per
 catalogue magnitude), ``--only NAME ...`` (compare fewer centroiders: a larger common set),
 ``--plate-order N`` (a polynomial field pattern fitted instead of the camera refit),
-``--phase-equalise`` (each centroider also with its pixel-phase bias self-calibrated),
+``--phase-equalise`` (each centroider also with the full empirical phase mapping; with
+``--phase-correction off``), ``--phase-harmonics K`` (S-curve harmonics calibrated),
 ``--gain`` / ``--starlog-option KEY=VALUE`` (other settings of starlog).
 
 Run: python tools/bench_realsky.py [--images DIR] [--json OUT] [--by-mag]
