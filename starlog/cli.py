@@ -432,13 +432,18 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
               help="Hot-pixel map: 'auto' learns it from the log (pixels that are single-pixel spikes in most "
                    "of its first frames), or a FILE: .npy boolean mask of the frame's shape, or text/CSV lines "
                    "'x,y' (column,row). Hot pixels are never stars and are left out of the star windows.")
+@click.option("--phase-correction", "phase_correction", metavar="auto|off|FILE", default="off", show_default=True,
+              help="Remove each method's pixel-phase bias (S-curve; under-sampled or non-Gaussian PSFs). auto: "
+                   "learnt from the log's own stars (its first 16-256 frames, each distinct star once, no catalogue; "
+                   "a method with too few is left uncorrected, with a note). FILE: calibrations in JSON (the "
+                   "--json output of an earlier run). Recorded in the provenance and shown by info.")
 @time_range_options("the image channel")
 @json_option
 @write_options
 def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float | None, read_noise: float | None,
              settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, hot_pixels: str | None,
-             start: str | None, end: str | None, as_json: bool, force: bool, compression: str, workers: int,
-             quiet: bool) -> None:
+             phase_correction: str, start: str | None, end: str | None, as_json: bool, force: bool, compression: str,
+             workers: int, quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
 
     Adds /stars/detections, /stars/centroids/<METHOD> per method and /stars/annotations
@@ -451,13 +456,14 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
       starlog centroid sim.mcap -o cen.mcap --start 0.5s --end frame:300
       starlog centroid sim.mcap -o cen.mcap --method PSFFIT,GAUSSFIT --psf empirical
       starlog centroid lab.mcap -o cen.mcap --hot-pixels auto
+      starlog centroid sky.mcap -o cen.mcap --method MOMENT,GAUSSFIT --phase-correction auto
     """
     from starlog.stages.centroid import centroid_log
 
     summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise, psf=psf,
                            options=_key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
                            workers=workers, force=force, compression=compression, show_progress=not quiet,
-                           hot_pixels=hot_pixels, start=start, end=end)
+                           hot_pixels=hot_pixels, phase_correction=phase_correction, start=start, end=end)
     d = summary.to_dict()
     for note in d["notes"]:
         click.echo(f"note: {note}", err=True)

@@ -204,3 +204,26 @@ def test_phase_equalisation_removes_a_pixel_phase_bias_without_the_truth(bench):
         after = f.positions["GAUSSFIT+eq"].x - tx
         assert np.sqrt(np.mean(before**2)) > 0.04
         assert np.sqrt(np.mean(after**2)) < 0.01
+
+
+def test_phase_correction_replaces_starlog_columns_and_adds_corrected_sep_ones(bench):
+    rng = np.random.default_rng(10)
+    frames, truth = [], []
+    for _ in range(3):
+        tx, ty = rng.uniform(20, 1000, 400), rng.uniform(20, 740, 400)
+
+        def pulled(v):
+            return v - 0.06 * np.sin(2 * np.pi * (v - np.rint(v)))
+
+        ours = bench.Positions(pulled(tx), pulled(ty), np.ones(400), np.full(400, 100.0), np.full(400, 0.01),
+                               np.ones(400, bool))
+        sep = bench.Positions(pulled(tx), pulled(ty), np.ones(400))
+        frames.append(bench.MeasuredFrame("f", SHAPE, 1.0, {"GAUSSFIT": ours, "SEP iso 1.5s": sep}))
+        truth.append(tx)
+    out, calibrations = bench.phase_corrected(frames, harmonics=1)
+    assert set(out[0].positions) == {"GAUSSFIT", "SEP iso 1.5s", "SEP iso 1.5s+pc"}
+    assert calibrations["GAUSSFIT"].amplitude_x[0] == pytest.approx(-0.06, abs=0.01)
+    for f, tx in zip(out, truth):
+        assert np.sqrt(np.mean((f.positions["SEP iso 1.5s"].x - tx) ** 2)) > 0.04
+        for name in ("GAUSSFIT", "SEP iso 1.5s+pc"):
+            assert np.sqrt(np.mean((f.positions[name].x - tx) ** 2)) < 0.01

@@ -36,10 +36,18 @@ Protocol, per frame:
 6. The ratio best starlog method / best SEP setting is computed on the pooled RMSEs, with a
    95 % bootstrap interval over the common stars.
 
+Pixel phase (``--phase-correction auto``, the default): between steps 2 and 3, every centroider's
+pixel-phase S-curve is calibrated on all frames' own stars (one camera, as one log; no catalogue)
+with :mod:`starlog.centroid.phase`, as ``starlog centroid --phase-correction auto`` does, and
+removed: starlog's columns are the corrected positions, SEP's are shown as they are and corrected
+(``+pc``). The headline ratio compares starlog corrected with SEP as users run it; a second line
+with SEP corrected too.
+
 Investigation options (none changes the figures above unless given): ``--by-mag`` (RMSE per
 catalogue magnitude), ``--only NAME ...`` (compare fewer centroiders: a larger common set),
 ``--plate-order N`` (a polynomial field pattern fitted instead of the camera refit),
-``--phase-equalise`` (each centroider also with its pixel-phase bias self-calibrated),
+``--phase-equalise`` (each centroider also with the full empirical phase mapping; with
+``--phase-correction off``), ``--phase-harmonics K`` (S-curve harmonics calibrated),
 ``--gain`` / ``--starlog-option KEY=VALUE`` (other settings of starlog).
 
 Run: python tools/bench_realsky.py [--images DIR] [--json OUT] [--by-mag]
@@ -67,6 +75,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars  # noqa: E402
 from starlog.centroid.epsf import EPSF, epsf_from_frames  # noqa: E402
 from starlog.centroid.extract import window_half_size  # noqa: E402
+from starlog.centroid.phase import PhaseCalibration, estimate_phase_calibration, phase_sample_mask  # noqa: E402
 from starlog.detect import detect_stars  # noqa: E402
 from starlog.errors import InvalidInputError  # noqa: E402
 
@@ -179,6 +188,8 @@ class Positions:
     y: np.ndarray
     flux: np.ndarray
     snr: np.ndarray | None = None
+    sigma: np.ndarray | None = None  # starlog: each centroid's own uncertainty, px
+    calibration: np.ndarray | None = None  # starlog: the stars a phase calibration may learn from
 
 
 def starlog_positions(image: np.ndarray, saturation: float, *, gain: float, read_noise: float | None,
@@ -193,7 +204,8 @@ def starlog_positions(image: np.ndarray, saturation: float, *, gain: float, read
     for method, c in centroids.items():
         keep = ((c["flags"] & int(CentroidFlag.FIT_FAILED)) == 0) & np.isfinite(c["x"]) & np.isfinite(c["y"])
         snr = np.where((c["flags"] & int(CentroidFlag.SATURATED)) == 0, c["snr"], 0.0)
-        out[method.value] = Positions(c["x"][keep], c["y"][keep], c["flux"][keep], snr[keep])
+        out[method.value] = Positions(c["x"][keep], c["y"][keep], c["flux"][keep], snr[keep], c["sigma"][keep],
+                                      phase_sample_mask(c)[keep])
     return out
 
 
@@ -548,6 +560,56 @@ def phase_equalised(frames: list[MeasuredFrame], *, min_snr: float = 30.0) -> li
     return out
 
 
+def calibration_samples(frames: list[MeasuredFrame], name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, y, sigma) a centroider's phase calibration learns from, pooled over the frames.
+
+    starlog: the stars ``starlog centroid --phase-correction auto`` uses
+    (:func:`starlog.centroid.phase.phase_sample_mask`). SEP reports no uncertainty: per frame,
+    its brightest stars, as many as GAUSSFIT's usable ones there, sigma 0.
+    """
+    xs, ys, ss = [], [], []
+    for f in frames:
+        p = f.positions[name]
+        if p.calibration is not None:
+            pick = np.flatnonzero(p.calibration)
+            sig = p.sigma[pick]
+        else:
+            count = int(f.positions[CentroidMethod.GAUSSFIT.value].calibration.sum())
+            pick = np.argsort(-p.flux)[:count]
+            sig = np.zeros(pick.size)
+        xs.append(p.x[pick])
+        ys.append(p.y[pick])
+        ss.append(sig)
+    return np.concatenate(xs), np.concatenate(ys), np.concatenate(ss)
+
+
+def phase_corrected(frames: list[MeasuredFrame], *, harmonics: int) -> tuple[list[MeasuredFrame],
+                                                                          dict[str, PhaseCalibration | str]]:
+    """The frames with every centroider's pixel phase calibrated on all frames' stars (one camera,
+    as one log): starlog's methods replaced by their corrected positions (what ``starlog centroid
+    --phase-correction auto`` writes), SEP's kept and added corrected as ``<name>+pc``. Also each
+    centroider's calibration (or why it declined)."""
+    calibrations: dict[str, PhaseCalibration | str] = {}
+    for name in frames[0].positions:
+        x, y, sig = calibration_samples(frames, name)
+        try:
+            calibrations[name] = estimate_phase_calibration(x, y, sig, method=name, harmonics=harmonics)
+        except InvalidInputError as err:
+            calibrations[name] = str(err)
+    out = []
+    for f in frames:
+        positions = dict(f.positions)
+        for name, cal in calibrations.items():
+            if isinstance(cal, str):
+                continue
+            p = f.positions[name]
+            x, y = cal.apply(p.x, p.y)
+            key = f"{name}+pc" if name.startswith("SEP") else name
+            positions[key] = replace(p, x=x, y=y)
+        out.append(replace(f, positions=positions))
+    return out, calibrations
+
+
 def compare_frame(frame: MeasuredFrame, solver, args) -> FrameResult:
     """Steps 3-5 on one measured frame."""
     positions = frame.positions
@@ -579,7 +641,7 @@ def pooled_rmse(results: list[FrameResult], name: str) -> float:
 def best_ratio(pooled: dict[str, float]) -> tuple[str, str, float]:
     """(best starlog method, best SEP setting, ratio of their pooled RMSEs)."""
     ours = {k: v for k, v in pooled.items() if not k.startswith("SEP") and not k.endswith("+eq")}
-    theirs = {k: v for k, v in pooled.items() if k.startswith("SEP") and not k.endswith("+eq")}
+    theirs = {k: v for k, v in pooled.items() if k.startswith("SEP") and not k.endswith(("+eq", "+pc"))}
     a = min(ours, key=ours.get)
     b = min(theirs, key=theirs.get)
     return a, b, ours[a] / theirs[b]
@@ -622,6 +684,18 @@ def bootstrap_ratio(results: list[FrameResult], best: str, best_sep: str, *, dra
     ratios = np.sqrt(sa[pick].sum(axis=1) / sb[pick].sum(axis=1))
     lo, hi = np.percentile(ratios, [2.5, 97.5])
     return float(lo), float(hi)
+
+
+def print_calibrations(calibrations: dict) -> None:
+    """Each centroider's S-curve as calibrated (first harmonic per axis), or why it declined."""
+    print("\npixel-phase calibration (S-curve amplitude px, negative: pulled towards pixel centres; applied / "
+          "estimate +- standard error, distinct stars)")
+    for name, cal in calibrations.items():
+        if isinstance(cal, str):
+            print(f"  {name:<18} declined: {cal}")
+            continue
+        print(f"  {name:<18} x {cal.amplitude_x[0]:+.4f} / {cal.estimate_x[0]:+.4f} +- {cal.error_x[0]:.4f}   "
+              f"y {cal.amplitude_y[0]:+.4f} / {cal.estimate_y[0]:+.4f} +- {cal.error_y[0]:.4f}   {cal.n_stars}")
 
 
 def print_by_magnitude(results: list[FrameResult], names: list[str]) -> None:
@@ -681,6 +755,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="extra keyword option of starlog.centroid.extract_stars (JSON value), repeatable")
     ap.add_argument("--plate-order", type=int, default=0,
                     help="fit a polynomial field pattern of this order instead of the camera refit (investigation)")
+    ap.add_argument("--phase-correction", choices=("auto", "off"), default="auto",
+                    help="auto (default): every centroider's pixel phase calibrated on the frames' own stars "
+                         "(starlog.centroid.phase, as starlog centroid --phase-correction auto); starlog's columns "
+                         "corrected, SEP's shown as they are and corrected (+pc)")
+    ap.add_argument("--phase-harmonics", type=int, default=1,
+                    help="harmonics of the S-curve per axis the calibration estimates (default 1)")
     ap.add_argument("--phase-equalise", action="store_true",
                     help="also every centroider with its pixel-phase bias self-calibrated (investigation)")
     ap.add_argument("--only", nargs="+", default=None, metavar="NAME",
@@ -702,6 +782,9 @@ def main(argv: list[str] | None = None) -> int:
     solver = load_solver()
     t0 = time.perf_counter()
     frames = [measure_frame(p, args) for p in paths]
+    calibrations = {}
+    if args.phase_correction == "auto":
+        frames, calibrations = phase_corrected(frames, harmonics=args.phase_harmonics)
     if args.phase_equalise:
         frames = phase_equalised(frames)
     results = [compare_frame(f, solver, args) for f in frames]
@@ -716,6 +799,13 @@ def main(argv: list[str] | None = None) -> int:
     lo, hi = bootstrap_ratio(results, best, best_sep)
     print(f"\nbest starlog {best} {pooled[best]:.4f} px / best SEP {best_sep} {pooled[best_sep]:.4f} px = {ratio:.3f} "
           f"(95 % bootstrap over stars {lo:.3f} .. {hi:.3f})")
+    corrected = {k[:-3]: v for k, v in pooled.items() if k.endswith("+pc")}
+    if corrected:
+        pc_sep = min(corrected, key=corrected.get)
+        print(f"the same, SEP phase-corrected too: best starlog {best} {pooled[best]:.4f} px / best SEP {pc_sep}+pc "
+              f"{corrected[pc_sep]:.4f} px = {pooled[best] / corrected[pc_sep]:.3f}")
+    if calibrations:
+        print_calibrations(calibrations)
     equalised = {k[:-3]: v for k, v in pooled.items() if k.endswith("+eq")}
     if equalised:
         eq, eq_sep, eq_ratio = best_ratio(equalised)
@@ -727,7 +817,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# {time.perf_counter() - t0:.1f} s; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     if args.json:
         payload = {"frames": [frame_record(r) for r in results], "pooled": pooled, "best_starlog": best,
-                   "best_sep": best_sep, "ratio": ratio, "ratio_95": [lo, hi]}
+                   "best_sep": best_sep, "ratio": ratio, "ratio_95": [lo, hi],
+                   "phase_calibrations": {k: v if isinstance(v, str) else v.to_dict() for k, v in calibrations.items()}}
         args.json.write_text(json.dumps(payload, indent=2))
     return 0
 

@@ -201,6 +201,7 @@ class _Measured:
     sigma: F64
     psf: F64
     background: F64
+    unit: F64 | None = None  # the unit model at (dx, dy) (dx0, dy0 where not ok), when the method made it
 
 
 def _fit(st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, fit_psf_sigma: bool) -> _Measured:
@@ -238,9 +239,10 @@ def _estimate(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf
             dy = np.where(good, dy + (ey - my), dy)
     ok &= np.isfinite(dx) & np.isfinite(dy) & (np.abs(dx) < st.h) & (np.abs(dy) < st.h)
     cx, cy = np.where(ok, dx, dx0), np.where(ok, dy, dy0)
-    flux, ferr = linear_flux(st, model(st, cx, cy, psf), f0, iterations=1)
+    unit = model(st, cx, cy, psf)
+    flux, ferr = linear_flux(st, unit, f0, iterations=1)
     sig = fisher_sigma(st, cx, cy, np.maximum(flux, 0), psf) * EFFICIENCY[meth]
-    return _Measured(dx, dy, ok, flux, ferr, sig, psf, np.zeros_like(flux))
+    return _Measured(dx, dy, ok, flux, ferr, sig, psf, np.zeros_like(flux), unit)
 
 
 def _with_fallback(m: _Measured, st: Stamps, dx0: F64, dy0: F64, f0: F64) -> _Measured:
@@ -406,9 +408,11 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     ok = m.ok & np.isfinite(m.dx) & np.isfinite(m.dy)
     cx, cy = np.where(ok, m.dx, dx0), np.where(ok, m.dy, dy0)
     flux = np.where(ok & np.isfinite(m.flux), m.flux, f0)
-    mu = np.maximum(flux, 0)[:, None, None] * model(st, cx, cy, m.psf) + m.background[:, None, None]
+    unit = m.unit if m.unit is not None else model(st, cx, cy, m.psf)
+    mu = np.maximum(flux, 0)[:, None, None] * unit + m.background[:, None, None]
     suspect, error = suspect_pixels(st, mu)
-    rows = np.flatnonzero(suspect.any(axis=(1, 2)))
+    strayed = _strayed(cx - dx0, cy - dy0, m.psf)
+    rows = np.flatnonzero(suspect.any(axis=(1, 2)) | strayed)
     if rows.size == 0:
         return m, st, n_out
     sub = take_stamps(st, rows)
@@ -416,7 +420,7 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     unit = model(sub, sx, sy, psf[rows])
     start = core_flux(sub, unit)[:, None, None] * unit
     clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), sx, sy, start, error=error)
-    hit = mask.any(axis=(1, 2))
+    hit = mask.any(axis=(1, 2)) | strayed[rows]
     rows, clean, fx, fy = rows[hit], take_stamps(clean, np.flatnonzero(hit)), fx[hit], fy[hit]
     if rows.size == 0:
         return m, st, n_out
@@ -431,6 +435,12 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     for name, values in merged.items():
         values[rows] = getattr(again, name)
     return _Measured(**merged), out, n_out
+
+
+def _strayed(dx: F64, dy: F64, psf: F64) -> npt.NDArray[np.bool_]:
+    """Centroids farther from the detection than a star's light reaches (``max(2, 1.5 psf_sigma)`` px):
+    drawn off by an artefact in the window (a cosmic ray a re-weighted centre of gravity converged on)."""
+    return np.hypot(dx, dy) > np.maximum(2.0, 1.5 * psf)
 
 
 def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: float, read_noise: float | None,

@@ -274,11 +274,18 @@ def suspect_pixels(st: Stamps, mu: F64) -> tuple[Mask, ModelError]:
     only: ``mu`` may be centred on an artefact, its mirror pixels with it), and that error.
 
     A clean frame costs one comparison: no pixel above the plain ``k``-sigma level (a lower
-    bound of the full test's level) means no outlier, and the rest is skipped.
+    bound of the full test's level) means no outlier, and the rest is skipped; nor does any
+    when no pixel passes the shot-noise level with the model's error left out (the model error
+    only adds variance), checked on the few pixels above the plain level.
     """
     k = clip_level(st.valid.sum(axis=(1, 2)))[:, None, None]
     r = st.data - mu
-    if not np.any(st.valid & (r > 0) & (r * r > k * k * variance(st, mu))):
+    var = variance(st, mu)
+    above = st.valid & (r > 0) & (r * r > k * k * var)
+    if not above.any():
+        return np.zeros_like(st.valid), ModelError()
+    sd = np.sqrt(var[above])
+    if not np.any(r[above] > skew_corrected(np.broadcast_to(k, r.shape)[above], sd, st.gain) * sd):
         return np.zeros_like(st.valid), ModelError()
     error = model_error(st, mu)
     return outlier_pixels(st, mu, error=error, symmetric=False), error

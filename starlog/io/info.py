@@ -38,7 +38,7 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "channels": channels,
             "provenance": [p.to_dict() for p in log.provenance()],
             "notes": list(log.notes),
-        } | _epsf_summaries(log)
+        } | _epsf_summaries(log) | _phase_summaries(log)
 
 
 def _epsf_summaries(log: LogReader) -> dict[str, Any]:
@@ -56,6 +56,40 @@ def _epsf_summaries(log: LogReader) -> dict[str, Any]:
         except (ValueError, KeyError) as err:
             out.append({"error": f"unreadable ePSF record: {err}"})
     return {"epsf": out} if out else {}
+
+
+def _phase_summaries(log: LogReader) -> dict[str, Any]:
+    """``{"phase_correction": [...]}``: each stored pixel-phase calibration record (source, calibrations per
+    method, methods declined; :data:`starlog.io.topics.PHASE_METADATA`); none: {}."""
+    out = []
+    for _, meta in log.metadata(topics.PHASE_METADATA):
+        try:
+            out.append({"source": meta.get("source", ""), "calibrations": json.loads(meta["calibrations"]),
+                        "declined": json.loads(meta.get("declined", "{}"))})
+        except (KeyError, ValueError) as err:
+            out.append({"error": f"unreadable phase-correction record: {err!r}"})
+    return {"phase_correction": out} if out else {}
+
+
+def _phase_lines(records: list[dict[str, Any]]) -> list[str]:
+    """``info``'s lines for the phase-correction records: the S-curve amplitude applied per method and axis."""
+    lines = []
+    for r in records:
+        if "error" in r:
+            lines.append(f"phase      {r['error']}")
+            continue
+        lines.append(f"phase      pixel-phase correction ({r['source']}); S-curve amplitude px applied "
+                     "(estimate +- error), distinct stars")
+        for c in r["calibrations"]:
+            try:
+                a, e, s = c["amplitude_px"], c["estimate_px"], c["error_px"]
+                axes = "  ".join(f"{k} {a[k][0]:+.4f} ({e[k][0]:+.4f} +- {s[k][0]:.4f})" for k in ("x", "y"))
+                lines.append(f"           {c['method']:<15} {axes}  {c.get('n_stars', 0)} stars")
+            except (KeyError, IndexError, TypeError):
+                lines.append(f"           unreadable calibration {c!r:.60}")
+        for method, why in r["declined"].items():
+            lines.append(f"           {method:<15} not corrected: {why}")
+    return lines
 
 
 def _short(value: Any, limit: int = 80) -> str:
@@ -101,6 +135,7 @@ def format_description(info: dict[str, Any]) -> str:
         else:
             lines.append(f"epsf       {e['size_px']}x{e['size_px']} px, oversampling {e['oversampling']} "
                          f"(grid {e['grid'][0]}x{e['grid'][1]}), {e['n_stars']} stars, FWHM {e['fwhm_px']:.3f} px")
+    lines += _phase_lines(info.get("phase_correction", []))
     for note in info.get("notes", []):
         lines.append(f"note: {note}")
     return "\n".join(lines)

@@ -32,6 +32,7 @@ __all__ = [
     "compensated_topic",
     "decisions_topic",
     "EPSF_METADATA",
+    "PHASE_METADATA",
 ]
 
 IMAGE = "/camera/image"
@@ -43,6 +44,10 @@ ANNOTATIONS = "/stars/annotations"
 #: Name of the metadata record holding a log's empirical PSF (``starlog centroid --psf empirical``):
 #: the string map of :meth:`starlog.centroid.epsf.EPSF.to_metadata`.
 EPSF_METADATA = "starlog.epsf"
+
+#: Name of the metadata record holding a log's pixel-phase calibrations (``starlog centroid
+#: --phase-correction``): source, and the calibrations as a JSON list (:mod:`starlog.centroid.phase`).
+PHASE_METADATA = "starlog.phase_correction"
 
 
 def centroid_topic(method: str) -> str:

@@ -20,10 +20,11 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import json
 import os
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -34,6 +35,13 @@ from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, e
 from starlog.centroid.epsf import EPSF, epsf_from_frames
 from starlog.centroid.extract import window_half_size
 from starlog.centroid.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
+from starlog.centroid.phase import (
+    DISTINCT_CELL,
+    PhaseCalibration,
+    estimate_phase_calibration,
+    load_phase_calibrations,
+    phase_samples,
+)
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
@@ -91,9 +99,12 @@ class CentroidSummary:
     skipped: list[SkippedFrame] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     epsf: dict[str, Any] | None = None
+    phase_correction: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         extra = {"epsf": self.epsf} if self.epsf is not None else {}
+        if self.phase_correction is not None:
+            extra["phase_correction"] = self.phase_correction
         return {
             "methods": self.methods,
             "image_topic": self.image_topic,
@@ -135,6 +146,7 @@ def centroid_log(
     show_progress: bool = False,
     psf: str | None = None,
     hot_pixels: str | os.PathLike[str] | None = None,
+    phase_correction: str | os.PathLike[str] | None = None,
 ) -> CentroidSummary:
     """Detect stars and measure their centroids by each method, for every frame of the log.
 
@@ -173,6 +185,16 @@ def centroid_log(
         log's first frames, a path reads it (``.npy`` boolean mask or ``x,y`` text lines). Hot
         pixels are never detections and are left out of the star windows; the map (source,
         count, SHA-256, pixels) is recorded in the provenance.
+    phase_correction : "auto", "off" or path, optional
+        Remove each method's pixel-phase bias (S-curve, :mod:`starlog.centroid.phase`) from
+        every centroid. ``"auto"`` learns it from the log's own stars (the first
+        :data:`PHASE_MIN_FRAMES` frames and more while they show new phases, each distinct star
+        once; no catalogue), per method; a method with too few distinct bright stars is left
+        uncorrected, with a note. A path
+        reads the calibrations (JSON: ``--json`` output of an earlier run, or its
+        ``phase_correction`` records). The calibrations are recorded in the provenance and
+        stored as the metadata record ``starlog.phase_correction`` (shown by ``info``).
+        Default (or ``"off"``): no correction.
     """
     chosen = parse_methods(methods)
     options = dict(options or {})
@@ -211,6 +233,11 @@ def centroid_log(
 
     extract = _Extractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options, epsf=epsf,
                          hot_pixels=hot_map)
+    phase = _phase_correction_for(input_path, topic, extract, phase_correction)
+    if phase is not None:
+        extract = replace(extract, phase=phase.active())
+        summary.phase_correction = digest_params["phase_correction"] = phase.record()
+        summary.notes += phase.notes
 
     with _opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=digest_params,
                                         force=force, compression=compression, workers=workers) as (log, out):
@@ -240,6 +267,8 @@ def centroid_log(
         summary.notes += [n for n in log.notes if n not in summary.notes]
         if epsf is not None:
             out.writer.add_metadata(topics.EPSF_METADATA, epsf.to_metadata())
+        if phase is not None:
+            out.writer.add_metadata(topics.PHASE_METADATA, phase.to_metadata())
     return summary
 
 
@@ -318,6 +347,88 @@ def _hot_pixel_map(log: LogReader, topic: str, spec: str | os.PathLike[str] | No
     return load_hot_pixels(spec, image.shape)
 
 
+PHASE_MIN_FRAMES = 16
+PHASE_MAX_FRAMES = 256
+"""``--phase-correction auto`` learns from the log's first frames: at least ``PHASE_MIN_FRAMES``, at most
+``PHASE_MAX_FRAMES``, stopping when half of ``PHASE_MIN_FRAMES`` frames add under 2 % new distinct stars."""
+
+
+@dataclass
+class _PhaseCorrection:
+    """The calibrations a run applies, per method, where they came from, and the methods left uncorrected."""
+
+    source: str
+    calibrations: dict[str, PhaseCalibration]
+    declined: dict[str, str]
+    notes: list[str]
+
+    def active(self) -> dict[str, PhaseCalibration]:
+        return {m: c for m, c in self.calibrations.items() if c.active}
+
+    def record(self) -> dict[str, Any]:
+        return {"source": self.source, "calibrations": [c.to_dict() for c in self.calibrations.values()],
+                "declined": dict(self.declined)}
+
+    def to_metadata(self) -> dict[str, str]:
+        return {"source": self.source, "calibrations": json.dumps([c.to_dict() for c in self.calibrations.values()]),
+                "declined": json.dumps(self.declined)}
+
+
+def _phase_correction_for(path: str | os.PathLike[str], topic: str, extract: _Extractor,
+                          spec: str | os.PathLike[str] | None) -> _PhaseCorrection | None:
+    """The phase calibrations ``spec`` asks for: learnt from the log (``"auto"``), read from a file, or none."""
+    if spec is None or (isinstance(spec, str) and spec == "off"):
+        return None
+    methods = [m.value for m in extract.methods]
+    if isinstance(spec, str) and spec == "auto":
+        with _opencv_threads(1), LogReader(path) as log:
+            samples, frames = _phase_samples(log, topic, extract)
+        calibrations, declined = {}, {}
+        for m in methods:
+            try:
+                calibrations[m] = estimate_phase_calibration(*samples[m], method=m)
+            except InvalidInputError as err:
+                declined[m] = str(err)
+        source = f"auto: the stars of the log's first {frames} frames"
+    else:
+        loaded = load_phase_calibrations(spec)
+        calibrations = {m: loaded[m] for m in methods if m in loaded}
+        declined = {m: f"no calibration for {m} in {os.fspath(spec)}" for m in methods if m not in loaded}
+        source = f"file: {os.fspath(spec)}"
+    notes = [f"phase correction: {m} left uncorrected: {why}" for m, why in declined.items()]
+    return _PhaseCorrection(source, calibrations, declined, notes)
+
+
+def _phase_samples(log: LogReader, topic: str, extract: _Extractor) -> tuple[dict[str, tuple[Any, Any, Any]], int]:
+    """Per method: (x, y, sigma) of the usable stars of the log's first frames, pooled; and the frames read.
+
+    Frames are read while they bring new distinct stars (:func:`distinct_samples`: a drifting
+    field shows new phases in every frame, a static one none after its first frame), up to
+    :data:`PHASE_MAX_FRAMES`, and never fewer than :data:`PHASE_MIN_FRAMES`.
+    """
+    pooled: dict[str, list[tuple[Any, Any, Any]]] = {m.value: [] for m in extract.methods}
+    seen: set[tuple[int, int]] = set()
+    recent: list[int] = []
+    frames = 0
+    for index, _, image in log.frames(topic, on_bad=lambda skipped: None):
+        if index >= PHASE_MAX_FRAMES:
+            break
+        _, centroids = extract.centroids(image)
+        frames += 1
+        for m, table in centroids.items():
+            pooled[m.value].append(phase_samples(table))
+        x, y, _ = pooled[extract.methods[0].value][-1]
+        before = len(seen)
+        cells = np.floor(np.column_stack([x, y]) / DISTINCT_CELL).astype(int)
+        seen.update(map(tuple, cells.tolist()))
+        recent.append(len(seen) - before)
+        if len(recent) >= PHASE_MIN_FRAMES and sum(recent[-PHASE_MIN_FRAMES // 2:]) < 0.02 * len(seen):
+            break  # the last frames brought (almost) no new phase: a static field
+    samples = {m: tuple(np.concatenate([s[i] for s in parts]) if parts else np.zeros(0) for i in range(3))
+               for m, parts in pooled.items()}
+    return samples, frames
+
+
 @dataclass(frozen=True)
 class _FrameMessages:
     """One frame's encoded messages (detections, annotations, centroids per method) and counts."""
@@ -341,13 +452,20 @@ class _Extractor:
     options: dict[str, Any]
     epsf: EPSF | None = None
     hot_pixels: npt.NDArray[np.bool_] | None = None
+    phase: dict[str, PhaseCalibration] | None = None
+
+    def centroids(self, image: npt.NDArray[Any]) -> tuple[npt.NDArray[Any], dict[CentroidMethod, npt.NDArray[Any]]]:
+        """Detections and centroids per method of one frame, before any phase correction."""
+        return extract_stars(image, methods=self.methods, gain=self.gain, read_noise=self.read_noise, epsf=self.epsf,
+                             hot_pixels=self.hot_pixels, **self.options)
 
     def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any], stamp: int | None = None
                  ) -> _FrameMessages:
         """``stamp``: the image message's own time, given to the annotations so Foxglove pairs them with it."""
-        detections, centroids = extract_stars(image, methods=self.methods, gain=self.gain,
-                                              read_noise=self.read_noise, epsf=self.epsf, hot_pixels=self.hot_pixels,
-                                              **self.options)
+        detections, centroids = self.centroids(image)
+        for m, calibration in (self.phase or {}).items():
+            table = centroids[CentroidMethod(m)]
+            table["x"], table["y"] = calibration.apply(table["x"], table["y"])
         first = centroids[self.methods[0]]
         diameter = float(max(6.0, 6.0 * np.median(first["psf_sigma"]))) if first.size else 6.0
         per_method = [centroids[m] for m in self.methods]
