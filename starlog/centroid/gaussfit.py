@@ -18,12 +18,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from scipy.special import erf
 
-from starlog.centroid._stamps import Stamps, profile_1d, variance
+from starlog.centroid._stamps import Stamps
 
 __all__ = ["GaussFitResult", "fit_gaussians"]
 
 F64 = npt.NDArray[np.float64]
+_SQ2 = np.sqrt(2.0)
+_ISQ2PI = 1.0 / np.sqrt(2.0 * np.pi)
 
 
 @dataclass(frozen=True)
@@ -40,29 +43,87 @@ class GaussFitResult:
     ok: npt.NDArray[np.bool_]
 
 
-def _jacobian(st: Stamps, cx: F64, cy: F64, f: F64, s: F64, fit_background: bool,
-              fit_sigma: bool) -> tuple[F64, F64]:
-    """Unit model (N, W, W) and the model's derivatives (N, P, W, W) in cx, cy, F[, B][, s]."""
-    ex, dex, dsx = profile_1d(st.u, cx, s, deriv=True)
-    ey, dey, dsy = profile_1d(st.u, cy, s, deriv=True)
-    m = ey[:, :, None] * ex[:, None, :]
-    cols = [
-        f[:, None, None] * ey[:, :, None] * dex[:, None, :],
-        f[:, None, None] * dey[:, :, None] * ex[:, None, :],
-        m,
-    ]
-    if fit_background:
-        cols.append(np.ones_like(m))
-    if fit_sigma:
-        cols.append(f[:, None, None] * (dsy[:, :, None] * ex[:, None, :] + ey[:, :, None] * dsx[:, None, :]))
-    return m, np.stack(cols, axis=1)
+@dataclass
+class _Profiles:
+    """The 1-D pixel-integrated profiles of every star along x (rows 0..N-1) and y (rows N..2N-1).
+
+    ``t`` are the pixel edges in sigma units, ``e`` the profile (N2, W): kept from a trial
+    evaluation so that an accepted step does not evaluate the error function again.
+    """
+
+    t: F64
+    e: F64
+
+    @classmethod
+    def at(cls, edges: F64, cx: F64, cy: F64, s: F64) -> "_Profiles":
+        """Profiles at centres (cx, cy) and width s (the same values as :func:`profile_1d`)."""
+        t = (edges[None, :] - np.concatenate([cx, cy])[:, None]) / np.concatenate([s, s])[:, None]
+        cdf = erf(t * (1.0 / _SQ2))
+        return cls(t, 0.5 * (cdf[:, 1:] - cdf[:, :-1]))
+
+    def where(self, better: npt.NDArray[np.bool_], other: "_Profiles") -> "_Profiles":
+        """Per star, these profiles where ``better``, else ``other``'s."""
+        pick = np.concatenate([better, better])[:, None]
+        return _Profiles(np.where(pick, self.t, other.t), np.where(pick, self.e, other.e))
+
+    def derivatives(self, s: F64, fit_sigma: bool) -> tuple[F64, F64 | None]:
+        """d e / d centre and (``fit_sigma``) d e / d s, (N2, W)."""
+        sc = np.concatenate([s, s])[:, None]
+        pdf = _ISQ2PI * np.exp(-0.5 * self.t * self.t)
+        de_dc = -(pdf[:, 1:] - pdf[:, :-1]) / sc
+        if not fit_sigma:
+            return de_dc, None
+        tp = self.t * pdf
+        return de_dc, -(tp[:, 1:] - tp[:, :-1]) / sc
 
 
-def _chi2(st: Stamps, cx: F64, cy: F64, f: F64, b: F64, s: F64, w: F64) -> F64:
-    ex, _, _ = profile_1d(st.u, cx, s)
-    ey, _, _ = profile_1d(st.u, cy, s)
-    r = st.data - b[:, None, None] - f[:, None, None] * ey[:, :, None] * ex[:, None, :]
-    return (w * r * r).sum(axis=(1, 2))
+class _Problem:
+    """The fixed parts of one fit: stamps, noise, and the Jacobian's buffer (N, P, W, W)."""
+
+    def __init__(self, st: Stamps, fit_background: bool, fit_sigma: bool) -> None:
+        n, w, _ = st.data.shape
+        self.st, self.n = st, n
+        self.edges = np.append(st.u - 0.5, st.u[-1] + 0.5)
+        self.noise2 = st.noise[:, None, None] ** 2
+        self.fit_background, self.fit_sigma = fit_background, fit_sigma
+        self.npar = 3 + int(fit_background) + int(fit_sigma)
+        self.jac = np.empty((n, self.npar, w, w))
+        if fit_background:
+            self.jac[:, 3] = 1.0
+
+    def weights(self, mu_star: F64) -> F64:
+        """Inverse model variance on valid pixels (noise^2 + star shot noise, as :func:`variance`)."""
+        return self.st.valid / (self.noise2 + np.clip(mu_star, 0.0, None) / self.st.gain)
+
+    def jacobian(self, p: _Profiles, f: F64, s: F64) -> tuple[F64, F64]:
+        """Unit model (N, W, W) and the model's derivatives (N, P, W, W) in cx, cy, F[, B][, s]."""
+        n, j = self.n, self.jac
+        ex, ey = p.e[:n], p.e[n:]
+        dc, ds = p.derivatives(s, self.fit_sigma)
+        dex, dey = dc[:n], dc[n:]
+        fe = f[:, None] * ey
+        np.multiply(fe[:, :, None], dex[:, None, :], out=j[:, 0])
+        np.multiply((f[:, None] * dey)[:, :, None], ex[:, None, :], out=j[:, 1])
+        np.multiply(ey[:, :, None], ex[:, None, :], out=j[:, 2])
+        if self.fit_sigma:
+            dsx, dsy = ds[:n], ds[n:]
+            j[:, -1] = f[:, None, None] * (dsy[:, :, None] * ex[:, None, :] + ey[:, :, None] * dsx[:, None, :])
+        return j[:, 2], j
+
+    def normal(self, j: F64, w: F64, r: F64 | None = None) -> tuple[F64, F64 | None]:
+        """Normal matrix J^T W J (N, P, P) and, with residuals ``r``, the gradient J^T W r (N, P)."""
+        n, p = self.n, self.npar
+        j2 = j.reshape(n, p, -1)
+        jw = j2 * w.reshape(n, 1, -1)
+        a_mat = jw @ j2.transpose(0, 2, 1)
+        if r is None:
+            return a_mat, None
+        return a_mat, (jw @ r.reshape(n, -1, 1))[:, :, 0]
+
+    def chi2(self, p: _Profiles, f: F64, b: F64, w: F64) -> F64:
+        ex, ey = p.e[: self.n], p.e[self.n :]
+        r = self.st.data - b[:, None, None] - f[:, None, None] * ey[:, :, None] * ex[:, None, :]
+        return (w * r * r).sum(axis=(1, 2))
 
 
 def _solve(damp: F64, g: F64, active: npt.NDArray[np.bool_]) -> F64:
@@ -79,15 +140,12 @@ def _solve(damp: F64, g: F64, active: npt.NDArray[np.bool_]) -> F64:
     return np.where(np.isfinite(step), step, 0.0)
 
 
-def _uncertainties(st: Stamps, cx: F64, cy: F64, f: F64, s: F64, fit_background: bool,
-                   fit_sigma: bool) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+def _uncertainties(prob: _Problem, p: _Profiles, f: F64, s: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Per-axis centroid sigma and flux error from the undamped normal matrix (Fisher
     information) at the solution, and where it could be inverted."""
-    n = cx.size
-    m, j = _jacobian(st, cx, cy, f, s, fit_background, fit_sigma)
-    w = st.valid / variance(st, f[:, None, None] * m)
-    jw = j * w[:, None]
-    a_mat = np.einsum("npij,nqij->npq", jw, j)
+    n = f.size
+    m, j = prob.jacobian(p, f, s)
+    a_mat, _ = prob.normal(j, prob.weights(f[:, None, None] * m))
     npar = a_mat.shape[1]
     cov = np.full((n, npar, npar), np.nan)
     det = np.linalg.det(a_mat)
@@ -115,22 +173,21 @@ def fit_gaussians(
 ) -> GaussFitResult:
     """Fit all stamps at once (see module docstring); ``psf_sigma`` is the start/fixed value."""
     n = st.data.shape[0]
+    prob = _Problem(st, fit_background, fit_sigma)
     cx, cy = dx0.astype(np.float64).copy(), dy0.astype(np.float64).copy()
     f = np.maximum(flux0.astype(np.float64), 1.0 * st.noise)
     b = np.zeros(n)
     s = np.broadcast_to(np.asarray(psf_sigma, np.float64), (n,)).copy()
-    npar = 3 + int(fit_background) + int(fit_sigma)
     lam = np.full(n, 1e-3)
     active = np.ones(n, bool)
-    eye = np.eye(npar)[None]
+    eye = np.eye(prob.npar)[None]
+    prof = _Profiles.at(prob.edges, cx, cy, s)
     for _ in range(iterations):
-        m, j = _jacobian(st, cx, cy, f, s, fit_background, fit_sigma)
+        m, j = prob.jacobian(prof, f, s)
         mu_star = f[:, None, None] * m
-        w = st.valid / variance(st, mu_star)
+        w = prob.weights(mu_star)
         r = st.data - b[:, None, None] - mu_star
-        jw = j * w[:, None]
-        a_mat = np.einsum("npij,nqij->npq", jw, j)
-        g = np.einsum("npij,nij->np", jw, r)
+        a_mat, g = prob.normal(j, w, r)
         c0 = (w * r * r).sum(axis=(1, 2))
         step = _solve(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
         step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
@@ -139,16 +196,18 @@ def fit_gaussians(
         ncx, ncy, nf = cx + step[:, 0], cy + step[:, 1], np.maximum(f + step[:, 2], 1e-6 * st.noise + 1e-12)
         nb = b + step[:, 3] if fit_background else b
         ns = np.clip(s + step[:, -1], 0.2, 20.0) if fit_sigma else s
-        better = (_chi2(st, ncx, ncy, nf, nb, ns, w) <= c0 * (1 + 1e-9)) & active
+        trial = _Profiles.at(prob.edges, ncx, ncy, ns)
+        better = (prob.chi2(trial, nf, nb, w) <= c0 * (1 + 1e-9)) & active
         cx = np.where(better, ncx, cx)
         cy = np.where(better, ncy, cy)
         f = np.where(better, nf, f)
         b = np.where(better, nb, b)
         s = np.where(better, ns, s)
+        prof = trial.where(better, prof)
         lam = np.where(better, np.maximum(lam * 0.3, 1e-7), lam * 10.0)
         if np.all((np.abs(step[:, 0]) < tol) & (np.abs(step[:, 1]) < tol) | ~active):
             break
     h = st.h
-    sig, ferr, good_var = _uncertainties(st, cx, cy, f, s, fit_background, fit_sigma)
+    sig, ferr, good_var = _uncertainties(prob, prof, f, s)
     ok = active & np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < h - 0.5) & (np.abs(cy) < h - 0.5) & (f > 0)
     return GaussFitResult(cx, cy, f, ferr, b, s, sig, ok & good_var)
