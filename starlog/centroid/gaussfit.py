@@ -78,7 +78,8 @@ class _Profiles:
 
 
 class _Problem:
-    """The fixed parts of one fit: stamps, noise, and the Jacobian's buffer (N, P, W, W)."""
+    """The fixed parts of one fit: stamps, noise, the parameters' pairs and (only when the PSF
+    width is fitted) the Jacobian's buffer (N, P, W, W)."""
 
     def __init__(self, st: Stamps, fit_background: bool, fit_sigma: bool) -> None:
         n, w, _ = st.data.shape
@@ -87,33 +88,67 @@ class _Problem:
         self.noise2 = st.noise[:, None, None] ** 2
         self.fit_background, self.fit_sigma = fit_background, fit_sigma
         self.npar = 3 + int(fit_background) + int(fit_sigma)
-        self.jac = np.empty((n, self.npar, w, w))
-        if fit_background:
+        self.pairs = np.triu_indices(self.npar)
+        self.jac = np.empty((n, self.npar, w, w)) if fit_sigma else None
+        if fit_sigma and fit_background:
             self.jac[:, 3] = 1.0
 
     def weights(self, mu_star: F64) -> F64:
         """Inverse model variance on valid pixels (noise^2 + star shot noise, as :func:`variance`)."""
         return self.st.valid / (self.noise2 + np.clip(mu_star, 0.0, None) / self.st.gain)
 
-    def jacobian(self, p: _Profiles, f: F64, s: F64) -> tuple[F64, F64]:
-        """Unit model (N, W, W) and the model's derivatives (N, P, W, W) in cx, cy, F[, B][, s]."""
+    def model(self, p: _Profiles) -> F64:
+        """Unit model (N, W, W)."""
+        return p.e[self.n :, :, None] * p.e[: self.n, None, :]
+
+    def normal(self, p: _Profiles, f: F64, s: F64, w: F64, r: F64 | None = None) -> tuple[F64, F64 | None]:
+        """Normal matrix J^T W J (N, P, P) and, with residuals ``r``, the gradient J^T W r (N, P)."""
+        if self.fit_sigma:
+            return self._normal_planes(self._jacobian(p, f, s), w, r)
+        return self._normal_separable(p, f, s, w, r)
+
+    def _normal_separable(self, p: _Profiles, f: F64, s: F64, w: F64, r: F64 | None) -> tuple[F64, F64 | None]:
+        """:meth:`normal` when every derivative is a row profile times a column profile.
+
+        d mu / d cx = F ey (x) dex, d mu / d cy = F dey (x) ex, d mu / d F = ey (x) ex, d mu / d B = 1,
+        so ``sum_ij w_ij a_i b_j a'_i b'_j = sum_i a_i a'_i (w @ (b b'))_i``: one (W, W) x (W, K)
+        product per star instead of P (W, W) planes.
+        """
+        n, npar = self.n, self.npar
+        ex, ey = p.e[:n], p.e[n:]
+        dc, _ = p.derivatives(s, False)
+        rows = [f[:, None] * ey, f[:, None] * dc[n:], ey]
+        cols = [dc[:n], ex, ex]
+        if self.fit_background:
+            rows.append(np.ones_like(ey))
+            cols.append(np.ones_like(ex))
+        rows_, cols_ = np.stack(rows, axis=1), np.stack(cols, axis=2)  # (N, P, W), (N, W, P)
+        i, k = self.pairs
+        wb = w @ (cols_[:, :, i] * cols_[:, :, k])  # (N, W, K)
+        upper = np.einsum("nkw,nwk->nk", rows_[:, i] * rows_[:, k], wb)
+        a_mat = np.empty((n, npar, npar))
+        a_mat[:, i, k] = upper
+        a_mat[:, k, i] = upper
+        if r is None:
+            return a_mat, None
+        wr = (w * r) @ cols_  # (N, W, P)
+        return a_mat, np.einsum("npw,nwp->np", rows_, wr)
+
+    def _jacobian(self, p: _Profiles, f: F64, s: F64) -> F64:
+        """The model's derivatives (N, P, W, W) in cx, cy, F[, B], s."""
         n, j = self.n, self.jac
         ex, ey = p.e[:n], p.e[n:]
-        dc, ds = p.derivatives(s, self.fit_sigma)
-        dex, dey = dc[:n], dc[n:]
-        fe = f[:, None] * ey
-        np.multiply(fe[:, :, None], dex[:, None, :], out=j[:, 0])
+        dc, ds = p.derivatives(s, True)
+        dex, dey, dsx, dsy = dc[:n], dc[n:], ds[:n], ds[n:]
+        np.multiply((f[:, None] * ey)[:, :, None], dex[:, None, :], out=j[:, 0])
         np.multiply((f[:, None] * dey)[:, :, None], ex[:, None, :], out=j[:, 1])
         np.multiply(ey[:, :, None], ex[:, None, :], out=j[:, 2])
-        if self.fit_sigma:
-            dsx, dsy = ds[:n], ds[n:]
-            j[:, -1] = f[:, None, None] * (dsy[:, :, None] * ex[:, None, :] + ey[:, :, None] * dsx[:, None, :])
-        return j[:, 2], j
+        j[:, -1] = f[:, None, None] * (dsy[:, :, None] * ex[:, None, :] + ey[:, :, None] * dsx[:, None, :])
+        return j
 
-    def normal(self, j: F64, w: F64, r: F64 | None = None) -> tuple[F64, F64 | None]:
-        """Normal matrix J^T W J (N, P, P) and, with residuals ``r``, the gradient J^T W r (N, P)."""
-        n, p = self.n, self.npar
-        j2 = j.reshape(n, p, -1)
+    def _normal_planes(self, j: F64, w: F64, r: F64 | None) -> tuple[F64, F64 | None]:
+        n, npar = self.n, self.npar
+        j2 = j.reshape(n, npar, -1)
         jw = j2 * w.reshape(n, 1, -1)
         a_mat = jw @ j2.transpose(0, 2, 1)
         if r is None:
@@ -144,8 +179,7 @@ def _uncertainties(prob: _Problem, p: _Profiles, f: F64, s: F64) -> tuple[F64, F
     """Per-axis centroid sigma and flux error from the undamped normal matrix (Fisher
     information) at the solution, and where it could be inverted."""
     n = f.size
-    m, j = prob.jacobian(p, f, s)
-    a_mat, _ = prob.normal(j, prob.weights(f[:, None, None] * m))
+    a_mat, _ = prob.normal(p, f, s, prob.weights(f[:, None, None] * prob.model(p)))
     npar = a_mat.shape[1]
     cov = np.full((n, npar, npar), np.nan)
     det = np.linalg.det(a_mat)
@@ -183,11 +217,10 @@ def fit_gaussians(
     eye = np.eye(prob.npar)[None]
     prof = _Profiles.at(prob.edges, cx, cy, s)
     for _ in range(iterations):
-        m, j = prob.jacobian(prof, f, s)
-        mu_star = f[:, None, None] * m
+        mu_star = f[:, None, None] * prob.model(prof)
         w = prob.weights(mu_star)
         r = st.data - b[:, None, None] - mu_star
-        a_mat, g = prob.normal(j, w, r)
+        a_mat, g = prob.normal(prof, f, s, w, r)
         c0 = (w * r * r).sum(axis=(1, 2))
         step = _solve(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
         step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
