@@ -86,6 +86,7 @@ class _Problem:
         self.st, self.n = st, n
         self.edges = np.append(st.u - 0.5, st.u[-1] + 0.5)
         self.noise2 = st.noise[:, None, None] ** 2
+        self.valid = st.valid.astype(np.float64)
         self.fit_background, self.fit_sigma = fit_background, fit_sigma
         self.npar = 3 + int(fit_background) + int(fit_sigma)
         self.pairs = np.triu_indices(self.npar)
@@ -95,7 +96,7 @@ class _Problem:
 
     def weights(self, mu_star: F64) -> F64:
         """Inverse model variance on valid pixels (noise^2 + star shot noise, as :func:`variance`)."""
-        return self.st.valid / (self.noise2 + np.clip(mu_star, 0.0, None) / self.st.gain)
+        return self.valid / (self.noise2 + np.maximum(mu_star, 0.0) / self.st.gain)
 
     def model(self, p: _Profiles) -> F64:
         """Unit model (N, W, W)."""
