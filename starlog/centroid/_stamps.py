@@ -103,16 +103,31 @@ def with_saturated(st: Stamps) -> Stamps:
     return replace(st, data=data, valid=st.valid | st.satpix)
 
 
+def _edges(u: F64) -> F64:
+    """The W + 1 pixel edges of consecutive integer offsets ``u``."""
+    return (u[0] - 0.5) + np.arange(u.size + 1, dtype=np.float64)
+
+
+def _sigma_column(s: F64 | float, n: int) -> F64 | float:
+    """``s`` as a per-row column (n, 1), or the scalar itself (the same quotients either way)."""
+    arr = np.asarray(s, np.float64)
+    return float(arr) if arr.ndim == 0 else np.broadcast_to(arr, (n,))[:, None]
+
+
+def _profiles(t: F64) -> F64:
+    """Pixel-integrated unit Gaussian of the pixel edges ``t`` in sigma units (rows, W + 1) -> (rows, W)."""
+    cdf = erf(t * (1.0 / _SQ2))
+    return 0.5 * (cdf[:, 1:] - cdf[:, :-1])
+
+
 def profile_1d(u: F64, c: F64, s: F64 | float, deriv: bool = False) -> tuple[F64, F64 | None, F64 | None]:
     """Pixel-integrated unit Gaussian along one axis, (N, W), and its c and s derivatives.
 
     ``u`` must be consecutive integers (pixel offsets); the W + 1 pixel edges are evaluated once.
     """
-    sc = np.broadcast_to(np.asarray(s, np.float64), c.shape)[:, None]
-    edges = np.append(u - 0.5, u[-1] + 0.5)
-    t = (edges[None, :] - c[:, None]) / sc  # (N, W + 1)
-    cdf = erf(t * (1.0 / _SQ2))
-    e = 0.5 * (cdf[:, 1:] - cdf[:, :-1])
+    sc = _sigma_column(s, c.shape[0])
+    t = (_edges(u)[None, :] - c[:, None]) / sc  # (N, W + 1)
+    e = _profiles(t)
     if not deriv:
         return e, None, None
     pdf = _ISQ2PI * np.exp(-0.5 * t * t)
@@ -123,10 +138,17 @@ def profile_1d(u: F64, c: F64, s: F64 | float, deriv: bool = False) -> tuple[F64
 
 
 def model(st: Stamps, cx: F64, cy: F64, s: F64 | float) -> F64:
-    """Unit-flux pixel-integrated Gaussian at window offsets (cx, cy), (N, W, W)."""
-    ex, _, _ = profile_1d(st.u, cx, s)
-    ey, _, _ = profile_1d(st.u, cy, s)
-    return ey[:, :, None] * ex[:, None, :]
+    """Unit-flux pixel-integrated Gaussian at window offsets (cx, cy), (N, W, W).
+
+    Both axes in one evaluation (the same values as :func:`profile_1d` along each).
+    """
+    n = cx.shape[0]
+    sc = _sigma_column(s, n)
+    if not isinstance(sc, float):
+        sc = np.concatenate([sc, sc])
+    t = (_edges(st.u)[None, :] - np.concatenate([cx, cy])[:, None]) / sc
+    e = _profiles(t)
+    return e[n:, :, None] * e[:n, None, :]
 
 
 def variance(st: Stamps, signal: F64) -> F64:
