@@ -72,7 +72,8 @@ def gather_stamps(
     cc = xc[:, None] + d
     inr = (rr >= 0) & (rr < rows)
     inc = (cc >= 0) & (cc < cols)
-    raw = image[np.clip(rr, 0, rows - 1)[:, :, None], np.clip(cc, 0, cols - 1)[:, None, :]].astype(np.float64)
+    raw = image[np.minimum(np.maximum(rr, 0), rows - 1)[:, :, None],
+                np.minimum(np.maximum(cc, 0), cols - 1)[:, None, :]].astype(np.float64)
     inside = inr[:, :, None] & inc[:, None, :]
     fin = np.isfinite(raw)
     sat = raw >= saturation
@@ -153,7 +154,7 @@ def model(st: Stamps, cx: F64, cy: F64, s: F64 | float) -> F64:
 
 def variance(st: Stamps, signal: F64) -> F64:
     """Per-pixel variance, DN^2: background noise^2 + star shot noise (signal in DN / gain)."""
-    return st.noise[:, None, None] ** 2 + np.clip(signal, 0.0, None) / st.gain
+    return st.noise[:, None, None] ** 2 + np.maximum(signal, 0.0) / st.gain
 
 
 def linear_flux(st: Stamps, m: F64, flux0: F64 | None = None, iterations: int = 2) -> tuple[F64, F64]:

@@ -224,7 +224,7 @@ def fit_gaussians(
         a_mat, g = prob.normal(prof, f, s, w, r)
         c0 = (w * r * r).sum(axis=(1, 2))
         step = _solve(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
-        step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
+        step[:, :2] = np.minimum(np.maximum(step[:, :2], -0.5), 0.5)
         if fit_sigma:
             step[:, -1] = np.clip(step[:, -1], -0.3 * s, 0.3 * s)
         ncx, ncy, nf = cx + step[:, 0], cy + step[:, 1], np.maximum(f + step[:, 2], 1e-6 * st.noise + 1e-12)

@@ -74,8 +74,8 @@ def weighted_centroid(
     # with winpos' doubled step (a Gaussian weight as wide as the PSF converges at rate 1/2)
     x_prev, y_prev = dx0.copy(), dy0.copy()
     gx_prev, gy_prev = tx - dx0, ty - dy0
-    cx = np.clip(dx0 + 2.0 * gx_prev, -st.h, st.h)
-    cy = np.clip(dy0 + 2.0 * gy_prev, -st.h, st.h)
+    cx = np.minimum(np.maximum(dx0 + 2.0 * gx_prev, -st.h), st.h)
+    cy = np.minimum(np.maximum(dy0 + 2.0 * gy_prev, -st.h), st.h)
     for _ in range(iterations):
         tx, ty, good = step(cx, cy)
         ok &= good
@@ -90,8 +90,8 @@ def weighted_centroid(
         fx = np.where(np.isfinite(fx) & (fx > 0.5) & (fx < 4.0), fx, 2.0)
         fy = np.where(np.isfinite(fy) & (fy > 0.5) & (fy < 4.0), fy, 2.0)
         x_prev, y_prev, gx_prev, gy_prev = cx, cy, gx, gy
-        cx = np.clip(cx + fx * gx, -st.h, st.h)
-        cy = np.clip(cy + fy * gy, -st.h, st.h)
+        cx = np.minimum(np.maximum(cx + fx * gx, -st.h), st.h)
+        cy = np.minimum(np.maximum(cy + fy * gy, -st.h), st.h)
     ok &= np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < st.h) & (np.abs(cy) < st.h)
     return cx, cy, ok
 

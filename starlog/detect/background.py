@@ -36,8 +36,8 @@ def _axis_weights(c: F64, n: int, mesh: int, extrapolate: bool) -> tuple[npt.NDA
         return zero, zero, np.ones(c.size), np.zeros(c.size)
     f = (c + 0.5) / mesh - 0.5
     if not extrapolate:
-        f = np.clip(f, 0.0, n - 1.0)
-    i0 = np.clip(np.floor(f).astype(np.intp), 0, n - 2)
+        f = np.minimum(np.maximum(f, 0.0), n - 1.0)
+    i0 = np.minimum(np.maximum(np.floor(f).astype(np.intp), 0), n - 2)
     t = f - i0
     return i0, i0 + 1, (1.0 - t).astype(np.float32).astype(np.float64), t.astype(np.float32).astype(np.float64)
 

@@ -314,7 +314,7 @@ def _edge_noise_factor(k1: npt.NDArray[np.float64], dist: npt.NDArray[np.intp]) 
     """
     fac = _edge_noise_table(k1.tobytes())
     r = fac.size - 1
-    return np.where(dist <= r, fac[np.clip(dist, 0, r)], 1.0)
+    return np.where(dist <= r, fac[np.minimum(np.maximum(dist, 0), r)], 1.0)
 
 
 @functools.lru_cache(maxsize=8)
