@@ -176,17 +176,18 @@ def linear_flux(st: Stamps, m: F64, flux0: F64 | None = None, iterations: int = 
 
 
 def fisher_sigma(st: Stamps, cx: F64, cy: F64, flux: F64, s: F64 | float) -> F64:
-    """Per-axis Cramer-Rao sigma (px) of a star with known flux, PSF and background."""
+    """Per-axis Cramer-Rao sigma (px) of a star with known flux, PSF and background.
+
+    The derivatives are separable (F ey (x) dex, F dey (x) ex), so each Fisher entry is a row
+    profile against the weights times a column profile: ``I_xx = F^2 sum_i ey_i^2 (w @ dex^2)_i``.
+    """
     ex, dex, _ = profile_1d(st.u, cx, s, deriv=True)
     ey, dey, _ = profile_1d(st.u, cy, s, deriv=True)
-    f = np.maximum(flux, 1e-12)[:, None, None]
-    m = ey[:, :, None] * ex[:, None, :]
-    w = st.valid / variance(st, f * m)
-    jx = f * ey[:, :, None] * dex[:, None, :]
-    jy = f * dey[:, :, None] * ex[:, None, :]
-    ixx = (w * jx * jx).sum(axis=(1, 2))
-    iyy = (w * jy * jy).sum(axis=(1, 2))
-    ixy = (w * jx * jy).sum(axis=(1, 2))
+    f = np.maximum(flux, 1e-12)
+    w = st.valid / variance(st, f[:, None, None] * (ey[:, :, None] * ex[:, None, :]))
+    wb = w @ np.stack([dex * dex, ex * ex, dex * ex], axis=2)  # (N, W, 3)
+    rows = np.stack([ey * ey, dey * dey, ey * dey], axis=1)  # (N, 3, W)
+    ixx, iyy, ixy = (np.einsum("nkw,nwk->kn", rows, wb) * (f * f)[None, :])
     det = ixx * iyy - ixy * ixy
     with np.errstate(all="ignore"):
         var = 0.5 * (ixx + iyy) / det
