@@ -278,7 +278,8 @@ def _candidates(peaks: Peaks, comp: Components, work: npt.NDArray[np.float32], f
     level = bg.level_at(px, py)
     noise = bg.noise_at(px, py)
     raw = gather(work, py, px, 2).astype(np.float64)
-    keep, flags, elong = screen(raw, gather(filtered, py, px, 3).astype(np.float64), level, noise, peaks.blended,
+    filtered7 = gather(filtered, py, px, 3).astype(np.float64)
+    keep, flags, elong = screen(raw, filtered7, level, noise, peaks.blended,
                                 saturation=saturation, sharpness_ratio=sharpness_ratio,
                                 max_elongation=max_elongation, elongation_flag=elongation_flag)
     # near the frame edge the reflected filter has more noise: apply the true noise there
@@ -287,7 +288,7 @@ def _candidates(peaks: Peaks, comp: Components, work: npt.NDArray[np.float32], f
     filtered_noise = noise * knorm * fx * fy
     keep &= peaks.fval > threshold * filtered_noise
     box = raw - level[:, None, None]
-    dx, dy = coarse_offsets(box, gather(filtered, py, px, 1).astype(np.float64) - level[:, None, None])
+    dx, dy = coarse_offsets(box, filtered7[:, 2:5, 2:5] - level[:, None, None])
     out = np.zeros(py.size, dtype=DETECTION_DTYPE)
     out["x"], out["y"] = px + dx, py + dy
     out["x_peak"], out["y_peak"] = px, py
