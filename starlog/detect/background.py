@@ -174,13 +174,16 @@ def _fit_planes(vals: npt.NDArray[np.float32], med: F64, sig: F64, iterations: i
     bx = np.zeros_like(med)
     by = np.zeros_like(med)
     cx2, cy2 = cx * cx, cy * cy
-    for _ in range(iterations):
-        plane = (med.astype(np.float32)[:, None] + bx.astype(np.float32)[:, None] * cx
-                 + by.astype(np.float32)[:, None] * cy)
-        resid = vals - plane
+    for iteration in range(iterations):
+        if iteration == 0:  # no slope yet: the plane is the level (adding the zero slopes changes no value)
+            resid = vals - med.astype(np.float32)[:, None]
+        else:
+            resid = vals - (med.astype(np.float32)[:, None] + bx.astype(np.float32)[:, None] * cx
+                            + by.astype(np.float32)[:, None] * cy)
         lim = (clip_sigma * np.maximum(sig, 1e-12)).astype(np.float32)[:, None]
-        keep = (np.abs(resid) <= lim).astype(np.float32)  # NaN compares False
-        v0 = np.where(keep > 0, resid, np.float32(0))
+        kept = np.abs(resid) <= lim  # NaN compares False
+        keep = kept.astype(np.float32)
+        v0 = np.where(kept, resid, np.float32(0))
         n = keep.sum(axis=1, dtype=np.float64)
         with np.errstate(all="ignore"):
             d0 = v0.sum(axis=1, dtype=np.float64) / n
