@@ -102,13 +102,13 @@ class _Problem:
         """Unit model (N, W, W)."""
         return p.e[self.n :, :, None] * p.e[: self.n, None, :]
 
-    def normal(self, p: _Profiles, f: F64, s: F64, w: F64, r: F64 | None = None) -> tuple[F64, F64 | None]:
-        """Normal matrix J^T W J (N, P, P) and, with residuals ``r``, the gradient J^T W r (N, P)."""
+    def normal(self, p: _Profiles, f: F64, s: F64, w: F64, wr: F64 | None = None) -> tuple[F64, F64 | None]:
+        """Normal matrix J^T W J (N, P, P) and, with the weighted residuals ``wr = w r``, the gradient J^T W r (N, P)."""
         if self.fit_sigma:
-            return self._normal_planes(self._jacobian(p, f, s), w, r)
-        return self._normal_separable(p, f, s, w, r)
+            return self._normal_planes(self._jacobian(p, f, s), w, wr)
+        return self._normal_separable(p, f, s, w, wr)
 
-    def _normal_separable(self, p: _Profiles, f: F64, s: F64, w: F64, r: F64 | None) -> tuple[F64, F64 | None]:
+    def _normal_separable(self, p: _Profiles, f: F64, s: F64, w: F64, wr: F64 | None) -> tuple[F64, F64 | None]:
         """:meth:`normal` when every derivative is a row profile times a column profile.
 
         d mu / d cx = F ey (x) dex, d mu / d cy = F dey (x) ex, d mu / d F = ey (x) ex, d mu / d B = 1,
@@ -130,10 +130,9 @@ class _Problem:
         a_mat = np.empty((n, npar, npar))
         a_mat[:, i, k] = upper
         a_mat[:, k, i] = upper
-        if r is None:
+        if wr is None:
             return a_mat, None
-        wr = (w * r) @ cols_  # (N, W, P)
-        return a_mat, np.einsum("npw,nwp->np", rows_, wr)
+        return a_mat, np.einsum("npw,nwp->np", rows_, wr @ cols_)  # wr @ cols_: (N, W, P)
 
     def _jacobian(self, p: _Profiles, f: F64, s: F64) -> F64:
         """The model's derivatives (N, P, W, W) in cx, cy, F[, B], s."""
@@ -147,14 +146,14 @@ class _Problem:
         j[:, -1] = f[:, None, None] * (dsy[:, :, None] * ex[:, None, :] + ey[:, :, None] * dsx[:, None, :])
         return j
 
-    def _normal_planes(self, j: F64, w: F64, r: F64 | None) -> tuple[F64, F64 | None]:
+    def _normal_planes(self, j: F64, w: F64, wr: F64 | None) -> tuple[F64, F64 | None]:
         n, npar = self.n, self.npar
         j2 = j.reshape(n, npar, -1)
         jw = j2 * w.reshape(n, 1, -1)
         a_mat = jw @ j2.transpose(0, 2, 1)
-        if r is None:
+        if wr is None:
             return a_mat, None
-        return a_mat, (jw @ r.reshape(n, -1, 1))[:, :, 0]
+        return a_mat, (j2 @ wr.reshape(n, -1, 1))[:, :, 0]
 
     def chi2(self, p: _Profiles, f: F64, b: F64, w: F64) -> F64:
         ex, ey = p.e[: self.n], p.e[self.n :]
@@ -221,8 +220,9 @@ def fit_gaussians(
         mu_star = f[:, None, None] * prob.model(prof)
         w = prob.weights(mu_star)
         r = st.data - b[:, None, None] - mu_star
-        a_mat, g = prob.normal(prof, f, s, w, r)
-        c0 = (w * r * r).sum(axis=(1, 2))
+        wr = w * r
+        a_mat, g = prob.normal(prof, f, s, w, wr)
+        c0 = (wr * r).sum(axis=(1, 2))
         step = _solve(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
         step[:, :2] = np.minimum(np.maximum(step[:, :2], -0.5), 0.5)
         if fit_sigma:
