@@ -175,3 +175,11 @@ def test_centre_of_weights_is_the_weighted_mean_offset():
     assert_array_equal(ok, np.arange(7) != 3)
     assert_allclose(cx[ok], (w[ok] * u[None, None, :]).sum(axis=(1, 2)) / w[ok].sum(axis=(1, 2)), rtol=1e-12)
     assert_allclose(cy[ok], (w[ok] * u[None, :, None]).sum(axis=(1, 2)) / w[ok].sum(axis=(1, 2)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 5), (4, 1), (3, 4), (16, 16)])
+def test_edge_padding_copies_the_outer_cells(shape):
+    from starlog.detect.background import _edge_padded
+
+    grid = np.random.default_rng(8).normal(size=shape).astype(np.float32)
+    assert_array_equal(_edge_padded(grid), np.pad(grid, 1, mode="edge"))
