@@ -13,6 +13,7 @@ from starlog.centroid._stamps import fisher_sigma, gather_stamps, model, profile
 from starlog.centroid.gaussfit import _Problem, _Profiles, fit_gaussians
 from starlog.centroid.moment import _centre_of_weights
 from starlog.detect import estimate_background
+from starlog.detect.background import _edge_padded
 from starlog.detect.components import find_components
 from starlog.detect.detection import _edge_noise_factor, matched_filter
 
@@ -179,7 +180,5 @@ def test_centre_of_weights_is_the_weighted_mean_offset():
 
 @pytest.mark.parametrize("shape", [(1, 1), (1, 5), (4, 1), (3, 4), (16, 16)])
 def test_edge_padding_copies_the_outer_cells(shape):
-    from starlog.detect.background import _edge_padded
-
     grid = np.random.default_rng(8).normal(size=shape).astype(np.float32)
     assert_array_equal(_edge_padded(grid), np.pad(grid, 1, mode="edge"))
