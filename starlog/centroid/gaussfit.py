@@ -27,6 +27,8 @@ __all__ = ["GaussFitResult", "fit_gaussians"]
 F64 = npt.NDArray[np.float64]
 _SQ2 = np.sqrt(2.0)
 _ISQ2PI = 1.0 / np.sqrt(2.0 * np.pi)
+_PAIRS = {npar: np.triu_indices(npar) for npar in (3, 4, 5)}
+"""(row, column) of the upper triangle of the normal matrix, per number of parameters."""
 
 
 @dataclass(frozen=True)
@@ -84,12 +86,12 @@ class _Problem:
     def __init__(self, st: Stamps, fit_background: bool, fit_sigma: bool) -> None:
         n, w, _ = st.data.shape
         self.st, self.n = st, n
-        self.edges = np.append(st.u - 0.5, st.u[-1] + 0.5)
+        self.edges = (st.u[0] - 0.5) + np.arange(w + 1, dtype=np.float64)  # the W + 1 pixel edges
         self.noise2 = st.noise[:, None, None] ** 2
         self.valid = st.valid.astype(np.float64)
         self.fit_background, self.fit_sigma = fit_background, fit_sigma
         self.npar = 3 + int(fit_background) + int(fit_sigma)
-        self.pairs = np.triu_indices(self.npar)
+        self.pairs = _PAIRS[self.npar]
         self.jac = np.empty((n, self.npar, w, w)) if fit_sigma else None
         if fit_sigma and fit_background:
             self.jac[:, 3] = 1.0
@@ -116,23 +118,25 @@ class _Problem:
         product per star instead of P (W, W) planes.
         """
         n, npar = self.n, self.npar
-        ex, ey = p.e[:n], p.e[n:]
         dc, _ = p.derivatives(s, False)
-        rows = [f[:, None] * ey, f[:, None] * dc[n:], ey]
-        cols = [dc[:n], ex, ex]
+        rows = np.empty((n, npar, p.e.shape[1]))  # per parameter: its row profile ...
+        cols = np.empty((n, p.e.shape[1], npar))  # ... and its column profile
+        np.multiply(f[:, None], p.e[n:], out=rows[:, 0])
+        np.multiply(f[:, None], dc[n:], out=rows[:, 1])
+        rows[:, 2] = p.e[n:]
+        cols[:, :, 0] = dc[:n]
+        cols[:, :, 1] = cols[:, :, 2] = p.e[:n]
         if self.fit_background:
-            rows.append(np.ones_like(ey))
-            cols.append(np.ones_like(ex))
-        rows_, cols_ = np.stack(rows, axis=1), np.stack(cols, axis=2)  # (N, P, W), (N, W, P)
+            rows[:, 3] = cols[:, :, 3] = 1.0
         i, k = self.pairs
-        wb = w @ (cols_[:, :, i] * cols_[:, :, k])  # (N, W, K)
-        upper = np.einsum("nkw,nwk->nk", rows_[:, i] * rows_[:, k], wb)
+        wb = w @ (cols[:, :, i] * cols[:, :, k])  # (N, W, K)
+        upper = np.einsum("nkw,nwk->nk", rows[:, i] * rows[:, k], wb)
         a_mat = np.empty((n, npar, npar))
         a_mat[:, i, k] = upper
         a_mat[:, k, i] = upper
         if wr is None:
             return a_mat, None
-        return a_mat, np.einsum("npw,nwp->np", rows_, wr @ cols_)  # wr @ cols_: (N, W, P)
+        return a_mat, np.einsum("npw,nwp->np", rows, wr @ cols)  # wr @ cols: (N, W, P)
 
     def _jacobian(self, p: _Profiles, f: F64, s: F64) -> F64:
         """The model's derivatives (N, P, W, W) in cx, cy, F[, B], s."""
