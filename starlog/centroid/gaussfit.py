@@ -18,15 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.special import erf
 
-from starlog.centroid._stamps import Stamps
+from starlog.centroid._stamps import _ISQ2PI, Stamps, _edges, _profiles
 
 __all__ = ["GaussFitResult", "fit_gaussians"]
 
 F64 = npt.NDArray[np.float64]
-_SQ2 = np.sqrt(2.0)
-_ISQ2PI = 1.0 / np.sqrt(2.0 * np.pi)
 _PAIRS = {npar: np.triu_indices(npar) for npar in (3, 4, 5)}
 """(row, column) of the upper triangle of the normal matrix, per number of parameters."""
 
@@ -60,8 +57,7 @@ class _Profiles:
     def at(cls, edges: F64, cx: F64, cy: F64, s: F64) -> "_Profiles":
         """Profiles at centres (cx, cy) and width s (the same values as :func:`profile_1d`)."""
         t = (edges[None, :] - np.concatenate([cx, cy])[:, None]) / np.concatenate([s, s])[:, None]
-        cdf = erf(t * (1.0 / _SQ2))
-        return cls(t, 0.5 * (cdf[:, 1:] - cdf[:, :-1]))
+        return cls(t, _profiles(t))
 
     def where(self, better: npt.NDArray[np.bool_], other: "_Profiles") -> "_Profiles":
         """Per star, these profiles where ``better``, else ``other``'s."""
@@ -86,7 +82,7 @@ class _Problem:
     def __init__(self, st: Stamps, fit_background: bool, fit_sigma: bool) -> None:
         n, w, _ = st.data.shape
         self.st, self.n = st, n
-        self.edges = (st.u[0] - 0.5) + np.arange(w + 1, dtype=np.float64)  # the W + 1 pixel edges
+        self.edges = _edges(st.u)
         self.noise2 = st.noise[:, None, None] ** 2
         self.valid = st.valid.astype(np.float64)
         self.fit_background, self.fit_sigma = fit_background, fit_sigma
