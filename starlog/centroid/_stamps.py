@@ -72,7 +72,8 @@ def gather_stamps(
     cc = xc[:, None] + d
     inr = (rr >= 0) & (rr < rows)
     inc = (cc >= 0) & (cc < cols)
-    raw = image[np.clip(rr, 0, rows - 1)[:, :, None], np.clip(cc, 0, cols - 1)[:, None, :]].astype(np.float64)
+    raw = image[np.minimum(np.maximum(rr, 0), rows - 1)[:, :, None],
+                np.minimum(np.maximum(cc, 0), cols - 1)[:, None, :]].astype(np.float64)
     inside = inr[:, :, None] & inc[:, None, :]
     fin = np.isfinite(raw)
     sat = raw >= saturation
@@ -103,16 +104,31 @@ def with_saturated(st: Stamps) -> Stamps:
     return replace(st, data=data, valid=st.valid | st.satpix)
 
 
+def _edges(u: F64) -> F64:
+    """The W + 1 pixel edges of consecutive integer offsets ``u``."""
+    return (u[0] - 0.5) + np.arange(u.size + 1, dtype=np.float64)
+
+
+def _sigma_column(s: F64 | float, n: int) -> F64 | float:
+    """``s`` as a per-row column (n, 1), or the scalar itself (the same quotients either way)."""
+    arr = np.asarray(s, np.float64)
+    return float(arr) if arr.ndim == 0 else np.broadcast_to(arr, (n,))[:, None]
+
+
+def _profiles(t: F64) -> F64:
+    """Pixel-integrated unit Gaussian of the pixel edges ``t`` in sigma units (rows, W + 1) -> (rows, W)."""
+    cdf = erf(t * (1.0 / _SQ2))
+    return 0.5 * (cdf[:, 1:] - cdf[:, :-1])
+
+
 def profile_1d(u: F64, c: F64, s: F64 | float, deriv: bool = False) -> tuple[F64, F64 | None, F64 | None]:
     """Pixel-integrated unit Gaussian along one axis, (N, W), and its c and s derivatives.
 
     ``u`` must be consecutive integers (pixel offsets); the W + 1 pixel edges are evaluated once.
     """
-    sc = np.broadcast_to(np.asarray(s, np.float64), c.shape)[:, None]
-    edges = np.append(u - 0.5, u[-1] + 0.5)
-    t = (edges[None, :] - c[:, None]) / sc  # (N, W + 1)
-    cdf = erf(t * (1.0 / _SQ2))
-    e = 0.5 * (cdf[:, 1:] - cdf[:, :-1])
+    sc = _sigma_column(s, c.shape[0])
+    t = (_edges(u)[None, :] - c[:, None]) / sc  # (N, W + 1)
+    e = _profiles(t)
     if not deriv:
         return e, None, None
     pdf = _ISQ2PI * np.exp(-0.5 * t * t)
@@ -123,15 +139,22 @@ def profile_1d(u: F64, c: F64, s: F64 | float, deriv: bool = False) -> tuple[F64
 
 
 def model(st: Stamps, cx: F64, cy: F64, s: F64 | float) -> F64:
-    """Unit-flux pixel-integrated Gaussian at window offsets (cx, cy), (N, W, W)."""
-    ex, _, _ = profile_1d(st.u, cx, s)
-    ey, _, _ = profile_1d(st.u, cy, s)
-    return ey[:, :, None] * ex[:, None, :]
+    """Unit-flux pixel-integrated Gaussian at window offsets (cx, cy), (N, W, W).
+
+    Both axes in one evaluation (the same values as :func:`profile_1d` along each).
+    """
+    n = cx.shape[0]
+    sc = _sigma_column(s, n)
+    if not isinstance(sc, float):
+        sc = np.concatenate([sc, sc])
+    t = (_edges(st.u)[None, :] - np.concatenate([cx, cy])[:, None]) / sc
+    e = _profiles(t)
+    return e[n:, :, None] * e[:n, None, :]
 
 
 def variance(st: Stamps, signal: F64) -> F64:
     """Per-pixel variance, DN^2: background noise^2 + star shot noise (signal in DN / gain)."""
-    return st.noise[:, None, None] ** 2 + np.clip(signal, 0.0, None) / st.gain
+    return st.noise[:, None, None] ** 2 + np.maximum(signal, 0.0) / st.gain
 
 
 def linear_flux(st: Stamps, m: F64, flux0: F64 | None = None, iterations: int = 2) -> tuple[F64, F64]:
@@ -153,17 +176,18 @@ def linear_flux(st: Stamps, m: F64, flux0: F64 | None = None, iterations: int = 
 
 
 def fisher_sigma(st: Stamps, cx: F64, cy: F64, flux: F64, s: F64 | float) -> F64:
-    """Per-axis Cramer-Rao sigma (px) of a star with known flux, PSF and background."""
+    """Per-axis Cramer-Rao sigma (px) of a star with known flux, PSF and background.
+
+    The derivatives are separable (F ey (x) dex, F dey (x) ex), so each Fisher entry is a row
+    profile against the weights times a column profile: ``I_xx = F^2 sum_i ey_i^2 (w @ dex^2)_i``.
+    """
     ex, dex, _ = profile_1d(st.u, cx, s, deriv=True)
     ey, dey, _ = profile_1d(st.u, cy, s, deriv=True)
-    f = np.maximum(flux, 1e-12)[:, None, None]
-    m = ey[:, :, None] * ex[:, None, :]
-    w = st.valid / variance(st, f * m)
-    jx = f * ey[:, :, None] * dex[:, None, :]
-    jy = f * dey[:, :, None] * ex[:, None, :]
-    ixx = (w * jx * jx).sum(axis=(1, 2))
-    iyy = (w * jy * jy).sum(axis=(1, 2))
-    ixy = (w * jx * jy).sum(axis=(1, 2))
+    f = np.maximum(flux, 1e-12)
+    w = st.valid / variance(st, f[:, None, None] * (ey[:, :, None] * ex[:, None, :]))
+    wb = w @ np.stack([dex * dex, ex * ex, dex * ex], axis=2)  # (N, W, 3)
+    rows = np.stack([ey * ey, dey * dey, ey * dey], axis=1)  # (N, 3, W)
+    ixx, iyy, ixy = (np.einsum("nkw,nwk->kn", rows, wb) * (f * f)[None, :])
     det = ixx * iyy - ixy * ixy
     with np.errstate(all="ignore"):
         var = 0.5 * (ixx + iyy) / det

@@ -263,8 +263,8 @@ def _with_fallback(m: _Measured, st: Stamps, dx0: F64, dy0: F64, f0: F64) -> _Me
 def _peak_near(st: Stamps, dx: F64, dy: F64) -> F64:
     """Highest background-subtracted pixel within one pixel of the centroid (a saturated one at its clipped level)."""
     n, h = dx.size, st.h
-    ix = np.clip(np.rint(dx).astype(np.intp) + h, 1, 2 * h - 1)
-    iy = np.clip(np.rint(dy).astype(np.intp) + h, 1, 2 * h - 1)
+    ix = np.minimum(np.maximum(np.rint(dx).astype(np.intp) + h, 1), 2 * h - 1)
+    iy = np.minimum(np.maximum(np.rint(dy).astype(np.intp) + h, 1), 2 * h - 1)
     ar = np.arange(n)[:, None]
     d3 = np.arange(-1, 2)
     sp = with_saturated(st)

@@ -19,11 +19,13 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid._stamps import Stamps, profile_1d, variance
+from starlog.centroid._stamps import _ISQ2PI, Stamps, _edges, _profiles
 
 __all__ = ["GaussFitResult", "fit_gaussians"]
 
 F64 = npt.NDArray[np.float64]
+_PAIRS = {npar: np.triu_indices(npar) for npar in (3, 4, 5)}
+"""(row, column) of the upper triangle of the normal matrix, per number of parameters."""
 
 
 @dataclass(frozen=True)
@@ -40,29 +42,123 @@ class GaussFitResult:
     ok: npt.NDArray[np.bool_]
 
 
-def _jacobian(st: Stamps, cx: F64, cy: F64, f: F64, s: F64, fit_background: bool,
-              fit_sigma: bool) -> tuple[F64, F64]:
-    """Unit model (N, W, W) and the model's derivatives (N, P, W, W) in cx, cy, F[, B][, s]."""
-    ex, dex, dsx = profile_1d(st.u, cx, s, deriv=True)
-    ey, dey, dsy = profile_1d(st.u, cy, s, deriv=True)
-    m = ey[:, :, None] * ex[:, None, :]
-    cols = [
-        f[:, None, None] * ey[:, :, None] * dex[:, None, :],
-        f[:, None, None] * dey[:, :, None] * ex[:, None, :],
-        m,
-    ]
-    if fit_background:
-        cols.append(np.ones_like(m))
-    if fit_sigma:
-        cols.append(f[:, None, None] * (dsy[:, :, None] * ex[:, None, :] + ey[:, :, None] * dsx[:, None, :]))
-    return m, np.stack(cols, axis=1)
+@dataclass
+class _Profiles:
+    """The 1-D pixel-integrated profiles of every star along x (rows 0..N-1) and y (rows N..2N-1).
+
+    ``t`` are the pixel edges in sigma units, ``e`` the profile (N2, W): kept from a trial
+    evaluation so that an accepted step does not evaluate the error function again.
+    """
+
+    t: F64
+    e: F64
+
+    @classmethod
+    def at(cls, edges: F64, cx: F64, cy: F64, s: F64) -> "_Profiles":
+        """Profiles at centres (cx, cy) and width s (the same values as :func:`profile_1d`)."""
+        t = (edges[None, :] - np.concatenate([cx, cy])[:, None]) / np.concatenate([s, s])[:, None]
+        return cls(t, _profiles(t))
+
+    def where(self, better: npt.NDArray[np.bool_], other: "_Profiles") -> "_Profiles":
+        """Per star, these profiles where ``better``, else ``other``'s."""
+        pick = np.concatenate([better, better])[:, None]
+        return _Profiles(np.where(pick, self.t, other.t), np.where(pick, self.e, other.e))
+
+    def derivatives(self, s: F64, fit_sigma: bool) -> tuple[F64, F64 | None]:
+        """d e / d centre and (``fit_sigma``) d e / d s, (N2, W)."""
+        sc = np.concatenate([s, s])[:, None]
+        pdf = _ISQ2PI * np.exp(-0.5 * self.t * self.t)
+        de_dc = -(pdf[:, 1:] - pdf[:, :-1]) / sc
+        if not fit_sigma:
+            return de_dc, None
+        tp = self.t * pdf
+        return de_dc, -(tp[:, 1:] - tp[:, :-1]) / sc
 
 
-def _chi2(st: Stamps, cx: F64, cy: F64, f: F64, b: F64, s: F64, w: F64) -> F64:
-    ex, _, _ = profile_1d(st.u, cx, s)
-    ey, _, _ = profile_1d(st.u, cy, s)
-    r = st.data - b[:, None, None] - f[:, None, None] * ey[:, :, None] * ex[:, None, :]
-    return (w * r * r).sum(axis=(1, 2))
+class _Problem:
+    """The fixed parts of one fit: stamps, noise, the parameters' pairs and (only when the PSF
+    width is fitted) the Jacobian's buffer (N, P, W, W)."""
+
+    def __init__(self, st: Stamps, fit_background: bool, fit_sigma: bool) -> None:
+        n, w, _ = st.data.shape
+        self.st, self.n = st, n
+        self.edges = _edges(st.u)
+        self.noise2 = st.noise[:, None, None] ** 2
+        self.valid = st.valid.astype(np.float64)
+        self.fit_background, self.fit_sigma = fit_background, fit_sigma
+        self.npar = 3 + int(fit_background) + int(fit_sigma)
+        self.pairs = _PAIRS[self.npar]
+        self.jac = np.empty((n, self.npar, w, w)) if fit_sigma else None
+        if fit_sigma and fit_background:
+            self.jac[:, 3] = 1.0
+
+    def weights(self, mu_star: F64) -> F64:
+        """Inverse model variance on valid pixels (noise^2 + star shot noise, as :func:`variance`)."""
+        return self.valid / (self.noise2 + np.maximum(mu_star, 0.0) / self.st.gain)
+
+    def model(self, p: _Profiles) -> F64:
+        """Unit model (N, W, W)."""
+        return p.e[self.n :, :, None] * p.e[: self.n, None, :]
+
+    def normal(self, p: _Profiles, f: F64, s: F64, w: F64, wr: F64 | None = None) -> tuple[F64, F64 | None]:
+        """Normal matrix J^T W J (N, P, P) and, with the weighted residuals ``wr = w r``, the gradient J^T W r (N, P)."""
+        if self.fit_sigma:
+            return self._normal_planes(self._jacobian(p, f, s), w, wr)
+        return self._normal_separable(p, f, s, w, wr)
+
+    def _normal_separable(self, p: _Profiles, f: F64, s: F64, w: F64, wr: F64 | None) -> tuple[F64, F64 | None]:
+        """:meth:`normal` when every derivative is a row profile times a column profile.
+
+        d mu / d cx = F ey (x) dex, d mu / d cy = F dey (x) ex, d mu / d F = ey (x) ex, d mu / d B = 1,
+        so ``sum_ij w_ij a_i b_j a'_i b'_j = sum_i a_i a'_i (w @ (b b'))_i``: one (W, W) x (W, K)
+        product per star instead of P (W, W) planes.
+        """
+        n, npar = self.n, self.npar
+        dc, _ = p.derivatives(s, False)
+        rows = np.empty((n, npar, p.e.shape[1]))  # per parameter: its row profile ...
+        cols = np.empty((n, p.e.shape[1], npar))  # ... and its column profile
+        np.multiply(f[:, None], p.e[n:], out=rows[:, 0])
+        np.multiply(f[:, None], dc[n:], out=rows[:, 1])
+        rows[:, 2] = p.e[n:]
+        cols[:, :, 0] = dc[:n]
+        cols[:, :, 1] = cols[:, :, 2] = p.e[:n]
+        if self.fit_background:
+            rows[:, 3] = cols[:, :, 3] = 1.0
+        i, k = self.pairs
+        wb = w @ (cols[:, :, i] * cols[:, :, k])  # (N, W, K)
+        upper = np.einsum("nkw,nwk->nk", rows[:, i] * rows[:, k], wb)
+        a_mat = np.empty((n, npar, npar))
+        a_mat[:, i, k] = upper
+        a_mat[:, k, i] = upper
+        if wr is None:
+            return a_mat, None
+        return a_mat, np.einsum("npw,nwp->np", rows, wr @ cols)  # wr @ cols: (N, W, P)
+
+    def _jacobian(self, p: _Profiles, f: F64, s: F64) -> F64:
+        """The model's derivatives (N, P, W, W) in cx, cy, F[, B], s."""
+        n, j = self.n, self.jac
+        ex, ey = p.e[:n], p.e[n:]
+        dc, ds = p.derivatives(s, True)
+        dex, dey, dsx, dsy = dc[:n], dc[n:], ds[:n], ds[n:]
+        np.multiply((f[:, None] * ey)[:, :, None], dex[:, None, :], out=j[:, 0])
+        np.multiply((f[:, None] * dey)[:, :, None], ex[:, None, :], out=j[:, 1])
+        np.multiply(ey[:, :, None], ex[:, None, :], out=j[:, 2])
+        j[:, -1] = f[:, None, None] * (dsy[:, :, None] * ex[:, None, :] + ey[:, :, None] * dsx[:, None, :])
+        return j
+
+    def _normal_planes(self, j: F64, w: F64, wr: F64 | None) -> tuple[F64, F64 | None]:
+        n, npar = self.n, self.npar
+        j2 = j.reshape(n, npar, -1)
+        jw = j2 * w.reshape(n, 1, -1)
+        a_mat = jw @ j2.transpose(0, 2, 1)
+        if wr is None:
+            return a_mat, None
+        return a_mat, (j2 @ wr.reshape(n, -1, 1))[:, :, 0]
+
+    def chi2(self, p: _Profiles, f: F64, b: F64, w: F64) -> F64:
+        ex, ey = p.e[: self.n], p.e[self.n :]
+        r = self.st.data - b[:, None, None] - f[:, None, None] * ey[:, :, None] * ex[:, None, :]
+        return (w * r * r).sum(axis=(1, 2))
 
 
 def _solve(damp: F64, g: F64, active: npt.NDArray[np.bool_]) -> F64:
@@ -79,15 +175,11 @@ def _solve(damp: F64, g: F64, active: npt.NDArray[np.bool_]) -> F64:
     return np.where(np.isfinite(step), step, 0.0)
 
 
-def _uncertainties(st: Stamps, cx: F64, cy: F64, f: F64, s: F64, fit_background: bool,
-                   fit_sigma: bool) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+def _uncertainties(prob: _Problem, p: _Profiles, f: F64, s: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Per-axis centroid sigma and flux error from the undamped normal matrix (Fisher
     information) at the solution, and where it could be inverted."""
-    n = cx.size
-    m, j = _jacobian(st, cx, cy, f, s, fit_background, fit_sigma)
-    w = st.valid / variance(st, f[:, None, None] * m)
-    jw = j * w[:, None]
-    a_mat = np.einsum("npij,nqij->npq", jw, j)
+    n = f.size
+    a_mat, _ = prob.normal(p, f, s, prob.weights(f[:, None, None] * prob.model(p)))
     npar = a_mat.shape[1]
     cov = np.full((n, npar, npar), np.nan)
     det = np.linalg.det(a_mat)
@@ -115,40 +207,41 @@ def fit_gaussians(
 ) -> GaussFitResult:
     """Fit all stamps at once (see module docstring); ``psf_sigma`` is the start/fixed value."""
     n = st.data.shape[0]
+    prob = _Problem(st, fit_background, fit_sigma)
     cx, cy = dx0.astype(np.float64).copy(), dy0.astype(np.float64).copy()
     f = np.maximum(flux0.astype(np.float64), 1.0 * st.noise)
     b = np.zeros(n)
     s = np.broadcast_to(np.asarray(psf_sigma, np.float64), (n,)).copy()
-    npar = 3 + int(fit_background) + int(fit_sigma)
     lam = np.full(n, 1e-3)
     active = np.ones(n, bool)
-    eye = np.eye(npar)[None]
+    eye = np.eye(prob.npar)[None]
+    prof = _Profiles.at(prob.edges, cx, cy, s)
     for _ in range(iterations):
-        m, j = _jacobian(st, cx, cy, f, s, fit_background, fit_sigma)
-        mu_star = f[:, None, None] * m
-        w = st.valid / variance(st, mu_star)
+        mu_star = f[:, None, None] * prob.model(prof)
+        w = prob.weights(mu_star)
         r = st.data - b[:, None, None] - mu_star
-        jw = j * w[:, None]
-        a_mat = np.einsum("npij,nqij->npq", jw, j)
-        g = np.einsum("npij,nij->np", jw, r)
-        c0 = (w * r * r).sum(axis=(1, 2))
+        wr = w * r
+        a_mat, g = prob.normal(prof, f, s, w, wr)
+        c0 = (wr * r).sum(axis=(1, 2))
         step = _solve(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
-        step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
+        step[:, :2] = np.minimum(np.maximum(step[:, :2], -0.5), 0.5)
         if fit_sigma:
             step[:, -1] = np.clip(step[:, -1], -0.3 * s, 0.3 * s)
         ncx, ncy, nf = cx + step[:, 0], cy + step[:, 1], np.maximum(f + step[:, 2], 1e-6 * st.noise + 1e-12)
         nb = b + step[:, 3] if fit_background else b
         ns = np.clip(s + step[:, -1], 0.2, 20.0) if fit_sigma else s
-        better = (_chi2(st, ncx, ncy, nf, nb, ns, w) <= c0 * (1 + 1e-9)) & active
+        trial = _Profiles.at(prob.edges, ncx, ncy, ns)
+        better = (prob.chi2(trial, nf, nb, w) <= c0 * (1 + 1e-9)) & active
         cx = np.where(better, ncx, cx)
         cy = np.where(better, ncy, cy)
         f = np.where(better, nf, f)
         b = np.where(better, nb, b)
         s = np.where(better, ns, s)
+        prof = trial.where(better, prof)
         lam = np.where(better, np.maximum(lam * 0.3, 1e-7), lam * 10.0)
         if np.all((np.abs(step[:, 0]) < tol) & (np.abs(step[:, 1]) < tol) | ~active):
             break
     h = st.h
-    sig, ferr, good_var = _uncertainties(st, cx, cy, f, s, fit_background, fit_sigma)
+    sig, ferr, good_var = _uncertainties(prob, prof, f, s)
     ok = active & np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < h - 0.5) & (np.abs(cy) < h - 0.5) & (f > 0)
     return GaussFitResult(cx, cy, f, ferr, b, s, sig, ok & good_var)

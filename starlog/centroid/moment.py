@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid._stamps import Stamps, model, smooth, variance
+from starlog.centroid._stamps import Stamps, model, smooth
 
 __all__ = ["squared_centroid", "weighted_centroid"]
 
@@ -33,11 +33,12 @@ F64 = npt.NDArray[np.float64]
 
 def _centre_of_weights(w: F64, u: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Centre ``(x, y)`` of stamps of non-negative weights ``w`` (n, k, k) on offsets ``u`` (k,); ok = any weight."""
-    s0 = w.sum(axis=(1, 2))
+    columns, rows = w.sum(axis=1), w.sum(axis=2)  # (n, k) marginals: one pass each over the stamps
+    s0 = columns.sum(axis=1)
     ok = s0 > 0
     s0 = np.where(ok, s0, 1.0)
-    cx = (w.sum(axis=1) * u[None, :]).sum(axis=1) / s0
-    cy = (w.sum(axis=2) * u[None, :]).sum(axis=1) / s0
+    cx = (columns * u[None, :]).sum(axis=1) / s0
+    cy = (rows * u[None, :]).sum(axis=1) / s0
     return cx, cy, ok
 
 
@@ -55,16 +56,19 @@ def weighted_centroid(
 ) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Iteratively re-weighted centre of gravity of each window (see module docstring)."""
     u = st.u
+    valid = st.valid.astype(np.float64)
+    noise2 = st.noise[:, None, None] ** 2
+    star_flux = np.maximum(flux, 0)[:, None, None]
 
     def step(cx: F64, cy: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
         """One centre-of-gravity evaluation with the weights centred on (cx, cy)."""
         if weighting == "none":
-            w = st.valid.astype(np.float64)
+            w = valid
         else:
             m = model(st, cx, cy, psf_sigma)
-            w = st.valid * m
-            if weighting == "optimal":
-                w = w / variance(st, np.maximum(flux, 0)[:, None, None] * m)
+            w = valid * m
+            if weighting == "optimal":  # the pixel variance of :func:`starlog.centroid._stamps.variance`
+                w = w / (noise2 + np.maximum(star_flux * m, 0.0) / st.gain)
         return _centre_of_weights(w * data, u)
 
     tx, ty, ok = step(dx0, dy0)
@@ -74,8 +78,8 @@ def weighted_centroid(
     # with winpos' doubled step (a Gaussian weight as wide as the PSF converges at rate 1/2)
     x_prev, y_prev = dx0.copy(), dy0.copy()
     gx_prev, gy_prev = tx - dx0, ty - dy0
-    cx = np.clip(dx0 + 2.0 * gx_prev, -st.h, st.h)
-    cy = np.clip(dy0 + 2.0 * gy_prev, -st.h, st.h)
+    cx = np.minimum(np.maximum(dx0 + 2.0 * gx_prev, -st.h), st.h)
+    cy = np.minimum(np.maximum(dy0 + 2.0 * gy_prev, -st.h), st.h)
     for _ in range(iterations):
         tx, ty, good = step(cx, cy)
         ok &= good
@@ -90,8 +94,8 @@ def weighted_centroid(
         fx = np.where(np.isfinite(fx) & (fx > 0.5) & (fx < 4.0), fx, 2.0)
         fy = np.where(np.isfinite(fy) & (fy > 0.5) & (fy < 4.0), fy, 2.0)
         x_prev, y_prev, gx_prev, gy_prev = cx, cy, gx, gy
-        cx = np.clip(cx + fx * gx, -st.h, st.h)
-        cy = np.clip(cy + fy * gy, -st.h, st.h)
+        cx = np.minimum(np.maximum(cx + fx * gx, -st.h), st.h)
+        cy = np.minimum(np.maximum(cy + fy * gy, -st.h), st.h)
     ok &= np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < st.h) & (np.abs(cy) < st.h)
     return cx, cy, ok
 

@@ -28,21 +28,23 @@ __all__ = ["Background", "estimate_background"]
 F64 = npt.NDArray[np.float64]
 
 
-def _interp_weights(c: npt.NDArray[np.float64], n: int, mesh: int, extrapolate: bool) -> npt.NDArray[np.float32]:
-    """(len(c), n) linear interpolation weights from cell centres to coordinates ``c``."""
-    w = np.zeros((c.size, n), np.float32)
+def _axis_weights(c: F64, n: int, mesh: int, extrapolate: bool) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], F64, F64]:
+    """Linear interpolation from cell centres to coordinates ``c`` along one axis: the two cells
+    and their weights (float32 values, as the map's), per coordinate."""
     if n == 1:
-        w[:, 0] = 1.0
-        return w
+        zero = np.zeros(c.size, np.intp)
+        return zero, zero, np.ones(c.size), np.zeros(c.size)
     f = (c + 0.5) / mesh - 0.5
     if not extrapolate:
-        f = np.clip(f, 0.0, n - 1.0)
-    i0 = np.clip(np.floor(f).astype(np.intp), 0, n - 2)
+        f = np.minimum(np.maximum(f, 0.0), n - 1.0)
+    i0 = np.minimum(np.maximum(np.floor(f).astype(np.intp), 0), n - 2)
     t = f - i0
-    r = np.arange(c.size)
-    w[r, i0] = 1.0 - t
-    w[r, i0 + 1] = t
-    return w
+    return i0, i0 + 1, (1.0 - t).astype(np.float32).astype(np.float64), t.astype(np.float32).astype(np.float64)
+
+
+def _edge_padded(grid: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    """The grid with a ring of copies of its outer cells (``np.pad(grid, 1, mode="edge")``, without its overhead)."""
+    return cv2.copyMakeBorder(np.ascontiguousarray(grid, np.float32), 1, 1, 1, 1, cv2.BORDER_REPLICATE)
 
 
 @dataclass(frozen=True)
@@ -69,11 +71,6 @@ class Background:
     global_level: float
     global_noise: float
 
-    def _weights(self, coords: npt.ArrayLike, n: int, extrapolate: bool = True) -> npt.NDArray[np.float32]:
-        """Linear interpolation matrix; past the outer cell centres linear extrapolation, or
-        the outer value (``extrapolate=False``)."""
-        return _interp_weights(np.asarray(coords, np.float64).ravel(), n, self.mesh, extrapolate)
-
     def map(
         self,
         grid: npt.NDArray[np.float32],
@@ -94,9 +91,9 @@ class Background:
                 g = np.vstack([2 * g[:1] - g[1:2], g, 2 * g[-1:] - g[-2:-1]])
                 g = np.hstack([2 * g[:, :1] - g[:, 1:2], g, 2 * g[:, -1:] - g[:, -2:-1]])
             else:
-                g = np.pad(g, 1, mode="edge")
+                g = _edge_padded(g)
             if plus is not None:
-                g = g + np.pad(np.asarray(plus, np.float32), 1, mode="edge")
+                g = g + _edge_padded(np.asarray(plus, np.float32))
             pad = self.mesh
         else:
             if plus is not None:
@@ -117,12 +114,17 @@ class Background:
 
     def _interp(self, grid: npt.NDArray[np.float32], x: npt.ArrayLike, y: npt.ArrayLike,
                 extrapolate: bool) -> npt.NDArray[np.float64]:
+        """Bilinear value of a cell grid at pixel positions: past the outer cell centres linear
+        extrapolation, or the outer value (``extrapolate=False``)."""
         xs = np.asarray(x, np.float64)
         ys = np.asarray(y, np.float64)
-        ny, nx = grid.shape
-        wy = self._weights(ys, ny, extrapolate).astype(np.float64)
-        wx = self._weights(xs, nx, extrapolate).astype(np.float64)
-        return np.einsum("ki,ij,kj->k", wy, grid.astype(np.float64), wx).reshape(np.broadcast(xs, ys).shape)
+        shape = np.broadcast(xs, ys).shape
+        xs, ys = np.broadcast_to(xs, shape).ravel(), np.broadcast_to(ys, shape).ravel()
+        g = grid.astype(np.float64)
+        y0, y1, a0, a1 = _axis_weights(ys, grid.shape[0], self.mesh, extrapolate)
+        x0, x1, b0, b1 = _axis_weights(xs, grid.shape[1], self.mesh, extrapolate)
+        value = ((a0 * g[y0, x0]) * b0 + (a0 * g[y0, x1]) * b1) + (a1 * g[y1, x0]) * b0 + (a1 * g[y1, x1]) * b1
+        return value.reshape(shape)
 
     def level_at(self, x: npt.ArrayLike, y: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Background level at pixel positions (x = column, y = row), DN."""
@@ -177,13 +179,16 @@ def _fit_planes(vals: npt.NDArray[np.float32], med: F64, sig: F64, iterations: i
     bx = np.zeros_like(med)
     by = np.zeros_like(med)
     cx2, cy2 = cx * cx, cy * cy
-    for _ in range(iterations):
-        plane = (med.astype(np.float32)[:, None] + bx.astype(np.float32)[:, None] * cx
-                 + by.astype(np.float32)[:, None] * cy)
-        resid = vals - plane
+    for iteration in range(iterations):
+        if iteration == 0:  # no slope yet: the plane is the level (adding the zero slopes changes no value)
+            resid = vals - med.astype(np.float32)[:, None]
+        else:
+            resid = vals - (med.astype(np.float32)[:, None] + bx.astype(np.float32)[:, None] * cx
+                            + by.astype(np.float32)[:, None] * cy)
         lim = (clip_sigma * np.maximum(sig, 1e-12)).astype(np.float32)[:, None]
-        keep = (np.abs(resid) <= lim).astype(np.float32)  # NaN compares False
-        v0 = np.where(keep > 0, resid, np.float32(0))
+        kept = np.abs(resid) <= lim  # NaN compares False
+        keep = kept.astype(np.float32)
+        v0 = np.where(kept, resid, np.float32(0))
         n = keep.sum(axis=1, dtype=np.float64)
         with np.errstate(all="ignore"):
             d0 = v0.sum(axis=1, dtype=np.float64) / n

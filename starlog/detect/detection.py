@@ -25,6 +25,7 @@ Coordinates: x = column, y = row, 0-based, (0, 0) at the centre of the top-left 
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import Any
 
@@ -277,7 +278,8 @@ def _candidates(peaks: Peaks, comp: Components, work: npt.NDArray[np.float32], f
     level = bg.level_at(px, py)
     noise = bg.noise_at(px, py)
     raw = gather(work, py, px, 2).astype(np.float64)
-    keep, flags, elong = screen(raw, gather(filtered, py, px, 3).astype(np.float64), level, noise, peaks.blended,
+    filtered7 = gather(filtered, py, px, 3).astype(np.float64)
+    keep, flags, elong = screen(raw, filtered7, level, noise, peaks.blended,
                                 saturation=saturation, sharpness_ratio=sharpness_ratio,
                                 max_elongation=max_elongation, elongation_flag=elongation_flag)
     # near the frame edge the reflected filter has more noise: apply the true noise there
@@ -286,7 +288,7 @@ def _candidates(peaks: Peaks, comp: Components, work: npt.NDArray[np.float32], f
     filtered_noise = noise * knorm * fx * fy
     keep &= peaks.fval > threshold * filtered_noise
     box = raw - level[:, None, None]
-    dx, dy = coarse_offsets(box, gather(filtered, py, px, 1).astype(np.float64) - level[:, None, None])
+    dx, dy = coarse_offsets(box, filtered7[:, 2:5, 2:5] - level[:, None, None])
     out = np.zeros(py.size, dtype=DETECTION_DTYPE)
     out["x"], out["y"] = px + dx, py + dy
     out["x_peak"], out["y_peak"] = px, py
@@ -311,6 +313,15 @@ def _edge_noise_factor(k1: npt.NDArray[np.float64], dist: npt.NDArray[np.intp]) 
     Reflection folds the kernel onto the frame, so near an edge the same pixels are counted
     twice and the filtered noise is larger than ``noise * sum(k1^2)`` along that axis.
     """
+    fac = _edge_noise_table(k1.tobytes())
+    r = fac.size - 1
+    return np.where(dist <= r, fac[np.minimum(np.maximum(dist, 0), r)], 1.0)
+
+
+@functools.lru_cache(maxsize=8)
+def _edge_noise_table(kernel: bytes) -> npt.NDArray[np.float64]:
+    """:func:`_edge_noise_factor` at 0..r px from the edge for the 1-D kernel (float64 bytes); one per filter."""
+    k1 = np.frombuffer(kernel, np.float64)
     r = k1.size // 2
     base = np.sqrt(np.sum(k1**2))
     fac = np.ones(r + 1)
@@ -320,4 +331,5 @@ def _edge_noise_factor(k1: npt.NDArray[np.float64], dist: npt.NDArray[np.intp]) 
             i = d + j
             w[i if i >= 0 else -i - 1] += k1[j + r]
         fac[d] = np.sqrt(np.sum(w**2)) / base
-    return np.where(dist <= r, fac[np.clip(dist, 0, r)], 1.0)
+    fac.setflags(write=False)
+    return fac

@@ -39,7 +39,7 @@ def coarse_offsets(box: F64, filtered: F64) -> tuple[F64, F64]:
     ``filtered``: (n, 3, 3) background-subtracted filtered windows, same centre.
     """
     d5 = np.arange(-2, 3, dtype=np.float64)
-    pb = np.clip(box, 0, None)
+    pb = np.maximum(box, 0)
     w0 = pb.sum(axis=(1, 2))
     w0s = np.where(w0 > 0, w0, 1.0)
     mx = np.where(w0 > 0, (pb * d5[None, None, :]).sum(axis=(1, 2)) / w0s, 0.0)

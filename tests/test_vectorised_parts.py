@@ -1,0 +1,184 @@
+"""The fast forms of detection and centroid steps against their plain, direct definitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose, assert_array_equal
+
+import starlog.detect.components as components
+from starlog.centroid._stamps import fisher_sigma, gather_stamps, model, profile_1d
+from starlog.centroid.gaussfit import _Problem, _Profiles, fit_gaussians
+from starlog.centroid.moment import _centre_of_weights
+from starlog.detect import estimate_background
+from starlog.detect.background import _edge_padded
+from starlog.detect.components import find_components
+from starlog.detect.detection import _edge_noise_factor, matched_filter
+
+
+def _random_mask(seed: int, shape: tuple[int, int], fill: float) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    mask = (rng.random(shape) < fill).astype(np.uint8)
+    mask[rng.random(shape) < 0.02] = 255  # any non-zero value is foreground
+    return mask
+
+
+def _components_tuple(comp: components.Components) -> tuple[np.ndarray, ...]:
+    return (comp.y, comp.x, comp.label, comp.start, comp.area, comp.x_min, comp.x_max, comp.y_min, comp.y_max)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), fill=st.floats(0.05, 0.6), rows=st.integers(1, 40), cols=st.integers(1, 40))
+def test_overlapping_boxes_as_crops_match_the_pixel_graph(seed, fill, rows, cols):
+    mask = _random_mask(seed, (rows, cols), fill)
+    by_crops = find_components(mask)
+    saved = components._CROPS_UP_TO
+    components._CROPS_UP_TO = -1  # every overlapping box through the one sparse graph
+    try:
+        by_graph = find_components(mask)
+    finally:
+        components._CROPS_UP_TO = saved
+    for a, b in zip(_components_tuple(by_crops), _components_tuple(by_graph)):
+        assert_array_equal(a, b)
+
+
+def _bilinear_reference(grid: np.ndarray, mesh: int, x: float, y: float, extrapolate: bool) -> float:
+    """Bilinear value between cell centres, written out point by point."""
+    def axis(c: float, n: int) -> tuple[int, float]:
+        if n == 1:
+            return 0, 0.0
+        f = (c + 0.5) / mesh - 0.5
+        if not extrapolate:
+            f = min(max(f, 0.0), n - 1.0)
+        i0 = int(min(max(np.floor(f), 0), n - 2))
+        return i0, f - i0
+
+    (iy, ty), (ix, tx) = axis(y, grid.shape[0]), axis(x, grid.shape[1])
+    g = grid.astype(np.float64)
+    at = lambda i, j: g[min(i, grid.shape[0] - 1), min(j, grid.shape[1] - 1)]  # noqa: E731
+    return ((1 - ty) * (1 - tx) * at(iy, ix) + (1 - ty) * tx * at(iy, ix + 1)
+            + ty * (1 - tx) * at(iy + 1, ix) + ty * tx * at(iy + 1, ix + 1))
+
+
+@pytest.mark.parametrize("shape", [(256, 192), (64, 300), (40, 40)])
+def test_background_values_at_points_are_the_bilinear_maps(shape):
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    image = (200 + 0.3 * xx - 0.2 * yy + 50 * np.sin(xx / 40.0) + rng.normal(0, 5, shape)).astype(np.float32)
+    bg = estimate_background(image, mesh=32)
+    x = np.concatenate([rng.uniform(-3, shape[1] + 3, 200), [0.0, shape[1] - 1.0]])
+    y = np.concatenate([rng.uniform(-3, shape[0] + 3, 200), [shape[0] - 1.0, 0.0]])
+    for grid, got, extrapolate in ((bg.mesh_level, bg.level_at(x, y), True), (bg.mesh_noise, bg.noise_at(x, y), False)):
+        want = [_bilinear_reference(grid, bg.mesh, a, b, extrapolate) for a, b in zip(x, y)]
+        assert_allclose(got, want, rtol=1e-6)  # the weights are float32, as the maps'
+    # on the pixel grid they are the full-resolution maps
+    iy, ix = rng.integers(0, shape[0], 50), rng.integers(0, shape[1], 50)
+    assert_allclose(bg.level_at(ix, iy), bg.level[iy, ix], rtol=1e-5)
+    assert_allclose(bg.noise_at(ix, iy), bg.noise[iy, ix], rtol=1e-5)
+    assert bg.level_at(np.float64(10.0), np.float64(12.0)).shape == ()
+
+
+def _edge_noise_direct(k1: np.ndarray, dist: int) -> float:
+    """Filtered-noise factor at ``dist`` px from a reflected edge, by filtering white noise's covariance."""
+    r = k1.size // 2
+    w = np.zeros(dist + r + 1)
+    for j in range(-r, r + 1):
+        i = dist + j
+        w[i if i >= 0 else -i - 1] += k1[j + r]
+    return float(np.sqrt(np.sum(w**2) / np.sum(k1**2))) if dist <= r else 1.0
+
+
+@pytest.mark.parametrize("sigma", [0.8, 1.5, 2.6])
+def test_edge_noise_factor_from_the_cached_table(sigma):
+    _, k1 = matched_filter(np.zeros((16, 16), np.float32), sigma)
+    dist = np.arange(0, 12)
+    got = _edge_noise_factor(k1, dist)
+    assert_allclose(got, [_edge_noise_direct(k1, int(d)) for d in dist], rtol=1e-12)
+    assert got[0] > got[1] > 1.0 and got[-1] == 1.0
+
+
+def _stamps(seed: int, n: int = 12, h: int = 5):
+    rng = np.random.default_rng(seed)
+    image = rng.normal(100.0, 3.0, (80, 80))
+    x, y = rng.uniform(8, 72, n), rng.uniform(8, 72, n)
+    yy, xx = np.mgrid[:80, :80]
+    for xi, yi, f in zip(x, y, rng.uniform(200, 5000, n)):
+        image += f / (2 * np.pi * 1.3**2) * np.exp(-((xx - xi) ** 2 + (yy - yi) ** 2) / (2 * 1.3**2))
+    image[rng.integers(0, 80, 30), rng.integers(0, 80, 30)] = np.nan  # invalid pixels in some windows
+    st_ = gather_stamps(image, x, y, h, np.full(n, 100.0), np.full(n, 3.0), 2.0, np.inf)
+    return st_, x - st_.xc, y - st_.yc, rng
+
+
+def test_model_is_the_product_of_the_axis_profiles():
+    st_, dx, dy, _ = _stamps(1)
+    for s in (1.3, np.linspace(0.8, 2.0, dx.size)):
+        ex, _, _ = profile_1d(st_.u, dx, s)
+        ey, _, _ = profile_1d(st_.u, dy, s)
+        assert_array_equal(model(st_, dx, dy, s), ey[:, :, None] * ex[:, None, :])
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_fisher_sigma_matches_the_dense_information_matrix(seed):
+    st_, dx, dy, rng = _stamps(seed)
+    flux, s = rng.uniform(100, 3000, dx.size), 1.3
+    ex, dex, _ = profile_1d(st_.u, dx, s, deriv=True)
+    ey, dey, _ = profile_1d(st_.u, dy, s, deriv=True)
+    f = flux[:, None, None]
+    w = st_.valid / (st_.noise[:, None, None] ** 2 + f * ey[:, :, None] * ex[:, None, :] / st_.gain)
+    jx, jy = f * ey[:, :, None] * dex[:, None, :], f * dey[:, :, None] * ex[:, None, :]
+    ixx, iyy, ixy = ((w * a * b).sum(axis=(1, 2)) for a, b in ((jx, jx), (jy, jy), (jx, jy)))
+    want = np.sqrt(0.5 * (ixx + iyy) / (ixx * iyy - ixy**2))
+    assert_allclose(fisher_sigma(st_, dx, dy, flux, s), want, rtol=1e-10)
+
+
+@pytest.mark.parametrize("fit_background", [True, False])
+def test_separable_normal_equations_match_the_jacobian_planes(fit_background):
+    st_, dx, dy, rng = _stamps(4)
+    n = dx.size
+    f, s = rng.uniform(100, 3000, n), np.full(n, 1.3)
+    prob = _Problem(st_, fit_background, False)
+    prof = _Profiles.at(prob.edges, dx, dy, s)
+    w = prob.weights(f[:, None, None] * prob.model(prof))
+    r = rng.normal(0, 3, st_.data.shape)
+    a_mat, g = prob.normal(prof, f, s, w, w * r)
+    ex, dex, _ = profile_1d(st_.u, dx, s, deriv=True)
+    ey, dey, _ = profile_1d(st_.u, dy, s, deriv=True)
+    planes = [f[:, None, None] * ey[:, :, None] * dex[:, None, :], f[:, None, None] * dey[:, :, None] * ex[:, None, :],
+              ey[:, :, None] * ex[:, None, :]]
+    if fit_background:
+        planes.append(np.ones_like(planes[0]))
+    j = np.stack(planes, axis=1)
+    assert_allclose(a_mat, np.einsum("npij,nqij,nij->npq", j, j, w), rtol=1e-10, atol=1e-12)
+    assert_allclose(g, np.einsum("npij,nij->np", j, w * r), rtol=1e-10, atol=1e-10)
+
+
+def test_gaussfit_with_and_without_the_psf_width_agree_on_a_known_width():
+    st_, dx, dy, rng = _stamps(5)
+    flux0 = np.full(dx.size, 1000.0)
+    fixed = fit_gaussians(st_, dx, dy, flux0, 1.3)
+    free = fit_gaussians(st_, dx, dy, flux0, 1.3, fit_sigma=True)
+    good = fixed.ok & free.ok
+    assert good.sum() >= dx.size - 2
+    # the image's Gaussian is sampled at pixel centres: the pixel-integrated width is a little less
+    assert abs(np.median(free.psf_sigma[good]) - np.sqrt(1.3**2 - 1 / 12)) < 0.05
+    assert np.median(np.abs(free.dx[good] - fixed.dx[good])) < 0.02
+    assert np.median(np.abs(free.dy[good] - fixed.dy[good])) < 0.02
+
+
+def test_centre_of_weights_is_the_weighted_mean_offset():
+    rng = np.random.default_rng(6)
+    w = rng.random((7, 9, 9))
+    w[3] = 0.0
+    u = np.arange(-4, 5, dtype=np.float64)
+    cx, cy, ok = _centre_of_weights(w, u)
+    assert_array_equal(ok, np.arange(7) != 3)
+    assert_allclose(cx[ok], (w[ok] * u[None, None, :]).sum(axis=(1, 2)) / w[ok].sum(axis=(1, 2)), rtol=1e-12)
+    assert_allclose(cy[ok], (w[ok] * u[None, :, None]).sum(axis=(1, 2)) / w[ok].sum(axis=(1, 2)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 5), (4, 1), (3, 4), (16, 16)])
+def test_edge_padding_copies_the_outer_cells(shape):
+    grid = np.random.default_rng(8).normal(size=shape).astype(np.float32)
+    assert_array_equal(_edge_padded(grid), np.pad(grid, 1, mode="edge"))
