@@ -63,6 +63,10 @@ unchanged in all but ~0.3 % of logs); the two axes get separate amplitudes only 
 as much."""
 DISTINCT_CELL = 0.5
 """Positions (px) closer than about this, in any frames, are one star at one phase."""
+DUPLICATE_SIGMAS = 5.0
+DUPLICATE_MIN_PX = 0.1
+"""Positions closer than ``DUPLICATE_SIGMAS`` standard errors (at least ``DUPLICATE_MIN_PX``) are one star
+seen again, at one phase, however its noise scattered it (:func:`distinct_samples`)."""
 _EXCLUDED = int(CentroidFlag.SATURATED | CentroidFlag.BORDER | CentroidFlag.FIT_FAILED)
 
 
@@ -165,16 +169,38 @@ def phase_samples(centroids: npt.NDArray[np.void], *, min_snr: float = MIN_SNR) 
 
 
 def distinct_samples(x: F64, y: F64, sigma: F64, *, cell: float = DISTINCT_CELL) -> tuple[F64, F64, F64]:
-    """One sample per star position: of the samples (pooled over frames, in frame order) falling in
-    the same ``cell`` x ``cell`` px square, the first. A static star seen in every frame counts
-    once; a star drifting over the sensor counts once per cell it crosses (distinct phases). The
-    first, not the most precise: a centroid's precision depends on its phase."""
+    """One sample per star position, in frame order (samples pooled over frames): the first in each
+    ``cell`` x ``cell`` px square, less those within the noise of an earlier kept one (closer than
+    :data:`DUPLICATE_SIGMAS` times their ``sigma``, at least :data:`DUPLICATE_MIN_PX`, at most ``cell``).
+
+    A static star seen in every frame counts once, even when its noise scatters it over a square's
+    edge (counted per square, such stars, at phases 0 and 1/2, would count two to four times:
+    the amplitude overestimated and its standard error underestimated). A star drifting over the
+    sensor counts once per square it crosses (distinct phases). The first, not the most precise: a
+    centroid's precision depends on its phase.
+    """
     if x.size == 0:
         return x, y, sigma
     keys = np.column_stack([np.floor(x / cell), np.floor(y / cell)]).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
-    pick = np.sort(first)
+    first = np.sort(first)
+    radius = np.clip(DUPLICATE_SIGMAS * sigma[first], DUPLICATE_MIN_PX, cell)
+    pick = first[_not_near_earlier(x[first], y[first], radius, cell)]
     return x[pick], y[pick], sigma[pick]
+
+
+def _not_near_earlier(x: F64, y: F64, radius: F64, cell: float) -> npt.NDArray[np.intp]:
+    """Indices, in order, of the samples not within their ``radius`` (<= ``cell``) of an earlier kept one."""
+    kept: dict[tuple[int, int], list[tuple[float, float]]] = {}
+    out = []
+    for i, (xi, yi, ri) in enumerate(zip(x.tolist(), y.tolist(), radius.tolist())):
+        gx, gy = int(np.floor(xi / cell)), int(np.floor(yi / cell))
+        near = (kept.get((gx + dx, gy + dy), []) for dx in (-1, 0, 1) for dy in (-1, 0, 1))
+        if any((kx - xi) ** 2 + (ky - yi) ** 2 < ri * ri for square in near for kx, ky in square):
+            continue
+        kept.setdefault((gx, gy), []).append((xi, yi))
+        out.append(i)
+    return np.asarray(out, dtype=np.intp)
 
 
 def _harmonic(q: F64, sigma: F64, k: int) -> tuple[float, float]:
