@@ -105,6 +105,26 @@ def test_calibration_round_trips_through_dict_and_file(tmp_path: Path) -> None:
         load_phase_calibrations(path)
 
 
+@pytest.mark.parametrize("text, message", [
+    ("{not json", "cannot read the phase calibration file"),
+    ("[1, 2]", "not a phase calibration record"),
+    ('["MOMENT"]', "not a phase calibration record"),
+    ('[{"method": "MOMENT"}]', "not a phase calibration record"),
+    ('{"method": "MOMENT", "amplitude_px": {"x": ["a"], "y": [0]}}', "not a phase calibration record"),
+    ('{"method": "MOMENT", "amplitude_px": {"x": [], "y": []}}', "one finite number per harmonic"),
+    ('{"method": "MOMENT", "amplitude_px": {"x": [0.01, 0.0], "y": [0.01]}}', "one finite number per harmonic"),
+    ('{"method": "MOMENT", "amplitude_px": {"x": [NaN], "y": [0.0]}}', "one finite number per harmonic"),
+    ('{"methods": ["MOMENT"]}', "holds no phase calibration"),
+])
+def test_a_bad_calibration_file_is_a_clear_error(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "cal.json"
+    path.write_text(text)
+    with pytest.raises(InvalidInputError, match=message):
+        load_phase_calibrations(path)
+    with pytest.raises(InvalidInputError, match="cannot read the phase calibration file"):
+        load_phase_calibrations(tmp_path / "missing.json")
+
+
 @dataclass(frozen=True)
 class _Errors:
     """A calibration learnt from simulated frames, and the errors against the truth without and with it:

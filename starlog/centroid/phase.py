@@ -121,6 +121,10 @@ class PhaseCalibration:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> PhaseCalibration:
+        """The calibration of a :meth:`to_dict` record; :class:`InvalidInputError` names what is wrong."""
+        if not isinstance(d, Mapping):
+            raise InvalidInputError(f"not a phase calibration record (an object with 'method' and 'amplitude_px'): "
+                                    f"{d!r:.200}")
         try:
             amp = d["amplitude_px"]
             est, err = d.get("estimate_px", amp), d.get("error_px", {"x": [0.0] * len(amp["x"]),
@@ -129,11 +133,18 @@ class PhaseCalibration:
             def floats(v: Iterable[Any]) -> tuple[float, ...]:
                 return tuple(float(a) for a in v)
 
-            return cls(str(d["method"]), floats(amp["x"]), floats(amp["y"]), floats(est["x"]), floats(est["y"]),
-                       floats(err["x"]), floats(err["y"]), int(d.get("n_stars", 0)),
-                       tuple(bool(v) for v in d.get("separate_axes", ())))
+            cal = cls(str(d["method"]), floats(amp["x"]), floats(amp["y"]), floats(est["x"]), floats(est["y"]),
+                      floats(err["x"]), floats(err["y"]), int(d.get("n_stars", 0)),
+                      tuple(bool(v) for v in d.get("separate_axes", ())))
         except (KeyError, TypeError, ValueError) as e:
             raise InvalidInputError(f"not a phase calibration record ({e!r}): {dict(d)!r:.200}") from None
+        values = cal.amplitude_x + cal.amplitude_y + cal.estimate_x + cal.estimate_y + cal.error_x + cal.error_y
+        if len({len(v) for v in (cal.amplitude_x, cal.amplitude_y, cal.estimate_x, cal.estimate_y, cal.error_x,
+                                 cal.error_y)}) != 1 or not cal.amplitude_x or not np.all(np.isfinite(values)):
+            raise InvalidInputError(f"phase calibration record of {cal.method}: amplitude_px, estimate_px and "
+                                    f"error_px need one finite number per harmonic for each of x and y: "
+                                    f"{dict(d)!r:.200}")
+        return cal
 
     def describe(self) -> str:
         """One line: the applied and estimated first-harmonic amplitudes per axis."""
