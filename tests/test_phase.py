@@ -208,6 +208,9 @@ def test_centroid_stage_phase_correction_auto_file_and_info(tmp_path: Path) -> N
         assert len(log.metadata(topics.PHASE_METADATA)) == 1
     text = format_description(describe_log(auto))
     assert "pixel-phase correction (auto" in text and "GAUSSFIT" in text
+    info_json = tmp_path / "info.json"  # ``starlog info --json`` of the output: its calibration again
+    info_json.write_text(json.dumps(describe_log(auto), default=str))
+    assert load_phase_calibrations(info_json) == {"GAUSSFIT": PhaseCalibration.from_dict(cal)}
     # a calibration given as a file (here made up), as the JSON of a run prints it
     given = PhaseCalibration("GAUSSFIT", (-0.05,), (-0.03,), (-0.05,), (-0.03,), (0.01,), (0.01,), 400, (True,))
     path = tmp_path / "cal.json"

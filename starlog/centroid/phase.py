@@ -278,13 +278,16 @@ def estimate_phase_calibration(x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.Ar
 
 def load_phase_calibrations(path: str | Path) -> dict[str, PhaseCalibration]:
     """Calibrations per method from a JSON file: a list of :meth:`PhaseCalibration.to_dict` records,
-    or an object holding one under ``"phase_correction"`` (``starlog centroid --json``'s output)."""
+    or an object holding one under ``"phase_correction"`` (``starlog centroid --json``'s output; that
+    of ``starlog info --json``, the last run's)."""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise InvalidInputError(f"cannot read the phase calibration file {str(path)!r}: {e}") from None
     if isinstance(data, Mapping) and "phase_correction" in data:
         data = data["phase_correction"]
+    if isinstance(data, list) and data and all(isinstance(r, Mapping) and "calibrations" in r for r in data):
+        data = data[-1]  # ``starlog info --json``: the records of each centroid run, the last one applies
     if isinstance(data, Mapping) and "calibrations" in data:
         data = data["calibrations"]
     if isinstance(data, Mapping) and "method" in data:
