@@ -13,6 +13,7 @@ from click.testing import CliRunner
 from starlog.centroid import extract_stars
 from starlog.centroid.phase import (
     PhaseCalibration,
+    _applied,
     distinct_samples,
     estimate_phase_calibration,
     load_phase_calibrations,
@@ -55,6 +56,11 @@ def test_no_s_curve_leaves_positions_unchanged() -> None:
     assert abs(cal.estimate_x[0]) < 3 * cal.error_x[0] and not cal.active
     x, y = cal.apply(measured[0], measured[1])
     assert np.array_equal(x, measured[0]) and np.array_equal(y, measured[1])
+
+
+def test_an_amplitude_is_applied_only_above_three_standard_errors_and_shrunk() -> None:
+    assert _applied(0.029, 0.01) == 0.0 and _applied(0.0, 0.0) == 0.0
+    assert _applied(-0.04, 0.01) == pytest.approx(-0.04 * (1 - 1 / 16))
 
 
 def test_axes_get_their_own_amplitude_only_when_they_differ() -> None:

@@ -19,8 +19,8 @@ stars to beat its own sampling noise, the standard error of ``c_k`` being ``1 / 
 corrects the coefficients for the blur of the measurement noise
 (``<cos 2 pi k (q + e)> = c_k exp(-2 pi^2 k^2 sigma^2)``), pools the two axes unless they differ
 significantly, and applies an amplitude only when it exceeds three standard errors (then shrunk
-by ``1 - se^2 / a^2``, the positive-part James-Stein factor): a centroider without S-curve, whose
-estimate is ~0, stays unchanged.
+by ``1 - se^2 / a^2``, the non-negative garrote's factor; James-Stein's needs three or more
+parameters): a centroider without S-curve, whose estimate is ~0, stays unchanged.
 
 Each distinct star counts once: a static field shows the same phases in every frame
 (:func:`distinct_samples`). :meth:`PhaseCalibration.apply` corrects positions.
@@ -226,8 +226,8 @@ def _harmonic(q: F64, sigma: F64, k: int) -> tuple[float, float]:
 
 def _applied(amplitude: float, error: float) -> float:
     """The amplitude applied: none unless it exceeds :data:`SIGNIFICANCE` standard errors, then shrunk by
-    ``1 - se^2 / a^2`` (positive-part James-Stein)."""
-    if not abs(amplitude) >= SIGNIFICANCE * error:
+    ``1 - se^2 / a^2`` (the non-negative garrote; 0 +- 0 is none, not a division by zero)."""
+    if not abs(amplitude) > SIGNIFICANCE * error:
         return 0.0
     return float(amplitude * (1.0 - (error / amplitude) ** 2))
 
