@@ -63,6 +63,18 @@ def test_an_amplitude_is_applied_only_above_three_standard_errors_and_shrunk() -
     assert _applied(-0.04, 0.01) == pytest.approx(-0.04 * (1 - 1 / 16))
 
 
+def test_a_second_harmonic_s_curve_is_estimated_and_removed() -> None:
+    rng = np.random.default_rng(3)
+    true = rng.uniform(0.0, 500.0, (2, 4000))
+    measured = true + 0.03 * np.sin(4 * np.pi * true)
+    cal = estimate_phase_calibration(measured[0], measured[1], harmonics=2)
+    assert cal.amplitude_x[0] == 0.0 and cal.amplitude_x[1] == pytest.approx(0.03, abs=3 * cal.error_x[1])
+    corrected = np.stack(cal.apply(measured[0], measured[1]))
+    assert np.sqrt(np.mean((corrected - true) ** 2)) < 0.3 * np.sqrt(np.mean((measured - true) ** 2))
+    with pytest.raises(InvalidInputError, match="harmonics must be >= 1"):
+        estimate_phase_calibration(measured[0], measured[1], harmonics=0)
+
+
 def test_axes_get_their_own_amplitude_only_when_they_differ() -> None:
     rng = np.random.default_rng(7)
     true = rng.uniform(0.0, 500.0, (2, 4000))
@@ -214,6 +226,9 @@ def test_centroid_stage_phase_correction_auto_file_and_info(tmp_path: Path) -> N
         assert len(log.metadata(topics.PHASE_METADATA)) == 1
     text = format_description(describe_log(auto))
     assert "pixel-phase correction (auto" in text and "GAUSSFIT" in text
+    summary_json = tmp_path / "summary.json"  # what ``starlog centroid --json`` prints
+    summary_json.write_text(json.dumps(summary.to_dict()))
+    assert load_phase_calibrations(summary_json) == {"GAUSSFIT": PhaseCalibration.from_dict(cal)}
     info_json = tmp_path / "info.json"  # ``starlog info --json`` of the output: its calibration again
     info_json.write_text(json.dumps(describe_log(auto), default=str))
     assert load_phase_calibrations(info_json) == {"GAUSSFIT": PhaseCalibration.from_dict(cal)}
