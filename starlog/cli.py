@@ -436,7 +436,8 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
               help="Remove each method's pixel-phase bias (S-curve; under-sampled or non-Gaussian PSFs). auto: "
                    "learnt from the log's own stars (its first 16-256 frames, each distinct star once, no catalogue; "
                    "a method with too few is left uncorrected, with a note). FILE: calibrations in JSON (the "
-                   "--json output of an earlier run). Recorded in the provenance and shown by info.")
+                   "--json output of an earlier auto run, or 'starlog info --json' of its output log). Recorded "
+                   "in the provenance and shown by info.")
 @time_range_options("the image channel")
 @json_option
 @write_options

@@ -13,6 +13,7 @@ from click.testing import CliRunner
 from starlog.centroid import extract_stars
 from starlog.centroid.phase import (
     PhaseCalibration,
+    _applied,
     distinct_samples,
     estimate_phase_calibration,
     load_phase_calibrations,
@@ -57,6 +58,23 @@ def test_no_s_curve_leaves_positions_unchanged() -> None:
     assert np.array_equal(x, measured[0]) and np.array_equal(y, measured[1])
 
 
+def test_an_amplitude_is_applied_only_above_three_standard_errors_and_shrunk() -> None:
+    assert _applied(0.029, 0.01) == 0.0 and _applied(0.0, 0.0) == 0.0
+    assert _applied(-0.04, 0.01) == pytest.approx(-0.04 * (1 - 1 / 16))
+
+
+def test_a_second_harmonic_s_curve_is_estimated_and_removed() -> None:
+    rng = np.random.default_rng(3)
+    true = rng.uniform(0.0, 500.0, (2, 4000))
+    measured = true + 0.03 * np.sin(4 * np.pi * true)
+    cal = estimate_phase_calibration(measured[0], measured[1], harmonics=2)
+    assert cal.amplitude_x[0] == 0.0 and cal.amplitude_x[1] == pytest.approx(0.03, abs=3 * cal.error_x[1])
+    corrected = np.stack(cal.apply(measured[0], measured[1]))
+    assert np.sqrt(np.mean((corrected - true) ** 2)) < 0.3 * np.sqrt(np.mean((measured - true) ** 2))
+    with pytest.raises(InvalidInputError, match="harmonics must be >= 1"):
+        estimate_phase_calibration(measured[0], measured[1], harmonics=0)
+
+
 def test_axes_get_their_own_amplitude_only_when_they_differ() -> None:
     rng = np.random.default_rng(7)
     true = rng.uniform(0.0, 500.0, (2, 4000))
@@ -73,9 +91,25 @@ def test_each_distinct_star_counts_once_and_too_few_decline() -> None:
     xs = np.tile(x, frames) + rng.normal(0, 0.01, 15 * frames)
     ys = np.tile(y, frames) + rng.normal(0, 0.01, 15 * frames)
     dx, _, _ = distinct_samples(xs, ys, np.full(xs.size, 0.01))
-    assert 15 <= dx.size <= 20  # one per star (a star on a cell edge may count twice)
+    assert dx.size == 15  # one per star, a star on a cell edge too
     with pytest.raises(InvalidInputError, match="too few distinct stars"):
         estimate_phase_calibration(xs, ys, np.full(xs.size, 0.01))
+
+
+def test_a_static_field_with_noise_counts_each_star_once_and_estimates_without_bias() -> None:
+    """Noise scatters a static star over the edges of a 0.5 px square: were each square a star, the stars at
+    phases 0 and 1/2 (on the edges) would count twice or more, inflating the amplitude and shrinking its error."""
+    rng = np.random.default_rng(9)
+    stars, frames, noise = 400, 30, 0.03
+    true = rng.uniform(10.0, 500.0, (2, stars))
+    measured = true - 0.03 * np.sin(2 * np.pi * true)
+    xs = np.tile(measured[0], frames) + rng.normal(0.0, noise, stars * frames)
+    ys = np.tile(measured[1], frames) + rng.normal(0.0, noise, stars * frames)
+    cal = estimate_phase_calibration(xs, ys, np.full(xs.size, noise))
+    assert cal.n_stars == stars
+    assert cal.error_x[0] == pytest.approx(1 / (np.pi * np.sqrt(2 * stars)), rel=0.1)
+    assert cal.estimate_x[0] == pytest.approx(-0.03, abs=3 * cal.error_x[0])
+    assert cal.estimate_y[0] == pytest.approx(-0.03, abs=3 * cal.error_y[0])
 
 
 def test_calibration_round_trips_through_dict_and_file(tmp_path: Path) -> None:
@@ -87,6 +121,26 @@ def test_calibration_round_trips_through_dict_and_file(tmp_path: Path) -> None:
     path.write_text("[]")
     with pytest.raises(InvalidInputError, match="no phase calibration"):
         load_phase_calibrations(path)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("{not json", "cannot read the phase calibration file"),
+    ("[1, 2]", "not a phase calibration record"),
+    ('["MOMENT"]', "not a phase calibration record"),
+    ('[{"method": "MOMENT"}]', "not a phase calibration record"),
+    ('{"method": "MOMENT", "amplitude_px": {"x": ["a"], "y": [0]}}', "not a phase calibration record"),
+    ('{"method": "MOMENT", "amplitude_px": {"x": [], "y": []}}', "one finite number per harmonic"),
+    ('{"method": "MOMENT", "amplitude_px": {"x": [0.01, 0.0], "y": [0.01]}}', "one finite number per harmonic"),
+    ('{"method": "MOMENT", "amplitude_px": {"x": [NaN], "y": [0.0]}}', "one finite number per harmonic"),
+    ('{"methods": ["MOMENT"]}', "holds no phase calibration"),
+])
+def test_a_bad_calibration_file_is_a_clear_error(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "cal.json"
+    path.write_text(text)
+    with pytest.raises(InvalidInputError, match=message):
+        load_phase_calibrations(path)
+    with pytest.raises(InvalidInputError, match="cannot read the phase calibration file"):
+        load_phase_calibrations(tmp_path / "missing.json")
 
 
 @dataclass(frozen=True)
@@ -172,6 +226,12 @@ def test_centroid_stage_phase_correction_auto_file_and_info(tmp_path: Path) -> N
         assert len(log.metadata(topics.PHASE_METADATA)) == 1
     text = format_description(describe_log(auto))
     assert "pixel-phase correction (auto" in text and "GAUSSFIT" in text
+    summary_json = tmp_path / "summary.json"  # what ``starlog centroid --json`` prints
+    summary_json.write_text(json.dumps(summary.to_dict()))
+    assert load_phase_calibrations(summary_json) == {"GAUSSFIT": PhaseCalibration.from_dict(cal)}
+    info_json = tmp_path / "info.json"  # ``starlog info --json`` of the output: its calibration again
+    info_json.write_text(json.dumps(describe_log(auto), default=str))
+    assert load_phase_calibrations(info_json) == {"GAUSSFIT": PhaseCalibration.from_dict(cal)}
     # a calibration given as a file (here made up), as the JSON of a run prints it
     given = PhaseCalibration("GAUSSFIT", (-0.05,), (-0.03,), (-0.05,), (-0.03,), (0.01,), (0.01,), 400, (True,))
     path = tmp_path / "cal.json"

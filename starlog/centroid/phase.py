@@ -19,8 +19,8 @@ stars to beat its own sampling noise, the standard error of ``c_k`` being ``1 / 
 corrects the coefficients for the blur of the measurement noise
 (``<cos 2 pi k (q + e)> = c_k exp(-2 pi^2 k^2 sigma^2)``), pools the two axes unless they differ
 significantly, and applies an amplitude only when it exceeds three standard errors (then shrunk
-by ``1 - se^2 / a^2``, the positive-part James-Stein factor): a centroider without S-curve, whose
-estimate is ~0, stays unchanged.
+by ``1 - se^2 / a^2``, the non-negative garrote's factor; James-Stein's needs three or more
+parameters): a centroider without S-curve, whose estimate is ~0, stays unchanged.
 
 Each distinct star counts once: a static field shows the same phases in every frame
 (:func:`distinct_samples`). :meth:`PhaseCalibration.apply` corrects positions.
@@ -63,6 +63,10 @@ unchanged in all but ~0.3 % of logs); the two axes get separate amplitudes only 
 as much."""
 DISTINCT_CELL = 0.5
 """Positions (px) closer than about this, in any frames, are one star at one phase."""
+DUPLICATE_SIGMAS = 5.0
+DUPLICATE_MIN_PX = 0.1
+"""Positions closer than ``DUPLICATE_SIGMAS`` standard errors (at least ``DUPLICATE_MIN_PX``) are one star
+seen again, at one phase, however its noise scattered it (:func:`distinct_samples`)."""
 _EXCLUDED = int(CentroidFlag.SATURATED | CentroidFlag.BORDER | CentroidFlag.FIT_FAILED)
 
 
@@ -117,6 +121,10 @@ class PhaseCalibration:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> PhaseCalibration:
+        """The calibration of a :meth:`to_dict` record; :class:`InvalidInputError` names what is wrong."""
+        if not isinstance(d, Mapping):
+            raise InvalidInputError(f"not a phase calibration record (an object with 'method' and 'amplitude_px'): "
+                                    f"{d!r:.200}")
         try:
             amp = d["amplitude_px"]
             est, err = d.get("estimate_px", amp), d.get("error_px", {"x": [0.0] * len(amp["x"]),
@@ -125,11 +133,18 @@ class PhaseCalibration:
             def floats(v: Iterable[Any]) -> tuple[float, ...]:
                 return tuple(float(a) for a in v)
 
-            return cls(str(d["method"]), floats(amp["x"]), floats(amp["y"]), floats(est["x"]), floats(est["y"]),
-                       floats(err["x"]), floats(err["y"]), int(d.get("n_stars", 0)),
-                       tuple(bool(v) for v in d.get("separate_axes", ())))
+            cal = cls(str(d["method"]), floats(amp["x"]), floats(amp["y"]), floats(est["x"]), floats(est["y"]),
+                      floats(err["x"]), floats(err["y"]), int(d.get("n_stars", 0)),
+                      tuple(bool(v) for v in d.get("separate_axes", ())))
         except (KeyError, TypeError, ValueError) as e:
             raise InvalidInputError(f"not a phase calibration record ({e!r}): {dict(d)!r:.200}") from None
+        values = cal.amplitude_x + cal.amplitude_y + cal.estimate_x + cal.estimate_y + cal.error_x + cal.error_y
+        if len({len(v) for v in (cal.amplitude_x, cal.amplitude_y, cal.estimate_x, cal.estimate_y, cal.error_x,
+                                 cal.error_y)}) != 1 or not cal.amplitude_x or not np.all(np.isfinite(values)):
+            raise InvalidInputError(f"phase calibration record of {cal.method}: amplitude_px, estimate_px and "
+                                    f"error_px need one finite number per harmonic for each of x and y: "
+                                    f"{dict(d)!r:.200}")
+        return cal
 
     def describe(self) -> str:
         """One line: the applied and estimated first-harmonic amplitudes per axis."""
@@ -165,16 +180,38 @@ def phase_samples(centroids: npt.NDArray[np.void], *, min_snr: float = MIN_SNR) 
 
 
 def distinct_samples(x: F64, y: F64, sigma: F64, *, cell: float = DISTINCT_CELL) -> tuple[F64, F64, F64]:
-    """One sample per star position: of the samples (pooled over frames, in frame order) falling in
-    the same ``cell`` x ``cell`` px square, the first. A static star seen in every frame counts
-    once; a star drifting over the sensor counts once per cell it crosses (distinct phases). The
-    first, not the most precise: a centroid's precision depends on its phase."""
+    """One sample per star position, in frame order (samples pooled over frames): the first in each
+    ``cell`` x ``cell`` px square, less those within the noise of an earlier kept one (closer than
+    :data:`DUPLICATE_SIGMAS` times their ``sigma``, at least :data:`DUPLICATE_MIN_PX`, at most ``cell``).
+
+    A static star seen in every frame counts once, even when its noise scatters it over a square's
+    edge (counted per square, such stars, at phases 0 and 1/2, would count two to four times:
+    the amplitude overestimated and its standard error underestimated). A star drifting over the
+    sensor counts once per square it crosses (distinct phases). The first, not the most precise: a
+    centroid's precision depends on its phase.
+    """
     if x.size == 0:
         return x, y, sigma
     keys = np.column_stack([np.floor(x / cell), np.floor(y / cell)]).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
-    pick = np.sort(first)
+    first = np.sort(first)
+    radius = np.clip(DUPLICATE_SIGMAS * sigma[first], DUPLICATE_MIN_PX, cell)
+    pick = first[_not_near_earlier(x[first], y[first], radius, cell)]
     return x[pick], y[pick], sigma[pick]
+
+
+def _not_near_earlier(x: F64, y: F64, radius: F64, cell: float) -> npt.NDArray[np.intp]:
+    """Indices, in order, of the samples not within their ``radius`` (<= ``cell``) of an earlier kept one."""
+    kept: dict[tuple[int, int], list[tuple[float, float]]] = {}
+    out = []
+    for i, (xi, yi, ri) in enumerate(zip(x.tolist(), y.tolist(), radius.tolist())):
+        gx, gy = int(np.floor(xi / cell)), int(np.floor(yi / cell))
+        near = (kept.get((gx + dx, gy + dy), []) for dx in (-1, 0, 1) for dy in (-1, 0, 1))
+        if any((kx - xi) ** 2 + (ky - yi) ** 2 < ri * ri for square in near for kx, ky in square):
+            continue
+        kept.setdefault((gx, gy), []).append((xi, yi))
+        out.append(i)
+    return np.asarray(out, dtype=np.intp)
 
 
 def _harmonic(q: F64, sigma: F64, k: int) -> tuple[float, float]:
@@ -189,8 +226,8 @@ def _harmonic(q: F64, sigma: F64, k: int) -> tuple[float, float]:
 
 def _applied(amplitude: float, error: float) -> float:
     """The amplitude applied: none unless it exceeds :data:`SIGNIFICANCE` standard errors, then shrunk by
-    ``1 - se^2 / a^2`` (positive-part James-Stein)."""
-    if not abs(amplitude) >= SIGNIFICANCE * error:
+    ``1 - se^2 / a^2`` (the non-negative garrote; 0 +- 0 is none, not a division by zero)."""
+    if not abs(amplitude) > SIGNIFICANCE * error:
         return 0.0
     return float(amplitude * (1.0 - (error / amplitude) ** 2))
 
@@ -241,13 +278,16 @@ def estimate_phase_calibration(x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.Ar
 
 def load_phase_calibrations(path: str | Path) -> dict[str, PhaseCalibration]:
     """Calibrations per method from a JSON file: a list of :meth:`PhaseCalibration.to_dict` records,
-    or an object holding one under ``"phase_correction"`` (``starlog centroid --json``'s output)."""
+    or an object holding one under ``"phase_correction"`` (``starlog centroid --json``'s output; that
+    of ``starlog info --json``, the last run's)."""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise InvalidInputError(f"cannot read the phase calibration file {str(path)!r}: {e}") from None
     if isinstance(data, Mapping) and "phase_correction" in data:
         data = data["phase_correction"]
+    if isinstance(data, list) and data and all(isinstance(r, Mapping) and "calibrations" in r for r in data):
+        data = data[-1]  # ``starlog info --json``: the records of each centroid run, the last one applies
     if isinstance(data, Mapping) and "calibrations" in data:
         data = data["calibrations"]
     if isinstance(data, Mapping) and "method" in data:
