@@ -92,7 +92,7 @@ def test_each_distinct_star_counts_once_and_too_few_decline() -> None:
     ys = np.tile(y, frames) + rng.normal(0, 0.01, 15 * frames)
     dx, _, _ = distinct_samples(xs, ys, np.full(xs.size, 0.01))
     assert dx.size == 15  # one per star, a star on a cell edge too
-    with pytest.raises(InvalidInputError, match="too few distinct stars"):
+    with pytest.raises(InvalidInputError, match="too few distinct star positions"):
         estimate_phase_calibration(xs, ys, np.full(xs.size, 0.01))
 
 
@@ -250,7 +250,26 @@ def test_centroid_stage_declines_a_static_field_with_few_stars(tmp_path: Path, s
     out = tmp_path / "c.mcap"
     summary = centroid_log(sim_log, out, methods="GAUSSFIT", phase_correction="auto")
     record = summary.to_dict()["phase_correction"]
-    assert record["calibrations"] == [] and "too few distinct stars" in record["declined"]["GAUSSFIT"]
+    assert record["calibrations"] == [] and "too few distinct star positions" in record["declined"]["GAUSSFIT"]
     assert any("GAUSSFIT left uncorrected" in n for n in summary.notes)
     plain = centroid_log(sim_log, tmp_path / "p.mcap", methods="GAUSSFIT", phase_correction="off")
     assert "phase_correction" not in plain.to_dict()
+
+
+def test_positions_quantised_to_the_pixel_are_refused_not_folded():
+    rng = np.random.default_rng(3)
+    x, y = np.rint(rng.uniform(10, 500, 400)), np.rint(rng.uniform(10, 500, 400))
+    with pytest.raises(InvalidInputError, match="would fold positions"):
+        estimate_phase_calibration(x, y, np.full(400, 0.01), method="NONE")
+
+
+@pytest.mark.parametrize("amplitude, ok", [(0.15, True), (-0.158, True), (0.16, False), (-0.3, False)])
+def test_a_file_amplitude_that_would_fold_positions_is_refused(amplitude, ok):
+    record = {"method": "MOMENT", "amplitude_px": {"x": [amplitude], "y": [0.0]}}
+    if ok:
+        cal = PhaseCalibration.from_dict(record)
+        q = np.linspace(-0.5, 0.5, 1001)
+        assert np.all(np.diff(cal.apply(q, q)[0]) > 0)
+    else:
+        with pytest.raises(InvalidInputError, match="would fold positions"):
+            PhaseCalibration.from_dict(record)

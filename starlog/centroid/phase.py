@@ -102,6 +102,8 @@ class PhaseCalibration:
 
     def bias(self, q: F64, axis: str) -> F64:
         """The S-curve at measured phases ``q`` of axis ``"x"`` or ``"y"``, px."""
+        if axis not in ("x", "y"):
+            raise ValueError(f"axis must be 'x' or 'y', got {axis!r}")
         amps = self.amplitude_x if axis == "x" else self.amplitude_y
         out = np.zeros_like(q, dtype=np.float64)
         for k, a in enumerate(amps, 1):
@@ -144,15 +146,23 @@ class PhaseCalibration:
             raise InvalidInputError(f"phase calibration record of {cal.method}: amplitude_px, estimate_px and "
                                     f"error_px need one finite number per harmonic for each of x and y: "
                                     f"{dict(d)!r:.200}")
+        for axis, amps in (("x", cal.amplitude_x), ("y", cal.amplitude_y)):
+            _check_order_kept(amps, f"the phase calibration of {cal.method}, axis {axis}")
         return cal
 
-    def describe(self) -> str:
-        """One line: the applied and estimated first-harmonic amplitudes per axis."""
-        def one(a: tuple[float, ...], e: tuple[float, ...], s: tuple[float, ...]) -> str:
-            return f"{a[0]:+.4f} px (estimate {e[0]:+.4f} +- {s[0]:.4f})"
 
-        return (f"{self.method}: S-curve x {one(self.amplitude_x, self.estimate_x, self.error_x)}, "
-                f"y {one(self.amplitude_y, self.estimate_y, self.error_y)}, {self.n_stars} distinct stars")
+def _check_order_kept(amplitudes: tuple[float, ...], what: str) -> None:
+    """Refuse an S-curve whose correction ``p = q - bias(q)`` would not keep positions in order.
+
+    ``q - sum_k a_k sin(2 pi k q)`` is increasing when ``sum_k 2 pi k |a_k| < 1`` (one harmonic:
+    ``|a| < 1 / (2 pi)`` ≈ 0.159 px); beyond, the correction folds positions around pixel centres.
+    """
+    slope = sum(2.0 * np.pi * k * abs(a) for k, a in enumerate(amplitudes, 1))
+    if slope >= 1.0:
+        raise InvalidInputError(
+            f"{what}: S-curve amplitudes {[round(a, 4) for a in amplitudes]} px would fold positions around pixel "
+            f"centres (the correction keeps positions in order only while sum 2 pi k |a_k| < 1, i.e. |a| < 0.159 px "
+            f"for one harmonic); positions quantised to the pixel look like this.")
 
 
 def phase_sample_mask(centroids: npt.NDArray[np.void], *, min_snr: float = MIN_SNR) -> npt.NDArray[np.bool_]:
@@ -268,10 +278,12 @@ def estimate_phase_calibration(x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.Ar
         xa, ya, sa = distinct_samples(xa, ya, sa)
     if xa.size < min_stars:
         raise InvalidInputError(
-            f"too few distinct stars to calibrate the pixel phase{f' of {method}' if method else ''}: {xa.size} "
-            f"bright (SNR >= {MIN_SNR:g}), unsaturated stars at distinct positions; it needs "
-            f"{min_stars} (each star counts once however many frames show it).")
+            f"too few distinct star positions to calibrate the pixel phase{f' of {method}' if method else ''}: "
+            f"{xa.size}; it needs {min_stars} (a star seen again at the same position, within its noise, counts "
+            f"once; the centroid stage uses only unsaturated stars of SNR >= {MIN_SNR:g}).")
     t = {key: tuple(v) for key, v in _axes_terms(_phase(xa), _phase(ya), sa, harmonics).items()}
+    for axis in ("x", "y"):
+        _check_order_kept(t["a" + axis], f"the pixel-phase estimate{f' of {method}' if method else ''}, axis {axis}")
     return PhaseCalibration(method, t["ax"], t["ay"], t["ex"], t["ey"], t["sx"], t["sy"], int(xa.size),
                             t["separate"])
 

@@ -79,12 +79,12 @@ def _phase_lines(records: list[dict[str, Any]]) -> list[str]:
             lines.append(f"phase      {r['error']}")
             continue
         lines.append(f"phase      pixel-phase correction ({r['source']}); S-curve amplitude px applied "
-                     "(estimate +- error), distinct stars")
+                     "(estimate +- error), distinct star positions")
         for c in r["calibrations"]:
             try:
                 a, e, s = c["amplitude_px"], c["estimate_px"], c["error_px"]
                 axes = "  ".join(f"{k} {a[k][0]:+.4f} ({e[k][0]:+.4f} +- {s[k][0]:.4f})" for k in ("x", "y"))
-                lines.append(f"           {c['method']:<15} {axes}  {c.get('n_stars', 0)} stars")
+                lines.append(f"           {c['method']:<15} {axes}  {c.get('n_stars', 0)} positions")
             except (KeyError, IndexError, TypeError):
                 lines.append(f"           unreadable calibration {c!r:.60}")
         for method, why in r["declined"].items():
