@@ -74,6 +74,7 @@ from starlog.errors import (
     TruncatedLogError,
 )
 from starlog.io.bytecopy import copy_range
+from starlog.io.checksum import crc32
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.schemas import MessageType
@@ -97,7 +98,7 @@ class Compression(str, Enum):
 
 
 def _compress(data: bytes, compression: Compression) -> tuple[bytes, int]:
-    crc = zlib.crc32(data)
+    crc = crc32(data)
     if compression is Compression.ZSTD:
         import zstandard
 
