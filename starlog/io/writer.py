@@ -30,7 +30,6 @@ previous file, never a half-written one under the final name.
 
 from __future__ import annotations
 
-import json
 import os
 import struct
 import tempfile
@@ -74,10 +73,11 @@ from starlog.errors import (
     TruncatedLogError,
 )
 from starlog.io.bytecopy import copy_range
+from starlog.io.checked import CheckedJson, schema_checker, schema_digest
 from starlog.io.checksum import crc32
 from starlog.io.images import is_image_schema
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
-from starlog.io.messages import compile_json_schema, decode_json
+from starlog.io.messages import decode_json
 from starlog.io.schemas import MessageType
 from starlog.io.stack import StackedLog
 
@@ -193,6 +193,7 @@ class LogWriter:
         self.workers = workers
         self.validate = validate
         self._checkers: dict[int, Callable[[Any], str | None]] = {}
+        self._schema_digests: dict[int, bytes] = {}  # of the checked channels' schemas (see CheckedJson)
         self._origin = 0  # offset in the complete log of this file's first byte (non-zero for a sidecar)
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
@@ -281,6 +282,7 @@ class LogWriter:
         checker = self._message_checker(message_type)
         if checker is not None:
             self._checkers[channel_id] = checker
+            self._schema_digests[channel_id] = schema_digest(message_type.schema_data)
             meta[VALIDATED_METADATA_KEY] = "jsonschema"
         channel = Channel(
             id=channel_id,
@@ -309,6 +311,7 @@ class LogWriter:
                                                         channel.message_encoding))
             if checker is not None:
                 self._checkers[channel_id] = checker
+                self._schema_digests[channel_id] = schema_digest(schema.data)
         self._builders[channel_id] = ChunkBuilder()
         self._choose_level(channel_id)
 
@@ -355,7 +358,8 @@ class LogWriter:
         """Add one message. ``channel`` is an id from :meth:`add_channel` or a topic.
 
         A message of a JSON channel that does not decode or does not match the channel's schema
-        raises :class:`InvalidInputError` (unless the writer was made with ``validate=False``).
+        raises :class:`InvalidInputError` (unless the writer was made with ``validate=False``). A
+        :class:`~starlog.io.checked.CheckedJson` checked against the channel's own schema is not checked again.
         """
         channel_id = self._topics[channel] if isinstance(channel, str) else channel
         if channel_id not in self._builders:
@@ -366,6 +370,10 @@ class LogWriter:
         if not 0 <= log_time < 2**64:
             raise InvalidInputError(f"log_time must be a non-negative 64-bit integer of nanoseconds, got {log_time}.")
         checker = self._checkers.get(channel_id)
+        if type(data) is CheckedJson:
+            if data.schema_digest == self._schema_digests.get(channel_id):
+                checker = None  # checked against this channel's schema where it was encoded
+            data = bytes(data)  # what the chunk holds is plain bytes (orjson, too, reads no subclass)
         if checker is not None:
             problem = checker(decode_json(data))
             if problem:
@@ -656,12 +664,4 @@ class _Writeback:
             raise self._error
 
 
-_CHECKERS: dict[bytes, Callable[[Any], str | None]] = {}
-
-
-def _checker_of(schema_data: bytes) -> Callable[[Any], str | None]:
-    """The compiled checker of a JSON Schema text (compiled once per process)."""
-    checker = _CHECKERS.get(schema_data)
-    if checker is None:
-        checker = _CHECKERS[schema_data] = compile_json_schema(json.loads(schema_data))
-    return checker
+_checker_of = schema_checker

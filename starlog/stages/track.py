@@ -32,7 +32,8 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from starlog.errors import InvalidParameterError
-from starlog.io import encode_json, json_message_type, topics
+from starlog.io import json_message_type, topics
+from starlog.io.checked import encode_checked_json
 from starlog.io.reader import LogReader
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
@@ -195,15 +196,17 @@ def _encode_block(spool: Spool, offset: int, method: str, model: str,
                   brightest: int) -> tuple[list[int], list[bytes]]:
     """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame.
 
-    Columns are converted to Python values once per block (``tolist``), not row by row.
+    Columns are converted to Python values once per block (``tolist``), not row by row; the messages
+    are checked against their schema here (in a worker process when there is a pool), not by the writer.
     """
     frames, times, counts, rows = read_block(spool, offset, 4)
     columns = [rows[name].tolist() for name in TRACK_DTYPE.names or ()]
     columns.append((rows["track"] == brightest).tolist())
     records = [dict(zip(_ROW_KEYS, values)) for values in zip(*columns)]
     ends = np.cumsum(counts).tolist()
-    messages = [
-        encode_json({"frame": frame, "method": method, "model": model, "tracks": records[a:b]})
+    tracks = json_message_type("starlog.Tracks")
+    messages: list[bytes] = [
+        encode_checked_json({"frame": frame, "method": method, "model": model, "tracks": records[a:b]}, tracks)
         for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)
     ]
     return times.tolist(), messages
