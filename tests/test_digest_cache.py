@@ -78,3 +78,21 @@ def test_a_changed_file_is_hashed_again(tmp_path: Path, sim_log: Path) -> None:
     digest = BackgroundDigest(log)
     assert digest.result() == file_digest(log)
     assert digest.prefix() is not None  # hashed whole, its data section's state kept on the way
+
+
+@needs_cache
+def test_run_takes_the_saved_digest_and_saves_its_own(tmp_path: Path) -> None:
+    from starlog.pipeline import PipelineConfig, run_pipeline
+
+    if not _has_attribute_support(tmp_path):
+        pytest.skip("this file system keeps no user attributes")
+    sim, out = tmp_path / "sim.mcap", tmp_path / "run.mcap"
+    simulate_log(small_config(n_frames=30), sim)
+    assert read_digest_cache(sim) is not None
+    config = PipelineConfig.from_dict({"centroid": {"methods": ["MOMENT"]},
+                                       "track": {"methods": ["MOMENT"], "models": "STATIC"}})
+    run_pipeline(sim, out, config)
+    with LogReader(out) as log:
+        assert log.provenance()[1].input_digest == file_digest(sim)  # [0] is simulate's own record
+    cached = read_digest_cache(out)
+    assert cached is not None and cached.digest == file_digest(out)

@@ -67,6 +67,10 @@ class ResumableSha256:
                 data = bytes(data)
         self._lib.SHA256_Update(self._ctx, data, len(data))
 
+    def copy(self) -> ResumableSha256:
+        """A hash that goes on from this one's state."""
+        return ResumableSha256(self.state())
+
     def state(self) -> bytes:
         """The running state, to resume with ``ResumableSha256(state)``."""
         return self._ctx.raw[:STATE_SIZE]
