@@ -17,7 +17,8 @@ Why not :class:`mcap.writer.Writer` directly? Two things it cannot do:
 Each channel gets chunks of its own, so a reader of small channels (centroids, truth) never
 decompresses image chunks; the open chunks of all channels are closed together. Every JSON
 message is checked against its channel's JSON Schema as it is written (a compiled checker,
-see :func:`~starlog.io.messages.compile_json_schema`), and the channel is marked so (metadata
+see :func:`~starlog.io.messages.compile_json_schema`; or where it was encoded, e.g. in a worker
+process, see :mod:`starlog.io.checked`), and the channel is marked so (metadata
 ``starlog.validated``): a reader then need not check those messages again when their chunk's
 CRC vouches for the bytes. Given a
 :class:`~starlog.io.stack.StackedLog` as ``base``, the writer writes only its new records and
