@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -182,24 +183,70 @@ def encode_image_annotations(
     """Encode circles at centroids as ``foxglove.ImageAnnotations``.
 
     ``x``, ``y`` follow the starlog convention (pixel-centre origin); Foxglove's annotation
-    origin is the top-left *corner* of the top-left pixel, so 0.5 is added here.
+    origin is the top-left *corner* of the top-left pixel, so 0.5 is added here. Non-finite
+    positions are left out. The protobuf wire format is written directly (the bytes protobuf's
+    deterministic serialization gives, field by field: ``circles = 1`` of ``CircleAnnotation``
+    ``timestamp = 1``, ``position = 2`` (``Point2`` ``x = 1``, ``y = 2``), ``diameter = 3``,
+    ``thickness = 4``, ``outline_color = 6`` (``Color`` ``r, g, b, a = 1..4``)): the parts shared
+    by every circle of a frame are encoded once.
     """
-    from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
-
-    msg = ImageAnnotations()
     seconds, nanos = _timestamp(log_time)
+    stamp = _wire_message(0x0A, (b"\x08" + _wire_varint(seconds) if seconds else b"")
+                          + (b"\x10" + _wire_varint(nanos) if nanos else b""))
+    colour = b"".join(_wire_double(tag, float(c)) for tag, c in zip((0x09, 0x11, 0x19, 0x21), rgba, strict=True))
+    shared = _wire_double(0x19, float(diameter)) + _wire_double(0x21, float(thickness)) + _wire_message(0x32, colour)
+    xs, ys = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if xs.ndim == 1 and xs.shape == ys.shape:
+        keep = np.isfinite(xs) & np.isfinite(ys)
+        xs, ys = xs[keep] + 0.5, ys[keep] + 0.5
+        if np.all(xs != 0.0) and np.all(ys != 0.0):  # every circle then has the same layout
+            return _same_layout_circles(stamp, shared, xs, ys)
+    circles = []
     for xi, yi in zip(x, y):
         if not (math.isfinite(xi) and math.isfinite(yi)):
             continue
-        circle = msg.circles.add()
-        circle.timestamp.seconds = seconds
-        circle.timestamp.nanos = nanos
-        circle.position.x = float(xi) + 0.5
-        circle.position.y = float(yi) + 0.5
-        circle.diameter = diameter
-        circle.thickness = thickness
-        circle.outline_color.r, circle.outline_color.g, circle.outline_color.b, circle.outline_color.a = rgba
-    return msg.SerializeToString(deterministic=True)
+        position = _wire_message(0x12, _wire_double(0x09, float(xi) + 0.5) + _wire_double(0x11, float(yi) + 0.5))
+        circles.append(_wire_message(0x0A, stamp + position + shared))
+    return b"".join(circles)
+
+
+def _same_layout_circles(stamp: bytes, shared: bytes, xs: npt.NDArray[np.float64],
+                         ys: npt.NDArray[np.float64]) -> bytes:
+    """Circles whose positions are all non-zero: one template row, the positions written in by numpy."""
+    head = stamp + b"\x12\x12\x09"
+    body_length = len(head) + 8 + 1 + 8 + len(shared)
+    template = b"\x0a" + _wire_varint(body_length) + head + bytes(8) + b"\x11" + bytes(8) + shared
+    at_x = len(template) - len(shared) - 17
+    rows = np.tile(np.frombuffer(template, dtype=np.uint8), (xs.size, 1))
+    rows[:, at_x: at_x + 8] = xs.astype("<f8").view(np.uint8).reshape(-1, 8)
+    rows[:, at_x + 9: at_x + 17] = ys.astype("<f8").view(np.uint8).reshape(-1, 8)
+    return rows.tobytes()
+
+
+_WIRE_DOUBLE = struct.Struct("<d")
+_WIRE_ZERO = bytes(8)
+
+
+def _wire_varint(value: int) -> bytes:
+    """A protobuf varint (negative values as their 64-bit two's complement, as int64 fields are)."""
+    value &= (1 << 64) - 1
+    out = bytearray()
+    while value >= 0x80:
+        out.append((value & 0x7F) | 0x80)
+        value >>= 7
+    out.append(value)
+    return bytes(out)
+
+
+def _wire_double(tag: int, value: float) -> bytes:
+    """A proto3 ``double`` field: left out when it is +0.0, as protobuf does (-0.0 is written)."""
+    packed = _WIRE_DOUBLE.pack(value)
+    return b"" if packed == _WIRE_ZERO else bytes((tag,)) + packed
+
+
+def _wire_message(tag: int, body: bytes) -> bytes:
+    """A submessage field (present even when empty, as a submessage whose fields were set is)."""
+    return bytes((tag,)) + _wire_varint(len(body)) + body
 
 
 # ---------------------------------------------------------------- JSON Schema checks

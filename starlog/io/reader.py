@@ -46,6 +46,7 @@ from starlog.errors import (
     NotMcapError,
     TruncatedLogError,
 )
+from starlog.io.checksum import crc32
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
 from starlog.io.images import is_image_schema
@@ -472,8 +473,8 @@ class LogReader:
         if len(data) != size:
             raise self._chunk_error(ci, f"it decompresses to {len(data)} bytes, not {size}")
         verified = self._validate_crcs and crc != 0
-        if verified and zlib.crc32(data) != crc:
-            raise self._chunk_error(ci, f"CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(data):#010x})")
+        if verified and crc32(data) != crc:
+            raise self._chunk_error(ci, f"CRC mismatch (stored {crc:#010x}, computed {crc32(data):#010x})")
         messages: list[tuple[int, int, int, Message]] = []
         offsets: dict[int, list[tuple[int, int]]] = {}
         view = memoryview(data).toreadonly()  # payloads are slices of it, not copies

@@ -21,7 +21,6 @@ from __future__ import annotations
 import io
 import struct
 import threading
-import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +40,8 @@ from mcap.records import (
     Statistics,
 )
 from mcap.summary import Summary
+
+from starlog.io.checksum import crc32
 
 __all__ = [
     "ChunkContents",
@@ -140,8 +141,8 @@ def chunk_record(body: bytes | memoryview, *, check_crc: bool = True) -> ChunkCo
     data = decompress(compression, bytes(body[pos:]), size)
     if len(data) != size:
         raise ValueError(f"it decompresses to {len(data)} bytes, not {size}")
-    if check_crc and crc != 0 and zlib.crc32(data) != crc:
-        raise ValueError(f"CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(data):#010x})")
+    if check_crc and crc != 0 and crc32(data) != crc:
+        raise ValueError(f"CRC mismatch (stored {crc:#010x}, computed {crc32(data):#010x})")
     return ChunkContents(start, end, size, crc, compression, int(data_len), data)
 
 

@@ -23,7 +23,10 @@ from typing import Any, BinaryIO
 
 from starlog.errors import CorruptLogError, InvalidParameterError, LogNotFoundError, OutputExistsError, OutputFolderError
 from starlog.io.bytecopy import copy_range
+from starlog.io.digest_cache import read_digest_cache, write_digest_cache
 from starlog.io.layout import DATA_END_RECORD_LEN, FOOTER_RECORD_LEN, MCAP_MAGIC, locate_data_end
+from starlog.io.resumable_sha256 import ResumableSha256
+from starlog.io.resumable_sha256 import available as resumable_available
 
 __all__ = ["StackedLog"]
 
@@ -83,19 +86,23 @@ class StackedLog:
 
     @classmethod
     def of(cls, path: str | os.PathLike[str]) -> StackedLog:
-        """A stack of one complete log and no sidecar (reads the log once, for its digest)."""
+        """A stack of one complete log and no sidecar (reads the log once, for its digest, unless the
+        digest was saved with it: :mod:`starlog.io.digest_cache`)."""
         base = Path(path)
         if not base.is_file():
             raise LogNotFoundError(base)
         with open(base, "rb") as f:
             data_end = locate_data_end(base, f)
             size = f.seek(0, os.SEEK_END)
-        prefix = hashlib.sha256()
+        segments, tail = (_Segment(base, 0, data_end),), _Segment(base, data_end, size - data_end)
+        cached = read_digest_cache(base)
+        if cached is not None and cached.data_end == data_end:  # the stage that wrote it saved its digest
+            return cls(base, data_end, segments, tail, ResumableSha256(cached.state), cached.digest)
+        prefix = ResumableSha256() if resumable_available() else hashlib.sha256()
         _hash_range(prefix, base, 0, data_end)
         full = prefix.copy()
         _hash_range(full, base, data_end, size - data_end)
-        return cls(base, data_end, (_Segment(base, 0, data_end),), _Segment(base, data_end, size - data_end),
-                   prefix, "sha256:" + full.hexdigest())
+        return cls(base, data_end, segments, tail, prefix, "sha256:" + full.hexdigest())
 
     @property
     def layers(self) -> int:
@@ -162,6 +169,8 @@ class StackedLog:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+        if isinstance(self._prefix_hash, ResumableSha256):  # for the provenance of the next stage
+            write_digest_cache(out, prefix=(self.data_end, self._prefix_hash.state()))
         return out
 
     def __fspath__(self) -> str:

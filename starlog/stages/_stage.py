@@ -10,6 +10,7 @@ from typing import Any
 
 from starlog import __version__
 from starlog.io import LogReader, LogWriter, Provenance
+from starlog.io.digest_cache import write_digest_cache
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, BackgroundDigest
 from starlog.io.schemas import MessageType
 from starlog.io.stack import StackedLog
@@ -55,7 +56,8 @@ def extend_log(
     stage adds its channels; on success its provenance (name, version, parameters, the input's
     SHA-256, hashed on a thread while the stage works, and the channels it added) is recorded
     and the output renamed into place. On any error the output is discarded and the input is
-    untouched. With a :class:`StackedLog` as input, the
+    untouched. The output's own SHA-256 is saved with it for the next stage
+    (:mod:`starlog.io.digest_cache`). With a :class:`StackedLog` as input, the
     output is a sidecar to stack on it: the same records, without the copy of the input's data.
     An input that is a time slice (``--start``/``--end``) adds its range to the parameters and
     hashes the log the slice was cut from.
@@ -73,6 +75,10 @@ def extend_log(
                 record = Provenance(stage=stage, version=__version__, parameters=parameters,
                                     input_digest=digest.result(), channels=out.channels)
                 writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
+            # the output starts with the input's data section (not so for a slice or a sidecar)
+            prefix = digest.prefix() if origin is None and not isinstance(input_path, StackedLog) else None
         finally:
             digest.cancel()
+    if prefix is not None:
+        write_digest_cache(output_path, prefix=prefix)
 

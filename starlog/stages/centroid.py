@@ -44,7 +44,8 @@ from starlog.centroid.phase import (
 )
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.io import encode_image_annotations, encode_json, json_message_type, protobuf_message_type, topics
+from starlog.io import encode_image_annotations, json_message_type, protobuf_message_type, topics
+from starlog.io.checked import encode_checked_json
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader
@@ -444,7 +445,8 @@ class _FrameMessages:
 
 @dataclass(frozen=True)
 class _Extractor:
-    """Detect, centroid and encode one frame; picklable, so worker processes do the whole per-frame work."""
+    """Detect, centroid and encode one frame; picklable, so worker processes do the whole per-frame work
+    (the JSON messages are checked against their schemas there too, not by the writer in the main process)."""
 
     methods: tuple[CentroidMethod, ...]
     gain: float
@@ -471,10 +473,12 @@ class _Extractor:
         per_method = [centroids[m] for m in self.methods]
         return _FrameMessages(
             log_time=log_time,
-            detections=encode_json({"frame": frame, "stars": structured_to_dicts(detections)}),
+            detections=encode_checked_json({"frame": frame, "stars": structured_to_dicts(detections)},
+                                           json_message_type("starlog.Detections")),
             annotations=encode_image_annotations(first["x"], first["y"], log_time=log_time if stamp is None else stamp,
                                                  diameter=diameter),
-            centroids=tuple(encode_json({"frame": frame, "method": m.value, "stars": structured_to_dicts(c)})
+            centroids=tuple(encode_checked_json({"frame": frame, "method": m.value, "stars": structured_to_dicts(c)},
+                                                json_message_type("starlog.Centroids"))
                             for m, c in zip(self.methods, per_method)),
             n_detections=int(detections.size),
             n_centroids=tuple(int(c.size) for c in per_method),
