@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import special
+from scipy import optimize, special  # optimize up front: a lazy import made peak memory depend on whether a series has a periodic term
 
 from starlog.compensate._series import as_reference, as_series, check_int, check_rate, radial_rms
 from starlog.errors import InvalidInputError, InvalidParameterError
@@ -207,8 +207,6 @@ def _refine(
     hi = min(f0 + df, 0.5 * rate_hz * (1 - 1e-9))
     if hi <= lo:
         return f0
-    from scipy import optimize  # imported when first needed: it is most of scipy's import time
-
     res = optimize.minimize_scalar(
         lambda f: -_periodogram_power(r, t, f),
         bounds=(lo, hi),
