@@ -11,7 +11,8 @@ live track. Each frame:
    (:func:`scipy.optimize.linear_sum_assignment`) minimising the total squared Mahalanobis
    distance ``d² = νᵀ (P_pos + R)⁻¹ ν`` over admissible pairs. A pair is admissible when the
    centroid lies within ``association_radius`` px of the predicted position *or* inside the
-   innovation gate (``d²`` below the chi-square(2) threshold of ``gate_probability``). The
+   innovation gate (``d²`` below the chi-square(2) threshold of ``gate_probability``), and,
+   when ``max_distance`` is set, within that many px of it whatever the gate says. The
    assignment first maximises the number of admissible pairs, then minimises ``d²``.
 3. **Update** the associated tracks (one batched UKF update). The innovation gate then
    decides: a measurement with ``NIS > threshold`` is a transient outlier, is not applied,
@@ -112,6 +113,13 @@ class TrackerConfig:
     sigma_floor : float
         Smallest measurement uncertainty used, px, > 0 (default 1e-3): centroids reporting
         ``sigma`` below it (e.g. 0 for a method without an uncertainty) use the floor.
+    max_distance : float, optional
+        Hard limit on the distance between a track's predicted position and a centroid
+        associated to it, px (default None: no limit beyond the window and the gate). A
+        coasting track's position variance grows every frame, and with it the innovation gate;
+        with a faint star detected in only some frames, the widened gate would let the track
+        jump to a noise peak several pixels away and follow it. The limit keeps such a track
+        where its star was.
     """
 
     model: MotionModel | str = MotionModel.STATIC
@@ -123,6 +131,7 @@ class TrackerConfig:
     max_missed: int = 10
     max_gated: int = 5
     sigma_floor: float = 1e-3
+    max_distance: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "model", MotionModel.parse(self.model))
@@ -152,6 +161,13 @@ class TrackerConfig:
                     f"TrackerConfig.{name} must be an integer >= {low}, got {value!r}."
                 )
             object.__setattr__(self, name, int(value))
+        if self.max_distance is not None:
+            value = self.max_distance
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) or not (
+                    math.isfinite(value) and value > 0):
+                raise InvalidParameterError(
+                    f"TrackerConfig.max_distance must be None or a finite number > 0, got {value!r}."
+                )
 
 
 class _Centroids(NamedTuple):
@@ -283,6 +299,8 @@ class StarTracker:
         d2 = (cc * nx * nx - 2.0 * b * nx * ny + a * ny * ny) / (a * cc - b * b)
         r2 = self.config.association_radius**2
         ok = ((nx * nx + ny * ny) <= r2) | (d2 <= self._threshold)
+        if self.config.max_distance is not None:
+            ok &= (nx * nx + ny * ny) <= self.config.max_distance**2
         if not ok.any():
             return _NO_PAIRS
         big = 1e3 * (float(d2[ok].max()) + 1.0)
