@@ -306,6 +306,25 @@ def test_max_distance_keeps_a_coasting_track_off_noise_peaks() -> None:
     assert not held["measured"][0] and held["x"][0] == pytest.approx(10.0, abs=1e-9)
 
 
+def test_max_distance_reacquires_a_static_star_after_a_moving_model_coasts() -> None:
+    # a POLYNOMIAL_TREND track fed noisy hits has a velocity and an acceleration; over 57
+    # coasted frames its prediction drifts pixels away, but the star is still where it was
+    # seen: the limit is measured from there, not from the drifting prediction
+    dt = 1_000_000_000 // 300
+    tracker = StarTracker(model="POLYNOMIAL_TREND", confirm_hits=2, max_missed=100, max_distance=1.5)
+    for k in range(5):  # noisy centroids that look like a drift of 0.25 px per frame
+        tracker.update(k * dt, [10.0 + 0.25 * k], [10.0], [0.3], [50.0])
+    for k in range(5, 62):
+        coasted = tracker.update(k * dt, [], [], [], [])
+    assert coasted["x"][0] > 14.0  # the prediction has run away
+    rows = tracker.update(62 * dt, [10.5], [9.9], [0.3], [50.0])
+    assert rows["track"].tolist() == [0] and rows["measured"][0]
+    assert np.hypot(rows["x"][0] - 10.5, rows["y"][0] - 9.9) < 0.5
+    # a noise peak 2 px from where the star was seen is not taken, however wide the gate
+    far = tracker.update(63 * dt, [12.1], [9.9], [0.3], [50.0])
+    assert far["track"].tolist() == [0, 1] and not far["measured"][0]
+
+
 def test_unknown_option() -> None:
     with pytest.raises(InvalidParameterError, match="unknown StarTracker option"):
         StarTracker(radius=3.0)
