@@ -20,7 +20,7 @@ the first seed (from the dataset's base seed upwards) whose stars are at least
 centroid by ~1 px and would make the truth protocols meaningless).  Everything is
 deterministic.
 
-``quick`` datasets (CI): 48×48 px, 2 stars, 3.7 s of data (1110 / 740 frames): after the
+``quick`` datasets (CI): 48×48 px, 2 stars (``paper``: its one star), 3.7 s of data (1110 / 740 frames): after the
 filter's start-up (at most :data:`~starlog.compensate.MAX_BURN_IN_S` = 0.5 s) enough for 32
 samples at 10 Hz, i.e. 16 calibration + 16 scored samples under the ``leakfree`` protocol
 (the compensation needs at least 16).
