@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -18,6 +19,7 @@ from starlog.track import (
     TrackerConfig,
     track_centroids,
 )
+from starlog.track.models import MotionModelConfig
 from starlog.track.state import FrameRows, TrackState
 
 PERIOD_NS = 3_333_333  # 300 Hz
@@ -272,11 +274,55 @@ def test_sigma_floor_applies() -> None:
         ({"max_missed": -1}, "max_missed"),
         ({"gate_probability": 1.5}, "gate probability"),
         ({"sigma_floor": float("inf")}, "sigma_floor"),
+        ({"max_distance": 0.0}, "max_distance"),
+        ({"max_distance": float("nan")}, "max_distance"),
     ],
 )
 def test_config_validation(kw: dict, match: str) -> None:
     with pytest.raises(InvalidParameterError, match=match):
         TrackerConfig(**kw)
+
+
+def _coast_then_jump(**options: float) -> npt.NDArray[np.void]:
+    """A confirmed STATIC track with a large per-frame diffusion coasts 5 frames, then a centroid
+    appears 2.5 px away (a noise peak): the rows of that frame."""
+    motion = MotionModelConfig(q_floor=1.0 * 300.0)  # 1 px per frame at 300 Hz
+    tracker = StarTracker(model="STATIC", motion=motion, confirm_hits=2, max_missed=50, **options)
+    dt = 1_000_000_000 // 300
+    for k in range(3):
+        tracker.update(k * dt, [10.0], [10.0], [0.3], [50.0])
+    for k in range(3, 8):
+        tracker.update(k * dt, [], [], [], [])
+    return tracker.update(8 * dt, [12.5], [10.0], [0.3], [50.0])
+
+
+def test_max_distance_keeps_a_coasting_track_off_noise_peaks() -> None:
+    # without the limit the coasting track's widened gate takes the peak and jumps to it
+    free = _coast_then_jump()
+    assert free["track"].tolist() == [0] and free["measured"].tolist() == [True] and free["x"][0] > 12.0
+    # with it the track stays where its star was, and the peak starts a tentative track
+    held = _coast_then_jump(max_distance=1.5)
+    assert held["track"].tolist() == [0, 1]
+    assert not held["measured"][0] and held["x"][0] == pytest.approx(10.0, abs=1e-9)
+
+
+def test_max_distance_reacquires_a_static_star_after_a_moving_model_coasts() -> None:
+    # a POLYNOMIAL_TREND track fed noisy hits has a velocity and an acceleration; over 57
+    # coasted frames its prediction drifts pixels away, but the star is still where it was
+    # seen: the limit is measured from there, not from the drifting prediction
+    dt = 1_000_000_000 // 300
+    tracker = StarTracker(model="POLYNOMIAL_TREND", confirm_hits=2, max_missed=100, max_distance=1.5)
+    for k in range(5):  # noisy centroids that look like a drift of 0.25 px per frame
+        tracker.update(k * dt, [10.0 + 0.25 * k], [10.0], [0.3], [50.0])
+    for k in range(5, 62):
+        coasted = tracker.update(k * dt, [], [], [], [])
+    assert coasted["x"][0] > 14.0  # the prediction has run away
+    rows = tracker.update(62 * dt, [10.5], [9.9], [0.3], [50.0])
+    assert rows["track"].tolist() == [0] and rows["measured"][0]
+    assert np.hypot(rows["x"][0] - 10.5, rows["y"][0] - 9.9) < 0.5
+    # a noise peak 2 px from where the star was seen is not taken, however wide the gate
+    far = tracker.update(63 * dt, [12.1], [9.9], [0.3], [50.0])
+    assert far["track"].tolist() == [0, 1] and not far["measured"][0]
 
 
 def test_unknown_option() -> None:

@@ -220,7 +220,7 @@ def run_experiment(
     tables_md = _write_tables(summary, out, files)
     files["null_check"] = null_check.write_parquet(summary.null_checks, out / "null_check.parquet").name
     if plot:
-        _write_plots(summary, sweep.series, out, files)
+        _write_plots(summary, sweep.series, out, files, executor)
     files.update({k: v for k, v in _log_files(datasets).items() if (out / v).exists()})
     files["summary"] = "summary.json"
     files["report"] = "report.md"
@@ -257,6 +257,12 @@ def _prepare_output(out: Path, datasets: list[Dataset], *, force: bool) -> None:
                 raise OutputExistsError(p)
 
 
+def _centroid_cost(ds: Dataset) -> int:
+    """A dataset's centroid task cost, in star-frames: the longest tasks are submitted first
+    (longest-processing-time-first), so the workers do not idle at the end of the sweep."""
+    return ds.config.n_frames * ds.config.n_stars
+
+
 class _Sweep:
     """Every task of one experiment, submitted as its inputs become ready.
 
@@ -288,7 +294,7 @@ class _Sweep:
                    dynamic_ncols=True)
         self._pool = pool
         try:
-            for ds in self.datasets.values():
+            for ds in sorted(self.datasets.values(), key=_centroid_cost, reverse=True):
                 self._submit(("centroid", ds.regime, ds.name, ""), simulate_and_centroid,
                              ds.to_dict(),
                              self._path(ds, "sim"), self._path(ds, "centroids"), methods=list(METHODS),
@@ -373,25 +379,35 @@ def _write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) 
     return tables_md
 
 
-def _write_plots(summary: ExperimentSummary, series: dict[str, Any], out: Path, files: dict[str, str]) -> None:
-    """Per regime: Figures 4 and 5, and the trajectory of the brightest star (before/after) per model."""
+def _write_plots(summary: ExperimentSummary, series: dict[str, Any], out: Path, files: dict[str, str],
+                 executor: Executor | None = None) -> None:
+    """Per regime: Figures 4 and 5, and the trajectory of the brightest star (before/after) per model.
+
+    With an ``executor`` the plots are drawn on its workers, in parallel (the same files)."""
     ds_name, method, models, rate = _TRAJECTORY
     window_s = summary.window_s
+    out = out.resolve()  # the workers' working directory may differ
+    jobs: list[tuple[str, Any, tuple[Any, ...], dict[str, Any]]] = []
     for regime in summary.regimes:
         t3 = [r for r in summary.tables["table3"] if r["regime"] == regime]
         f5 = [r for r in summary.tables["figure5"] if r["regime"] == regime]
-        files[f"figure4_{regime}"] = plots.plot_figure4(
-            t3, out / f"figure4_{regime}.png", model=summary.table3_models.get(regime, "STATIC"),
-            label=f"regime {regime}").name
-        files[f"figure5_{regime}"] = plots.plot_figure5(f5, out / f"figure5_{regime}.png").name
+        jobs.append((f"figure4_{regime}", plots.plot_figure4, (t3, out / f"figure4_{regime}.png"),
+                     {"model": summary.table3_models.get(regime, "STATIC"), "label": f"regime {regime}"}))
+        jobs.append((f"figure5_{regime}", plots.plot_figure5, (f5, out / f"figure5_{regime}.png"), {}))
         for m in models:
             key = f"{regime}/{ds_name}/{method}/{m}/{rate:g}Hz/{window_s:g}s" if window_s is not None else ""
             if key not in series:
                 continue
             name = f"trajectory_{regime}_{m.lower()}"
-            files[name] = plots.plot_trajectory(
-                series[key], out / f"{name}.png",
-                title=f"{regime} {ds_name} dataset, {method} centroids, {m} UKF, {rate:g} Hz — brightest star").name
+            jobs.append((name, plots.plot_trajectory, (series[key], out / f"{name}.png"),
+                         {"title": f"{regime} {ds_name} dataset, {method} centroids, {m} UKF, {rate:g} Hz — brightest star"}))
+    if executor is None:
+        for name, fn, args, kwargs in jobs:
+            files[name] = fn(*args, **kwargs).name
+        return
+    futures = [(name, executor.submit(fn, *args, **kwargs)) for name, fn, args, kwargs in jobs]
+    for name, future in futures:
+        files[name] = future.result().name
 
 
 def _log_files(datasets: list[Dataset]) -> dict[str, str]:
@@ -460,7 +476,12 @@ def experiment_command(
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
-    with executor_for(scheduler=scheduler, workers=workers) as executor:
+    import dask
+
+    # A local cluster's workers would sample every task's stack every 10 ms (Dask's statistical
+    # profiler): on these pure-Python tasks that costs as much CPU again as the tasks themselves.
+    with dask.config.set({"distributed.worker.profile.enabled": False}), \
+            executor_for(scheduler=scheduler, workers=workers) as executor:
         if sweep:
             return run_regime_map(output_dir, quick=quick, executor=executor, force=force,
                                   show_progress=show_progress)

@@ -11,8 +11,11 @@ live track. Each frame:
    (:func:`scipy.optimize.linear_sum_assignment`) minimising the total squared Mahalanobis
    distance ``d² = νᵀ (P_pos + R)⁻¹ ν`` over admissible pairs. A pair is admissible when the
    centroid lies within ``association_radius`` px of the predicted position *or* inside the
-   innovation gate (``d²`` below the chi-square(2) threshold of ``gate_probability``). The
-   assignment first maximises the number of admissible pairs, then minimises ``d²``.
+   innovation gate (``d²`` below the chi-square(2) threshold of ``gate_probability``). With
+   ``max_distance`` set, a pair is admissible instead when the centroid lies within that many
+   px of the track's filtered position at its last applied measurement (where its star was
+   last seen), however far the prediction has coasted since. The assignment first maximises
+   the number of admissible pairs, then minimises ``d²``.
 3. **Update** the associated tracks (one batched UKF update). The innovation gate then
    decides: a measurement with ``NIS > threshold`` is a transient outlier, is not applied,
    and the row is flagged ``gated`` (the track coasts on its prediction). Because the
@@ -112,6 +115,14 @@ class TrackerConfig:
     sigma_floor : float
         Smallest measurement uncertainty used, px, > 0 (default 1e-3): centroids reporting
         ``sigma`` below it (e.g. 0 for a method without an uncertainty) use the floor.
+    max_distance : float, optional
+        When set, a centroid may be associated to a track only within this distance, px, of
+        the track's filtered position at its last applied measurement, replacing the window
+        and the gate (default None). A coasting track's position variance grows every frame,
+        and with it the innovation gate, while a moving model's prediction drifts on its
+        velocity; with a faint star of a static field detected in only some frames, either
+        would let the track jump to a noise peak pixels away and follow it, or lose its star.
+        The limit keeps such a track where its star was.
     """
 
     model: MotionModel | str = MotionModel.STATIC
@@ -123,6 +134,7 @@ class TrackerConfig:
     max_missed: int = 10
     max_gated: int = 5
     sigma_floor: float = 1e-3
+    max_distance: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "model", MotionModel.parse(self.model))
@@ -152,6 +164,13 @@ class TrackerConfig:
                     f"TrackerConfig.{name} must be an integer >= {low}, got {value!r}."
                 )
             object.__setattr__(self, name, int(value))
+        if self.max_distance is not None:
+            value = self.max_distance
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) or not (
+                    math.isfinite(value) and value > 0):
+                raise InvalidParameterError(
+                    f"TrackerConfig.max_distance must be None or a finite number > 0, got {value!r}."
+                )
 
 
 class _Centroids(NamedTuple):
@@ -282,7 +301,12 @@ class StarTracker:
         cc = tracks.P[:, 1, 1][:, None] + c.var[None, :]
         d2 = (cc * nx * nx - 2.0 * b * nx * ny + a * ny * ny) / (a * cc - b * b)
         r2 = self.config.association_radius**2
-        ok = ((nx * nx + ny * ny) <= r2) | (d2 <= self._threshold)
+        if self.config.max_distance is None:
+            ok = ((nx * nx + ny * ny) <= r2) | (d2 <= self._threshold)
+        else:  # only near where the star was last seen, however far the prediction has coasted
+            ax = c.x[None, :] - tracks.anchor[:, 0][:, None]
+            ay = c.y[None, :] - tracks.anchor[:, 1][:, None]
+            ok = (ax * ax + ay * ay) <= self.config.max_distance**2
         if not ok.any():
             return _NO_PAIRS
         big = 1e3 * (float(d2[ok].max()) + 1.0)
@@ -321,6 +345,7 @@ class StarTracker:
             ok = ti[res.applied]
             tracks.hits[ok] += 1
             tracks.last_time[ok] = t
+            tracks.anchor[ok] = tracks.x[ok, :2]
             tracks.sums[ok] += rows.meas[ok][:, [3, 0, 1]]
         rows.gated = associated & ~rows.measured
         return rows, associated

@@ -55,6 +55,7 @@ class TrackState(_Columns):
     first_time: IntArray  # log_time of birth, ns
     last_time: IntArray  # log_time of the last applied measurement, ns
     sums: Array  # (n, 3): flux, x, y summed over applied measurements
+    anchor: Array  # (n, 2): x, y of the filtered position at the last applied measurement
 
     def __len__(self) -> int:
         return int(self.ids.size)
@@ -67,7 +68,7 @@ class TrackState(_Columns):
 
         return cls(ids=ints(), x=np.zeros((0, d)), P=np.zeros((0, d, d)), hits=ints(), missed=ints(),
                    coast=ints(), gated_streak=ints(), age=ints(), gated=ints(), first_time=ints(),
-                   last_time=ints(), sums=np.zeros((0, 3)))
+                   last_time=ints(), sums=np.zeros((0, 3)), anchor=np.zeros((0, 2)))
 
     @classmethod
     def born(cls, ids: IntArray, x: Array, P: Array, log_time: int, sums: Array) -> TrackState:
@@ -80,7 +81,7 @@ class TrackState(_Columns):
         return cls(ids=ids, x=x, P=P, hits=np.ones(k, dtype=np.int64), missed=zeros(), coast=zeros(),
                    gated_streak=zeros(), age=zeros(), gated=zeros(),
                    first_time=np.full(k, log_time, dtype=np.int64),
-                   last_time=np.full(k, log_time, dtype=np.int64), sums=sums)
+                   last_time=np.full(k, log_time, dtype=np.int64), sums=sums, anchor=x[:, :2].copy())
 
 
 @dataclass
