@@ -476,12 +476,7 @@ def experiment_command(
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
-    import dask
-
-    # A local cluster's workers would sample every task's stack every 10 ms (Dask's statistical
-    # profiler): on these pure-Python tasks that costs as much CPU again as the tasks themselves.
-    with dask.config.set({"distributed.worker.profile.enabled": False}), \
-            executor_for(scheduler=scheduler, workers=workers) as executor:
+    with executor_for(scheduler=scheduler, workers=workers) as executor:
         if sweep:
             return run_regime_map(output_dir, quick=quick, executor=executor, force=force,
                                   show_progress=show_progress)
