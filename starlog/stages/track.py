@@ -233,13 +233,13 @@ def _track_models(configs: dict[MotionModel, TrackerConfig], source: str, spools
 
 
 def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: str, n_frames: int,
-                  pool: Executor | None, *, workers: int, show_progress: bool) -> None:
+                  pool: Executor | None, *, show_progress: bool) -> None:
     """Pass 3: encode every model's rows (blocks in worker processes when there is a pool) and
     write them frame by frame, the models of one frame in order."""
     n_blocks = -(-n_frames // BLOCK_FRAMES)
     items = [(run.spool, run.offsets[block], method, m.value, run.brightest)
              for block in range(n_blocks) for m, run in runs.items()]
-    encoded = (ordered_map(pool, _encode_block, items, window=2 * max(len(runs), workers)) if pool
+    encoded = (ordered_map(pool, _encode_block, items, window=2 * len(runs)) if pool
                else (_encode_block(*item) for item in items))
     channels = [out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
                 for m in runs]
@@ -310,9 +310,8 @@ def track_log(
     motion : dict, optional
         :class:`~starlog.track.MotionModelConfig` fields (process-noise intensities).
     workers : int
-        Processes tracking the models (one model at a time each; a single model is tracked in this
-        process) and encoding the messages, and threads compressing the output's chunks. The
-        output does not depend on it.
+        Processes tracking the models (at most one per model; with several, they also encode
+        the messages) and threads compressing the output's chunks. The output does not depend on it.
     start, end : str or int, optional
         Only the range ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the centroid
         channel; :mod:`starlog.io.timerange`): the output holds that range of every channel.
@@ -324,14 +323,15 @@ def track_log(
     parameters = {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
                   "motion": dict(motion or {})}
     summary = TrackSummary(method=method)
+    processes = min(workers, len(chosen))
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force,
                     compression=compression, workers=workers) as (log, out), \
-            _spools(chosen, Path(output_path), shared=workers > 1) as spools, \
-            (process_pool(workers, preload=["starlog.stages.track"]) if workers > 1 else nullcontext()) as pool:
+            _spools(chosen, Path(output_path), shared=processes > 1) as spools, \
+            (process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else nullcontext()) as pool:
         summary.frames = _spool_centroids(log, source, spools.centroids, show_progress=show_progress)
         summary.channel_messages = check_messages_read(log, source, summary.frames)
-        runs = _track_models(configs, source, spools, pool if len(chosen) > 1 else None)
-        _write_tracks(out, runs, method, summary.frames, pool, workers=workers, show_progress=show_progress)
+        runs = _track_models(configs, source, spools, pool)
+        _write_tracks(out, runs, method, summary.frames, pool, show_progress=show_progress)
     for m, run in runs.items():
         summary.brightest[m.value] = run.brightest
         summary.tracks[m.value] = run.tracks
