@@ -234,7 +234,7 @@ def centroid_log(
 
     extract = _Extractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options, epsf=epsf,
                          hot_pixels=hot_map)
-    phase = _phase_correction_for(input_path, topic, extract, phase_correction)
+    phase = _phase_correction_for(input_path, topic, extract, phase_correction, show_progress=show_progress)
     if phase is not None:
         extract = replace(extract, phase=phase.active())
         summary.phase_correction = digest_params["phase_correction"] = phase.record()
@@ -376,14 +376,14 @@ class _PhaseCorrection:
 
 
 def _phase_correction_for(path: str | os.PathLike[str], topic: str, extract: _Extractor,
-                          spec: str | os.PathLike[str] | None) -> _PhaseCorrection | None:
+                          spec: str | os.PathLike[str] | None, *, show_progress: bool = False) -> _PhaseCorrection | None:
     """The phase calibrations ``spec`` asks for: learnt from the log (``"auto"``), read from a file, or none."""
     if spec is None or (isinstance(spec, str) and spec == "off"):
         return None
     methods = [m.value for m in extract.methods]
     if isinstance(spec, str) and spec == "auto":
         with _opencv_threads(1), LogReader(path) as log:
-            samples, frames = _phase_samples(log, topic, extract)
+            samples, frames = _phase_samples(log, topic, extract, show_progress=show_progress)
         calibrations, declined = {}, {}
         for m in methods:
             try:
@@ -400,7 +400,8 @@ def _phase_correction_for(path: str | os.PathLike[str], topic: str, extract: _Ex
     return _PhaseCorrection(source, calibrations, declined, notes)
 
 
-def _phase_samples(log: LogReader, topic: str, extract: _Extractor) -> tuple[dict[str, tuple[Any, Any, Any]], int]:
+def _phase_samples(log: LogReader, topic: str, extract: _Extractor, *,
+                   show_progress: bool = False) -> tuple[dict[str, tuple[Any, Any, Any]], int]:
     """Per method: (x, y, sigma) of the usable stars of the log's first frames, pooled; and the frames read.
 
     Frames are read while they bring new distinct stars (:func:`distinct_samples`: a drifting
@@ -411,7 +412,9 @@ def _phase_samples(log: LogReader, topic: str, extract: _Extractor) -> tuple[dic
     seen: set[tuple[int, int]] = set()
     recent: list[int] = []
     frames = 0
-    for index, _, image in log.frames(topic, on_bad=lambda skipped: None):
+    frames_read = log.frames(topic, on_bad=lambda skipped: None)
+    for index, _, image in progress(frames_read, total=min(PHASE_MAX_FRAMES, log.channel(topic).message_count),
+                                    description="phase calibration", enabled=show_progress):
         if index >= PHASE_MAX_FRAMES:
             break
         _, centroids = extract.centroids(image)
