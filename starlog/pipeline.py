@@ -22,7 +22,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from starlog.compensate import MIN_SAMPLES, decimation_indices
 from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.io.reader import LogReader
 from starlog.io.stack import StackedLog
 from starlog.io.timerange import TimeRange
 from starlog.stages.centroid import centroid_log
@@ -212,8 +214,31 @@ def run_pipeline(
     frame_topic, options = _frame_channel(config)
     with sliced_stack(input_path, output, TimeRange.parse(start, end), frame_topic, options,
                       compression=compression) as stack:
+        _check_long_enough(stack, config, frame_topic, options)
         _run_steps(stack, steps, output, result, force=force, on_stage=on_stage)
     return result
+
+
+def _check_long_enough(stack: StackedLog, config: PipelineConfig, frame_topic: Any, options: dict[str, Any]) -> None:
+    """Fail before any stage runs when a ``[compensate]`` rate would leave fewer samples than the error
+    decomposition needs under any protocol (:data:`~starlog.compensate.MIN_SAMPLES`), rather than after the
+    other stages' work. (The leak-free protocol needs twice as many; the compensate stage checks that.)"""
+    if config.compensate is None:
+        return
+    with LogReader(stack) as log:
+        channel = log.channel(frame_topic(log, options))
+    native = channel.rate_hz
+    for target in sorted(float(r) for r in config.compensate["rates"]):
+        if native <= 0 or not 0 < target <= native:
+            continue  # the compensate stage says what is wrong with such a rate
+        n = decimation_indices(channel.message_count, native_rate=native, target_rate=target).size
+        if n < MIN_SAMPLES:
+            span = (channel.last_log_time - channel.first_log_time) * 1e-9
+            raise InvalidParameterError(
+                f"{config.source}: [compensate] at {target:g} Hz would keep {n} samples of the "
+                f"{channel.message_count} messages ({span:.2f} s) on {channel.topic}; the error decomposition needs "
+                f"{MIN_SAMPLES} ({(MIN_SAMPLES - 1) / target:.2f} s at {target:g} Hz). Give a longer log or range, "
+                "or higher rates in [compensate].")
 
 
 def _run_steps(stack: StackedLog, steps: list[tuple[str, Step]], output: Path, result: PipelineResult, *,

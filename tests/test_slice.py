@@ -135,3 +135,15 @@ def test_run_slices_once_and_equals_the_stages_one_by_one(sim_log: Path, tmp_pat
         ranges = [p.parameters.get("range") for p in log.provenance()]
     assert ranges[0] is None and ranges[1]["start"] == "frame:3" and ranges[2] is None
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cen.mcap", "run.mcap", "trk.mcap"]
+
+
+def test_run_refuses_a_compensate_rate_too_low_for_the_range_before_any_stage(long_log: Path,
+                                                                             tmp_path: Path) -> None:
+    stages = {"centroid": {"methods": ["MOMENT"]}, "track": {"methods": ["MOMENT"], "models": ["STATIC"]}}
+    config = PipelineConfig.from_dict({**stages, "compensate": {"rates": [50, 10]}})
+    with pytest.raises(InvalidParameterError, match=r"at 10 Hz would keep 10 samples .* needs 16"):
+        run_pipeline(long_log, tmp_path / "run.mcap", config)  # 96 frames at 100 Hz: 0.95 s
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no output, no sidecar left behind
+    config = PipelineConfig.from_dict({**stages, "compensate": {"rates": [50]}})
+    with pytest.raises(InvalidParameterError, match="at 50 Hz would keep 13 samples of the 26 messages"):
+        run_pipeline(long_log, tmp_path / "run.mcap", config, start="frame:70")
