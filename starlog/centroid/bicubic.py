@@ -2,10 +2,12 @@
 
 The window is first smoothed with the noise-optimal Gaussian (see
 :func:`starlog.centroid._stamps.optimal_smoothing`), then the continuous bicubic surface through
-its pixels is maximised with the analytic gradient of the Keys kernel: each axis in turn is
-solved for a zero of the gradient by the Illinois false-position method in a +-1 px bracket
-(two rounds; the surface's second derivative jumps at the pixel centres, which stalls Newton
-steps), so the result is not limited by any interpolation grid step.
+its pixels is maximised one axis at a time (two rounds) inside a +-1 px bracket.  Along one axis
+the surface is a cubic polynomial between two pixel centres (the Keys kernel with a = -0.5 is
+Catmull-Rom), so its gradient is a quadratic whose zeros are solved in closed form, interval by
+interval: the result is exact, not limited by any interpolation grid step or iteration count.
+(Newton steps on the whole surface stall because its second derivative jumps at the pixel
+centres.)
 """
 
 from __future__ import annotations
@@ -47,8 +49,53 @@ def _keys_value_or_slope(t: F64, slope: bool) -> F64:
                     np.where(in2, 3 * _A * a**2 - 10 * _A * a + 8 * _A, 0.0)) * np.sign(t)
 
 
+def _clamp(v: npt.NDArray[np.generic], lo: float, hi: float) -> npt.NDArray[np.generic]:
+    """``np.clip`` without its per-call overhead (this runs a few times per star and axis)."""
+    return np.minimum(np.maximum(v, lo), hi)
+
+
+def _line_coefficients(q: F64) -> tuple[F64, F64, F64, F64]:
+    """Cubic ``c0 + c1 u + c2 u² + c3 u³`` of the Catmull-Rom curve through ``q[..., 0:4]`` (samples at
+    -1, 0, 1, 2) for ``u`` in [0, 1]: the Keys (a = -0.5) interpolation between samples 1 and 2."""
+    q0, q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return q1, 0.5 * (q2 - q0), q0 - 2.5 * q1 + 2.0 * q2 - 0.5 * q3, -0.5 * q0 + 1.5 * q1 - 1.5 * q2 + 0.5 * q3
+
+
+def _maxima_in_unit(c1: F64, c2: F64, c3: F64) -> F64:
+    """The zeros of the cubic's slope ``c1 + 2 c2 u + 3 c3 u²`` in [0, 1] that are maxima, stacked on a
+    new last axis of length 2 (NaN where none): a zero is a maximum where the slope falls through it."""
+    a, b, c = 3.0 * c3, 2.0 * c2, c1
+    with np.errstate(all="ignore"):
+        disc = b * b - 4.0 * a * c
+        root = np.sqrt(np.where(disc >= 0, disc, np.nan))
+        # the numerically stable pair: q = -(b + sign(b) sqrt(disc)) / 2; roots q / a and c / q
+        qq = -0.5 * (b + np.where(b >= 0, root, -root))
+        linear = np.abs(a) <= 1e-12 * (np.abs(b) + np.abs(c) + 1e-300)
+        u = np.stack([np.where(linear, -c / b, qq / a), np.where(linear, np.nan, c / qq)], axis=-1)
+    falling = (b[..., None] + 2.0 * a[..., None] * u) < 0
+    return np.where(falling & (u >= 0.0) & (u <= 1.0), u, np.nan)
+
+
+def _line_maximum(values: F64, c: F64, lo: F64, hi: F64) -> F64:
+    """Coordinate of the highest maximum of the Keys interpolation of each row of ``values`` (n, w)
+    within [lo, hi]; ``c`` where there is none."""
+    n, w = values.shape
+    # a 2 px bracket meets at most three unit intervals
+    k = _clamp(np.floor(lo).astype(np.intp)[:, None] + np.arange(3)[None, :], 1, w - 3)  # (n, 3)
+    q = values[np.arange(n)[:, None, None], k[:, :, None] + np.arange(-1, 3)[None, None, :]]  # (n, 3, 4)
+    c0, c1, c2, c3 = (v[..., None] for v in _line_coefficients(q))
+    u = _maxima_in_unit(c1[..., 0], c2[..., 0], c3[..., 0])  # (n, 3, 2)
+    v = k[:, :, None] + u
+    value = c0 + u * (c1 + u * (c2 + u * c3))
+    inside = np.isfinite(u) & (v >= lo[:, None, None]) & (v <= hi[:, None, None])
+    value = np.where(inside, value, -np.inf).reshape(n, -1)
+    best = np.argmax(value, axis=1)
+    found = np.isfinite(value[np.arange(n), best])
+    return np.where(found, v.reshape(n, -1)[np.arange(n), best], c)
+
+
 def bicubic_peak(
-    data: F64, st: Stamps, *, smooth_sigma: F64, iterations: int = 20, rounds: int = 2, reach: int = 2
+    data: F64, st: Stamps, *, smooth_sigma: F64, rounds: int = 2, reach: int = 2
 ) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Continuous maximum of the bicubic surface, offsets from the window centre (px)."""
     sm = smooth(np.where(st.valid, data, 0.0), smooth_sigma)
@@ -57,56 +104,43 @@ def bicubic_peak(
     iy, ix = peak_pixel(sm, reach)
     x = ix.astype(np.float64)
     y = iy.astype(np.float64)
-    ar = np.arange(n)
     ok = np.ones(n, bool)
-    off = np.arange(-1, 3)
 
-    def grad(x: F64, y: F64, axis: int) -> F64:
-        """d/dx (axis 0) or d/dy (axis 1) of the bicubic surface at (x, y)."""
-        x0 = np.clip(np.floor(x).astype(np.intp), 1, w - 3)
-        y0 = np.clip(np.floor(y).astype(np.intp), 1, w - 3)
-        cols = x0[:, None] + off[None, :]
-        rows = y0[:, None] + off[None, :]
-        p = sm[ar[:, None, None], rows[:, :, None], cols[:, None, :]]  # (n, 4, 4)
-        kx = _keys_value_or_slope(x[:, None] - cols, slope=axis == 0)
-        ky = _keys_value_or_slope(y[:, None] - rows, slope=axis == 1)
-        return np.einsum("ni,nij,nj->n", ky, p, kx)
-
-    # the Keys surface's second derivative jumps at the pixel centres, so Newton steps with
-    # the analytic Hessian stall there. Instead each axis in turn is solved for a zero of the
-    # gradient by the Illinois (modified false-position) method inside a +-1 px bracket.
     for _ in range(rounds):
         for axis in (0, 1):
             c = x if axis == 0 else y
-            lo, hi = np.clip(c - 1.0, 1.0, w - 2.0), np.clip(c + 1.0, 1.0, w - 2.0)
-
-            def g_at(v: F64, axis: int = axis) -> F64:
-                return grad(v, y, 0) if axis == 0 else grad(x, v, 1)
-
-            glo, ghi = g_at(lo), g_at(hi)
-            bracket = (glo > 0) & (ghi < 0)
+            other = y if axis == 0 else x
+            lo, hi = _clamp(c - 1.0, 1.0, w - 2.0), _clamp(c + 1.0, 1.0, w - 2.0)
+            line = _values_along(sm, other, axis)
+            slope = _line_slope(line, np.stack([lo, hi], axis=1))
+            bracket = (slope[:, 0] > 0) & (slope[:, 1] < 0)
             ok &= bracket
-            side = np.zeros(n)
-            for _ in range(iterations):
-                with np.errstate(all="ignore"):
-                    m = np.where(bracket, (lo * ghi - hi * glo) / (ghi - glo), c)
-                m = np.where(np.isfinite(m), m, 0.5 * (lo + hi))
-                gm = g_at(m)
-                right = gm > 0  # the root is above m
-                lo = np.where(right, m, lo)
-                glo = np.where(right, gm, glo)
-                hi = np.where(right, hi, m)
-                ghi = np.where(right, ghi, gm)
-                # Illinois: halve the stale end's value when the same end is kept twice
-                ghi = np.where(right & (side > 0), 0.5 * ghi, ghi)
-                glo = np.where(~right & (side < 0), 0.5 * glo, glo)
-                side = np.where(right, 1.0, -1.0)
-                c = m
-                if np.all(hi - lo < 1e-9):
-                    break
+            found = np.where(bracket, _line_maximum(line, c, lo, hi), c)
             if axis == 0:
-                x = np.where(bracket, c, x)
+                x = found
             else:
-                y = np.where(bracket, c, y)
+                y = found
     ok &= (x > 1.0) & (x < w - 2.0) & (y > 1.0) & (y < w - 2.0)
     return x - h, y - h, ok
+
+
+def _values_along(sm: F64, other: F64, axis: int) -> F64:
+    """(n, w) values of the Keys surface on the line through ``other`` (a row coordinate for
+    ``axis`` 0, a column coordinate for ``axis`` 1), at every pixel centre along ``axis``."""
+    n, w, _ = sm.shape
+    o0 = _clamp(np.floor(other).astype(np.intp), 1, w - 3)
+    idx = o0[:, None] + np.arange(-1, 3)[None, :]  # (n, 4)
+    weights = _keys_value_or_slope(other[:, None] - idx, slope=False)
+    ar = np.arange(n)[:, None]
+    lines = sm[ar, idx, :] if axis == 0 else sm[ar, :, idx]  # (n, 4, w) either way
+    return np.einsum("nk,nkw->nw", weights, lines)
+
+
+def _line_slope(values: F64, v: F64) -> F64:
+    """d/dv of the Keys interpolation of each row of ``values`` (n, w) at ``v`` (n, m)."""
+    n, w = values.shape
+    k = _clamp(np.floor(v).astype(np.intp), 1, w - 3)
+    q = values[np.arange(n)[:, None, None], k[..., None] + np.arange(-1, 3)]  # (n, m, 4)
+    _, c1, c2, c3 = _line_coefficients(q)
+    u = v - k
+    return c1 + u * (2.0 * c2 + 3.0 * c3 * u)
