@@ -1,10 +1,11 @@
 """The two simulated "laboratory" datasets of the paper's §3.1, in two regimes (docs/PAPER.md, "Experiments").
 
 Regime ``paper`` (:mod:`~starlog.experiment.paper_regime`, derived from the paper's own numbers
-in docs/PAPER_REGIME.md): one faint, under-sampled star in a dark laboratory (exposure = frame
-period, so the 300 Hz star is fainter), whose uncompensated RMSE is of the paper's size, and
-a tracker that keeps the single-frame scatter and does not follow noise peaks while it coasts.
-Regime ``modern``, described below: a well-sampled PSF at high SNR.
+in docs/PAPER_REGIME.md): one faint star, through the same optics, in a laboratory whose read
+noise and background fix how the star's SNR falls with the exposure (= frame period, so the
+300 Hz star is fainter), whose uncompensated RMSE is of the paper's size, and a tracker that
+keeps the single-frame scatter and does not follow noise peaks.  Regime ``modern``, described
+below: six bright stars.
 
 Regime ``modern``: a static star field seen at 300 Hz (3248 frames) and 200 Hz (3027 frames) by a camera on a
 platform with small perturbations: two sinusoidal vibrations (3.7 Hz, 0.08 px and 17 Hz,
@@ -47,6 +48,7 @@ __all__ = [
     "SIGMA_FLOOR_PX",
     "Dataset",
     "jitter_rms_px",
+    "min_separation",
     "paper_datasets",
     "regime_datasets",
 ]
@@ -97,7 +99,8 @@ def jitter_rms_px(jitter: tuple[Jitter, ...]) -> float:
     return math.sqrt(sum(j.amplitude_px**2 for j in jitter) / 2.0)
 
 
-def _min_separation(config: SimulationConfig) -> float:
+def min_separation(config: SimulationConfig) -> float:
+    """Smallest distance between two stars of ``config``'s field, px (inf for one star)."""
     field = Simulator(config).field
     if field.x.size < 2:
         return math.inf
@@ -109,7 +112,7 @@ def _separated(params: dict[str, Any], base_seed: int) -> SimulationConfig:
     """The configuration with the first seed >= ``base_seed`` whose stars are well separated."""
     for seed in itertools.count(base_seed):
         config = SimulationConfig(**params, seed=seed)
-        if _min_separation(config) >= MIN_SEPARATION_PX:
+        if min_separation(config) >= MIN_SEPARATION_PX:
             return config
     raise AssertionError("unreachable")  # pragma: no cover
 

@@ -17,7 +17,7 @@ from tqdm import tqdm
 from starlog.batch import executor_for
 from starlog.compensate import BurnInSetting, burn_in_label, parse_burn_in
 from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.experiment import null_check, plots, report, tables
+from starlog.experiment import null_check, plots, realisations, report, tables
 from starlog.report.experiment_report import render_experiment_report
 from starlog.report.log_report import write_text_atomic
 from starlog.experiment.datasets import JITTER, REGIMES, SIGMA_FLOOR_PX, Dataset, jitter_rms_px, regime_datasets
@@ -86,6 +86,7 @@ class ExperimentSummary:
     regimes: tuple[str, ...] = REGIMES
     table3_models: dict[str, str] = field(default_factory=dict)
     null_checks: list[dict[str, Any]] = field(default_factory=list)
+    realisations: list[dict[str, Any]] = field(default_factory=list)
     compensation: dict[str, Any] = field(default_factory=dict)
     burn_in: str = "auto"
 
@@ -106,6 +107,7 @@ class ExperimentSummary:
             "files": dict(self.files), "tracks": self.tracks, "headline": self.headline,
             "showcase_check": self.showcase_check, "n_rows": len(self.rows), "regimes": list(self.regimes),
             "table3_models": dict(self.table3_models), "null_checks": self.null_checks,
+            "realisations": self.realisations,
             "compensation": dict(self.compensation), "burn_in": self.burn_in,
         }
 
@@ -219,6 +221,7 @@ def run_experiment(
     files: dict[str, str] = {"results": "results.parquet"}
     tables_md = _write_tables(summary, out, files)
     files["null_check"] = null_check.write_parquet(summary.null_checks, out / "null_check.parquet").name
+    _write_realisations(summary, sweep.realisation_rows, out, files)
     if plot:
         _write_plots(summary, sweep.series, out, files, executor)
     files.update({k: v for k, v in _log_files(datasets).items() if (out / v).exists()})
@@ -279,6 +282,7 @@ class _Sweep:
         self.track_results: list[dict[str, Any]] = []
         self.showcases: list[dict[str, Any]] = []
         self.null_results: list[list[dict[str, Any]]] = []
+        self.realisation_rows: list[dict[str, Any]] = []
         self.series: dict[str, Any] = {}
         self.best_models: dict[str, str] = {}
         self._none_rows: dict[str, dict[str, list[dict[str, Any]]]] = {}
@@ -289,7 +293,8 @@ class _Sweep:
 
     def run(self, pool: Any, *, show_progress: bool) -> None:
         regimes = sorted({d.regime for d in self.datasets.values()})
-        n_tasks = len(self.datasets) * (2 + len(METHODS)) + len(regimes)
+        extra = self._realisation_tasks()
+        n_tasks = len(self.datasets) * (2 + len(METHODS)) + len(regimes) + len(extra)
         bar = tqdm(total=n_tasks, desc="experiment", unit="run", disable=None if show_progress else True,
                    dynamic_ncols=True)
         self._pool = pool
@@ -304,6 +309,9 @@ class _Sweep:
                 self._submit(("null", regime, first.name, ""), null_check.run_null_check, first.to_dict(),
                              str(self.logs), compensation=self.compensation, window_s=self.window_s,
                              burn_in=self.burn_in, force=self.force)
+            for ds, seed in extra:
+                self._submit(("realisation", ds.regime, ds.name, str(seed)), realisations.run_realisation,
+                             ds.to_dict(), seed, str(self.logs), window_s=self.window_s, burn_in=self.burn_in)
             while self._futures:
                 done, _ = wait(list(self._futures), return_when=FIRST_COMPLETED)
                 for fut in sorted(done, key=lambda f: self._futures[f]):
@@ -318,6 +326,12 @@ class _Sweep:
             raise
         finally:
             bar.close()
+
+    def _realisation_tasks(self) -> list[tuple[Dataset, int]]:
+        """(dataset, seed) of every extra realisation: the ``paper`` regime's full-size datasets only."""
+        count = 0 if self.quick else realisations.REALISATIONS
+        return [(ds, seed) for ds in self.datasets.values() if ds.regime == "paper"
+                for seed in realisations.realisation_seeds(ds.config, count)]
 
     def _submit(self, key: _Key, fn: Any, *args: Any, **kwargs: Any) -> None:
         self._futures[self._pool.submit(fn, *args, **kwargs)] = key
@@ -342,6 +356,8 @@ class _Sweep:
                 self._none_done(regime, name, result["rows"])
         elif kind == "compensate":
             self.showcases.append(result)
+        elif kind == "realisation":
+            self.realisation_rows.extend(result)
         else:
             self.null_results.append(result)
 
@@ -377,6 +393,16 @@ def _write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) 
         files[f"{name}.parquet"] = f"{name}.parquet"
         files[f"{name}.md"] = f"{name}.md"
     return tables_md
+
+
+def _write_realisations(summary: ExperimentSummary, rows: list[dict[str, Any]], out: Path,
+                        files: dict[str, str]) -> None:
+    """``table2_realisations.parquet`` (every realisation's cells) and the summary beside Table 2."""
+    if not rows:
+        return
+    rows = realisations.sort_records(rows)
+    files["table2_realisations"] = realisations.write_parquet(rows, out / "table2_realisations.parquet").name
+    summary.realisations = realisations.summarise(rows, summary.tables["table2"])
 
 
 def _write_plots(summary: ExperimentSummary, series: dict[str, Any], out: Path, files: dict[str, str],
