@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
-import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from starlog.batch import executor_for
 from starlog.compensate import BurnInSetting, burn_in_label, parse_burn_in
 from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.experiment.parquet import write_rows
 from starlog.experiment import null_check, plots, realisations, report, tables
 from starlog.report.experiment_report import render_experiment_report
 from starlog.report.log_report import write_text_atomic
@@ -472,9 +472,7 @@ def _write_results(rows: list[dict[str, Any]], path: Path) -> None:
     types = {"burn_in_samples": pa.int64(), "rate_hz": pa.float64(), "effective_rate_hz": pa.float64(), "n_samples": pa.int64(),
              "compensated": pa.bool_(), "n_scored": pa.int64(), "rmse_before": pa.float64(),
              "rmse_after": pa.float64(), "effective": pa.float64(), "dominant_frequency_hz": pa.float64()}
-    fields = [pa.field(n, types.get(n, pa.string()), metadata={"description": d}) for n, d in RESULT_FIELDS.items()]
-    table = pa.table({n: [r[n] for r in rows] for n in RESULT_FIELDS}, schema=pa.schema(fields))
-    pq.write_table(table, path, compression="zstd")
+    write_rows(rows, {n: (types.get(n, pa.string()), d) for n, d in RESULT_FIELDS.items()}, path)
 
 
 def experiment_command(

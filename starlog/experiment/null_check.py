@@ -24,11 +24,11 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from starlog.compensate import MAX_BURN_IN_S, protocols_for
 from starlog.compensate.protocols import evaluate
 from starlog.sim import SimulationConfig
+from starlog.experiment.parquet import write_rows
 
 __all__ = ["NULL_FIELDS", "NULL_RATES", "markdown", "run_null_check", "sort_records", "text_lines", "write_parquet"]
 
@@ -123,11 +123,7 @@ def sort_records(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def write_parquet(rows: Sequence[dict[str, Any]], path: str | Path) -> Path:
     """The null-check rows as zstd Parquet (:data:`NULL_FIELDS`)."""
-    fields = [pa.field(n, t, metadata={"description": d}) for n, (t, d) in NULL_FIELDS.items()]
-    table = pa.table({n: [r[n] for r in rows] for n in NULL_FIELDS}, schema=pa.schema(fields))
-    path = Path(path)
-    pq.write_table(table, path, compression="zstd")
-    return path
+    return write_rows(rows, NULL_FIELDS, path)
 
 
 def markdown(rows: Sequence[dict[str, Any]]) -> str:

@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from starlog.compensate import MAX_BURN_IN_S, BurnInSetting
+from starlog.experiment.parquet import write_rows
 from starlog.experiment import paper_tables
 from starlog.experiment.datasets import MIN_SEPARATION_PX, min_separation
 from starlog.sim import SimulationConfig
@@ -125,11 +125,7 @@ def summarise(rows: Sequence[dict[str, Any]], table2: Sequence[dict[str, Any]]) 
 
 def write_parquet(rows: Sequence[dict[str, Any]], path: str | Path) -> Path:
     """The realisation rows as zstd Parquet (:data:`REALISATION_FIELDS`)."""
-    fields = [pa.field(n, t, metadata={"description": d}) for n, (t, d) in REALISATION_FIELDS.items()]
-    table = pa.table({n: [r[n] for r in rows] for n in REALISATION_FIELDS}, schema=pa.schema(fields))
-    path = Path(path)
-    pq.write_table(table, path, compression="zstd")
-    return path
+    return write_rows(rows, REALISATION_FIELDS, path)
 
 
 def _ratio(value: float | None, paper: float | None) -> str:

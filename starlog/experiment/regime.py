@@ -27,11 +27,11 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from starlog.compensate import MotionMode, ScoringProtocol, sampled_rate
 from starlog.errors import OutputExistsError
+from starlog.experiment.parquet import write_rows
 from starlog.experiment.plots import plot_regime_map
 from starlog.experiment.runner import MODELS
 from starlog.io.reader import LogReader
@@ -165,10 +165,7 @@ def _score(series: Any, head: dict[str, Any]) -> list[dict[str, Any]]:
 
 def write_regime_parquet(rows: Sequence[dict[str, Any]], path: str | os.PathLike[str]) -> Path:
     """``regime_map.parquet`` with :data:`REGIME_FIELDS` (descriptions as field metadata)."""
-    fields = [pa.field(n, t, metadata={"description": d}) for n, (t, d) in REGIME_FIELDS.items()]
-    table = pa.table({n: [r[n] for r in rows] for n in REGIME_FIELDS}, schema=pa.schema(fields))
-    pq.write_table(table, path, compression="zstd")
-    return Path(path)
+    return write_rows(rows, REGIME_FIELDS, path)
 
 
 def median_gains(rows: Sequence[dict[str, Any]]) -> dict[tuple[Any, ...], float]:

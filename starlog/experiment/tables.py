@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
-import pyarrow.parquet as pq
 
+from starlog.experiment.parquet import write_rows
 from starlog.experiment import paper_tables
 from starlog.experiment.runner import (
     FIGURE5_RATES,
@@ -134,14 +134,8 @@ def build_table(table: str, rows: Sequence[dict[str, Any]], *, window: str | Non
 
 def write_parquet(rows: Sequence[dict[str, Any]], path: str | Path, *, description: str) -> Path:
     """Write long-format rows as zstd Parquet with :data:`TABLE_FIELDS` (descriptions as field metadata)."""
-    fields = [pa.field(name, dtype, nullable=True, metadata={"description": text})
-              for name, (dtype, text) in TABLE_FIELDS.items()]
-    schema = pa.schema(fields, metadata={"description": description, "reference": paper_tables.PAPER_REFERENCE})
-    columns = {name: [r[name] for r in rows] for name in TABLE_FIELDS}
-    table = pa.table(columns, schema=schema)
-    path = Path(path)
-    pq.write_table(table, path, compression="zstd")
-    return path
+    return write_rows(rows, TABLE_FIELDS, path,
+                      metadata={"description": description, "reference": paper_tables.PAPER_REFERENCE})
 
 
 # ---------------------------------------------------------------------------------------------
