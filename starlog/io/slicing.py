@@ -41,7 +41,7 @@ from starlog.io.reader import LogReader
 from starlog.io.scan import MESSAGE_HEADER, RECORD_HEADER, LooseRun, chunk_record, iter_records, read_loose
 from starlog.io.stack import StackedLog
 from starlog.io.timerange import ResolvedRange
-from starlog.io.writer import IMAGE_ZSTD_LEVEL, LIBRARY, ZSTD_LEVEL, LogWriter, _PendingChunk, _compress
+from starlog.io.writer import LIBRARY, LogWriter, _PendingChunk, _compress
 
 __all__ = ["SliceReport", "TopicSelection", "check_topics_exist", "frame_time_lookup", "slice_log"]
 
@@ -207,8 +207,7 @@ class _SliceWriter(LogWriter):
         """Write message records (``data``, their bytes as read) as one new chunk, compressed as this log's."""
         times = [t for records in indices.values() for t, _ in records]
         future: Future[tuple[bytes, int]] = Future()
-        level = IMAGE_ZSTD_LEVEL if any(self._holds_images(cid) for cid in indices) else ZSTD_LEVEL
-        future.set_result(_compress(data, self.compression, level))
+        future.set_result(_compress(data, self.compression))
         self._write_chunk(_PendingChunk(future, len(data), indices, min(times), max(times)))
         for cid, records in indices.items():
             self.count(cid, len(records), min(t for t, _ in records), max(t for t, _ in records))
