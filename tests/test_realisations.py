@@ -35,6 +35,29 @@ def test_one_realisation_scores_table2s_cells_and_leaves_no_log(tmp_path: Path):
     assert pq.read_table(path).column("rmse").to_pylist() == [r["rmse"] for r in rows]
 
 
+def test_the_run_is_as_long_as_a_numeric_burn_in_and_the_window_need(tmp_path: Path):
+    ds = paper_datasets(quick=True, regime="paper")[1]  # 200 Hz, 740 frames = 3.7 s
+    rows = realisations.run_realisation(ds.to_dict(), ds.config.seed + 1, str(tmp_path), window_s=1.0, burn_in=1.5)
+    assert [r["n_samples"] for r in rows] == [5, 10]  # 1.5 s skipped, then the whole 1 s window
+
+
+def test_the_tables_seed_reproduces_the_tables_cell(tmp_path: Path):
+    from starlog.experiment.runner import simulate_and_centroid, track_and_score
+
+    ds = paper_datasets(quick=True, regime="paper")[1]
+    d = ds.to_dict()
+    simulate_and_centroid(d, str(tmp_path / "s.mcap"), str(tmp_path / "c.mcap"), methods=["NONE", "GAUSSFIT"])
+    result = track_and_score(str(tmp_path / "c.mcap"), str(tmp_path / "t.mcap"), dataset=ds.name, regime="paper",
+                             method="NONE", models=["STATIC", "RANDOM_WALK"], tracker=ds.tracker, motion=ds.motion,
+                             rates_uncompensated=[5.0, 10.0], rates_compensated=[], window_s=3.0)
+    table = {r["rate_hz"]: r["rmse_before"] for r in result["rows"] if r["model"] == "STATIC"
+             and r["window"] == "3s" and r["burn_in"] == "skipped" and r["protocol"] == "paper"}
+    work = tmp_path / "work"
+    work.mkdir()
+    again = realisations.run_realisation(d, ds.config.seed, str(work), window_s=3.0)
+    assert {r["rate_hz"]: r["rmse"] for r in again} == table
+
+
 def _row(ds: str, seed: int, rate: float, rmse: float) -> dict:
     return {"regime": "paper", "dataset": ds, "seed": seed, "rate_hz": rate, "n_samples": 30, "rmse": rmse}
 
@@ -56,7 +79,16 @@ def test_summary_against_hand_worked_numbers():
     assert math.isnan(out[1]["se"]) and out[1]["single_run"] is None
     md = realisations.markdown(out)
     assert "| 0.5600 | 1.25 ✗ |" in md  # the single run, outside ±15 %
-    assert "| 0.4500 ± 0.0289 | 1.00 |" in md
+    assert "| 3 | 0.4500 ± 0.0289 | 1.00 |" in md
+
+
+def test_a_realisation_that_lost_its_star_is_counted_and_left_out_of_the_mean():
+    rows = [_row("300Hz", 301, 5.0, 0.40), _row("300Hz", 302, 5.0, 0.50),
+            {**_row("300Hz", 303, 5.0, 0.90), "n_samples": 12},  # its track ended early
+            {**_row("300Hz", 304, 5.0, 0.0), "n_samples": 0, "rmse": None}]  # no track at all
+    (cell,) = realisations.summarise(rows, [], window_s=6.0)
+    assert (cell["n"], cell["short"]) == (2, 2) and cell["mean"] == pytest.approx(0.45)
+    assert "| 2 (2 lost the star, left out) |" in realisations.markdown([cell])
 
 
 def test_the_full_run_adds_realisations_for_the_paper_regime_only(tmp_path: Path):

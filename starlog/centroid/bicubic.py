@@ -22,6 +22,8 @@ __all__ = ["bicubic_peak", "keys_kernel"]
 
 F64 = npt.NDArray[np.float64]
 _A = -0.5
+#: How far outside [0, 1] a zero of the slope still counts as the interval's (rounding of the quadratic).
+_EDGE = 1e-9
 
 
 def keys_kernel(t: F64) -> tuple[F64, F64, F64]:
@@ -73,7 +75,9 @@ def _maxima_in_unit(c1: F64, c2: F64, c3: F64) -> F64:
         linear = np.abs(a) <= 1e-12 * (np.abs(b) + np.abs(c) + 1e-300)
         u = np.stack([np.where(linear, -c / b, qq / a), np.where(linear, np.nan, c / qq)], axis=-1)
     falling = (b[..., None] + 2.0 * a[..., None] * u) < 0
-    return np.where(falling & (u >= 0.0) & (u <= 1.0), u, np.nan)
+    # a maximum on a pixel centre may come out a rounding error outside both intervals it ends
+    inside = (u >= -_EDGE) & (u <= 1.0 + _EDGE)
+    return np.where(falling & inside, np.minimum(np.maximum(u, 0.0), 1.0), np.nan)
 
 
 def _line_maximum(values: F64, c: F64, lo: F64, hi: F64) -> F64:

@@ -94,8 +94,9 @@ class ExperimentSummary:
     def window_note(self) -> str:
         if self.window_s is None:
             return "every decimated sample (whole sequence)"
+        short = " (fewer in --quick, whose datasets last 3.7 s)" if self.quick else ""
         return (f"the first {self.window_s:g} s of each decimated sequence (floor({self.window_s:g} s × f + 0.5) "
-                "samples: 60 at 10 Hz, 300 at 50 Hz — the paper's 'Image number'); results.parquet also has "
+                f"samples: 60 at 10 Hz, 300 at 50 Hz — the paper's 'Image number'){short}; results.parquet also has "
                 "every run scored over the whole sequence (window = full)")
 
     def to_dict(self) -> dict[str, Any]:
@@ -307,11 +308,11 @@ class _Sweep:
             for regime in regimes:
                 first = next(d for d in self.datasets.values() if d.regime == regime)
                 self._submit(("null", regime, first.name, ""), null_check.run_null_check, first.to_dict(),
-                             str(self.logs), compensation=self.compensation, window_s=self.window_s,
+                             path_str(self.logs), compensation=self.compensation, window_s=self.window_s,
                              burn_in=self.burn_in, force=self.force)
             for ds, seed in extra:
                 self._submit(("realisation", ds.regime, ds.name, str(seed)), realisations.run_realisation,
-                             ds.to_dict(), seed, str(self.logs), window_s=self.window_s, burn_in=self.burn_in)
+                             ds.to_dict(), seed, path_str(self.logs), window_s=self.window_s, burn_in=self.burn_in)
             while self._futures:
                 done, _ = wait(list(self._futures), return_when=FIRST_COMPLETED)
                 for fut in sorted(done, key=lambda f: self._futures[f]):
@@ -402,7 +403,7 @@ def _write_realisations(summary: ExperimentSummary, rows: list[dict[str, Any]], 
         return
     rows = realisations.sort_records(rows)
     files["table2_realisations"] = realisations.write_parquet(rows, out / "table2_realisations.parquet").name
-    summary.realisations = realisations.summarise(rows, summary.tables["table2"])
+    summary.realisations = realisations.summarise(rows, summary.tables["table2"], window_s=summary.window_s)
 
 
 def _write_plots(summary: ExperimentSummary, series: dict[str, Any], out: Path, files: dict[str, str],

@@ -114,8 +114,8 @@ def _realisations(summary: dict[str, Any]) -> str:
              r["se"], f"{r['min']:.4f}–{r['max']:.4f}"] for r in summary.get("realisations", [])]
     return ("<p>Table 2's STATIC cells (NONE, paper protocol) of the tables' datasets and of the same datasets "
             "simulated again with other seeds: one 6 s window's cell scatters by 7–12 %, so the mean is what the "
-            "conditions predict.</p>"
-            + table(["regime", "dataset", "rate (Hz)", "paper (px)", "tables' run (px)", "realisations",
+            "conditions predict. n: realisations in the mean (those that lost the star are left out).</p>"
+            + table(["regime", "dataset", "rate (Hz)", "paper (px)", "tables' run (px)", "n",
                      "mean (px)", "standard error (px)", "range (px)"], rows))
 
 
