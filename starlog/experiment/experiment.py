@@ -16,11 +16,11 @@ from tqdm import tqdm
 from starlog.batch import executor_for
 from starlog.compensate import BurnInSetting, burn_in_label, parse_burn_in
 from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.experiment.parquet import write_rows
 from starlog.experiment import null_check, plots, realisations, report, tables
 from starlog.report.experiment_report import render_experiment_report
 from starlog.report.log_report import write_text_atomic
 from starlog.experiment.datasets import JITTER, REGIMES, SIGMA_FLOOR_PX, Dataset, jitter_rms_px, regime_datasets
+from starlog.experiment.parquet import write_rows
 from starlog.experiment.regime import RegimeSummary, run_regime_map
 from starlog.experiment.runner import (
     COMPENSATED_RATES,

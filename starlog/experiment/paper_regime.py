@@ -3,8 +3,8 @@
 The paper's uncompensated RMSEs (Table 2: 0.32–0.45 px, "the discrete nature of the star
 points during imaging"; its "minor perturbations" of the platform) are those of a faint star
 whose single-frame centroid scatter the filter passes on.  Each constant below comes from one
-of the paper's numbers or from a rule stated beside it; the derivation, and the alternatives
-measured and dropped, are in docs/PAPER_REGIME.md.  Frame counts, rates, optics (PSF) and
+of the paper's numbers, from a rule stated beside it or is named as a choice; the derivation,
+and the alternatives measured and dropped, are in docs/PAPER_REGIME.md.  Frame counts, rates, optics (PSF) and
 platform perturbation are the ``modern`` regime's.
 """
 
@@ -34,7 +34,8 @@ __all__ = [
 #: Gaussian PSF sigma, px: the ``modern`` regime's optics (the regimes differ in the star and
 #: the camera, not the lens).
 PSF_SIGMA_PX = 1.2
-#: Read noise, e⁻ RMS per pixel and frame.
+#: Read noise, e⁻ RMS per pixel and frame (a choice: a typical scientific CMOS figure; the
+#: background below is set relative to it).
 READ_NOISE_E = 10.0
 #: Background (dark current and stray light) per pixel in one 200 Hz frame, e⁻ (Poisson; it
 #: grows with the exposure, 1 / frame rate).  Fixed by the paper's 300 / 200 Hz Table 2 ratio,
@@ -44,8 +45,8 @@ READ_NOISE_E = 10.0
 BACKGROUND_200HZ_E = 0.855 * READ_NOISE_E**2
 #: The star's flux over the background noise per pixel, F / sigma_bg, at 200 Hz: where the
 #: pipeline's own Table 2 figure (STATIC, NONE, 5/10 Hz, mean over realisations) of the 200 Hz
-#: dataset equals the paper's (0.317–0.323 px).  The 300 Hz star collects 2/3 of the light
-#: (:func:`flux_for`), so its Table 2 figure is a prediction, not a fit.
+#: dataset equals the paper's (0.317–0.323 px), so the 200 Hz cells agree by construction.  The
+#: 300 Hz star collects 2/3 of the light (:func:`flux_for`): its Table 2 figure is the prediction.
 SNR_200HZ = 38.5
 #: The tracker's per-frame position diffusion of every model, px (q_floor · dt = this²): large
 #: against the centroid scatter at this SNR (≈ 0.2–0.35 px per axis), so the filter's gain is
@@ -56,9 +57,10 @@ STEP_DIFFUSION_PX = 1.0
 #: rounded up), px: the scale of the association limit below.
 GATE_SIGMA_PX = 0.35
 #: Largest distance between a track's last measured position and an associated centroid, px:
-#: the 99.99 % chi-square(2) innovation gate (√18.42 = 4.29) of a star known to
-#: ``GATE_SIGMA_PX``.  With a 1 px diffusion per frame the filter's own gate is ≈ 4.5 px wide
-#: and would take the noise peaks around a faint star.
+#: the 99.99 % chi-square(2) gate (√18.42 = 4.29) of the difference of two measurements (√2 ×
+#: ``GATE_SIGMA_PX`` per axis), since that position is itself a measurement.  With a 1 px
+#: diffusion per frame the filter's own gate is ≈ 4.5 px wide and would take the noise peaks
+#: around a faint star.
 MAX_DISTANCE_PX = math.sqrt(18.42) * math.sqrt(2.0) * GATE_SIGMA_PX
 
 #: Simulator settings that differ from the ``modern`` regime (flux and background are per

@@ -2,8 +2,8 @@
 
 A Table 2 cell is the RMS of one 6 s window's 30 (5 Hz) or 60 (10 Hz) samples, so one dataset
 gives it with a sampling spread of 7-12 % (standard deviation over realisations, with a heavy
-upper tail), about half the width of the ±15 % a comparison with the paper's numbers allows; the paper's
-own figures come from one dataset too.  The experiment therefore simulates each ``paper``
+upper tail), not much narrower than the ±15 % a comparison with the paper's numbers allows; the
+paper's own figures come from one dataset too.  The experiment therefore simulates each ``paper``
 regime dataset again with other seeds (:data:`REALISATIONS` of them; none in ``--quick``), runs
 ``NONE`` → ``STATIC`` exactly as the sweep does, and scores Table 2's cells (paper protocol,
 burn-in skipped, the tables' window).  The report shows their mean, standard error and range
@@ -29,7 +29,7 @@ from starlog.experiment.datasets import MIN_SEPARATION_PX, min_separation
 from starlog.sim import SimulationConfig
 from starlog.track import NoTrackError
 
-__all__ = ["REALISATIONS", "REALISATION_FIELDS", "SUMMARY_FIELDS", "markdown", "realisation_seeds",
+__all__ = ["REALISATIONS", "REALISATION_FIELDS", "markdown", "realisation_seeds",
            "run_realisation", "sort_records", "summarise", "write_parquet"]
 
 #: Extra realisations of each ``paper`` regime dataset (full run only).
@@ -50,8 +50,6 @@ REALISATION_FIELDS: dict[str, tuple[pa.DataType, str]] = {
 }
 """Columns of ``table2_realisations.parquet``: name -> (Arrow type, description with unit)."""
 
-SUMMARY_FIELDS: tuple[str, ...] = ("regime", "dataset", "rate_hz", "single_run", "n", "short", "mean", "se", "min",
-                                   "max", "paper")
 
 
 def realisation_seeds(config: SimulationConfig, count: int) -> list[int]:
