@@ -47,7 +47,8 @@ from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod,
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["EFFICIENCY", "estimate_psf_sigma", "extract_stars", "measure_centroids", "window_half_size"]
+__all__ = ["EFFICIENCY", "estimate_psf_sigma", "extract_stars", "measure_centroids", "measure_methods",
+           "window_half_size"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -352,27 +353,70 @@ def measure_centroids(
     ndarray of CENTROID_DTYPE, shape (n,)
         One row per detection, in the detections' order; (0,) when there are none.
     """
+    meth = _check_options(method, gain, read_noise, psf_sigma, weighting)
+    return measure_methods(image, detections, [meth], gain=gain, read_noise=read_noise, psf_sigma=psf_sigma,
+                           window=window, saturation=saturation, debias=debias, weighting=weighting,
+                           fit_psf_sigma=fit_psf_sigma, epsf=epsf, robust=robust)[meth]
+
+
+def measure_methods(image: npt.ArrayLike, detections: npt.NDArray[Any], methods: Iterable[CentroidMethod | str], *,
+                    gain: float = 1.0, read_noise: float | None = None, psf_sigma: float | None = None,
+                    window: int | None = None, saturation: float | None = None, debias: bool = True,
+                    weighting: str = "optimal", fit_psf_sigma: bool = False, epsf: EPSF | None = None,
+                    robust: bool = True) -> dict[CentroidMethod, npt.NDArray[np.void]]:
+    """:func:`measure_centroids` by several methods, ``{method: rows}``: the stars' windows, coarse
+    positions and first fluxes, which do not depend on the method, are prepared once."""
     arr = _check_image(image)
     det = _check_detections(detections)
-    meth = _check_options(method, gain, read_noise, psf_sigma, weighting)
-    n = det.size
-    if n == 0:
-        return empty_centroids()
+    meths = [_check_options(m, gain, read_noise, psf_sigma, weighting) for m in methods]
+    if det.size == 0:
+        return {m: empty_centroids() for m in meths}
     psf = float(psf_sigma) if psf_sigma is not None else estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
-    h = window_half_size(psf, window)
-    if meth is CentroidMethod.PSFFIT and epsf is not None:
-        h = max(2, min(h, epsf.half_size - 1))  # the ePSF covers every pixel of the window at any sub-pixel shift
-    st = _star_stamps(arr, det, h, gain, read_noise, _default_saturation(arr, saturation))
-    dx0, dy0 = np.asarray(det["x"], np.float64) - st.xc, np.asarray(det["y"], np.float64) - st.yc
-    psf_arr = np.full(n, psf)
-    f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64), iterations=1)
     options = {"gain": gain, "weighting": weighting, "debias": debias, "fit_psf_sigma": fit_psf_sigma, "epsf": epsf}
-    measured = _measure(meth, st, dx0, dy0, f0, psf_arr, **options)
-    n_masked = _left_out(st, arr.shape)
+    frames: dict[int, _Frame] = {}
+    out: dict[CentroidMethod, npt.NDArray[np.void]] = {}
+    for meth in meths:
+        h = window_half_size(psf, window)
+        if meth is CentroidMethod.PSFFIT and epsf is not None:
+            h = max(2, min(h, epsf.half_size - 1))  # the ePSF covers every pixel of the window at any sub-pixel shift
+        if h not in frames:
+            frames[h] = _prepare(arr, det, h, psf, gain, read_noise, _default_saturation(arr, saturation))
+        out[meth] = _centroids_of(meth, frames[h], robust=robust, **options)
+    return out
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """What every method starts from: the detections, their windows, the coarse offsets from the
+    window centres, a first flux there, the PSF width per star and the window pixels left out."""
+
+    det: npt.NDArray[Any]
+    st: Stamps
+    dx0: F64
+    dy0: F64
+    f0: F64
+    psf: F64
+    left_out: npt.NDArray[np.int32]
+
+
+def _prepare(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, psf: float, gain: float,
+             read_noise: float | None, saturation: float) -> _Frame:
+    st = _star_stamps(arr, det, h, gain, read_noise, saturation)
+    dx0, dy0 = np.asarray(det["x"], np.float64) - st.xc, np.asarray(det["y"], np.float64) - st.yc
+    psf_arr = np.full(det.size, psf)
+    f0, _ = linear_flux(st, model(st, dx0, dy0, psf_arr), np.asarray(det["flux"], np.float64), iterations=1)
+    return _Frame(det, st, dx0, dy0, f0, psf_arr, _left_out(st, arr.shape))
+
+
+def _centroids_of(meth: CentroidMethod, frame: _Frame, *, robust: bool, **options: Any) -> npt.NDArray[np.void]:
+    """One method's CENTROID_DTYPE rows from a prepared frame (robust re-measurement included)."""
+    st, dx0, dy0, f0, psf = frame.st, frame.dx0, frame.dy0, frame.f0, frame.psf
+    measured = _measure(meth, st, dx0, dy0, f0, psf, **options)
+    n_masked = frame.left_out.copy()
     if robust:
-        measured, st, n_outliers = _remeasure_robust(meth, st, measured, dx0, dy0, f0, psf_arr, **options)
+        measured, st, n_outliers = _remeasure_robust(meth, st, measured, dx0, dy0, f0, psf, **options)
         n_masked += n_outliers
-    return _centroid_table(det, st, _with_fallback(measured, st, dx0, dy0, f0), n_masked)
+    return _centroid_table(frame.det, st, _with_fallback(measured, st, dx0, dy0, f0), n_masked)
 
 
 def _measure(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,
@@ -533,13 +577,9 @@ def extract_stars(
     arr = np.asarray(image)
     if det.size and psf_sigma is None:
         psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
-    out: dict[CentroidMethod, npt.NDArray[np.void]] = {}
-    for m in meths:
-        out[m] = measure_centroids(
-            arr, det, method=m, gain=gain, read_noise=read_noise, psf_sigma=psf_sigma,
-            window=window, saturation=saturation, **dict(centroid_options or {}),
-            **({"epsf": epsf} if epsf is not None else {}),
-        )
+    out = measure_methods(arr, det, meths, gain=gain, read_noise=read_noise, psf_sigma=psf_sigma, window=window,
+                          saturation=saturation, **dict(centroid_options or {}),
+                          **({"epsf": epsf} if epsf is not None else {}))
     return det, out
 
 
