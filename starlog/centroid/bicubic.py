@@ -38,17 +38,11 @@ def keys_kernel(t: F64) -> tuple[F64, F64, F64]:
     return k, d1, d2
 
 
-def _keys_value_or_slope(t: F64, slope: bool) -> F64:
-    """The Keys kernel (``slope`` False) or its first derivative at ``t``: :func:`keys_kernel`'s
-    expressions, one of them only (the peak search needs one per axis and call)."""
+def _keys_value(t: F64) -> F64:
+    """The Keys kernel at ``t`` (:func:`keys_kernel`'s value only: the weights of a line through the window)."""
     a = np.abs(t)
-    in1 = a <= 1
-    in2 = (a > 1) & (a < 2)
-    if not slope:
-        return np.where(in1, (_A + 2) * a**3 - (_A + 3) * a**2 + 1,
-                        np.where(in2, _A * a**3 - 5 * _A * a**2 + 8 * _A * a - 4 * _A, 0.0))
-    return np.where(in1, 3 * (_A + 2) * a**2 - 2 * (_A + 3) * a,
-                    np.where(in2, 3 * _A * a**2 - 10 * _A * a + 8 * _A, 0.0)) * np.sign(t)
+    return np.where(a <= 1, (_A + 2) * a**3 - (_A + 3) * a**2 + 1,
+                    np.where(a < 2, _A * a**3 - 5 * _A * a**2 + 8 * _A * a - 4 * _A, 0.0))
 
 
 def _clamp(v: npt.NDArray[np.generic], lo: float, hi: float) -> npt.NDArray[np.generic]:
@@ -134,7 +128,7 @@ def _values_along(sm: F64, other: F64, axis: int) -> F64:
     n, w, _ = sm.shape
     o0 = _clamp(np.floor(other).astype(np.intp), 1, w - 3)
     idx = o0[:, None] + np.arange(-1, 3)[None, :]  # (n, 4)
-    weights = _keys_value_or_slope(other[:, None] - idx, slope=False)
+    weights = _keys_value(other[:, None] - idx)
     ar = np.arange(n)[:, None]
     lines = sm[ar, idx, :] if axis == 0 else sm[ar, :, idx]  # (n, 4, w) either way
     return np.einsum("nk,nkw->nw", weights, lines)

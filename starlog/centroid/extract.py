@@ -353,10 +353,10 @@ def measure_centroids(
     ndarray of CENTROID_DTYPE, shape (n,)
         One row per detection, in the detections' order; (0,) when there are none.
     """
-    meth = _check_options(method, gain, read_noise, psf_sigma, weighting)
-    return measure_methods(image, detections, [meth], gain=gain, read_noise=read_noise, psf_sigma=psf_sigma,
-                           window=window, saturation=saturation, debias=debias, weighting=weighting,
-                           fit_psf_sigma=fit_psf_sigma, epsf=epsf, robust=robust)[meth]
+    (rows,) = measure_methods(image, detections, [method], gain=gain, read_noise=read_noise, psf_sigma=psf_sigma,
+                              window=window, saturation=saturation, debias=debias, weighting=weighting,
+                              fit_psf_sigma=fit_psf_sigma, epsf=epsf, robust=robust).values()
+    return rows
 
 
 def measure_methods(image: npt.ArrayLike, detections: npt.NDArray[Any], methods: Iterable[CentroidMethod | str], *,
