@@ -6,10 +6,14 @@ Model of pixel (i, j) of a star window, DN above the local background estimate::
     E(u; c, s) = Phi((u - c + 1/2) / s) - Phi((u - c - 1/2) / s)
 
 (the PSF integrated over the pixel's area, Phi the normal CDF). Gauss-Newton with
-Levenberg damping, vectorised over all stars, iteratively re-weighted with the model variance
-``noise^2 + mu_star / gain`` (Poisson + read noise + sky), i.e. a Gaussian approximation of the
-Poisson likelihood, which reaches the Cramer-Rao bound. The uncertainty ``sigma`` is taken from
-the inverse of the normal matrix (the Fisher information) at the solution.
+Levenberg damping, iteratively re-weighted with the model variance ``noise^2 + mu_star / gain``
+(Poisson + read noise + sky), i.e. a Gaussian approximation of the Poisson likelihood, which
+reaches the Cramer-Rao bound. The uncertainty ``sigma`` is taken from the inverse of the normal
+matrix (the Fisher information) at the solution.
+
+:func:`fit_gaussians` runs the fit star by star in compiled code
+(:mod:`starlog.centroid._gaussfit_kernel`); :func:`fit_gaussians_vectorised` is the same fit in
+numpy, vectorised over the stars, kept as the reference the compiled one is tested against.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import numpy.typing as npt
 
 from starlog.centroid._stamps import _ISQ2PI, Stamps, _edges, _profiles
 
-__all__ = ["GaussFitResult", "fit_gaussians"]
+__all__ = ["GaussFitResult", "fit_gaussians", "fit_gaussians_vectorised"]
 
 F64 = npt.NDArray[np.float64]
 _PAIRS = {npar: np.triu_indices(npar) for npar in (3, 4, 5)}
@@ -205,7 +209,42 @@ def fit_gaussians(
     iterations: int = 12,
     tol: float = 1e-4,
 ) -> GaussFitResult:
-    """Fit all stamps at once (see module docstring); ``psf_sigma`` is the start/fixed value."""
+    """Fit every stamp (see module docstring), star by star in compiled code
+    (:mod:`starlog.centroid._gaussfit_kernel`); ``psf_sigma`` is the start/fixed value."""
+    from starlog.centroid._gaussfit_kernel import fit_stars  # numba: imported, and compiled, on first use
+
+    n = st.data.shape[0]
+    cx, cy = np.array(dx0, np.float64), np.array(dy0, np.float64)
+    f = np.maximum(np.asarray(flux0, np.float64), 1.0 * st.noise)
+    b = np.zeros(n)
+    s = np.broadcast_to(np.asarray(psf_sigma, np.float64), (n,)).copy()
+    sig, ferr = np.empty(n), np.empty(n)
+    good_var, active = np.empty(n, bool), np.empty(n, bool)
+    fit_stars(np.ascontiguousarray(st.data, np.float64), np.ascontiguousarray(st.valid, np.float64), st.noise.astype(np.float64),
+              float(st.gain), _edges(st.u), cx, cy, f, b, s, fit_background, fit_sigma, int(iterations), float(tol),
+              sig, ferr, good_var, active)
+    h = st.h
+    ok = active & np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < h - 0.5) & (np.abs(cy) < h - 0.5) & (f > 0)
+    return GaussFitResult(cx, cy, f, ferr, b, s, sig, ok & good_var)
+
+
+def fit_gaussians_vectorised(
+    st: Stamps,
+    dx0: F64,
+    dy0: F64,
+    flux0: F64,
+    psf_sigma: F64 | float,
+    *,
+    fit_sigma: bool = False,
+    fit_background: bool = True,
+    iterations: int = 12,
+    tol: float = 1e-4,
+) -> GaussFitResult:
+    """The same fit vectorised over stars in numpy (the reference the compiled fit is tested against).
+
+    Every star iterates until all have converged, so its result can move by a fraction of ``tol``
+    with the other stars of its frame.
+    """
     n = st.data.shape[0]
     prob = _Problem(st, fit_background, fit_sigma)
     cx, cy = dx0.astype(np.float64).copy(), dy0.astype(np.float64).copy()
