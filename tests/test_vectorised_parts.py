@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -13,7 +14,7 @@ from starlog.centroid._stamps import fisher_sigma, gather_stamps, model, profile
 from starlog.centroid.gaussfit import _Problem, _Profiles, fit_gaussians
 from starlog.centroid.moment import _centre_of_weights
 from starlog.detect import estimate_background
-from starlog.detect.background import _edge_padded
+from starlog.detect.background import Background, _edge_padded
 from starlog.detect.components import find_components
 from starlog.detect.detection import _edge_noise_factor, matched_filter
 
@@ -252,3 +253,25 @@ def test_bicubic_finds_a_maximum_that_sits_on_a_pixel_centre():
         value = keys_kernel(np.array([found])[:, None] - np.arange(9)[None, :])[0] @ values
         misses += bool(value[0] < surface.max() - 1e-9 * max(1.0, abs(surface.max())))
     assert checked > 1000 and misses == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), ny=st.integers(1, 6), nx=st.integers(1, 6), mesh=st.sampled_from([8, 16, 64]),
+       trim_rows=st.integers(0, 7), trim_cols=st.integers(0, 7), k=st.floats(0.5, 10.0))
+def test_pixels_above_the_threshold_as_with_the_full_map(seed, ny, nx, mesh, trim_rows, trim_cols, k):
+    """The compiled comparison decides as a comparison with the resized map, but within float32
+    rounding of the threshold; grids of one row or column and frames not a multiple of the cell
+    size included."""
+    rng = np.random.default_rng(seed)
+    shape = (max(1, ny * mesh - trim_rows), max(1, nx * mesh - trim_cols))
+    level = rng.uniform(90, 110, (ny, nx)).astype(np.float32)
+    noise = rng.uniform(1, 5, (ny, nx)).astype(np.float32)
+    bg = Background(level, noise, mesh, shape, float(np.median(level)), float(np.median(noise)))
+    threshold = bg.map(level, plus=np.float32(k) * noise)
+    image = (threshold + rng.normal(0, 2, shape)).astype(np.float32)
+    image.flat[::50] = threshold.flat[::50]  # exactly at it
+    expected = cv2.compare(image, threshold, cv2.CMP_GT)
+    got = bg.above(image, k)
+    differ = got != expected
+    assert np.all(np.abs(image[differ] - threshold[differ]) <= 1e-5 * np.abs(threshold[differ]))
+    assert image.size < 100 or 0 < np.count_nonzero(expected) < image.size

@@ -47,6 +47,35 @@ def _edge_padded(grid: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     return cv2.copyMakeBorder(np.ascontiguousarray(grid, np.float32), 1, 1, 1, 1, cv2.BORDER_REPLICATE)
 
 
+def _padded_grid(grid: npt.NDArray[np.float32], extrapolate: bool, plus: npt.NDArray[np.float32] | None
+                 ) -> tuple[npt.NDArray[np.float32], int]:
+    """The grid :meth:`Background.map` resizes and the width (in cells) of its ring of ghost cells:
+    1, the ghosts linearly extrapolated (``extrapolate``) or copies of the outer cells, with
+    ``plus`` (a second grid) added with copies; 0 for a grid of one row or column."""
+    g = np.asarray(grid, np.float32)
+    ny, nx = g.shape
+    if ny > 1 and nx > 1:
+        if extrapolate:
+            g = np.vstack([2 * g[:1] - g[1:2], g, 2 * g[-1:] - g[-2:-1]])
+            g = np.hstack([2 * g[:, :1] - g[:, 1:2], g, 2 * g[:, -1:] - g[:, -2:-1]])
+        else:
+            g = _edge_padded(g)
+        return (g if plus is None else g + _edge_padded(np.asarray(plus, np.float32))), 1
+    return (g if plus is None else g + np.asarray(plus, np.float32)), 0
+
+
+def _resize_axis(n: int, cells: int, mesh: int, ring: int) -> tuple[npt.NDArray[np.intp], F64]:
+    """Along one axis of the frame (``n`` px): the grid cell below each pixel and its weight towards the
+    next, as ``cv2.resize`` (INTER_LINEAR, scale ``mesh``) places it on a grid of ``cells`` cells whose
+    first ``ring`` are ghosts (half-pixel centres; clamped to the grid at both ends)."""
+    source = (np.arange(n) + ring * mesh + 0.5) / mesh - 0.5
+    cell = np.floor(source)
+    weight = source - cell
+    low, high = cell < 0, cell >= cells - 1
+    cell = np.where(low, 0, np.where(high, cells - 1, cell)).astype(np.intp)
+    return cell, np.where(low | high, 0.0, weight)
+
+
 @dataclass(frozen=True)
 class Background:
     """Background model of one frame: cell grids, evaluated at full resolution on demand.
@@ -84,23 +113,27 @@ class Background:
         or the outer cells' value (``extrapolate=False``, used for the noise). ``plus`` is a
         second grid added with the outer-value rule (one resize for level + k * noise).
         """
-        g = np.asarray(grid, np.float32)
-        ny, nx = g.shape
-        if ny > 1 and nx > 1:
-            if extrapolate:
-                g = np.vstack([2 * g[:1] - g[1:2], g, 2 * g[-1:] - g[-2:-1]])
-                g = np.hstack([2 * g[:, :1] - g[:, 1:2], g, 2 * g[:, -1:] - g[:, -2:-1]])
-            else:
-                g = _edge_padded(g)
-            if plus is not None:
-                g = g + _edge_padded(np.asarray(plus, np.float32))
-            pad = self.mesh
-        else:
-            if plus is not None:
-                g = g + np.asarray(plus, np.float32)
-            pad = 0
+        g, ring = _padded_grid(grid, extrapolate, plus)
         full = cv2.resize(g, (g.shape[1] * self.mesh, g.shape[0] * self.mesh), interpolation=cv2.INTER_LINEAR)
+        pad = ring * self.mesh
         return full[pad : pad + self.shape[0], pad : pad + self.shape[1]]
+
+    def above(self, image: npt.NDArray[np.float32], k: float) -> npt.NDArray[np.uint8]:
+        """255 where ``image`` exceeds level + ``k`` x noise, else 0 (uint8): a comparison with
+        ``map(mesh_level, plus=k * mesh_noise)`` without making that map (compiled,
+        :mod:`starlog.detect._threshold_kernel`); a pixel within float32 rounding of the
+        threshold may be decided differently."""
+        from starlog.detect._threshold_kernel import mark_above  # numba: imported, and compiled, on first use
+
+        grid, ring = _padded_grid(self.mesh_level, True, np.float32(k) * self.mesh_noise)
+        grid = np.pad(grid, ((0, 1), (0, 1)), mode="edge")  # the cell after the last, for a zero weight
+        row_cell, row_weight = _resize_axis(self.shape[0], grid.shape[0] - 1, self.mesh, ring)
+        col_cell, col_weight = _resize_axis(self.shape[1], grid.shape[1] - 1, self.mesh, ring)
+        b = col_weight.astype(np.float32)
+        columns = np.ascontiguousarray(grid[:, col_cell] * (np.float32(1) - b) + grid[:, col_cell + 1] * b)
+        out = np.empty(self.shape, np.uint8)
+        mark_above(np.ascontiguousarray(image, np.float32), columns, row_cell, row_weight, out)
+        return out
 
     @property
     def level(self) -> npt.NDArray[np.float32]:

@@ -210,8 +210,7 @@ def _foreground(filtered: npt.NDArray[np.float32], bg: Background, filtered_thre
     level plus ``filtered_threshold`` times the noise (both interpolated from the cell grids);
     the opening removes one-pixel bridges and specks.
     """
-    above = cv2.compare(filtered, bg.map(bg.mesh_level, plus=np.float32(filtered_threshold) * bg.mesh_noise),
-                        cv2.CMP_GT)
+    above = bg.above(filtered, filtered_threshold)
     return cv2.morphologyEx(above, cv2.MORPH_OPEN, _CROSS) if opening else above
 
 
