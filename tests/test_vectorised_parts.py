@@ -14,7 +14,7 @@ from starlog.centroid._stamps import fisher_sigma, gather_stamps, model, profile
 from starlog.centroid.gaussfit import _Problem, _Profiles, fit_gaussians
 from starlog.centroid.moment import _centre_of_weights
 from starlog.detect import estimate_background
-from starlog.detect.background import Background, _edge_padded
+from starlog.detect.background import Background, _edge_padded, _fit_planes, _fit_planes_vectorised
 from starlog.detect.components import find_components
 from starlog.detect.detection import _edge_noise_factor, matched_filter
 
@@ -275,3 +275,23 @@ def test_pixels_above_the_threshold_as_with_the_full_map(seed, ny, nx, mesh, tri
     differ = got != expected
     assert np.all(np.abs(image[differ] - threshold[differ]) <= 1e-5 * np.abs(threshold[differ]))
     assert image.size < 100 or 0 < np.count_nonzero(expected) < image.size
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), cells=st.integers(1, 30), m=st.sampled_from([4, 8, 16]),
+       holes=st.floats(0.0, 0.9), clip=st.floats(2.0, 4.0))
+def test_compiled_cell_planes_match_the_vectorised_fit(seed, cells, m, holes, clip):
+    """One clipping iteration keeps the same samples in both (the start decides them), so the
+    planes agree to float32 rounding; cells with too few samples keep their start values."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:m, :m] - (m - 1) / 2
+    level = rng.uniform(50, 500, cells)
+    vals = (level[:, None, None] + rng.uniform(-2, 2, (cells, 1, 1)) * xx + rng.uniform(-2, 2, (cells, 1, 1)) * yy
+            + rng.normal(0, 3, (cells, m, m))).reshape(cells, m * m).astype(np.float32)
+    vals[rng.random(vals.shape) < holes] = np.nan
+    vals[:, 0] += np.float32(200)  # a star's pixel in every cell
+    start_level, start_noise = level + rng.normal(0, 1, cells), rng.uniform(2, 4, cells)
+    got = _fit_planes(vals, start_level, start_noise, 1, clip)
+    want = _fit_planes_vectorised(vals, start_level, start_noise, 1, clip)
+    for a, b in zip(got, want):
+        assert_allclose(a, b, rtol=1e-5, atol=1e-4)

@@ -205,7 +205,21 @@ def _robust_start(cells: npt.NDArray[np.float32]) -> tuple[F64, F64, npt.NDArray
 def _fit_planes(vals: npt.NDArray[np.float32], med: F64, sig: F64, iterations: int,
                 clip_sigma: float) -> tuple[F64, F64, F64, F64]:
     """Sigma-clipped plane (level + x, y slopes) per cell, so that gradients and vignetting do
-    not inflate the noise: level, slopes and residual sigma (not yet corrected for clipping)."""
+    not inflate the noise: level, slopes and residual sigma (not yet corrected for clipping).
+    Compiled (:mod:`starlog.detect._background_kernel`); :func:`_fit_planes_vectorised` is the same
+    fit in numpy, the reference it is tested against."""
+    from starlog.detect._background_kernel import fit_planes  # numba: imported, and compiled, on first use
+
+    level, noise = np.array(med, np.float64), np.array(sig, np.float64)
+    slope_x, slope_y = np.empty_like(level), np.empty_like(level)
+    fit_planes(np.ascontiguousarray(vals, np.float32), level, noise, float(clip_sigma), int(iterations), slope_x,
+               slope_y)
+    return level, slope_x, slope_y, noise
+
+
+def _fit_planes_vectorised(vals: npt.NDArray[np.float32], med: F64, sig: F64, iterations: int,
+                           clip_sigma: float) -> tuple[F64, F64, F64, F64]:
+    """:func:`_fit_planes` vectorised over the cells in numpy."""
     m = int(round(np.sqrt(vals.shape[1])))
     cx = np.tile(np.arange(m, dtype=np.float32) - (m - 1) / 2, m)
     cy = np.repeat(np.arange(m, dtype=np.float32) - (m - 1) / 2, m)
