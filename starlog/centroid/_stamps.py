@@ -178,20 +178,19 @@ def linear_flux(st: Stamps, m: F64, flux0: F64 | None = None, iterations: int = 
 def fisher_sigma(st: Stamps, cx: F64, cy: F64, flux: F64, s: F64 | float) -> F64:
     """Per-axis Cramer-Rao sigma (px) of a star with known flux, PSF and background.
 
-    The derivatives are separable (F ey (x) dex, F dey (x) ex), so each Fisher entry is a row
-    profile against the weights times a column profile: ``I_xx = F^2 sum_i ey_i^2 (w @ dex^2)_i``.
+    ``sqrt((I_xx + I_yy) / 2 / det I)`` of the Fisher information of the centre,
+    ``I_ab = sum_ij w_ij (d mu / d a)(d mu / d b)`` with ``w`` the inverse pixel variance
+    (:func:`variance`) of the model ``mu = F ey (x) ex``; compiled
+    (:func:`starlog.centroid._gaussfit_kernel.fisher_sigmas`). inf where it cannot be inverted.
     """
-    ex, dex, _ = profile_1d(st.u, cx, s, deriv=True)
-    ey, dey, _ = profile_1d(st.u, cy, s, deriv=True)
-    f = np.maximum(flux, 1e-12)
-    w = st.valid / variance(st, f[:, None, None] * (ey[:, :, None] * ex[:, None, :]))
-    wb = w @ np.stack([dex * dex, ex * ex, dex * ex], axis=2)  # (N, W, 3)
-    rows = np.stack([ey * ey, dey * dey, ey * dey], axis=1)  # (N, 3, W)
-    ixx, iyy, ixy = (np.einsum("nkw,nwk->kn", rows, wb) * (f * f)[None, :])
-    det = ixx * iyy - ixy * ixy
-    with np.errstate(all="ignore"):
-        var = 0.5 * (ixx + iyy) / det
-    return np.sqrt(np.where(np.isfinite(var) & (var > 0), var, np.inf))
+    from starlog.centroid._gaussfit_kernel import fisher_sigmas  # numba: imported, and compiled, on first use
+
+    n = cx.shape[0]
+    out = np.empty(n)
+    fisher_sigmas(np.ascontiguousarray(st.valid, np.float64), st.noise.astype(np.float64), float(st.gain),
+                  _edges(st.u), np.asarray(cx, np.float64), np.asarray(cy, np.float64), np.asarray(flux, np.float64),
+                  np.broadcast_to(np.asarray(s, np.float64), (n,)).copy(), out)
+    return out
 
 
 def smooth(data: F64, s: F64) -> F64:
