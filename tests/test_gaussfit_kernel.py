@@ -10,6 +10,7 @@ from numpy.testing import assert_allclose, assert_array_equal
 
 from starlog.centroid._stamps import gather_stamps, model
 from starlog.centroid.gaussfit import fit_gaussians, fit_gaussians_vectorised
+from starlog.errors import InvalidInputError
 
 FIELDS = ("dx", "dy", "flux", "flux_err", "background", "psf_sigma", "sigma", "ok")
 
@@ -29,23 +30,40 @@ def _frame(seed: int, n: int, *, psf: float = 1.3, h: int = 5, holes: int = 30, 
     return stamps, start_x, start_y, rng.uniform(200, 20000, n)
 
 
-@settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 30), fit_sigma=st.booleans(), fit_background=st.booleans())
-def test_compiled_fit_agrees_with_the_vectorised_fit(seed, n, fit_sigma, fit_background):
-    stamps, dx, dy, flux = _frame(seed, n)
-    compiled = fit_gaussians(stamps, dx, dy, flux, 1.3, fit_sigma=fit_sigma, fit_background=fit_background)
-    reference = fit_gaussians_vectorised(stamps, dx, dy, flux, 1.3, fit_sigma=fit_sigma,
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 30), psf=st.sampled_from([0.5, 1.3, 2.5]),
+       fit_sigma=st.booleans(), fit_background=st.booleans())
+def test_compiled_fit_agrees_with_the_vectorised_fit(seed, n, psf, fit_sigma, fit_background):
+    stamps, dx, dy, flux = _frame(seed, n, psf=psf, h=max(3, int(np.ceil(3.5 * psf)) + 1))
+    compiled = fit_gaussians(stamps, dx, dy, flux, psf, fit_sigma=fit_sigma, fit_background=fit_background)
+    reference = fit_gaussians_vectorised(stamps, dx, dy, flux, psf, fit_sigma=fit_sigma,
                                          fit_background=fit_background)
     both = compiled.ok & reference.ok
-    # the two stop at different iterations (a star's own convergence against the slowest star's):
-    # they agree to a fraction of the 1e-4 px step tolerance on every star both fitted
+    # the two stop at different iterations (a star's own convergence against the slowest star's)
     assert np.count_nonzero(compiled.ok != reference.ok) <= max(1, n // 10)
-    tol = 2e-3 if fit_sigma else 2e-4
-    assert_allclose(compiled.dx[both], reference.dx[both], rtol=0, atol=tol)
-    assert_allclose(compiled.dy[both], reference.dy[both], rtol=0, atol=tol)
-    assert_allclose(compiled.flux[both], reference.flux[both], rtol=10 * tol)
-    assert_allclose(compiled.sigma[both], reference.sigma[both], rtol=10 * tol)
-    assert_allclose(compiled.psf_sigma[both], reference.psf_sigma[both], rtol=10 * tol)
+    assert_allclose(compiled.dx[both], reference.dx[both], rtol=0, atol=1e-3)
+    assert_allclose(compiled.dy[both], reference.dy[both], rtol=0, atol=1e-3)
+    assert_allclose(compiled.psf_sigma[both], reference.psf_sigma[both], rtol=0, atol=1e-3)
+    for name in ("flux", "flux_err", "sigma"):
+        assert_allclose(getattr(compiled, name)[both], getattr(reference, name)[both], rtol=1e-2, err_msg=name)
+    assert_allclose(compiled.background[both], reference.background[both], rtol=0, atol=0.05 * 3.0)
+
+
+def test_the_fitted_width_stays_within_its_bounds():
+    """A star narrower than a pixel drives the fitted width down to its floor, 0.2 px, in both fits."""
+    stamps, dx, dy, flux = _frame(11, 8, psf=0.25, holes=0)
+    compiled = fit_gaussians(stamps, dx, dy, flux, 1.0, fit_sigma=True)
+    reference = fit_gaussians_vectorised(stamps, dx, dy, flux, 1.0, fit_sigma=True)
+    assert np.all(compiled.psf_sigma >= 0.2) and np.any(compiled.psf_sigma == 0.2)
+    assert_array_equal(compiled.psf_sigma == 0.2, reference.psf_sigma == 0.2)
+
+
+def test_mismatched_lengths_are_refused():
+    stamps, dx, dy, flux = _frame(5, 6)
+    with pytest.raises(InvalidInputError, match="dx0"):
+        fit_gaussians(stamps, dx[:4], dy, flux, 1.3)
+    with pytest.raises(InvalidInputError, match="psf_sigma"):
+        fit_gaussians(stamps, dx, dy, flux, np.full(3, 1.3))
 
 
 def test_a_noise_free_star_is_recovered_exactly():

@@ -11,6 +11,7 @@ from numpy.testing import assert_allclose, assert_array_equal
 from starlog.centroid._stamps import gather_stamps, model
 from starlog.centroid.moment import weighted_centroid, weighted_centroid_vectorised
 from starlog.centroid.robust import take_stamps
+from starlog.errors import InvalidInputError
 
 
 def _frame(seed: int, n: int, *, psf: float = 1.3, h: int = 5, holes: int = 30, size: int = 80):
@@ -27,7 +28,7 @@ def _frame(seed: int, n: int, *, psf: float = 1.3, h: int = 5, holes: int = 30, 
     return stamps, x - stamps.xc + rng.normal(0, 0.3, n), y - stamps.yc + rng.normal(0, 0.3, n), flux
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25, deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 30), weighting=st.sampled_from(["optimal", "gaussian", "none"]))
 def test_compiled_moment_agrees_with_the_vectorised_one(seed, n, weighting):
     stamps, dx, dy, flux = _frame(seed, n)
@@ -75,3 +76,11 @@ def test_an_empty_window_is_not_ok(weighting):
     _, _, ok = weighted_centroid(stamps.data, stamps, dx0=dx, dy0=dy, flux=flux, psf_sigma=np.full(4, 1.3),
                                  weighting=weighting)
     assert not ok[1]
+
+
+def test_mismatched_lengths_are_refused():
+    stamps, dx, dy, flux = _frame(6, 5)
+    with pytest.raises(InvalidInputError, match="dx0"):
+        weighted_centroid(stamps.data, stamps, dx0=dx[:3], dy0=dy, flux=flux, psf_sigma=np.full(5, 1.3))
+    with pytest.raises(InvalidInputError, match="shape"):
+        weighted_centroid(stamps.data[:2], stamps, dx0=dx, dy0=dy, flux=flux, psf_sigma=np.full(5, 1.3))

@@ -13,6 +13,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.special import erf
 
+from starlog.errors import InvalidInputError
+
 __all__ = [
     "Stamps",
     "gather_stamps",
@@ -23,11 +25,23 @@ __all__ = [
     "fisher_sigma",
     "smooth",
     "optimal_smoothing",
+    "per_star",
 ]
 
 _SQ2 = np.sqrt(2.0)
 _ISQ2PI = 1.0 / np.sqrt(2.0 * np.pi)
 F64 = npt.NDArray[np.float64]
+
+
+def per_star(value: npt.ArrayLike, n: int, name: str) -> F64:
+    """``value`` as a new contiguous float64 array of one value per star (a scalar is repeated), as the
+    compiled loops take it; :class:`InvalidInputError` when it holds another number of values."""
+    arr = np.asarray(value, np.float64)
+    if arr.ndim == 0:
+        return np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise InvalidInputError(f"{name} must hold one value per star ({n}); got shape {arr.shape}.")
+    return np.array(arr, np.float64, order="C")
 
 
 @dataclass
@@ -181,15 +195,15 @@ def fisher_sigma(st: Stamps, cx: F64, cy: F64, flux: F64, s: F64 | float) -> F64
     ``sqrt((I_xx + I_yy) / 2 / det I)`` of the Fisher information of the centre,
     ``I_ab = sum_ij w_ij (d mu / d a)(d mu / d b)`` with ``w`` the inverse pixel variance
     (:func:`variance`) of the model ``mu = F ey (x) ex``; compiled
-    (:func:`starlog.centroid._gaussfit_kernel.fisher_sigmas`). inf where it cannot be inverted.
+    (:func:`starlog.centroid._kernels.fisher_sigmas`). inf where it cannot be inverted.
     """
-    from starlog.centroid._gaussfit_kernel import fisher_sigmas  # numba: imported, and compiled, on first use
+    from starlog.centroid._kernels import fisher_sigmas  # numba: imported, and compiled, on first use
 
-    n = cx.shape[0]
+    n = st.data.shape[0]
     out = np.empty(n)
-    fisher_sigmas(np.ascontiguousarray(st.valid, np.float64), st.noise.astype(np.float64), float(st.gain),
-                  _edges(st.u), np.asarray(cx, np.float64), np.asarray(cy, np.float64), np.asarray(flux, np.float64),
-                  np.broadcast_to(np.asarray(s, np.float64), (n,)).copy(), out)
+    fisher_sigmas(np.ascontiguousarray(st.valid, np.float64), per_star(st.noise, n, "noise"), float(st.gain),
+                  _edges(st.u), per_star(cx, n, "cx"), per_star(cy, n, "cy"), per_star(flux, n, "flux"),
+                  per_star(s, n, "s"), out)
     return out
 
 

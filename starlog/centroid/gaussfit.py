@@ -12,7 +12,7 @@ reaches the Cramer-Rao bound. The uncertainty ``sigma`` is taken from the invers
 matrix (the Fisher information) at the solution.
 
 :func:`fit_gaussians` runs the fit star by star in compiled code
-(:mod:`starlog.centroid._gaussfit_kernel`); :func:`fit_gaussians_vectorised` is the same fit in
+(:mod:`starlog.centroid._kernels`); :func:`fit_gaussians_vectorised` is the same fit in
 numpy, vectorised over the stars, kept as the reference the compiled one is tested against.
 """
 
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid._stamps import _ISQ2PI, Stamps, _edges, _profiles
+from starlog.centroid._stamps import _ISQ2PI, Stamps, _edges, _profiles, per_star
 
 __all__ = ["GaussFitResult", "fit_gaussians", "fit_gaussians_vectorised"]
 
@@ -210,19 +210,19 @@ def fit_gaussians(
     tol: float = 1e-4,
 ) -> GaussFitResult:
     """Fit every stamp (see module docstring), star by star in compiled code
-    (:mod:`starlog.centroid._gaussfit_kernel`); ``psf_sigma`` is the start/fixed value."""
-    from starlog.centroid._gaussfit_kernel import fit_stars  # numba: imported, and compiled, on first use
+    (:func:`starlog.centroid._kernels.fit_stars`); ``psf_sigma`` is the start/fixed value."""
+    from starlog.centroid._kernels import fit_stars  # numba: imported, and compiled, on first use
 
     n = st.data.shape[0]
-    cx, cy = np.array(dx0, np.float64), np.array(dy0, np.float64)
-    f = np.maximum(np.asarray(flux0, np.float64), 1.0 * st.noise)
+    cx, cy, flux0 = (per_star(v, n, name) for v, name in ((dx0, "dx0"), (dy0, "dy0"), (flux0, "flux0")))
+    f = np.maximum(flux0, 1.0 * st.noise)
     b = np.zeros(n)
-    s = np.broadcast_to(np.asarray(psf_sigma, np.float64), (n,)).copy()
+    s = per_star(psf_sigma, n, "psf_sigma")
     sig, ferr = np.empty(n), np.empty(n)
     good_var, active = np.empty(n, bool), np.empty(n, bool)
-    fit_stars(np.ascontiguousarray(st.data, np.float64), np.ascontiguousarray(st.valid, np.float64), st.noise.astype(np.float64),
-              float(st.gain), _edges(st.u), cx, cy, f, b, s, fit_background, fit_sigma, int(iterations), float(tol),
-              sig, ferr, good_var, active)
+    fit_stars(np.ascontiguousarray(st.data, np.float64), np.ascontiguousarray(st.valid, np.float64),
+              per_star(st.noise, n, "noise"), float(st.gain), _edges(st.u), cx, cy, f, b, s, fit_background,
+              fit_sigma, int(iterations), float(tol), sig, ferr, good_var, active)
     h = st.h
     ok = active & np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < h - 0.5) & (np.abs(cy) < h - 0.5) & (f > 0)
     return GaussFitResult(cx, cy, f, ferr, b, s, sig, ok & good_var)

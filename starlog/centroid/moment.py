@@ -24,7 +24,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid._stamps import Stamps, _edges, model, smooth
+from starlog.centroid._stamps import Stamps, _edges, model, per_star, smooth
+from starlog.errors import InvalidInputError
 
 __all__ = ["squared_centroid", "weighted_centroid", "weighted_centroid_vectorised"]
 
@@ -55,17 +56,18 @@ def weighted_centroid(
     tol: float = 1e-5,
 ) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Iteratively re-weighted centre of gravity of each window (see module docstring), star by star in
-    compiled code (:mod:`starlog.centroid._moment_kernel`)."""
-    from starlog.centroid._moment_kernel import GAUSSIAN, NONE, OPTIMAL, weighted_centres  # numba: on first use
+    compiled code (:func:`starlog.centroid._kernels.weighted_centres`)."""
+    from starlog.centroid._kernels import GAUSSIAN, NONE, OPTIMAL, weighted_centres  # numba: on first use
 
-    n = data.shape[0]
+    n = st.data.shape[0]
+    if data.shape != st.data.shape:
+        raise InvalidInputError(f"data must have the stamps' shape {st.data.shape}; got {data.shape}.")
     code = {"none": NONE, "gaussian": GAUSSIAN, "optimal": OPTIMAL}[weighting]
     cx, cy, ok = np.empty(n), np.empty(n), np.empty(n, bool)
     weighted_centres(np.ascontiguousarray(data, np.float64), np.ascontiguousarray(st.valid, np.float64), st.u,
-                     _edges(st.u), st.noise.astype(np.float64), float(st.gain), np.asarray(dx0, np.float64),
-                     np.asarray(dy0, np.float64), np.asarray(flux, np.float64),
-                     np.broadcast_to(np.asarray(psf_sigma, np.float64), (n,)).copy(), code, int(iterations),
-                     float(tol), float(st.h), cx, cy, ok)
+                     _edges(st.u), per_star(st.noise, n, "noise"), float(st.gain), per_star(dx0, n, "dx0"),
+                     per_star(dy0, n, "dy0"), per_star(flux, n, "flux"), per_star(psf_sigma, n, "psf_sigma"), code,
+                     int(iterations), float(tol), float(st.h), cx, cy, ok)
     return cx, cy, ok
 
 

@@ -3,6 +3,8 @@
 The vectorised fit (:func:`~starlog.detect.background._fit_planes_vectorised`) passes over the
 cells' samples some twenty times (residuals, masks, sums, products); here each cell is reduced
 in one pass an iteration, in a loop. The estimates are the same, the sums taken in float64.
+Divisions follow numpy (``error_model="numpy"``): a zero denominator gives inf or nan, not an
+exception (a cell whose kept samples span one column has no x slope, and keeps its values).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def fit_planes(values, level, noise, clip_sigma, iterations, slope_x, slope_y):  # type: ignore[no-untyped-def]
     """Refine every cell's ``level`` and ``noise`` in place and fill its slopes.
 

@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def mark_above(image, columns, row_cell, row_weight, out):  # type: ignore[no-untyped-def]
     """``out[y, x]`` = 255 where ``image[y, x]`` exceeds the map there, else 0.
 

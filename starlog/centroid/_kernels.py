@@ -1,16 +1,24 @@
-"""GAUSSFIT compiled (numba): the damped Gauss–Newton fit of :mod:`starlog.centroid.gaussfit`, star by star.
+"""Compiled (numba) inner loops of the centroid methods, one star at a time.
 
-The vectorised numpy fit (:func:`~starlog.centroid.gaussfit.fit_gaussians_vectorised`) spends its
-time in the fixed cost of some sixty small array operations an iteration, not in arithmetic:
-a 13 x 13 window holds 169 pixels. Here each star's window is a plain loop, so a frame of 40
-stars costs a fifth as much. The mathematics is the same (model, weights, Levenberg damping,
-step limits, acceptance test, Fisher covariance), with one difference: a star stops iterating
-when its own step is below ``tol``, where the vectorised fit runs every star until the slowest
-one converges. A star's result no longer depends on the other stars of its frame; the two
-agree to a fraction of ``tol``.
+The vectorised numpy forms (:func:`~starlog.centroid.gaussfit.fit_gaussians_vectorised`,
+:func:`~starlog.centroid.moment.weighted_centroid_vectorised`) spend their time in the fixed
+cost of dozens of small array operations an iteration, not in arithmetic: a 13 x 13 window
+holds 169 pixels. Here each star's window is a plain loop. The mathematics is that of the
+numpy forms, kept as the references the tests compare with, with one difference: a star stops
+iterating at its own convergence, where the vectorised forms run every star until the slowest
+has converged, so a star's result no longer depends on the other stars of its frame.
 
-Compiled on first use and cached beside this file (``__pycache__``), or in numba's user cache
-when the package folder is read-only.
+- :func:`fit_stars` — GAUSSFIT: damped Gauss-Newton fit of the pixel-integrated Gaussian plus
+  background (model, weights, Levenberg damping, step limits, acceptance test, Fisher covariance
+  as in :mod:`starlog.centroid.gaussfit`);
+- :func:`weighted_centres` — MOMENT: the re-weighted centre of gravity's fixed point, by the
+  secant method from winpos' doubled first step (:mod:`starlog.centroid.moment`);
+- :func:`fisher_sigmas` — the Cramer-Rao sigma of a star of known flux and PSF.
+
+One module, because numba's cache is refreshed when a function's own file changes, not when a
+function it calls in another file does. Compiled on first use and cached beside this file
+(``__pycache__``), or in numba's user cache when the package folder is read-only. Divisions
+follow numpy (``error_model="numpy"``): a zero denominator gives inf or nan, not an exception.
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ _ISQ2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _MAX_PAR = 5
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _profile(edges, c, s, out):  # type: ignore[no-untyped-def]
     """Pixel-integrated unit Gaussian of centre ``c``, width ``s`` between the pixel ``edges``."""
     prev = math.erf((edges[0] - c) / s * _INV_SQ2)
@@ -35,7 +43,7 @@ def _profile(edges, c, s, out):  # type: ignore[no-untyped-def]
         prev = cur
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _slopes(edges, c, s, d_centre, d_width):  # type: ignore[no-untyped-def]
     """d profile / d centre and d profile / d width."""
     t = (edges[0] - c) / s
@@ -49,7 +57,7 @@ def _slopes(edges, c, s, d_centre, d_width):  # type: ignore[no-untyped-def]
         pdf, tpdf = nxt, t * nxt
 
 
-@njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
 def _normal(data, valid, var0, gain, f, b, ex, ey, dex, dey, dsx, dsy, fit_background, fit_sigma,
             a_mat, grad):  # type: ignore[no-untyped-def]
     """Normal matrix J^T W J and gradient J^T W r at the profiles given; returns the weighted chi^2.
@@ -107,7 +115,7 @@ def _normal(data, valid, var0, gain, f, b, ex, ey, dex, dey, dsx, dsy, fit_backg
     return chi2
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _fitted(fit_background, fit_sigma):  # type: ignore[no-untyped-def]
     """Indices in (cx, cy, F, B, s) of the fitted parameters, in the order of the step."""
     if fit_background and fit_sigma:
@@ -119,7 +127,7 @@ def _fitted(fit_background, fit_sigma):  # type: ignore[no-untyped-def]
     return np.array([0, 1, 2])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _chi2(data, valid, var0, gain, f, b, ex, ey, f_now, ex_now, ey_now):  # type: ignore[no-untyped-def]
     """Weighted chi^2 of the model (f, b, ex, ey), weighted by the variance of the current model (f_now, ...)."""
     chi2 = 0.0
@@ -130,7 +138,7 @@ def _chi2(data, valid, var0, gain, f, b, ex, ey, f_now, ex_now, ey_now):  # type
     return chi2
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _solve(a_mat, rhs, npar, out):  # type: ignore[no-untyped-def]
     """``out`` = ``a_mat``^-1 ``rhs`` (Gaussian elimination, partial pivoting); False when singular."""
     m = np.empty((_MAX_PAR, _MAX_PAR + 1))
@@ -160,7 +168,7 @@ def _solve(a_mat, rhs, npar, out):  # type: ignore[no-untyped-def]
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _inverse_diagonal(a_mat, npar, out):  # type: ignore[no-untyped-def]
     """The diagonal of ``a_mat``^-1 into ``out``; False when ``a_mat`` is singular."""
     unit = np.zeros(_MAX_PAR)
@@ -174,7 +182,7 @@ def _inverse_diagonal(a_mat, npar, out):  # type: ignore[no-untyped-def]
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def fit_stars(data, valid, noise, gain, edges, cx, cy, flux, background, width, fit_background, fit_sigma,
               iterations, tol, sigma, flux_err, good_var, active):  # type: ignore[no-untyped-def]
     """Fit every window in place: ``cx``, ``cy``, ``flux``, ``background``, ``width`` start at the first guess
@@ -218,12 +226,17 @@ def fit_stars(data, valid, noise, gain, edges, cx, cy, flux, background, width, 
             _profile(edges, nx, ns, tx)
             _profile(edges, ny, ns, ty)
             trial = _chi2(data[k], valid[k], var0, gain, nf, nb, tx, ty, f, ex, ey)
-            if trial <= c0 * (1 + 1e-9) and active[k]:
+            accepted = trial <= c0 * (1 + 1e-9) and active[k]
+            # converged: an accepted step that moved the centre (and the width) by less than tol px
+            # and the flux by less than tol of itself; a rejected (or damped-away) step proves nothing
+            small = (abs(nx - x) < tol and abs(ny - y) < tol and abs(nf - f) <= tol * abs(f)
+                     and (not fit_sigma or abs(ns - s) < tol))
+            if accepted:
                 x, y, f, b, s = nx, ny, nf, nb, ns
                 lam = max(lam * 0.3, 1e-7)
             else:
                 lam = lam * 10.0
-            if (abs(step[0]) < tol and abs(step[1]) < tol) or not active[k]:
+            if (accepted and small) or not active[k]:
                 break
         cx[k], cy[k], flux[k], background[k], width[k] = x, y, f, b, s
         _profile(edges, x, s, ex)
@@ -243,7 +256,7 @@ def fit_stars(data, valid, noise, gain, edges, cx, cy, flux, background, width, 
 
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def fisher_sigmas(valid, noise, gain, edges, cx, cy, flux, width, out):  # type: ignore[no-untyped-def]
     """Per-axis Cramer-Rao sigma of each star of known flux, PSF width and background (the 2 x 2
     Fisher information of the centre, inverted); inf where it cannot be inverted."""
@@ -269,3 +282,85 @@ def fisher_sigmas(valid, noise, gain, edges, cx, cy, flux, width, out):  # type:
         det = ixx * iyy - ixy * ixy
         var = 0.5 * (ixx + iyy) / det if det != 0 else math.inf
         out[k] = math.sqrt(var) if math.isfinite(var) and var > 0 else math.inf
+
+
+NONE, GAUSSIAN, OPTIMAL = 0, 1, 2
+"""Weighting codes: the plain centre of gravity, the PSF (winpos), the noise-optimal weight."""
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _centre(data, valid, u, edges, cx, cy, s, var0, flux, gain, weighting, ex, ey, col, row):  # type: ignore[no-untyped-def]
+    """One centre-of-gravity evaluation with the weights centred on (cx, cy): (x, y, any weight)."""
+    w_size = u.size
+    if weighting != NONE:
+        _profile(edges, cx, s, ex)
+        _profile(edges, cy, s, ey)
+    col[:] = 0.0
+    row[:] = 0.0
+    for i in range(w_size):
+        for j in range(w_size):
+            if weighting == NONE:
+                w = valid[i, j]
+            else:
+                m = ey[i] * ex[j]
+                w = valid[i, j] * m
+                if weighting == OPTIMAL:
+                    w = w / (var0 + max(flux * m, 0.0) / gain)
+            v = w * data[i, j]
+            col[j] += v
+            row[i] += v
+    s0 = 0.0
+    for j in range(w_size):
+        s0 += col[j]
+    ok = s0 > 0
+    if not ok:
+        s0 = 1.0
+    x = y = 0.0
+    for j in range(w_size):
+        x += col[j] * u[j]
+        y += row[j] * u[j]
+    return x / s0, y / s0, ok
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def weighted_centres(data, valid, u, edges, noise, gain, dx0, dy0, flux, psf_sigma, weighting, iterations, tol,
+                     h, cx_out, cy_out, ok_out):  # type: ignore[no-untyped-def]
+    """Fill ``cx_out``, ``cy_out``, ``ok_out`` for every window (arrays as in ``Stamps``; see the module)."""
+    n, w_size, _ = data.shape
+    ex, ey, col, row = np.empty(w_size), np.empty(w_size), np.empty(w_size), np.empty(w_size)
+    for k in range(n):
+        var0, f, s = noise[k] * noise[k], max(flux[k], 0.0), psf_sigma[k]
+        tx, ty, ok = _centre(data[k], valid[k], u, edges, dx0[k], dy0[k], s, var0, f, gain, weighting, ex, ey,
+                             col, row)
+        if weighting == NONE:
+            cx_out[k], cy_out[k] = tx, ty
+            ok_out[k] = ok and abs(tx) < h and abs(ty) < h
+            continue
+        x_prev, y_prev = dx0[k], dy0[k]
+        gx_prev, gy_prev = tx - x_prev, ty - y_prev
+        cx = min(max(x_prev + 2.0 * gx_prev, -h), h)
+        cy = min(max(y_prev + 2.0 * gy_prev, -h), h)
+        for _ in range(iterations):
+            tx, ty, good = _centre(data[k], valid[k], u, edges, cx, cy, s, var0, f, gain, weighting, ex, ey, col,
+                                   row)
+            ok = ok and good
+            gx, gy = tx - cx, ty - cy
+            if (abs(gx) < tol and abs(gy) < tol) or not ok:
+                cx, cy = tx, ty
+                break
+            fx = _secant_factor(cx - x_prev, gx - gx_prev)
+            fy = _secant_factor(cy - y_prev, gy - gy_prev)
+            x_prev, y_prev, gx_prev, gy_prev = cx, cy, gx, gy
+            cx = min(max(cx + fx * gx, -h), h)
+            cy = min(max(cy + fy * gy, -h), h)
+        cx_out[k], cy_out[k] = cx, cy
+        ok_out[k] = ok and math.isfinite(cx) and math.isfinite(cy) and abs(cx) < h and abs(cy) < h
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _secant_factor(dx, dg):  # type: ignore[no-untyped-def]
+    """The secant step's factor on g(x) = T(x) - x, kept within (0.5, 4); 2 (winpos) when undefined."""
+    if abs(dg) <= 1e-12:
+        return 2.0
+    factor = -dx / dg
+    return factor if math.isfinite(factor) and 0.5 < factor < 4.0 else 2.0
