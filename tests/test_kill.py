@@ -44,9 +44,18 @@ def run(args: list[str], cwd: Path) -> float:
 
 
 def start(args: list[str], cwd: Path, marker: str) -> subprocess.Popen[bytes]:
-    """Start a starlog command; every process it starts inherits ``marker`` in its environment."""
+    """Start a starlog command; every process it starts inherits ``marker`` in its environment.
+
+    The command starts with SIGINT's default action, as from a terminal: a test suite started in
+    the background by a non-interactive shell inherits SIGINT ignored, and so would the command.
+    """
     env = {**os.environ, "STARLOG_TEST_PROCESS_MARKER": marker}
-    return subprocess.Popen(PY + args, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    return subprocess.Popen(PY + args, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                            preexec_fn=_default_sigint)
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def marked_processes(marker: str) -> list[int]:
