@@ -34,6 +34,25 @@ def test_marginal_rate_is_nan_when_the_longer_log_is_not_slower(bench):
         bench.marginal_fit([300, 300], [1.0, 2.0])
 
 
+def test_paired_repeats_keep_a_speed_drift_out_of_the_marginal_rate(bench):
+    """Repeat 2 ran on a machine 1.5x slower than repeat 1 and 3 (start-up and frames alike): the
+    median of each repeat's own line is still 150 frames/s; the best time per length would mix
+    repeats and say otherwise."""
+    timing = lambda s: bench.Timing(s, s, 100.0)  # noqa: E731
+    line = lambda slow, n: slow * (2.5 + n / 150)  # noqa: E731
+    runs = [[timing(line(slow, 300)), timing(line(slow, 3000))] for slow in (1.0, 1.5, 1.0)]
+    result = bench.StageResult("centroid GAUSSFIT", 1)
+    result.add_pairs([300, 3000], runs, {300: ["a"] * 3, 3000: ["b"] * 3})
+    fit = result.fit()
+    assert fit["rate"] == pytest.approx(150.0)
+    assert fit["start_up"] == pytest.approx(2.5)
+    assert result.seconds == pytest.approx([line(1.0, 300), line(1.0, 3000)])
+    # one repeat whose longer log ran faster (a line that does not rise) counts as the slowest
+    runs[0][1] = timing(0.1)
+    result.add_pairs([300, 3000], runs, {300: ["a"] * 3, 3000: ["b"] * 3})
+    assert result.fit()["rate"] == pytest.approx(150.0 / 1.5)
+
+
 def _stack(modules: list[tuple[str, str]]):
     """A real call stack through functions defined in the given (module, function) namespaces, outermost first."""
     source_of = "def {name}(inner):\n    return inner()\n"

@@ -11,9 +11,11 @@ length (300 and 3000 frames at 300 Hz by default) a log is simulated once, then
 
 Printed as Markdown tables, every ratio from this one run:
 
-1. throughput: wall seconds per log length (best of ``--repeat``); the marginal rate, i.e. the
+1. throughput: wall seconds per log length (median of ``--repeat``); the marginal rate, i.e. the
    slope of a straight line through (frames, seconds) as frames/s, so start-up is separate; the
-   start-up cost (its intercept); with ``--workers 1``, the marginal rate on CPU time (user + sys:
+   start-up cost (its intercept). Each repeat runs a stage on every log length in a row and gives
+   its own line; the median over the repeats is reported, so a drift of the machine's speed
+   between repeats does not enter a rate; with ``--workers 1``, the marginal rate on CPU time (user + sys:
    less sensitive to other jobs on a shared machine; not shown for more workers, whose pool
    processes are children of a fork server, not of the command, and escape the count);
    peak RSS (GNU time ``%M``: the largest process of the command) on the shortest and longest log;
@@ -304,7 +306,11 @@ def chain_commands(log: Path, folder: Path, workers: int) -> list[tuple[str, lis
 
 @dataclass
 class StageResult:
-    """One timed stage across the log lengths (seconds/cpu: best of the repeats; peak: largest)."""
+    """One timed stage across the log lengths, run as pairs (every length once per repeat, in a row).
+
+    ``seconds``/``cpu_seconds``: the median per length; ``paired``/``paired_cpu``: per repeat, the
+    seconds of each length; peak: the largest.
+    """
 
     label: str
     workers: int
@@ -313,46 +319,70 @@ class StageResult:
     cpu_seconds: list[float] = field(default_factory=list)
     peak_mib: list[float] = field(default_factory=list)
     digests: dict[int, list[str]] = field(default_factory=dict)
+    paired: list[list[float]] = field(default_factory=list)
+    paired_cpu: list[list[float]] = field(default_factory=list)
 
-    def add(self, frames: int, timings: list[Timing], digests: list[str]) -> None:
-        self.frames.append(frames)
-        self.seconds.append(min(t.seconds for t in timings))
-        self.cpu_seconds.append(min(t.cpu_seconds for t in timings))
-        self.peak_mib.append(max(t.peak_mib for t in timings))
-        self.digests[frames] = digests
+    def add_pairs(self, frames: list[int], runs: list[list[Timing]], digests: dict[int, list[str]]) -> None:
+        """``runs[r][i]``: repeat ``r`` on the log of ``frames[i]`` frames."""
+        self.frames = list(frames)
+        self.paired = [[t.seconds for t in run] for run in runs]
+        self.paired_cpu = [[t.cpu_seconds for t in run] for run in runs]
+        self.seconds = [float(np.median([run[i] for run in self.paired])) for i in range(len(frames))]
+        self.cpu_seconds = [float(np.median([run[i] for run in self.paired_cpu])) for i in range(len(frames))]
+        self.peak_mib = [max(run[i].peak_mib for run in runs) for i in range(len(frames))]
+        self.digests = digests
 
     def fit(self) -> dict[str, float]:
-        rate, start_up = marginal_fit(self.frames, self.seconds)
-        cpu_rate, _ = marginal_fit(self.frames, self.cpu_seconds)
-        return {"rate": rate, "start_up": start_up, "cpu_rate": cpu_rate,
-                "peak_growth": self.peak_mib[-1] / self.peak_mib[0] - 1.0}
+        """Median over the repeats of each repeat's own line: drift between repeats cancels within a pair."""
+        fits = [marginal_fit(self.frames, run) for run in self.paired]
+        cpu = [marginal_fit(self.frames, run)[0] for run in self.paired_cpu]
+        return {"rate": _median([f[0] for f in fits]), "start_up": _median([f[1] for f in fits]),
+                "cpu_rate": _median(cpu), "peak_growth": self.peak_mib[-1] / self.peak_mib[0] - 1.0}
 
 
-def timed(label: str, argv: list[str], out: Path, repeat: int) -> tuple[list[Timing], list[str]]:
-    timings, digests = [], []
-    for _ in range(repeat):
-        timings.append(run_command(argv))
-        digests.append(sha256(out))
-        print(f"  {label}: {timings[-1].seconds:.1f} s", file=sys.stderr, flush=True)
-    return timings, digests
+def _median(values: list[float]) -> float:
+    """Median, NaN (a repeat whose line did not rise) counted as the slowest."""
+    return float(np.median([v if not math.isnan(v) else 0.0 for v in values]))
+
+
+def timed(label: str, argv: list[str], out: Path) -> tuple[Timing, str]:
+    timing = run_command(argv)
+    print(f"  {label}: {timing.seconds:.1f} s", file=sys.stderr, flush=True)
+    return timing, sha256(out)
 
 
 def bench_size(size: int, lengths: list[int], root: Path, args: argparse.Namespace) -> dict[str, Any]:
-    """Every table's figures for one frame size."""
+    """Every table's figures for one frame size.
+
+    Stage by stage, each repeat runs every log length in a row, so a drift of the machine's speed
+    between repeats does not enter a marginal rate (the slope of one repeat's pair of lengths).
+    """
     n_all = args.workers_all
     results: dict[tuple[str, int], StageResult] = {}
-    checks: list[tuple[str, bool]] = []
-    logs = {}
+    logs, plans = {}, {}
     for n in lengths:
         logs[n] = root / f"sim_{size}_{n}.mcap"
-        print(f"# {size}x{size}, {n} frames", file=sys.stderr, flush=True)
+        print(f"# {size}x{size}, {n} frames: simulate", file=sys.stderr, flush=True)
         simulate(size, n, logs[n], n_all)
         plan = [(f"centroid {m}", 1, *centroid_command(logs[n], root / f"{n}/workers1", m, 1))
                 for m in args.methods]
         plan += [(label, n_all, argv, out) for label, argv, out in chain_commands(logs[n], root / f"{n}/all", n_all)]
-        for label, workers, argv, out in plan:
-            timings, digests = timed(f"{size} {n} {label} w{workers}", argv, out, args.repeat)
-            results.setdefault((label, workers), StageResult(label, workers)).add(n, timings, digests)
+        plans[n] = plan
+    for k, (label, workers, _, _) in enumerate(plans[lengths[0]]):  # stage order: a stage's input exists
+        runs: list[list[Timing]] = []
+        digests: dict[int, list[str]] = {n: [] for n in lengths}
+        for _ in range(args.repeat):
+            run = []
+            for n in lengths:
+                _, _, argv, out = plans[n][k]
+                timing, digest = timed(f"{size} {n} {label} w{workers}", argv, out)
+                run.append(timing)
+                digests[n].append(digest)
+            runs.append(run)
+        results[(label, workers)] = StageResult(label, workers)
+        results[(label, workers)].add_pairs(lengths, runs, digests)
+    checks: list[tuple[str, bool]] = []
+    for n in lengths:
         checks.append((f"{n} frames: centroid {PIPELINE_METHOD} --workers 1 == --workers {n_all}",
                        _same(root / f"{n}/workers1/centroid_{PIPELINE_METHOD}.mcap",
                              root / f"{n}/all/centroid_{PIPELINE_METHOD}.mcap")))
@@ -378,9 +408,9 @@ def determinism_checks(log: Path, n: int, root: Path, results: dict[tuple[str, i
     checks = []
     one = chain_commands(log, root / f"{n}/workers1", 1)
     for label, argv, out in one[1:]:  # the centroid stage on one core is already timed
-        timed(f"{n} {label} w1 (check)", argv, out, 1)
+        timed(f"{n} {label} w1 (check)", argv, out)
     for label, argv, out in chain_commands(log, root / f"{n}/rerun", args.workers_all):
-        timed(f"{n} {label} (rerun)", argv, out, 1)
+        timed(f"{n} {label} (rerun)", argv, out)
     for (label, _, out), (_, _, rerun) in zip(chain_commands(log, root / f"{n}/all", args.workers_all),
                                               chain_commands(log, root / f"{n}/rerun", args.workers_all)):
         checks.append((f"{n} frames: {label} rerun gives the same bytes", _same(out, rerun)))
@@ -530,9 +560,9 @@ def print_report(sizes: list[dict[str, Any]], args: argparse.Namespace) -> None:
     load = ", ".join(f"{x:.1f}" for x in args.load_before + os.getloadavg())
     print(f"# starlog bench_pipeline (cores: {os.cpu_count()}, repeat: {args.repeat}, quick: {args.quick}; "
           f"load average 1/5/15 min before and after: {load})\n")
-    print(f"Wall time of `python -m starlog <stage>` (best of {args.repeat}); frames/s marginal and start-up s "
-          "from a line through (frames, seconds); frames/s cpu from user + sys seconds (one worker only); "
-          "camera = 300 Hz.\n")
+    print(f"Wall time of `python -m starlog <stage>` (median of {args.repeat}); frames/s marginal and start-up s: "
+          "the median over the repeats of each repeat's line through (frames, seconds), the lengths run in a row; "
+          "frames/s cpu the same from user + sys seconds (one worker only); camera = 300 Hz.\n")
     print("## Throughput per stage\n")
     print(throughput_table(sizes))
     print("\n## Centroid stage against SEP (same frames, same run)\n")
@@ -554,7 +584,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--quick", action="store_true", help="smoke run: 256x256, 120 and 480 frames")
     ap.add_argument("--sizes", default=None, help="frame sizes (square), comma-separated [512,1024]")
     ap.add_argument("--frames", default=None, help="log lengths, comma-separated, at least two [300,3000]")
-    ap.add_argument("--repeat", type=int, default=1, help="timed runs of each stage and length (best is kept)")
+    ap.add_argument("--repeat", type=int, default=1, help="timed runs of each stage on every length in a row (median rate reported)")
     ap.add_argument("--keep", metavar="DIR", help="keep logs and outputs in DIR (simulated logs found there are reused)")
     ap.add_argument("--json", metavar="FILE", help="also write every figure as JSON to FILE")
     ap.add_argument("--methods", default="MOMENT,GAUSSFIT", help="centroid methods timed on one core")
