@@ -1,11 +1,13 @@
 """Background level and noise maps that survive bright stars, gradients and vignetting.
 
 The frame is cut into ``mesh`` x ``mesh`` pixel cells (as SExtractor / SEP do). In each cell a
-sigma-clipped mean (level) and standard deviation (noise) are computed on a sub-sampled set of
-pixels, all cells at once (vectorised): the clipping starts from the median and the width of
-the star-free lower half of the distribution. The cell grid may be median-filtered
+sigma-clipped plane (level, slopes) and the residuals' standard deviation (noise) are computed on a
+sub-sampled set of pixels: the clipping starts from the median and the width of the star-free
+lower half of the distribution (all cells at once), then each cell's plane is fitted in one
+compiled pass (:mod:`starlog.detect._background_kernel`). The cell grid may be median-filtered
 (``filter_size``), then it is interpolated back to full resolution bilinearly between cell
-centres (linear extrapolation in the outer half cells), as two small matrix products.
+centres (linear extrapolation in the outer half cells): :meth:`Background.map`, or, for the
+detection threshold, :meth:`Background.above` without making the map.
 
 Coordinates follow the starlog convention (x = column, y = row, 0-based, pixel-centre origin).
 """
