@@ -58,13 +58,14 @@ def _slopes(edges, c, s, d_centre, d_width):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _normal(data, valid, var0, gain, f, b, ex, ey, dex, dey, dsx, dsy, fit_background, fit_sigma,
+def _normal(data, valid, var0, gain, f, b, ex, ey, dex, dey, dsx, dsy, fit_background, fit_sigma, fitted,
             a_mat, grad):  # type: ignore[no-untyped-def]
     """Normal matrix J^T W J and gradient J^T W r at the profiles given; returns the weighted chi^2.
 
     W is the inverse model variance (read + sky noise + the star's shot noise), as in the vectorised
     fit. The sums run in scalars over all five parameters (cx, cy, F, B, s), a parameter not fitted
-    having a zero derivative, and the fitted ones are packed into ``a_mat`` and ``grad``.
+    having a zero derivative, and the fitted ones (indices ``fitted``, from :func:`_fitted`) are packed into
+    ``a_mat`` and ``grad``.
     """
     d_b = 1.0 if fit_background else 0.0
     on_s = 1.0 if fit_sigma else 0.0
@@ -104,14 +105,13 @@ def _normal(data, valid, var0, gain, f, b, ex, ey, dex, dey, dsx, dsy, fit_backg
             g3 += w3 * r
             g4 += w4 * r
             chi2 += w * r * r
-    full = np.array([[a00, a01, a02, a03, a04], [a01, a11, a12, a13, a14], [a02, a12, a22, a23, a24],
-                     [a03, a13, a23, a33, a34], [a04, a14, a24, a34, a44]])
-    gfull = np.array([g0, g1, g2, g3, g4])
-    fitted = _fitted(fit_background, fit_sigma)
+    sums = ((a00, a01, a02, a03, a04), (a01, a11, a12, a13, a14), (a02, a12, a22, a23, a24),
+            (a03, a13, a23, a33, a34), (a04, a14, a24, a34, a44))
+    gradients = (g0, g1, g2, g3, g4)
     for p in range(fitted.size):
-        grad[p] = gfull[fitted[p]]
+        grad[p] = gradients[fitted[p]]
         for q in range(fitted.size):
-            a_mat[p, q] = full[fitted[p], fitted[q]]
+            a_mat[p, q] = sums[fitted[p]][fitted[q]]
     return chi2
 
 
@@ -194,6 +194,7 @@ def fit_stars(data, valid, noise, gain, edges, cx, cy, flux, background, width, 
     dsx, dsy, tx, ty = np.empty(w_size), np.empty(w_size), np.empty(w_size), np.empty(w_size)
     a_mat, damped = np.empty((_MAX_PAR, _MAX_PAR)), np.empty((_MAX_PAR, _MAX_PAR))
     grad, step, diag = np.empty(_MAX_PAR), np.empty(_MAX_PAR), np.empty(_MAX_PAR)
+    fitted = _fitted(fit_background, fit_sigma)
     for k in range(n):
         var0 = noise[k] * noise[k]
         lam = 1e-3
@@ -205,7 +206,7 @@ def fit_stars(data, valid, noise, gain, edges, cx, cy, flux, background, width, 
             _slopes(edges, x, s, dex, dsx)
             _slopes(edges, y, s, dey, dsy)
             c0 = _normal(data[k], valid[k], var0, gain, f, b, ex, ey, dex, dey, dsx, dsy, fit_background, fit_sigma,
-                         a_mat, grad)
+                         fitted, a_mat, grad)
             for p in range(npar):
                 for q in range(npar):
                     damped[p, q] = a_mat[p, q] * (1.0 + lam) if p == q else a_mat[p, q]
@@ -243,7 +244,8 @@ def fit_stars(data, valid, noise, gain, edges, cx, cy, flux, background, width, 
         _profile(edges, y, s, ey)
         _slopes(edges, x, s, dex, dsx)
         _slopes(edges, y, s, dey, dsy)
-        _normal(data[k], valid[k], var0, gain, f, b, ex, ey, dex, dey, dsx, dsy, fit_background, fit_sigma, a_mat, grad)
+        _normal(data[k], valid[k], var0, gain, f, b, ex, ey, dex, dey, dsx, dsy, fit_background, fit_sigma, fitted,
+                a_mat, grad)
         good_var[k] = False
         sigma[k] = flux_err[k] = np.inf
         if _inverse_diagonal(a_mat, npar, diag):
