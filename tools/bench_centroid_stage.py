@@ -32,9 +32,9 @@ import numpy as np
 
 from starlog.centroid import CentroidMethod, measure_centroids
 from starlog.detect import detect_stars
-from starlog.io import encode_json
 from starlog.io.reader import LogReader
-from starlog.stages.centroid import _reuse_frame_buffers, structured_to_dicts
+from starlog.io.records import record_encoder
+from starlog.stages.centroid import _reuse_frame_buffers
 
 STARLOG = [sys.executable, "-m", "starlog"]
 
@@ -87,8 +87,8 @@ def in_process_parts(log: Path, methods: list[str], count: int) -> dict[str, flo
     for m in methods:
         out[m] = per_frame_cpu(lambda p: measure_centroids(p[0], p[1], method=CentroidMethod(m), gain=1.0,
                                                            read_noise=3.0, psf_sigma=1.2), pairs)
-    out["encode (detections)"] = per_frame_cpu(lambda d: encode_json({"frame": 0, "stars": structured_to_dicts(d)}),
-                                               dets)
+    encoder = record_encoder("starlog.Detections", "stars")  # as the stage encodes them, schema check included
+    out["encode (detections)"] = per_frame_cpu(lambda d: encoder.encode({"frame": 0}, d), dets)
     return out
 
 

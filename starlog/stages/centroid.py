@@ -45,17 +45,17 @@ from starlog.centroid.phase import (
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_image_annotations, json_message_type, protobuf_message_type, topics
-from starlog.io.checked import encode_checked_json
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader
+from starlog.io.records import record_encoder
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._slice import time_sliced
 from starlog.stages._stage import extend_log
 
-__all__ = ["CentroidSummary", "centroid_log", "parse_methods", "structured_to_dicts"]
+__all__ = ["CentroidSummary", "centroid_log", "parse_methods"]
 
 
 def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
@@ -77,12 +77,6 @@ def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
     if not out:
         raise InvalidParameterError("give at least one centroid method (or 'all').")
     return list(dict.fromkeys(out))
-
-
-def structured_to_dicts(array: npt.NDArray[np.void]) -> list[dict[str, Any]]:
-    """Structured array → one JSON-ready dict (field name → Python scalar) per row."""
-    names = array.dtype.names or ()
-    return [dict(zip(names, values)) for values in array.tolist()]
 
 
 @dataclass
@@ -476,12 +470,10 @@ class _Extractor:
         per_method = [centroids[m] for m in self.methods]
         return _FrameMessages(
             log_time=log_time,
-            detections=encode_checked_json({"frame": frame, "stars": structured_to_dicts(detections)},
-                                           json_message_type("starlog.Detections")),
+            detections=record_encoder("starlog.Detections", "stars").encode({"frame": frame}, detections),
             annotations=encode_image_annotations(first["x"], first["y"], log_time=log_time if stamp is None else stamp,
                                                  diameter=diameter),
-            centroids=tuple(encode_checked_json({"frame": frame, "method": m.value, "stars": structured_to_dicts(c)},
-                                                json_message_type("starlog.Centroids"))
+            centroids=tuple(record_encoder("starlog.Centroids", "stars").encode({"frame": frame, "method": m.value}, c)
                             for m, c in zip(self.methods, per_method)),
             n_detections=int(detections.size),
             n_centroids=tuple(int(c.size) for c in per_method),

@@ -33,8 +33,8 @@ import numpy as np
 
 from starlog.errors import InvalidParameterError
 from starlog.io import json_message_type, topics
-from starlog.io.checked import encode_checked_json
 from starlog.io.reader import LogReader
+from starlog.io.records import record_encoder
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
@@ -42,7 +42,6 @@ from starlog.stages._spool import Spool, opened, read_block, read_blocks, write_
 from starlog.stages._slice import time_sliced
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.track import (
-    TRACK_DTYPE,
     MotionModel,
     MotionModelConfig,
     NoTrackError,
@@ -55,7 +54,6 @@ __all__ = ["TrackSummary", "track_log", "parse_models"]
 #: Frames per spooled block: bounds the memory of every pass.
 BLOCK_FRAMES = 64
 _STAR_FIELDS = operator.itemgetter("x", "y", "sigma", "flux")
-_ROW_KEYS = (*(TRACK_DTYPE.names or ()), "brightest")
 
 
 def parse_models(spec: str | Sequence[str]) -> list[MotionModel]:
@@ -196,17 +194,15 @@ def _encode_block(spool: Spool, offset: int, method: str, model: str,
                   brightest: int) -> tuple[list[int], list[bytes]]:
     """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame.
 
-    Columns are converted to Python values once per block (``tolist``), not row by row; the messages
-    are checked against their schema here (in a worker process when there is a pool), not by the writer.
+    The block's rows are encoded, and checked against their schema, column by column
+    (:class:`~starlog.io.records.RecordEncoder`; in a worker process when there is a pool), not by the writer.
     """
     frames, times, counts, rows = read_block(spool, offset, 4)
-    columns = [rows[name].tolist() for name in TRACK_DTYPE.names or ()]
-    columns.append((rows["track"] == brightest).tolist())
-    records = [dict(zip(_ROW_KEYS, values)) for values in zip(*columns)]
+    encoder = record_encoder("starlog.Tracks", "tracks")
+    records = encoder.rows(rows, {"brightest": rows["track"] == brightest})
     ends = np.cumsum(counts).tolist()
-    tracks = json_message_type("starlog.Tracks")
     messages: list[bytes] = [
-        encode_checked_json({"frame": frame, "method": method, "model": model, "tracks": records[a:b]}, tracks)
+        encoder.message({"frame": frame, "method": method, "model": model}, records[a:b])
         for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)
     ]
     return times.tolist(), messages
