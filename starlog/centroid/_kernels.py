@@ -366,3 +366,36 @@ def _secant_factor(dx, dg):  # type: ignore[no-untyped-def]
         return 2.0
     factor = -dx / dg
     return factor if math.isfinite(factor) and 0.5 < factor < 4.0 else 2.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def gather_windows(image, xc, yc, h, background, saturation, data, valid, satpix, flags):  # type: ignore[no-untyped-def]
+    """Star windows of ``image`` centred on the pixels (``xc``, ``yc``), as
+    :func:`~starlog.centroid._stamps.gather_stamps_vectorised` cuts them.
+
+    Fills ``data`` (background-subtracted, 0 where invalid), ``valid`` (inside the frame, finite,
+    below ``saturation``), ``satpix`` (saturated, inside) and ``flags[k]`` = (saturated, cut by the
+    frame edge, non-finite pixel inside) of each star.
+    """
+    rows, cols = image.shape
+    w = 2 * h + 1
+    for k in range(xc.size):
+        saturated, cut, masked = False, False, False
+        for i in range(w):
+            r = yc[k] - h + i
+            row_in = 0 <= r < rows
+            rr = min(max(r, 0), rows - 1)
+            for j in range(w):
+                c = xc[k] - h + j
+                inside = row_in and 0 <= c < cols
+                raw = np.float64(image[rr, min(max(c, 0), cols - 1)])
+                finite = math.isfinite(raw)
+                sat = raw >= saturation
+                ok = inside and finite and not sat
+                valid[k, i, j] = ok
+                data[k, i, j] = raw - background[k] if ok else 0.0
+                satpix[k, i, j] = sat and inside
+                saturated |= sat and inside
+                cut |= not inside
+                masked |= inside and not finite
+        flags[k, 0], flags[k, 1], flags[k, 2] = saturated, cut, masked

@@ -77,7 +77,37 @@ def gather_stamps(
     gain: float,
     saturation: float,
 ) -> Stamps:
-    """Cut the windows around (x, y) out of ``image`` (never modified)."""
+    """Cut the windows around (x, y) out of ``image`` (never modified); compiled
+    (:func:`starlog.centroid._kernels.gather_windows`), the same arrays as :func:`gather_stamps_vectorised`."""
+    from starlog.centroid._kernels import gather_windows  # numba: imported, and compiled, on first use
+
+    xc = np.rint(x).astype(np.intp)
+    yc = np.rint(y).astype(np.intp)
+    n, w = xc.size, 2 * h + 1
+    if yc.shape != (n,) or h < 0:
+        raise InvalidInputError(f"x and y must hold one value per star and h >= 0; got {yc.shape}, {h}.")
+    bg = per_star(background, n, "background")
+    data, valid, satpix = np.empty((n, w, w)), np.empty((n, w, w), np.bool_), np.empty((n, w, w), np.bool_)
+    flags = np.empty((n, 3), np.bool_)
+    if not image.dtype.isnative:  # compiled code reads native byte order only
+        image = image.astype(image.dtype.newbyteorder("="))
+    gather_windows(image, xc, yc, h, bg, float(saturation), data, valid, satpix, flags)
+    return Stamps(data=data, valid=valid, xc=xc, yc=yc, h=h, background=np.asarray(background, np.float64),
+                  noise=np.asarray(noise, np.float64), gain=float(gain), saturated=flags[:, 0], cut=flags[:, 1],
+                  masked=flags[:, 2], satpix=satpix, clip=float(saturation) - np.asarray(background, np.float64))
+
+
+def gather_stamps_vectorised(
+    image: npt.NDArray[np.generic],
+    x: F64,
+    y: F64,
+    h: int,
+    background: F64,
+    noise: F64,
+    gain: float,
+    saturation: float,
+) -> Stamps:
+    """:func:`gather_stamps` in numpy: the reference the tests compare the compiled loop with."""
     rows, cols = image.shape
     xc = np.rint(x).astype(np.intp)
     yc = np.rint(y).astype(np.intp)
