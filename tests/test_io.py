@@ -16,6 +16,7 @@ from mcap.reader import NonSeekingReader, SeekingReader
 from starlog.errors import (
     ChannelNotFoundError,
     InvalidInputError,
+    InvalidParameterError,
     LogNotFoundError,
     OutputExistsError,
     TruncatedLogError,
@@ -126,6 +127,15 @@ def test_frames_stream_in_time_order(sim_log: Path) -> None:
     with LogReader(sim_log) as log:
         times = [t for _, t, image in log.frames()]
     assert times == sorted(times) and len(times) == 20
+
+
+@pytest.mark.parametrize("stride", [1, 2, 3, 7, 50])
+def test_stride_decodes_every_nth_message(sim_log: Path, stride: int) -> None:
+    with LogReader(sim_log) as log:
+        every = [(m.topic, m.log_time) for m in log.messages(topics.FRAME_INFO)]
+        assert [(m.topic, m.log_time) for m in log.messages(topics.FRAME_INFO, stride=stride)] == every[::stride]
+        with pytest.raises(InvalidParameterError, match="stride"):
+            next(log.messages(topics.FRAME_INFO, stride=0))
 
 
 def _append_demo(base: Path, out: Path, **kwargs: object) -> None:

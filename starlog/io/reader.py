@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import heapq
 import io
+import itertools
 import json
 import os
 import struct
@@ -41,6 +42,7 @@ from starlog.errors import (
     CorruptLogError,
     InvalidInputError,
     InvalidMessageError,
+    InvalidParameterError,
     LogNotFoundError,
     MessageDecodeError,
     NotMcapError,
@@ -602,15 +604,19 @@ class LogReader:
         return self._checkers[schema.id]
 
     def messages(
-        self, topic: str | Iterable[str], *, start: int | None = None, end: int | None = None
+        self, topic: str | Iterable[str], *, start: int | None = None, end: int | None = None, stride: int = 1,
     ) -> Iterator[DecodedMessage]:
         """Decoded messages of one topic (or several, interleaved by ``log_time``), streamed.
 
         JSON payloads are checked against their channel's schema (see ``validate_messages``).
+        With ``stride`` n, only every n-th message (the first, the n+1-th, ...) is decoded and yielded.
         """
+        if stride < 1:
+            raise InvalidParameterError(f"stride must be >= 1; got {stride}.")
         topics = [topic] if isinstance(topic, str) else list(topic)
         trusted = {c.id: self._trusted(c) for c in self._summary.channels.values()}
-        for schema, channel, message, verified in self._merged_messages(topics, start=start, end=end):
+        merged = self._merged_messages(topics, start=start, end=end)
+        for schema, channel, message, verified in itertools.islice(merged, 0, None, stride):
             check = None if verified and trusted[channel.id] else self._checker(schema)
             yield DecodedMessage(
                 channel.topic, message.log_time, message.sequence,

@@ -146,9 +146,7 @@ def _read_tracks(log: LogReader, data: ReportData, topic: str) -> None:
     t0 = data.time_range[0]
     rows: dict[int, list[tuple[float, float, float]]] = {}
     brightest = None
-    for k, message in enumerate(log.messages(topic)):
-        if k % stride:
-            continue
+    for message in log.messages(topic, stride=stride):  # the frames not drawn are not decoded
         t = (message.log_time - t0) * 1e-9
         for row in message.payload["tracks"]:
             if row["brightest"]:
