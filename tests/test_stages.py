@@ -328,3 +328,17 @@ def test_stage_refuses_to_read_fewer_messages_than_the_channel_holds(
     result = CliRunner().invoke(cli, [stage, str(log), "-o", str(tmp_path / "o.mcap"), *args])
     assert result.exit_code == 1 and "were read but the channel holds" in result.output, result.output
     assert not (tmp_path / "o.mcap").exists()
+
+
+def test_a_worker_opens_each_log_once(tmp_path: Path) -> None:
+    from starlog.stages import centroid as stage
+
+    log, other = tmp_path / "a.mcap", tmp_path / "b.mcap"
+    for path in (log, other):
+        simulate_log(small_config(width=32, height=32, n_stars=2, n_frames=3), path)
+    first = stage._worker_log(str(log))
+    assert stage._worker_log(str(log)) is first  # every block of the same log: no second read of its summary
+    second = stage._worker_log(str(other))
+    assert second is not first and first._file.closed  # the previous log is closed on moving on
+    stage._WORKER_LOG.clear()
+    second.close()

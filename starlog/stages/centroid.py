@@ -534,10 +534,32 @@ def _extract_serial(log: LogReader, topic: str, extract: _Extractor, skip_bad: b
 
 def _extract_block(path: str, topic: str, start: int, end: int, first_index: int, extract: _Extractor,
                    skip_bad: bool) -> list[_FrameMessages | SkippedFrame]:
-    """Worker: every frame with ``start <= log_time < end`` (opens the log itself; no image crosses processes)."""
+    """Worker: every frame with ``start <= log_time < end`` (reads the log itself; no image crosses processes)."""
     _reuse_frame_buffers()
-    with _opencv_threads(1), LogReader(path) as log:
+    with _opencv_threads(1):
+        log = _worker_log(path)
         return list(_extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first_index))
+
+
+_WORKER_LOG: dict[tuple[str, int, int], LogReader] = {}
+
+
+def _worker_log(path: str) -> LogReader:
+    """The log a worker process reads its blocks from, opened once per process and log.
+
+    Opening reads the log's summary, whose size grows with the log (one index per chunk): opened for
+    every block, a worker's time per frame grew with the log's length. The file is closed when the
+    worker moves to another log, or ends.
+    """
+    info = os.stat(path)
+    key = (os.path.abspath(path), info.st_size, info.st_mtime_ns)
+    log = _WORKER_LOG.get(key)
+    if log is None:
+        for old in _WORKER_LOG.values():
+            old.close()
+        _WORKER_LOG.clear()
+        log = _WORKER_LOG[key] = LogReader(path)
+    return log
 
 
 def _image_blocks(log: LogReader, topic: str, frames_per_block: int) -> list[tuple[int, int, int]]:
