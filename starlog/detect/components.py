@@ -22,6 +22,8 @@ import numpy.typing as npt
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from starlog.errors import InvalidInputError
+
 __all__ = ["Components", "Peaks", "component_peaks", "find_components"]
 
 I64 = npt.NDArray[np.intp]
@@ -182,7 +184,26 @@ def _local_maxima(comp: Components, filtered: npt.NDArray[np.float32]) -> npt.ND
     The box (not the whole frame) is the neighbourhood, so a maximum on the box edge stands
     even when a brighter pixel lies just outside it; a component with no such pixel (its top
     sits on a pixel the opening removed) gets its brightest pixel (first in raster order).
+    Compiled (:func:`starlog.detect._peak_kernels.local_maxima`); :func:`_local_maxima_vectorised`
+    is the numpy form, the reference it is tested against.
     """
+    from starlog.detect._peak_kernels import local_maxima  # numba: imported, and compiled, on first use
+
+    img = np.asarray(filtered)
+    n, count = comp.y.shape, comp.area.shape
+    if img.ndim != 2 or comp.x.shape != n or comp.label.shape != n or len(n) != 1 or any(
+            a.shape != count for a in (comp.x_min, comp.x_max, comp.y_min, comp.y_max)):
+        raise InvalidInputError("_local_maxima: the components' arrays or the filtered image have mismatched shapes.")
+    peak = np.empty(n, np.bool_)
+    bad = local_maxima(np.ascontiguousarray(img, np.float32), *(np.ascontiguousarray(a, np.intp) for a in (
+        comp.y, comp.x, comp.label, comp.x_min, comp.x_max, comp.y_min, comp.y_max)), peak)
+    if bad >= 0:
+        raise InvalidInputError(f"_local_maxima: component or pixel {bad} lies outside the frame or its box.")
+    return peak
+
+
+def _local_maxima_vectorised(comp: Components, filtered: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_]:
+    """:func:`_local_maxima` vectorised over the pixels in numpy."""
     cols = filtered.shape[1]
     c = comp.label
     flat = filtered.ravel()
