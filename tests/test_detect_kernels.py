@@ -14,7 +14,7 @@ import starlog.detect.components as components
 import starlog.detect.detection as detection
 from starlog.detect import detect_stars
 from starlog.detect._peak_kernels import _window_sum
-from starlog.detect.components import Components, Peaks, component_peaks, find_components
+from starlog.detect.components import Components, Peaks, component_peaks, find_components, find_components_vectorised
 from starlog.errors import InvalidInputError
 from starlog.sim.camera import CameraModel
 from starlog.sim.psf import render_stars
@@ -90,6 +90,46 @@ def _same_candidates(peaks, comp, work, filtered, bg, k1, knorm, saturation):
 scenes = dict(seed=st.integers(0, 2**31 - 1), size=st.integers(24, 160), n=st.integers(0, 40),
               psf=st.sampled_from([0.5, 0.9, 1.5, 2.5]), kind=st.sampled_from(["uint16", "float32", "float64"]),
               holes=st.integers(0, 12), saturate=st.booleans())
+
+
+def _same_components(mask, min_area=1, max_area=None):
+    got, want = find_components(mask, min_area, max_area), find_components_vectorised(mask, min_area, max_area)
+    for name in Components.__dataclass_fields__:
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype, name
+        assert_array_equal(a, b, err_msg=name)
+
+
+@settings(max_examples=80, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**31 - 1), fill=st.floats(0.02, 0.7), rows=st.integers(1, 90), cols=st.integers(1, 90),
+       min_area=st.integers(1, 6), max_area=st.sampled_from([None, 5, 40]))
+def test_pixel_listing_kernel_matches_numpy_on_random_masks(seed, fill, rows, cols, min_area, max_area):
+    """Many overlapping boxes (cropped one by one below 65 boxes, one pixel graph above), rings
+    around other components, components smaller than min_area inside other boxes."""
+    rng = np.random.default_rng(seed)
+    mask = (rng.random((rows, cols)) < fill).astype(np.uint8)
+    mask[rng.random((rows, cols)) < 0.02] = 255
+    _same_components(mask, min_area, max_area)
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(**scenes, opening=st.booleans(), min_area=st.sampled_from([1, 3]))
+def test_pixel_listing_kernel_matches_numpy_on_star_fields(seed, size, n, psf, kind, holes, saturate, opening,
+                                                         min_area):
+    img = _scene(seed, size, n, psf, kind=kind, holes=holes, saturate=saturate)
+    work, bg, _ = detection._prepare(np.asarray(img), None, 64)
+    filtered, k1 = detection.matched_filter(work, 1.5)
+    _same_components(detection._foreground(filtered, bg, 5.0 * float(np.sum(k1**2)), opening=opening), min_area)
+
+
+def test_ring_and_nested_component():
+    mask = np.zeros((9, 9), np.uint8)
+    mask[1, 1:8] = mask[7, 1:8] = mask[1:8, 1] = mask[1:8, 7] = 1  # a ring: one external contour
+    mask[4, 4] = 1  # inside the ring's hole: listed with the ring
+    mask[0, 8] = 1  # touches the ring's corner diagonally
+    _same_components(mask)
+    comp = find_components(mask)
+    assert comp.count == 1 and comp.area[0] == mask.sum()
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)
@@ -190,6 +230,7 @@ def test_window_sum_is_numpys_summation_order(seed, m, k, spread):
 
 
 def _vectorised(stack):
+    stack.setattr(detection, "find_components", components.find_components_vectorised)
     stack.setattr(components, "_local_maxima", components._local_maxima_vectorised)
     stack.setattr(detection, "_candidates", detection._candidates_vectorised)
 
@@ -233,3 +274,13 @@ def test_mismatched_or_out_of_range_inputs_are_refused():
         components._local_maxima(Components(**{**fields, "x_max": comp.x_max + filtered.shape[1]}), filtered)
     with pytest.raises(InvalidInputError, match="outside"):
         components._local_maxima(Components(**{**fields, "label": comp.label - 1}), filtered)
+    mask = np.zeros((8, 8), np.uint8)
+    mask[2:4, 2:5] = 1
+    rects, seeds = np.array([[2, 2, 3, 2]]), np.array([[2, 2]])
+    assert components._member_pixels(mask, rects, seeds)[0].size == 6
+    with pytest.raises(InvalidInputError, match="box 0"):
+        components._member_pixels(mask, rects, np.array([[1, 2]]))
+    with pytest.raises(InvalidInputError, match="box 0"):
+        components._member_pixels(mask, np.array([[6, 2, 3, 2]]), np.array([[6, 2]]))
+    with pytest.raises(InvalidInputError, match="mismatched"):
+        components._member_pixels(mask, rects, np.array([[2, 2], [3, 3]]))

@@ -284,3 +284,56 @@ def coarse_positions(logs, moments, px, py, x, y):  # type: ignore[no-untyped-de
             else:
                 y[i] = py[i] + d
     return -1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def member_pixels(binary, rects, seeds, shared, box, y, x):  # type: ignore[no-untyped-def]
+    """The foreground pixels of each box ``(x, y, w, h)`` in raster order, box after box, into
+    ``box``, ``y``, ``x``: all of them, or for a ``shared`` box those 8-connected to its seed
+    inside the box (:func:`starlog.detect.components._member_pixels_vectorised`).
+
+    The outputs hold at least the boxes' total area. Returns the number of pixels, or
+    ``-1 - b`` for the first box ``b`` not inside the frame or whose seed is not in it.
+    """
+    rows, cols = binary.shape
+    largest = 0
+    for b in range(rects.shape[0]):
+        bx, by, bw, bh = rects[b, 0], rects[b, 1], rects[b, 2], rects[b, 3]
+        if not (bx >= 0 and by >= 0 and bw >= 1 and bh >= 1 and bx + bw <= cols and by + bh <= rows
+                and bx <= seeds[b, 0] < bx + bw and by <= seeds[b, 1] < by + bh):
+            return -1 - b
+        if shared[b]:
+            largest = max(largest, bw * bh)
+    reached = np.zeros(largest, np.bool_)
+    stack = np.empty(largest, np.intp)
+    n = 0
+    for b in range(rects.shape[0]):
+        bx, by, bw, bh = rects[b, 0], rects[b, 1], rects[b, 2], rects[b, 3]
+        if not shared[b]:
+            for r in range(by, by + bh):
+                for c in range(bx, bx + bw):
+                    if binary[r, c] != 0:
+                        box[n], y[n], x[n] = b, r, c
+                        n += 1
+            continue
+        reached[: bw * bh] = False
+        s = (seeds[b, 1] - by) * bw + seeds[b, 0] - bx
+        if binary[seeds[b, 1], seeds[b, 0]] != 0:
+            reached[s] = True
+            stack[0] = s
+            top = 1
+            while top:
+                top -= 1
+                r, c = divmod(stack[top], bw)
+                for dr in range(max(r - 1, 0), min(r + 2, bh)):
+                    for dc in range(max(c - 1, 0), min(c + 2, bw)):
+                        k = dr * bw + dc
+                        if not reached[k] and binary[by + dr, bx + dc] != 0:
+                            reached[k] = True
+                            stack[top] = k
+                            top += 1
+        for k in range(bw * bh):
+            if reached[k]:
+                box[n], y[n], x[n] = b, by + k // bw, bx + k % bw
+                n += 1
+    return n
