@@ -5,6 +5,9 @@ the fixed cost of many small array operations, not arithmetic. Here each pixel o
 plain loop, giving the same bits as the numpy forms, which stay as the references the tests
 compare with:
 
+- :func:`member_pixels` — the pixel listing of
+  :func:`starlog.detect.components.find_components_vectorised` (boxes' foreground pixels,
+  seed-connected ones where boxes overlap);
 - :func:`local_maxima` — :func:`starlog.detect.components._local_maxima_vectorised`;
 - :func:`candidate_rows` and :func:`coarse_positions` —
   :func:`starlog.detect.detection._candidates_vectorised`: the background at the peak
