@@ -15,7 +15,7 @@ from starlog.centroid.gaussfit import _Problem, _Profiles, fit_gaussians
 from starlog.centroid.moment import _centre_of_weights
 from starlog.detect import estimate_background
 from starlog.detect.background import Background, _edge_padded, _fit_planes, _fit_planes_vectorised
-from starlog.detect.components import find_components
+from starlog.detect.components import find_components_vectorised
 from starlog.detect.detection import _edge_noise_factor, matched_filter
 
 
@@ -34,11 +34,11 @@ def _components_tuple(comp: components.Components) -> tuple[np.ndarray, ...]:
 @given(seed=st.integers(0, 2**31 - 1), fill=st.floats(0.05, 0.6), rows=st.integers(1, 40), cols=st.integers(1, 40))
 def test_overlapping_boxes_as_crops_match_the_pixel_graph(seed, fill, rows, cols):
     mask = _random_mask(seed, (rows, cols), fill)
-    by_crops = find_components(mask)
+    by_crops = find_components_vectorised(mask)
     saved = components._CROPS_UP_TO
     components._CROPS_UP_TO = -1  # every overlapping box through the one sparse graph
     try:
-        by_graph = find_components(mask)
+        by_graph = find_components_vectorised(mask)
     finally:
         components._CROPS_UP_TO = saved
     for a, b in zip(_components_tuple(by_crops), _components_tuple(by_graph)):

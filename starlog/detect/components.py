@@ -14,6 +14,7 @@ Coordinates: x = column, y = row, 0-based, (0, 0) at the centre of the top-left 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -22,7 +23,9 @@ import numpy.typing as npt
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-__all__ = ["Components", "Peaks", "component_peaks", "find_components"]
+from starlog.errors import InvalidInputError
+
+__all__ = ["Components", "Peaks", "component_peaks", "find_components", "find_components_vectorised"]
 
 I64 = npt.NDArray[np.intp]
 F64 = npt.NDArray[np.float64]
@@ -118,24 +121,52 @@ def find_components(binary: npt.NDArray[np.uint8], min_area: int = 1, max_area: 
 
     External contours give each component's bounding box and a seed pixel cheaply; a box's
     foreground pixels are the component's, except where boxes overlap: there only the pixels
-    connected to the seed inside the box count (a neighbour poking in is left out).
+    connected to the seed inside the box count (a neighbour poking in is left out). The
+    pixels are listed in compiled code (:func:`starlog.detect._peak_kernels.member_pixels`);
+    :func:`find_components_vectorised` lists them in numpy, the reference it is tested against.
     """
-    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    rects = np.array([cv2.boundingRect(c) for c in contours], dtype=np.intp).reshape(-1, 4)
-    seeds = np.array([c[0, 0] for c in contours], dtype=np.intp).reshape(-1, 2)
-    big = rects[:, 2] * rects[:, 3] >= min_area  # a box smaller than min_area holds no keeper
-    rects, seeds = rects[big], seeds[big]
-    box, y, x = _box_pixels(rects)
-    on = binary[y, x] != 0
-    box, y, x = box[on], y[on], x[on]
+    return _find_components(binary, min_area, max_area, _member_pixels)
+
+
+def find_components_vectorised(binary: npt.NDArray[np.uint8], min_area: int = 1,
+                               max_area: int | None = None) -> Components:
+    """:func:`find_components` with the pixels listed in numpy."""
+    return _find_components(binary, min_area, max_area, _member_pixels_vectorised)
+
+
+def _shared_boxes(rects: I64) -> npt.NDArray[np.bool_]:
+    """Which boxes ``(x, y, w, h)`` overlap another (all of them, past 2000 boxes)."""
     x0, y0 = rects[:, 0], rects[:, 1]
     x1, y1 = x0 + rects[:, 2], y0 + rects[:, 3]
     if 1 < rects.shape[0] <= 2000:
         overlap = ((x0[:, None] < x1[None, :]) & (x0[None, :] < x1[:, None])
                    & (y0[:, None] < y1[None, :]) & (y0[None, :] < y1[:, None]))
-        shared = overlap.sum(axis=1) > 1
-    else:
-        shared = np.full(rects.shape[0], rects.shape[0] > 1)
+        return overlap.sum(axis=1) > 1
+    return np.full(rects.shape[0], rects.shape[0] > 1)
+
+
+def _member_pixels(binary: npt.NDArray[np.uint8], rects: I64, seeds: I64) -> tuple[I64, I64, I64]:
+    """(box, y, x) of each box's pixels (see :func:`find_components`), box after box in raster order."""
+    from starlog.detect._peak_kernels import member_pixels  # numba: imported, and compiled, on first use
+
+    img = np.ascontiguousarray(binary, np.uint8)
+    if img.ndim != 2 or rects.ndim != 2 or rects.shape[1] != 4 or seeds.shape != (rects.shape[0], 2):
+        raise InvalidInputError("find_components: the mask, boxes or seeds have mismatched shapes.")
+    rects, seeds = np.ascontiguousarray(rects, np.intp), np.ascontiguousarray(seeds, np.intp)
+    total = int(np.sum(rects[:, 2] * rects[:, 3]))
+    box, y, x = np.empty(total, np.intp), np.empty(total, np.intp), np.empty(total, np.intp)
+    n = member_pixels(img, rects, seeds, _shared_boxes(rects), box, y, x)
+    if n < 0:
+        raise InvalidInputError(f"find_components: box {-1 - n} is not inside the mask or misses its seed.")
+    return box[:n], y[:n], x[:n]
+
+
+def _member_pixels_vectorised(binary: npt.NDArray[np.uint8], rects: I64, seeds: I64) -> tuple[I64, I64, I64]:
+    """:func:`_member_pixels` in numpy."""
+    box, y, x = _box_pixels(rects)
+    on = binary[y, x] != 0
+    box, y, x = box[on], y[on], x[on]
+    shared = _shared_boxes(rects)
     if shared.any():
         sub = shared[box]
         member = np.ones(box.size, bool)
@@ -146,6 +177,18 @@ def find_components(binary: npt.NDArray[np.uint8], min_area: int = 1, max_area: 
             seed = (y == seeds[box, 1]) & (x == seeds[box, 0])
             member[sub] = _same_component(box[sub], y[sub], x[sub], seed[sub])
         box, y, x = box[member], y[member], x[member]
+    return box, y, x
+
+
+def _find_components(binary: npt.NDArray[np.uint8], min_area: int, max_area: int | None,
+                     member_pixels: Callable[[npt.NDArray[np.uint8], I64, I64], tuple[I64, I64, I64]]
+                     ) -> Components:
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    rects = np.array([cv2.boundingRect(c) for c in contours], dtype=np.intp).reshape(-1, 4)
+    seeds = np.array([c[0, 0] for c in contours], dtype=np.intp).reshape(-1, 2)
+    big = rects[:, 2] * rects[:, 3] >= min_area  # a box smaller than min_area holds no keeper
+    rects, seeds = rects[big], seeds[big]
+    box, y, x = member_pixels(binary, rects, seeds)
     area = np.bincount(box, minlength=rects.shape[0])
     keep = (area >= min_area) & (area <= (max_area if max_area is not None else box.size))
     if not keep.all():
@@ -182,7 +225,26 @@ def _local_maxima(comp: Components, filtered: npt.NDArray[np.float32]) -> npt.ND
     The box (not the whole frame) is the neighbourhood, so a maximum on the box edge stands
     even when a brighter pixel lies just outside it; a component with no such pixel (its top
     sits on a pixel the opening removed) gets its brightest pixel (first in raster order).
+    Compiled (:func:`starlog.detect._peak_kernels.local_maxima`); :func:`_local_maxima_vectorised`
+    is the numpy form, the reference it is tested against.
     """
+    from starlog.detect._peak_kernels import local_maxima  # numba: imported, and compiled, on first use
+
+    img = np.asarray(filtered)
+    n, count = comp.y.shape, comp.area.shape
+    if img.ndim != 2 or comp.x.shape != n or comp.label.shape != n or len(n) != 1 or any(
+            a.shape != count for a in (comp.x_min, comp.x_max, comp.y_min, comp.y_max)):
+        raise InvalidInputError("_local_maxima: the components' arrays or the filtered image have mismatched shapes.")
+    peak = np.empty(n, np.bool_)
+    bad = local_maxima(np.ascontiguousarray(img, np.float32), *(np.ascontiguousarray(a, np.intp) for a in (
+        comp.y, comp.x, comp.label, comp.x_min, comp.x_max, comp.y_min, comp.y_max)), peak)
+    if bad >= 0:
+        raise InvalidInputError(f"_local_maxima: component or pixel {bad} lies outside the frame or its box.")
+    return peak
+
+
+def _local_maxima_vectorised(comp: Components, filtered: npt.NDArray[np.float32]) -> npt.NDArray[np.bool_]:
+    """:func:`_local_maxima` vectorised over the pixels in numpy."""
     cols = filtered.shape[1]
     c = comp.label
     flat = filtered.ravel()

@@ -271,7 +271,50 @@ def _candidates(peaks: Peaks, comp: Components, work: npt.NDArray[np.float32], f
                 bg: Background, k1: npt.NDArray[np.float64], knorm: float, *, saturation: float,
                 sharpness_ratio: float, max_elongation: float, elongation_flag: float, threshold: float,
                 border: int) -> tuple[npt.NDArray[np.void], npt.NDArray[np.bool_]]:
-    """Every peak as a detection row (``star`` not yet set), and which rows pass the screening."""
+    """Every peak as a detection row (``star`` not yet set), and which rows pass the screening.
+
+    Compiled (:func:`starlog.detect._peak_kernels.candidate_rows`, then numpy's logarithms for
+    the log-parabola, then :func:`~starlog.detect._peak_kernels.coarse_positions`);
+    :func:`_candidates_vectorised` is the numpy form, the reference it is tested against.
+    """
+    from starlog.detect._peak_kernels import candidate_rows, coarse_positions  # numba: compiled on first use
+
+    n = peaks.y.shape
+    count = comp.area.shape
+    if (len(n) != 1 or any(a.shape != n for a in (peaks.x, peaks.fval, peaks.flux, peaks.blended, peaks.component))
+            or any(a.shape != count for a in (comp.x_min, comp.x_max, comp.y_min, comp.y_max))
+            or work.ndim != 2 or filtered.shape != work.shape or np.ndim(bg.mesh_level) != 2
+            or np.ndim(bg.mesh_noise) != 2 or np.ndim(k1) != 1 or np.size(k1) == 0):
+        raise InvalidInputError("_candidates: the peaks', components' or images' arrays have mismatched shapes.")
+    out = np.zeros(n, dtype=DETECTION_DTYPE)
+    keep = np.empty(n, np.bool_)
+    three, moments = np.empty(n + (6,)), np.empty(n + (2,))
+    bits = np.array([StarFlag.SATURATED, StarFlag.ELONGATED, StarFlag.BLENDED, StarFlag.BORDER, StarFlag.LOW_SNR],
+                    np.uint16)
+    i64 = [np.ascontiguousarray(a, np.intp) for a in (peaks.y, peaks.x, peaks.component)]
+    f64 = [np.ascontiguousarray(a, np.float64) for a in (peaks.fval, peaks.flux)]
+    boxes = [np.ascontiguousarray(a, np.intp) for a in (comp.area, comp.x_min, comp.x_max, comp.y_min, comp.y_max)]
+    bad = candidate_rows(
+        np.ascontiguousarray(work, np.float32), np.ascontiguousarray(filtered, np.float32),
+        np.ascontiguousarray(bg.mesh_level, np.float64), np.ascontiguousarray(bg.mesh_noise, np.float64),
+        float(bg.mesh), _edge_noise_table(np.ascontiguousarray(k1, np.float64).tobytes()), *i64, *f64,
+        np.ascontiguousarray(peaks.blended, np.bool_), *boxes, float(saturation), float(sharpness_ratio),
+        float(max_elongation), float(elongation_flag), float(threshold), float(knorm), int(border), bits,
+        *(out[name] for name in ("background", "noise", "peak", "snr", "elongation", "flags")), keep,
+        *(out[name] for name in ("x_peak", "y_peak", "flux", "area", "x_min", "x_max", "y_min", "y_max")),
+        three, moments)
+    if bad >= 0:
+        raise InvalidInputError(f"_candidates: peak {bad} belongs to no component.")
+    coarse_positions(np.log(three), moments, i64[1], i64[0], out["x"], out["y"])
+    return out, keep
+
+
+def _candidates_vectorised(peaks: Peaks, comp: Components, work: npt.NDArray[np.float32],
+                           filtered: npt.NDArray[np.float32], bg: Background, k1: npt.NDArray[np.float64],
+                           knorm: float, *, saturation: float, sharpness_ratio: float, max_elongation: float,
+                           elongation_flag: float, threshold: float,
+                           border: int) -> tuple[npt.NDArray[np.void], npt.NDArray[np.bool_]]:
+    """:func:`_candidates` vectorised over the peaks in numpy."""
     py, px, c = peaks.y, peaks.x, peaks.component
     rows, cols = work.shape
     level = bg.level_at(px, py)
