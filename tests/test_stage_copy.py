@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 from pathlib import Path
 
 import pytest
 
 from starlog.errors import TruncatedLogError
 from starlog.io import LogReader, LogWriter, Provenance, file_digest, json_message_type
-from starlog.io.bytecopy import copy_range
+from starlog.io.bytecopy import copy_range, copy_range_at
 from starlog.io.layout import locate_data_end
 from starlog.io.provenance import BackgroundDigest
 from starlog.stages import compensate as compensate_stage
@@ -69,9 +70,41 @@ def test_an_extended_log_is_the_same_with_or_without_the_kernel_copy(
 
 def test_a_base_cut_short_while_copied_is_refused(sim_log: Path, tmp_path: Path,
                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr("starlog.io.writer.copy_range", lambda src, dst, offset, length: length - 1)
-    with pytest.raises(TruncatedLogError):
-        LogWriter(tmp_path / "out.mcap", base=sim_log)
+    monkeypatch.setattr("starlog.io.writer.copy_range_at", lambda *args, **kwargs: args[3] - 1)
+    with pytest.raises(TruncatedLogError), LogWriter(tmp_path / "out.mcap", base=sim_log):
+        pass  # the copy runs on a thread: its shortfall is raised when the log is closed
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("kernel", [True, False])
+def test_a_positional_copy_leaves_both_positions_and_the_rest_of_the_file(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kernel: bool) -> None:
+    if not kernel:
+        monkeypatch.setattr(os, "copy_file_range", lambda *a, **k: (_ for _ in ()).throw(OSError(18, "EXDEV")))
+    src = tmp_path / "src.bin"
+    src.write_bytes(os.urandom(5 * 1024 * 1024 + 17))
+    with open(src, "rb") as s, open(tmp_path / "dst.bin", "w+b") as d:
+        s.seek(3)
+        d.seek(2_000_000)
+        d.write(b"after")  # written at the end first, as a stage writes its records during the copy
+        d.flush()
+        assert copy_range_at(s.fileno(), d.fileno(), 100, 2_000_000, 0) == 2_000_000
+        assert s.tell() == 3 and d.tell() == 2_000_005
+    assert (tmp_path / "dst.bin").read_bytes() == src.read_bytes()[100:2_000_100] + b"after"
+
+
+def test_a_stopped_copy_ends_at_once(tmp_path: Path) -> None:
+    src = tmp_path / "src.bin"
+    src.write_bytes(b"x" * 1000)
+    stop = threading.Event()
+    stop.set()
+    with open(src, "rb") as s, open(tmp_path / "dst.bin", "w+b") as d:
+        assert copy_range_at(s.fileno(), d.fileno(), 0, 1000, 0, stop=stop) == 0
+
+
+def test_an_aborted_extension_leaves_nothing(sim_log: Path, tmp_path: Path) -> None:
+    writer = LogWriter(tmp_path / "out.mcap", base=sim_log)
+    writer.abort()  # stops the copy thread and removes the partial file
     assert list(tmp_path.iterdir()) == []
 
 

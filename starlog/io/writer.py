@@ -6,7 +6,8 @@ Why not :class:`mcap.writer.Writer` directly? Two things it cannot do:
   a few kilobytes of centroids to a gigabyte of images must not decompress and re-compress
   the images. :class:`LogWriter` started with ``base=INPUT`` copies the input's data section
   byte for byte (every chunk, message index and metadata record keeps its offset; the kernel
-  copies it, see :func:`~starlog.io.bytecopy.copy_range`), writes the new chunks after it,
+  copies it on a thread while the stage works, see :func:`~starlog.io.bytecopy.copy_range_at`),
+  writes the new chunks after it,
   and ends with a summary that merges the input's (schemas, channels, chunk/metadata/attachment
   indexes, statistics) with the new records — what the
   MCAP specification allows and what the TypeScript library's ``InitializeForAppending``
@@ -73,7 +74,7 @@ from starlog.errors import (
     OutputFolderError,
     TruncatedLogError,
 )
-from starlog.io.bytecopy import copy_range
+from starlog.io.bytecopy import copy_range_at
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
 from starlog.io.checksum import crc32
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
@@ -540,9 +541,8 @@ class LogWriter:
                     summary = synthesize_summary(base, src, data_end, known=summary).summary
                 except ValueError as err:
                     raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
-            if copy_range(src, self._file, 0, data_end) < data_end:
-                raise TruncatedLogError(base, "it ended while its data section was being copied")
-        self._writeback = _Writeback(self._file.fileno())
+        self._file.seek(data_end)  # the new records go after the base's data section, copied on a thread
+        self._writeback = _Writeback(self._file.fileno(), base, data_end)
         self._inherit(summary)
 
     def _start_from_stack(self, base: StackedLog) -> None:
@@ -624,30 +624,41 @@ class LogWriter:
 
 
 class _Writeback:
-    """``fdatasync`` of the copied base on a thread, so the disk writes overlap the stage's work.
+    """The base's data section copied into the output, then ``fdatasync``-ed, on a thread: the copy
+    (hundreds of MB for a long log) and its disk writes overlap the stage's work, and the final
+    ``fsync`` in :meth:`LogWriter.close` has only the new records left to write.
 
-    The final ``fsync`` in :meth:`LogWriter.close` then has only the new records left to write.
-    An error is kept and raised by :meth:`wait`: Linux reports a failed write-back once per
-    file, so it must not be lost on this thread.
+    The copy is positional (:func:`~starlog.io.bytecopy.copy_range_at`), so the stage writes its
+    records after the data section meanwhile. An error is kept and raised by :meth:`wait`: Linux
+    reports a failed write-back once per file, so it must not be lost on this thread.
     """
 
-    def __init__(self, fd: int) -> None:
-        self._error: OSError | None = None
-        self._thread = threading.Thread(target=self._sync, args=(fd,), name="starlog-writeback", daemon=True)
+    def __init__(self, fd: int, base: Path, length: int) -> None:
+        self._error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._copy_and_sync, args=(fd, base, length),
+                                        name="starlog-writeback", daemon=True)
         self._thread.start()
 
-    def _sync(self, fd: int) -> None:
+    def _copy_and_sync(self, fd: int, base: Path, length: int) -> None:
         try:
+            with open(base, "rb") as src:
+                copied = copy_range_at(src.fileno(), fd, 0, length, 0, stop=self._stop)
+            if self._stop.is_set():
+                return
+            if copied < length:
+                raise TruncatedLogError(base, "it ended while its data section was being copied")
             getattr(os, "fdatasync", os.fsync)(fd)  # macOS has no fdatasync
-        except OSError as err:
+        except BaseException as err:  # raised by wait(), in the thread that closes the log
             self._error = err
 
     def join(self) -> None:
-        """Wait for the thread (its error, if any, is dropped: the output is being discarded)."""
+        """Stop the copy and wait for the thread (its error, if any, is dropped: the output is being discarded)."""
+        self._stop.set()
         self._thread.join()
 
     def wait(self) -> None:
-        """Wait for the thread and raise its error."""
+        """Wait for the copy and its write-back, and raise their error."""
         self._thread.join()
         if self._error is not None:
             raise self._error
