@@ -136,3 +136,63 @@ def test_only_arrays_of_flat_records_are_accepted() -> None:
     with pytest.raises(InvalidInputError, match="not an array of flat records"):
         RecordEncoder(DETECTIONS, "frame")
 
+
+
+def _kind(items: dict, top: dict | None = None) -> MessageType:
+    schema = {"type": "object", "properties": {"frame": {"type": "integer"}, "stars": {"type": "array", "items": items}},
+              **(top or {})}
+    return MessageType("t.Stars", "jsonschema", json.dumps(schema).encode(), "json")
+
+
+def _same_as_the_dict_path(kind: MessageType, header: dict, table: np.ndarray) -> None:
+    assert _outcome(lambda: RecordEncoder(kind, "stars").encode(header, table)) == _outcome(
+        lambda: _reference(header, "stars", table, kind))
+
+
+@pytest.mark.parametrize("name", ["a%b", "a%%b", "100%", "rate_%s"])
+def test_field_names_with_percent_signs(name: str) -> None:
+    table = np.zeros(2, [("x", np.float64), (name, np.float64)])
+    table["x"] = [1.5, 2.5]
+    _same_as_the_dict_path(_kind({"type": "object", "properties": {"x": {"type": "number"}}}), {"frame": 1}, table)
+    closed = {"type": "object", "properties": {name: {"type": "number"}}, "additionalProperties": False}
+    _same_as_the_dict_path(_kind(closed), {"frame": 1}, np.zeros(1, [(name, np.float64)]))
+
+
+@pytest.mark.parametrize(("dtype", "value", "bound"), [
+    (np.float32, 0.1, {"maximum": 0.1}),  # float32(0.1) is 0.10000000149...: above
+    (np.float16, 0.1, {"minimum": 0.1}),  # float16(0.1) is 0.0999755...: below
+    (np.int64, 2**53 + 1, {"maximum": float(2**53)}),
+    (np.int64, 5, {"maximum": 10**400}),
+])
+def test_bounds_are_compared_exactly(dtype: type, value: float, bound: dict) -> None:
+    items = {"type": "object", "properties": {"x": {"type": "number", **bound}}}
+    _same_as_the_dict_path(_kind(items), {"frame": 1}, np.array([(value,)], [("x", dtype)]))
+
+
+def test_unknown_columns_against_an_additional_properties_schema() -> None:
+    items = {"type": "object", "properties": {"x": {"type": "number"}}, "additionalProperties": {"type": "integer"}}
+    table = np.zeros(1, [("x", np.float64), ("y", np.float64)])
+    table["y"] = 0.5
+    _same_as_the_dict_path(_kind(items), {"frame": 1}, table)
+    table["y"] = 2.0
+    _same_as_the_dict_path(_kind(items), {"frame": 1}, table)
+
+
+@pytest.mark.parametrize("dtype", [np.longdouble, object, "S3"])
+def test_columns_orjson_cannot_encode_take_the_dict_path(dtype: object) -> None:
+    table = np.zeros(2, [("x", dtype)])
+    table["x"] = [1, 2] if dtype != "S3" else [b"ab", b"c"]
+    if dtype is object:
+        table["x"] = [np.int64(1), 2.5]
+    _same_as_the_dict_path(_kind({"type": "object", "properties": {"x": {}}}), {"frame": 1}, table)
+
+
+def test_header_values_are_encoded_as_a_dict_message_encodes_them() -> None:
+    kind = _kind({"type": "object", "properties": {"x": {"type": "number"}}})
+    _same_as_the_dict_path(kind, {"frame": np.int64(3)}, np.zeros(1, [("x", np.float64)]))
+    _same_as_the_dict_path(kind, {"frame": 1, "gain": float("nan")}, np.zeros(1, [("x", np.float64)]))
+
+
+def test_records_come_as_a_one_dimensional_array() -> None:
+    with pytest.raises(InvalidInputError, match="1-D"):
+        RecordEncoder(DETECTIONS, "stars").rows(np.zeros((), [("star", np.int32)]))

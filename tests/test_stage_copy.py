@@ -156,3 +156,32 @@ def test_the_paper_protocol_never_reads_the_truth(tmp_path: Path, monkeypatch: p
     assert compensate_log(trk, tmp_path / "again.mcap", rates=[50], protocols="paper").records == paper.records
     with pytest.raises(AssertionError, match="truth was read"):
         compensate_log(trk, tmp_path / "truth.mcap", rates=[50], protocols="truth")
+
+
+def _held_copy(monkeypatch: pytest.MonkeyPatch) -> threading.Event:
+    """Make the writer's copy thread wait for the returned event before it copies."""
+    from starlog.io import writer as writer_module
+
+    go, real = threading.Event(), writer_module.copy_range_at
+
+    def held(*args: object, **kwargs: object) -> int:
+        go.wait(10)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(writer_module, "copy_range_at", held)
+    return go
+
+
+def test_the_copy_writes_through_descriptors_of_its_own(sim_log: Path, tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    go = _held_copy(monkeypatch)
+    writer = LogWriter(tmp_path / "out.mcap", base=sim_log)
+    writer._file.close()  # as if the writer were dropped and collected: its descriptor number is free again
+    victim = tmp_path / "victim.txt"
+    with open(victim, "w+b") as f:
+        f.write(b"precious")
+        f.flush()
+        go.set()
+        writer._writeback.wait()  # type: ignore[union-attr]  # the whole copy, not stopped
+    assert victim.read_bytes() == b"precious"
+    (writer._tmp_path).unlink()

@@ -27,7 +27,7 @@ def _assert_same(image: np.ndarray, x: np.ndarray, y: np.ndarray, h: int, satura
 
 
 @settings(max_examples=200, derandomize=True, deadline=None)
-@given(dtype=st.sampled_from(["u1", "<u2", ">u2", "<f4", "<f8", "i4"]), rows=st.integers(1, 24),
+@given(dtype=st.sampled_from(["u1", "<u2", ">u2", "<f2", "<f4", "<f8", "i4"]), rows=st.integers(1, 24),
        cols=st.integers(1, 24), n=st.integers(0, 6), h=st.integers(0, 6), seed=st.integers(0, 2**16),
        holes=st.booleans(), saturation=st.sampled_from([np.inf, 200.0, 65535.0]))
 def test_windows_equal_the_numpy_reference(dtype: str, rows: int, cols: int, n: int, h: int, seed: int,
@@ -53,3 +53,9 @@ def test_positions_must_pair_up() -> None:
         gather_stamps(np.zeros((8, 8)), np.zeros(3), np.zeros(2), 2, np.zeros(3), np.ones(3), 1.0, np.inf)
     with pytest.raises(InvalidInputError, match="one value per star"):
         gather_stamps(np.zeros((8, 8)), np.zeros(3), np.zeros(3), 2, np.zeros(2), np.ones(3), 1.0, np.inf)
+
+
+@pytest.mark.parametrize("shape", [(0, 5), (5, 0), (0, 0)])
+def test_an_empty_frame_is_refused(shape: tuple[int, int]) -> None:
+    with pytest.raises(InvalidInputError, match="non-empty 2-D"):
+        gather_stamps(np.zeros(shape), np.zeros(1), np.zeros(1), 1, np.zeros(1), np.ones(1), 1.0, np.inf)

@@ -86,6 +86,10 @@ def gather_stamps(
     n, w = xc.size, 2 * h + 1
     if yc.shape != (n,) or h < 0:
         raise InvalidInputError(f"x and y must hold one value per star and h >= 0; got {yc.shape}, {h}.")
+    if image.ndim != 2 or 0 in image.shape:
+        raise InvalidInputError(f"star windows are cut from a non-empty 2-D image; got shape {image.shape}.")
+    if image.dtype.kind == "f" and image.dtype.itemsize not in (4, 8):  # float16, longdouble: not compiled
+        image = image.astype(np.float64)  # exact for float16; longdouble rounds as astype(float64) did
     bg = per_star(background, n, "background")
     data, valid, satpix = np.empty((n, w, w)), np.empty((n, w, w), np.bool_), np.empty((n, w, w), np.bool_)
     flags = np.empty((n, 3), np.bool_)

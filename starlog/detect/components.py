@@ -236,7 +236,9 @@ def _local_maxima(comp: Components, filtered: npt.NDArray[np.float32]) -> npt.ND
             a.shape != count for a in (comp.x_min, comp.x_max, comp.y_min, comp.y_max)):
         raise InvalidInputError("_local_maxima: the components' arrays or the filtered image have mismatched shapes.")
     peak = np.empty(n, np.bool_)
-    bad = local_maxima(np.ascontiguousarray(img, np.float32), *(np.ascontiguousarray(a, np.intp) for a in (
+    # compared in the image's own float type, as the numpy form compares them
+    values = np.ascontiguousarray(img if img.dtype in (np.float32, np.float64) else img.astype(np.float64))
+    bad = local_maxima(values, *(np.ascontiguousarray(a, np.intp) for a in (
         comp.y, comp.x, comp.label, comp.x_min, comp.x_max, comp.y_min, comp.y_max)), peak)
     if bad >= 0:
         raise InvalidInputError(f"_local_maxima: component or pixel {bad} lies outside the frame or its box.")

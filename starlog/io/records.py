@@ -55,7 +55,10 @@ class RecordEncoder:
 
     ``key`` is the message's property that holds the records; it must be an array of objects whose
     properties are scalars described by ``type``, ``enum``, ``minimum`` and ``maximum`` only.
-    Raises :class:`InvalidInputError` for a schema outside that shape.
+    Raises :class:`InvalidInputError` for a schema outside that shape. Records are one 1-D
+    structured array of scalar fields (plus ``extra`` columns of other names), and the header
+    comes first: a repeated field name, a sub-array field or a header that does not end with
+    ``key`` are refused, where a dict message would be written.
     """
 
     def __init__(self, message_type: MessageType, key: str) -> None:
@@ -70,7 +73,8 @@ class RecordEncoder:
         self._key_json = orjson.dumps(key)
         self._properties: dict[str, dict[str, Any]] = items["properties"]
         self._required = frozenset(items.get("required", ()))
-        self._closed = items.get("additionalProperties", True) is False
+        # unknown columns: anything goes (absent or true), else the reference path decides (false, or a schema)
+        self._open = items.get("additionalProperties", True) is True
         self._check_message = schema_checker(message_type.schema_data)
         self._check_record = compile_json_schema(items)
         self._digest = schema_digest(message_type.schema_data)
@@ -81,6 +85,9 @@ class RecordEncoder:
 
         Raises :class:`InvalidInputError` when a record does not match the schema or holds NaN or infinity.
         """
+        if np.ndim(table) != 1:
+            raise InvalidInputError(f"{self.message_type.schema_name} records come as a 1-D array; got shape "
+                                    f"{np.shape(table)}.")
         extra = extra or {}
         names = (*(table.dtype.names or ()), *extra)
         columns = [table[name] for name in table.dtype.names or ()] + [np.asarray(c) for c in extra.values()]
@@ -90,25 +97,31 @@ class RecordEncoder:
         if n == 0:
             return []
         plan = self._plan(names, tuple(c.dtype for c in columns))
+        if any(check is None for check in plan.checks):
+            return self._reference_rows(names, columns)
         values = []
         for column, check in zip(columns, plan.checks, strict=True):
-            if column.dtype.kind == "U":  # strings may hold commas: encoded one at a time
-                values.append([orjson.dumps(v) for v in column.tolist()])
-                text = b""
-            else:
-                text = orjson.dumps(column.tolist())
-                values.append(text[1:-1].split(b","))
+            try:
+                if column.dtype.kind == "U":  # strings may hold commas: encoded one at a time
+                    values.append([orjson.dumps(v) for v in column.tolist()])
+                    text = b""
+                else:
+                    text = orjson.dumps(column.tolist())
+                    values.append(text[1:-1].split(b","))
+            except (orjson.JSONEncodeError, TypeError):
+                return self._reference_rows(names, columns)
             # orjson writes NaN and infinities as null
-            if check is None or b"null" in text or (check and not _values_valid(column, check)):
+            if b"null" in text or (check and not _values_valid(column, check)):
                 return self._reference_rows(names, columns)
         return [plan.template % row for row in zip(*values)]
 
     def message(self, header: Mapping[str, Any], rows: Sequence[bytes]) -> CheckedJson:
         """The message ``{**header, key: rows}`` (``rows`` from :meth:`rows`), checked against the schema.
 
-        Raises :class:`InvalidInputError` when the header does not match the schema.
+        Raises :class:`InvalidInputError` when the header does not match the schema, cannot be encoded,
+        or does not end with ``key`` (the records come last).
         """
-        head = orjson.dumps({**header, self.key: []})
+        head = encode_json({**header, self.key: []})
         if not head.endswith(b"," + self._key_json + b":[]}"):
             raise InvalidInputError(f"{self.key!r} must come last in a {self.message_type.schema_name} message, "
                                     "after a header of at least one property.")
@@ -129,10 +142,10 @@ class RecordEncoder:
             checks: list[dict[str, Any] | None] = []
             for name, dtype in zip(names, dtypes, strict=True):
                 schema = self._properties.get(name)
-                checks.append((None if self._closed else {}) if schema is None else _value_checks(dtype, schema))
+                checks.append(({} if self._open else None) if schema is None else _value_checks(dtype, schema))
             if not self._required <= set(names) or len(set(names)) != len(names):
                 checks = [None] * len(names)
-            template = b"{" + b",".join(orjson.dumps(name) + b":%b" for name in names) + b"}"
+            template = b"{" + b",".join(orjson.dumps(name).replace(b"%", b"%%") + b":%b" for name in names) + b"}"
             plan = self._plans[(names, dtypes)] = _Plan(template, checks)
         return plan
 
@@ -180,8 +193,8 @@ def _values_valid(column: npt.NDArray[Any], checks: Mapping[str, Any]) -> bool:
     """The value tests of :func:`_value_checks` on a whole column (of finite values)."""
     if "integral" in checks and not (column == np.round(column)).all():
         return False
-    if "minimum" in checks and column.min() < checks["minimum"]:
+    if "minimum" in checks and column.min().item() < checks["minimum"]:  # Python values: exact comparisons
         return False
-    if "maximum" in checks and column.max() > checks["maximum"]:
+    if "maximum" in checks and column.max().item() > checks["maximum"]:
         return False
     return "enum" not in checks or all(v in checks["enum"] for v in set(column.tolist()))

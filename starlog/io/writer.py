@@ -541,8 +541,10 @@ class LogWriter:
                     summary = synthesize_summary(base, src, data_end, known=summary).summary
                 except ValueError as err:
                     raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
-        self._file.seek(data_end)  # the new records go after the base's data section, copied on a thread
-        self._writeback = _Writeback(self._file.fileno(), base, data_end)
+            # the thread copies from this very file (not the path: it may be replaced meanwhile), on
+            # descriptors of its own (the writer's may be closed, and its number reused, before the copy ends)
+            self._writeback = _Writeback(os.dup(src.fileno()), os.dup(self._file.fileno()), base, data_end)
+        self._file.seek(data_end)  # the new records go after the base's data section
         self._inherit(summary)
 
     def _start_from_stack(self, base: StackedLog) -> None:
@@ -633,24 +635,27 @@ class _Writeback:
     reports a failed write-back once per file, so it must not be lost on this thread.
     """
 
-    def __init__(self, fd: int, base: Path, length: int) -> None:
+    def __init__(self, src_fd: int, dst_fd: int, base: Path, length: int) -> None:
+        """``src_fd``, ``dst_fd``: descriptors the thread owns (and closes) of the base and the output."""
         self._error: BaseException | None = None
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._copy_and_sync, args=(fd, base, length),
+        self._thread = threading.Thread(target=self._copy_and_sync, args=(src_fd, dst_fd, base, length),
                                         name="starlog-writeback", daemon=True)
         self._thread.start()
 
-    def _copy_and_sync(self, fd: int, base: Path, length: int) -> None:
+    def _copy_and_sync(self, src_fd: int, dst_fd: int, base: Path, length: int) -> None:
         try:
-            with open(base, "rb") as src:
-                copied = copy_range_at(src.fileno(), fd, 0, length, 0, stop=self._stop)
+            copied = copy_range_at(src_fd, dst_fd, 0, length, 0, stop=self._stop)
             if self._stop.is_set():
                 return
             if copied < length:
                 raise TruncatedLogError(base, "it ended while its data section was being copied")
-            getattr(os, "fdatasync", os.fsync)(fd)  # macOS has no fdatasync
+            getattr(os, "fdatasync", os.fsync)(dst_fd)  # macOS has no fdatasync
         except BaseException as err:  # raised by wait(), in the thread that closes the log
             self._error = err
+        finally:
+            os.close(src_fd)
+            os.close(dst_fd)
 
     def join(self) -> None:
         """Stop the copy and wait for the thread (its error, if any, is dropped: the output is being discarded)."""

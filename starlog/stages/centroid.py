@@ -541,7 +541,7 @@ def _extract_block(path: str, topic: str, start: int, end: int, first_index: int
         return list(_extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first_index))
 
 
-_WORKER_LOG: dict[tuple[str, int, int], LogReader] = {}
+_WORKER_LOG: dict[tuple[str, int, int, int, int], LogReader] = {}
 
 
 def _worker_log(path: str) -> LogReader:
@@ -552,7 +552,7 @@ def _worker_log(path: str) -> LogReader:
     worker moves to another log, or ends.
     """
     info = os.stat(path)
-    key = (os.path.abspath(path), info.st_size, info.st_mtime_ns)
+    key = (os.path.abspath(path), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns)
     log = _WORKER_LOG.get(key)
     if log is None:
         for old in _WORKER_LOG.values():
