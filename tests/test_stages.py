@@ -331,14 +331,14 @@ def test_stage_refuses_to_read_fewer_messages_than_the_channel_holds(
 
 
 def test_a_worker_opens_each_log_once(tmp_path: Path) -> None:
-    from starlog.stages import centroid as stage
+    from starlog.stages import _blocks as blocks
 
     log, other = tmp_path / "a.mcap", tmp_path / "b.mcap"
     for path in (log, other):
         simulate_log(small_config(width=32, height=32, n_stars=2, n_frames=3), path)
-    first = stage._worker_log(str(log))
-    assert stage._worker_log(str(log)) is first  # every block of the same log: no second read of its summary
-    second = stage._worker_log(str(other))
+    first = blocks.worker_log(str(log))
+    assert blocks.worker_log(str(log)) is first  # every block of the same log: no second read of its summary
+    second = blocks.worker_log(str(other))
     assert second is not first and first._file.closed  # the previous log is closed on moving on
-    stage._WORKER_LOG.clear()
+    blocks._WORKER_LOG.clear()
     second.close()

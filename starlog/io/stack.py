@@ -124,6 +124,24 @@ class StackedLog:
         """Size in bytes of the log this stack stands for."""
         return self.data_end + self._tail.length
 
+    def files(self) -> tuple[Path, ...]:
+        """The files this stack reads: the base, then each sidecar."""
+        return tuple(dict.fromkeys(s.path for s in (*self._segments, self._tail)))
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled (for a worker process to read it) without the digest's running state, which
+        cannot be pickled: a copy that is asked for a digest hashes its data section again."""
+        return (StackedLog, (self.base, self._base_data_end, self._segments, self._tail, None, self._full_digest))
+
+    def _prefix(self) -> Any:
+        """The running SHA-256 of the data section (hashed here if this stack came from a pickle)."""
+        if self._prefix_hash is None:
+            prefix = hashlib.sha256()
+            for segment in self._segments:
+                _hash_range(prefix, segment.path, segment.offset, segment.length)
+            self._prefix_hash = prefix
+        return self._prefix_hash
+
     def extend(self, sidecar: str | os.PathLike[str]) -> StackedLog:
         """This stack with ``sidecar`` (written by a :class:`LogWriter` whose base was this stack) on top."""
         path = Path(sidecar)
@@ -132,7 +150,7 @@ class StackedLog:
         size = path.stat().st_size
         if not 0 <= added <= size:
             raise CorruptLogError(path, f"this sidecar does not continue a log whose data ends at {self.data_end}")
-        prefix = self._prefix_hash.copy()
+        prefix = self._prefix().copy()
         _hash_range(prefix, path, 0, added)
         return StackedLog(self.base, self._base_data_end, (*self._segments, _Segment(path, 0, added)),
                           _Segment(path, added, size - added), prefix)
@@ -141,7 +159,7 @@ class StackedLog:
         """``"sha256:<hex>"`` of the bytes this stack stands for."""
         if self._full_digest is not None:
             return self._full_digest
-        full = self._prefix_hash.copy()
+        full = self._prefix().copy()
         _hash_range(full, self._tail.path, self._tail.offset, self._tail.length)
         return "sha256:" + full.hexdigest()
 

@@ -17,10 +17,12 @@ alone decides how to stop.
 from __future__ import annotations
 
 import ctypes
+import itertools
 import multiprocessing
 import os
 import signal
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -41,8 +43,20 @@ _FORK_SERVER_PRELOAD = ["starlog._lifeline", "starlog.stages._parallel"]
 
 
 def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tuple[Any, ...]], *,
-                window: int) -> Iterator[R]:
-    """``func(*item)`` for each item on ``executor``, yielded in input order; memory bounded by ``window``."""
+                window: int, until_ready: Callable[..., R] | None = None) -> Iterator[R]:
+    """``func(*item)`` for each item on ``executor``, yielded in input order; memory bounded by ``window``.
+
+    With ``until_ready`` and a pool of :func:`process_pool`, the caller does not sit idle while the
+    workers start: until they are up, items are computed here by ``until_ready(*item)``, which must
+    give what ``func`` would.
+    """
+    items = iter(items)
+    if until_ready is not None and isinstance(executor, _Pool):
+        for item in items:
+            if executor.workers_up.is_set():
+                items = itertools.chain([item], items)
+                break
+            yield until_ready(*item)
     pending: deque[Future[R]] = deque()
     for item in items:
         pending.append(executor.submit(func, *item))
@@ -52,22 +66,50 @@ def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tupl
         yield pending.popleft().result()
 
 
+class _Pool(ProcessPoolExecutor):
+    """A process pool whose workers are started on a thread (:meth:`start_workers`): starting them blocks
+    the caller until the fork server has imported its modules, a few tenths of a second."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.workers_up = threading.Event()
+        self._starter = threading.Thread(target=self._start, name="starlog-pool-start", daemon=True)
+
+    def start_workers(self) -> None:
+        self._starter.start()
+
+    def _start(self) -> None:
+        try:
+            self.submit(int).result()  # returns once a worker has run it
+        except BaseException:  # noqa: S110 - a broken pool raises again on the caller's next submit
+            pass
+        finally:
+            self.workers_up.set()
+
+    def wait_started(self) -> None:
+        if self._starter.is_alive():
+            self._starter.join()
+
+
 @contextmanager
 def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[ProcessPoolExecutor]:
     """A ``ProcessPoolExecutor`` of ``workers`` processes that all end when the calling process ends.
 
     ``preload`` names modules the fork server imports once, so each worker starts with them loaded
-    (it applies when the fork server starts, i.e. at the first pool of the process).
+    (it applies when the fork server starts, i.e. at the first pool of the process). The workers
+    are started on a thread: the pool is returned at once (see ``until_ready`` of :func:`ordered_map`).
     """
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_guard_worker,
-                               initargs=(os.getpid(),))
+    pool = _Pool(max_workers=workers, mp_context=context, initializer=_guard_worker, initargs=(os.getpid(),))
+    pool.start_workers()
     try:
         yield pool
     except BaseException:
+        pool.wait_started()
         _stop_now(pool)
         raise
+    pool.wait_started()
     pool.shutdown(wait=True)
 
 

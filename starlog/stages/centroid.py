@@ -49,6 +49,7 @@ from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader
 from starlog.io.records import record_encoder
+from starlog.stages._blocks import LogSource, channel_blocks, worker_log
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
@@ -532,56 +533,24 @@ def _extract_serial(log: LogReader, topic: str, extract: _Extractor, skip_bad: b
     yield from skipped
 
 
-def _extract_block(path: str, topic: str, start: int, end: int, first_index: int, extract: _Extractor,
+def _extract_block(source: LogSource, topic: str, start: int, end: int, first_index: int, extract: _Extractor,
                    skip_bad: bool) -> list[_FrameMessages | SkippedFrame]:
     """Worker: every frame with ``start <= log_time < end`` (reads the log itself; no image crosses processes)."""
     _reuse_frame_buffers()
     with _opencv_threads(1):
-        log = _worker_log(path)
+        log = worker_log(source)
         return list(_extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first_index))
 
 
-_WORKER_LOG: dict[tuple[str, int, int, int, int], LogReader] = {}
-
-
-def _worker_log(path: str) -> LogReader:
-    """The log a worker process reads its blocks from, opened once per process and log.
-
-    Opening reads the log's summary, whose size grows with the log (one index per chunk): opened for
-    every block, a worker's time per frame grew with the log's length. The file is closed when the
-    worker moves to another log, or ends.
-    """
-    info = os.stat(path)
-    key = (os.path.abspath(path), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns)
-    log = _WORKER_LOG.get(key)
-    if log is None:
-        for old in _WORKER_LOG.values():
-            old.close()
-        _WORKER_LOG.clear()
-        log = _WORKER_LOG[key] = LogReader(path)
-    return log
-
-
-def _image_blocks(log: LogReader, topic: str, frames_per_block: int) -> list[tuple[int, int, int]]:
-    """Split the image channel into ``(start, end, first_frame)`` time ranges of whole chunks (~``frames_per_block``)."""
-    chunks = log.chunk_message_counts(topic)
-    for (_, end, _), (nxt, _, _) in zip(chunks, chunks[1:]):
-        if nxt < end:  # chunks overlapping in time (not written in time order): one block
-            return [(chunks[0][0], chunks[-1][1] + 1, 0)]
-    blocks: list[tuple[int, int, int]] = []
-    start, first, count = chunks[0][0] if chunks else 0, 0, 0
-    for i, (_, end, n) in enumerate(chunks):
-        count += n
-        if count >= frames_per_block or i == len(chunks) - 1:
-            blocks.append((start, end + 1, first))
-            start, first, count = end + 1, first + count, 0
-    return blocks
-
-
-def _extract_parallel(log: LogReader, path: str | os.PathLike[str], topic: str, extract: _Extractor,
+def _extract_parallel(log: LogReader, source: LogSource, topic: str, extract: _Extractor,
                       workers: int, skip_bad: bool) -> Iterator[_FrameMessages | SkippedFrame]:
-    blocks = ((str(path), topic, start, end, first, extract, skip_bad)
-              for start, end, first in _image_blocks(log, topic, 32))
+    blocks = ((source, topic, start, end, first, extract, skip_bad)
+              for start, end, first in channel_blocks(log, topic, 32))
+
+    def here(_: LogSource, topic: str, start: int, end: int, first: int, extract: _Extractor,
+             skip_bad: bool) -> list[_FrameMessages | SkippedFrame]:
+        return list(_extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first))
+
     with process_pool(workers, preload=["starlog.stages.centroid"]) as pool:
-        for done in ordered_map(pool, _extract_block, blocks, window=2 * workers):
+        for done in ordered_map(pool, _extract_block, blocks, window=2 * workers, until_ready=here):
             yield from done

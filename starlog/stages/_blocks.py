@@ -1,0 +1,66 @@
+"""A channel cut into blocks of whole chunks, for worker processes that each read their blocks themselves.
+
+A block is a time range ``start <= log_time < end`` covering whole chunks of the channel, so a
+worker decompresses each chunk it needs once and no message crosses processes on its way in.
+This module imports only the log layer: a worker process that unpickles a task naming it does
+not pay for importing the algorithms.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from starlog.io.reader import LogReader
+from starlog.io.stack import StackedLog
+
+__all__ = ["channel_blocks", "worker_log", "LogSource"]
+
+LogSource = str | os.PathLike[str] | StackedLog
+
+
+def channel_blocks(log: LogReader, topic: str, frames_per_block: int) -> list[tuple[int, int, int]]:
+    """Split ``topic`` into ``(start, end, first_message)`` time ranges of whole chunks (~``frames_per_block``
+    messages each). Chunks that overlap in time (not written in time order) make one block."""
+    chunks = log.chunk_message_counts(topic)
+    for (_, end, _), (nxt, _, _) in zip(chunks, chunks[1:]):
+        if nxt < end:
+            return [(chunks[0][0], chunks[-1][1] + 1, 0)]
+    blocks: list[tuple[int, int, int]] = []
+    start, first, count = chunks[0][0] if chunks else 0, 0, 0
+    for i, (_, end, n) in enumerate(chunks):
+        count += n
+        if count >= frames_per_block or i == len(chunks) - 1:
+            blocks.append((start, end + 1, first))
+            start, first, count = end + 1, first + count, 0
+    return blocks
+
+
+_WORKER_LOG: dict[tuple[tuple[str, int, int, int, int], ...], LogReader] = {}
+
+
+def _identity(source: LogSource) -> tuple[tuple[str, int, int, int, int], ...]:
+    """Every file ``source`` reads, each as (path, device, inode, size, modification time)."""
+    paths = source.files() if isinstance(source, StackedLog) else (Path(source),)
+    out = []
+    for path in paths:
+        info = os.stat(path)
+        out.append((os.path.abspath(path), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns))
+    return tuple(out)
+
+
+def worker_log(source: LogSource) -> LogReader:
+    """The log a worker process reads its blocks from, opened once per process and log.
+
+    Opening reads the log's summary, whose size grows with the log (one index per chunk): opened for
+    every block, a worker's time per frame grew with the log's length. The file is closed when the
+    worker moves to another log, or ends.
+    """
+    key = _identity(source)
+    log = _WORKER_LOG.get(key)
+    if log is None:
+        for old in _WORKER_LOG.values():
+            old.close()
+        _WORKER_LOG.clear()
+        log = _WORKER_LOG[key] = LogReader(source)
+    return log
