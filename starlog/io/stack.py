@@ -67,6 +67,10 @@ def _hash_range(digest: Any, path: Path, offset: int, length: int) -> None:
             length -= len(block)
 
 
+#: What :class:`StackedLog`'s constructor sets (the rest of an instance's attributes is extra state).
+_CONSTRUCTED = frozenset({"base", "_base_data_end", "_segments", "_tail", "_prefix_hash", "_full_digest"})
+
+
 class StackedLog:
     """A complete log (``base``) plus the sidecars written on it, viewed as one log.
 
@@ -130,13 +134,16 @@ class StackedLog:
 
     def __reduce__(self) -> tuple[Any, ...]:
         """Pickled (for a worker process to read it) without the digest's running state, which
-        cannot be pickled: a copy that is asked for a digest hashes its data section again."""
-        return (StackedLog, (self.base, self._base_data_end, self._segments, self._tail, None, self._full_digest))
+        cannot be pickled: a copy that is asked for a digest hashes its data section again.
+        Attributes set after construction (a subclass's) travel with it."""
+        extra = {k: v for k, v in vars(self).items() if k not in _CONSTRUCTED}
+        return (type(self), (self.base, self._base_data_end, self._segments, self._tail, None, self._full_digest),
+                extra or None)
 
     def _prefix(self) -> Any:
         """The running SHA-256 of the data section (hashed here if this stack came from a pickle)."""
         if self._prefix_hash is None:
-            prefix = hashlib.sha256()
+            prefix = ResumableSha256() if resumable_available() else hashlib.sha256()
             for segment in self._segments:
                 _hash_range(prefix, segment.path, segment.offset, segment.length)
             self._prefix_hash = prefix

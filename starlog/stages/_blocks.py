@@ -1,9 +1,7 @@
 """A channel cut into blocks of whole chunks, for worker processes that each read their blocks themselves.
 
 A block is a time range ``start <= log_time < end`` covering whole chunks of the channel, so a
-worker decompresses each chunk it needs once and no message crosses processes on its way in.
-This module imports only the log layer: a worker process that unpickles a task naming it does
-not pay for importing the algorithms.
+worker decompresses each chunk it needs once, and no message crosses processes on its way in.
 """
 
 from __future__ import annotations
@@ -13,19 +11,19 @@ from pathlib import Path
 
 from starlog.io.reader import LogReader
 from starlog.io.stack import StackedLog
+from starlog.stages._slice import LogSource
 
-__all__ = ["channel_blocks", "worker_log", "LogSource"]
-
-LogSource = str | os.PathLike[str] | StackedLog
+__all__ = ["channel_blocks", "worker_log"]
 
 
-def channel_blocks(log: LogReader, topic: str, frames_per_block: int) -> list[tuple[int, int, int]]:
+def channel_blocks(log: LogReader, topic: str, frames_per_block: int) -> list[tuple[int, int, int]] | None:
     """Split ``topic`` into ``(start, end, first_message)`` time ranges of whole chunks (~``frames_per_block``
-    messages each). Chunks that overlap in time (not written in time order) make one block."""
+    messages each), in time order; None when its chunks overlap in time (not written in time order),
+    which no split into time ranges of whole chunks can serve."""
     chunks = log.chunk_message_counts(topic)
     for (_, end, _), (nxt, _, _) in zip(chunks, chunks[1:]):
-        if nxt < end:
-            return [(chunks[0][0], chunks[-1][1] + 1, 0)]
+        if nxt <= end:
+            return None
     blocks: list[tuple[int, int, int]] = []
     start, first, count = chunks[0][0] if chunks else 0, 0, 0
     for i, (_, end, n) in enumerate(chunks):

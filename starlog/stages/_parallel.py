@@ -40,6 +40,7 @@ _PR_SET_PDEATHSIG = 1
 # Imported first by the fork server: the lifeline ties it to its owner, and workers then start with
 # this module (their initializer) loaded, so they are guarded from their first milliseconds.
 _FORK_SERVER_PRELOAD = ["starlog._lifeline", "starlog.stages._parallel"]
+_START_TIMEOUT = 5.0  # seconds an owner that is stopping waits for its pool's start-up thread
 
 
 def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tuple[Any, ...]], *,
@@ -53,7 +54,7 @@ def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tupl
     items = iter(items)
     if until_ready is not None and isinstance(executor, _Pool):
         for item in items:
-            if executor.workers_up.is_set():
+            if executor.started.is_set():
                 items = itertools.chain([item], items)
                 break
             yield until_ready(*item)
@@ -68,11 +69,15 @@ def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tupl
 
 class _Pool(ProcessPoolExecutor):
     """A process pool whose workers are started on a thread (:meth:`start_workers`): starting them blocks
-    the caller until the fork server has imported its modules, a few tenths of a second."""
+    the caller until the fork server has imported its modules, a few tenths of a second or more.
+
+    ``started`` is set once a worker has run a first task, or once starting them has failed (the
+    pool's next use then raises the error).
+    """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.workers_up = threading.Event()
+        self.started = threading.Event()
         self._starter = threading.Thread(target=self._start, name="starlog-pool-start", daemon=True)
 
     def start_workers(self) -> None:
@@ -81,18 +86,19 @@ class _Pool(ProcessPoolExecutor):
     def _start(self) -> None:
         try:
             self.submit(int).result()  # returns once a worker has run it
-        except BaseException:  # noqa: S110 - a broken pool raises again on the caller's next submit
+        except BaseException:  # noqa: S110 - a broken pool raises again on the owner's next use
             pass
         finally:
-            self.workers_up.set()
+            self.started.set()
 
-    def wait_started(self) -> None:
+    def wait_started(self, timeout: float | None = None) -> None:
+        """Wait for :meth:`start_workers` to be done (at most ``timeout`` seconds)."""
         if self._starter.is_alive():
-            self._starter.join()
+            self._starter.join(timeout)
 
 
 @contextmanager
-def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[ProcessPoolExecutor]:
+def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool]:
     """A ``ProcessPoolExecutor`` of ``workers`` processes that all end when the calling process ends.
 
     ``preload`` names modules the fork server imports once, so each worker starts with them loaded
@@ -102,12 +108,13 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[Proce
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
     pool = _Pool(max_workers=workers, mp_context=context, initializer=_guard_worker, initargs=(os.getpid(),))
-    pool.start_workers()
     try:
+        pool.start_workers()
         yield pool
     except BaseException:
-        pool.wait_started()
         _stop_now(pool)
+        pool.wait_started(timeout=_START_TIMEOUT)  # the stopped pool fails the starter's task
+        _stop_now(pool)  # any worker started meanwhile
         raise
     pool.wait_started()
     pool.shutdown(wait=True)

@@ -49,11 +49,11 @@ from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader
 from starlog.io.records import record_encoder
-from starlog.stages._blocks import LogSource, channel_blocks, worker_log
+from starlog.stages._blocks import channel_blocks, worker_log
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
-from starlog.stages._slice import time_sliced
+from starlog.stages._slice import LogSource, time_sliced
 from starlog.stages._stage import extend_log
 
 __all__ = ["CentroidSummary", "centroid_log", "parse_methods"]
@@ -242,8 +242,9 @@ def centroid_log(
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))
         cen_ch = {m: out.add_channel(topics.centroid_topic(m.value), json_message_type("starlog.Centroids"))
                   for m in chosen}
-        if workers > 1 and n_frames >= 64 and log.fully_indexed:  # below 64, start-up costs more than it saves
-            results = _extract_parallel(log, input_path, topic, extract, workers, skip_bad)
+        blocks = channel_blocks(log, topic, 32) if log.fully_indexed else None
+        if workers > 1 and n_frames >= 64 and blocks:  # below 64, start-up costs more than it saves
+            results = _extract_parallel(log, input_path, topic, blocks, extract, workers, skip_bad)
         else:
             results = _extract_serial(log, topic, extract, skip_bad)
         for encoded in progress(results, total=n_frames, description="centroid", enabled=show_progress):
@@ -542,15 +543,16 @@ def _extract_block(source: LogSource, topic: str, start: int, end: int, first_in
         return list(_extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first_index))
 
 
-def _extract_parallel(log: LogReader, source: LogSource, topic: str, extract: _Extractor,
-                      workers: int, skip_bad: bool) -> Iterator[_FrameMessages | SkippedFrame]:
-    blocks = ((source, topic, start, end, first, extract, skip_bad)
-              for start, end, first in channel_blocks(log, topic, 32))
+def _extract_parallel(log: LogReader, source: LogSource, topic: str, blocks: list[tuple[int, int, int]],
+                      extract: _Extractor, workers: int, skip_bad: bool) -> Iterator[_FrameMessages | SkippedFrame]:
+    """The frames of ``blocks`` (:func:`~starlog.stages._blocks.channel_blocks`) extracted by worker processes,
+    and by this process until they are up."""
+    items = ((source, topic, start, end, first, extract, skip_bad) for start, end, first in blocks)
 
-    def here(_: LogSource, topic: str, start: int, end: int, first: int, extract: _Extractor,
-             skip_bad: bool) -> list[_FrameMessages | SkippedFrame]:
+    def in_this_process(_: LogSource, topic: str, start: int, end: int, first: int, extract: _Extractor,
+                        skip_bad: bool) -> list[_FrameMessages | SkippedFrame]:
         return list(_extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first))
 
     with process_pool(workers, preload=["starlog.stages.centroid"]) as pool:
-        for done in ordered_map(pool, _extract_block, blocks, window=2 * workers, until_ready=here):
+        for done in ordered_map(pool, _extract_block, items, window=2 * workers, until_ready=in_this_process):
             yield from done

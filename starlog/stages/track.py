@@ -4,14 +4,13 @@ Reads ``/stars/centroids/<METHOD>`` and writes ``/track/<METHOD>/<MODEL>`` (``st
 one message per frame). The brightest star's track — the paper's centroid sequence — is
 marked in every row (``brightest``). Finding it needs the whole log (it is the confirmed track
 with the most measurements and the highest mean flux, see
-:meth:`starlog.track.StarTracker.brightest_track`), so the stage runs in passes, each streaming
-block by block so that memory does not grow with the log's length:
+:meth:`starlog.track.StarTracker.brightest_track`), so the stage runs in three passes, each
+streaming block by block so that memory does not grow with the log's length:
 
-1. **read** — the centroid channel is decoded into numpy blocks (by worker processes, each
-   reading whole chunks of the log itself, when ``workers > 1``);
-2. **track** — each motion model's tracker runs once over the blocks and spools its rows to a
-   temporary file next to the output. One model tracks the blocks as they are decoded; several
-   run in parallel worker processes over the blocks spooled once;
+1. **read** — the centroid channel is decoded once into numpy blocks, spooled to a temporary
+   file next to the output;
+2. **track** — each motion model's tracker runs once over the spooled centroids and spools its
+   rows (models run in parallel worker processes when ``workers > 1``);
 3. **write** — the rows are encoded (the brightest track now known) block by block, in
    parallel when ``workers > 1``, and written in frame order, model after model.
 
@@ -20,11 +19,12 @@ The bytes written do not depend on ``workers``.
 
 from __future__ import annotations
 
-import functools
+import itertools
+import operator
 import os
 import tempfile
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import Executor, Future
+from collections.abc import Iterator, Sequence
+from concurrent.futures import Executor
 from contextlib import ExitStack, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,20 +36,11 @@ import numpy.typing as npt
 from starlog.errors import InvalidParameterError
 from starlog.io import json_message_type, topics
 from starlog.io.reader import LogReader
-from starlog.stages._blocks import LogSource, channel_blocks
+from starlog.io.records import record_encoder
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
-from starlog.stages._spool import Spool, opened, read_blocks, write_block
-from starlog.stages._track_blocks import (
-    CentroidArrays,
-    centroid_blocks,
-    centroid_range,
-    decode_centroid_range,
-    encode_track_block,
-    encode_track_block_to,
-    read_encoded,
-)
+from starlog.stages._spool import Spool, opened, read_block, read_blocks, write_block
 from starlog.stages._slice import time_sliced
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.track import (
@@ -64,6 +55,7 @@ __all__ = ["TrackSummary", "track_log", "parse_models"]
 
 #: Frames per spooled block: bounds the memory of every pass.
 BLOCK_FRAMES = 64
+_STAR_FIELDS = operator.itemgetter("x", "y", "sigma", "flux")
 
 
 def parse_models(spec: str | Sequence[str]) -> list[MotionModel]:
@@ -109,22 +101,46 @@ class TrackSummary:
 
 
 # ---------------------------------------------------------------- pass 1: read
-def _centroid_arrays(log: LogReader, source: LogSource, topic: str, pool: Executor | None,
-                     workers: int) -> Iterator[CentroidArrays]:
-    """Pass 1: the centroid channel as blocks of arrays, in order; decoded by the pool's workers when there
-    is one and the log's chunks are all indexed (each worker reads whole chunks), and here until they are up."""
-    if pool is None or not log.fully_indexed:
-        return centroid_blocks(log.messages(topic), BLOCK_FRAMES)
-    ranges = ((source, topic, start, end) for start, end, _ in channel_blocks(log, topic, BLOCK_FRAMES))
-    return ordered_map(pool, decode_centroid_range, ranges, window=2 * workers,
-                       until_ready=lambda _, topic, start, end: centroid_range(log, topic, start, end))
+class _CentroidBlock:
+    """Centroid messages gathered into arrays, each message's star dicts dropped once converted."""
+
+    def __init__(self) -> None:
+        self.frames: list[int] = []
+        self.times: list[int] = []
+        self.counts: list[int] = []
+        self.values: list[tuple[float, float, float, float]] = []
+
+    def add(self, log_time: int, payload: dict[str, Any]) -> None:
+        stars = payload["stars"]
+        self.frames.append(payload["frame"])
+        self.times.append(log_time)
+        self.counts.append(len(stars))
+        self.values.extend(map(_STAR_FIELDS, stars))
+
+    def write(self, file: BinaryIO) -> None:
+        """Spool ``(frame, log_time, stars per frame, (k, 4) x/y/sigma/flux)``."""
+        table = np.fromiter(itertools.chain.from_iterable(self.values), dtype=np.float64,
+                            count=4 * len(self.values)).reshape(len(self.values), 4)
+        write_block(file, np.array(self.frames, dtype=np.int64), np.array(self.times, dtype=np.int64),
+                    np.array(self.counts, dtype=np.int64), table)
 
 
-def _spool_blocks(blocks: Iterable[CentroidArrays], spool: Spool) -> None:
-    """The decoded blocks written to ``spool``, for the models tracked in worker processes to read."""
+def _spool_centroids(log: LogReader, topic: str, spool: Spool, *, show_progress: bool) -> int:
+    """Pass 1: the centroid channel → blocks of arrays in ``spool``; the number of frames."""
+    n_frames = 0
+    messages = progress(log.messages(topic), total=log.channel(topic).message_count,
+                        description="track (read)", enabled=show_progress)
+    block = _CentroidBlock()
     with opened(spool, "wb") as file:
-        for block in blocks:
-            write_block(file, *block)
+        for message in messages:
+            block.add(message.log_time, message.payload)
+            n_frames += 1
+            if len(block.frames) == BLOCK_FRAMES:
+                block.write(file)
+                block = _CentroidBlock()
+        if block.frames:
+            block.write(file)
+    return n_frames
 
 
 # ---------------------------------------------------------------- pass 2: track
@@ -133,7 +149,6 @@ class _ModelRun:
     """One model's tracking: its row spool (and block offsets) and statistics."""
 
     brightest: int
-    frames: int
     spool: Spool
     offsets: list[int]
     tracks: int
@@ -149,17 +164,13 @@ def _no_track_hint(model: MotionModel, source: str, err: NoTrackError) -> NoTrac
         "--set sigma_floor=0.05 (px), or use a model with process noise.")
 
 
-def _track_model(config: TrackerConfig, source: str, blocks: Iterable[CentroidArrays], spool: Spool,
-                 on_block: Callable[[StarTracker, int], None] | None = None) -> _ModelRun:
-    """Pass 2 for one model: track every frame of ``blocks``, spool the rows, find the brightest track.
-
-    ``on_block(tracker, offset)`` is called when a block of rows is in the spool (flushed).
-    """
+def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Spool) -> _ModelRun:
+    """Pass 2 for one model: track every spooled frame, spool the rows, find the brightest track."""
     tracker = StarTracker(config)
-    nis_sum, nis_n, n_frames = 0.0, 0, 0
+    nis_sum, nis_n = 0.0, 0
     offsets = []
     with opened(spool, "wb") as file:
-        for frames, times, counts, table in blocks:
+        for frames, times, counts, table in read_blocks(centroids, 4):
             ends = np.cumsum(counts).tolist()
             starts = [0, *ends[:-1]]
             out = []
@@ -169,79 +180,43 @@ def _track_model(config: TrackerConfig, source: str, blocks: Iterable[CentroidAr
                 nis_sum += float(rows["nis"][applied].sum())
                 nis_n += int(applied.sum())
                 out.append(rows)
-            n_frames += len(out)
             row_counts = np.array([r.size for r in out], dtype=np.int64)
             offsets.append(write_block(file, frames, times, row_counts, _concatenated(out)))
-            if on_block is not None:
-                file.flush()
-                on_block(tracker, offsets[-1])
     try:
         brightest = tracker.brightest_track()
     except NoTrackError as err:
         raise _no_track_hint(tracker.model, source, err) from err
     stats = tracker.track_stats()
-    return _ModelRun(brightest=brightest, frames=n_frames, spool=spool, offsets=offsets, tracks=int(stats.size),
+    return _ModelRun(brightest=brightest, spool=spool, offsets=offsets, tracks=int(stats.size),
                      confirmed=int(stats["confirmed"].sum()), gated=int(stats["gated"].sum()),
                      mean_nis=nis_sum / nis_n if nis_n else 0.0)
 
 
 def _concatenated(tables: list[npt.NDArray[np.void]]) -> npt.NDArray[np.void]:
-    """The row tables of one block, of one dtype, joined (``np.concatenate`` would promote the record
-    dtype of every pair of tables, a cost per frame)."""
+    """The row tables of one block, all of one record dtype, joined (without ``out``, ``np.concatenate``
+    promotes the record dtypes of every pair of tables: a cost per frame)."""
     out = np.empty(sum(t.size for t in tables), dtype=tables[0].dtype)
     np.concatenate(tables, out=out)
     return out
 
 
-def _track_spooled(config: TrackerConfig, source: str, centroids: Spool, spool: Spool) -> _ModelRun:
-    """Pass 2 for one model in a worker process: the blocks read from the centroid spool."""
-    return _track_model(config, source, read_blocks(centroids, 4), spool)
-
-
 # ---------------------------------------------------------------- pass 3: write
-class _Speculation:
-    """Pass 3 done ahead, during pass 2, for one model: each block of rows is encoded by the pool's
-    workers as soon as it is spooled, marking the brightest track known so far. A block whose guess
-    was the final brightest track is then read back; any other is encoded again. The bytes written
-    are the same either way. The guess is refreshed after blocks 0, 1, 2, 4, 8, ... then every 64th
-    (finding the brightest track costs more as the lost tracks accumulate)."""
+def _encode_block(spool: Spool, offset: int, method: str, model: str,
+                  brightest: int) -> tuple[list[int], list[bytes]]:
+    """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame.
 
-    def __init__(self, pool: Executor, folder: Path, method: str, model: str) -> None:
-        self._pool, self._folder, self._method, self._model = pool, folder, method, model
-        self._guess: int | None = None
-        self.guesses: list[tuple[int | None, Future[None] | None]] = []
-
-    def _path(self, block: int) -> Path:
-        return self._folder / f"encoded-{self._model}-{block}"
-
-    @staticmethod
-    def guess(tracker: StarTracker) -> int | None:
-        """The brightest track so far (None while no track is confirmed)."""
-        try:
-            return tracker.brightest_track()
-        except NoTrackError:
-            return None
-
-    def block_spooled(self, spool: Spool, tracker: StarTracker, offset: int) -> None:
-        """Submit the encoding of the block of rows at ``offset`` of ``spool``, just written."""
-        block = len(self.guesses)
-        if block & (block - 1) == 0 or block % 64 == 0:
-            self._guess = self.guess(tracker)
-        future = None
-        if self._guess is not None:
-            future = self._pool.submit(encode_track_block_to, self._path(block), spool, offset, self._method,
-                                       self._model, self._guess)
-        self.guesses.append((self._guess, future))
-
-    def encoded(self, run: _ModelRun) -> Iterator[tuple[list[int], list[bytes]]]:
-        """Every block's ``(log_time, message)`` lists for the final brightest track, in order."""
-        for block, (guess, future) in enumerate(self.guesses):
-            if guess == run.brightest and future is not None and future.exception() is None:
-                path = self._path(block)
-                yield read_encoded(path)
-                path.unlink()
-            else:
-                yield encode_track_block(run.spool, run.offsets[block], self._method, self._model, run.brightest)
+    The block's rows are encoded, and checked against their schema, column by column
+    (:class:`~starlog.io.records.RecordEncoder`; in a worker process when there is a pool), not by the writer.
+    """
+    frames, times, counts, rows = read_block(spool, offset, 4)
+    encoder = record_encoder("starlog.Tracks", "tracks")
+    records = encoder.rows(rows, {"brightest": rows["track"] == brightest})
+    ends = np.cumsum(counts).tolist()
+    messages: list[bytes] = [
+        encoder.message({"frame": frame, "method": method, "model": model}, records[a:b])
+        for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)
+    ]
+    return times.tolist(), messages
 
 
 def _frames_out(encoded: Iterator[tuple[list[int], list[bytes]]], n_models: int,
@@ -254,40 +229,25 @@ def _frames_out(encoded: Iterator[tuple[list[int], list[bytes]]], n_models: int,
             yield t, [messages[i] for _, messages in blocks]
 
 
-def _track_models(configs: dict[MotionModel, TrackerConfig], source: str, blocks: Iterable[CentroidArrays],
-                  spools: _Spools, pool: Executor | None,
-                  speculation: _Speculation | None) -> dict[MotionModel, _ModelRun]:
-    """Pass 2 for every model: one model tracks the blocks as they come (its rows encoded ahead with
-    ``speculation``); several are tracked from the blocks spooled once, in worker processes when there is a pool."""
+def _track_models(configs: dict[MotionModel, TrackerConfig], source: str, spools: _Spools,
+                  pool: Executor | None) -> dict[MotionModel, _ModelRun]:
+    """Pass 2 for every model, in worker processes when there is a pool."""
     models = list(configs)
-    if len(models) == 1:
-        rows = spools.rows[models[0]]
-        on_block = functools.partial(speculation.block_spooled, rows) if speculation else None
-        return {models[0]: _track_model(configs[models[0]], source, blocks, rows, on_block)}
-    _spool_blocks(blocks, spools.centroids)
     args = ([configs[m] for m in models], [source] * len(models), [spools.centroids] * len(models),
             [spools.rows[m] for m in models])
-    runs = (pool.map if pool else map)(_track_spooled, *args)
+    runs = (pool.map if pool else map)(_track_model, *args)
     return dict(zip(models, runs, strict=True))
 
 
-def _encoded_blocks(runs: dict[MotionModel, _ModelRun], method: str, pool: Executor | None, workers: int,
-                    speculation: _Speculation | None) -> Iterator[tuple[list[int], list[bytes]]]:
-    """Every (block, model)'s messages, block by block, the models of a block in order."""
-    if speculation is not None:
-        return speculation.encoded(next(iter(runs.values())))
-    n_blocks = len(next(iter(runs.values())).offsets)
+def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: str, n_frames: int,
+                  pool: Executor | None, *, show_progress: bool) -> None:
+    """Pass 3: encode every model's rows (blocks in worker processes when there is a pool) and
+    write them frame by frame, the models of one frame in order."""
+    n_blocks = -(-n_frames // BLOCK_FRAMES)
     items = [(run.spool, run.offsets[block], method, m.value, run.brightest)
              for block in range(n_blocks) for m, run in runs.items()]
-    if pool is None:
-        return (encode_track_block(*item) for item in items)
-    return ordered_map(pool, encode_track_block, items, window=2 * max(workers, len(runs)))
-
-
-def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: str, n_frames: int,
-                  encoded: Iterator[tuple[list[int], list[bytes]]], *, show_progress: bool) -> None:
-    """Pass 3: write every model's encoded rows frame by frame, the models of one frame in order."""
-    n_blocks = len(next(iter(runs.values())).offsets)
+    encoded = (ordered_map(pool, _encode_block, items, window=2 * len(runs)) if pool
+               else (_encode_block(*item) for item in items))
     channels = [out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
                 for m in runs]
     frames = _frames_out(encoded, len(runs), n_blocks)
@@ -299,11 +259,10 @@ def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: 
 # ---------------------------------------------------------------- the stage
 @dataclass(frozen=True)
 class _Spools:
-    """Where the centroids and each model's rows are spooled (``folder``: of the shared ones)."""
+    """Where the centroids and each model's rows are spooled."""
 
     centroids: Spool
     rows: dict[MotionModel, Spool]
-    folder: Path | None = None
 
 
 @contextmanager
@@ -318,7 +277,7 @@ def _spools(models: list[MotionModel], output_path: Path, *, shared: bool) -> It
             yield _Spools(anonymous(), {m: anonymous() for m in models})
         return
     with tempfile.TemporaryDirectory(prefix=f".{output_path.name}.track-", dir=output_path.parent) as tmp:
-        yield _Spools(Path(tmp) / "centroids", {m: Path(tmp) / f"rows-{m.value}" for m in models}, Path(tmp))
+        yield _Spools(Path(tmp) / "centroids", {m: Path(tmp) / f"rows-{m.value}" for m in models})
 
 
 def _configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
@@ -358,9 +317,8 @@ def track_log(
     motion : dict, optional
         :class:`~starlog.track.MotionModelConfig` fields (process-noise intensities).
     workers : int
-        With more than one: worker processes that decode the centroids and encode the messages
-        while this process tracks (one model), or that track the models in parallel (several);
-        and threads compressing the output's chunks. The output does not depend on it.
+        Processes tracking the models (at most one per model; with several, they also encode
+        the messages) and threads compressing the output's chunks. The output does not depend on it.
     start, end : str or int, optional
         Only the range ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the centroid
         channel; :mod:`starlog.io.timerange`): the output holds that range of every channel.
@@ -372,22 +330,15 @@ def track_log(
     parameters = {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
                   "motion": dict(motion or {})}
     summary = TrackSummary(method=method)
-    # one model: the workers only decode and encode, and start quicker without the tracker's imports
-    preload = "starlog.stages.track" if len(chosen) > 1 else "starlog.stages._track_blocks"
+    processes = min(workers, len(chosen))
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force,
                     compression=compression, workers=workers) as (log, out), \
-            _spools(chosen, Path(output_path), shared=workers > 1) as spools, \
-            (process_pool(workers, preload=[preload]) if workers > 1 else nullcontext()) as pool:
-        blocks = progress(_centroid_arrays(log, input_path, source, pool, workers),
-                          total=log.channel(source).message_count, description="track (read)",
-                          enabled=show_progress, weight=lambda block: block[0].size)
-        speculation = (_Speculation(pool, spools.folder, method, chosen[0].value)
-                       if pool is not None and spools.folder is not None and len(chosen) == 1 else None)
-        runs = _track_models(configs, source, blocks, spools, pool, speculation)
-        summary.frames = next(iter(runs.values())).frames
+            _spools(chosen, Path(output_path), shared=processes > 1) as spools, \
+            (process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else nullcontext()) as pool:
+        summary.frames = _spool_centroids(log, source, spools.centroids, show_progress=show_progress)
         summary.channel_messages = check_messages_read(log, source, summary.frames)
-        encoded = _encoded_blocks(runs, method, pool, workers, speculation)
-        _write_tracks(out, runs, method, summary.frames, encoded, show_progress=show_progress)
+        runs = _track_models(configs, source, spools, pool)
+        _write_tracks(out, runs, method, summary.frames, pool, show_progress=show_progress)
     for m, run in runs.items():
         summary.brightest[m.value] = run.brightest
         summary.tracks[m.value] = run.tracks

@@ -1,0 +1,106 @@
+"""Work shared with worker processes: a channel cut into blocks of whole chunks, the pool that
+starts its workers on a thread (the caller computing meanwhile), and a stacked log sent to a worker."""
+
+from __future__ import annotations
+
+import operator
+import pickle
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from starlog.io import LogReader, LogWriter, json_message_type, topics
+from starlog.io.stack import StackedLog
+from starlog.stages import simulate_log
+from starlog.stages._blocks import channel_blocks
+from starlog.stages._parallel import _Pool, ordered_map, process_pool
+from starlog.stages._slice import SlicedStack
+from starlog.stages.centroid import centroid_log
+from starlog.stages.track import _concatenated
+from starlog.track import TRACK_DTYPE
+from tests.conftest import small_config
+from tests.foreign_logs import write_plain
+
+
+def _log_of_chunks(*chunks: tuple[int, int, int]) -> LogReader:
+    """A stand-in for a log whose channel has these ``(start, end, messages)`` chunks."""
+    return SimpleNamespace(chunk_message_counts=lambda topic: sorted(chunks))  # type: ignore[return-value]
+
+
+def test_blocks_are_whole_chunks_of_about_the_frames_asked_for() -> None:
+    log = _log_of_chunks((0, 9, 10), (10, 19, 10), (20, 29, 10), (30, 34, 5))
+    assert channel_blocks(log, "/t", 20) == [(0, 20, 0), (20, 35, 20)]
+    assert channel_blocks(log, "/t", 1) == [(0, 10, 0), (10, 20, 10), (20, 30, 20), (30, 35, 30)]
+    assert channel_blocks(_log_of_chunks(), "/t", 20) == []
+
+
+@pytest.mark.parametrize("chunks", [((0, 1000, 50), (10, 20, 5)), ((0, 10, 5), (10, 20, 5))])
+def test_chunks_that_overlap_or_touch_in_time_cannot_be_split(chunks: tuple[tuple[int, int, int], ...]) -> None:
+    """Overlapping (a log not written in time order), or sharing a time: no split into time ranges
+    would number the messages of each block right."""
+    assert channel_blocks(_log_of_chunks(*chunks), "/t", 1) is None
+
+
+def test_centroid_workers_read_a_log_written_out_of_time_order_in_full(tmp_path: Path) -> None:
+    simulate_log(small_config(width=32, height=32, n_stars=2, n_frames=80, margin=8.0), tmp_path / "sim.mcap")
+    shuffled = write_plain(tmp_path / "sim.mcap", tmp_path / "shuffled.mcap", shuffle=True, chunk_size=4096)
+    with LogReader(shuffled) as log:
+        assert log.fully_indexed and channel_blocks(log, topics.IMAGE, 32) is None
+    for workers in (1, 2):
+        summary = centroid_log(shuffled, tmp_path / f"w{workers}.mcap", methods="MOMENT", workers=workers)
+        assert summary.channel_messages == 80
+    assert (tmp_path / "w1.mcap").read_bytes() == (tmp_path / "w2.mcap").read_bytes()
+
+
+def test_ordered_map_computes_here_until_the_workers_are_up() -> None:
+    items = [(2, k) for k in range(7)]
+    not_started = _Pool(max_workers=1)  # its workers are never started: every item is computed here
+    here: list[tuple[int, ...]] = []
+
+    def locally(*item: int) -> int:
+        here.append(item)
+        return operator.pow(*item)
+
+    assert list(ordered_map(not_started, operator.pow, items, window=2, until_ready=locally)) == [2**k for k in range(7)]
+    assert here == items
+    not_started.shutdown()
+    with process_pool(1) as pool:
+        results = list(ordered_map(pool, operator.pow, items, window=2, until_ready=operator.pow))
+    assert results == [2**k for k in range(7)]
+    assert pool.started.is_set()  # the pool waited for its workers' start before shutting down
+
+
+def test_an_error_while_the_workers_start_stops_them() -> None:
+    with pytest.raises(KeyboardInterrupt), process_pool(2) as pool:
+        raise KeyboardInterrupt
+    processes = list((pool._processes or {}).values())
+    assert all(not p.is_alive() for p in processes)
+
+
+def test_a_stacked_log_pickles_for_a_worker_to_read(tmp_path: Path) -> None:
+    simulate_log(small_config(width=32, height=32, n_stars=2, n_frames=5), tmp_path / "sim.mcap")
+    stack = StackedLog.of(tmp_path / "sim.mcap")
+    with LogWriter(tmp_path / "side.mcap", base=stack) as writer:
+        channel = writer.add_channel("/extra", json_message_type("starlog.Centroids"))
+        writer.write(channel, log_time=1, data=b'{"frame":0,"method":"GAUSSFIT","stars":[]}')
+    stacked = stack.extend(tmp_path / "side.mcap")
+    copy = pickle.loads(pickle.dumps(stacked))
+    assert copy.files() == stacked.files() == (tmp_path / "sim.mcap", tmp_path / "side.mcap")
+    assert copy.digest() == stacked.digest()
+    with LogReader(stacked) as a, LogReader(copy) as b:
+        assert [m.payload for m in a.messages("/extra")] == [m.payload for m in b.messages("/extra")]
+        assert sum(1 for _ in a.frames()) == sum(1 for _ in b.frames()) == 5
+    # a copy hashes its data section again when it is extended
+    assert pickle.loads(pickle.dumps(stack)).extend(tmp_path / "side.mcap").digest() == stacked.digest()
+    sliced = SlicedStack.of(tmp_path / "sim.mcap")
+    sliced.slice_origin = None
+    assert isinstance(pickle.loads(pickle.dumps(sliced)), SlicedStack)
+
+
+def test_track_joins_a_block_of_row_tables_as_numpy_does() -> None:
+    tables = [np.zeros(n, TRACK_DTYPE) for n in (3, 0, 5)]
+    for i, table in enumerate(tables):
+        table["track"] = np.arange(table.size) + 10 * i
+    assert _concatenated(tables).tobytes() == np.concatenate(tables).tobytes()
