@@ -185,3 +185,22 @@ def test_the_copy_writes_through_descriptors_of_its_own(sim_log: Path, tmp_path:
         writer._writeback.wait()  # type: ignore[union-attr]  # the whole copy, not stopped
     assert victim.read_bytes() == b"precious"
     (writer._tmp_path).unlink()
+
+
+def test_an_extended_log_repeats_its_bases_chunk_indexes_then_adds_its_own(sim_log: Path, tmp_path: Path) -> None:
+    """The base's chunk indexes are kept as the bytes of their records (compact), and come back as
+    the same indexes in the output's summary, before the new chunks'."""
+    out = tmp_path / "out.mcap"
+    with LogWriter(out, base=sim_log, chunk_size=1024) as writer:
+        channel = writer.add_channel("/extra", json_message_type("starlog.Centroids"))
+        for t in range(3):
+            writer.write(channel, log_time=t, data=b'{"frame":0,"method":"GAUSSFIT","stars":[]}')
+    with open(sim_log, "rb") as f:
+        data_end = locate_data_end(sim_log, f)
+    assert all(ci.chunk_start_offset >= data_end for ci in writer._chunk_indexes)  # only its own chunks held
+    with LogReader(sim_log) as base, LogReader(out) as log:
+        inherited = base.summary.chunk_indexes
+        assert log.summary.chunk_indexes[:len(inherited)] == inherited
+        assert len(log.summary.chunk_indexes) > len(inherited)
+        assert [m.log_time for m in log.messages("/extra")] == [0, 1, 2]
+        assert sum(1 for _ in log.frames()) == sum(1 for _ in base.frames())

@@ -201,6 +201,8 @@ class LogWriter:
         self._channels: dict[int, Channel] = {}
         self._topics: dict[str, int] = {}
         self._chunk_indexes: list[ChunkIndex] = []
+        # the base's chunk indexes, as the records this log's summary repeats (its largest part, kept compact)
+        self._base_chunk_index_records = b""
         self._metadata_indexes: list[MetadataIndex] = []
         self._attachment_indexes: list[AttachmentIndex] = []
         self._stats = Statistics(
@@ -564,7 +566,8 @@ class LogWriter:
         self._schemas = dict(summary.schemas)
         self._channels = dict(summary.channels)
         self._topics = {c.topic: c.id for c in summary.channels.values()}
-        self._chunk_indexes = list(summary.chunk_indexes)
+        self._base_chunk_index_records = _records_bytes(summary.chunk_indexes)
+        self._chunk_indexes = []
         self._attachment_indexes = list(summary.attachment_indexes)
         self._metadata_indexes = list(summary.metadata_indexes)
         s = summary.statistics
@@ -592,10 +595,11 @@ class LogWriter:
         out = RecordBuilder()
         offsets: list[SummaryOffset] = []
 
-        def group(opcode: Opcode, records: list[object]) -> None:
-            if not records:
+        def group(opcode: Opcode, records: list[object], written: bytes = b"") -> None:
+            if not records and not written:
                 return
             start = out.count
+            out.write(written)
             for record in records:
                 record.write(out)  # type: ignore[attr-defined]
             offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + start,
@@ -607,7 +611,7 @@ class LogWriter:
             int, {k: v for k, v in sorted(self._stats.channel_message_counts.items())}
         )
         group(Opcode.STATISTICS, [self._stats])
-        group(Opcode.CHUNK_INDEX, list(self._chunk_indexes))
+        group(Opcode.CHUNK_INDEX, list(self._chunk_indexes), self._base_chunk_index_records)
         group(Opcode.ATTACHMENT_INDEX, list(self._attachment_indexes))
         group(Opcode.METADATA_INDEX, list(self._metadata_indexes))
         summary_offset_start = summary_start + out.count
@@ -623,6 +627,15 @@ class LogWriter:
         self._flush_records()
         self._file.write(MCAP_MAGIC)
 
+
+
+def _records_bytes(records: list[Any]) -> bytes:
+    """MCAP records serialised as they would be in a summary: a few dozen bytes each, where the
+    parsed objects take about 600 (an hour of 1024² frames holds millions of chunk indexes)."""
+    out = RecordBuilder()
+    for record in records:
+        record.write(out)
+    return out.end()
 
 
 class _Writeback:
