@@ -242,8 +242,9 @@ def centroid_log(
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))
         cen_ch = {m: out.add_channel(topics.centroid_topic(m.value), json_message_type("starlog.Centroids"))
                   for m in chosen}
-        blocks = channel_blocks(log, topic, 32) if log.fully_indexed else None
-        if workers > 1 and n_frames >= 64 and blocks:  # below 64, start-up costs more than it saves
+        # below 64 frames, a pool's start-up costs more than it saves
+        blocks = channel_blocks(log, topic, 32) if workers > 1 and n_frames >= 64 and log.fully_indexed else None
+        if blocks:
             results = _extract_parallel(log, input_path, topic, blocks, extract, workers, skip_bad)
         else:
             results = _extract_serial(log, topic, extract, skip_bad)
