@@ -209,7 +209,10 @@ def run_experiment(
         datasets=[d.to_dict() for d in datasets], sigma_floor_px=float(sigma_floor), window_s=window_s,
         regimes=chosen, compensation=dict(compensation or {}), burn_in=burn_in_label(setting),
     )
-    sweep = _Sweep(datasets, out / "logs", window_s=window_s, force=force, compensation=summary.compensation,
+    # The tasks overwrite what they write: a previous run's outputs were refused above (unless
+    # force), and Dask runs a task more than once at times (a lost worker, a work-stealing race),
+    # so a task must not fail on the files of its own earlier attempt.
+    sweep = _Sweep(datasets, out / "logs", window_s=window_s, force=True, compensation=summary.compensation,
                    quick=quick, burn_in=setting)
     sweep.run(executor if executor is not None else _Serial(), show_progress=show_progress)
     summary.rows = sort_rows([r for t in sweep.track_results for r in t["rows"]])
