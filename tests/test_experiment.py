@@ -159,6 +159,18 @@ def test_experiment_command_rejects_bad_workers(tmp_path: Path) -> None:
         experiment_command(tmp_path, quick=True, workers=0)
 
 
+def test_a_failed_run_on_local_workers_leaves_no_partial_output(tmp_path: Path) -> None:
+    (tmp_path / "logs").mkdir()
+    left = [tmp_path / "logs" / ".paper_300Hz_sim.mcap.k2j4.partial", tmp_path / ".report.md.x1.partial"]
+    for path in left:  # as a terminated worker leaves them
+        path.write_bytes(b"unfinished")
+    kept = tmp_path / "logs" / "notes.txt"
+    kept.write_text("mine")
+    with pytest.raises(InvalidParameterError, match="burn"):
+        experiment_command(tmp_path, quick=True, workers=2, show_progress=False, burn_in="later")
+    assert not any(path.exists() for path in left) and kept.read_text() == "mine"
+
+
 def test_regimes_burn_in_and_rates_in_results(quick_run: ExperimentSummary) -> None:
     rows = pq.read_table(quick_run.output_dir / "results.parquet").to_pylist()
     assert {r["regime"] for r in rows} == set(REGIMES)

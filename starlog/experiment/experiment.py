@@ -504,9 +504,23 @@ def experiment_command(
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
-    with executor_for(scheduler=scheduler, workers=workers) as executor:
-        if sweep:
-            return run_regime_map(output_dir, quick=quick, executor=executor, force=force,
-                                  show_progress=show_progress)
-        return run_experiment(output_dir, quick=quick, executor=executor, force=force, show_progress=show_progress,
-                              regimes=regimes, compensation=compensation, burn_in=burn_in)
+    try:
+        with executor_for(scheduler=scheduler, workers=workers) as executor:
+            if sweep:
+                return run_regime_map(output_dir, quick=quick, executor=executor, force=force,
+                                      show_progress=show_progress)
+            return run_experiment(output_dir, quick=quick, executor=executor, force=force,
+                                  show_progress=show_progress, regimes=regimes, compensation=compensation,
+                                  burn_in=burn_in)
+    except BaseException:
+        if not scheduler:  # the local workers are stopped: their unfinished outputs are nobody's now
+            _remove_partial_outputs(Path(output_dir))
+        raise
+
+
+def _remove_partial_outputs(out: Path) -> None:
+    """Delete the temporary files of outputs a stopped worker left unfinished (``.NAME.XXXX.partial``):
+    a worker that is terminated does not run the cleanup a stage does on an error or Ctrl-C."""
+    for folder in (out, out / "logs"):
+        for path in folder.glob(".*.partial"):
+            path.unlink(missing_ok=True)
