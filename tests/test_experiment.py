@@ -227,6 +227,8 @@ def test_html_report_renders_in_chromium(quick_run: ExperimentSummary) -> None:
         drawn = _render(browser, quick_run.output_dir / "report.html")
         assert len(drawn) == len(REGIMES) * len(DATASETS) * 4 and min(drawn.values()) > 0.02, drawn
         assert browser.errors() == []
+
+
 class _EveryTaskTwice:
     """An executor that runs each task twice, as Dask may (a lost worker, a work-stealing race)."""
 

@@ -93,11 +93,11 @@ def test_a_realisation_that_lost_its_star_is_counted_and_left_out_of_the_mean():
 
 def test_the_full_run_adds_realisations_for_the_paper_regime_only(tmp_path: Path):
     datasets = [*paper_datasets(regime="paper"), *paper_datasets(regime="modern")]
-    full = _Sweep(datasets, tmp_path, window_s=6.0, force=False, compensation={}, quick=False)
+    full = _Sweep(datasets, tmp_path, window_s=6.0, compensation={}, quick=False)
     tasks = full._realisation_tasks()
     assert len(tasks) == 2 * realisations.REALISATIONS
     assert {ds.regime for ds, _ in tasks} == {"paper"}
-    quick = _Sweep(list(paper_datasets(quick=True, regime="paper")), tmp_path, window_s=6.0, force=False,
+    quick = _Sweep(list(paper_datasets(quick=True, regime="paper")), tmp_path, window_s=6.0,
                    compensation={}, quick=True)
     assert quick._realisation_tasks() == []
 

@@ -209,10 +209,7 @@ def run_experiment(
         datasets=[d.to_dict() for d in datasets], sigma_floor_px=float(sigma_floor), window_s=window_s,
         regimes=chosen, compensation=dict(compensation or {}), burn_in=burn_in_label(setting),
     )
-    # The tasks overwrite what they write: a previous run's outputs were refused above (unless
-    # force), and Dask runs a task more than once at times (a lost worker, a work-stealing race),
-    # so a task must not fail on the files of its own earlier attempt.
-    sweep = _Sweep(datasets, out / "logs", window_s=window_s, force=True, compensation=summary.compensation,
+    sweep = _Sweep(datasets, out / "logs", window_s=window_s, compensation=summary.compensation,
                    quick=quick, burn_in=setting)
     sweep.run(executor if executor is not None else _Serial(), show_progress=show_progress)
     summary.rows = sort_rows([r for t in sweep.track_results for r in t["rows"]])
@@ -264,6 +261,12 @@ def _prepare_output(out: Path, datasets: list[Dataset], *, force: bool) -> None:
                 raise OutputExistsError(p)
 
 
+#: The tasks overwrite what they write. A previous run's outputs are refused before the sweep starts
+#: (:func:`_prepare_output`, unless ``force``), and Dask runs a task more than once at times (a lost
+#: worker, a work-stealing race): a task must not fail on the files of its own earlier attempt.
+_OVERWRITE = True
+
+
 def _centroid_cost(ds: Dataset) -> int:
     """A dataset's centroid task cost, in star-frames: the longest tasks are submitted first
     (longest-processing-time-first), so the workers do not idle at the end of the sweep."""
@@ -278,11 +281,11 @@ class _Sweep:
     and the ``compensate`` showcase runs on NONE/best.  Per regime: the null check.
     """
 
-    def __init__(self, datasets: list[Dataset], logs: Path, *, window_s: float | None, force: bool,
+    def __init__(self, datasets: list[Dataset], logs: Path, *, window_s: float | None,
                  compensation: dict[str, Any], quick: bool, burn_in: BurnInSetting = "auto") -> None:
         self.datasets = {(d.regime, d.name): d for d in datasets}
         self.burn_in = burn_in
-        self.logs, self.window_s, self.force, self.compensation, self.quick = logs, window_s, force, compensation, quick
+        self.logs, self.window_s, self.compensation, self.quick = logs, window_s, compensation, quick
         self.track_results: list[dict[str, Any]] = []
         self.showcases: list[dict[str, Any]] = []
         self.null_results: list[list[dict[str, Any]]] = []
@@ -307,12 +310,12 @@ class _Sweep:
                 self._submit(("centroid", ds.regime, ds.name, ""), simulate_and_centroid,
                              ds.to_dict(),
                              self._path(ds, "sim"), self._path(ds, "centroids"), methods=list(METHODS),
-                             force=self.force)
+                             force=_OVERWRITE)
             for regime in regimes:
                 first = next(d for d in self.datasets.values() if d.regime == regime)
                 self._submit(("null", regime, first.name, ""), null_check.run_null_check, first.to_dict(),
                              path_str(self.logs), compensation=self.compensation, window_s=self.window_s,
-                             burn_in=self.burn_in, force=self.force)
+                             burn_in=self.burn_in, force=_OVERWRITE)
             for ds, seed in extra:
                 self._submit(("realisation", ds.regime, ds.name, str(seed)), realisations.run_realisation,
                              ds.to_dict(), seed, path_str(self.logs), window_s=self.window_s, burn_in=self.burn_in)
@@ -347,7 +350,7 @@ class _Sweep:
                      models=models, tracker=dict(ds.tracker), motion=dict(ds.motion),
                      rates_uncompensated=list(UNCOMPENSATED_RATES), rates_compensated=list(COMPENSATED_RATES),
                      window_s=self.window_s, keep_series=list(keep), compensation=self.compensation,
-                     burn_in=self.burn_in, force=self.force)
+                     burn_in=self.burn_in, force=_OVERWRITE)
 
     def _on_done(self, key: _Key, result: Any) -> None:
         kind, regime, name, detail = key
@@ -381,7 +384,7 @@ class _Sweep:
             self._submit(("compensate", regime, ds.name, f"NONE/{best}"), compensate_showcase,
                          self._path(ds, "track_NONE"), self._path(ds, "compensated"), dataset=ds.name,
                          regime=regime, track_topic=f"/track/NONE/{best}", rates=list(_SHOWCASE_RATES),
-                         burn_in=self.burn_in, force=self.force)
+                         burn_in=self.burn_in, force=_OVERWRITE)
 
 
 def _write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) -> dict[str, str]:
