@@ -200,7 +200,7 @@ def test_an_extended_log_repeats_its_bases_chunk_indexes_then_adds_its_own(sim_l
     assert all(ci.chunk_start_offset >= data_end for ci in writer._chunk_indexes)  # only its own chunks held
     with LogReader(sim_log) as base, LogReader(out) as log:
         inherited = base.summary.chunk_indexes
-        assert log.summary.chunk_indexes[:len(inherited)] == inherited
+        assert log.summary.chunk_indexes[:len(inherited)] == list(inherited)
         assert len(log.summary.chunk_indexes) > len(inherited)
         assert [m.log_time for m in log.messages("/extra")] == [0, 1, 2]
         assert sum(1 for _ in log.frames()) == sum(1 for _ in base.frames())

@@ -31,7 +31,7 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "size_bytes": Path(path).stat().st_size,
             "message_count": stats.message_count if stats else 0,
             "chunk_count": len(log.summary.chunk_indexes),
-            "compression": sorted({c.compression or "none" for c in log.summary.chunk_indexes}),
+            "compression": sorted({name or "none" for name in log.summary.chunk_indexes.compressions()}),
             "start_log_time": start,
             "end_log_time": end,
             "duration_s": (end - start) * 1e-9,

@@ -32,7 +32,6 @@ import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.reader import SeekingReader, make_reader
 from mcap.records import Channel, ChunkIndex, Message, Metadata, Schema
 from mcap.summary import Summary
 
@@ -49,6 +48,7 @@ from starlog.errors import (
     TruncatedLogError,
 )
 from starlog.io.checksum import crc32
+from starlog.io.chunk_indexes import ChunkIndexTable, read_summary
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
 from starlog.io.images import is_image_schema
@@ -115,6 +115,52 @@ class DecodedMessage:
     log_time: int
     sequence: int
     payload: Any
+
+
+def _file_crc32(f: BinaryIO, offset: int, length: int, block: int = 1 << 20) -> int:
+    """CRC-32 of ``length`` bytes of ``f`` from ``offset``, read a block at a time."""
+    f.seek(offset)
+    crc = 0
+    while length > 0:
+        data = f.read(min(block, length))
+        if not data:
+            break
+        crc = zlib.crc32(data, crc)
+        length -= len(data)
+    return crc
+
+
+def _chunk_index_problems(table: ChunkIndexTable, channels: set[int], data_end: int) -> list[str]:
+    """What is wrong with the chunk indexes (at most three of each kind): ranges outside the data
+    section, reversed time ranges, unknown channels, message indexes outside the data section."""
+    start, length = table.column("chunk_start_offset"), table.column("chunk_length")
+    end = start + length
+    row, channel, offset = table.entries()
+    known = np.fromiter(channels, dtype=np.int64, count=len(channels))
+    kinds = [
+        ((start < len(MCAP_MAGIC)) | (end <= start) | (end > data_end), None, "points outside the data section"),
+        (table.column("message_start_time") > table.column("message_end_time"), None, "has its time range reversed"),
+        (~np.isin(channel, known), row, "names unknown channel {}"),
+        ((offset < end[row]) | (offset >= data_end), row, "has a message index outside the data section"),
+    ]
+    problems: list[str] = []
+    for bad, rows, what in kinds:
+        for k in np.flatnonzero(bad)[:3]:
+            chunk, named = (k, what) if rows is None else (rows[k], what.format(int(channel[k])))
+            problems.append(f"chunk index for offset {int(start[chunk])} {named}")
+    return problems
+
+
+class _Peekable:
+    """An iterator whose next item can be looked at (``next``; None at the end) before it is taken."""
+
+    def __init__(self, items: Iterator[Any]) -> None:
+        self._items = items
+        self.next = next(items, None)
+
+    def pop(self) -> Any:
+        item, self.next = self.next, next(self._items, None)
+        return item
 
 
 def decode_payload(
@@ -230,8 +276,7 @@ class LogReader:
             raise CorruptLogError(self.path, f"its footer points outside the file (summary at {summary_start}, "
                                              f"summary offsets at {summary_offset_start}). {_hint(self.path)}")
         if self._validate_crcs and summary_crc != 0:
-            f.seek(summary_start)
-            crc = zlib.crc32(f.read(footer_start - summary_start))
+            crc = _file_crc32(f, summary_start, footer_start - summary_start)
             crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
             if crc != summary_crc:
                 raise CorruptLogError(
@@ -239,16 +284,10 @@ class LogReader:
                     f"CRC {crc:#010x} does not match the footer's {summary_crc:#010x}. {_hint(self.path)}")
             self._summary_verified = True
         try:
-            f.seek(0)
-            self._reader = make_reader(f, validate_crcs=self._validate_crcs)
-            assert isinstance(self._reader, SeekingReader)
-            summary = self._reader.get_summary()
+            self._summary = read_summary(f, summary_start)
         except (McapError, ValueError, EOFError, OSError, struct.error, KeyError, MemoryError) as err:
             raise CorruptLogError(self.path, f"its summary cannot be read ({type(err).__name__}: {err}). "
                                              f"{_hint(self.path)}") from err
-        if summary is None:
-            raise TruncatedLogError(self.path, "it has no summary section")
-        self._summary = summary
         self._check_summary(data_end)
         self._find_unindexed(data_end)
         return data_end
@@ -280,7 +319,7 @@ class LogReader:
                 "it has chunks its summary does not list"
             self._scan_everything(data_end, why, known=self._summary)
             return
-        bare = sum(1 for ci in self._summary.chunk_indexes if not ci.message_index_offsets)
+        bare = int(np.count_nonzero(self._summary.chunk_indexes.entry_counts() == 0))
         if bare:
             self.add_note(f"{bare} of {len(self._summary.chunk_indexes)} chunks have no message indexes: each is "
                           "read by scanning it whole.")
@@ -299,17 +338,7 @@ class LogReader:
         topics = [ch.topic for ch in summary.channels.values()]
         if len(set(topics)) != len(topics):
             problems.append("two channels have the same topic")
-        for ci in summary.chunk_indexes:
-            where = f"chunk index for offset {ci.chunk_start_offset}"
-            if not len(MCAP_MAGIC) <= ci.chunk_start_offset < ci.chunk_start_offset + ci.chunk_length <= data_end:
-                problems.append(f"{where} points outside the data section")
-            if ci.message_start_time > ci.message_end_time:
-                problems.append(f"{where} has its time range reversed")
-            for cid, offset in ci.message_index_offsets.items():
-                if cid not in summary.channels:
-                    problems.append(f"{where} names unknown channel {cid}")
-                if not ci.chunk_start_offset + ci.chunk_length <= offset < data_end:
-                    problems.append(f"{where} has a message index outside the data section")
+        problems += _chunk_index_problems(summary.chunk_indexes, set(summary.channels), data_end)
         for mi in summary.metadata_indexes:
             if not len(MCAP_MAGIC) <= mi.offset < mi.offset + mi.length <= data_end:
                 problems.append(f"metadata index {mi.name!r} points outside the data section")
@@ -358,10 +387,11 @@ class LogReader:
         Covers every segment when the summary has no statistics.
         """
         if self._extents is None:
+            table = self._summary.chunk_indexes
             every = self._summary.statistics is None
-            segments = [ci for ci in self._summary.chunk_indexes if every or not ci.message_index_offsets]
+            segments = table if every else table.rows(np.flatnonzero(table.entry_counts() == 0))
             extents: dict[int, list[int]] = {}
-            for ci in segments + list(self._loose):
+            for ci in itertools.chain(segments, self._loose):
                 for log_time, _, cid, _ in self._read_chunk(ci)[0]:
                     e = extents.get(cid)
                     if e is None:
@@ -385,12 +415,9 @@ class LogReader:
         """Every channel with its schema, message count and time range (from the indexes)."""
         summary = self._summary
         counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        first: dict[int, int] = {}
-        last: dict[int, int] = {}
-        for index in summary.chunk_indexes:
-            for cid in index.message_index_offsets:
-                first[cid] = min(first.get(cid, index.message_start_time), index.message_start_time)
-                last[cid] = max(last.get(cid, index.message_end_time), index.message_end_time)
+        ranges = summary.chunk_indexes.channel_time_ranges()
+        first = {cid: lo for cid, (lo, _) in ranges.items()}
+        last = {cid: hi for cid, (_, hi) in ranges.items()}
         if not self._indexed or summary.statistics is None:
             extents = self._unindexed_extents()
             for cid, (count, lo, hi) in extents.items():
@@ -555,19 +582,12 @@ class LogReader:
         ids = {cid for cid, ch in summary.channels.items() if ch.topic in wanted}
         lo = 0 if start is None else start
         hi = 2**64 if end is None else end
-        chunks = sorted(
-            (ci for ci in [*summary.chunk_indexes, *self._loose]
-             if (not ci.message_index_offsets or not ids.isdisjoint(ci.message_index_offsets))
-             and ci.message_end_time >= lo and ci.message_start_time < hi),
-            key=lambda ci: (ci.message_start_time, ci.chunk_start_offset),
-        )
+        chunks = _Peekable(self._chunks_in_time_order(ids, lo, hi))
         heap: list[tuple[int, int, int, int, Message, bool]] = []
-        next_chunk = 0
         last = -1
-        while heap or next_chunk < len(chunks):
-            while next_chunk < len(chunks) and (not heap or chunks[next_chunk].message_start_time <= heap[0][0]):
-                ci = chunks[next_chunk]
-                next_chunk += 1
+        while heap or chunks.next is not None:
+            while chunks.next is not None and (not heap or chunks.next.message_start_time <= heap[0][0]):
+                ci = chunks.pop()
                 messages, verified = self._read_chunk(ci)
                 for log_time, position, cid, message in messages:
                     if cid in ids and lo <= log_time < hi:
@@ -581,6 +601,17 @@ class LogReader:
             last = log_time
             channel = summary.channels[cid]
             yield (summary.schemas.get(channel.schema_id) if channel.schema_id else None), channel, message, verified
+
+    def _chunks_in_time_order(self, ids: set[int], lo: int, hi: int) -> Iterator[ChunkIndex]:
+        """The chunks (and runs of messages outside chunks) that may hold a message of ``ids`` with
+        ``lo <= log_time < hi``, by ``(message_start_time, offset)``; the chunk indexes are made one at a time."""
+        table: ChunkIndexTable = self._summary.chunk_indexes
+        chunks = table.rows(table.rows_for_channels(ids, lo, hi))
+        loose = sorted((run for run in self._loose
+                        if (not run.message_index_offsets or not ids.isdisjoint(run.message_index_offsets))
+                        and run.message_end_time >= lo and run.message_start_time < hi),
+                       key=lambda run: (run.message_start_time, run.chunk_start_offset))
+        return heapq.merge(chunks, loose, key=lambda ci: (ci.message_start_time, ci.chunk_start_offset))
 
     def _trusted(self, channel: Channel) -> bool:
         """Whether the channel's messages were checked by starlog's writer and the summary saying so is intact."""
@@ -631,11 +662,11 @@ class LogReader:
         channel_id = next((c.id for c in self._summary.channels.values() if c.topic == topic), None)
         if channel_id is None:
             raise ChannelNotFoundError(self.path, topic, self.topics)
+        table: ChunkIndexTable = self._summary.chunk_indexes
+        rows, channels, offsets = table.entries()
+        mine = channels == channel_id
         out = []
-        for ci in self._summary.chunk_indexes:
-            offset = ci.message_index_offsets.get(channel_id)
-            if offset is None:
-                continue
+        for ci, offset in zip(table.rows(rows[mine]), offsets[mine].tolist(), strict=True):
             self._file.seek(offset)
             head = self._file.read(_RECORD_HEADER.size + 6)
             try:

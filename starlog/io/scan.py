@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import (
@@ -42,6 +43,7 @@ from mcap.records import (
 from mcap.summary import Summary
 
 from starlog.io.checksum import crc32
+from starlog.io.chunk_indexes import ChunkIndexTable
 
 __all__ = [
     "ChunkContents",
@@ -218,15 +220,36 @@ def _message_head(f: BinaryIO, offset: int) -> tuple[int, int]:
 
 
 def _covered(summary: Summary) -> list[tuple[int, int]]:
-    spans = []
-    for ci in summary.chunk_indexes:
-        spans.append((ci.chunk_start_offset, ci.chunk_start_offset + ci.chunk_length))
-        if ci.message_index_offsets:
-            first = min(ci.message_index_offsets.values())
-            spans.append((first, first + ci.message_index_length))
-    spans += [(m.offset, m.offset + m.length) for m in summary.metadata_indexes]
-    spans += [(a.offset, a.offset + a.length) for a in summary.attachment_indexes]
-    return sorted(spans)
+    """The byte ranges the summary's indexes account for (chunks, their message indexes, metadata and
+    attachments), merged where they touch or overlap: a few ranges for a well-written log, however long."""
+    table = summary.chunk_indexes
+    if not isinstance(table, ChunkIndexTable):
+        table = ChunkIndexTable(table)
+    starts = [table.column("chunk_start_offset")]
+    ends = [starts[0] + table.column("chunk_length")]
+    row, _, offset = table.entries()
+    if row.size:
+        first = np.full(len(table), np.iinfo(np.uint64).max, dtype=np.uint64)
+        np.minimum.at(first, row, offset)
+        indexed = table.entry_counts() > 0
+        starts.append(first[indexed])
+        ends.append(first[indexed] + table.column("message_index_length")[indexed])
+    others = [(m.offset, m.offset + m.length) for m in summary.metadata_indexes]
+    others += [(a.offset, a.offset + a.length) for a in summary.attachment_indexes]
+    starts.append(np.array([lo for lo, _ in others], dtype=np.uint64))
+    ends.append(np.array([hi for _, hi in others], dtype=np.uint64))
+    lo, hi = np.concatenate(starts), np.concatenate(ends)
+    order = np.lexsort((hi, lo))
+    lo, hi = lo[order], hi[order]
+    if not lo.size:
+        return []
+    reach = np.maximum.accumulate(hi)
+    # a new range starts where it begins after everything before it has ended
+    new = np.ones(lo.size, dtype=bool)
+    new[1:] = lo[1:] > reach[:-1]
+    firsts = np.flatnonzero(new)
+    lasts = np.append(firsts[1:], lo.size) - 1
+    return list(zip(lo[firsts].tolist(), reach[lasts].tolist(), strict=True))
 
 
 def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> tuple[list[LooseRun], bool]:
@@ -289,6 +312,7 @@ def _body(f: BinaryIO, offset: int, length: int) -> bytes:
 class _Tally:
     def __init__(self) -> None:
         self.summary = Summary()
+        self.summary.chunk_indexes = ChunkIndexTable()  # type: ignore[assignment]  # a sequence of ChunkIndex
         self.extents: dict[int, list[int]] = {}
 
     def schema(self, record: Schema) -> None:
@@ -357,6 +381,8 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
                 first = min(last_chunk.message_index_offsets.values())
                 last_chunk.message_index_length = index_end - first
             continue
+        if last_chunk is not None:  # its message indexes, if any, are all read
+            tally.summary.chunk_indexes.append(last_chunk)
         last_chunk = None
         if opcode == Opcode.MESSAGE:
             channel_id, log_time = _message_head(f, offset)
@@ -372,7 +398,6 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
             except Exception as err:  # zstd / lz4 errors
                 raise ValueError(f"the chunk at offset {offset} is damaged: {type(err).__name__}: {err}") from err
             last_chunk = tally.chunk(offset, RECORD_HEADER.size + length, contents)
-            tally.summary.chunk_indexes.append(last_chunk)
         elif opcode == Opcode.SCHEMA:
             tally.schema(Schema.read(ReadDataStream(io.BytesIO(_body(f, offset, length)))))
         elif opcode == Opcode.CHANNEL:
@@ -387,6 +412,8 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
                 offset=offset, length=RECORD_HEADER.size + length, log_time=record.log_time,
                 create_time=record.create_time, data_size=len(record.data), name=record.name,
                 media_type=record.media_type))
+    if last_chunk is not None:
+        tally.summary.chunk_indexes.append(last_chunk)
     runs.close()
     tally.summary.statistics = tally.statistics()
     return ScanResult(tally.summary, runs.runs, tally.extents)

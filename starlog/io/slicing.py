@@ -20,15 +20,17 @@ The summary is rebuilt from what was written (statistics count the kept messages
 from __future__ import annotations
 
 import fnmatch
+import heapq
 import io
 import os
 import struct
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import AttachmentIndex, ChunkIndex, Header, MetadataIndex, Schema
@@ -367,20 +369,28 @@ def slice_log(
         with _SliceWriter(output_path, profile=_profile(log._file), force=force, compression=compression) as writer:
             writer.declare([summary.schemas[s] for s in schema_ids], channels)
             slicer = _Slicer(log, writer, kept, time_range, report)
-            records: list[tuple[int, Callable[[], None]]] = []
-            for ci in [*summary.chunk_indexes, *log._loose]:
-                handle = slicer.loose if isinstance(ci, LooseRun) else slicer.chunk
-                records.append((ci.chunk_start_offset, lambda h=handle, c=ci: h(c)))
-            records += [(m.offset, lambda m=m: slicer.metadata(m)) for m in summary.metadata_indexes]
-            records += [(a.offset, lambda a=a: slicer.attachment(a)) for a in summary.attachment_indexes]
-            for _, write in sorted(records, key=lambda r: r[0]):
-                write()
+            for _, write, record in _in_file_order(log, slicer):
+                write(record)
             if provenance is not None:
                 writer.write_back()
                 writer.add_metadata(PROVENANCE_METADATA_NAME, provenance().to_metadata())
             counts = dict(writer._stats.channel_message_counts)
         report.messages = {ch.topic: int(counts.get(ch.id, 0)) for ch in channels}
     return report
+
+
+def _in_file_order(log: LogReader, slicer: _Slicer) -> Iterator[tuple[int, Callable[[Any], None], Any]]:
+    """``(offset, handler, record)`` of every chunk, run of messages outside chunks, metadata and
+    attachment of the log, by offset; the chunk indexes are made one at a time."""
+    summary = log.summary
+    table = summary.chunk_indexes
+    chunks = ((ci.chunk_start_offset, slicer.chunk, ci)
+              for ci in table.rows(np.argsort(table.column("chunk_start_offset"), kind="stable")))
+    others = [(run.chunk_start_offset, slicer.loose, run) for run in log._loose]
+    others += [(m.offset, slicer.metadata, m) for m in summary.metadata_indexes]
+    others += [(a.offset, slicer.attachment, a) for a in summary.attachment_indexes]
+    others.sort(key=lambda item: item[0])
+    return heapq.merge(chunks, others, key=lambda item: item[0])
 
 
 def check_topics_exist(log: LogReader, patterns: Sequence[str]) -> None:

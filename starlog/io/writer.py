@@ -49,7 +49,6 @@ from typing import Any, BinaryIO
 from mcap._chunk_builder import ChunkBuilder
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.reader import make_reader
 from mcap.records import (
     AttachmentIndex,
     Channel,
@@ -77,6 +76,7 @@ from starlog.errors import (
 from starlog.io.bytecopy import copy_range_at
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
 from starlog.io.checksum import crc32
+from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import decode_json
 from starlog.io.schemas import MessageType
@@ -200,9 +200,9 @@ class LogWriter:
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
         self._topics: dict[str, int] = {}
-        self._chunk_indexes: list[ChunkIndex] = []
-        # the base's chunk indexes, as the records this log's summary repeats (its largest part, kept compact)
-        self._base_chunk_index_records = b""
+        self._chunk_indexes = ChunkIndexTable()
+        # the base's chunk indexes, which this log's summary repeats first (its largest part, kept compact)
+        self._base_chunk_indexes = ChunkIndexTable()
         self._metadata_indexes: list[MetadataIndex] = []
         self._attachment_indexes: list[AttachmentIndex] = []
         self._stats = Statistics(
@@ -531,10 +531,9 @@ class LogWriter:
             raise LogNotFoundError(base)
         with open(base, "rb") as src:
             data_end = locate_data_end(base, src)
-            src.seek(0)
             try:
-                summary = make_reader(src).get_summary()
-            except Exception as err:  # mcap raises McapError, ValueError, struct.error...
+                summary = read_file_summary(src)
+            except Exception as err:  # ValueError, struct.error, or mcap's McapError for another record
                 raise CorruptLogError(base, f"its summary section cannot be read ({err}).") from err
             if summary is None or not summary.chunk_indexes:  # a valid file without indexes: scan it
                 from starlog.io.scan import synthesize_summary
@@ -553,8 +552,8 @@ class LogWriter:
         """Sidecar mode: nothing copied, offsets continue after the stack's data section."""
         with base.open() as f:
             try:
-                summary = make_reader(f).get_summary()
-            except Exception as err:  # mcap raises McapError, ValueError, struct.error...
+                summary = read_file_summary(f)
+            except Exception as err:  # ValueError, struct.error, or mcap's McapError for another record
                 raise CorruptLogError(base.path, f"its summary section cannot be read ({err}).") from err
         if summary is None:
             raise TruncatedLogError(base.path, "it has no summary section")
@@ -566,8 +565,10 @@ class LogWriter:
         self._schemas = dict(summary.schemas)
         self._channels = dict(summary.channels)
         self._topics = {c.topic: c.id for c in summary.channels.values()}
-        self._base_chunk_index_records = _records_bytes(summary.chunk_indexes)
-        self._chunk_indexes = []
+        base_indexes = summary.chunk_indexes
+        self._base_chunk_indexes = (base_indexes if isinstance(base_indexes, ChunkIndexTable)
+                                    else ChunkIndexTable(base_indexes))
+        self._chunk_indexes = ChunkIndexTable()
         self._attachment_indexes = list(summary.attachment_indexes)
         self._metadata_indexes = list(summary.metadata_indexes)
         s = summary.statistics
@@ -592,16 +593,16 @@ class LogWriter:
         DataEnd(data_section_crc=0).write(self._records)
         self._flush_records()
         summary_start = self._tell()
-        out = RecordBuilder()
+        out = _SummarySink(self._file)
         offsets: list[SummaryOffset] = []
 
-        def group(opcode: Opcode, records: list[object], written: bytes = b"") -> None:
-            if not records and not written:
+        def group(opcode: Opcode, records: list[Any], *tables: ChunkIndexTable) -> None:
+            if not records and not any(tables):
                 return
             start = out.count
-            out.write(written)
-            for record in records:
-                record.write(out)  # type: ignore[attr-defined]
+            out.write_records(records)
+            for table in tables:
+                table.write_records(out.write)
             offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + start,
                                          group_length=out.count - start))
 
@@ -611,16 +612,13 @@ class LogWriter:
             int, {k: v for k, v in sorted(self._stats.channel_message_counts.items())}
         )
         group(Opcode.STATISTICS, [self._stats])
-        group(Opcode.CHUNK_INDEX, list(self._chunk_indexes), self._base_chunk_index_records)
+        group(Opcode.CHUNK_INDEX, [], self._base_chunk_indexes, self._chunk_indexes)
         group(Opcode.ATTACHMENT_INDEX, list(self._attachment_indexes))
         group(Opcode.METADATA_INDEX, list(self._metadata_indexes))
         summary_offset_start = summary_start + out.count
-        for offset in offsets:
-            offset.write(out)
-        summary = out.end()
-        crc = zlib.crc32(summary)
-        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
-        self._file.write(summary)
+        out.write_records(offsets)
+        out.flush()
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), out.crc)
         Footer(summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=crc).write(
             self._records
         )
@@ -628,14 +626,38 @@ class LogWriter:
         self._file.write(MCAP_MAGIC)
 
 
+class _SummarySink:
+    """The summary section written to the file as it is made (a few MiB at a time), with its CRC:
+    the summary of an hour-long log (millions of chunk indexes) is never held whole."""
 
-def _records_bytes(records: list[Any]) -> bytes:
-    """MCAP records serialised as they would be in a summary: a few dozen bytes each, where the
-    parsed objects take about 600 (an hour of 1024² frames holds millions of chunk indexes)."""
-    out = RecordBuilder()
-    for record in records:
-        record.write(out)
-    return out.end()
+    _FLUSH_AT = 4 << 20
+
+    def __init__(self, file: BinaryIO) -> None:
+        self._file = file
+        self._parts: list[bytes] = []
+        self._pending = 0
+        self.count = 0
+        self.crc = 0
+
+    def write(self, data: bytes) -> None:
+        self._parts.append(data)
+        self._pending += len(data)
+        self.count += len(data)
+        if self._pending >= self._FLUSH_AT:
+            self.flush()
+
+    def write_records(self, records: list[Any]) -> None:
+        """MCAP records (objects of ``mcap.records``), serialised."""
+        builder = RecordBuilder()
+        for record in records:
+            record.write(builder)
+        self.write(builder.end())
+
+    def flush(self) -> None:
+        data = b"".join(self._parts)
+        self.crc = zlib.crc32(data, self.crc)
+        self._file.write(data)
+        self._parts, self._pending = [], 0
 
 
 class _Writeback:

@@ -1,0 +1,345 @@
+"""The summary's chunk indexes as columns of numbers, and a summary reader that streams them in.
+
+An MCAP summary lists one Chunk Index record per chunk. Parsed into ``mcap.records.ChunkIndex``
+objects they take about 0.7 KB each: an hour of 1024x1024 frames at 300 Hz has about 1.6
+million chunks, i.e. a gigabyte in every process that opens the log, and about 18 s to parse.
+:class:`ChunkIndexTable` keeps the same fields in arrays (about 80 bytes a chunk) and makes a
+``ChunkIndex`` only when one is asked for; :func:`read_summary` fills it from the file a block
+at a time, so the summary section is never held whole either.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+from array import array
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any, BinaryIO, overload
+
+import numpy as np
+import numpy.typing as npt
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import AttachmentIndex, Channel, ChunkIndex, MetadataIndex, Schema, Statistics
+from mcap.summary import Summary
+
+__all__ = ["ChunkIndexTable", "read_file_summary", "read_summary"]
+
+_RECORD_HEADER = struct.Struct("<BQ")
+_FOOTER = struct.Struct("<BQQQI")  # opcode, length, summary start, summary offset start, summary CRC
+_MAGIC_LENGTH = 8
+_CHUNK_INDEX_HEAD = struct.Struct("<QQQQI")  # start time, end time, chunk offset, chunk length, offsets' bytes
+_U64 = struct.Struct("<Q")
+_U32 = struct.Struct("<I")
+_SIZES = struct.Struct("<QQ")  # compressed, uncompressed
+_OFFSET_ENTRY = 10  # channel id (uint16) + message index offset (uint64)
+_READ_BLOCK = 1 << 20
+
+#: The numeric columns, in the order :meth:`ChunkIndexTable.append_fields` takes them.
+_COLUMNS = ("message_start_time", "message_end_time", "chunk_start_offset", "chunk_length",
+            "message_index_length", "compressed_size", "uncompressed_size")
+
+
+class ChunkIndexTable(Sequence[ChunkIndex]):
+    """Chunk indexes in file order, stored by column; reads as a sequence of ``ChunkIndex``.
+
+    Iterating or indexing makes the ``ChunkIndex`` objects one at a time; the vectorised
+    queries (:meth:`column`, :meth:`rows_for_channels`, :meth:`channel_time_ranges`, ...) make
+    none. Each channel's message index offset keeps the order of its record.
+    """
+
+    def __init__(self, indexes: Iterable[ChunkIndex] = ()) -> None:
+        self._columns = {name: array("Q") for name in _COLUMNS}
+        self._compression = array("B")
+        self._names: list[str] = []
+        self._codes: dict[str, int] = {}
+        self._entry_start = array("Q", [0])
+        self._entry_channel = array("H")
+        self._entry_offset = array("Q")
+        self._cache: dict[str, npt.NDArray[Any]] = {}
+        for ci in indexes:
+            self.append(ci)
+
+    # ------------------------------------------------------------------ building
+    def append(self, ci: ChunkIndex) -> None:
+        """Add one chunk index at the end."""
+        self.append_fields(ci.message_start_time, ci.message_end_time, ci.chunk_start_offset, ci.chunk_length,
+                           ci.message_index_length, ci.compressed_size, ci.uncompressed_size, ci.compression,
+                           ci.message_index_offsets.keys(), ci.message_index_offsets.values())
+
+    def append_fields(self, start_time: int, end_time: int, chunk_offset: int, chunk_length: int,
+                      index_length: int, compressed_size: int, uncompressed_size: int, compression: str,
+                      channel_ids: Iterable[int], index_offsets: Iterable[int]) -> None:
+        """Add one chunk index from its fields (``channel_ids`` and ``index_offsets`` pair up, in order)."""
+        if self._cache:
+            self._unshare()
+        c = self._columns
+        c["message_start_time"].append(start_time)
+        c["message_end_time"].append(end_time)
+        c["chunk_start_offset"].append(chunk_offset)
+        c["chunk_length"].append(chunk_length)
+        c["message_index_length"].append(index_length)
+        c["compressed_size"].append(compressed_size)
+        c["uncompressed_size"].append(uncompressed_size)
+        code = self._codes.get(compression)
+        if code is None:
+            if len(self._names) == 255:
+                raise ValueError("more than 255 distinct chunk compressions")
+            code = self._codes[compression] = len(self._names)
+            self._names.append(compression)
+        self._compression.append(code)
+        self._entry_channel.extend(channel_ids)
+        self._entry_offset.extend(index_offsets)
+        if len(self._entry_channel) != len(self._entry_offset):
+            raise ValueError("a chunk index needs one message index offset per channel")
+        self._entry_start.append(len(self._entry_channel))
+
+    def _unshare(self) -> None:
+        """Forget the array views handed out, and copy the columns they may still share (an array
+        cannot grow while a view of it lives)."""
+        self._cache.clear()
+        self._columns = {name: array("Q", column) for name, column in self._columns.items()}
+        self._entry_start = array("Q", self._entry_start)
+        self._entry_channel = array("H", self._entry_channel)
+        self._entry_offset = array("Q", self._entry_offset)
+
+    def extend(self, indexes: Iterable[ChunkIndex]) -> None:
+        for ci in indexes:
+            self.append(ci)
+
+    # ------------------------------------------------------------------ the sequence
+    def __len__(self) -> int:
+        return len(self._compression)
+
+    def __bool__(self) -> bool:
+        return len(self) > 0
+
+    @overload
+    def __getitem__(self, i: int) -> ChunkIndex: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[ChunkIndex]: ...
+
+    def __getitem__(self, i: int | slice) -> ChunkIndex | list[ChunkIndex]:
+        if isinstance(i, slice):
+            return [self._make(k) for k in range(*i.indices(len(self)))]
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError("chunk index out of range")
+        return self._make(i % n)
+
+    def __iter__(self) -> Iterator[ChunkIndex]:
+        return (self._make(k) for k in range(len(self)))
+
+    def rows(self, rows: Iterable[int]) -> Iterator[ChunkIndex]:
+        """The chunk indexes of ``rows`` (positions in file order), made one at a time."""
+        return (self._make(int(k)) for k in rows)
+
+    def _make(self, k: int) -> ChunkIndex:
+        c = self._columns
+        a, b = self._entry_start[k], self._entry_start[k + 1]
+        return ChunkIndex(
+            chunk_length=c["chunk_length"][k], chunk_start_offset=c["chunk_start_offset"][k],
+            compression=self._names[self._compression[k]], compressed_size=c["compressed_size"][k],
+            message_end_time=c["message_end_time"][k], message_index_length=c["message_index_length"][k],
+            message_index_offsets=dict(zip(self._entry_channel[a:b], self._entry_offset[a:b], strict=True)),
+            message_start_time=c["message_start_time"][k], uncompressed_size=c["uncompressed_size"][k],
+        )
+
+    # ------------------------------------------------------------------ vectorised queries
+    def column(self, name: str) -> npt.NDArray[np.uint64]:
+        """One numeric field of every chunk (``"chunk_start_offset"``, ``"message_start_time"``, ...)."""
+        if name not in self._columns:
+            raise KeyError(name)
+        return self._array(name, lambda: np.frombuffer(self._columns[name], dtype=np.uint64))
+
+    def compressions(self) -> set[str]:
+        """The compressions the chunks use."""
+        return {self._names[code] for code in set(self._compression)}
+
+    def entry_counts(self) -> npt.NDArray[np.int64]:
+        """How many channels each chunk's message indexes list (0: the chunk has none)."""
+        return np.diff(self._entries()[0]).astype(np.int64)
+
+    def entries(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint16], npt.NDArray[np.uint64]]:
+        """Every (chunk row, channel id, message index offset) listed, as three arrays in file order."""
+        _, channel, offset = self._entries()
+        return self._array("entry_row", lambda: np.repeat(np.arange(len(self), dtype=np.int64),
+                                                          self.entry_counts())), channel, offset
+
+    def rows_for_channels(self, channel_ids: Iterable[int], lo: int = 0, hi: int = 2**64
+                          ) -> npt.NDArray[np.int64]:
+        """Rows of the chunks that may hold a message of ``channel_ids`` with ``lo <= log_time < hi``
+        (their message indexes list one of the channels, or they have none), in order of
+        ``(message_start_time, chunk_start_offset)``."""
+        row, channel, _ = self.entries()
+        wanted = np.zeros(len(self), dtype=bool)
+        wanted[row[np.isin(channel, np.fromiter(channel_ids, dtype=np.int64))]] = True
+        wanted |= self.entry_counts() == 0
+        start, end = self.column("message_start_time"), self.column("message_end_time")
+        if hi <= 0:
+            wanted[:] = False
+        elif hi < 2**64:
+            wanted &= start < np.uint64(hi)
+        if lo >= 2**64:
+            wanted[:] = False
+        elif lo > 0:
+            wanted &= end >= np.uint64(lo)
+        rows = np.flatnonzero(wanted)
+        order = np.lexsort((self.column("chunk_start_offset")[rows], start[rows]))
+        return rows[order]
+
+    def channel_time_ranges(self) -> dict[int, tuple[int, int]]:
+        """Per channel id, the earliest ``message_start_time`` and latest ``message_end_time`` of the
+        chunks whose message indexes list it."""
+        row, channel, _ = self.entries()
+        start, end = self.column("message_start_time"), self.column("message_end_time")
+        out = {}
+        for cid in np.unique(channel).tolist():
+            mine = row[channel == cid]
+            out[int(cid)] = (int(start[mine].min()), int(end[mine].max()))
+        return out
+
+    def _entries(self) -> tuple[npt.NDArray[np.uint64], npt.NDArray[np.uint16], npt.NDArray[np.uint64]]:
+        return (self._array("entry_start", lambda: np.frombuffer(self._entry_start, dtype=np.uint64)),
+                self._array("entry_channel", lambda: np.frombuffer(self._entry_channel, dtype=np.uint16)),
+                self._array("entry_offset", lambda: np.frombuffer(self._entry_offset, dtype=np.uint64)))
+
+    def _array(self, key: str, make: Callable[[], npt.NDArray[Any]]) -> npt.NDArray[Any]:
+        """A read-only array of the table, made once (until the next append); the columns' are views."""
+        value = self._cache.get(key)
+        if value is None:
+            value = self._cache[key] = make()
+            value.flags.writeable = False
+        return value
+
+    # ------------------------------------------------------------------ writing
+    def write_records(self, write: Callable[[bytes], object], rows: Iterable[int] | None = None) -> None:
+        """Give ``write`` the Chunk Index record of each chunk (of ``rows``, else all), the bytes
+        ``ChunkIndex.write`` makes."""
+        c = self._columns
+        starts, channels, offsets = self._entry_start, self._entry_channel, self._entry_offset
+        encoded = [name.encode() for name in self._names]
+        for k in range(len(self)) if rows is None else rows:
+            a, b = starts[k], starts[k + 1]
+            name = encoded[self._compression[k]]
+            pairs = _pairs_layout(b - a).pack(*[v for pair in zip(channels[a:b], offsets[a:b]) for v in pair])
+            body = b"".join((
+                _CHUNK_INDEX_HEAD.pack(c["message_start_time"][k], c["message_end_time"][k],
+                                       c["chunk_start_offset"][k], c["chunk_length"][k], len(pairs)),
+                pairs, _U64.pack(c["message_index_length"][k]), _U32.pack(len(name)), name,
+                _SIZES.pack(c["compressed_size"][k], c["uncompressed_size"][k]),
+            ))
+            write(_RECORD_HEADER.pack(Opcode.CHUNK_INDEX, len(body)) + body)
+
+
+# ---------------------------------------------------------------------- reading a summary
+def read_summary(f: BinaryIO, summary_start: int) -> Summary:
+    """The summary section that starts at ``summary_start`` in ``f``, read up to the footer.
+
+    As ``mcap``'s own summary reader, with the chunk indexes in a :class:`ChunkIndexTable` and
+    the section read a block at a time. Raises ``ValueError`` for a damaged or cut section.
+    """
+    summary = Summary()
+    table = ChunkIndexTable()
+    summary.chunk_indexes = table  # type: ignore[assignment]  # a sequence of ChunkIndex, stored by column
+    for opcode, body in _records(f, summary_start):
+        if opcode == Opcode.FOOTER:
+            break
+        if opcode == Opcode.CHUNK_INDEX:
+            _append_chunk_index(table, body)
+            continue
+        record = _read_other(opcode, body)
+        if isinstance(record, Statistics):
+            summary.statistics = record
+        elif isinstance(record, Schema):
+            summary.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            summary.channels[record.id] = record
+        elif isinstance(record, AttachmentIndex):
+            summary.attachment_indexes.append(record)
+        elif isinstance(record, MetadataIndex):
+            summary.metadata_indexes.append(record)
+    else:
+        raise ValueError("the summary section ends without a footer")
+    return summary
+
+
+def read_file_summary(f: BinaryIO) -> Summary | None:
+    """The summary of the MCAP file ``f`` (found through its footer); None when it has none."""
+    size = f.seek(0, io.SEEK_END)
+    if size < _FOOTER.size + _MAGIC_LENGTH:
+        raise ValueError("the file is too short to end with a footer")
+    f.seek(size - _MAGIC_LENGTH - _FOOTER.size)
+    opcode, _, summary_start, _, _ = _FOOTER.unpack(f.read(_FOOTER.size))
+    if opcode != Opcode.FOOTER:
+        raise ValueError(f"the file does not end with a footer record (opcode {opcode:#04x})")
+    return None if summary_start == 0 else read_summary(f, summary_start)
+
+
+def _records(f: BinaryIO, start: int) -> Iterator[tuple[int, memoryview]]:
+    """``(opcode, body)`` of each record from ``start`` on; a body is valid until the next one is asked for."""
+    left = f.seek(0, io.SEEK_END) - start  # bytes not yet read: no record can claim more
+    f.seek(start)
+    buffer = b""
+    pos = 0
+    while True:
+        if len(buffer) - pos < _RECORD_HEADER.size:
+            block = f.read(min(_READ_BLOCK, max(left, 0)))
+            left -= len(block)
+            buffer, pos = buffer[pos:] + block, 0
+            if len(buffer) < _RECORD_HEADER.size:
+                if buffer:
+                    raise ValueError("the summary section ends inside a record header")
+                return
+        opcode, length = _RECORD_HEADER.unpack_from(buffer, pos)
+        end = pos + _RECORD_HEADER.size + length
+        if end > len(buffer):
+            if end - len(buffer) > left:
+                raise ValueError(f"the summary section ends inside a record (opcode {opcode:#04x}, length {length})")
+            block = f.read(max(min(_READ_BLOCK, left), end - len(buffer)))
+            left -= len(block)
+            buffer, end, pos = buffer[pos:] + block, end - pos, 0
+            if end > len(buffer):
+                raise ValueError(f"the summary section ends inside a record (opcode {opcode:#04x}, length {length})")
+        yield opcode, memoryview(buffer)[pos + _RECORD_HEADER.size:end]
+        pos = end
+
+
+_PAIRS: dict[int, struct.Struct] = {}
+
+
+def _pairs_layout(n: int) -> struct.Struct:
+    """The layout of ``n`` (channel id, message index offset) pairs."""
+    layout = _PAIRS.get(n)
+    if layout is None:
+        layout = _PAIRS[n] = struct.Struct("<" + "HQ" * n)
+    return layout
+
+
+def _append_chunk_index(table: ChunkIndexTable, body: memoryview) -> None:
+    start, end, offset, length, pairs_bytes = _CHUNK_INDEX_HEAD.unpack_from(body)
+    if pairs_bytes % _OFFSET_ENTRY:
+        raise ValueError(f"a chunk index's message index offsets take {pairs_bytes} bytes, not a multiple of 10")
+    q = _CHUNK_INDEX_HEAD.size
+    pairs = _pairs_layout(pairs_bytes // _OFFSET_ENTRY).unpack_from(body, q)
+    q += pairs_bytes
+    (index_length,) = _U64.unpack_from(body, q)
+    (name_length,) = _U32.unpack_from(body, q + 8)
+    q += 12
+    name = bytes(body[q:q + name_length])
+    q += name_length
+    compressed, uncompressed = _SIZES.unpack_from(body, q)
+    if len(name) != name_length:
+        raise ValueError("a chunk index record is cut short")
+    table.append_fields(start, end, offset, length, index_length, compressed, uncompressed, name.decode(),
+                        pairs[0::2], pairs[1::2])
+
+
+def _read_other(opcode: int, body: memoryview) -> object | None:
+    """A summary record other than a chunk index, parsed by ``mcap`` (None for unknown or skipped kinds)."""
+    kind = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.STATISTICS: Statistics,
+            Opcode.ATTACHMENT_INDEX: AttachmentIndex, Opcode.METADATA_INDEX: MetadataIndex}.get(opcode)
+    if kind is None:
+        return None
+    return kind.read(ReadDataStream(io.BytesIO(bytes(body))))  # type: ignore[attr-defined]

@@ -1,0 +1,139 @@
+"""The summary's chunk indexes held by column (``starlog.io.chunk_indexes``), against ``mcap``'s own objects."""
+
+from __future__ import annotations
+
+import io
+import struct
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mcap.data_stream import RecordBuilder
+from mcap.reader import make_reader
+from mcap.records import ChunkIndex
+from mcap.writer import CompressionType, Writer
+
+from starlog.io import LogReader
+from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
+
+U64 = st.integers(0, 2**64 - 1)
+
+chunk_indexes = st.builds(
+    ChunkIndex,
+    chunk_length=U64, chunk_start_offset=U64, compression=st.sampled_from(["", "zstd", "lz4"]),
+    compressed_size=U64, message_end_time=U64, message_index_length=U64,
+    message_index_offsets=st.dictionaries(st.integers(0, 2**16 - 1), U64, max_size=5),
+    message_start_time=U64, uncompressed_size=U64,
+)
+
+
+def _records(indexes: list[ChunkIndex]) -> bytes:
+    out = RecordBuilder()
+    for ci in indexes:
+        ci.write(out)
+    return out.end()
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(chunk_indexes, max_size=12))
+def test_the_table_gives_back_every_field_and_the_same_records(indexes: list[ChunkIndex]) -> None:
+    table = ChunkIndexTable(indexes)
+    assert len(table) == len(indexes) and bool(table) == bool(indexes)
+    assert list(table) == indexes
+    assert [list(ci.message_index_offsets) for ci in table] == [list(ci.message_index_offsets) for ci in indexes]
+    if indexes:
+        assert table[-1] == indexes[-1] and table[1:] == indexes[1:]
+    out = RecordBuilder()
+    table.write_records(out.write)
+    assert out.end() == _records(indexes)
+    assert table.compressions() == {ci.compression for ci in indexes}
+    assert table.entry_counts().tolist() == [len(ci.message_index_offsets) for ci in indexes]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(chunk_indexes, max_size=12), st.sets(st.integers(0, 2**16 - 1), max_size=3), U64,
+       st.integers(0, 2**64))
+def test_selection_by_channel_and_time_is_the_filter_it_replaces(indexes: list[ChunkIndex], ids: set[int],
+                                                                  lo: int, hi: int) -> None:
+    table = ChunkIndexTable(indexes)
+    expected = sorted(
+        (ci for ci in indexes
+         if (not ci.message_index_offsets or not ids.isdisjoint(ci.message_index_offsets))
+         and ci.message_end_time >= lo and ci.message_start_time < hi),
+        key=lambda ci: (ci.message_start_time, ci.chunk_start_offset))
+    chosen = list(table.rows(table.rows_for_channels(ids, lo, hi)))
+    assert [(ci.message_start_time, ci.chunk_start_offset) for ci in chosen] == \
+        [(ci.message_start_time, ci.chunk_start_offset) for ci in expected]
+
+
+def test_time_ranges_per_channel() -> None:
+    def ci(start: int, end: int, channels: dict[int, int]) -> ChunkIndex:
+        return ChunkIndex(chunk_length=10, chunk_start_offset=8, compression="", compressed_size=1,
+                          message_end_time=end, message_index_length=0, message_index_offsets=channels,
+                          message_start_time=start, uncompressed_size=1)
+
+    table = ChunkIndexTable([ci(5, 9, {1: 100, 2: 120}), ci(2, 4, {2: 200}), ci(10, 30, {}), ci(7, 12, {1: 300})])
+    assert table.channel_time_ranges() == {1: (5, 12), 2: (2, 9)}
+
+
+def test_the_table_grows_after_a_query_and_its_arrays_are_read_only() -> None:
+    first = ChunkIndex(chunk_length=10, chunk_start_offset=8, compression="zstd", compressed_size=1,
+                       message_end_time=3, message_index_length=0, message_index_offsets={1: 30},
+                       message_start_time=2, uncompressed_size=1)
+    table = ChunkIndexTable([first])
+    offsets = table.column("chunk_start_offset")
+    with pytest.raises(ValueError, match="read-only"):
+        offsets[0] = 99
+    table.append(first)  # a view of the column is still alive
+    assert offsets.tolist() == [8] and table.column("chunk_start_offset").tolist() == [8, 8]
+    assert list(table) == [first, first]
+
+
+def _foreign_log(path: Path, messages: int, chunk_size: int) -> Path:
+    """A log written by the ``mcap`` library alone: two channels, many small chunks."""
+    with open(path, "wb") as f:
+        writer = Writer(f, chunk_size=chunk_size, compression=CompressionType.NONE)
+        writer.start()
+        schema = writer.register_schema(name="starlog.FrameInfo", encoding="jsonschema", data=b'{"type":"object"}')
+        channels = [writer.register_channel(topic=t, message_encoding="json", schema_id=schema)
+                    for t in ("/camera/frame", "/other")]
+        for i in range(messages):
+            writer.add_message(channels[0 if i % 3 == 0 else 1], log_time=1000 * i, publish_time=1000 * i,
+                               data=b'{"frame":%d}' % i, sequence=i)
+        writer.add_metadata("note", {"written by": "mcap"})
+        writer.finish()
+    return path
+
+
+@pytest.mark.parametrize("chunk_size", [1, 64, 1 << 20])
+def test_a_foreign_summary_reads_as_mcap_reads_it(tmp_path: Path, chunk_size: int) -> None:
+    path = _foreign_log(tmp_path / "f.mcap", 3000, chunk_size)
+    with open(path, "rb") as f:
+        ours = read_file_summary(f)
+        f.seek(0)
+        theirs = make_reader(f).get_summary()
+    assert ours is not None and theirs is not None
+    assert list(ours.chunk_indexes) == theirs.chunk_indexes
+    assert (ours.schemas, ours.channels, ours.statistics) == (theirs.schemas, theirs.channels, theirs.statistics)
+    assert ours.metadata_indexes == theirs.metadata_indexes
+    assert ours.attachment_indexes == theirs.attachment_indexes
+
+
+def test_a_log_of_many_chunks_reads_in_time_order(tmp_path: Path) -> None:
+    path = _foreign_log(tmp_path / "f.mcap", 3000, 1)
+    with LogReader(path) as log:
+        assert len(log.summary.chunk_indexes) == 3000
+        frames = [m.payload["frame"] for m in log.messages("/camera/frame")]
+        counts = {c.topic: (c.message_count, c.first_log_time, c.last_log_time) for c in log.channels()}
+    assert frames == [i for i in range(3000) if i % 3 == 0]
+    assert counts == {"/camera/frame": (1000, 0, 2_997_000), "/other": (2000, 1000, 2_999_000)}
+
+
+def test_a_summary_cut_short_is_refused(tmp_path: Path) -> None:
+    data = _foreign_log(tmp_path / "f.mcap", 300, 1).read_bytes()
+    (summary_start,) = struct.unpack_from("<Q", data, len(data) - 8 - 29 + 9)  # the footer's first field
+    damaged = bytearray(data)
+    damaged[summary_start + 1:summary_start + 9] = (10**9).to_bytes(8, "little")  # a record longer than the file
+    with pytest.raises(ValueError, match="ends inside a record"):
+        read_file_summary(io.BytesIO(bytes(damaged)))

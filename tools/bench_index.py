@@ -1,0 +1,119 @@
+"""Benchmark: opening and copying logs of many chunks (the summary's chunk indexes).
+
+An hour of 1024x1024 frames at 300 Hz is about 1.6 million chunks; each has a Chunk Index record
+in the summary, which every process that opens the log reads. For logs of 10 thousand to 1
+million chunks, written by the ``mcap`` library alone (two JSON channels, one message a chunk),
+this prints, each figure measured in this run:
+
+1. the CLI as a user runs it: wall seconds and peak RSS (GNU time ``%M``) of ``starlog info``
+   (opens the log) and of ``starlog filter --topic /camera/frame`` (opens it, reads every chunk,
+   writes a log with a summary of its own);
+2. beside it, the summary parse alone in this process: ``mcap``'s ``get_summary`` against
+   starlog's ``read_file_summary`` (seconds, and the memory each keeps, from tracemalloc).
+
+Usage::
+
+    python tools/bench_index.py                       # 10k, 100k and 1M chunks (a few minutes)
+    python tools/bench_index.py --quick               # 2k and 20k chunks (seconds)
+    python tools/bench_index.py --command "python other_starlog.py"   # time another starlog build
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from starlog.io.chunk_indexes import read_file_summary
+
+
+def write_log(path: Path, chunks: int) -> None:
+    """``chunks`` messages on two channels, one a chunk (the ``mcap`` library's writer, no compression)."""
+    with open(path, "wb") as f:
+        writer = Writer(f, chunk_size=1, compression=CompressionType.NONE)
+        writer.start()
+        schema = writer.register_schema(name="starlog.FrameInfo", encoding="jsonschema", data=b'{"type":"object"}')
+        frame = writer.register_channel(topic="/camera/frame", message_encoding="json", schema_id=schema)
+        other = writer.register_channel(topic="/other", message_encoding="json", schema_id=schema)
+        for i in range(chunks):
+            t = i * 3_333_333
+            writer.add_message(frame if i % 2 else other, log_time=t, publish_time=t, data=b'{"frame":%d}' % i,
+                               sequence=i)
+        writer.finish()
+
+
+def timed(argv: list[str]) -> tuple[float, float]:
+    """Wall seconds and peak RSS (MiB) of a command."""
+    start = time.perf_counter()
+    result = subprocess.run(["/usr/bin/time", "-f", "MAXRSS_KB %M", *argv], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    wall = time.perf_counter() - start
+    if result.returncode != 0:
+        raise RuntimeError(f"{argv} failed:\n{result.stderr}")
+    line = [x for x in result.stderr.splitlines() if x.startswith("MAXRSS_KB")][-1]
+    return wall, int(line.split()[1]) / 1024
+
+
+def parse_alone(path: Path) -> list[tuple[str, float, float]]:
+    """Seconds and MB kept of each summary parser, in this process."""
+    rows = []
+    for name, parse in (("mcap get_summary", lambda f: make_reader(f).get_summary()),
+                        ("starlog read_file_summary", read_file_summary)):
+        gc.collect()
+        with open(path, "rb") as f:
+            start = time.perf_counter()
+            parse(f)
+            seconds = time.perf_counter() - start
+            f.seek(0)
+            tracemalloc.start()
+            summary = parse(f)
+            kept, _ = tracemalloc.get_traced_memory()
+            tracemalloc.stop()
+            del summary
+        rows.append((name, seconds, kept / 1e6))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="2k and 20k chunks")
+    parser.add_argument("--command", default=f"{shlex.quote(sys.executable)} -m starlog",
+                        help="how to run starlog [default: this interpreter's -m starlog]")
+    args = parser.parse_args()
+    sizes = [2_000, 20_000] if args.quick else [10_000, 100_000, 1_000_000]
+    starlog = shlex.split(args.command)
+    print(f"# starlog bench_index  (cores: {os.cpu_count()}; starlog run as: {args.command})\n")
+    print("| chunks | file MB | `info` s | `info` peak MiB | `filter` s | `filter` peak MiB |")
+    print("|---|---|---|---|---|---|")
+    parses = []
+    with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as tmp:
+        for n in sizes:
+            log = Path(tmp) / f"chunks_{n}.mcap"
+            write_log(log, n)
+            info = timed([*starlog, "info", str(log)])
+            out = Path(tmp) / "filtered.mcap"
+            filtered = timed([*starlog, "filter", str(log), "-o", str(out), "--topic", "/camera/frame", "--force",
+                              "--quiet"])
+            print(f"| {n:,} | {log.stat().st_size / 1e6:.0f} | {info[0]:.2f} | {info[1]:.0f} | {filtered[0]:.2f} "
+                  f"| {filtered[1]:.0f} |", flush=True)
+            parses += [(n, *row) for row in parse_alone(log)]
+            log.unlink()
+    print("\nThe summary parse alone, in this process:\n")
+    print("| chunks | parser | seconds | MB kept |")
+    print("|---|---|---|---|")
+    for n, name, seconds, kept in parses:
+        print(f"| {n:,} | {name} | {seconds:.2f} | {kept:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
