@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 from mcap.records import ChunkIndex
 from mcap.writer import CompressionType, Writer
 
-from starlog.io import LogReader
+from starlog.io import LogReader, LogWriter, json_message_type
 from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
 
 U64 = st.integers(0, 2**64 - 1)
@@ -62,7 +62,7 @@ def test_selection_by_channel_and_time_is_the_filter_it_replaces(indexes: list[C
          if (not ci.message_index_offsets or not ids.isdisjoint(ci.message_index_offsets))
          and ci.message_end_time >= lo and ci.message_start_time < hi),
         key=lambda ci: (ci.message_start_time, ci.chunk_start_offset))
-    chosen = list(table.rows(table.rows_for_channels(ids, lo, hi)))
+    chosen = list(table.indexes_at(table.rows_for_channels(ids, lo, hi)))
     assert [(ci.message_start_time, ci.chunk_start_offset) for ci in chosen] == \
         [(ci.message_start_time, ci.chunk_start_offset) for ci in expected]
 
@@ -128,6 +128,78 @@ def test_a_log_of_many_chunks_reads_in_time_order(tmp_path: Path) -> None:
         counts = {c.topic: (c.message_count, c.first_log_time, c.last_log_time) for c in log.channels()}
     assert frames == [i for i in range(3000) if i % 3 == 0]
     assert counts == {"/camera/frame": (1000, 0, 2_997_000), "/other": (2000, 1000, 2_999_000)}
+
+
+def test_summaries_read_and_written_in_pieces_are_the_same_bytes(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """Reading in blocks smaller than a record, and a summary written out every few records, change nothing."""
+    from starlog.io import chunk_indexes, writer
+
+    path = _foreign_log(tmp_path / "f.mcap", 2000, 1)
+    with open(path, "rb") as f:
+        whole = read_file_summary(f)
+        monkeypatch.setattr(chunk_indexes, "_READ_BLOCK", 37)
+        pieces = read_file_summary(f)
+    assert pieces is not None and whole is not None
+    assert pieces.chunk_indexes == whole.chunk_indexes and pieces.channels == whole.channels
+    outputs = []
+    for flush_at in (4 << 20, 100):
+        monkeypatch.setattr(writer._SummarySink, "_FLUSH_AT", flush_at)
+        out = tmp_path / f"out_{flush_at}.mcap"
+        with LogWriter(out, base=path) as log:
+            channel = log.add_channel("/extra", json_message_type("starlog.FrameInfo"))
+            log.write(channel, log_time=5, data=b'{"frame":0,"width":4,"height":4,"encoding":"mono8",'
+                                                b'"bit_depth":8,"source":""}')
+        outputs.append(out.read_bytes())
+    assert outputs[0] == outputs[1]
+    with LogReader(tmp_path / "out_100.mcap") as log:
+        assert len(log.summary.chunk_indexes) == 2001 and log.channel("/extra").message_count == 1
+
+
+def test_gaps_between_indexed_records_are_those_of_the_objects(tmp_path: Path) -> None:
+    """The merged ranges the indexes cover leave the same gaps as the ranges taken one by one."""
+    from starlog.io.scan import _covered
+
+    path = _foreign_log(tmp_path / "f.mcap", 500, 64)
+    with open(path, "rb") as f:
+        summary = read_file_summary(f)
+    assert summary is not None
+    spans = []
+    for ci in summary.chunk_indexes:
+        spans.append((ci.chunk_start_offset, ci.chunk_start_offset + ci.chunk_length))
+        first = min(ci.message_index_offsets.values())
+        spans.append((first, first + ci.message_index_length))
+    spans += [(m.offset, m.offset + m.length) for m in summary.metadata_indexes]
+
+    def gaps(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
+        out, pos = [], 0
+        for lo, hi in sorted(ranges):
+            if lo > pos:
+                out.append((pos, lo))
+            pos = max(pos, hi)
+        return out
+
+    merged = _covered(summary)
+    assert gaps(merged) == gaps(spans) and len(merged) <= 2  # the data section, then the metadata record
+
+
+def test_a_damaged_chunk_index_is_refused_without_building_anything_large(tmp_path: Path) -> None:
+    data = _foreign_log(tmp_path / "f.mcap", 30, 1).read_bytes()
+    (summary_start,) = struct.unpack_from("<Q", data, len(data) - 8 - 29 + 9)
+    first_index = data.index(bytes([0x08]), summary_start)  # the first Chunk Index record (opcode 0x08)
+    damaged = bytearray(data)
+    damaged[first_index + 9 + 32:first_index + 9 + 36] = (10 * 400_000_000).to_bytes(4, "little")
+    with pytest.raises(ValueError, match="do not fit"):
+        read_file_summary(io.BytesIO(bytes(damaged)))
+
+
+def test_a_failed_append_leaves_the_table_as_it_was() -> None:
+    table = ChunkIndexTable()
+    with pytest.raises(ValueError):
+        table.append_fields(1, 2, 8, 10, 0, 1, 1, "", [1, 2], [30])
+    with pytest.raises(OverflowError):
+        table.append_fields(1, 2, 8, -10, 0, 1, 1, "", [], [])
+    assert len(table) == 0 and list(table) == [] and table.entry_counts().tolist() == []
 
 
 def test_a_summary_cut_short_is_refused(tmp_path: Path) -> None:

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable
+from typing import BinaryIO
 
-__all__ = ["crc32"]
+__all__ = ["crc32", "file_crc32"]
 
 try:
     from isal.isal_zlib import crc32 as _isal_crc32
@@ -24,3 +25,16 @@ _CRC32: Callable[[bytes | memoryview, int], int] = _isal_crc32 or zlib.crc32
 def crc32(data: bytes | bytearray | memoryview, value: int = 0) -> int:
     """``zlib.crc32(data, value)``, by ISA-L when it is installed (same result, unsigned 32-bit)."""
     return _CRC32(data, value)
+
+
+def file_crc32(f: BinaryIO, offset: int, length: int, block: int = 1 << 20) -> int:
+    """CRC-32 of ``length`` bytes of ``f`` from ``offset`` (fewer if the file ends), read a block at a time."""
+    f.seek(offset)
+    value = 0
+    while length > 0:
+        data = f.read(min(block, length))
+        if not data:
+            break
+        value = crc32(data, value)
+        length -= len(data)
+    return value

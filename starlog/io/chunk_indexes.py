@@ -11,6 +11,7 @@ at a time, so the summary section is never held whole either.
 from __future__ import annotations
 
 import io
+import math
 import struct
 from array import array
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -32,7 +33,8 @@ _CHUNK_INDEX_HEAD = struct.Struct("<QQQQI")  # start time, end time, chunk offse
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
 _SIZES = struct.Struct("<QQ")  # compressed, uncompressed
-_OFFSET_ENTRY = 10  # channel id (uint16) + message index offset (uint64)
+_PAIR = struct.Struct("<HQ")  # channel id, message index offset
+_TAIL_MIN = 8 + 4 + 16  # message index length, compression name length, sizes
 _READ_BLOCK = 1 << 20
 
 #: The numeric columns, in the order :meth:`ChunkIndexTable.append_fields` takes them.
@@ -50,7 +52,7 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
 
     def __init__(self, indexes: Iterable[ChunkIndex] = ()) -> None:
         self._columns = {name: array("Q") for name in _COLUMNS}
-        self._compression = array("B")
+        self._compression = array("H")
         self._names: list[str] = []
         self._codes: dict[str, int] = {}
         self._entry_start = array("Q", [0])
@@ -70,28 +72,26 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
     def append_fields(self, start_time: int, end_time: int, chunk_offset: int, chunk_length: int,
                       index_length: int, compressed_size: int, uncompressed_size: int, compression: str,
                       channel_ids: Iterable[int], index_offsets: Iterable[int]) -> None:
-        """Add one chunk index from its fields (``channel_ids`` and ``index_offsets`` pair up, in order)."""
-        if self._cache:
-            self._unshare()
-        c = self._columns
-        c["message_start_time"].append(start_time)
-        c["message_end_time"].append(end_time)
-        c["chunk_start_offset"].append(chunk_offset)
-        c["chunk_length"].append(chunk_length)
-        c["message_index_length"].append(index_length)
-        c["compressed_size"].append(compressed_size)
-        c["uncompressed_size"].append(uncompressed_size)
+        """Add one chunk index from its fields (``channel_ids`` and ``index_offsets`` pair up, in order).
+
+        Raises ``ValueError`` or ``OverflowError`` (the table unchanged) for a value out of range.
+        """
+        numbers = array("Q", (start_time, end_time, chunk_offset, chunk_length, index_length, compressed_size,
+                              uncompressed_size))
+        channels, offsets = array("H", channel_ids), array("Q", index_offsets)
+        if len(channels) != len(offsets):
+            raise ValueError("a chunk index needs one message index offset per channel")
         code = self._codes.get(compression)
         if code is None:
-            if len(self._names) == 255:
-                raise ValueError("more than 255 distinct chunk compressions")
             code = self._codes[compression] = len(self._names)
             self._names.append(compression)
+        if self._cache:
+            self._unshare()
+        for column, value in zip(self._columns.values(), numbers, strict=True):
+            column.append(value)
         self._compression.append(code)
-        self._entry_channel.extend(channel_ids)
-        self._entry_offset.extend(index_offsets)
-        if len(self._entry_channel) != len(self._entry_offset):
-            raise ValueError("a chunk index needs one message index offset per channel")
+        self._entry_channel.extend(channels)
+        self._entry_offset.extend(offsets)
         self._entry_start.append(len(self._entry_channel))
 
     def _unshare(self) -> None:
@@ -99,6 +99,7 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         cannot grow while a view of it lives)."""
         self._cache.clear()
         self._columns = {name: array("Q", column) for name, column in self._columns.items()}
+        self._compression = array("H", self._compression)
         self._entry_start = array("Q", self._entry_start)
         self._entry_channel = array("H", self._entry_channel)
         self._entry_offset = array("Q", self._entry_offset)
@@ -131,9 +132,17 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
     def __iter__(self) -> Iterator[ChunkIndex]:
         return (self._make(k) for k in range(len(self)))
 
-    def rows(self, rows: Iterable[int]) -> Iterator[ChunkIndex]:
-        """The chunk indexes of ``rows`` (positions in file order), made one at a time."""
+    def indexes_at(self, rows: Iterable[int]) -> Iterator[ChunkIndex]:
+        """The chunk indexes at ``rows`` (positions in file order), made one at a time."""
         return (self._make(int(k)) for k in rows)
+
+    def __eq__(self, other: object) -> bool:
+        """Equal to a table or list of the same chunk indexes, in the same order."""
+        if not isinstance(other, ChunkIndexTable | list | tuple):
+            return NotImplemented
+        return len(self) == len(other) and all(a == b for a, b in zip(self, other, strict=True))
+
+    __hash__ = None  # type: ignore[assignment]  # mutable
 
     def _make(self, k: int) -> ChunkIndex:
         c = self._columns
@@ -155,15 +164,15 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
 
     def compressions(self) -> set[str]:
         """The compressions the chunks use."""
-        return {self._names[code] for code in set(self._compression)}
+        return set(self._names)  # a name is added with the first chunk that uses it
 
     def entry_counts(self) -> npt.NDArray[np.int64]:
         """How many channels each chunk's message indexes list (0: the chunk has none)."""
-        return np.diff(self._entries()[0]).astype(np.int64)
+        return np.diff(self._entry_arrays()[0]).astype(np.int64)
 
     def entries(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint16], npt.NDArray[np.uint64]]:
         """Every (chunk row, channel id, message index offset) listed, as three arrays in file order."""
-        _, channel, offset = self._entries()
+        _, channel, offset = self._entry_arrays()
         return self._array("entry_row", lambda: np.repeat(np.arange(len(self), dtype=np.int64),
                                                           self.entry_counts())), channel, offset
 
@@ -172,6 +181,7 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         """Rows of the chunks that may hold a message of ``channel_ids`` with ``lo <= log_time < hi``
         (their message indexes list one of the channels, or they have none), in order of
         ``(message_start_time, chunk_start_offset)``."""
+        lo, hi = math.ceil(lo), math.ceil(hi)  # integer log times: t >= lo and t < hi as for the bounds given
         row, channel, _ = self.entries()
         wanted = np.zeros(len(self), dtype=bool)
         wanted[row[np.isin(channel, np.fromiter(channel_ids, dtype=np.int64))]] = True
@@ -189,6 +199,17 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         order = np.lexsort((self.column("chunk_start_offset")[rows], start[rows]))
         return rows[order]
 
+    def first_index_offsets(self) -> npt.NDArray[np.uint64]:
+        """Each chunk's lowest message index offset (the largest uint64 for a chunk without message indexes):
+        its message indexes span ``message_index_length`` bytes from there."""
+        def make() -> npt.NDArray[np.uint64]:
+            row, _, offset = self.entries()
+            first = np.full(len(self), np.iinfo(np.uint64).max, dtype=np.uint64)
+            np.minimum.at(first, row, offset)
+            return first
+
+        return self._array("first_index_offset", make)
+
     def channel_time_ranges(self) -> dict[int, tuple[int, int]]:
         """Per channel id, the earliest ``message_start_time`` and latest ``message_end_time`` of the
         chunks whose message indexes list it."""
@@ -200,7 +221,7 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
             out[int(cid)] = (int(start[mine].min()), int(end[mine].max()))
         return out
 
-    def _entries(self) -> tuple[npt.NDArray[np.uint64], npt.NDArray[np.uint16], npt.NDArray[np.uint64]]:
+    def _entry_arrays(self) -> tuple[npt.NDArray[np.uint64], npt.NDArray[np.uint16], npt.NDArray[np.uint64]]:
         return (self._array("entry_start", lambda: np.frombuffer(self._entry_start, dtype=np.uint64)),
                 self._array("entry_channel", lambda: np.frombuffer(self._entry_channel, dtype=np.uint16)),
                 self._array("entry_offset", lambda: np.frombuffer(self._entry_offset, dtype=np.uint64)))
@@ -214,16 +235,15 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         return value
 
     # ------------------------------------------------------------------ writing
-    def write_records(self, write: Callable[[bytes], object], rows: Iterable[int] | None = None) -> None:
-        """Give ``write`` the Chunk Index record of each chunk (of ``rows``, else all), the bytes
-        ``ChunkIndex.write`` makes."""
+    def write_records(self, write: Callable[[bytes], object]) -> None:
+        """Give ``write`` the Chunk Index record of each chunk, the bytes ``ChunkIndex.write`` makes."""
         c = self._columns
         starts, channels, offsets = self._entry_start, self._entry_channel, self._entry_offset
         encoded = [name.encode() for name in self._names]
-        for k in range(len(self)) if rows is None else rows:
+        for k in range(len(self)):
             a, b = starts[k], starts[k + 1]
             name = encoded[self._compression[k]]
-            pairs = _pairs_layout(b - a).pack(*[v for pair in zip(channels[a:b], offsets[a:b]) for v in pair])
+            pairs = b"".join(map(_PAIR.pack, channels[a:b], offsets[a:b]))
             body = b"".join((
                 _CHUNK_INDEX_HEAD.pack(c["message_start_time"][k], c["message_end_time"][k],
                                        c["chunk_start_offset"][k], c["chunk_length"][k], len(pairs)),
@@ -306,34 +326,33 @@ def _records(f: BinaryIO, start: int) -> Iterator[tuple[int, memoryview]]:
         pos = end
 
 
-_PAIRS: dict[int, struct.Struct] = {}
-
-
-def _pairs_layout(n: int) -> struct.Struct:
-    """The layout of ``n`` (channel id, message index offset) pairs."""
-    layout = _PAIRS.get(n)
-    if layout is None:
-        layout = _PAIRS[n] = struct.Struct("<" + "HQ" * n)
-    return layout
-
-
 def _append_chunk_index(table: ChunkIndexTable, body: memoryview) -> None:
     start, end, offset, length, pairs_bytes = _CHUNK_INDEX_HEAD.unpack_from(body)
-    if pairs_bytes % _OFFSET_ENTRY:
-        raise ValueError(f"a chunk index's message index offsets take {pairs_bytes} bytes, not a multiple of 10")
     q = _CHUNK_INDEX_HEAD.size
-    pairs = _pairs_layout(pairs_bytes // _OFFSET_ENTRY).unpack_from(body, q)
+    if pairs_bytes % _PAIR.size or q + pairs_bytes + _TAIL_MIN > len(body):
+        raise ValueError(f"a chunk index's message index offsets take {pairs_bytes} bytes, which do not fit "
+                         f"its record of {len(body)}")
+    pairs = list(_PAIR.iter_unpack(body[q:q + pairs_bytes]))
     q += pairs_bytes
     (index_length,) = _U64.unpack_from(body, q)
     (name_length,) = _U32.unpack_from(body, q + 8)
     q += 12
+    if q + name_length + _SIZES.size > len(body):
+        raise ValueError(f"a chunk index's compression name of {name_length} bytes does not fit its record")
     name = bytes(body[q:q + name_length])
-    q += name_length
-    compressed, uncompressed = _SIZES.unpack_from(body, q)
-    if len(name) != name_length:
-        raise ValueError("a chunk index record is cut short")
+    compressed, uncompressed = _SIZES.unpack_from(body, q + name_length)
     table.append_fields(start, end, offset, length, index_length, compressed, uncompressed, name.decode(),
-                        pairs[0::2], pairs[1::2])
+                        [cid for cid, _ in pairs], [at for _, at in pairs])
+
+
+class _StrictBytes(io.BytesIO):
+    """A record's bytes whose ``read`` refuses to come back short (``mcap``'s parsers do not check)."""
+
+    def read(self, size: int | None = -1) -> bytes:
+        data = super().read(size)
+        if size is not None and size >= 0 and len(data) != size:
+            raise ValueError(f"a summary record is cut short ({len(data)} of {size} bytes)")
+        return data
 
 
 def _read_other(opcode: int, body: memoryview) -> object | None:
@@ -342,4 +361,4 @@ def _read_other(opcode: int, body: memoryview) -> object | None:
             Opcode.ATTACHMENT_INDEX: AttachmentIndex, Opcode.METADATA_INDEX: MetadataIndex}.get(opcode)
     if kind is None:
         return None
-    return kind.read(ReadDataStream(io.BytesIO(bytes(body))))  # type: ignore[attr-defined]
+    return kind.read(ReadDataStream(_StrictBytes(bytes(body))))  # type: ignore[attr-defined]

@@ -47,7 +47,7 @@ from starlog.errors import (
     NotMcapError,
     TruncatedLogError,
 )
-from starlog.io.checksum import crc32
+from starlog.io.checksum import crc32, file_crc32
 from starlog.io.chunk_indexes import ChunkIndexTable, read_summary
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
@@ -117,49 +117,40 @@ class DecodedMessage:
     payload: Any
 
 
-def _file_crc32(f: BinaryIO, offset: int, length: int, block: int = 1 << 20) -> int:
-    """CRC-32 of ``length`` bytes of ``f`` from ``offset``, read a block at a time."""
-    f.seek(offset)
-    crc = 0
-    while length > 0:
-        data = f.read(min(block, length))
-        if not data:
-            break
-        crc = zlib.crc32(data, crc)
-        length -= len(data)
-    return crc
-
-
 def _chunk_index_problems(table: ChunkIndexTable, channels: set[int], data_end: int) -> list[str]:
     """What is wrong with the chunk indexes (at most three of each kind): ranges outside the data
     section, reversed time ranges, unknown channels, message indexes outside the data section."""
-    start, length = table.column("chunk_start_offset"), table.column("chunk_length")
-    end = start + length
-    row, channel, offset = table.entries()
-    known = np.fromiter(channels, dtype=np.int64, count=len(channels))
-    kinds = [
-        ((start < len(MCAP_MAGIC)) | (end <= start) | (end > data_end), None, "points outside the data section"),
-        (table.column("message_start_time") > table.column("message_end_time"), None, "has its time range reversed"),
-        (~np.isin(channel, known), row, "names unknown channel {}"),
-        ((offset < end[row]) | (offset >= data_end), row, "has a message index outside the data section"),
-    ]
+    start = table.column("chunk_start_offset")
+    end = start + table.column("chunk_length")  # wraps past 2**64 for a damaged length: then end <= start
     problems: list[str] = []
-    for bad, rows, what in kinds:
-        for k in np.flatnonzero(bad)[:3]:
-            chunk, named = (k, what) if rows is None else (rows[k], what.format(int(channel[k])))
-            problems.append(f"chunk index for offset {int(start[chunk])} {named}")
+
+    def chunks_where(bad: np.ndarray, what: str) -> None:
+        problems.extend(f"chunk index for offset {int(start[k])} {what}" for k in np.flatnonzero(bad)[:3])
+
+    chunks_where((start < len(MCAP_MAGIC)) | (end <= start) | (end > data_end), "points outside the data section")
+    chunks_where(table.column("message_start_time") > table.column("message_end_time"), "has its time range reversed")
+    row, channel, offset = table.entries()
+    unknown = ~np.isin(channel, np.fromiter(channels, dtype=np.int64, count=len(channels)))
+    problems.extend(f"chunk index for offset {int(start[row[k]])} names unknown channel {int(channel[k])}"
+                    for k in np.flatnonzero(unknown)[:3])
+    indexed = table.entry_counts() > 0
+    first = table.first_index_offsets()
+    index_end = first + table.column("message_index_length")
+    outside = indexed & ((first < end) | (first >= data_end) | (index_end < first) | (index_end > data_end))
+    outside[row[(offset < end[row]) | (offset >= data_end)]] = True
+    chunks_where(outside, "has a message index outside the data section")
     return problems
 
 
 class _Peekable:
-    """An iterator whose next item can be looked at (``next``; None at the end) before it is taken."""
+    """An iterator whose next item can be looked at (``peek``; None at the end) before it is taken."""
 
     def __init__(self, items: Iterator[Any]) -> None:
         self._items = items
-        self.next = next(items, None)
+        self.peek = next(items, None)
 
     def pop(self) -> Any:
-        item, self.next = self.next, next(self._items, None)
+        item, self.peek = self.peek, next(self._items, None)
         return item
 
 
@@ -276,7 +267,7 @@ class LogReader:
             raise CorruptLogError(self.path, f"its footer points outside the file (summary at {summary_start}, "
                                              f"summary offsets at {summary_offset_start}). {_hint(self.path)}")
         if self._validate_crcs and summary_crc != 0:
-            crc = _file_crc32(f, summary_start, footer_start - summary_start)
+            crc = file_crc32(f, summary_start, footer_start - summary_start)
             crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
             if crc != summary_crc:
                 raise CorruptLogError(
@@ -342,6 +333,9 @@ class LogReader:
         for mi in summary.metadata_indexes:
             if not len(MCAP_MAGIC) <= mi.offset < mi.offset + mi.length <= data_end:
                 problems.append(f"metadata index {mi.name!r} points outside the data section")
+        for ai in summary.attachment_indexes:
+            if not len(MCAP_MAGIC) <= ai.offset < ai.offset + ai.length <= data_end:
+                problems.append(f"attachment index {ai.name!r} points outside the data section")
         if summary.statistics is not None:
             unknown = set(summary.statistics.channel_message_counts) - set(summary.channels)
             if unknown:
@@ -369,7 +363,8 @@ class LogReader:
 
     @property
     def summary(self) -> Summary:
-        """The MCAP summary (schemas, channels, chunk indexes, statistics)."""
+        """The MCAP summary (schemas, channels, chunk indexes, statistics). Its ``chunk_indexes`` is a
+        :class:`~starlog.io.chunk_indexes.ChunkIndexTable`: a read-only sequence whose items are made on access."""
         return self._summary
 
     @property
@@ -389,7 +384,7 @@ class LogReader:
         if self._extents is None:
             table = self._summary.chunk_indexes
             every = self._summary.statistics is None
-            segments = table if every else table.rows(np.flatnonzero(table.entry_counts() == 0))
+            segments = table if every else table.indexes_at(np.flatnonzero(table.entry_counts() == 0))
             extents: dict[int, list[int]] = {}
             for ci in itertools.chain(segments, self._loose):
                 for log_time, _, cid, _ in self._read_chunk(ci)[0]:
@@ -585,8 +580,8 @@ class LogReader:
         chunks = _Peekable(self._chunks_in_time_order(ids, lo, hi))
         heap: list[tuple[int, int, int, int, Message, bool]] = []
         last = -1
-        while heap or chunks.next is not None:
-            while chunks.next is not None and (not heap or chunks.next.message_start_time <= heap[0][0]):
+        while heap or chunks.peek is not None:
+            while chunks.peek is not None and (not heap or chunks.peek.message_start_time <= heap[0][0]):
                 ci = chunks.pop()
                 messages, verified = self._read_chunk(ci)
                 for log_time, position, cid, message in messages:
@@ -606,7 +601,7 @@ class LogReader:
         """The chunks (and runs of messages outside chunks) that may hold a message of ``ids`` with
         ``lo <= log_time < hi``, by ``(message_start_time, offset)``; the chunk indexes are made one at a time."""
         table: ChunkIndexTable = self._summary.chunk_indexes
-        chunks = table.rows(table.rows_for_channels(ids, lo, hi))
+        chunks = table.indexes_at(table.rows_for_channels(ids, lo, hi))
         loose = sorted((run for run in self._loose
                         if (not run.message_index_offsets or not ids.isdisjoint(run.message_index_offsets))
                         and run.message_end_time >= lo and run.message_start_time < hi),
@@ -666,7 +661,7 @@ class LogReader:
         rows, channels, offsets = table.entries()
         mine = channels == channel_id
         out = []
-        for ci, offset in zip(table.rows(rows[mine]), offsets[mine].tolist(), strict=True):
+        for ci, offset in zip(table.indexes_at(rows[mine]), offsets[mine].tolist(), strict=True):
             self._file.seek(offset)
             head = self._file.read(_RECORD_HEADER.size + 6)
             try:

@@ -26,6 +26,8 @@ from mcap.stream_reader import breakup_chunk
 
 from starlog import __version__
 from starlog.errors import CorruptLogError, LogNotFoundError
+from starlog.io.checksum import file_crc32
+from starlog.io.chunk_indexes import read_file_summary
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance, file_digest
 from starlog.io.schemas import MessageType
 from starlog.io.writer import MCAP_MAGIC, LogWriter
@@ -293,8 +295,7 @@ def _summary_crc_ok(f: BinaryIO, size: int) -> bool:
     end = size - len(MCAP_MAGIC) - footer.size
     if opcode != Opcode.FOOTER or not len(MCAP_MAGIC) < start <= end:
         return False
-    f.seek(start)
-    computed = zlib.crc32(f.read(end - start))
+    computed = file_crc32(f, start, end - start)
     computed = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, start, offsets_start), computed)
     return crc == 0 or computed == crc
 
@@ -304,14 +305,11 @@ def _seed_from_summary(f: BinaryIO, rebuild: _Rebuilder, size: int) -> list[int]
 
     Returns the chunk offsets the summary lists (used to resynchronise after a damaged record).
     """
-    from mcap.reader import make_reader
-
     if not _summary_crc_ok(f, size):
         rebuild.skip("damaged summary section (rebuilt from the data section)")
         return []
     try:
-        f.seek(0)
-        summary = make_reader(f).get_summary()
+        summary = read_file_summary(f)
     except Exception:  # a damaged summary is simply not used; the scan finds the records in the chunks
         rebuild.skip("damaged summary section (rebuilt from the data section)")
         return []
@@ -321,7 +319,7 @@ def _seed_from_summary(f: BinaryIO, rebuild: _Rebuilder, size: int) -> list[int]
         rebuild.schema(schema)
     for channel in summary.channels.values():
         rebuild.channel(channel)
-    return [ci.chunk_start_offset for ci in summary.chunk_indexes]
+    return summary.chunk_indexes.column("chunk_start_offset").tolist()
 
 
 def recover_log(

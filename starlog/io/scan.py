@@ -222,18 +222,13 @@ def _message_head(f: BinaryIO, offset: int) -> tuple[int, int]:
 def _covered(summary: Summary) -> list[tuple[int, int]]:
     """The byte ranges the summary's indexes account for (chunks, their message indexes, metadata and
     attachments), merged where they touch or overlap: a few ranges for a well-written log, however long."""
-    table = summary.chunk_indexes
-    if not isinstance(table, ChunkIndexTable):
-        table = ChunkIndexTable(table)
+    table: ChunkIndexTable = summary.chunk_indexes  # type: ignore[assignment]  # as read_summary makes it
     starts = [table.column("chunk_start_offset")]
     ends = [starts[0] + table.column("chunk_length")]
-    row, _, offset = table.entries()
-    if row.size:
-        first = np.full(len(table), np.iinfo(np.uint64).max, dtype=np.uint64)
-        np.minimum.at(first, row, offset)
-        indexed = table.entry_counts() > 0
-        starts.append(first[indexed])
-        ends.append(first[indexed] + table.column("message_index_length")[indexed])
+    indexed = table.entry_counts() > 0
+    first = table.first_index_offsets()[indexed]
+    starts.append(first)
+    ends.append(first + table.column("message_index_length")[indexed])
     others = [(m.offset, m.offset + m.length) for m in summary.metadata_indexes]
     others += [(a.offset, a.offset + a.length) for a in summary.attachment_indexes]
     starts.append(np.array([lo for lo, _ in others], dtype=np.uint64))

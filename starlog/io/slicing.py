@@ -385,7 +385,7 @@ def _in_file_order(log: LogReader, slicer: _Slicer) -> Iterator[tuple[int, Calla
     summary = log.summary
     table = summary.chunk_indexes
     chunks = ((ci.chunk_start_offset, slicer.chunk, ci)
-              for ci in table.rows(np.argsort(table.column("chunk_start_offset"), kind="stable")))
+              for ci in table.indexes_at(np.argsort(table.column("chunk_start_offset"), kind="stable")))
     others = [(run.chunk_start_offset, slicer.loose, run) for run in log._loose]
     others += [(m.offset, slicer.metadata, m) for m in summary.metadata_indexes]
     others += [(a.offset, slicer.attachment, a) for a in summary.attachment_indexes]

@@ -565,9 +565,7 @@ class LogWriter:
         self._schemas = dict(summary.schemas)
         self._channels = dict(summary.channels)
         self._topics = {c.topic: c.id for c in summary.channels.values()}
-        base_indexes = summary.chunk_indexes
-        self._base_chunk_indexes = (base_indexes if isinstance(base_indexes, ChunkIndexTable)
-                                    else ChunkIndexTable(base_indexes))
+        self._base_chunk_indexes = summary.chunk_indexes  # a ChunkIndexTable, as read_summary makes it
         self._chunk_indexes = ChunkIndexTable()
         self._attachment_indexes = list(summary.attachment_indexes)
         self._metadata_indexes = list(summary.metadata_indexes)
