@@ -346,6 +346,11 @@ class StageResult:
                 "cpu_rate": _median(cpu), "peak_growth": self.peak_mib[-1] / self.peak_mib[0] - 1.0}
 
 
+def _seconds_per_frame(rate: float) -> float:
+    """1 / rate; infinite for a rate that could not be measured (a line that did not rise: NaN or 0)."""
+    return 1.0 / rate if rate > 0 else math.inf
+
+
 def _median(values: list[float]) -> float:
     """Median, NaN (a repeat whose line did not rise) counted as the slowest."""
     return float(np.median([v if not math.isnan(v) else 0.0 for v in values]))
@@ -393,7 +398,8 @@ def bench_size(size: int, lengths: list[int], root: Path, args: argparse.Namespa
         results[(label, workers)] = StageResult(label, workers)
         results[(label, workers)].add_pairs(lengths, runs, digests)
     track_runs = next(r for r in results.values() if r.label == track_label).paired
-    track_ratio = _median([1.0 / marginal_fit(lengths, run)[0] / t for run, t in zip(track_runs, tracker_times, strict=True)])
+    track_ratio = float(np.median([_seconds_per_frame(marginal_fit(lengths, run)[0]) / t
+                                   for run, t in zip(track_runs, tracker_times, strict=True)]))
     checks: list[tuple[str, bool]] = []
     for n in lengths:
         checks.append((f"{n} frames: centroid {PIPELINE_METHOD} --workers 1 == --workers {n_all}",
@@ -578,11 +584,11 @@ def targets(sizes: list[dict[str, Any]], workers_all: int) -> list[tuple[str, bo
                     f"{_f(all_['rate'] / one['rate'], 2)} >= 1.8", all_["rate"] >= 1.8 * one["rate"]))
         track = _stage(s, f"track {PIPELINE_MODEL}")
         ratio = s["track_ratio"]
-        out.append((f"{tag}: track marginal time {_f(1e3 / track['rate'], 3)} ms / tracker's own time "
+        out.append((f"{tag}: track marginal time {_f(1e3 * _seconds_per_frame(track['rate']), 3)} ms / tracker's own time "
                     f"{_f(1e3 * s['tracker_s_per_frame'], 3)} ms = {_f(ratio, 2)} <= 1.5 (median of the repeats' "
                     "ratios)", ratio <= 1.5))
         comp = _stage(s, f"compensate {PIPELINE_RATE} Hz {PIPELINE_PROTOCOL}")
-        extra = 1200 / comp["rate"]
+        extra = 1200 * _seconds_per_frame(comp["rate"])
         out.append((f"{tag}: compensate of 1200 frames = {_f(extra, 2)} s + start-up {_f(comp['start_up'], 2)} s; "
                     "<= 1 s + start-up", extra <= 1.0))
         for r in s["stages"]:
