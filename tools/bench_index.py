@@ -24,7 +24,6 @@ import argparse
 import gc
 import os
 import shlex
-import subprocess
 import sys
 import tempfile
 import time
@@ -35,6 +34,9 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from starlog.io.chunk_indexes import read_file_summary
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_scale import _timed as timed  # noqa: E402  # wall seconds and peak RSS (MiB) of a command
 
 
 def write_log(path: Path, chunks: int) -> None:
@@ -50,18 +52,6 @@ def write_log(path: Path, chunks: int) -> None:
             writer.add_message(frame if i % 2 else other, log_time=t, publish_time=t, data=b'{"frame":%d}' % i,
                                sequence=i)
         writer.finish()
-
-
-def timed(argv: list[str]) -> tuple[float, float]:
-    """Wall seconds and peak RSS (MiB) of a command."""
-    start = time.perf_counter()
-    result = subprocess.run(["/usr/bin/time", "-f", "MAXRSS_KB %M", *argv], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
-    wall = time.perf_counter() - start
-    if result.returncode != 0:
-        raise RuntimeError(f"{argv} failed:\n{result.stderr}")
-    line = [x for x in result.stderr.splitlines() if x.startswith("MAXRSS_KB")][-1]
-    return wall, int(line.split()[1]) / 1024
 
 
 def parse_alone(path: Path) -> list[tuple[str, float, float]]:
