@@ -364,7 +364,7 @@ class LogReader:
     @property
     def summary(self) -> Summary:
         """The MCAP summary (schemas, channels, chunk indexes, statistics). Its ``chunk_indexes`` is a
-        :class:`~starlog.io.chunk_indexes.ChunkIndexTable`: a read-only sequence whose items are made on access."""
+        :class:`~starlog.io.chunk_indexes.ChunkIndexTable`: a sequence whose items are made on access."""
         return self._summary
 
     @property
