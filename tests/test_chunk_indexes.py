@@ -67,6 +67,40 @@ def test_selection_by_channel_and_time_is_the_filter_it_replaces(indexes: list[C
         [(ci.message_start_time, ci.chunk_start_offset) for ci in expected]
 
 
+same_layouts = st.builds(  # few layouts, so that runs of records of one length and layout occur
+    ChunkIndex,
+    chunk_length=U64, chunk_start_offset=U64, compression=st.sampled_from(["", "zstd", "lz4\x00"]),
+    compressed_size=U64, message_end_time=U64, message_index_length=U64,
+    message_index_offsets=st.dictionaries(st.integers(0, 3), U64, max_size=2),
+    message_start_time=U64, uncompressed_size=U64,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(same_layouts, max_size=40), st.sampled_from([9, 64, 1 << 20]))
+def test_a_summary_of_chunk_indexes_reads_back_run_by_run_as_record_by_record(
+        indexes: list[ChunkIndex], block: int) -> None:
+    """Runs of records of one length are parsed as columns; the table is the same as mcap's objects."""
+    from mcap.records import Footer
+
+    from starlog.io import chunk_indexes as module
+    from starlog.io.chunk_indexes import read_summary
+
+    out = RecordBuilder()
+    for ci in indexes:
+        ci.write(out)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(out)
+    saved = module._READ_BLOCK
+    module._READ_BLOCK = block
+    try:
+        table = read_summary(io.BytesIO(out.end()), 0).chunk_indexes
+    finally:
+        module._READ_BLOCK = saved
+    assert list(table) == indexes
+    assert [list(ci.message_index_offsets) for ci in table] == [list(ci.message_index_offsets) for ci in indexes]
+    assert table.entry_counts().tolist() == [len(ci.message_index_offsets) for ci in indexes]
+
+
 def test_time_ranges_per_channel() -> None:
     def ci(start: int, end: int, channels: dict[int, int]) -> ChunkIndex:
         return ChunkIndex(chunk_length=10, chunk_start_offset=8, compression="", compressed_size=1,

@@ -95,6 +95,27 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         self._entry_offset.extend(offsets)
         self._entry_start.append(len(self._entry_channel))
 
+    def append_columns(self, rows: npt.NDArray[np.void], compression: str) -> None:
+        """Add chunk indexes of one compression from a record array with the numeric fields' names and a
+        ``pairs`` field of ``(channel, offset)`` subarrays (every row listing as many channels)."""
+        if not rows.size:
+            return
+        code = self._codes.get(compression)
+        if code is None:
+            code = self._codes[compression] = len(self._names)
+            self._names.append(compression)
+        if self._cache:
+            self._unshare()
+        for name, column in self._columns.items():
+            column.frombytes(np.ascontiguousarray(rows[name], dtype="=u8").tobytes())
+        self._compression.frombytes(np.full(rows.size, code, dtype="=u2").tobytes())
+        pairs = rows["pairs"].reshape(-1)
+        self._entry_channel.frombytes(np.ascontiguousarray(pairs["channel"], dtype="=u2").tobytes())
+        self._entry_offset.frombytes(np.ascontiguousarray(pairs["offset"], dtype="=u8").tobytes())
+        per_row = rows["pairs"].shape[1] if rows["pairs"].ndim > 1 else 0
+        ends = self._entry_start[-1] + per_row * np.arange(1, rows.size + 1, dtype=np.uint64)
+        self._entry_start.frombytes(ends.astype("=u8").tobytes())
+
     def _unshare(self) -> None:
         """Forget the array views handed out, and copy the columns they may still share (an array
         cannot grow while a view of it lives)."""
@@ -269,7 +290,7 @@ def read_summary(f: BinaryIO, summary_start: int) -> Summary:
         if opcode == Opcode.FOOTER:
             break
         if opcode == Opcode.CHUNK_INDEX:
-            _append_chunk_index(table, body)
+            _append_chunk_indexes(table, body)
             continue
         record = _read_other(opcode, body)
         if isinstance(record, Statistics):
@@ -300,7 +321,11 @@ def read_file_summary(f: BinaryIO) -> Summary | None:
 
 
 def _records(f: BinaryIO, start: int) -> Iterator[tuple[int, memoryview]]:
-    """``(opcode, body)`` of each record from ``start`` on; a body is valid until the next one is asked for."""
+    """``(opcode, body)`` of each record from ``start`` on; a body is valid until the next one is asked for.
+
+    Chunk indexes come as runs instead: ``(CHUNK_INDEX, records)``, one or more whole records (headers
+    included) of the same length, one after the other.
+    """
     left = f.seek(0, io.SEEK_END) - start  # bytes not yet read: no record can claim more
     f.seek(start)
     buffer = b""
@@ -324,8 +349,66 @@ def _records(f: BinaryIO, start: int) -> Iterator[tuple[int, memoryview]]:
             buffer, end, pos = buffer[pos:] + block, end - pos, 0
             if end > len(buffer):
                 raise ValueError(f"the summary section ends inside a record (opcode {opcode:#04x}, length {length})")
-        yield opcode, memoryview(buffer)[pos + _RECORD_HEADER.size:end]
+        if opcode == Opcode.CHUNK_INDEX:  # the records of the same length that follow, in one piece
+            end = pos + _same_records(buffer, pos, _RECORD_HEADER.size + length) * (_RECORD_HEADER.size + length)
+            yield opcode, memoryview(buffer)[pos:end]
+        else:
+            yield opcode, memoryview(buffer)[pos + _RECORD_HEADER.size:end]
         pos = end
+
+
+def _same_records(buffer: bytes, pos: int, size: int) -> int:
+    """How many records of ``size`` bytes from ``pos`` start with the same header (opcode and length)
+    as the first, within ``buffer`` (at least one)."""
+    whole = (len(buffer) - pos) // size
+    if whole <= 1:
+        return 1
+    heads = np.frombuffer(buffer, dtype=np.uint8, count=whole * size, offset=pos).reshape(whole, size)
+    differ = np.flatnonzero((heads[:, :_RECORD_HEADER.size] != heads[0, :_RECORD_HEADER.size]).any(axis=1))
+    return int(differ[0]) if differ.size else whole
+
+
+def _append_chunk_indexes(table: ChunkIndexTable, records: memoryview) -> None:
+    """Chunk Index records of one length, one after the other: those that share the first one's layout
+    (channel count, compression) are parsed together, as columns; the rest one at a time."""
+    (length,) = _U64.unpack_from(records, 1)
+    size = _RECORD_HEADER.size + length
+    count = len(records) // size
+    first = records[_RECORD_HEADER.size:size]
+    layout = _run_layout(first)
+    done = 0
+    if layout is not None and count > 1:
+        rows = np.frombuffer(records, dtype=layout, count=count)
+        same = (rows["pairs_bytes"] == rows["pairs_bytes"][0]) & (rows["name_length"] == rows["name_length"][0])
+        if "name" in layout.names:  # raw bytes compared (a bytes dtype would drop trailing NULs)
+            same &= (rows["name"] == rows["name"][0])
+        done = int(np.argmin(same)) if not same.all() else count
+        name = rows["name"][0].tobytes() if "name" in layout.names else b""
+        table.append_columns(rows[:done], name.decode())
+    for k in range(done, count):
+        _append_chunk_index(table, records[k * size + _RECORD_HEADER.size:(k + 1) * size])
+
+
+def _run_layout(body: memoryview) -> np.dtype[Any] | None:
+    """The record layout (header included) that a Chunk Index record with ``body`` has, or None when its
+    fields do not fit it (left to the one-at-a-time parser, which says why)."""
+    if len(body) < _CHUNK_INDEX_HEAD.size + _TAIL_MIN:
+        return None
+    pairs_bytes = _CHUNK_INDEX_HEAD.unpack_from(body)[4]
+    n, odd = divmod(pairs_bytes, _PAIR.size)
+    name_at = _CHUNK_INDEX_HEAD.size + pairs_bytes + 8
+    if odd or name_at + 4 + _SIZES.size > len(body):
+        return None
+    name_length = _U32.unpack_from(body, name_at)[0]
+    if name_at + 4 + name_length + _SIZES.size != len(body):
+        return None
+    return np.dtype([
+        ("opcode", "u1"), ("length", "<u8"), ("message_start_time", "<u8"), ("message_end_time", "<u8"),
+        ("chunk_start_offset", "<u8"), ("chunk_length", "<u8"), ("pairs_bytes", "<u4"),
+        ("pairs", [("channel", "<u2"), ("offset", "<u8")], (n,)), ("message_index_length", "<u8"),
+        ("name_length", "<u4"), *([("name", f"V{name_length}")] if name_length else []),
+        ("compressed_size", "<u8"), ("uncompressed_size", "<u8"),
+    ])
 
 
 def _append_chunk_index(table: ChunkIndexTable, body: memoryview) -> None:
