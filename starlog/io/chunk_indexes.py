@@ -82,10 +82,7 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         channels, offsets = array("H", channel_ids), array("Q", index_offsets)
         if len(channels) != len(offsets):
             raise ValueError("a chunk index needs one message index offset per channel")
-        code = self._codes.get(compression)
-        if code is None:
-            code = self._codes[compression] = len(self._names)
-            self._names.append(compression)
+        code = self._code_for(compression)
         if self._cache:
             self._unshare()
         for column, value in zip(self._columns.values(), numbers, strict=True):
@@ -100,10 +97,7 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         ``pairs`` field of ``(channel, offset)`` subarrays (every row listing as many channels)."""
         if not rows.size:
             return
-        code = self._codes.get(compression)
-        if code is None:
-            code = self._codes[compression] = len(self._names)
-            self._names.append(compression)
+        code = self._code_for(compression)
         if self._cache:
             self._unshare()
         for name, column in self._columns.items():
@@ -115,6 +109,14 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         per_row = rows["pairs"].shape[1] if rows["pairs"].ndim > 1 else 0
         ends = self._entry_start[-1] + per_row * np.arange(1, rows.size + 1, dtype=np.uint64)
         self._entry_start.frombytes(ends.astype("=u8").tobytes())
+
+    def _code_for(self, compression: str) -> int:
+        """The code of a compression name (a new one for a name not seen yet)."""
+        code = self._codes.get(compression)
+        if code is None:
+            code = self._codes[compression] = len(self._names)
+            self._names.append(compression)
+        return code
 
     def _unshare(self) -> None:
         """Forget the array views handed out, and copy the columns they may still share (an array
