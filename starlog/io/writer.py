@@ -653,7 +653,7 @@ class _SummarySink:
 
     def flush(self) -> None:
         data = b"".join(self._parts)
-        self.crc = zlib.crc32(data, self.crc)
+        self.crc = crc32(data, self.crc)  # ISA-L when installed, as for the chunks
         self._file.write(data)
         self._parts, self._pending = [], 0
 
