@@ -243,3 +243,28 @@ def test_a_summary_cut_short_is_refused(tmp_path: Path) -> None:
     damaged[summary_start + 1:summary_start + 9] = (10**9).to_bytes(8, "little")  # a record longer than the file
     with pytest.raises(ValueError, match="ends inside a record"):
         read_file_summary(io.BytesIO(bytes(damaged)))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(chunk_indexes, max_size=9), st.integers(1, 4), st.integers(0, 2**64 - 1),
+       st.sets(st.integers(0, 2**16 - 1), max_size=3))
+def test_checks_and_gaps_made_block_by_block_are_those_of_the_whole_table(
+        indexes: list[ChunkIndex], block: int, data_end: int, channels: set[int]) -> None:
+    """A union of unions is the union, and the first three problems of each kind come in file order,
+    so blocks of any size give what one block of the whole table gives."""
+    from mcap.summary import Summary
+
+    import starlog.io.chunk_indexes as chunk_module
+    from starlog.io.reader import _chunk_index_problems
+    from starlog.io.scan import _covered
+
+    def both() -> tuple[list[str], list[tuple[int, int]]]:
+        summary = Summary()
+        summary.chunk_indexes = ChunkIndexTable(indexes)  # type: ignore[assignment]
+        return (_chunk_index_problems(summary.chunk_indexes, channels, data_end),  # type: ignore[arg-type]
+                _covered(summary))
+
+    whole = both()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(chunk_module, "ROW_BLOCK", block)
+        assert both() == whole

@@ -37,6 +37,8 @@ _SIZES = struct.Struct("<QQ")  # compressed, uncompressed
 _PAIR = struct.Struct("<HQ")  # channel id, message index offset
 _TAIL_MIN = 8 + 4 + 16  # message index length, compression name length, sizes
 _READ_BLOCK = 1 << 20
+#: Chunks a block of :meth:`ChunkIndexTable.row_blocks` (a few MB of temporary arrays for a check).
+ROW_BLOCK = 1 << 16
 
 #: The numeric columns, in the order :meth:`ChunkIndexTable.append_fields` takes them.
 _COLUMNS = ("message_start_time", "message_end_time", "chunk_start_offset", "chunk_length",
@@ -190,9 +192,21 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         """The compressions the chunks use."""
         return set(self._names)  # a name is added with the first chunk that uses it
 
-    def entry_counts(self) -> npt.NDArray[np.int64]:
-        """How many channels each chunk's message indexes list (0: the chunk has none)."""
-        return np.diff(self._entry_arrays()[0]).astype(np.int64)
+    def row_blocks(self, size: int | None = None) -> Iterator[tuple[int, int, int, int]]:
+        """``(first row, end row, first entry, end entry)`` of consecutive blocks of at most ``size`` chunks
+        (:data:`ROW_BLOCK` by default): a query made block by block keeps its temporary arrays to the
+        block's size, whatever the log's length."""
+        size = size or ROW_BLOCK
+        bounds = self._entry_arrays()[0]
+        for a in range(0, len(self), size):
+            b = min(len(self), a + size)
+            yield a, b, int(bounds[a]), int(bounds[b])
+
+    def entry_counts(self, start: int = 0, stop: int | None = None) -> npt.NDArray[np.int64]:
+        """How many channels each chunk's message indexes list (0: the chunk has none), for the rows
+        ``start:stop`` (all by default)."""
+        stop = len(self) if stop is None else stop
+        return np.diff(self._entry_arrays()[0][start:stop + 1]).astype(np.int64)
 
     def entries(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint16], npt.NDArray[np.uint64]]:
         """Every (chunk row, channel id, message index offset) listed, as three arrays in file order."""

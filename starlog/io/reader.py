@@ -119,27 +119,45 @@ class DecodedMessage:
 
 def _chunk_index_problems(table: ChunkIndexTable, channels: set[int], data_end: int) -> list[str]:
     """What is wrong with the chunk indexes (at most three of each kind): ranges outside the data
-    section, reversed time ranges, unknown channels, message indexes outside the data section."""
-    start = table.column("chunk_start_offset")
-    end = start + table.column("chunk_length")  # wraps past 2**64 for a damaged length: then end <= start
-    problems: list[str] = []
+    section, reversed time ranges, unknown channels, message indexes outside the data section.
 
-    def chunks_where(bad: np.ndarray, what: str) -> None:
-        problems.extend(f"chunk index for offset {int(start[k])} {what}" for k in np.flatnonzero(bad)[:3])
+    Checked a block of chunks at a time, so the temporary arrays stay the size of a block.
+    """
+    kinds: list[list[str]] = [[], [], [], []]
+    known = np.fromiter(channels, dtype=np.int64, count=len(channels))
+    for block in table.row_blocks():
+        for kind, found in zip(kinds, _block_problems(table, block, known, data_end), strict=True):
+            kind.extend(found[:3 - len(kind)])
+        if all(len(kind) == 3 for kind in kinds):
+            break
+    return [problem for kind in kinds for problem in kind]
 
-    chunks_where((start < len(MCAP_MAGIC)) | (end <= start) | (end > data_end), "points outside the data section")
-    chunks_where(table.column("message_start_time") > table.column("message_end_time"), "has its time range reversed")
-    row, channel, offset = table.entries()
-    unknown = ~np.isin(channel, np.fromiter(channels, dtype=np.int64, count=len(channels)))
-    problems.extend(f"chunk index for offset {int(start[row[k]])} names unknown channel {int(channel[k])}"
-                    for k in np.flatnonzero(unknown)[:3])
-    indexed = table.entry_counts() > 0
-    first = table.first_index_offsets()
-    index_end = first + table.column("message_index_length")
-    outside = indexed & ((first < end) | (first >= data_end) | (index_end < first) | (index_end > data_end))
-    outside[row[(offset < end[row]) | (offset >= data_end)]] = True
-    chunks_where(outside, "has a message index outside the data section")
-    return problems
+
+def _block_problems(table: ChunkIndexTable, block: tuple[int, int, int, int], known: np.ndarray,
+                    data_end: int) -> tuple[list[str], list[str], list[str], list[str]]:
+    """:func:`_chunk_index_problems` of each kind among the chunks of one of ``table.row_blocks()``."""
+    a, b, e0, e1 = block
+    start = table.column("chunk_start_offset")[a:b]
+    end = start + table.column("chunk_length")[a:b]  # wraps past 2**64 for a damaged length: then end <= start
+
+    def chunks_where(bad: np.ndarray, what: str) -> list[str]:
+        return [f"chunk index for offset {int(start[k])} {what}" for k in np.flatnonzero(bad)[:3]]
+
+    rows, channel, offset = table.entries()
+    rows, channel, offset = rows[e0:e1] - a, channel[e0:e1], offset[e0:e1]
+    first = table.first_index_offsets()[a:b]
+    index_end = first + table.column("message_index_length")[a:b]
+    outside = (table.entry_counts(a, b) > 0) & (
+        (first < end) | (first >= data_end) | (index_end < first) | (index_end > data_end))
+    outside[rows[(offset < end[rows]) | (offset >= data_end)]] = True
+    return (
+        chunks_where((start < len(MCAP_MAGIC)) | (end <= start) | (end > data_end), "points outside the data section"),
+        chunks_where(table.column("message_start_time")[a:b] > table.column("message_end_time")[a:b],
+                     "has its time range reversed"),
+        [f"chunk index for offset {int(start[rows[k]])} names unknown channel {int(channel[k])}"
+         for k in np.flatnonzero(~np.isin(channel, known))[:3]],
+        chunks_where(outside, "has a message index outside the data section"),
+    )
 
 
 class _Peekable:

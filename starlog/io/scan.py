@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+import numpy.typing as npt
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import (
@@ -219,32 +220,46 @@ def _message_head(f: BinaryIO, offset: int) -> tuple[int, int]:
     return channel_id, log_time
 
 
-def _covered(summary: Summary) -> list[tuple[int, int]]:
-    """The byte ranges the summary's indexes account for (chunks, their message indexes, metadata and
-    attachments), merged where they touch or overlap: a few ranges for a well-written log, however long."""
-    table: ChunkIndexTable = summary.chunk_indexes  # type: ignore[assignment]  # as read_summary makes it
-    starts = [table.column("chunk_start_offset")]
-    ends = [starts[0] + table.column("chunk_length")]
-    indexed = table.entry_counts() > 0
-    first = table.first_index_offsets()[indexed]
-    starts.append(first)
-    ends.append(first + table.column("message_index_length")[indexed])
-    others = [(m.offset, m.offset + m.length) for m in summary.metadata_indexes]
-    others += [(a.offset, a.offset + a.length) for a in summary.attachment_indexes]
-    starts.append(np.array([lo for lo, _ in others], dtype=np.uint64))
-    ends.append(np.array([hi for _, hi in others], dtype=np.uint64))
-    lo, hi = np.concatenate(starts), np.concatenate(ends)
+def _merged(lo: npt.NDArray[np.uint64], hi: npt.NDArray[np.uint64]
+            ) -> tuple[npt.NDArray[np.uint64], npt.NDArray[np.uint64]]:
+    """The union of the byte ranges ``[lo, hi)`` as sorted, disjoint ranges (touching ones joined)."""
     order = np.lexsort((hi, lo))
     lo, hi = lo[order], hi[order]
     if not lo.size:
-        return []
+        return lo, hi
     reach = np.maximum.accumulate(hi)
     # a new range starts where it begins after everything before it has ended
     new = np.ones(lo.size, dtype=bool)
     new[1:] = lo[1:] > reach[:-1]
     firsts = np.flatnonzero(new)
     lasts = np.append(firsts[1:], lo.size) - 1
-    return list(zip(lo[firsts].tolist(), reach[lasts].tolist(), strict=True))
+    return lo[firsts], reach[lasts]
+
+
+def _covered(summary: Summary) -> list[tuple[int, int]]:
+    """The byte ranges the summary's indexes account for (chunks, their message indexes, metadata and
+    attachments), merged where they touch or overlap: a few ranges for a well-written log, however long.
+
+    A union of unions is the union: the chunks are merged a block at a time, then the blocks' few
+    ranges together, so the temporary arrays stay the size of a block.
+    """
+    table: ChunkIndexTable = summary.chunk_indexes  # type: ignore[assignment]  # as read_summary makes it
+    first_index = table.first_index_offsets()
+    pieces = []
+    for a, b, _, _ in table.row_blocks():
+        start = table.column("chunk_start_offset")[a:b]
+        first = first_index[a:b]
+        indexed = table.entry_counts(a, b) > 0
+        lo = np.concatenate([start, first[indexed]])
+        hi = np.concatenate([start + table.column("chunk_length")[a:b],
+                             first[indexed] + table.column("message_index_length")[a:b][indexed]])
+        pieces.append(_merged(lo, hi))
+    others = [(m.offset, m.offset + m.length) for m in summary.metadata_indexes]
+    others += [(x.offset, x.offset + x.length) for x in summary.attachment_indexes]
+    pieces.append((np.array([lo for lo, _ in others], dtype=np.uint64), np.array([hi for _, hi in others],
+                                                                                   dtype=np.uint64)))
+    lo, hi = _merged(np.concatenate([p[0] for p in pieces]), np.concatenate([p[1] for p in pieces]))
+    return list(zip(lo.tolist(), hi.tolist(), strict=True))
 
 
 def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> tuple[list[LooseRun], bool]:
