@@ -11,11 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mcap.data_stream import RecordBuilder
+from mcap.records import ChunkIndex
 
 from starlog.cli import cli
 from starlog.io import LogReader, LogWriter, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
-from starlog.io.verify import verify_log
+from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen, verify_log
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from tests.conftest import small_config
@@ -228,3 +232,108 @@ def test_verify_never_raises(tmp_path: Path) -> None:
         path.write_bytes(content)
         code, report = _verify_cli(path)
         assert code == 1 and report["problems"]
+
+
+def test_an_index_that_points_where_no_chunk_starts_leaves_its_chunk_unlisted(logs: dict[str, Path],
+                                                                            tmp_path: Path) -> None:
+    data = bytearray(logs["raw"].read_bytes())
+    at = _summary_record(data, 0x08, 1)
+    (chunk,) = struct.unpack_from("<Q", data, at + 9 + 16)  # chunk_start_offset
+    struct.pack_into("<Q", data, at + 9 + 16, chunk + 1)
+    _summary_crc(data)
+    broken = tmp_path / "moved.mcap"
+    broken.write_bytes(bytes(data))
+    errors = [(p.kind, p.offset, p.detail) for p in verify_log(broken).errors]
+    assert errors == [
+        ("chunk_index_mismatch", at, f"a chunk index points at {chunk + 1}, where no chunk starts"),
+        ("chunk_not_indexed", chunk, "the summary's chunk indexes do not list this chunk"),
+    ]
+
+
+def test_a_summary_without_chunk_indexes_is_a_note_that_counts_the_chunks(tmp_path: Path) -> None:
+    from mcap.writer import IndexType, Writer
+
+    path = tmp_path / "unindexed.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f, chunk_size=64, index_types=IndexType.ALL & ~IndexType.CHUNK)
+        writer.start()
+        channel = writer.register_channel("/numbers", "json", writer.register_schema("n", "jsonschema", b"{}"))
+        for t in range(3):
+            writer.add_message(channel, log_time=t, publish_time=t, data=b'{"n": %d, "padding": "%s"}' % (t, b"x" * 80))
+        writer.finish()
+    report = verify_log(path)
+    assert report.ok and report.chunks == 3
+    assert [(p.kind, p.detail) for p in report.problems] == [
+        ("no_chunk_indexes", "the summary lists none of the 3 chunks: readers must scan the file")]
+
+
+def _seen_chunk(offset: int, field: int) -> _Seen:
+    return _Seen(offset, 100 + field, field, field + 5, "zstd" if field % 2 else "", 50 + field, 90 + field, {},
+                 {1: offset + 200} if field % 3 else {}, offset + 250 if field % 3 else 0)
+
+
+def _index_of(seen: _Seen, changed: str | None) -> ChunkIndex:
+    ci = ChunkIndex(chunk_start_offset=seen.offset, chunk_length=seen.length, message_start_time=seen.start,
+                    message_end_time=seen.end, compression=seen.compression, compressed_size=seen.compressed_size,
+                    uncompressed_size=seen.uncompressed_size, message_index_offsets=dict(seen.index_offsets),
+                    message_index_length=seen.index_end - min(seen.index_offsets.values()) if seen.index_offsets else 0)
+    if changed == "elsewhere":
+        ci.chunk_start_offset += 7  # where no chunk starts (the chunks are 1000 bytes apart)
+    elif changed is not None:
+        setattr(ci, changed, getattr(ci, changed) + 1)
+    return ci
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 8), st.lists(st.tuples(st.integers(0, 9), st.sampled_from(
+    [None, None, "elsewhere", "chunk_length", "message_end_time", "compressed_size", "message_index_length"])),
+    max_size=12))
+def test_chunk_indexes_checked_as_the_walk_meets_the_chunks_find_what_a_lookup_at_the_end_finds(
+        chunks: int, indexes: list[tuple[int, str | None]]) -> None:
+    """Indexes in any order, duplicated, disagreeing or pointing nowhere: the same problems, in the
+    summary's order, as comparing every index with a dictionary of every chunk once the walk is over."""
+    seen = [_seen_chunk(1000 * (k + 1), k) for k in range(chunks)]
+    table = [_index_of(seen[k % chunks] if chunks else _seen_chunk(500, k), changed) for k, changed in indexes]
+    check = _ChunkIndexCheck()
+    for row, ci in enumerate(table):
+        out = RecordBuilder()
+        ci.write(out)
+        check.add(10_000 + row, out.end()[9:])  # the record's body
+    unlisted = [s.offset for s in seen if not check.compare(s)]
+
+    by_offset = {s.offset: s for s in seen}
+    expected = []
+    for row, ci in enumerate(table):
+        chunk = by_offset.get(ci.chunk_start_offset)
+        if chunk is None:
+            expected.append((10_000 + row, f"a chunk index points at {ci.chunk_start_offset}, where no chunk starts"))
+        elif wrong := _disagreement(ci, chunk):
+            expected.append((10_000 + row, f"the chunk index disagrees with the chunk at {ci.chunk_start_offset} "
+                                           f"in {', '.join(wrong)}"))
+    assert list(check.problems()) == expected
+    assert unlisted == [s.offset for s in seen if s.offset not in {ci.chunk_start_offset for ci in table}]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 255), st.binary(max_size=40)), max_size=8), st.integers(0, 12),
+       st.integers(1, 64), st.integers(0, 5))
+def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
+        records: list[tuple[int, bytes]], cut: int, block: int, lead: int) -> None:
+    import io
+
+    from starlog.io.scan import iter_records
+    from starlog.io.verify import _section_records
+
+    section = b"".join(struct.pack("<BQ", opcode, len(body)) + body for opcode, body in records)
+    section = section[:max(0, len(section) - cut)]  # perhaps a record cut off
+    data = b"\0" * lead + section + b"\xff" * 9  # what lies before and after the section
+
+    def read(parse):  # type: ignore[no-untyped-def]
+        try:
+            return list(parse()), None
+        except ValueError as err:
+            return None, str(err)
+
+    whole = read(lambda: ((o, op, section[b: b + n]) for o, op, b, n in iter_records(section, lead)))
+    blocks = read(lambda: _section_records(io.BytesIO(data), lead, lead + len(section), block))
+    assert blocks == whole

@@ -6,14 +6,15 @@ million chunks, written by the ``mcap`` library alone (two JSON channels, one me
 this prints, each figure measured in this run:
 
 1. the CLI as a user runs it: wall seconds and peak RSS (GNU time ``%M``) of ``starlog info``
-   (opens the log) and of ``starlog filter --topic /camera/frame`` (opens it, reads every chunk,
-   writes a log with a summary of its own);
+   (opens the log), of ``starlog filter --topic /camera/frame`` (opens it, reads every chunk,
+   writes a log with a summary of its own) and of ``starlog verify`` (reads every record and
+   compares each chunk index with its chunk);
 2. beside it, the summary parse alone in this process: ``mcap``'s ``get_summary`` against
    starlog's ``read_file_summary`` (seconds, and the memory each keeps, from tracemalloc).
 
 Usage::
 
-    python tools/bench_index.py                       # 10k, 100k and 1M chunks (a few minutes)
+    python tools/bench_index.py                       # 10k, 100k and 1M chunks (several minutes)
     python tools/bench_index.py --quick               # 2k and 20k chunks (seconds)
     python tools/bench_index.py --command "python other_starlog.py"   # time another starlog build
 """
@@ -83,8 +84,9 @@ def main() -> None:
     sizes = [2_000, 20_000] if args.quick else [10_000, 100_000, 1_000_000]
     starlog = shlex.split(args.command)
     print(f"# starlog bench_index  (cores: {os.cpu_count()}; starlog run as: {args.command})\n")
-    print("| chunks | file MB | `info` s | `info` peak MiB | `filter` s | `filter` peak MiB |")
-    print("|---|---|---|---|---|---|")
+    print("| chunks | file MB | `info` s | `info` peak MiB | `filter` s | `filter` peak MiB | `verify` s "
+          "| `verify` peak MiB |")
+    print("|---|---|---|---|---|---|---|---|")
     parses = []
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as tmp:
         for n in sizes:
@@ -94,8 +96,9 @@ def main() -> None:
             out = Path(tmp) / "filtered.mcap"
             filtered = timed([*starlog, "filter", str(log), "-o", str(out), "--topic", "/camera/frame", "--force",
                               "--quiet"])
+            verified = timed([*starlog, "verify", str(log)])
             print(f"| {n:,} | {log.stat().st_size / 1e6:.0f} | {info[0]:.2f} | {info[1]:.0f} | {filtered[0]:.2f} "
-                  f"| {filtered[1]:.0f} |", flush=True)
+                  f"| {filtered[1]:.0f} | {verified[0]:.2f} | {verified[1]:.0f} |", flush=True)
             parses += [(n, *row) for row in parse_alone(log)]
             log.unlink()
     print("\nThe summary parse alone, in this process:\n")

@@ -94,6 +94,13 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         self._entry_offset.extend(offsets)
         self._entry_start.append(len(self._entry_channel))
 
+    def append_record(self, body: bytes | memoryview) -> None:
+        """Add one chunk index from its record's body (the bytes after the opcode and length).
+
+        Raises ``ValueError`` or ``struct.error`` (the table unchanged) for a body that does not parse.
+        """
+        _append_chunk_index(self, memoryview(body))
+
     def append_columns(self, rows: npt.NDArray[np.void], compression: str) -> None:
         """Add chunk indexes of one compression from a record array with the numeric fields' names and a
         ``pairs`` field of ``(channel, offset)`` subarrays (every row listing as many channels)."""

@@ -10,7 +10,8 @@ Each problem has a ``kind`` (a stable name), a severity (``error``: the file is 
 stage would refuse it; ``note``: valid MCAP that other readers accept but that is unusual, such
 as chunks without message indexes or no summary), the file ``offset`` of the record, and the
 ``channel`` and ``log_time`` where they apply. The file is read once, chunk by chunk; memory
-holds one chunk and per-channel counters.
+holds one chunk, per-channel counters and the summary's chunk indexes by column (about 100 bytes
+a chunk: each is compared with its chunk as the walk finishes that chunk).
 """
 
 from __future__ import annotations
@@ -20,15 +21,19 @@ import json
 import os
 import struct
 import zlib
-from collections.abc import Callable
+from array import array
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, ChunkIndex, Metadata, MetadataIndex, Schema, Statistics, SummaryOffset
 
+from starlog.io.checksum import file_crc32
+from starlog.io.chunk_indexes import ChunkIndexTable
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import cached_image_decoder
 from starlog.io.images import is_image_schema
@@ -116,6 +121,70 @@ class _Seen:
     index_end: int = 0
 
 
+def _disagreement(ci: ChunkIndex, seen: _Seen) -> list[str]:
+    """The fields in which a chunk index disagrees with the chunk it points at."""
+    index_length = seen.index_end - min(seen.index_offsets.values()) if seen.index_offsets else 0
+    return [name for name, got, want in [
+        ("chunk_length", ci.chunk_length, seen.length), ("message_start_time", ci.message_start_time, seen.start),
+        ("message_end_time", ci.message_end_time, seen.end), ("compression", ci.compression, seen.compression),
+        ("compressed_size", ci.compressed_size, seen.compressed_size),
+        ("uncompressed_size", ci.uncompressed_size, seen.uncompressed_size),
+        ("message_index_offsets", dict(ci.message_index_offsets), seen.index_offsets),
+        ("message_index_length", ci.message_index_length, index_length)] if got != want]
+
+
+class _ChunkIndexCheck:
+    """The summary's chunk indexes, each compared with the chunk it points at when the walk of the
+    data section finishes that chunk: neither the indexes nor the chunks are kept as objects."""
+
+    def __init__(self) -> None:
+        self.table = ChunkIndexTable()
+        self.record_offsets = array("Q")  # of each chunk index record, in the summary
+        self._by_chunk: tuple[np.ndarray, np.ndarray] | None = None  # rows sorted by chunk offset, and the offsets
+        self._matched = np.zeros(0, dtype=bool)
+        self._next = 0  # in the sorted offsets: where the next chunk of the walk is expected
+        self._disagreements: dict[int, list[str]] = {}
+
+    def add(self, record_offset: int, body: bytes) -> None:
+        self.table.append_record(body)
+        self.record_offsets.append(record_offset)
+
+    def compare(self, seen: _Seen) -> bool:
+        """Compare the chunk with every index that points at it; False when none does."""
+        if self._by_chunk is None:
+            starts = self.table.column("chunk_start_offset")
+            order = np.argsort(starts, kind="stable")
+            self._by_chunk = order, starts[order]
+            self._matched = np.zeros(len(self.table), dtype=bool)
+        order, starts = self._by_chunk
+        # the walk meets the chunks in file order: usually the index after the last one matched
+        lo = self._next
+        if not (lo < starts.size and starts[lo] == seen.offset):
+            lo = int(np.searchsorted(starts, np.uint64(seen.offset)))
+        hi = lo
+        while hi < starts.size and starts[hi] == seen.offset:
+            hi += 1
+        self._next = hi
+        for row in order[lo:hi].tolist():
+            self._matched[row] = True
+            wrong = _disagreement(self.table[row], seen)
+            if wrong:
+                self._disagreements[row] = wrong
+        return hi > lo
+
+    def problems(self) -> Iterator[tuple[int, str]]:
+        """``(record offset, detail)`` of each index that points where no chunk starts, or that disagrees
+        with its chunk, in the summary's order."""
+        matched = self._matched if self._matched.size else np.zeros(len(self.table), dtype=bool)
+        for row in sorted({*np.flatnonzero(~matched).tolist(), *self._disagreements}):
+            start = int(self.table.column("chunk_start_offset")[row])
+            if row in self._disagreements:
+                detail = f"the chunk index disagrees with the chunk at {start} in {', '.join(self._disagreements[row])}"
+            else:
+                detail = f"a chunk index points at {start}, where no chunk starts"
+            yield self.record_offsets[row], detail
+
+
 @dataclass
 class _ChannelState:
     topic: str
@@ -128,6 +197,32 @@ class _ChannelState:
     kind: str = "bytes"
 
 
+def _section_records(f: BinaryIO, start: int, end: int, block: int = 1 << 20) -> Iterator[tuple[int, int, bytes]]:
+    """``(offset, opcode, body)`` of each record of the file from ``start`` to ``end``, read a block at a
+    time (the section is never held whole). Raises ``ValueError`` as :func:`iter_records` does."""
+    buffer, base, pos = b"", start, start  # buffer: the file's bytes from base
+
+    def through(upto: int) -> None:
+        nonlocal buffer, base
+        if upto > base + len(buffer):
+            f.seek(base + len(buffer))
+            buffer = buffer[pos - base:] + f.read(max(block, upto - base - len(buffer)))
+            base = pos
+
+    while pos < end:
+        body = pos + RECORD_HEADER.size
+        if body > end:
+            raise ValueError(f"a record header at offset {pos} is cut off")
+        through(body)
+        opcode, length = RECORD_HEADER.unpack_from(buffer, pos - base)
+        if body + length > end:
+            raise ValueError(f"the record at offset {pos} (opcode {opcode:#04x}, {length} bytes) runs past the end "
+                             "of its section")
+        through(body + length)
+        yield pos, opcode, buffer[body - base: body + length - base]
+        pos = body + length
+
+
 def _read(stream: bytes, cls: Any) -> Any:
     return cls.read(ReadDataStream(io.BytesIO(stream)))
 
@@ -138,7 +233,8 @@ class _Verifier:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.states: dict[int, _ChannelState] = {}
-        self.seen: dict[int, _Seen] = {}
+        self.indexes = _ChunkIndexCheck()
+        self.unlisted = array("Q")  # offsets of the chunks no chunk index points at
         self.metadata: dict[int, str] = {}
         self.summary: dict[str, Any] = {}
         self.counted: dict[int, int] = {}
@@ -189,24 +285,23 @@ class _Verifier:
             self.problem("bad_footer", f"the footer points outside the file (summary at {summary_start}, summary "
                          f"offsets at {summary_offset_start})", offset=footer)
             return None
-        self.f.seek(summary_start)
-        section = self.f.read(footer - summary_start)
         if crc != 0:
             computed = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start),
-                                  zlib.crc32(section))
+                                  file_crc32(self.f, summary_start, footer - summary_start))
             if computed != crc:
                 self.problem("summary_crc", f"the summary's CRC {computed:#010x} does not match the footer's "
                              f"{crc:#010x}: the summary section is damaged", offset=summary_start)
-        groups: dict[str, list[Any]] = {"chunk_indexes": [], "metadata_indexes": [], "offsets": []}
+        groups: dict[str, list[Any]] = {"metadata_indexes": [], "offsets": []}
         readers = {Opcode.SCHEMA: ("schemas", Schema), Opcode.CHANNEL: ("channels", Channel),
-                   Opcode.CHUNK_INDEX: ("chunk_indexes", ChunkIndex), Opcode.METADATA_INDEX:
-                   ("metadata_indexes", MetadataIndex), Opcode.STATISTICS: ("statistics", Statistics),
-                   Opcode.SUMMARY_OFFSET: ("offsets", SummaryOffset)}
+                   Opcode.METADATA_INDEX: ("metadata_indexes", MetadataIndex),
+                   Opcode.STATISTICS: ("statistics", Statistics), Opcode.SUMMARY_OFFSET: ("offsets", SummaryOffset)}
         try:
-            for offset, opcode, body, length in iter_records(section, summary_start):
-                if opcode in readers:
+            for offset, opcode, body in _section_records(self.f, summary_start, footer):
+                if opcode == Opcode.CHUNK_INDEX:
+                    self.indexes.add(offset, body)
+                elif opcode in readers:
                     name, cls = readers[opcode]
-                    record = _read(section[body: body + length], cls)
+                    record = _read(body, cls)
                     if name == "schemas":
                         self.schemas.setdefault(record.id, record)
                     elif name == "channels":
@@ -319,7 +414,6 @@ class _Verifier:
             self.problem("bad_chunk", f"the chunk header cannot be parsed ({err})", offset=offset)
             return None
         seen = _Seen(offset, RECORD_HEADER.size + len(body), start, end, compression, compressed_size, size, {})
-        self.seen[offset] = seen
         try:
             contents = chunk_record(body)
         except ValueError as err:
@@ -367,6 +461,8 @@ class _Verifier:
                          "list the chunk's messages of this channel", offset=offset, channel=topic)
 
     def finish_chunk(self, seen: _Seen) -> None:
+        if not self.indexes.compare(seen):
+            self.unlisted.append(seen.offset)
         if not seen.index_offsets:
             if seen.positions:
                 self.bare_chunks += 1
@@ -466,33 +562,14 @@ class _Verifier:
 
     # ------------------------------------------------------------------ indexes against contents
     def check_indexes(self) -> None:
-        indexes = self.summary.get("chunk_indexes", [])
-        listed = set()
-        for offset, ci in indexes:
-            listed.add(ci.chunk_start_offset)
-            seen = self.seen.get(ci.chunk_start_offset)
-            if seen is None:
-                self.problem("chunk_index_mismatch", f"a chunk index points at {ci.chunk_start_offset}, where no "
-                             "chunk starts", offset=offset)
-                continue
-            index_length = seen.index_end - min(seen.index_offsets.values()) if seen.index_offsets else 0
-            wrong = [name for name, got, want in [
-                ("chunk_length", ci.chunk_length, seen.length), ("message_start_time", ci.message_start_time, seen.start),
-                ("message_end_time", ci.message_end_time, seen.end), ("compression", ci.compression, seen.compression),
-                ("compressed_size", ci.compressed_size, seen.compressed_size),
-                ("uncompressed_size", ci.uncompressed_size, seen.uncompressed_size),
-                ("message_index_offsets", dict(ci.message_index_offsets), seen.index_offsets),
-                ("message_index_length", ci.message_index_length, index_length)] if got != want]
-            if wrong:
-                self.problem("chunk_index_mismatch", f"the chunk index disagrees with the chunk at "
-                             f"{ci.chunk_start_offset} in {', '.join(wrong)}", offset=offset)
-        unlisted = [o for o in self.seen if o not in listed]
-        if indexes and unlisted:
-            for o in unlisted:
+        for offset, detail in self.indexes.problems():
+            self.problem("chunk_index_mismatch", detail, offset=offset)
+        if self.indexes.table and self.unlisted:
+            for o in self.unlisted:
                 self.problem("chunk_not_indexed", "the summary's chunk indexes do not list this chunk", offset=o)
-        elif unlisted and self.summary:
-            self.problem("no_chunk_indexes", f"the summary lists none of the {len(unlisted)} chunks: readers must scan "
-                         "the file", severity="note")
+        elif self.unlisted and self.summary:
+            self.problem("no_chunk_indexes", f"the summary lists none of the {len(self.unlisted)} chunks: readers "
+                         "must scan the file", severity="note")
         names = {o: n for o, n in self.metadata.items()}
         for offset, mi in self.summary.get("metadata_indexes", []):
             if names.get(mi.offset) != mi.name:
