@@ -245,9 +245,21 @@ def test_a_summary_cut_short_is_refused(tmp_path: Path) -> None:
         read_file_summary(io.BytesIO(bytes(damaged)))
 
 
-@settings(max_examples=150, deadline=None)
-@given(st.lists(chunk_indexes, max_size=9), st.integers(1, 4), st.integers(0, 2**64 - 1),
-       st.sets(st.integers(0, 2**16 - 1), max_size=3))
+SMALL = st.integers(0, 200)
+
+#: Chunk indexes of small offsets and lengths, whose ranges overlap and touch across block edges.
+nearby_chunk_indexes = st.builds(
+    ChunkIndex,
+    chunk_length=SMALL, chunk_start_offset=SMALL, compression=st.sampled_from(["", "zstd"]),
+    compressed_size=SMALL, message_end_time=SMALL, message_index_length=SMALL,
+    message_index_offsets=st.dictionaries(st.integers(0, 3), SMALL, max_size=3),
+    message_start_time=SMALL, uncompressed_size=SMALL,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(chunk_indexes, nearby_chunk_indexes), max_size=9), st.integers(1, 4),
+       st.one_of(st.integers(0, 2**64 - 1), SMALL), st.sets(st.integers(0, 3), max_size=3))
 def test_checks_and_gaps_made_block_by_block_are_those_of_the_whole_table(
         indexes: list[ChunkIndex], block: int, data_end: int, channels: set[int]) -> None:
     """A union of unions is the union, and the first three problems of each kind come in file order,
@@ -267,4 +279,19 @@ def test_checks_and_gaps_made_block_by_block_are_those_of_the_whole_table(
     whole = both()
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(chunk_module, "ROW_BLOCK", block)
+        assert len(list(ChunkIndexTable(indexes).row_blocks())) == -(-len(indexes) // block)
         assert both() == whole
+
+
+def test_blocks_and_row_ranges_out_of_bounds_are_refused() -> None:
+    table = ChunkIndexTable([ChunkIndex(chunk_length=1, chunk_start_offset=8 + k, compression="", compressed_size=1,
+                                        message_end_time=k, message_index_length=0, message_index_offsets={0: 9 + k},
+                                        message_start_time=k, uncompressed_size=1) for k in range(5)])
+    assert [b[:2] for b in table.row_blocks(2)] == [(0, 2), (2, 4), (4, 5)]
+    assert table.entry_counts(1, 3).tolist() == [1, 1]
+    for size in (0, -1):
+        with pytest.raises(ValueError):
+            list(table.row_blocks(size))
+    for start, stop in ((2, 1), (-1, 3), (0, 6)):
+        with pytest.raises(IndexError):
+            table.entry_counts(start, stop)

@@ -337,3 +337,30 @@ def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
     whole = read(lambda: ((o, op, section[b: b + n]) for o, op, b, n in iter_records(section, lead)))
     blocks = read(lambda: _section_records(io.BytesIO(data), lead, lead + len(section), block))
     assert blocks == whole
+
+
+def test_a_chunk_index_the_reader_refuses_is_a_damaged_summary(tmp_path: Path) -> None:
+    """Its channel list of 8 bytes cannot hold (channel id, offset) pairs of 10: the reader refuses
+    the summary, and so does verify, without claiming that the summary lists no chunk index."""
+    from mcap.writer import Writer
+
+    path = tmp_path / "odd.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f, chunk_size=64)
+        writer.start()
+        channel = writer.register_channel("/numbers", "json", writer.register_schema("n", "jsonschema", b"{}"))
+        for t in range(3):
+            writer.add_message(channel, log_time=t, publish_time=t, data=b'{"n": %d, "padding": "%s"}' % (t, b"x" * 80))
+        writer.finish()
+    data = bytearray(path.read_bytes())
+    at = _summary_record(data, 0x08)
+    struct.pack_into("<I", data, at + 9 + 32, 8)  # the first chunk index's pairs take 8 bytes
+    struct.pack_into("<I", data, len(data) - 8 - 4, 0)  # no summary CRC: only the record is wrong
+    path.write_bytes(bytes(data))
+    problems = [(p.kind, p.detail) for p in verify_log(path).problems]
+    assert ("bad_summary", "the summary section cannot be parsed (ValueError: a chunk index's message index offsets "
+            "take 8 bytes, not a multiple of 10 (a channel id and an offset each))") in problems
+    assert "no_chunk_indexes" not in {kind for kind, _ in problems}
+    with pytest.raises(Exception, match="not a multiple of 10"):
+        with LogReader(path) as log:
+            list(log.messages("/numbers"))

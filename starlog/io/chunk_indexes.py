@@ -37,7 +37,7 @@ _SIZES = struct.Struct("<QQ")  # compressed, uncompressed
 _PAIR = struct.Struct("<HQ")  # channel id, message index offset
 _TAIL_MIN = 8 + 4 + 16  # message index length, compression name length, sizes
 _READ_BLOCK = 1 << 20
-#: Chunks a block of :meth:`ChunkIndexTable.row_blocks` (a few MB of temporary arrays for a check).
+#: Chunks in a block of :meth:`ChunkIndexTable.row_blocks` (a few MB of temporary arrays for a check).
 ROW_BLOCK = 1 << 16
 
 #: The numeric columns, in the order :meth:`ChunkIndexTable.append_fields` takes them.
@@ -203,7 +203,9 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         """``(first row, end row, first entry, end entry)`` of consecutive blocks of at most ``size`` chunks
         (:data:`ROW_BLOCK` by default): a query made block by block keeps its temporary arrays to the
         block's size, whatever the log's length."""
-        size = size or ROW_BLOCK
+        size = ROW_BLOCK if size is None else size
+        if size <= 0:
+            raise ValueError(f"a block holds at least one chunk; got {size}")
         bounds = self._entry_arrays()[0]
         for a in range(0, len(self), size):
             b = min(len(self), a + size)
@@ -211,8 +213,10 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
 
     def entry_counts(self, start: int = 0, stop: int | None = None) -> npt.NDArray[np.int64]:
         """How many channels each chunk's message indexes list (0: the chunk has none), for the rows
-        ``start:stop`` (all by default)."""
+        ``start:stop`` (all by default; ``0 <= start <= stop <= len(self)``)."""
         stop = len(self) if stop is None else stop
+        if not 0 <= start <= stop <= len(self):
+            raise IndexError(f"rows {start}:{stop} of a table of {len(self)} chunks")
         return np.diff(self._entry_arrays()[0][start:stop + 1]).astype(np.int64)
 
     def entries(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint16], npt.NDArray[np.uint64]]:
@@ -437,7 +441,10 @@ def _run_layout(body: memoryview) -> np.dtype[Any] | None:
 def _append_chunk_index(table: ChunkIndexTable, body: memoryview) -> None:
     start, end, offset, length, pairs_bytes = _CHUNK_INDEX_HEAD.unpack_from(body)
     q = _CHUNK_INDEX_HEAD.size
-    if pairs_bytes % _PAIR.size or q + pairs_bytes + _TAIL_MIN > len(body):
+    if pairs_bytes % _PAIR.size:
+        raise ValueError(f"a chunk index's message index offsets take {pairs_bytes} bytes, not a multiple of "
+                         f"{_PAIR.size} (a channel id and an offset each)")
+    if q + pairs_bytes + _TAIL_MIN > len(body):
         raise ValueError(f"a chunk index's message index offsets take {pairs_bytes} bytes, which do not fit "
                          f"its record of {len(body)}")
     pairs = list(_PAIR.iter_unpack(body[q:q + pairs_bytes]))

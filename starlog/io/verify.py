@@ -9,9 +9,11 @@ messages decode; images decode with one size per channel; ``log_time`` order per
 Each problem has a ``kind`` (a stable name), a severity (``error``: the file is damaged or a
 stage would refuse it; ``note``: valid MCAP that other readers accept but that is unusual, such
 as chunks without message indexes or no summary), the file ``offset`` of the record, and the
-``channel`` and ``log_time`` where they apply. The file is read once, chunk by chunk; memory
-holds one chunk, per-channel counters and the summary's chunk indexes by column (about 100 bytes
-a chunk: each is compared with its chunk as the walk finishes that chunk).
+``channel`` and ``log_time`` where they apply. The data section is read once, chunk by chunk,
+and the summary section a block at a time (once for its CRC, once for its records); memory holds
+one chunk, per-channel counters and the summary's chunk indexes by column (about 100 bytes a
+chunk: each is compared with its chunk as the walk finishes that chunk). Chunk indexes are parsed
+as :class:`~starlog.io.reader.LogReader` parses them: one that it refuses is a ``bad_summary``.
 """
 
 from __future__ import annotations
@@ -146,6 +148,8 @@ class _ChunkIndexCheck:
         self._disagreements: dict[int, list[str]] = {}
 
     def add(self, record_offset: int, body: bytes) -> None:
+        if self._by_chunk is not None:
+            raise RuntimeError("every chunk index is added before the first chunk is compared")
         self.table.append_record(body)
         self.record_offsets.append(record_offset)
 
@@ -237,6 +241,7 @@ class _Verifier:
         self.unlisted = array("Q")  # offsets of the chunks no chunk index points at
         self.metadata: dict[int, str] = {}
         self.summary: dict[str, Any] = {}
+        self.summary_damaged = False  # a record of the summary section does not parse
         self.counted: dict[int, int] = {}
         self.times: list[int] = []  # [first, last] over every message
         self.loose = 0
@@ -313,6 +318,7 @@ class _Verifier:
         except Exception as err:  # struct.error, EOFError, ValueError, UnicodeDecodeError from a damaged record
             self.problem("bad_summary", f"the summary section cannot be parsed ({type(err).__name__}: {err})",
                          offset=summary_start)
+            self.summary_damaged = True
         for offset, record in groups["offsets"]:
             self.check_summary_offset(offset, record, summary_start, footer)
         self.summary = groups
@@ -567,7 +573,7 @@ class _Verifier:
         if self.indexes.table and self.unlisted:
             for o in self.unlisted:
                 self.problem("chunk_not_indexed", "the summary's chunk indexes do not list this chunk", offset=o)
-        elif self.unlisted and self.summary:
+        elif self.unlisted and self.summary and not self.summary_damaged:  # else its indexes may be unread
             self.problem("no_chunk_indexes", f"the summary lists none of the {len(self.unlisted)} chunks: readers "
                          "must scan the file", severity="note")
         names = {o: n for o, n in self.metadata.items()}
