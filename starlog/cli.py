@@ -984,7 +984,8 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
 @cli.command(context_settings=CONTEXT)
 @input_log
 @json_option
-def verify(log: Path, as_json: bool) -> None:
+@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+def verify(log: Path, as_json: bool, quiet: bool) -> None:
     """Check every record of an MCAP file and report every problem found (like `mcap doctor`).
 
     Checks magic, header, footer, the summary and its CRC, every chunk (CRC, decompression),
@@ -998,9 +999,13 @@ def verify(log: Path, as_json: bool) -> None:
       starlog verify sim.mcap
       starlog verify bag.mcap --json | jq '.problems[] | select(.severity == "error")'
     """
+    from tqdm import tqdm
+
     from starlog.io.verify import verify_log
 
-    report = verify_log(log)
+    with tqdm(total=log.stat().st_size, desc="verify", unit="B", unit_scale=True, leave=False, dynamic_ncols=True,
+              disable=True if quiet else None) as bar:  # None: shown on a terminal only
+        report = verify_log(log, on_progress=lambda done: bar.update(done - bar.n))
     if as_json:
         _print_json(report.to_dict())
     else:

@@ -148,6 +148,7 @@ QUIET_COMMANDS = {
     "run": (["run", "sim.mcap", "-o", "OUT.mcap", "--config", "p.toml", "--workers", "1"], True),
     "export": (["export", "sim.mcap", "cen.mcap", "-o", "OUT", "--workers", "1"], False),
     "filter": (["filter", "sim.mcap", "-o", "OUT.mcap", "--topic", "/camera/*", "--end", "frame:10"], True),
+    "verify": (["verify", "sim.mcap"], False),
 }
 
 
@@ -175,9 +176,10 @@ def test_quiet_silences_progress_and_status_and_keeps_the_results(
     template, writes_log = QUIET_COMMANDS[name]
     args = [str(quiet_logs / a.replace("OUT", name)) if a.startswith(("OUT", "frames")) or a.endswith((".mcap", ".toml"))
             else a for a in template]
+    force = ["--force"] if any(p.name == "force" for p in cli.commands[name].params) else []  # verify writes nothing
     runner = CliRunner()
-    loud = runner.invoke(cli, [*args, "--force"])
-    quiet = runner.invoke(cli, [*args, "--force", "-q"])
+    loud = runner.invoke(cli, [*args, *force])
+    quiet = runner.invoke(cli, [*args, *force, "-q"])
     assert loud.exit_code == 0 and quiet.exit_code == 0, loud.output + quiet.output
     assert quiet.stderr == "", f"{name} -q still prints on stderr: {quiet.stderr!r}"
     assert loud.stderr != "", f"{name} without -q shows no progress or status"

@@ -364,3 +364,16 @@ def test_a_chunk_index_the_reader_refuses_is_a_damaged_summary(tmp_path: Path) -
     with pytest.raises(Exception, match="not a multiple of 10"):
         with LogReader(path) as log:
             list(log.messages("/numbers"))
+
+
+def test_progress_is_reported_in_bytes_of_the_data_section(logs: dict[str, Path],
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    import starlog.io.verify as verify_module
+
+    monkeypatch.setattr(verify_module, "_PROGRESS_STEP", 1)  # every record
+    done: list[int] = []
+    report = verify_log(logs["raw"], on_progress=done.append)
+    assert report.ok and len(done) > report.chunks  # a report before each record after the first
+    assert done == sorted(set(done)) and 0 < done[0] and done[-1] < report.size
+    result = CliRunner().invoke(cli, ["verify", str(logs["raw"]), "-q"])
+    assert result.exit_code == 0 and result.output.startswith("OK: ")

@@ -47,6 +47,7 @@ __all__ = ["Problem", "VerifyReport", "verify_log"]
 MAGIC = b"\x89MCAP0\r\n"
 _FOOTER = struct.Struct("<BQQQI")
 _DATA_END_LENGTH = RECORD_HEADER.size + 4
+_PROGRESS_STEP = 8 << 20  # bytes of the data section between two progress reports
 
 
 @dataclass(frozen=True)
@@ -232,8 +233,10 @@ def _read(stream: bytes, cls: Any) -> Any:
 
 
 class _Verifier:
-    def __init__(self, path: Path, f: BinaryIO, report: VerifyReport) -> None:
+    def __init__(self, path: Path, f: BinaryIO, report: VerifyReport,
+                 on_progress: Callable[[int], object] | None = None) -> None:
         self.path, self.f, self.report = path, f, report
+        self.on_progress = on_progress
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.states: dict[int, _ChannelState] = {}
@@ -343,7 +346,10 @@ class _Verifier:
         f, pos, current = self.f, MAGIC_LENGTH, None
         bodies = {Opcode.CHUNK, Opcode.MESSAGE_INDEX, Opcode.MESSAGE, Opcode.SCHEMA, Opcode.CHANNEL,
                   Opcode.METADATA, Opcode.ATTACHMENT}
+        reported = 0
         while pos < limit:
+            if self.on_progress is not None and pos - reported >= _PROGRESS_STEP:
+                self.on_progress(reported := pos)
             f.seek(pos)
             head = f.read(RECORD_HEADER.size)
             if len(head) < RECORD_HEADER.size:
@@ -621,13 +627,17 @@ class _Verifier:
         self.report.channels = len(self.channels)
 
 
-def verify_log(path: str | os.PathLike[str]) -> VerifyReport:
-    """Check every record of the MCAP file at ``path``; never raises for a damaged file."""
+def verify_log(path: str | os.PathLike[str], *, on_progress: Callable[[int], object] | None = None) -> VerifyReport:
+    """Check every record of the MCAP file at ``path``; never raises for a damaged file.
+
+    ``on_progress`` is called with the bytes of the data section checked so far, every few MB
+    (for a progress bar).
+    """
     report = VerifyReport(str(path))
     try:
         with open(path, "rb") as f:
             report.size = size = f.seek(0, os.SEEK_END)
-            verifier = _Verifier(Path(path), f, report)
+            verifier = _Verifier(Path(path), f, report, on_progress)
             envelope = verifier.envelope(size)
             if envelope is None:
                 if not report.problems or report.problems[0].kind != "bad_magic":
