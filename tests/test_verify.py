@@ -321,8 +321,7 @@ def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
         records: list[tuple[int, bytes]], cut: int, block: int, lead: int) -> None:
     import io
 
-    from starlog.io.scan import iter_records
-    from starlog.io.verify import _section_records
+    from starlog.io.scan import iter_file_records, iter_records
 
     section = b"".join(struct.pack("<BQ", opcode, len(body)) + body for opcode, body in records)
     section = section[:max(0, len(section) - cut)]  # perhaps a record cut off
@@ -335,7 +334,7 @@ def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
             return None, str(err)
 
     whole = read(lambda: ((o, op, section[b: b + n]) for o, op, b, n in iter_records(section, lead)))
-    blocks = read(lambda: _section_records(io.BytesIO(data), lead, lead + len(section), block))
+    blocks = read(lambda: iter_file_records(io.BytesIO(data), lead, lead + len(section), block))
     assert blocks == whole
 
 

@@ -52,6 +52,7 @@ __all__ = [
     "ScanResult",
     "chunk_record",
     "find_loose_runs",
+    "iter_file_records",
     "iter_records",
     "read_loose",
     "synthesize_summary",
@@ -164,6 +165,32 @@ def iter_records(data: bytes | memoryview, base: int = 0) -> Iterator[tuple[int,
             raise ValueError(f"the record at offset {base + pos} (opcode {opcode:#04x}, {length} bytes) runs past "
                              f"the end of its section")
         yield base + pos, opcode, body, length
+        pos = body + length
+
+
+def iter_file_records(f: BinaryIO, start: int, end: int, block: int = 1 << 20) -> Iterator[tuple[int, int, bytes]]:
+    """:func:`iter_records` of the file's bytes from ``start`` to ``end``, read a block at a time (the
+    section is never held whole): ``(offset, opcode, body)`` of each record, the same ``ValueError``."""
+    buffer, base, pos = b"", start, start  # buffer: the file's bytes from base
+
+    def through(upto: int) -> None:
+        nonlocal buffer, base
+        if upto > base + len(buffer):
+            f.seek(base + len(buffer))
+            buffer = buffer[pos - base:] + f.read(max(block, upto - base - len(buffer)))
+            base = pos
+
+    while pos < end:
+        body = pos + RECORD_HEADER.size
+        if body > end:
+            raise ValueError(f"a record header at offset {pos} is cut off")
+        through(body)
+        opcode, length = RECORD_HEADER.unpack_from(buffer, pos - base)
+        if body + length > end:
+            raise ValueError(f"the record at offset {pos} (opcode {opcode:#04x}, {length} bytes) runs past the end "
+                             "of its section")
+        through(body + length)
+        yield pos, opcode, buffer[body - base: body + length - base]
         pos = body + length
 
 

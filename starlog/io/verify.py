@@ -40,7 +40,7 @@ from starlog.io.foreign import message_decoder
 from starlog.io.frames import cached_image_decoder
 from starlog.io.images import is_image_schema
 from starlog.io.messages import compile_json_schema, decode_json
-from starlog.io.scan import MAGIC_LENGTH, MESSAGE_HEADER, RECORD_HEADER, chunk_record, iter_records
+from starlog.io.scan import MAGIC_LENGTH, MESSAGE_HEADER, RECORD_HEADER, chunk_record, iter_file_records, iter_records
 
 __all__ = ["Problem", "VerifyReport", "verify_log"]
 
@@ -202,32 +202,6 @@ class _ChannelState:
     kind: str = "bytes"
 
 
-def _section_records(f: BinaryIO, start: int, end: int, block: int = 1 << 20) -> Iterator[tuple[int, int, bytes]]:
-    """``(offset, opcode, body)`` of each record of the file from ``start`` to ``end``, read a block at a
-    time (the section is never held whole). Raises ``ValueError`` as :func:`iter_records` does."""
-    buffer, base, pos = b"", start, start  # buffer: the file's bytes from base
-
-    def through(upto: int) -> None:
-        nonlocal buffer, base
-        if upto > base + len(buffer):
-            f.seek(base + len(buffer))
-            buffer = buffer[pos - base:] + f.read(max(block, upto - base - len(buffer)))
-            base = pos
-
-    while pos < end:
-        body = pos + RECORD_HEADER.size
-        if body > end:
-            raise ValueError(f"a record header at offset {pos} is cut off")
-        through(body)
-        opcode, length = RECORD_HEADER.unpack_from(buffer, pos - base)
-        if body + length > end:
-            raise ValueError(f"the record at offset {pos} (opcode {opcode:#04x}, {length} bytes) runs past the end "
-                             "of its section")
-        through(body + length)
-        yield pos, opcode, buffer[body - base: body + length - base]
-        pos = body + length
-
-
 def _read(stream: bytes, cls: Any) -> Any:
     return cls.read(ReadDataStream(io.BytesIO(stream)))
 
@@ -304,7 +278,7 @@ class _Verifier:
                    Opcode.METADATA_INDEX: ("metadata_indexes", MetadataIndex),
                    Opcode.STATISTICS: ("statistics", Statistics), Opcode.SUMMARY_OFFSET: ("offsets", SummaryOffset)}
         try:
-            for offset, opcode, body in _section_records(self.f, summary_start, footer):
+            for offset, opcode, body in iter_file_records(self.f, summary_start, footer):
                 if opcode == Opcode.CHUNK_INDEX:
                     self.indexes.add(offset, body)
                 elif opcode in readers:
