@@ -14,6 +14,7 @@ Coordinates follow the starlog convention (x = column, y = row, 0-based, pixel-c
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass
 
@@ -66,16 +67,21 @@ def _padded_grid(grid: npt.NDArray[np.float32], extrapolate: bool, plus: npt.NDA
     return (g if plus is None else g + np.asarray(plus, np.float32)), 0
 
 
+@functools.lru_cache(maxsize=16)
 def _resize_axis(n: int, cells: int, mesh: int, ring: int) -> tuple[npt.NDArray[np.intp], F64]:
     """Along one axis of the frame (``n`` px): the grid cell below each pixel and its weight towards the
     next, as ``cv2.resize`` (INTER_LINEAR, scale ``mesh``) places it on a grid of ``cells`` cells whose
-    first ``ring`` are ghosts (half-pixel centres; clamped to the grid at both ends)."""
+    first ``ring`` are ghosts (half-pixel centres; clamped to the grid at both ends).
+
+    The same for every frame of a log: made once per shape (read-only arrays)."""
     source = (np.arange(n) + ring * mesh + 0.5) / mesh - 0.5
     cell = np.floor(source)
     weight = source - cell
     low, high = cell < 0, cell >= cells - 1
     cell = np.where(low, 0, np.where(high, cells - 1, cell)).astype(np.intp)
-    return cell, np.where(low | high, 0.0, weight)
+    weight = np.where(low | high, 0.0, weight)
+    cell.flags.writeable = weight.flags.writeable = False
+    return cell, weight
 
 
 @dataclass(frozen=True)

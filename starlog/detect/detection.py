@@ -262,9 +262,17 @@ def _prepare(arr: npt.NDArray[Any], background: Background | None, mesh: int
 def matched_filter(work: npt.NDArray[np.float32],
                    filter_sigma: float) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64]]:
     """The frame smoothed by a Gaussian of ``filter_sigma`` px (reflected at the edges), and the 1-D kernel."""
+    k1 = _gaussian_kernel(float(filter_sigma))
+    return cv2.sepFilter2D(work, cv2.CV_32F, k1, k1, borderType=cv2.BORDER_REFLECT), k1
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_kernel(filter_sigma: float) -> npt.NDArray[np.float64]:
+    """The matched filter's 1-D kernel (2 sigma each side, at least one pixel), made once per sigma (read-only)."""
     r = max(1, int(np.ceil(2.0 * filter_sigma)))
     k1 = cv2.getGaussianKernel(2 * r + 1, filter_sigma, cv2.CV_64F).ravel()
-    return cv2.sepFilter2D(work, cv2.CV_32F, k1, k1, borderType=cv2.BORDER_REFLECT), k1
+    k1.flags.writeable = False
+    return k1
 
 
 def _candidates(peaks: Peaks, comp: Components, work: npt.NDArray[np.float32], filtered: npt.NDArray[np.float32],
