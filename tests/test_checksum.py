@@ -27,3 +27,27 @@ def test_crc32_of_a_read_only_slice(data: bytes, draw: st.DataObject) -> None:
 def test_crc32_continues_over_pieces() -> None:
     data = bytes(range(256)) * 4099  # over 1 MB: the long-input path of the fast implementations
     assert crc32(data[1000:], crc32(data[:1000])) == zlib.crc32(data)
+
+
+def test_the_summary_crc_is_the_one_the_mcap_library_writes_in_its_footer(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """An independent oracle: the footer of a log written by the ``mcap`` library."""
+    import struct
+
+    from mcap.writer import Writer
+
+    from starlog.io.checksum import summary_crc
+
+    path = tmp_path / "plain.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f, chunk_size=64)
+        writer.start()
+        channel = writer.register_channel("/n", "json", writer.register_schema("n", "jsonschema", b"{}"))
+        for t in range(5):
+            writer.add_message(channel, log_time=t, publish_time=t, data=b'{"n": %d}' % t)
+        writer.finish()
+    data = path.read_bytes()
+    footer = len(data) - 8 - 29
+    opcode, _, summary_start, offsets_start, stored = struct.unpack_from("<BQQQI", data, footer)
+    assert opcode == 0x02 and stored != 0
+    with open(path, "rb") as f:
+        assert summary_crc(f, summary_start, offsets_start, footer) == stored

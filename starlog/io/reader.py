@@ -21,7 +21,6 @@ import itertools
 import json
 import os
 import struct
-import zlib
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,7 +46,8 @@ from starlog.errors import (
     NotMcapError,
     TruncatedLogError,
 )
-from starlog.io.checksum import crc32, file_crc32
+from starlog.io.checksum import crc32
+from starlog.io.checksum import summary_crc as computed_summary_crc
 from starlog.io.chunk_indexes import ChunkIndexTable, read_summary
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
@@ -285,8 +285,7 @@ class LogReader:
             raise CorruptLogError(self.path, f"its footer points outside the file (summary at {summary_start}, "
                                              f"summary offsets at {summary_offset_start}). {_hint(self.path)}")
         if self._validate_crcs and summary_crc != 0:
-            crc = file_crc32(f, summary_start, footer_start - summary_start)
-            crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
+            crc = computed_summary_crc(f, summary_start, summary_offset_start, footer_start)
             if crc != summary_crc:
                 raise CorruptLogError(
                     self.path, f"its summary section (offset {summary_start}..{footer_start}) is damaged: "

@@ -12,7 +12,6 @@ from __future__ import annotations
 import io
 import os
 import struct
-import zlib
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +25,7 @@ from mcap.stream_reader import breakup_chunk
 
 from starlog import __version__
 from starlog.errors import CorruptLogError, LogNotFoundError
-from starlog.io.checksum import file_crc32
+from starlog.io.checksum import summary_crc
 from starlog.io.chunk_indexes import read_file_summary
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance, file_digest
 from starlog.io.schemas import MessageType
@@ -295,8 +294,7 @@ def _summary_crc_ok(f: BinaryIO, size: int) -> bool:
     end = size - len(MCAP_MAGIC) - footer.size
     if opcode != Opcode.FOOTER or not len(MCAP_MAGIC) < start <= end:
         return False
-    computed = file_crc32(f, start, end - start)
-    computed = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, start, offsets_start), computed)
+    computed = summary_crc(f, start, offsets_start, end)
     return crc == 0 or computed == crc
 
 

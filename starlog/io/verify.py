@@ -22,7 +22,6 @@ import io
 import json
 import os
 import struct
-import zlib
 from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -34,7 +33,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, ChunkIndex, Metadata, MetadataIndex, Schema, Statistics, SummaryOffset
 
-from starlog.io.checksum import file_crc32
+from starlog.io.checksum import crc32, summary_crc
 from starlog.io.chunk_indexes import ChunkIndexTable
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import cached_image_decoder
@@ -268,8 +267,7 @@ class _Verifier:
                          f"offsets at {summary_offset_start})", offset=footer)
             return None
         if crc != 0:
-            computed = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start),
-                                  file_crc32(self.f, summary_start, footer - summary_start))
+            computed = summary_crc(self.f, summary_start, summary_offset_start, footer)
             if computed != crc:
                 self.problem("summary_crc", f"the summary's CRC {computed:#010x} does not match the footer's "
                              f"{crc:#010x}: the summary section is damaged", offset=summary_start)
@@ -373,7 +371,7 @@ class _Verifier:
         elif opcode == Opcode.ATTACHMENT:
             record = _read(body, Attachment)
             (stored,) = struct.unpack_from("<I", body, len(body) - 4)
-            if stored != 0 and zlib.crc32(body[:-4]) != stored:
+            if stored != 0 and crc32(body[:-4]) != stored:
                 self.problem("attachment_crc", f"the attachment {record.name!r} fails its CRC", offset=offset)
         return None
 

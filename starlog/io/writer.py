@@ -36,7 +36,6 @@ import os
 import struct
 import tempfile
 import threading
-import zlib
 from collections import defaultdict, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -75,7 +74,7 @@ from starlog.errors import (
 )
 from starlog.io.bytecopy import copy_range_at
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
-from starlog.io.checksum import crc32
+from starlog.io.checksum import crc32, footer_crc
 from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import decode_json
@@ -616,7 +615,7 @@ class LogWriter:
         summary_offset_start = summary_start + out.count
         out.write_records(offsets)
         out.flush()
-        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), out.crc)
+        crc = footer_crc(out.crc, summary_start, summary_offset_start)
         Footer(summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=crc).write(
             self._records
         )
