@@ -77,3 +77,31 @@ def _stack(modules: list[tuple[str, str]]):
 ])
 def test_sampled_time_goes_to_the_innermost_starlog_frame(bench, modules, expected):
     assert bench.classify(_stack(modules), {}) == expected
+
+
+def test_output_growth_a_frame_and_the_disk_floor_it_sets(bench):
+    result = bench.StageResult("track STATIC", 2)
+    timing = bench.Timing(1.0, 1.0, 100.0)
+    result.add_pairs([300, 3000], [[timing, timing]], {300: ["a"], 3000: ["b"]})
+    assert math.isnan(result.bytes_per_frame())  # sizes not recorded
+    result.output_bytes = [1_000_000 + 300 * 800_000, 1_000_000 + 3000 * 800_000]
+    assert result.bytes_per_frame() == pytest.approx(800_000)
+    # 800 kB a frame at 400 MB/s: 2 ms a frame
+    assert bench.write_floor(800_000, 400e6) == pytest.approx(2e-3)
+    assert math.isnan(bench.write_floor(math.nan, 400e6))
+    assert math.isnan(bench.write_floor(800_000, 0.0))
+
+
+def test_a_target_below_the_disk_floor_says_so(bench):
+    size = {"disk_rate": 400e6}
+    stage = {"bytes_per_frame": 800_000}
+    assert bench.disk_note(size, stage, 0.7e-3).endswith("BELOW THIS DISK'S FLOOR")  # 2 ms > 0.7 ms allowed
+    above = bench.disk_note(size, {"bytes_per_frame": 40_000}, 0.7e-3)  # 0.1 ms
+    assert "0.10 ms a frame, 0.70 allowed" in above and "FLOOR" not in above
+    assert bench.disk_note({"disk_rate": math.nan}, stage, 0.7e-3) == ""
+
+
+def test_the_disk_probe_writes_syncs_and_removes_its_file(bench, tmp_path):
+    rate = bench.disk_write_rate(tmp_path, 16, block_mib=8)
+    assert math.isfinite(rate) and rate > 0
+    assert list(tmp_path.iterdir()) == []
