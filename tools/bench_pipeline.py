@@ -665,13 +665,14 @@ def targets(sizes: list[dict[str, Any]], workers_all: int) -> list[tuple[str, bo
 
 def disk_note(s: dict[str, Any], stage: dict[str, Any], allowed: float) -> str:
     """What writing ``stage``'s output costs a frame on this disk, against the ``allowed`` seconds a frame
-    of its target; flagged when the floor alone exceeds the allowance (no code can pass it here)."""
+    of its target; flagged when the floor alone exceeds the allowance (at the disk's rate in this run, no code
+    writing that output can pass it; a virtual disk's rate varies by 2x from one hour to the next)."""
     floor = write_floor(stage.get("bytes_per_frame", math.nan), s.get("disk_rate", math.nan))
     if not math.isfinite(floor):
         return ""
     text = (f"; writing its output ({_f(stage['bytes_per_frame'] / 1e3)} KB a frame at "
             f"{_f(s['disk_rate'] / 1e6, 0)} MB/s) takes {_f(1e3 * floor, 2)} ms a frame, {_f(1e3 * allowed, 2)} allowed")
-    return text + (" — BELOW THIS DISK'S FLOOR" if floor > allowed else "")
+    return text + (" — BELOW THE DISK'S FLOOR" if floor > allowed else "")
 
 
 def print_report(sizes: list[dict[str, Any]], args: argparse.Namespace) -> None:
