@@ -243,8 +243,13 @@ def _check_long_enough(stack: StackedLog, config: PipelineConfig, frame_topic: A
 
 def _run_steps(stack: StackedLog, steps: list[tuple[str, Step]], output: Path, result: PipelineResult, *,
                force: bool, on_stage: Callable[[str, dict[str, Any]], None] | None) -> None:
-    """Each step on the stack of the ones before; the output written once from the last stack."""
+    """Each step on the stack of the ones before; the output written once from the last stack.
+
+    The output is begun first: the input's data section (the images) is copied into it and synced
+    to disk on a thread while the steps work, and the steps' records are added at the end.
+    """
     sidecars: list[Path] = []
+    pending = stack.begin_output(output, force=force)
     try:
         for name, step in steps:
             sidecar = output.with_name(f".{output.name}.{len(sidecars)}.sidecar")
@@ -255,8 +260,9 @@ def _run_steps(stack: StackedLog, steps: list[tuple[str, Step]], output: Path, r
             result.stages.append((name, report))
             if on_stage:
                 on_stage(name, report)
-        stack.write_to(output, force=force)
+        pending.finish(stack)
     finally:
+        pending.discard()
         for path in sidecars:
             path.unlink(missing_ok=True)
 

@@ -283,6 +283,17 @@ def test_run_with_custom_stages_equals_the_stages_one_by_one(stage_folder: Path,
     assert frames == [b["frame"] for b in bright if b["flux"] > 20000]
 
 
+def test_a_run_whose_stage_fails_leaves_only_its_input(stage_folder: Path, tmp_path: Path) -> None:
+    """``run`` begins its output (the input's data copied on a thread) before the stages: a stage that fails
+    stops the copy, and neither the output, its temporary file nor a sidecar is left."""
+    sim = tmp_path / "sim.mcap"
+    simulate_log(small_config(n_frames=20), sim)
+    config = _config(f'[centroid]\nmethods = ["NONE"]\n[stages.f]\nuses = "{MODULE}:failing"\n', stage_folder)
+    with pytest.raises(StageFunctionError, match="boom"):
+        run_pipeline(sim, tmp_path / "run.mcap", config, workers=1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim.mcap"]
+
+
 @pytest.mark.parametrize(("tables", "message"), [
     ('[stages.x]\nmin_snr = 1\n', r'\[stages.x\] needs uses = "package.module:function"'),
     ('[stages.x]\nuses = "no_such_module_here:f"\n', r"\[stages.x\]: uses = .*cannot import 'no_such_module_here'"),

@@ -9,11 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from starlog.errors import TruncatedLogError
-from starlog.io import LogReader, LogWriter, Provenance, file_digest, json_message_type
+from starlog.errors import InvalidParameterError, OutputExistsError, TruncatedLogError
+from starlog.io import LogReader, LogWriter, Provenance, encode_json, file_digest, json_message_type
 from starlog.io.bytecopy import copy_range, copy_range_at
 from starlog.io.layout import locate_data_end
 from starlog.io.provenance import BackgroundDigest
+from starlog.io.stack import StackedLog
 from starlog.stages import compensate as compensate_stage
 from starlog.stages.compensate import compensate_log
 from starlog.stages.simulate import simulate_log
@@ -70,7 +71,7 @@ def test_an_extended_log_is_the_same_with_or_without_the_kernel_copy(
 
 def test_a_base_cut_short_while_copied_is_refused(sim_log: Path, tmp_path: Path,
                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr("starlog.io.writer.copy_range_at", lambda *args, **kwargs: args[3] - 1)
+    monkeypatch.setattr("starlog.io.bytecopy.copy_range_at", lambda *args, **kwargs: args[3] - 1)
     with pytest.raises(TruncatedLogError), LogWriter(tmp_path / "out.mcap", base=sim_log):
         pass  # the copy runs on a thread: its shortfall is raised when the log is closed
     assert list(tmp_path.iterdir()) == []
@@ -159,16 +160,16 @@ def test_the_paper_protocol_never_reads_the_truth(tmp_path: Path, monkeypatch: p
 
 
 def _held_copy(monkeypatch: pytest.MonkeyPatch) -> threading.Event:
-    """Make the writer's copy thread wait for the returned event before it copies."""
-    from starlog.io import writer as writer_module
+    """Make the background copy thread wait for the returned event before it copies."""
+    from starlog.io import bytecopy
 
-    go, real = threading.Event(), writer_module.copy_range_at
+    go, real = threading.Event(), bytecopy.copy_range_at
 
     def held(*args: object, **kwargs: object) -> int:
         go.wait(10)
         return real(*args, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(writer_module, "copy_range_at", held)
+    monkeypatch.setattr(bytecopy, "copy_range_at", held)
     return go
 
 
@@ -204,3 +205,68 @@ def test_an_extended_log_repeats_its_bases_chunk_indexes_then_adds_its_own(sim_l
         assert len(log.summary.chunk_indexes) > len(inherited)
         assert [m.log_time for m in log.messages("/extra")] == [0, 1, 2]
         assert sum(1 for _ in log.frames()) == sum(1 for _ in base.frames())
+
+
+def _stack_with_a_sidecar(sim_log: Path, folder: Path) -> tuple[StackedLog, StackedLog]:
+    """The stack of ``sim_log`` alone, and with one sidecar that adds a channel."""
+    stack = StackedLog.of(sim_log)
+    with LogWriter(folder / "side", base=stack) as w:
+        ch = w.add_channel("/demo", json_message_type("starlog.FrameInfo"))
+        w.write(ch, log_time=5, data=encode_json({"frame": 5, "width": 32, "height": 32, "encoding": "mono16",
+                                                  "bit_depth": 16, "source": ""}))
+    return stack, stack.extend(folder / "side")
+
+
+def test_an_output_begun_before_the_sidecars_is_the_stack_written_at_the_end(sim_log: Path, tmp_path: Path) -> None:
+    """``run`` begins its output (the base's data copied on a thread) before the stages write their sidecars."""
+    stack = StackedLog.of(sim_log)
+    pending = stack.begin_output(tmp_path / "begun.mcap")
+    _, stacked = _stack_with_a_sidecar(sim_log, tmp_path)
+    assert pending.finish(stacked) == tmp_path / "begun.mcap"
+    with stacked.open() as f:
+        assert (tmp_path / "begun.mcap").read_bytes() == f.read()
+    assert file_digest(tmp_path / "begun.mcap") == file_digest(stacked)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.endswith(".partial")) == []
+    pending.discard()  # nothing to do once finished
+    assert (tmp_path / "begun.mcap").exists()
+
+
+def test_a_begun_output_refuses_another_base_and_a_second_finish(sim_log: Path, tmp_path: Path) -> None:
+    other = tmp_path / "other.mcap"
+    simulate_log(small_config(seed=7), other)
+    pending = StackedLog.of(sim_log).begin_output(tmp_path / "out.mcap")
+    with pytest.raises(InvalidParameterError, match="another base"):
+        pending.finish(StackedLog.of(other))
+    assert not (tmp_path / "out.mcap").exists()
+    pending.finish(StackedLog.of(sim_log))  # the stack it was begun for still finishes it
+    assert (tmp_path / "out.mcap").read_bytes() == sim_log.read_bytes()
+    with pytest.raises(InvalidParameterError, match="already finished or discarded"):
+        pending.finish(StackedLog.of(sim_log))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.mcap", "out.mcap"]
+
+
+def test_a_discarded_output_stops_its_copy_and_leaves_nothing(sim_log: Path, tmp_path: Path) -> None:
+    pending = StackedLog.of(sim_log).begin_output(tmp_path / "out.mcap")
+    pending.discard()
+    pending.discard()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_begun_output_whose_write_back_fails_is_not_renamed(sim_log: Path, tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    def fail(fd: int) -> None:
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(os, "fdatasync", fail)
+    pending = StackedLog.of(sim_log).begin_output(tmp_path / "out.mcap")
+    with pytest.raises(OSError, match="Input/output"):
+        pending.finish(StackedLog.of(sim_log))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_existing_output_is_refused_before_any_copy(sim_log: Path, tmp_path: Path) -> None:
+    (tmp_path / "out.mcap").write_bytes(b"keep")
+    with pytest.raises(OutputExistsError):
+        StackedLog.of(sim_log).begin_output(tmp_path / "out.mcap")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap"]
+    assert (tmp_path / "out.mcap").read_bytes() == b"keep"

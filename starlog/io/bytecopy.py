@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import os
 import threading
+from pathlib import Path
 from typing import BinaryIO
 
-__all__ = ["copy_range", "copy_range_at"]
+from starlog.errors import TruncatedLogError
+
+__all__ = ["BackgroundCopy", "copy_range", "copy_range_at"]
 
 _BLOCK = 64 * 1024 * 1024  # per kernel call: a copy that is asked to stop does so within one block
 _FALLBACK_BLOCK = 4 * 1024 * 1024
@@ -59,3 +62,47 @@ def copy_range_at(src_fd: int, dst_fd: int, offset: int, length: int, dst_offset
             break
         done += sent
     return done
+
+
+class BackgroundCopy:
+    """A log's data section (its first ``length`` bytes) copied to the start of an output, then ``fdatasync``-ed,
+    on a thread: the copy (hundreds of MB for a long log) and its disk writes overlap the work that writes the
+    rest of the output, and the final ``fsync`` has only those bytes left to write.
+
+    The copy is positional (:func:`copy_range_at`), so the rest of the output is written after the data section
+    meanwhile. An error is kept and raised by :meth:`wait`: Linux reports a failed write-back once per file, so
+    it must not be lost on this thread.
+    """
+
+    def __init__(self, src_fd: int, dst_fd: int, source: Path, length: int) -> None:
+        """``src_fd``, ``dst_fd``: descriptors the thread owns (and closes) of ``source`` and the output."""
+        self._error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._copy_and_sync, args=(src_fd, dst_fd, source, length),
+                                        name="starlog-writeback", daemon=True)
+        self._thread.start()
+
+    def _copy_and_sync(self, src_fd: int, dst_fd: int, source: Path, length: int) -> None:
+        try:
+            copied = copy_range_at(src_fd, dst_fd, 0, length, 0, stop=self._stop)
+            if self._stop.is_set():
+                return
+            if copied < length:
+                raise TruncatedLogError(source, "it ended while its data section was being copied")
+            getattr(os, "fdatasync", os.fsync)(dst_fd)  # macOS has no fdatasync
+        except BaseException as err:  # raised by wait(), in the thread that finishes the output
+            self._error = err
+        finally:
+            os.close(src_fd)
+            os.close(dst_fd)
+
+    def join(self) -> None:
+        """Stop the copy and wait for the thread (its error, if any, is dropped: the output is being discarded)."""
+        self._stop.set()
+        self._thread.join()
+
+    def wait(self) -> None:
+        """Wait for the copy and its write-back, and raise their error."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error

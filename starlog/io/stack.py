@@ -7,7 +7,10 @@ only what it adds — its chunks, message indexes and metadata, then the summary
 (a *sidecar*) — with every offset counted as if the data before it were there. The stack reads
 as the concatenation ``base data section + each sidecar's data + last sidecar's summary``, which
 is exactly the file the stage would have written; its SHA-256 is hashed from those same bytes,
-and :meth:`StackedLog.write_to` writes it once at the end.
+and :meth:`StackedLog.write_to` writes it once at the end. Most of those bytes are the base's data
+section, which no stage changes: :meth:`StackedLog.begin_output` starts copying it into the output
+(and syncing it to disk) on a thread before the stages run, and :meth:`PendingOutput.finish` adds
+the rest once the last sidecar is written.
 """
 
 from __future__ import annotations
@@ -22,13 +25,13 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from starlog.errors import CorruptLogError, InvalidParameterError, LogNotFoundError, OutputExistsError, OutputFolderError
-from starlog.io.bytecopy import copy_range
+from starlog.io.bytecopy import BackgroundCopy, copy_range_at
 from starlog.io.digest_cache import read_digest_cache, write_digest_cache
 from starlog.io.layout import DATA_END_RECORD_LEN, FOOTER_RECORD_LEN, MCAP_MAGIC, locate_data_end
 from starlog.io.resumable_sha256 import ResumableSha256
 from starlog.io.resumable_sha256 import available as resumable_available
 
-__all__ = ["StackedLog"]
+__all__ = ["PendingOutput", "StackedLog"]
 
 _COPY_BLOCK = 4 * 1024 * 1024
 
@@ -176,27 +179,19 @@ class StackedLog:
 
     def write_to(self, output: str | os.PathLike[str], *, force: bool = False) -> Path:
         """Write the log this stack stands for to ``output`` (temporary file, fsync, rename)."""
+        return self.begin_output(output, force=force).finish(self)
+
+    def begin_output(self, output: str | os.PathLike[str], *, force: bool = False) -> PendingOutput:
+        """Start writing ``output`` now: the base's data section is copied (and synced) on a thread.
+
+        Finish it with :meth:`PendingOutput.finish` given this stack or any stack extended from it;
+        :meth:`PendingOutput.discard` removes it.
+        """
         out = Path(output)
         if out.exists() and not force:
             raise OutputExistsError(out)
         OutputFolderError.check(out)
-        fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent or ".")
-        try:
-            umask = os.umask(0)
-            os.umask(umask)
-            os.fchmod(fd, 0o666 & ~umask)
-            with os.fdopen(fd, "wb") as dst:
-                for segment in (*self._segments, self._tail):
-                    _copy_range(segment, dst)
-                dst.flush()
-                os.fsync(dst.fileno())
-            os.replace(tmp, out)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        if isinstance(self._prefix_hash, ResumableSha256):  # for the provenance of the next stage
-            write_digest_cache(out, prefix=(self.data_end, self._prefix_hash.state()))
-        return out
+        return PendingOutput(out, self._segments[0])
 
     def __fspath__(self) -> str:
         if self.layers:
@@ -210,10 +205,72 @@ class StackedLog:
         return f"StackedLog({str(self)!r})"
 
 
-def _copy_range(segment: _Segment, dst: BinaryIO) -> None:
-    with open(segment.path, "rb") as src:
-        if copy_range(src, dst, segment.offset, segment.length) < segment.length:
-            raise CorruptLogError(segment.path, "it ended while it was being copied")
+class PendingOutput:
+    """A stack's output begun before the stack is complete (:meth:`StackedLog.begin_output`).
+
+    It goes to a temporary file beside the destination. The base's data section (most of the
+    bytes: the images) is copied there and synced on a thread while the stages write their sidecars;
+    :meth:`finish` copies the sidecars' records and the newest summary after it, waits for the
+    thread, syncs and renames the file into place.
+    """
+
+    def __init__(self, output: Path, base: _Segment) -> None:
+        if base.offset != 0:
+            raise InvalidParameterError(f"{base.path}: a stack's base data section starts at offset 0.")
+        self.output = output
+        self._base = base
+        self._done = False
+        fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent or ".")
+        self._fd, self._tmp = fd, Path(tmp)
+        self._copy: BackgroundCopy | None = None
+        try:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(fd, 0o666 & ~umask)  # mkstemp's 0600 would survive the rename
+            with open(base.path, "rb") as src:  # the thread copies from this very file, on descriptors of its own
+                self._copy = BackgroundCopy(os.dup(src.fileno()), os.dup(fd), base.path, base.length)
+        except BaseException:
+            self.discard()
+            raise
+
+    def finish(self, stack: StackedLog) -> Path:
+        """Write the rest of ``stack`` (the stack this output was begun for, or one extended from it)."""
+        if self._done:
+            raise InvalidParameterError(f"{self.output}: this output is already finished or discarded.")
+        if stack._segments[0] != self._base:
+            raise InvalidParameterError(f"{self.output} was begun for another base than {stack.base}.")
+        try:
+            position = self._base.length
+            for segment in (*stack._segments[1:], stack._tail):
+                with open(segment.path, "rb") as src:
+                    if copy_range_at(src.fileno(), self._fd, segment.offset, segment.length, position) < segment.length:
+                        raise CorruptLogError(segment.path, "it ended while it was being copied")
+                position += segment.length
+            assert self._copy is not None
+            self._copy.wait()
+            os.fsync(self._fd)
+            os.close(self._fd)
+            self._fd = -1
+            os.replace(self._tmp, self.output)
+            self._done = True
+        except BaseException:
+            self.discard()
+            raise
+        if isinstance(stack._prefix_hash, ResumableSha256):  # for the provenance of the next stage
+            write_digest_cache(self.output, prefix=(stack.data_end, stack._prefix_hash.state()))
+        return self.output
+
+    def discard(self) -> None:
+        """Stop the copy and remove the temporary file (nothing once :meth:`finish` has succeeded)."""
+        if self._done:
+            return
+        self._done = True
+        if self._copy is not None:
+            self._copy.join()
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+        self._tmp.unlink(missing_ok=True)
 
 
 class _ConcatenatedFile(io.RawIOBase):

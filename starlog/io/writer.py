@@ -6,7 +6,7 @@ Why not :class:`mcap.writer.Writer` directly? Two things it cannot do:
   a few kilobytes of centroids to a gigabyte of images must not decompress and re-compress
   the images. :class:`LogWriter` started with ``base=INPUT`` copies the input's data section
   byte for byte (every chunk, message index and metadata record keeps its offset; the kernel
-  copies it on a thread while the stage works, see :func:`~starlog.io.bytecopy.copy_range_at`),
+  copies it on a thread while the stage works, see :class:`~starlog.io.bytecopy.BackgroundCopy`),
   writes the new chunks after it,
   and ends with a summary that merges the input's (schemas, channels, chunk/metadata/attachment
   indexes, statistics) with the new records — what the
@@ -35,7 +35,6 @@ from __future__ import annotations
 import os
 import struct
 import tempfile
-import threading
 from collections import defaultdict, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -72,7 +71,7 @@ from starlog.errors import (
     OutputFolderError,
     TruncatedLogError,
 )
-from starlog.io.bytecopy import copy_range_at
+from starlog.io.bytecopy import BackgroundCopy
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
 from starlog.io.checksum import crc32, footer_crc
 from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
@@ -223,7 +222,7 @@ class LogWriter:
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
-        self._writeback: _Writeback | None = None
+        self._writeback: BackgroundCopy | None = None
         OutputFolderError.check(self.path)
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or ".")
         umask = os.umask(0)
@@ -543,7 +542,7 @@ class LogWriter:
                     raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
             # the thread copies from this very file (not the path: it may be replaced meanwhile), on
             # descriptors of its own (the writer's may be closed, and its number reused, before the copy ends)
-            self._writeback = _Writeback(os.dup(src.fileno()), os.dup(self._file.fileno()), base, data_end)
+            self._writeback = BackgroundCopy(os.dup(src.fileno()), os.dup(self._file.fileno()), base, data_end)
         self._file.seek(data_end)  # the new records go after the base's data section
         self._inherit(summary)
 
@@ -655,50 +654,6 @@ class _SummarySink:
         self.crc = crc32(data, self.crc)  # ISA-L when installed, as for the chunks
         self._file.write(data)
         self._parts, self._pending = [], 0
-
-
-class _Writeback:
-    """The base's data section copied into the output, then ``fdatasync``-ed, on a thread: the copy
-    (hundreds of MB for a long log) and its disk writes overlap the stage's work, and the final
-    ``fsync`` in :meth:`LogWriter.close` has only the new records left to write.
-
-    The copy is positional (:func:`~starlog.io.bytecopy.copy_range_at`), so the stage writes its
-    records after the data section meanwhile. An error is kept and raised by :meth:`wait`: Linux
-    reports a failed write-back once per file, so it must not be lost on this thread.
-    """
-
-    def __init__(self, src_fd: int, dst_fd: int, base: Path, length: int) -> None:
-        """``src_fd``, ``dst_fd``: descriptors the thread owns (and closes) of the base and the output."""
-        self._error: BaseException | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._copy_and_sync, args=(src_fd, dst_fd, base, length),
-                                        name="starlog-writeback", daemon=True)
-        self._thread.start()
-
-    def _copy_and_sync(self, src_fd: int, dst_fd: int, base: Path, length: int) -> None:
-        try:
-            copied = copy_range_at(src_fd, dst_fd, 0, length, 0, stop=self._stop)
-            if self._stop.is_set():
-                return
-            if copied < length:
-                raise TruncatedLogError(base, "it ended while its data section was being copied")
-            getattr(os, "fdatasync", os.fsync)(dst_fd)  # macOS has no fdatasync
-        except BaseException as err:  # raised by wait(), in the thread that closes the log
-            self._error = err
-        finally:
-            os.close(src_fd)
-            os.close(dst_fd)
-
-    def join(self) -> None:
-        """Stop the copy and wait for the thread (its error, if any, is dropped: the output is being discarded)."""
-        self._stop.set()
-        self._thread.join()
-
-    def wait(self) -> None:
-        """Wait for the copy and its write-back, and raise their error."""
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
 
 
 _checker_of = schema_checker
