@@ -199,7 +199,8 @@ def run_pipeline(
 
     Each stage reads the input and the sidecars of the stages before it as one log
     (:class:`~starlog.io.stack.StackedLog`) and writes only its own records; the output is
-    written once, at the end, and is the file the stages run one by one would have made.
+    written once (the input's data section while the stages work, their records at the end) and
+    is the file the stages run one by one would have made.
     With ``start`` / ``end`` the input is sliced once (:mod:`starlog.stages._slice`; ``frame:N``
     counts the first stage's input channel) and every stage sees only the slice: the output
     equals the first stage run with the same range, then the others without.
