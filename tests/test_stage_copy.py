@@ -231,6 +231,20 @@ def test_an_output_begun_before_the_sidecars_is_the_stack_written_at_the_end(sim
     assert (tmp_path / "begun.mcap").exists()
 
 
+def test_a_begun_output_is_the_same_when_its_records_are_written_before_the_base_copy(
+        sim_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The copy thread held until ``finish`` has written the sidecar's records and the summary after it."""
+    go = _held_copy(monkeypatch)
+    pending = StackedLog.of(sim_log).begin_output(tmp_path / "begun.mcap")
+    _, stacked = _stack_with_a_sidecar(sim_log, tmp_path)
+    release = threading.Timer(0.3, go.set)
+    release.start()
+    pending.finish(stacked)
+    release.join()
+    with stacked.open() as f:
+        assert (tmp_path / "begun.mcap").read_bytes() == f.read()
+
+
 def test_a_begun_output_refuses_another_base_and_a_second_finish(sim_log: Path, tmp_path: Path) -> None:
     other = tmp_path / "other.mcap"
     simulate_log(small_config(seed=7), other)

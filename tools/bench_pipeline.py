@@ -34,11 +34,14 @@ Printed as Markdown tables, every ratio from this one run:
    is the median over the repeats of each repeat's ratio, so both sides of a ratio see the machine
    at the same speed. (Before, it was the sampled ``algorithm`` time of the breakdown on the
    shortest log: a few tenths of a second of samples, which moved the ratio by 20 %.)
-6. the disk's floor: each stage's output grows by some bytes a frame (a stage's output holds its
-   input's data section, the images included); this folder's disk is timed writing
-   ``--disk-probe-mib`` MiB and syncing them (before and after a size's stages; the faster of the
-   two), and bytes a frame / that rate is the time a frame no stage writing its output can beat
-   here. The ``track`` and ``compensate`` targets say when their allowance is below that floor.
+6. the disk's estimated floor: each stage's output grows by some bytes a frame (a stage's output
+   holds its input's data section, the images included, and is synced before the command returns);
+   this folder's disk is timed writing ``--disk-probe-mib`` MiB and syncing them (before and after a
+   size's stages; the faster of the two), and bytes a frame / that rate estimates the time a frame
+   that writing the output takes here. The ``track`` and ``compensate`` targets say when their
+   allowance is below it. An estimate: a disk's rate varies (a virtual disk's by 2x from one hour
+   to the next), and a file system that shares blocks (Btrfs, XFS) does not write the copied data
+   section at all.
 
 Before any timed run, the centroid stage runs once on a few frames with every timed method, so the
 compiled kernels' first compilation (and its disk cache) is not timed.
@@ -294,8 +297,7 @@ def warm_up(log: Path, folder: Path, methods: list[str]) -> None:
     """Run the centroid stage once, untimed, on the first frames with every timed method: the compiled
     kernels are compiled then and cached on disk (on a fresh clone, or after a change of the code), so a
     compilation never lands in a timed run (it added seconds to one run and moved its peak memory)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    out = folder / "warm-up.mcap"
+    out = folder / ".warm-up.mcap"
     run_command([*STARLOG, "centroid", str(log), "-o", str(out), "--method", ",".join(methods), "--end", "frame:3",
                  "--workers", "1", "-q", "--force"])
     out.unlink(missing_ok=True)
@@ -374,9 +376,9 @@ class StageResult:
 
 
 def disk_write_rate(folder: Path, mib: int, block_mib: int = 8) -> float:
-    """Bytes per second this folder's disk takes, ``mib`` MiB written and synced (``fdatasync``) like a
-    stage's output: the bound no stage that writes its output can beat here. Random bytes, written
-    from one buffer, so neither compression nor the page cache's zero pages flatter the rate."""
+    """Bytes per second this folder's disk takes, ``mib`` MiB written and synced (``fdatasync``) as a
+    stage's output is. One block of random bytes written again and again: a compressing file system
+    does not flatter the rate (one that deduplicates would)."""
     block = os.urandom(block_mib << 20)
     path = folder / ".bench-disk-probe"
     try:
@@ -432,7 +434,7 @@ def bench_size(size: int, lengths: list[int], root: Path, args: argparse.Namespa
                 for m in args.methods]
         plan += [(label, n_all, argv, out) for label, argv, out in chain_commands(logs[n], root / f"{n}/all", n_all)]
         plans[n] = plan
-    warm_up(logs[lengths[0]], root / "warm-up", args.methods)
+    warm_up(logs[lengths[0]], root, args.methods)  # args.methods holds the pipeline's method too
     track_label = f"track {PIPELINE_MODEL}"
     tracker_times: list[float] = []  # the tracker alone, once after each repeat of the track stage
     disk_rates = [disk_write_rate(root, args.disk_probe_mib)]
@@ -664,15 +666,14 @@ def targets(sizes: list[dict[str, Any]], workers_all: int) -> list[tuple[str, bo
 
 
 def disk_note(s: dict[str, Any], stage: dict[str, Any], allowed: float) -> str:
-    """What writing ``stage``'s output costs a frame on this disk, against the ``allowed`` seconds a frame
-    of its target; flagged when the floor alone exceeds the allowance (at the disk's rate in this run, no code
-    writing that output can pass it; a virtual disk's rate varies by 2x from one hour to the next)."""
+    """What writing ``stage``'s output costs a frame on this disk (estimated from this run's probe), against the
+    ``allowed`` seconds a frame of its target; flagged when that alone exceeds the allowance."""
     floor = write_floor(stage.get("bytes_per_frame", math.nan), s.get("disk_rate", math.nan))
     if not math.isfinite(floor):
         return ""
     text = (f"; writing its output ({_f(stage['bytes_per_frame'] / 1e3)} KB a frame at "
             f"{_f(s['disk_rate'] / 1e6, 0)} MB/s) takes {_f(1e3 * floor, 2)} ms a frame, {_f(1e3 * allowed, 2)} allowed")
-    return text + (" — BELOW THE DISK'S FLOOR" if floor > allowed else "")
+    return text + (" — BELOW THE DISK'S ESTIMATED FLOOR" if floor > allowed else "")
 
 
 def print_report(sizes: list[dict[str, Any]], args: argparse.Namespace) -> None:

@@ -70,17 +70,25 @@ class BackgroundCopy:
     rest of the output, and the final ``fsync`` has only those bytes left to write.
 
     The copy is positional (:func:`copy_range_at`), so the rest of the output is written after the data section
-    meanwhile. An error is kept and raised by :meth:`wait`: Linux reports a failed write-back once per file, so
-    it must not be lost on this thread.
+    meanwhile. The thread works on duplicates of the descriptors it is given, which it closes: the caller's may
+    be closed, and their numbers reused, before the copy ends. An error is kept and raised by :meth:`wait`:
+    Linux reports a failed write-back once per file, so it must not be lost on this thread.
     """
 
     def __init__(self, src_fd: int, dst_fd: int, source: Path, length: int) -> None:
-        """``src_fd``, ``dst_fd``: descriptors the thread owns (and closes) of ``source`` and the output."""
         self._error: BaseException | None = None
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._copy_and_sync, args=(src_fd, dst_fd, source, length),
-                                        name="starlog-writeback", daemon=True)
-        self._thread.start()
+        owned: list[int] = []
+        try:
+            owned.append(os.dup(src_fd))
+            owned.append(os.dup(dst_fd))
+            self._thread = threading.Thread(target=self._copy_and_sync, args=(*owned, source, length),
+                                            name="starlog-writeback", daemon=True)
+            self._thread.start()
+        except BaseException:
+            for fd in owned:
+                os.close(fd)
+            raise
 
     def _copy_and_sync(self, src_fd: int, dst_fd: int, source: Path, length: int) -> None:
         try:
@@ -96,8 +104,9 @@ class BackgroundCopy:
             os.close(src_fd)
             os.close(dst_fd)
 
-    def join(self) -> None:
-        """Stop the copy and wait for the thread (its error, if any, is dropped: the output is being discarded)."""
+    def cancel(self) -> None:
+        """Stop the copy (between blocks) and wait for the thread; its error, if any, is dropped (the output
+        is being discarded). A sync already under way is waited for: it cannot be interrupted."""
         self._stop.set()
         self._thread.join()
 

@@ -227,8 +227,8 @@ class PendingOutput:
             umask = os.umask(0)
             os.umask(umask)
             os.fchmod(fd, 0o666 & ~umask)  # mkstemp's 0600 would survive the rename
-            with open(base.path, "rb") as src:  # the thread copies from this very file, on descriptors of its own
-                self._copy = BackgroundCopy(os.dup(src.fileno()), os.dup(fd), base.path, base.length)
+            with open(base.path, "rb") as src:  # the thread copies from this very file
+                self._copy = BackgroundCopy(src.fileno(), fd, base.path, base.length)
         except BaseException:
             self.discard()
             raise
@@ -249,8 +249,8 @@ class PendingOutput:
             assert self._copy is not None
             self._copy.wait()
             os.fsync(self._fd)
-            os.close(self._fd)
-            self._fd = -1
+            fd, self._fd = self._fd, -1
+            os.close(fd)
             os.replace(self._tmp, self.output)
             self._done = True
         except BaseException:
@@ -261,16 +261,24 @@ class PendingOutput:
         return self.output
 
     def discard(self) -> None:
-        """Stop the copy and remove the temporary file (nothing once :meth:`finish` has succeeded)."""
+        """Remove the temporary file and stop the copy (nothing once :meth:`finish` has succeeded).
+
+        The file goes first: the copy thread may be in a sync that cannot be interrupted, and an
+        interruption while it is waited for must not leave the file behind.
+        """
         if self._done:
             return
         self._done = True
-        if self._copy is not None:
-            self._copy.join()
-        if self._fd >= 0:
-            os.close(self._fd)
-            self._fd = -1
-        self._tmp.unlink(missing_ok=True)
+        try:
+            if self._fd >= 0:
+                fd, self._fd = self._fd, -1
+                os.close(fd)
+        finally:
+            try:
+                self._tmp.unlink(missing_ok=True)
+            finally:
+                if self._copy is not None:
+                    self._copy.cancel()
 
 
 class _ConcatenatedFile(io.RawIOBase):

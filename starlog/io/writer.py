@@ -444,7 +444,7 @@ class LogWriter:
             self._executor.shutdown(wait=True, cancel_futures=True)
         try:
             if self._writeback is not None:
-                self._writeback.join()
+                self._writeback.cancel()
             self._file.close()
         finally:
             self._tmp_path.unlink(missing_ok=True)
@@ -540,9 +540,8 @@ class LogWriter:
                     summary = synthesize_summary(base, src, data_end, known=summary).summary
                 except ValueError as err:
                     raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
-            # the thread copies from this very file (not the path: it may be replaced meanwhile), on
-            # descriptors of its own (the writer's may be closed, and its number reused, before the copy ends)
-            self._writeback = BackgroundCopy(os.dup(src.fileno()), os.dup(self._file.fileno()), base, data_end)
+            # the thread copies from this very file (not the path: it may be replaced meanwhile)
+            self._writeback = BackgroundCopy(src.fileno(), self._file.fileno(), base, data_end)
         self._file.seek(data_end)  # the new records go after the base's data section
         self._inherit(summary)
 
