@@ -114,6 +114,22 @@ def write_foxglove_compressed(src: Path, dst: Path, *, topic: str = "/camera/com
     return dst
 
 
+def write_numbers(dst: Path, count: int, *, padding: int = 0, chunk_size: int = 64, **writer_options: Any) -> Path:
+    """A small JSON log written by the ``mcap`` library: ``count`` messages ``{"n": t}`` on ``/numbers``
+    (each ``padding`` bytes longer), chunks of ``chunk_size`` bytes; ``writer_options`` go to its ``Writer``."""
+    from mcap.writer import Writer
+
+    with open(dst, "wb") as f:
+        writer = Writer(f, chunk_size=chunk_size, **writer_options)
+        writer.start()
+        channel = writer.register_channel("/numbers", "json", writer.register_schema("n", "jsonschema", b"{}"))
+        for t in range(count):
+            data = b'{"n": %d, "padding": "%s"}' % (t, b"x" * padding) if padding else b'{"n": %d}' % t
+            writer.add_message(channel, log_time=t, publish_time=t, data=data)
+        writer.finish()
+    return dst
+
+
 def write_plain(src: Path, dst: Path, *, use_chunking: bool = True, message_indexes: bool = True,
                 summary: bool = True, shuffle: bool = False, chunk_size: int = 1024 * 1024,
                 topic: str = topics.IMAGE) -> Path:

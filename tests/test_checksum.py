@@ -33,18 +33,10 @@ def test_the_summary_crc_is_the_one_the_mcap_library_writes_in_its_footer(tmp_pa
     """An independent oracle: the footer of a log written by the ``mcap`` library."""
     import struct
 
-    from mcap.writer import Writer
-
     from starlog.io.checksum import summary_crc
+    from tests.foreign_logs import write_numbers
 
-    path = tmp_path / "plain.mcap"
-    with open(path, "wb") as f:
-        writer = Writer(f, chunk_size=64)
-        writer.start()
-        channel = writer.register_channel("/n", "json", writer.register_schema("n", "jsonschema", b"{}"))
-        for t in range(5):
-            writer.add_message(channel, log_time=t, publish_time=t, data=b'{"n": %d}' % t)
-        writer.finish()
+    path = write_numbers(tmp_path / "plain.mcap", 5)
     data = path.read_bytes()
     footer = len(data) - 8 - 29
     opcode, _, summary_start, offsets_start, stored = struct.unpack_from("<BQQQI", data, footer)

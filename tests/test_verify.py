@@ -23,7 +23,7 @@ from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen, verify_log
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from tests.conftest import small_config
-from tests.foreign_logs import write_foxglove_compressed, write_plain, write_ros1, write_ros2
+from tests.foreign_logs import write_foxglove_compressed, write_numbers, write_plain, write_ros1, write_ros2
 
 
 def _verify_cli(path: Path) -> tuple[int, dict]:
@@ -251,16 +251,9 @@ def test_an_index_that_points_where_no_chunk_starts_leaves_its_chunk_unlisted(lo
 
 
 def test_a_summary_without_chunk_indexes_is_a_note_that_counts_the_chunks(tmp_path: Path) -> None:
-    from mcap.writer import IndexType, Writer
+    from mcap.writer import IndexType
 
-    path = tmp_path / "unindexed.mcap"
-    with open(path, "wb") as f:
-        writer = Writer(f, chunk_size=64, index_types=IndexType.ALL & ~IndexType.CHUNK)
-        writer.start()
-        channel = writer.register_channel("/numbers", "json", writer.register_schema("n", "jsonschema", b"{}"))
-        for t in range(3):
-            writer.add_message(channel, log_time=t, publish_time=t, data=b'{"n": %d, "padding": "%s"}' % (t, b"x" * 80))
-        writer.finish()
+    path = write_numbers(tmp_path / "unindexed.mcap", 3, padding=80, index_types=IndexType.ALL & ~IndexType.CHUNK)
     report = verify_log(path)
     assert report.ok and report.chunks == 3
     assert [(p.kind, p.detail) for p in report.problems] == [
@@ -341,16 +334,7 @@ def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
 def test_a_chunk_index_the_reader_refuses_is_a_damaged_summary(tmp_path: Path) -> None:
     """Its channel list of 8 bytes cannot hold (channel id, offset) pairs of 10: the reader refuses
     the summary, and so does verify, without claiming that the summary lists no chunk index."""
-    from mcap.writer import Writer
-
-    path = tmp_path / "odd.mcap"
-    with open(path, "wb") as f:
-        writer = Writer(f, chunk_size=64)
-        writer.start()
-        channel = writer.register_channel("/numbers", "json", writer.register_schema("n", "jsonschema", b"{}"))
-        for t in range(3):
-            writer.add_message(channel, log_time=t, publish_time=t, data=b'{"n": %d, "padding": "%s"}' % (t, b"x" * 80))
-        writer.finish()
+    path = write_numbers(tmp_path / "odd.mcap", 3, padding=80)
     data = bytearray(path.read_bytes())
     at = _summary_record(data, 0x08)
     struct.pack_into("<I", data, at + 9 + 32, 8)  # the first chunk index's pairs take 8 bytes

@@ -205,6 +205,24 @@ class StackedLog:
         return f"StackedLog({str(self)!r})"
 
 
+def temporary_output(output: Path) -> tuple[int, Path]:
+    """A new file beside ``output`` to write it in, renamed over it when complete: its descriptor and path.
+
+    Its permissions are those of a file the user creates (``mkstemp``'s 0600 would survive the rename
+    and make every log private).
+    """
+    fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent or ".")
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
+    except BaseException:
+        os.close(fd)
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return fd, Path(tmp)
+
+
 class PendingOutput:
     """A stack's output begun before the stack is complete (:meth:`StackedLog.begin_output`).
 
@@ -220,15 +238,11 @@ class PendingOutput:
         self.output = output
         self._base = base
         self._done = False
-        fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent or ".")
-        self._fd, self._tmp = fd, Path(tmp)
+        self._fd, self._tmp = temporary_output(output)
         self._copy: BackgroundCopy | None = None
         try:
-            umask = os.umask(0)
-            os.umask(umask)
-            os.fchmod(fd, 0o666 & ~umask)  # mkstemp's 0600 would survive the rename
             with open(base.path, "rb") as src:  # the thread copies from this very file
-                self._copy = BackgroundCopy(src.fileno(), fd, base.path, base.length)
+                self._copy = BackgroundCopy(src.fileno(), self._fd, base.path, base.length)
         except BaseException:
             self.discard()
             raise

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import os
 import struct
-import tempfile
 from collections import defaultdict, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -78,7 +77,7 @@ from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
 from starlog.io.layout import MCAP_MAGIC, locate_data_end
 from starlog.io.messages import decode_json
 from starlog.io.schemas import MessageType
-from starlog.io.stack import StackedLog
+from starlog.io.stack import StackedLog, temporary_output
 
 __all__ = ["Compression", "LogWriter", "MCAP_MAGIC", "VALIDATED_METADATA_KEY", "locate_data_end"]
 
@@ -224,11 +223,7 @@ class LogWriter:
         self._closed = False
         self._writeback: BackgroundCopy | None = None
         OutputFolderError.check(self.path)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or ".")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp's 0600 would survive the rename and make every log private
-        self._tmp_path = Path(tmp)
+        fd, self._tmp_path = temporary_output(self.path)
         self._file: BinaryIO = os.fdopen(fd, "w+b", buffering=1024 * 1024)
         try:
             if base is None:
