@@ -89,6 +89,14 @@ def write_options(f: F) -> F:
     return f
 
 
+FLATTEN_HELP = ("Write one self-contained log (every file of the input's chain and this stage's channels) instead "
+                "of a layer on the input: the file to share or archive.")
+
+
+def flatten_option(f: F) -> F:
+    return click.option("--flatten", is_flag=True, help=FLATTEN_HELP)(f)
+
+
 def json_option(f: F) -> F:
     return click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")(f)
 
@@ -109,7 +117,8 @@ def time_range_options(what: str) -> Callable[[F], F]:
                               "Default: after the last message.")(f)
         f = click.option("--start", metavar="TIME",
                          help=f"Keep and process only messages from this time on (inclusive): "
-                              f"{RANGE_HELP.format(what=what)}. The output holds [start, end) of every channel. "
+                              f"{RANGE_HELP.format(what=what)}. The stage reads [start, end) of every channel; "
+                              "its channels hold that range. "
                               "Default: the first message.")(f)
         return f
 
@@ -127,8 +136,10 @@ def image_topic_option(f: F) -> F:
 def cli() -> None:
     """starlog: star-tracker centroid extraction, with every step kept in MCAP logs.
 
-    A log starts as image frames (simulate, ingest) and each stage writes a new log with its
-    channels added. Open any log in Foxglove; export tables to Parquet.
+    A log starts as image frames (simulate, ingest); each stage writes a layer on it holding
+    only the channels it adds, and names the log it extends. Every command reads a layer with
+    its chain as one log; open the files together in Foxglove; flatten makes one file of them;
+    export tables to Parquet.
 
     Pixel coordinates: x = column, y = row, (0, 0) at the centre of the top-left pixel.
     Times: integer nanoseconds (log_time).
@@ -390,7 +401,7 @@ def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], export
             for name, rows in written.items():
                 click.echo(f"{output / (name + '.parquet')}: {rows} rows")
         return
-    tasks = [BatchTask(str(log), export_log, (str(log), str(output / log.stem)),
+    tasks = [BatchTask(str(log), export_log, (str(log.absolute()), str((output / log.stem).absolute())),
                        {"tables": selected, "force": force, "topics": export_topics}) for log in logs]
     outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet, description="export")
     _report_batch(outcomes, as_json, lambda r: ", ".join(f"{k} {v} rows" for k, v in r.items()))
@@ -440,15 +451,17 @@ def _key_values(values: tuple[str, ...], option: str) -> dict[str, Any]:
                    "in the provenance and shown by info.")
 @time_range_options("the image channel")
 @json_option
+@flatten_option
 @write_options
 def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float | None, read_noise: float | None,
              settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, hot_pixels: str | None,
-             phase_correction: str, start: str | None, end: str | None, as_json: bool, force: bool, compression: str,
-             workers: int, quiet: bool) -> None:
+             phase_correction: str, start: str | None, end: str | None, as_json: bool, flatten: bool, force: bool,
+             compression: str, workers: int, quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
 
-    Adds /stars/detections, /stars/centroids/<METHOD> per method and /stars/annotations
-    (circles over the frames in Foxglove) to a copy of the log.
+    Writes a layer on the log (the frames stay in the input) holding /stars/detections,
+    /stars/centroids/<METHOD> per method and /stars/annotations (circles over the frames in
+    Foxglove); reading the layer reads the whole log.
 
     \b
     Example:
@@ -464,7 +477,8 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
     summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise, psf=psf,
                            options=_key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
                            workers=workers, force=force, compression=compression, show_progress=not quiet,
-                           hot_pixels=hot_pixels, phase_correction=phase_correction, start=start, end=end)
+                           hot_pixels=hot_pixels, phase_correction=phase_correction, start=start, end=end,
+                           flatten=flatten)
     d = summary.to_dict()
     for note in d["notes"]:
         click.echo(f"note: {note}", err=True)
@@ -495,14 +509,16 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
               help="Process noise (q_floor, q_position, q_velocity, tau, q_acceleration, q_jerk). Repeatable.")
 @time_range_options("the centroid channel")
 @json_option
+@flatten_option
 @write_options
 def track(log: Path, output: Path, method: str, models: str, settings: tuple[str, ...], motion: tuple[str, ...],
-          start: str | None, end: str | None, as_json: bool, force: bool, compression: str, workers: int,
-          quiet: bool) -> None:
+          start: str | None, end: str | None, as_json: bool, flatten: bool, force: bool, compression: str,
+          workers: int, quiet: bool) -> None:
     """Track every star with an Unscented Kalman Filter under each motion model.
 
-    Adds /track/<METHOD>/<MODEL> per model: filtered position, covariance, innovation, NIS,
-    gating and track id of every star in every frame; the brightest star's track is marked.
+    Writes a layer on the log holding /track/<METHOD>/<MODEL> per model: filtered position,
+    covariance, innovation, NIS, gating and track id of every star in every frame; the
+    brightest star's track is marked.
 
     \b
     Example:
@@ -513,7 +529,7 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
 
     summary = track_log(log, output, method=method, models=models, tracker=_key_values(settings, "--set"),
                         motion=_key_values(motion, "--motion"), force=force, compression=compression,
-                        workers=workers, show_progress=not quiet, start=start, end=end)
+                        workers=workers, show_progress=not quiet, start=start, end=end, flatten=flatten)
     d = summary.to_dict()
     _status(quiet, f"wrote {output}: {d['frames']} frames of {d['method']} centroids")
     if as_json:
@@ -553,15 +569,18 @@ BURN_IN_HELP = ("The tracking filter's start-up skipped before scoring: auto (un
                    "tol, max_rejections). Repeatable.")
 @time_range_options("the (first) track channel")
 @json_option
+@flatten_option
 @write_options
 def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings: tuple[str, ...], start: str | None,
-           end: str | None, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
+           end: str | None, as_json: bool, flatten: bool, force: bool, compression: str, workers: int,
+           quiet: bool) -> None:
     """Fit the platform motion to all tracked stars; each star's residual is its centroid error alone.
 
     Per frame, a weighted least-squares fit of the stars' measured positions (meas_x, meas_y of
     the track channel) to their static positions, estimated jointly over the log; stars more
-    than k_sigma off the fit are left out and flagged. Adds /platform/<METHOD>/<MODEL> (dx, dy,
-    roll, 1-sigma, stars used, residual RMS) and /stars/residuals/<METHOD>/<MODEL>. Frames with
+    than k_sigma off the fit are left out and flagged. Writes a layer on the log holding
+    /platform/<METHOD>/<MODEL> (dx, dy, roll, 1-sigma, stars used, residual RMS) and
+    /stars/residuals/<METHOD>/<MODEL>. Frames with
     fewer than 3 usable stars get no motion. The per-star noise printed is each star's centroid
     noise measured without a simulator.
 
@@ -573,7 +592,8 @@ def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings:
     from starlog.stages.motion import motion_log
 
     summary = motion_log(log, output, track=track_topic, model=fit, options=_key_values(settings, "--set"),
-                         force=force, compression=compression, workers=workers, start=start, end=end)
+                         force=force, compression=compression, workers=workers, start=start, end=end,
+                         flatten=flatten)
     d = summary.to_dict()
     _status(quiet, f"wrote {output}: {fit} platform motion of {len(d['channels'])} track channel(s)")
     if as_json:
@@ -625,6 +645,7 @@ def format_records(records: list[dict[str, Any]]) -> str:
                    "rollback_threshold, leakfree_reference). Repeatable.")
 @time_range_options("the (first) track channel")
 @json_option
+@flatten_option
 @click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
 @click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
               help="Chunk compression of the output log.")
@@ -634,13 +655,14 @@ def format_records(records: list[dict[str, Any]]) -> str:
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
 @click.option("--burn-in", "burn_in", default="auto", show_default=True, metavar="auto|off|SECONDS", help=BURN_IN_HELP)
 def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str, motion: str,
-               settings: tuple[str, ...], start: str | None, end: str | None, as_json: bool, force: bool,
-               compression: str, workers: int, quiet: bool, burn_in: str) -> None:
+               settings: tuple[str, ...], start: str | None, end: str | None, as_json: bool, flatten: bool,
+               force: bool, compression: str, workers: int, quiet: bool, burn_in: str) -> None:
     """Decompose the brightest star's error, select strategies and compensate (paper 2.2-2.5).
 
     For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
-    strategies with rollback below 1 %, under each protocol. Adds the series before/after and
-    one decision record per (rate, protocol) on /compensated/<METHOD>/<MODEL>/decisions.
+    strategies with rollback below 1 %, under each protocol. Writes a layer on the log holding
+    the series before/after and one decision record per (rate, protocol) on
+    /compensated/<METHOD>/<MODEL>/decisions.
 
     \b
     Example:
@@ -657,7 +679,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
                              options=_key_values(settings, "--set"), motion=motion, workers=workers,
                              show_progress=not quiet, force=force, compression=compression, start=start, end=end,
-                             burn_in=_burn_in_option(burn_in))
+                             burn_in=_burn_in_option(burn_in), flatten=flatten)
     _status(quiet, f"wrote {output}: {len(summary.records)} decision records")
     if as_json:
         _print_json(summary.to_dict())
@@ -689,15 +711,21 @@ def _batch_report(output: Path, force: bool) -> str:
 @time_range_options("the first stage's input channel (the image channel for centroid)")
 @scheduler_option
 @json_option
+@click.option("--flatten", is_flag=True, help="Write OUTPUT as one self-contained log (the input and every stage's "
+                                               "channels) instead of a chain of layers (the layers are removed).")
 @write_options
 def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, print_config: bool, full_table: bool,
-        start: str | None, end: str | None, scheduler: str | None, as_json: bool, force: bool, compression: str,
-        workers: int, quiet: bool) -> None:
+        start: str | None, end: str | None, scheduler: str | None, as_json: bool, flatten: bool, force: bool,
+        compression: str, workers: int, quiet: bool) -> None:
     """Replay logs through several stages (centroid, track, compensate) from one config file.
 
     Each stage's parameters come from its table in the TOML config; your own stages run after
-    them from [stages.NAME] tables (uses = "module:function"). The result equals running
-    the stages one by one. One log: --workers sets the cores for per-frame work, and an HTML
+    them from [stages.NAME] tables (uses = "module:function"). Each stage writes a layer on the
+    one before it: OUT.1-centroid.mcap, OUT.2-track-NONE.mcap, ... and the last one OUT itself,
+    each the file the stage run alone gives; reading OUT reads them all with the input (open
+    them together in Foxglove). With --flatten, OUT is then the whole chain as one
+    self-contained log (what `starlog flatten` gives), and the other layers are removed. One
+    log: --workers sets the cores for per-frame work, and an HTML
     report (figures of every stage, see `starlog report`) is written beside the output with
     the suffix .html; a short summary points to it. Several logs:
     they run in parallel on a Dask cluster (--scheduler, or a local one with --workers), a
@@ -722,8 +750,9 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
         from starlog.batch import BatchTask, run_batch
 
         output.mkdir(parents=True, exist_ok=True)
-        tasks = [BatchTask(str(log), run_pipeline_task, (str(log), str(output / log.name), config),
-                           {"force": force, "compression": compression, "start": start, "end": end}) for log in logs]
+        options = {"force": force, "flatten": flatten, "compression": compression, "start": start, "end": end}
+        tasks = [BatchTask(str(log), run_pipeline_task, (str(log.absolute()), str((output / log.name).absolute()),
+                                                          config), options) for log in logs]
         outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet,
                              description="run")
         reports = {o.result["output"]: _batch_report(Path(o.result["output"]), force) for o in outcomes if o.ok}
@@ -748,8 +777,11 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
     report_path = output.with_suffix(".html") if output.suffix != ".html" else output.with_name(output.name + ".html")
     if report_path.exists() and not force:
         raise OutputExistsError(report_path)
-    result = run_pipeline(logs[0], output, config, workers=workers, force=force, compression=compression,
-                          show_progress=not quiet, on_stage=report, start=start, end=end)
+    result = run_pipeline(logs[0], output, config, workers=workers, force=force, flatten=flatten,
+                          compression=compression, show_progress=not quiet, on_stage=report, start=start, end=end)
+    if result.layers:
+        _status(quiet, f"wrote {len(result.layers)} layers on {logs[0]}: "
+                       f"{', '.join(str(p) for p in result.layers)}")
     _status(quiet, f"wrote {output}; inspect it with: starlog info {output}; tables: starlog export {output} -o DIR")
     write_report(output, report_path)
     _status(quiet, f"wrote {report_path}")
@@ -954,7 +986,9 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
 
     Keeps every complete message (chunks whose bytes are whole and whose CRC checks) and the
     provenance records, and reports what was lost: damaged or cut-off chunks with their time
-    range and, where the file still says, the channels and message counts they held.
+    range and, where the file still says, the channels and message counts they held. A layer
+    stays a layer on its base when the base is there, unchanged; else its own records are
+    recovered into a file that opens alone.
 
     \b
     Example:
@@ -969,6 +1003,10 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
         return
     click.echo(f"wrote {output}: {sum(report.kept_by_topic.values())} messages kept"
                f"{'' if report.had_footer else f', the last {report.tail_bytes_lost} bytes were unreadable'}")
+    if report.base:
+        click.echo(f"  a layer on {report.base}, as the input was")
+    if report.base_note:
+        click.echo(f"  note: {report.base_note}")
     for topic, count in sorted(report.kept_by_topic.items()):
         lo, hi = report.kept_time_range[topic]
         click.echo(f"  kept {topic}: {count} messages, log_time {lo}..{hi}")
@@ -983,43 +1021,91 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
 # ---------------------------------------------------------------- verify
 @cli.command(context_settings=CONTEXT)
 @input_log
+@click.option("--file-only", is_flag=True, help="Check this one file alone, not the bases of a layer.")
 @json_option
 @click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
-def verify(log: Path, as_json: bool, quiet: bool) -> None:
-    """Check every record of an MCAP file and report every problem found (like `mcap doctor`).
+def verify(log: Path, file_only: bool, as_json: bool, quiet: bool) -> None:
+    """Check every record of an MCAP log and report every problem found (like `mcap doctor`).
 
     Checks magic, header, footer, the summary and its CRC, every chunk (CRC, decompression),
     message and chunk indexes against the contents, statistics, schema/channel references,
     JSON messages against their schemas, protobuf/ROS decoding, image decoding and size, and
     log_time order per channel. Valid but unusual layouts (no message indexes, no summary) are
-    notes. Exit status 0 only when no error was found.
+    notes. A layer is checked with every file of its chain: each base must be where the layer
+    says, with the size, summary CRC and SHA-256 it recorded, and ids and topics must be unique
+    across the chain (--file-only: the one file). Exit status 0 only when no error was found.
 
     \b
     Example:
       starlog verify sim.mcap
-      starlog verify bag.mcap --json | jq '.problems[] | select(.severity == "error")'
+      starlog verify result.mcap --file-only
+      starlog verify bag.mcap --json | jq '.files[].problems[] | select(.severity == "error")'
     """
     from tqdm import tqdm
 
     from starlog.io.verify import verify_log
 
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
     with tqdm(total=log.stat().st_size, desc="verify", unit="B", unit_scale=True, leave=False, dynamic_ncols=True,
               disable=True if quiet else None) as bar:  # None: shown on a terminal only
-        report = verify_log(log, on_progress=lambda done: bar.update(done - bar.n))
+        report = verify_log(log, chain=not file_only, on_progress=progress)
     if as_json:
         _print_json(report.to_dict())
     else:
-        shown: dict[str, int] = {}
-        for problem in report.problems:
-            shown[problem.kind] = shown.get(problem.kind, 0) + 1
-            if shown[problem.kind] <= 20:
-                click.echo(problem.line())
-        for kind, count in shown.items():
-            if count > 20:
-                click.echo(f"... {count - 20} more {kind} problems (all of them with --json)")
+        for file in report.files:
+            if len(report.files) > 1:
+                click.echo(f"{file.path}:")
+            _print_problems(file.problems)
+            if len(report.files) > 1:
+                click.echo(f"  {file.verdict()}")
+        _print_problems(report.chain_problems)
         click.echo(report.verdict())
     if not report.ok:
         sys.exit(1)
+
+
+def _print_problems(problems: list[Any]) -> None:
+    """One line per problem, at most 20 of a kind (all of them with --json)."""
+    shown: dict[str, int] = {}
+    for problem in problems:
+        shown[problem.kind] = shown.get(problem.kind, 0) + 1
+        if shown[problem.kind] <= 20:
+            click.echo(problem.line())
+    for kind, count in shown.items():
+        if count > 20:
+            click.echo(f"... {count - 20} more {kind} problems (all of them with --json)")
+
+
+# ---------------------------------------------------------------- flatten
+@cli.command(context_settings=CONTEXT)
+@input_log
+@output_option("Output log (.mcap): one self-contained file. Written atomically.")
+@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@json_option
+def flatten(log: Path, output: Path, force: bool, quiet: bool, as_json: bool) -> None:
+    """Write a layer and its chain (the log it extends, and so on) as one self-contained log.
+
+    Every message, schema, metadata and attachment record of the chain's files is kept; chunks are
+    copied byte for byte (nothing is decompressed or re-compressed). The records by which layers
+    name their bases are left out: the output holds the bases. Use it for the file to share or
+    archive, or for tools that read one file; every starlog command reads a chain as it is.
+
+    \b
+    Example:
+      starlog flatten result.mcap -o result-all.mcap
+    """
+    from starlog.io.slicing import flatten_log
+
+    report = flatten_log(log, output, force=force)
+    d = report.to_dict()
+    _status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} channels, "
+                   f"{d['chunks_copied']} chunks copied as they are")
+    if as_json:
+        _print_json(d)
 
 
 # ---------------------------------------------------------------- installed stages
@@ -1072,14 +1158,16 @@ def stage_command(declared: Any, name: str) -> click.Command:
                   help="Option of the stage (values parsed as JSON when they can be). Repeatable.")
     @time_range_options(f"the {declared.reads} channel the stage reads")
     @json_option
+    @flatten_option
     @write_options
     def command(log: Path, output: Path, input_topic: str | None, settings: tuple[str, ...], start: str | None,
-                end: str | None, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
+                end: str | None, as_json: bool, flatten: bool, force: bool, compression: str, workers: int,
+                quiet: bool) -> None:
         from starlog.stages.custom import run_stage
 
         summary = run_stage(declared, log, output, options=_key_values(settings, "--set"), input_topic=input_topic,
                             workers=workers, force=force, compression=compression, show_progress=not quiet,
-                            start=start, end=end)
+                            start=start, end=end, flatten=flatten)
         d = summary.to_dict()
         for note in d["notes"]:
             click.echo(f"note: {note}", err=True)

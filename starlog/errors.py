@@ -17,6 +17,7 @@ __all__ = [
     "LogNotFoundError",
     "TruncatedLogError",
     "CorruptLogError",
+    "BaseMismatchError",
     "ChannelNotFoundError",
     "MessageDecodeError",
     "OutputExistsError",
@@ -87,6 +88,21 @@ class NotMcapError(CorruptLogError):
         super().__init__(path, "is not an MCAP file (it does not start with the MCAP magic bytes).")
 
 
+class BaseMismatchError(LogError):
+    """A layer's base (the log it extends) is missing or is not the file the layer was written on.
+
+    Names the layer, the file it expects (where, its size and SHA-256) and how to fix it.
+    """
+
+    def __init__(self, layer: str | Path, base: str | Path, expected: str, problem: str) -> None:
+        self.base = Path(base)
+        super().__init__(
+            layer,
+            f"its base {self.base} {problem}; the layer was written on {expected}. Put that file back at this "
+            "path (a layer and its base move together, the base is found relative to the layer), or run the "
+            "stage again on the base you have.")
+
+
 class OutputFolderError(StarlogError, FileNotFoundError):
     """The folder an output should be written to does not exist."""
 
@@ -130,7 +146,7 @@ class OutputExistsError(StarlogError, FileExistsError):
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        super().__init__(f"{self.path} exists already; pass --force (force=True) to overwrite it.")
+        super().__init__(f"{self.path} exists already; pass --force to overwrite it.")
 
 
 class ImageFolderError(StarlogError):

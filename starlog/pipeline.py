@@ -1,11 +1,13 @@
 """``starlog run``: replay a log through several stages from one TOML config file.
 
 A config has one table per stage, run in the order centroid → track → compensate; a stage
-whose table is absent is skipped. Each stage writes only what it adds (a sidecar beside the
-output, removed at the end) and reads its input and the sidecars before it as one log; the
-output is written once and has the same bytes as running the stages one by one with the same
-options. The built-in config is :data:`DEFAULT_CONFIG_TOML` (``starlog run --print-config``
-prints it).
+whose table is absent is skipped. Each stage writes a layer (:mod:`starlog.io.chain`) on the
+one before it: ``run LOG -o OUT.mcap`` writes ``OUT.1-centroid.mcap``, ``OUT.2-track-NONE.mcap``,
+... and the last stage's layer as ``OUT.mcap`` itself, each file the bytes the stage run alone
+with the same options and output name gives; reading ``OUT.mcap`` reads the whole chain. With
+``flatten``, ``OUT.mcap`` is then the chain flattened into one self-contained log, and the other
+layers are removed. The built-in config is :data:`DEFAULT_CONFIG_TOML` (``starlog run
+--print-config`` prints it).
 
 Your own stages (:mod:`starlog.stage_api`) come after the built-in ones: one table
 ``[stages.NAME]`` each, with ``uses = "package.module:function"`` (or an installed stage's
@@ -24,20 +26,20 @@ from typing import TYPE_CHECKING, Any
 
 from starlog.compensate import MIN_SAMPLES, decimation_indices
 from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.io.reader import LogReader
-from starlog.io.stack import StackedLog
+from starlog.io.reader import LogReader, LogSource
+from starlog.io.slicing import flatten_log
 from starlog.io.timerange import TimeRange
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
-from starlog.stages._slice import sliced_stack
+from starlog.stages._slice import window_of
 from starlog.stages.custom import run_stage
 from starlog.stages.track import track_log
 
 if TYPE_CHECKING:
     from starlog.stage_api import Stage
 
-__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "load_config", "run_pipeline",
-           "run_pipeline_task"]
+__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "layer_paths", "load_config",
+           "run_pipeline", "run_pipeline_task"]
 
 #: The built-in config, a starting point for your own (``starlog run --print-config``).
 DEFAULT_CONFIG_TOML = """\
@@ -134,18 +136,21 @@ class PipelineResult:
 
     output: Path
     stages: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+    layers: list[Path] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"output": str(self.output), "stages": [{"stage": s, **r} for s, r in self.stages]}
+        return {"output": str(self.output), "layers": [str(p) for p in self.layers],
+                "stages": [{"stage": s, **r} for s, r in self.stages]}
 
 
-Step = Callable[[StackedLog, Path], dict[str, Any]]
+Step = Callable[[LogSource, Path], dict[str, Any]]
 
 
 def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progress: bool) -> list[tuple[str, Step]]:
-    """Every stage run of ``config``, in order, as ``(name, step(input, sidecar) -> report)``."""
+    """Every stage run of ``config``, in order, as ``(name, step(input, layer) -> report)``; a step overwrites its
+    layer (the caller refuses existing files first, unless told to overwrite them)."""
     steps: list[tuple[str, Step]] = []
-    common: dict[str, Any] = {"compression": compression}
+    common: dict[str, Any] = {"compression": compression, "force": True}
     if config.centroid is not None:
         c = config.centroid
         steps.append(("centroid", lambda i, o: centroid_log(
@@ -189,44 +194,66 @@ def run_pipeline(
     *,
     workers: int = 1,
     force: bool = False,
+    flatten: bool = False,
     compression: str = "zstd",
     show_progress: bool = False,
     on_stage: Callable[[str, dict[str, Any]], None] | None = None,
     start: str | int | None = None,
     end: str | int | None = None,
 ) -> PipelineResult:
-    """Run the stages of ``config`` on ``input_path``; the final log goes to ``output_path``.
+    """Run the stages of ``config`` on ``input_path``, each writing a layer on the one before it
+    (:func:`layer_paths`); the last one is ``output_path``.
 
-    Each stage reads the input and the sidecars of the stages before it as one log
-    (:class:`~starlog.io.stack.StackedLog`) and writes only its own records; the output is
-    written once (the input's data section while the stages work, their records at the end) and
-    is the file the stages run one by one would have made.
-    With ``start`` / ``end`` the input is sliced once (:mod:`starlog.stages._slice`; ``frame:N``
-    counts the first stage's input channel) and every stage sees only the slice: the output
-    equals the first stage run with the same range, then the others without.
+    With ``flatten``, ``output_path`` is then rewritten as the whole chain in one self-contained file
+    (the bytes ``starlog flatten`` of the layers gives) and the other layers are removed. With ``start`` / ``end`` the first stage runs on that window
+    of the input (``frame:N`` counts its input channel) and the others on what it wrote: the layers
+    are those of the first stage run with the same range, then the others without. If a stage fails,
+    the layers this run wrote are removed.
     """
     output = Path(output_path)
-    if output.exists() and not force:
-        raise OutputExistsError(output)
     steps = _steps(config, workers=workers, compression=compression, show_progress=show_progress)
     if not steps:
         raise InvalidParameterError(f"{config.source}: the config runs no stage.")
-    result = PipelineResult(output=output)
     frame_topic, options = _frame_channel(config)
-    with sliced_stack(input_path, output, TimeRange.parse(start, end), frame_topic, options,
-                      compression=compression) as stack:
-        _check_long_enough(stack, config, frame_topic, options)
-        _run_steps(stack, steps, output, result, force=force, on_stage=on_stage)
+    source = window_of(input_path, TimeRange.parse(start, end), lambda log: frame_topic(log, options))
+    _check_long_enough(source, config, frame_topic, options)
+    result = PipelineResult(output=output, layers=layer_paths(output, [name for name, _ in steps]))
+    _refuse_existing(result.layers, force=force)
+    _run_steps(source, steps, result.layers, result, on_stage=on_stage)
+    if flatten:
+        try:
+            flatten_log(output, output, force=True)
+        finally:
+            for layer in result.layers[:-1]:
+                layer.unlink(missing_ok=True)
+        result.layers = []
     return result
 
 
-def _check_long_enough(stack: StackedLog, config: PipelineConfig, frame_topic: Any, options: dict[str, Any]) -> None:
+def layer_paths(output: Path, stages: list[str]) -> list[Path]:
+    """The file of each stage's layer in ``run ... -o OUTPUT``: ``OUTPUT`` for the last, ``STEM.N-STAGE.SUFFIX``
+    beside it for the others (numbered in chain order)."""
+    return [output.with_name(f"{output.stem}.{i}-{_slug(name)}{output.suffix}") for i, name in
+            enumerate(stages[:-1], 1)] + [output]
+
+
+def _slug(stage: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "-" for c in stage.replace(" ", "-"))
+
+
+def _refuse_existing(paths: list[Path], *, force: bool) -> None:
+    for path in paths:
+        if path.exists() and not force:
+            raise OutputExistsError(path)
+
+
+def _check_long_enough(source: LogSource, config: PipelineConfig, frame_topic: Any, options: dict[str, Any]) -> None:
     """Fail before any stage runs when a ``[compensate]`` rate would leave fewer samples than the error
     decomposition needs under any protocol (:data:`~starlog.compensate.MIN_SAMPLES`), rather than after the
     other stages' work. (The leak-free protocol needs twice as many; the compensate stage checks that.)"""
     if config.compensate is None:
         return
-    with LogReader(stack) as log:
+    with LogReader(source) as log:
         channel = log.channel(frame_topic(log, options))
     native = channel.rate_hz
     for target in sorted(float(r) for r in config.compensate["rates"]):
@@ -242,37 +269,30 @@ def _check_long_enough(stack: StackedLog, config: PipelineConfig, frame_topic: A
                 "or higher rates in [compensate].")
 
 
-def _run_steps(stack: StackedLog, steps: list[tuple[str, Step]], output: Path, result: PipelineResult, *,
-               force: bool, on_stage: Callable[[str, dict[str, Any]], None] | None) -> None:
-    """Each step on the stack of the ones before; the output written once from the last stack.
-
-    The output is begun first: the input's data section (the images) is copied into it and synced
-    to disk on a thread while the steps work, and the steps' records are added at the end.
-    """
-    sidecars: list[Path] = []
-    pending = stack.begin_output(output, force=force)
+def _run_steps(source: LogSource, steps: list[tuple[str, Step]], layers: list[Path], result: PipelineResult, *,
+               on_stage: Callable[[str, dict[str, Any]], None] | None) -> None:
+    """Each step on the layer of the one before (the first on ``source``); on failure, the layers written by
+    this run are removed."""
+    written: list[Path] = []
     try:
-        for name, step in steps:
-            sidecar = output.with_name(f".{output.name}.{len(sidecars)}.sidecar")
-            sidecar.unlink(missing_ok=True)
-            report = step(stack, sidecar)
-            sidecars.append(sidecar)
-            stack = stack.extend(sidecar)
+        for (name, step), layer in zip(steps, layers, strict=True):
+            report = step(source, layer)
+            written.append(layer)
+            source = layer
             result.stages.append((name, report))
             if on_stage:
                 on_stage(name, report)
-        pending.finish(stack)
-    finally:
-        pending.discard()
-        for path in sidecars:
+    except BaseException:
+        for path in written:
             path.unlink(missing_ok=True)
+        raise
 
 
 def run_pipeline_task(input_path: str, output_path: str, config: PipelineConfig, *, force: bool = False,
-                      compression: str = "zstd", start: str | int | None = None,
+                      flatten: bool = False, compression: str = "zstd", start: str | int | None = None,
                       end: str | int | None = None) -> dict[str, Any]:
     """One log of a batch (a picklable top-level function for Dask): serial per-frame work, JSON-ready result."""
-    return run_pipeline(input_path, output_path, config, workers=1, force=force,
+    return run_pipeline(input_path, output_path, config, workers=1, force=force, flatten=flatten,
                         compression=compression, start=start, end=end).to_dict()
 
 

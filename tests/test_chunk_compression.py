@@ -8,7 +8,7 @@ import numpy as np
 import zstandard
 
 from starlog.io import LogReader, LogWriter, encode_json, encode_raw_image, json_message_type, protobuf_message_type
-from starlog.io.scan import decompress
+from starlog.io.layout import decompress
 from starlog.io.writer import ZSTD_LEVEL
 
 
@@ -16,7 +16,7 @@ def _chunks_by_topic(path: Path) -> dict[str, list[tuple[bytes, bytes]]]:
     """``topic -> [(compressed, uncompressed)]`` of every chunk (one channel per chunk)."""
     out: dict[str, list[tuple[bytes, bytes]]] = {}
     with LogReader(path) as log, open(path, "rb") as f:
-        summary = log.summary
+        summary = log.files[-1].summary
         for ci in summary.chunk_indexes:
             (cid,) = ci.message_index_offsets
             f.seek(ci.chunk_start_offset + ci.chunk_length - ci.compressed_size)

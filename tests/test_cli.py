@@ -149,6 +149,7 @@ QUIET_COMMANDS = {
     "export": (["export", "sim.mcap", "cen.mcap", "-o", "OUT", "--workers", "1"], False),
     "filter": (["filter", "sim.mcap", "-o", "OUT.mcap", "--topic", "/camera/*", "--end", "frame:10"], True),
     "verify": (["verify", "sim.mcap"], False),
+    "flatten": (["flatten", "trk.mcap", "-o", "OUT.mcap"], True),
 }
 
 

@@ -150,7 +150,7 @@ def test_a_stage_runs_on_a_time_slice_and_records_the_range(stage_folder: Path, 
     records = _payloads(out, "/stars/brightest/GAUSSFIT")
     assert [r["frame"] for r in records] == list(range(10, 30))
     with LogReader(out) as log:
-        assert log.channel("/stars/centroids/GAUSSFIT").message_count == 20  # the input is sliced too
+        assert log.channel("/stars/centroids/GAUSSFIT").message_count == 80  # the input is whole
         last = log.provenance()[-1]
     assert last.stage == "brightest_flux"
     assert (last.parameters["range"]["start"], last.parameters["range"]["end"]) == ("frame:10", "frame:30")
@@ -268,24 +268,28 @@ def test_run_with_custom_stages_equals_the_stages_one_by_one(stage_folder: Path,
                      f'[stages.bright]\nuses = "{MODULE}:brightest_flux"\ninput = "/stars/centroids/GAUSSFIT"\n'
                      f'min_snr = 5\n'
                      f'[stages.kilo]\nuses = "{MODULE}:kilo_flux"\nthreshold = 20000\n', stage_folder)
-    result = run_pipeline(sim, tmp_path / "run.mcap", config, workers=2)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "steps").mkdir()
+    result = run_pipeline(sim, tmp_path / "run" / "out.mcap", config, workers=2)
     assert [name for name, _ in result.stages] == ["centroid", "bright", "kilo"]
-    centroid_log(sim, tmp_path / "a.mcap", methods=["NONE", "GAUSSFIT"], workers=1)
-    run_stage(_stage(stage_folder, "brightest_flux"), tmp_path / "a.mcap", tmp_path / "b.mcap",
-              options={"min_snr": 5}, input_topic="/stars/centroids/GAUSSFIT")
-    run_stage(_stage(stage_folder, "kilo_flux"), tmp_path / "b.mcap", tmp_path / "c.mcap",
-              options={"threshold": 20000})
-    assert filecmp.cmp(tmp_path / "run.mcap", tmp_path / "c.mcap", shallow=False)
-    bright = _payloads(tmp_path / "run.mcap", "/stars/brightest/GAUSSFIT")
-    kilo = _payloads(tmp_path / "run.mcap", "/stars/kilo_flux")
+    a, b, c = (tmp_path / "steps" / p.name for p in result.layers)
+    assert c.name == "out.mcap"
+    centroid_log(sim, a, methods=["NONE", "GAUSSFIT"], workers=1)
+    run_stage(_stage(stage_folder, "brightest_flux"), a, b, options={"min_snr": 5},
+              input_topic="/stars/centroids/GAUSSFIT")
+    run_stage(_stage(stage_folder, "kilo_flux"), b, c, options={"threshold": 20000})
+    for layer in result.layers:
+        assert filecmp.cmp(layer, tmp_path / "steps" / layer.name, shallow=False), layer.name
+    bright = _payloads(c, "/stars/brightest/GAUSSFIT")
+    kilo = _payloads(c, "/stars/kilo_flux")
     assert [k["kflux"] for k in kilo] == [b["flux"] / 1000 for b in bright]
-    frames = [f["frame"] for f in _payloads(tmp_path / "run.mcap", "/stars/bright_frames")]
+    frames = [f["frame"] for f in _payloads(c, "/stars/bright_frames")]
     assert frames == [b["frame"] for b in bright if b["flux"] > 20000]
 
 
 def test_a_run_whose_stage_fails_leaves_only_its_input(stage_folder: Path, tmp_path: Path) -> None:
-    """``run`` begins its output (the input's data copied on a thread) before the stages: a stage that fails
-    stops the copy, and neither the output, its temporary file nor a sidecar is left."""
+    """A stage that fails: neither its output, its temporary file nor the layers of the stages before it
+    are left."""
     sim = tmp_path / "sim.mcap"
     simulate_log(small_config(n_frames=20), sim)
     config = _config(f'[centroid]\nmethods = ["NONE"]\n[stages.f]\nuses = "{MODULE}:failing"\n', stage_folder)
@@ -358,12 +362,18 @@ def test_the_readme_stage_runs_from_its_config_and_as_an_installed_command(tmp_p
         ("flux_fwhm", "1.0", {"half": 4, "min_snr": 20})
 
     # a rerun with two workers, and the stages one by one (the installed command), give the same bytes
-    assert _starlog("run demo.mcap -o rerun.mcap --config flux_fwhm.toml --workers 2", tmp_path).returncode == 0
-    assert filecmp.cmp(run_output, tmp_path / "rerun.mcap", shallow=False)
-    assert _starlog("centroid demo.mcap -o cen.mcap --method GAUSSFIT --workers 1", tmp_path).returncode == 0
-    done = _starlog("flux_fwhm cen.mcap -o steps.mcap --set min_snr=20 --workers 2", tmp_path, installed=True)
+    layers = sorted(tmp_path.glob(f"{run_output.stem}.*mcap"))
+    written = {layer.name: layer.read_bytes() for layer in layers}
+    assert len(written) == 2  # the centroid layer, and the stage's layer (the run's output)
+    assert _starlog(f"{run_command.removeprefix('starlog ')} --workers 2", tmp_path).returncode == 0
+    assert {layer.name: layer.read_bytes() for layer in layers} == written
+    centroid_layer = next(name for name in written if name != run_output.name)
+    assert _starlog(f"centroid demo.mcap -o {centroid_layer} --method GAUSSFIT --workers 1 --force",
+                    tmp_path).returncode == 0
+    done = _starlog(f"flux_fwhm {centroid_layer} -o {run_output.name} --set min_snr=20 --workers 2 --force", tmp_path,
+                    installed=True)
     assert done.returncode == 0, done.stderr
-    assert filecmp.cmp(run_output, tmp_path / "steps.mcap", shallow=False)
+    assert {layer.name: layer.read_bytes() for layer in layers} == written
 
     # starlog --help lists installed stages without importing them; a broken one fails alone, clearly
     done = _starlog("--help", tmp_path, installed=True)

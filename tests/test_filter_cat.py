@@ -50,7 +50,7 @@ def _chunks(path: Path) -> list[bytes]:
     data = path.read_bytes()
     with LogReader(path) as log:
         return [data[ci.chunk_start_offset: ci.chunk_start_offset + ci.chunk_length]
-                for ci in log.summary.chunk_indexes]
+                for ci in log.files[-1].summary.chunk_indexes]
 
 
 def test_topic_filter_copies_every_kept_chunk_byte_for_byte(logs: dict[str, Path], tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ from hypothesis.extra import numpy as hnp
 from starlog.errors import StarlogError
 from starlog.io import LogReader
 from starlog.io.recover import recover_log
-from starlog.io.writer import MCAP_MAGIC
+from starlog.io.layout import MAGIC as MCAP_MAGIC
 from starlog.stages import simulate_log
 from starlog.stages.ingest import ColourImageWarning, ingest_folder
 from tests.conftest import small_config

@@ -1,4 +1,4 @@
-"""The log layer's fast paths: compiled schema checks, checks on write, per-channel chunks, stacked logs."""
+"""The log layer's fast paths: compiled schema checks, checks on write, per-channel chunks."""
 
 from __future__ import annotations
 
@@ -13,10 +13,9 @@ import pytest
 from mcap.writer import Writer as McapWriter
 
 from starlog.errors import InvalidInputError, InvalidMessageError
-from starlog.io import LogReader, LogWriter, encode_json, file_digest, json_message_type, topics
+from starlog.io import LogReader, LogWriter, encode_json, json_message_type, topics
 from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.schemas import load_json_schema, schema_dir
-from starlog.io.stack import StackedLog
 from starlog.io.writer import VALIDATED_METADATA_KEY
 
 SCHEMAS = sorted(p.stem for p in schema_dir().glob("starlog.*.json"))
@@ -109,7 +108,7 @@ def test_writer_refuses_a_message_that_does_not_match_its_schema(tmp_path: Path)
         with pytest.raises(InvalidInputError, match="JSON"):
             w.write(ch, log_time=2, data=b"{not json")
     with LogReader(tmp_path / "a.mcap") as log:
-        assert log.summary.channels[1].metadata[VALIDATED_METADATA_KEY] == "jsonschema"
+        assert log.files[-1].summary.channels[1].metadata[VALIDATED_METADATA_KEY] == "jsonschema"
         assert [m.payload for m in log.messages(topics.FRAME_INFO)] == [_frame_info()]
 
 
@@ -118,7 +117,7 @@ def test_unchecked_writer_does_not_mark_its_channels(tmp_path: Path) -> None:
         w.add_channel(topics.FRAME_INFO, json_message_type("starlog.FrameInfo"),
                       metadata={VALIDATED_METADATA_KEY: "jsonschema", "kept": "yes"})
     with LogReader(tmp_path / "a.mcap") as log:
-        assert log.summary.channels[1].metadata == {"kept": "yes"}
+        assert log.files[-1].summary.channels[1].metadata == {"kept": "yes"}
 
 
 def _forged_log(path: Path, *, marked: bool) -> Path:
@@ -162,32 +161,13 @@ def test_encode_json_matches_the_standard_library_values() -> None:
 def test_each_channel_has_its_own_chunks_and_images_are_not_read_for_truth(sim_log: Path,
                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     with LogReader(sim_log) as log:
-        assert all(len(ci.message_index_offsets) == 1 for ci in log.summary.chunk_indexes)
-        image_id = next(c.id for c in log.summary.channels.values() if c.topic == topics.IMAGE)
+        (file,) = log.files
+        assert all(len(ci.message_index_offsets) == 1 for ci in file.summary.chunk_indexes)
+        image_id = next(c.id for c in file.summary.channels.values() if c.topic == topics.IMAGE)
         read: list[Any] = []
-        original = log._read_chunk
-        monkeypatch.setattr(log, "_read_chunk", lambda ci: read.append(ci) or original(ci))
+        original = file.read_chunk
+        monkeypatch.setattr(file, "read_chunk", lambda ci: read.append(ci) or original(ci))
         assert sum(1 for _ in log.messages(topics.TRUTH)) == 20
         assert read and not any(image_id in ci.message_index_offsets for ci in read)
 
 
-def test_stacked_log_reads_and_hashes_as_the_file_it_stands_for(sim_log: Path, tmp_path: Path) -> None:
-    """A sidecar written on a stack, stacked, is the log that appending would have written."""
-    with LogWriter(tmp_path / "full.mcap", base=sim_log) as w:
-        ch = w.add_channel("/demo", json_message_type("starlog.FrameInfo"))
-        w.write(ch, log_time=5, data=encode_json(_frame_info(5)))
-    stack = StackedLog.of(sim_log)
-    assert stack.digest() == file_digest(sim_log)
-    with LogWriter(tmp_path / "side", base=stack) as w:
-        ch = w.add_channel("/demo", json_message_type("starlog.FrameInfo"))
-        w.write(ch, log_time=5, data=encode_json(_frame_info(5)))
-    stacked = stack.extend(tmp_path / "side")
-    full = (tmp_path / "full.mcap").read_bytes()
-    assert (tmp_path / "side").stat().st_size < len(full) // 4  # the input's data is not copied
-    with stacked.open() as f:
-        assert f.read() == full
-    assert file_digest(stacked) == file_digest(tmp_path / "full.mcap")
-    with LogReader(stacked) as log:
-        assert [m.payload["frame"] for m in log.messages("/demo")] == [5]
-        assert sum(1 for _ in log.frames()) == 20
-    assert stacked.write_to(tmp_path / "out.mcap").read_bytes() == full

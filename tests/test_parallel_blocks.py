@@ -11,12 +11,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from starlog.io import LogReader, LogWriter, json_message_type, topics
-from starlog.io.stack import StackedLog
+from starlog.io import LogReader, LogView, topics
+from starlog.io.timerange import TimeRange
 from starlog.stages import simulate_log
 from starlog.stages._blocks import channel_blocks
 from starlog.stages._parallel import _Pool, ordered_map, process_pool
-from starlog.stages._slice import SlicedStack
 from starlog.stages.centroid import centroid_log
 from starlog.stages.track import _concatenated
 from starlog.track import TRACK_DTYPE
@@ -79,24 +78,15 @@ def test_an_error_while_the_workers_start_stops_them() -> None:
     assert all(not p.is_alive() for p in processes)
 
 
-def test_a_stacked_log_pickles_for_a_worker_to_read(tmp_path: Path) -> None:
-    simulate_log(small_config(width=32, height=32, n_stars=2, n_frames=5), tmp_path / "sim.mcap")
-    stack = StackedLog.of(tmp_path / "sim.mcap")
-    with LogWriter(tmp_path / "side.mcap", base=stack) as writer:
-        channel = writer.add_channel("/extra", json_message_type("starlog.Centroids"))
-        writer.write(channel, log_time=1, data=b'{"frame":0,"method":"GAUSSFIT","stars":[]}')
-    stacked = stack.extend(tmp_path / "side.mcap")
-    copy = pickle.loads(pickle.dumps(stacked))
-    assert copy.files() == stacked.files() == (tmp_path / "sim.mcap", tmp_path / "side.mcap")
-    assert copy.digest() == stacked.digest()
-    with LogReader(stacked) as a, LogReader(copy) as b:
-        assert [m.payload for m in a.messages("/extra")] == [m.payload for m in b.messages("/extra")]
-        assert sum(1 for _ in a.frames()) == sum(1 for _ in b.frames()) == 5
-    # a copy hashes its data section again when it is extended
-    assert pickle.loads(pickle.dumps(stack)).extend(tmp_path / "side.mcap").digest() == stacked.digest()
-    sliced = SlicedStack.of(tmp_path / "sim.mcap")
-    sliced.slice_origin = None
-    assert isinstance(pickle.loads(pickle.dumps(sliced)), SlicedStack)
+def test_a_log_view_pickles_for_a_worker_to_read_the_same_window(tmp_path: Path) -> None:
+    simulate_log(small_config(width=32, height=32, n_stars=2, n_frames=5, fps=100.0), tmp_path / "sim.mcap")
+    view = LogView(tmp_path / "sim.mcap", TimeRange.parse("frame:1", "frame:4").resolve(
+        lambda n: n * 10_000_000, frame_topic="/camera/image"))
+    copy = pickle.loads(pickle.dumps(view))
+    assert copy == view
+    with LogReader(view) as a, LogReader(copy) as b:
+        assert [t for _, t, _ in a.frames()] == [t for _, t, _ in b.frames()] == [10_000_000, 20_000_000, 30_000_000]
+        assert a.channel("/camera/image").message_count == 3
 
 
 def test_track_joins_a_block_of_row_tables_as_numpy_does() -> None:

@@ -61,7 +61,7 @@ def test_flipped_byte_drops_only_that_chunk(chunky_log: Path, tmp_path: Path) ->
     _rewrite_with_small_chunks(chunky_log, small)
     data = bytearray(small.read_bytes())
     with LogReader(small) as log:
-        second = log.summary.chunk_indexes[1]
+        second = log.files[-1].summary.chunk_indexes[1]
     data[second.chunk_start_offset + 80] ^= 0xFF
     broken = tmp_path / "flip.mcap"
     broken.write_bytes(bytes(data))

@@ -214,8 +214,8 @@ def _flip(path: Path, dst: Path, offset: int, mask: int = 0xFF) -> Path:
 def test_flipped_byte_in_a_chunk_names_the_chunk(good_log: Path, good_content: Content, tmp_path: Path,
                                                  where: float) -> None:
     with LogReader(good_log) as log:
-        chunk = log.summary.chunk_indexes[2]
-        names = sorted(log.summary.channels[c].topic for c in chunk.message_index_offsets)
+        chunk = log.files[-1].summary.chunk_indexes[2]
+        names = sorted(log.files[-1].summary.channels[c].topic for c in chunk.message_index_offsets)
     rel = int(chunk.chunk_length * where) if isinstance(where, float) else where % chunk.chunk_length
     broken = _flip(good_log, tmp_path / "flip.mcap", chunk.chunk_start_offset + rel)
     with pytest.raises(CorruptChunkError) as info:
@@ -234,7 +234,7 @@ def test_flipped_byte_in_a_chunk_names_the_chunk(good_log: Path, good_content: C
 @pytest.mark.parametrize("field", ["opcode", "length", "channel", "array_length", "time", "offset"])
 def test_corrupted_message_index(good_log: Path, good_content: Content, tmp_path: Path, field: str) -> None:
     with LogReader(good_log) as log:
-        chunk = log.summary.chunk_indexes[1]
+        chunk = log.files[-1].summary.chunk_indexes[1]
     start = min(chunk.message_index_offsets.values())
     rel = {"opcode": 0, "length": 1, "channel": 9, "array_length": 11, "time": 15, "offset": 23}[field]
     broken = _flip(good_log, tmp_path / "index.mcap", start + rel, 0x01 if field == "length" else 0xFF)
@@ -357,7 +357,7 @@ def test_messages_out_of_order_in_the_file_are_read_in_time_order(tmp_path: Path
         for t in times:
             w.write(ch, log_time=t, data=encode_raw_image(frames[t], log_time=t))
     with LogReader(path) as log:
-        assert len(log.summary.chunk_indexes) > 3
+        assert len(log.files[-1].summary.chunk_indexes) > 3
         got = list(log.frames())
     assert [t for _, t, _ in got] == sorted(times)
     for _, t, image in got:
@@ -371,7 +371,7 @@ def test_chunk_whose_messages_lie_outside_its_index_range(good_log: Path, good_c
     """A lying chunk index would make the merge return messages out of order: detected instead."""
     data = bytearray(good_log.read_bytes())
     with LogReader(good_log) as log:
-        chunk = log.summary.chunk_indexes[3]
+        chunk = log.files[-1].summary.chunk_indexes[3]
     struct.pack_into("<Q", data, chunk.chunk_start_offset + 9, chunk.message_start_time + 1)  # chunk header start
     broken = tmp_path / "range.mcap"
     broken.write_bytes(bytes(data))

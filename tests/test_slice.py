@@ -1,4 +1,5 @@
-"""--start / --end on the replay stages and ``run``: only the range is processed and kept, and recorded."""
+"""--start / --end on the replay stages and ``run``: only the range is read and written, and it is recorded;
+``filter`` (and the slicing behind it) cuts a range of every channel into a new log."""
 
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ def _counts(path: Path) -> dict[str, int]:
 def test_slice_copies_inner_chunks_and_reencodes_the_boundaries(long_log: Path, tmp_path: Path) -> None:
     times = _frame_times(long_log)
     with LogReader(long_log) as log:
-        groups = sorted({(ci.message_start_time, ci.message_end_time) for ci in log.summary.chunk_indexes})
+        groups = sorted({(ci.message_start_time, ci.message_end_time) for ci in log.files[-1].summary.chunk_indexes})
     assert len(groups) >= 3, "the fixture must span several chunk groups"
     resolved = TimeRange.parse("frame:5", "frame:90").resolve(lambda n: times[n] if n < len(times) else None)
     report = slice_log(long_log, tmp_path / "s.mcap", time_range=resolved)
@@ -52,31 +53,37 @@ def test_slice_copies_inner_chunks_and_reencodes_the_boundaries(long_log: Path, 
     source = long_log.read_bytes()
     out = (tmp_path / "s.mcap").read_bytes()
     with LogReader(tmp_path / "s.mcap") as log:
-        inner = [ci for ci in log.summary.chunk_indexes if resolved.covers(ci.message_start_time, ci.message_end_time)
+        inner = [ci for ci in log.files[-1].summary.chunk_indexes if resolved.covers(ci.message_start_time, ci.message_end_time)
                  and times[5] < ci.message_start_time and ci.message_end_time < times[89]]
         assert inner
         for ci in inner:  # a chunk inside the range is the input's chunk, byte for byte
             assert out[ci.chunk_start_offset: ci.chunk_start_offset + ci.chunk_length] in source
 
 
-def test_centroid_with_frame_range_keeps_only_that_range(long_log: Path, tmp_path: Path) -> None:
+def _layer_counts(path: Path) -> dict[str, int]:
+    """Messages per channel of the layer ``path`` itself (its stage's channels)."""
+    with LogReader(path, chain=False) as log:
+        return {c.topic: c.message_count for c in log.channels()}
+
+
+def test_centroid_with_frame_range_writes_only_that_range(long_log: Path, tmp_path: Path) -> None:
     out = tmp_path / "cen.mcap"
     summary = centroid_log(long_log, out, methods="MOMENT", start="frame:10", end="frame:60")
     assert summary.frames == 50
-    counts = _counts(out)
-    assert set(counts.values()) == {50}, counts  # input channels and the stage's own alike
+    counts = _layer_counts(out)
+    assert set(counts.values()) == {50}, counts
     times = _frame_times(long_log)
-    assert _frame_times(out) == times[10:60]
+    assert _frame_times(out) == times  # the base is whole
     assert _frame_times(out, "/stars/centroids/MOMENT") == times[10:60]
     with LogReader(out) as log:
         record = log.provenance()[-1]
     assert record.stage == "centroid"
     assert record.parameters["range"] == {"start": "frame:10", "end": "frame:60", "start_ns": times[10],
                                           "end_ns": times[60], "frame_topic": "/camera/image"}
-    assert record.input_digest == file_digest(long_log)  # the log the slice was cut from
+    assert record.input_digest == file_digest(long_log)
     info = CliRunner().invoke(cli, ["info", str(out)])
     assert f"range [frame:10, frame:60): log_time {times[10]} to {times[60]} ns (end exclusive)" in info.output
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "no hidden slice left behind"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "nothing hidden left behind"
 
 
 def test_seconds_are_log_time_and_the_end_is_exclusive(long_log: Path, tmp_path: Path) -> None:
@@ -85,8 +92,8 @@ def test_seconds_are_log_time_and_the_end_is_exclusive(long_log: Path, tmp_path:
     result = CliRunner().invoke(cli, ["centroid", str(long_log), "-o", str(out), "--method", "NONE", "-q",
                                       "--workers", "1", "--start", "0.25s", "--end", f"{times[50]}"])
     assert result.exit_code == 0, result.output
-    assert _frame_times(out) == [t for t in times if 250_000_000 <= t < times[50]]
-    assert len(_frame_times(out)) == 25
+    assert _frame_times(out, "/stars/centroids/NONE") == [t for t in times if 250_000_000 <= t < times[50]]
+    assert len(_frame_times(out, "/stars/centroids/NONE")) == 25
 
 
 @pytest.mark.parametrize(("start", "end", "message"), [
@@ -116,25 +123,32 @@ def test_track_counts_frames_of_its_centroid_channel(sim_log: Path, tmp_path: Pa
     out = tmp_path / "trk.mcap"
     summary = track_log(cen, out, method="MOMENT", models="STATIC", start="frame:4", end="frame:16")
     assert summary.frames == 12
-    assert set(_counts(out).values()) == {12}
+    assert set(_layer_counts(out).values()) == {12}
     with LogReader(out) as log:
         record = log.provenance()[-1]
     assert record.parameters["range"]["frame_topic"] == "/stars/centroids/MOMENT"
     assert record.input_digest == file_digest(cen)
 
 
-def test_run_slices_once_and_equals_the_stages_one_by_one(sim_log: Path, tmp_path: Path) -> None:
+def test_run_windows_its_first_stage_and_equals_the_stages_one_by_one(sim_log: Path, tmp_path: Path) -> None:
     config = PipelineConfig.from_dict({"centroid": {"methods": ["MOMENT"]},
                                        "track": {"methods": ["MOMENT"], "models": ["STATIC"]}})
-    run_pipeline(sim_log, tmp_path / "run.mcap", config, start="frame:3", end="0.15s")
-    centroid_log(sim_log, tmp_path / "cen.mcap", methods=["MOMENT"], start="frame:3", end="0.15s")
-    track_log(tmp_path / "cen.mcap", tmp_path / "trk.mcap", method="MOMENT", models=["STATIC"])
-    assert (tmp_path / "run.mcap").read_bytes() == (tmp_path / "trk.mcap").read_bytes()
-    assert set(_counts(tmp_path / "run.mcap").values()) == {12}  # frames 3..14 at 100 Hz
-    with LogReader(tmp_path / "run.mcap") as log:
+    (tmp_path / "run").mkdir()
+    run_pipeline(sim_log, tmp_path / "run" / "out.mcap", config, start="frame:3", end="0.15s")
+    centroid_log(sim_log, tmp_path / "out.1-centroid.mcap", methods=["MOMENT"], start="frame:3", end="0.15s")
+    track_log(tmp_path / "out.1-centroid.mcap", tmp_path / "out.mcap", method="MOMENT", models=["STATIC"])
+    with LogReader(tmp_path / "run" / "out.mcap") as log:
         ranges = [p.parameters.get("range") for p in log.provenance()]
+        assert log.channel("/track/MOMENT/STATIC").message_count == 12  # frames 3..14 at 100 Hz
+        assert log.channel("/camera/image").message_count == 20
     assert ranges[0] is None and ranges[1]["start"] == "frame:3" and ranges[2] is None
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["cen.mcap", "run.mcap", "trk.mcap"]
+    assert _messages(tmp_path / "run" / "out.mcap") == _messages(tmp_path / "out.mcap")
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["out.1-centroid.mcap", "out.mcap"]
+
+
+def _messages(path: Path) -> list[tuple[str, int, bytes]]:
+    with LogReader(path) as log:
+        return [(c.topic, m.log_time, m.data) for _, c, m in log.raw_messages(log.topics)]
 
 
 def test_run_refuses_a_compensate_rate_too_low_for_the_range_before_any_stage(long_log: Path,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -66,7 +67,7 @@ def test_each_stage_adds_its_channels_and_provenance(pipeline_logs: dict[str, Pa
 
 def test_every_json_message_validates_against_its_embedded_schema(pipeline_logs: dict[str, Path]) -> None:
     with LogReader(pipeline_logs["comp"]) as log:
-        schemas = {s.id: s for s in log.summary.schemas.values()}
+        schemas = {s.id: s for f in log.files for s in f.summary.schemas.values()}
         validators = {}
         for schema, channel, message in log.raw_messages(log.topics):
             if channel.message_encoding != "json":
@@ -214,8 +215,10 @@ def test_parallel_centroiding_gives_the_same_bytes(pipeline_logs: dict[str, Path
 
 def test_parallel_tracking_gives_the_same_bytes(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
     """Models tracked in worker processes, or one after the other, write the same log (the CLI's too)."""
+    for name in ("sim", "cen"):  # a layer names its base relative to itself: the same names beside it
+        shutil.copy(pipeline_logs[name], tmp_path / pipeline_logs[name].name)
     for workers in (1, 2):
-        track_log(pipeline_logs["cen"], tmp_path / f"w{workers}.mcap", method="GAUSSFIT", models="all",
+        track_log(tmp_path / "cen.mcap", tmp_path / f"w{workers}.mcap", method="GAUSSFIT", models="all",
                   tracker={"sigma_floor": 0.05}, workers=workers)
     serial = (tmp_path / "w1.mcap").read_bytes()
     assert serial == (tmp_path / "w2.mcap").read_bytes()
@@ -228,13 +231,20 @@ def test_run_equals_the_stages_one_by_one(pipeline_logs: dict[str, Path], tmp_pa
         "track": {"methods": ["GAUSSFIT"], "models": ["STATIC"], "tracker": {"sigma_floor": 0.05}},
         "compensate": {"tracks": "all", "rates": [50], "protocols": "paper"},
     })
-    run_pipeline(pipeline_logs["sim"], tmp_path / "run.mcap", config)
-    centroid_log(pipeline_logs["sim"], tmp_path / "1.mcap", methods=["GAUSSFIT"])
-    track_log(tmp_path / "1.mcap", tmp_path / "2.mcap", method="GAUSSFIT", models=["STATIC"],
-              tracker={"sigma_floor": 0.05})
-    compensate_log(tmp_path / "2.mcap", tmp_path / "3.mcap", rates=[50], track="all", protocols="paper")
-    assert (tmp_path / "run.mcap").read_bytes() == (tmp_path / "3.mcap").read_bytes()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["1.mcap", "2.mcap", "3.mcap", "run.mcap"]
+    sim = tmp_path / "sim.mcap"
+    shutil.copy(pipeline_logs["sim"], sim)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "one-by-one").mkdir()
+    result = run_pipeline(sim, tmp_path / "run" / "out.mcap", config)
+    names = [p.name for p in result.layers]
+    assert names == ["out.1-centroid.mcap", "out.2-track-GAUSSFIT.mcap", "out.mcap"]
+    layers = [tmp_path / "one-by-one" / name for name in names]
+    centroid_log(sim, layers[0], methods=["GAUSSFIT"])
+    track_log(layers[0], layers[1], method="GAUSSFIT", models=["STATIC"], tracker={"sigma_floor": 0.05})
+    compensate_log(layers[1], layers[2], rates=[50], track="all", protocols="paper")
+    for name in names:
+        assert (tmp_path / "run" / name).read_bytes() == (tmp_path / "one-by-one" / name).read_bytes(), name
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == sorted(names)
 
 
 def test_run_cli_with_a_config_file(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
@@ -339,6 +349,6 @@ def test_a_worker_opens_each_log_once(tmp_path: Path) -> None:
     first = blocks.worker_log(str(log))
     assert blocks.worker_log(str(log)) is first  # every block of the same log: no second read of its summary
     second = blocks.worker_log(str(other))
-    assert second is not first and first._file.closed  # the previous log is closed on moving on
+    assert second is not first and first.files[0]._file.closed  # the previous log is closed on moving on
     blocks._WORKER_LOG.clear()
     second.close()

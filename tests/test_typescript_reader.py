@@ -6,10 +6,12 @@ import json
 import shutil
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from starlog.io import LogWriter, encode_json, json_message_type
+from starlog.io import LogReader, LogWriter, encode_json, json_message_type
+from starlog.io.slicing import flatten_log
 
 TS_DIR = Path(__file__).resolve().parent.parent / "tools" / "ts_reader"
 
@@ -25,8 +27,8 @@ def node_reader() -> Path:
     return TS_DIR / "check.mjs"
 
 
-def _read_with_node(script: Path, log: Path) -> dict[str, object]:
-    result = subprocess.run(["node", str(script), str(log)], capture_output=True, text=True, timeout=120)
+def _read_with_node(script: Path, *logs: Path) -> dict[str, Any]:
+    result = subprocess.run(["node", str(script), *map(str, logs)], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout)
 
@@ -39,15 +41,27 @@ def test_typescript_reader_reads_a_simulated_log(node_reader: Path, sim_log: Pat
 
 
 @pytest.mark.parametrize("compression", ["lz4", "none"])
-def test_typescript_reader_reads_an_appended_log(node_reader: Path, sim_log: Path, tmp_path: Path,
-                                                 compression: str) -> None:
-    out = tmp_path / "appended.mcap"
-    with LogWriter(out, base=sim_log, compression=compression) as w:
-        ch = w.add_channel("/extra", json_message_type("starlog.FrameInfo"))
-        for n in range(3):
-            w.write(ch, log_time=n * 10_000_000, data=encode_json(
-                {"frame": n, "width": 1, "height": 1, "encoding": "mono8", "bit_depth": 8, "source": ""}))
-        w.add_metadata("starlog.provenance", {"stage": "extra"})
-    report = _read_with_node(node_reader, out)
-    assert report["counts"] == {"/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20, "/extra": 3}
-    assert report["metadata"] == ["starlog.provenance", "starlog.provenance"]
+def test_typescript_reader_reads_each_file_of_a_chain_and_together_they_are_the_flattened_log(
+        node_reader: Path, sim_log: Path, tmp_path: Path, compression: str) -> None:
+    """Each layer opens alone, ids never repeat across the chain, and the files read together (as Foxglove
+    merges files opened together) hold what the flattened log holds."""
+    layers = [tmp_path / "a.mcap", tmp_path / "b.mcap"]
+    for base, layer, topic in [(sim_log, layers[0], "/extra"), (layers[0], layers[1], "/more")]:
+        with LogReader(base) as log:
+            layer_base = log.layer_base()
+        with LogWriter(layer, layer=layer_base, compression=compression) as w:
+            ch = w.add_channel(topic, json_message_type("starlog.FrameInfo"))
+            for n in range(3):
+                w.write(ch, log_time=n * 10_000_000, data=encode_json(
+                    {"frame": n, "width": 1, "height": 1, "encoding": "mono8", "bit_depth": 8, "source": ""}))
+            w.add_metadata("starlog.provenance", {"stage": "extra"})
+    flat = flatten_log(layers[1], tmp_path / "flat.mcap").output
+    together = _read_with_node(node_reader, sim_log, *layers)
+    alone = _read_with_node(node_reader, flat)
+    assert [f["counts"] for f in together["files"][1:]] == [{"/extra": 3}, {"/more": 3}]
+    assert together["counts"] == alone["counts"] == {"/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20,
+                                                     "/extra": 3, "/more": 3}
+    assert [m for m in together["metadata"] if m != "starlog.base"] == alone["metadata"] == ["starlog.provenance"] * 3
+    for kind in ("schemaIds", "channelIds"):
+        ids = [i for f in together["files"] for i in f[kind]]
+        assert len(ids) == len(set(ids)) and sorted(ids) == sorted(alone["files"][0][kind])

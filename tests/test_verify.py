@@ -19,7 +19,7 @@ from mcap.records import ChunkIndex
 from starlog.cli import cli
 from starlog.io import LogReader, LogWriter, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
-from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen, verify_log
+from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen, verify_file, verify_log
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from tests.conftest import small_config
@@ -111,7 +111,7 @@ def _summary_record(data: bytearray, opcode: int, nth: int = 0) -> int:
 
 def _chunk(path: Path, nth: int = 1):  # type: ignore[no-untyped-def]
     with LogReader(path) as log:
-        return log.summary.chunk_indexes[nth]
+        return log.files[-1].summary.chunk_indexes[nth]
 
 
 def damage_bad_magic(raw: Path, data: bytearray) -> None:
@@ -127,8 +127,8 @@ def damage_chunk_crc(raw: Path, data: bytearray) -> None:
     data[ci.chunk_start_offset + ci.chunk_length - 10] ^= 0xFF  # inside the (uncompressed) records
 
 
-def damage_chunk_decompress(cen: Path, data: bytearray) -> None:
-    ci = _chunk(cen, 0)
+def damage_chunk_decompress(sim: Path, data: bytearray) -> None:
+    ci = _chunk(sim, 0)
     data[ci.chunk_start_offset + ci.chunk_length // 2] ^= 0xFF  # zstd data
 
 
@@ -167,7 +167,7 @@ DAMAGE = {f.__name__[len("damage_"):]: f for f in [
 
 @pytest.mark.parametrize("kind", list(DAMAGE))
 def test_damaged_container_is_reported_by_kind(logs: dict[str, Path], tmp_path: Path, kind: str) -> None:
-    source = logs["cen"] if kind == "chunk_decompress" else logs["raw"]
+    source = logs["sim"] if kind == "chunk_decompress" else logs["raw"]
     data = bytearray(source.read_bytes())
     DAMAGE[kind](source, data)
     broken = tmp_path / "broken.mcap"
@@ -314,7 +314,7 @@ def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
         records: list[tuple[int, bytes]], cut: int, block: int, lead: int) -> None:
     import io
 
-    from starlog.io.scan import iter_file_records, iter_records
+    from starlog.io.layout import iter_records, walk_records
 
     section = b"".join(struct.pack("<BQ", opcode, len(body)) + body for opcode, body in records)
     section = section[:max(0, len(section) - cut)]  # perhaps a record cut off
@@ -327,7 +327,8 @@ def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
             return None, str(err)
 
     whole = read(lambda: ((o, op, section[b: b + n]) for o, op, b, n in iter_records(section, lead)))
-    blocks = read(lambda: iter_file_records(io.BytesIO(data), lead, lead + len(section), block))
+    blocks = read(lambda: ((o, op, body) for o, op, _, body in walk_records(io.BytesIO(data), lead, lead + len(section),
+                                                                          block=block)))
     assert blocks == whole
 
 
@@ -355,7 +356,7 @@ def test_progress_is_reported_in_bytes_of_the_data_section(logs: dict[str, Path]
 
     monkeypatch.setattr(verify_module, "_PROGRESS_STEP", 1)  # every record
     done: list[int] = []
-    report = verify_log(logs["raw"], on_progress=done.append)
+    report = verify_file(logs["raw"], on_progress=done.append)
     assert report.ok and len(done) > report.chunks  # a report before each record after the first
     assert done == sorted(set(done)) and 0 < done[0] and done[-1] < report.size
     result = CliRunner().invoke(cli, ["verify", str(logs["raw"]), "-q"])

@@ -1,13 +1,12 @@
-"""The MCAP log layer: reading, writing and appending starlog logs.
+"""The MCAP log layer: reading and writing starlog logs, one file or a chain of layers.
 
-A starlog log is one MCAP file. Images use the Foxglove well-known protobuf schemas
-(``foxglove.RawImage``, ``foxglove.ImageAnnotations``); starlog's own messages are JSON with
-JSON Schemas from ``schemas/``. A stage never modifies its input: it writes a new file that
-starts with a byte-for-byte copy of the input's data section (so images are not
-re-compressed), followed by the stage's new chunks and a merged summary (see
-:class:`LogWriter`). The output appears only once complete (temp file + rename). Stages run
-one after another (``starlog run``) write only their new records instead, read together with
-their input as one :class:`StackedLog`, and the output is written once.
+A starlog log is an MCAP file, or a chain of them: a stage never modifies its input, it writes
+a *layer* — a complete MCAP file holding only the channels, metadata and provenance it adds,
+and a record naming the log it extends (:mod:`starlog.io.chain`). :class:`LogReader` reads a
+chain as one log; ``starlog flatten`` writes it as one file (:mod:`starlog.io.slicing`). Images
+use the Foxglove well-known protobuf schemas (``foxglove.RawImage``,
+``foxglove.ImageAnnotations``); starlog's own messages are JSON with JSON Schemas from
+``schemas/``. Every output appears only once complete (temp file + rename).
 """
 
 from __future__ import annotations
@@ -20,9 +19,8 @@ from starlog.io.messages import (
     encode_raw_image,
 )
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance, file_digest
-from starlog.io.reader import ChannelSummary, LogReader
+from starlog.io.reader import ChannelSummary, LogReader, LogSource, LogView
 from starlog.io.schemas import MessageType, json_message_type, load_json_schema, protobuf_message_type
-from starlog.io.stack import StackedLog
 from starlog.io.writer import Compression, LogWriter
 
 __all__ = [
@@ -30,10 +28,11 @@ __all__ = [
     "ChannelSummary",
     "Compression",
     "LogReader",
+    "LogSource",
+    "LogView",
     "LogWriter",
     "MessageType",
     "Provenance",
-    "StackedLog",
     "decode_json",
     "decode_raw_image",
     "encode_image_annotations",

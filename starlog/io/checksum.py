@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable
-import struct
 from typing import BinaryIO
 
-__all__ = ["crc32", "file_crc32", "footer_crc", "summary_crc"]
+__all__ = ["crc32", "file_crc32"]
 
 try:
     from isal.isal_zlib import crc32 as _isal_crc32
@@ -39,20 +38,3 @@ def file_crc32(f: BinaryIO, offset: int, length: int, block: int = 1 << 20) -> i
         value = crc32(data, value)
         length -= len(data)
     return value
-
-
-_FOOTER_FIELDS = struct.Struct("<BQQQ")  # the footer's opcode (0x02), length (20) and its two offsets
-_FOOTER_OPCODE, _FOOTER_LENGTH = 0x02, 20
-
-
-def footer_crc(section_crc: int, summary_start: int, summary_offset_start: int) -> int:
-    """The CRC an MCAP footer stores: that of the summary section (``section_crc``) continued over the
-    footer's own opcode, length and two offsets."""
-    return crc32(_FOOTER_FIELDS.pack(_FOOTER_OPCODE, _FOOTER_LENGTH, summary_start, summary_offset_start),
-                 section_crc)
-
-
-def summary_crc(f: BinaryIO, summary_start: int, summary_offset_start: int, footer: int) -> int:
-    """:func:`footer_crc` of the summary section of ``f`` (from ``summary_start`` to the footer at ``footer``),
-    read a block at a time."""
-    return footer_crc(file_crc32(f, summary_start, footer - summary_start), summary_start, summary_offset_start)

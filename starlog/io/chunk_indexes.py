@@ -25,11 +25,10 @@ from mcap.opcode import Opcode
 from mcap.records import AttachmentIndex, Channel, ChunkIndex, MetadataIndex, Schema, Statistics
 from mcap.summary import Summary
 
+from starlog.io.layout import FOOTER, MAGIC, RECORD_HEADER
+
 __all__ = ["ChunkIndexTable", "read_file_summary", "read_summary"]
 
-_RECORD_HEADER = struct.Struct("<BQ")
-_FOOTER = struct.Struct("<BQQQI")  # opcode, length, summary start, summary offset start, summary CRC
-_MAGIC_LENGTH = 8
 _CHUNK_INDEX_HEAD = struct.Struct("<QQQQI")  # start time, end time, chunk offset, chunk length, offsets' bytes
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
@@ -299,7 +298,7 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
                 pairs, _U64.pack(c["message_index_length"][k]), _U32.pack(len(name)), name,
                 _SIZES.pack(c["compressed_size"][k], c["uncompressed_size"][k]),
             ))
-            write(_RECORD_HEADER.pack(Opcode.CHUNK_INDEX, len(body)) + body)
+            write(RECORD_HEADER.pack(Opcode.CHUNK_INDEX, len(body)) + body)
 
 
 # ---------------------------------------------------------------------- reading a summary
@@ -338,10 +337,10 @@ def read_summary(f: BinaryIO, summary_start: int) -> Summary:
 def read_file_summary(f: BinaryIO) -> Summary | None:
     """The summary of the MCAP file ``f`` (found through its footer); None when it has none."""
     size = f.seek(0, io.SEEK_END)
-    if size < _FOOTER.size + _MAGIC_LENGTH:
+    if size < FOOTER.size + len(MAGIC):
         raise ValueError("the file is too short to end with a footer")
-    f.seek(size - _MAGIC_LENGTH - _FOOTER.size)
-    opcode, _, summary_start, _, _ = _FOOTER.unpack(f.read(_FOOTER.size))
+    f.seek(size - len(MAGIC) - FOOTER.size)
+    opcode, _, summary_start, _, _ = FOOTER.unpack(f.read(FOOTER.size))
     if opcode != Opcode.FOOTER:
         raise ValueError(f"the file does not end with a footer record (opcode {opcode:#04x})")
     return None if summary_start == 0 else read_summary(f, summary_start)
@@ -358,16 +357,16 @@ def _records(f: BinaryIO, start: int) -> Iterator[tuple[int, memoryview]]:
     buffer = b""
     pos = 0
     while True:
-        if len(buffer) - pos < _RECORD_HEADER.size:
+        if len(buffer) - pos < RECORD_HEADER.size:
             block = f.read(min(_READ_BLOCK, max(left, 0)))
             left -= len(block)
             buffer, pos = buffer[pos:] + block, 0
-            if len(buffer) < _RECORD_HEADER.size:
+            if len(buffer) < RECORD_HEADER.size:
                 if buffer:
                     raise ValueError("the summary section ends inside a record header")
                 return
-        opcode, length = _RECORD_HEADER.unpack_from(buffer, pos)
-        end = pos + _RECORD_HEADER.size + length
+        opcode, length = RECORD_HEADER.unpack_from(buffer, pos)
+        end = pos + RECORD_HEADER.size + length
         if end > len(buffer):
             if end - len(buffer) > left:
                 raise ValueError(f"the summary section ends inside a record (opcode {opcode:#04x}, length {length})")
@@ -377,10 +376,10 @@ def _records(f: BinaryIO, start: int) -> Iterator[tuple[int, memoryview]]:
             if end > len(buffer):
                 raise ValueError(f"the summary section ends inside a record (opcode {opcode:#04x}, length {length})")
         if opcode == Opcode.CHUNK_INDEX:  # the records of the same length that follow, in one piece
-            end = pos + _same_records(buffer, pos, _RECORD_HEADER.size + length) * (_RECORD_HEADER.size + length)
+            end = pos + _same_records(buffer, pos, RECORD_HEADER.size + length) * (RECORD_HEADER.size + length)
             yield opcode, memoryview(buffer)[pos:end]
         else:
-            yield opcode, memoryview(buffer)[pos + _RECORD_HEADER.size:end]
+            yield opcode, memoryview(buffer)[pos + RECORD_HEADER.size:end]
         pos = end
 
 
@@ -391,7 +390,7 @@ def _same_records(buffer: bytes, pos: int, size: int) -> int:
     if whole <= 1:
         return 1
     heads = np.frombuffer(buffer, dtype=np.uint8, count=whole * size, offset=pos).reshape(whole, size)
-    differ = np.flatnonzero((heads[:, :_RECORD_HEADER.size] != heads[0, :_RECORD_HEADER.size]).any(axis=1))
+    differ = np.flatnonzero((heads[:, :RECORD_HEADER.size] != heads[0, :RECORD_HEADER.size]).any(axis=1))
     return int(differ[0]) if differ.size else whole
 
 
@@ -399,9 +398,9 @@ def _append_chunk_indexes(table: ChunkIndexTable, records: memoryview) -> None:
     """Chunk Index records of one length, one after the other: those that share the first one's layout
     (channel count, compression) are parsed together, as columns; the rest one at a time."""
     (length,) = _U64.unpack_from(records, 1)
-    size = _RECORD_HEADER.size + length
+    size = RECORD_HEADER.size + length
     count = len(records) // size
-    first = records[_RECORD_HEADER.size:size]
+    first = records[RECORD_HEADER.size:size]
     layout = _run_layout(first)
     done = 0
     if layout is not None and count > 1:
@@ -413,7 +412,7 @@ def _append_chunk_indexes(table: ChunkIndexTable, records: memoryview) -> None:
         name = rows["name"][0].tobytes() if "name" in layout.names else b""
         table.append_columns(rows[:done], name.decode())
     for k in range(done, count):
-        _append_chunk_index(table, records[k * size + _RECORD_HEADER.size:(k + 1) * size])
+        _append_chunk_index(table, records[k * size + RECORD_HEADER.size:(k + 1) * size])
 
 
 def _run_layout(body: memoryview) -> np.dtype[Any] | None:

@@ -1,4 +1,5 @@
-"""``starlog info``: what a log holds — channels, time range, provenance."""
+"""``starlog info``: what a log holds — its files (a chain: the base and each layer), channels, time range,
+provenance."""
 
 from __future__ import annotations
 
@@ -25,13 +26,14 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
                 note = stamp_disagreement(log, channel.topic)
                 if note:
                     log.add_note(note)
-        stats = log.summary.statistics
+        files = log.layers()
         return {
             "path": str(Path(path)),
-            "size_bytes": Path(path).stat().st_size,
-            "message_count": stats.message_count if stats else 0,
-            "chunk_count": len(log.summary.chunk_indexes),
-            "compression": sorted({name or "none" for name in log.summary.chunk_indexes.compressions()}),
+            "size_bytes": sum(f["size_bytes"] for f in files),
+            "message_count": log.message_count(),
+            "chunk_count": sum(f["chunk_count"] for f in files),
+            "compression": sorted({c for f in files for c in f["compression"]}),
+            "files": files,
             "start_log_time": start,
             "end_log_time": end,
             "duration_s": (end - start) * 1e-9,
@@ -92,6 +94,21 @@ def _phase_lines(records: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _chain_lines(files: list[dict[str, Any]]) -> list[str]:
+    """``info``'s lines for a chain: each file, the first log first, with what it adds (none for one file)."""
+    if len(files) < 2:
+        return []
+    lines = [f"chain      {len(files)} files, read as one log (the first is the base, each next one a layer on "
+             "the one before it)"]
+    for i, f in enumerate(files, 1):
+        topics = ", ".join(f["topics"]) or "no channel"
+        lines.append(f"  {i}. {f['path']}  ({f['size_bytes'] / 2**20:.1f} MiB, {f['message_count']} messages): "
+                     f"{topics}")
+        if f["base"]:
+            lines.append(f"     on {f['base']['path']} ({f['base']['sha256']})")
+    return lines
+
+
 def _short(value: Any, limit: int = 80) -> str:
     """A parameter's value on one line: scalars as they are, lists and maps as compact JSON, cut at ``limit``."""
     text = json.dumps(value, separators=(",", ":"), default=str) if isinstance(value, (dict, list)) else str(value)
@@ -103,6 +120,7 @@ def format_description(info: dict[str, Any]) -> str:
     lines = [
         f"log        {info['path']}  ({info['size_bytes'] / 2**20:.1f} MiB, {info['chunk_count']} chunks, "
         f"{'/'.join(info['compression']) or 'no data'})",
+        *_chain_lines(info.get("files", [])),
         f"time       {info['start_log_time']} .. {info['end_log_time']} ns  ({info['duration_s']:.3f} s)",
         f"messages   {info['message_count']}",
         "",

@@ -1,109 +1,75 @@
 """Reading starlog logs: channel summaries, decoded messages streamed in constant memory, provenance.
 
-Nothing damaged is passed on. On opening, the footer, the summary's CRC and the consistency of
-its indexes are checked; while reading, every chunk's CRC, its records, and its message index are
-checked against each other. A problem raises :class:`~starlog.errors.TruncatedLogError` (file
-cut off or never finished), :class:`~starlog.errors.CorruptChunkError` (naming the chunk's offset,
-channels and time range) or :class:`~starlog.errors.CorruptLogError`, each pointing to
-``starlog recover``; a message whose payload does not decode or does not satisfy its schema
-raises :class:`~starlog.errors.MessageDecodeError` / :class:`~starlog.errors.InvalidMessageError`
-naming its topic and ``log_time``. Messages that starlog's writer checked against their schema
-(their channel is marked ``starlog.validated``) are not checked again when their chunk's CRC and
-the summary's CRC were verified: the bytes are those that passed the check. Every other JSON
-message (foreign logs, logs of older versions, ``validate_crcs=False``) is checked as it is decoded.
+A log is one MCAP file or a chain of them (a base and the layers stages wrote on it, see
+:mod:`starlog.io.chain`); :class:`LogReader` reads a chain as the one log its files make together,
+each file checked as :class:`~starlog.io.mcap_file.McapFile` checks it. A message whose payload
+does not decode or does not satisfy its schema raises :class:`~starlog.errors.MessageDecodeError`
+/ :class:`~starlog.errors.InvalidMessageError` naming its topic and ``log_time``. Messages that
+starlog's writer checked against their schema (their channel is marked ``starlog.validated``) are
+not checked again when their chunk's CRC and the summary's CRC were verified: the bytes are those
+that passed the check. Every other JSON message (foreign logs, logs of older versions,
+``validate_crcs=False``) is checked as it is decoded.
+
+A :class:`LogView` reads a log through a time window (a stage run with ``--start``/``--end``):
+every read, channel counts included, keeps only the messages inside it.
 """
 
 from __future__ import annotations
 
 import heapq
-import io
 import itertools
 import json
 import os
-import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
-from mcap.opcode import Opcode
-from mcap.records import Channel, ChunkIndex, Message, Metadata, Schema
-from mcap.summary import Summary
+from mcap.records import Channel, Message, Schema
 
 from starlog.errors import (
     ChannelNotFoundError,
-    CorruptChunkError,
     CorruptLogError,
     InvalidInputError,
     InvalidMessageError,
     InvalidParameterError,
-    LogNotFoundError,
     MessageDecodeError,
-    NotMcapError,
-    TruncatedLogError,
 )
-from starlog.io.checksum import crc32
-from starlog.io.checksum import summary_crc as computed_summary_crc
-from starlog.io.chunk_indexes import ChunkIndexTable, read_summary
+from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference, open_chain, summary_checksum
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
 from starlog.io.images import is_image_schema
-from starlog.io.layout import MCAP_MAGIC, locate_data_end
+from starlog.io.mcap_file import ChannelSummary, McapFile, channel_summaries
 from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
-from starlog.io.scan import LooseRun, decompress, find_loose_runs, read_loose, synthesize_summary
-from starlog.io.stack import StackedLog
+from starlog.io.timerange import ResolvedRange
 from starlog.io.writer import VALIDATED_METADATA_KEY
 
-_RECORD_HEADER = struct.Struct("<BQ")
-_MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log_time, publish_time
-_CHUNK_HEADER = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed CRC
-_FOOTER = struct.Struct("<BQQQI")  # opcode, length, summary_start, summary_offset_start, summary_crc
+__all__ = ["ChannelSummary", "DecodedMessage", "LogReader", "LogSource", "LogView"]
 
-
-def _hint(path: Path) -> str:
-    return f"Rebuild a readable copy with: starlog recover {path} -o RECOVERED.mcap"
-
-
-__all__ = ["ChannelSummary", "DecodedMessage", "LogReader"]
+_END = 2**64
 
 
 @dataclass(frozen=True)
-class ChannelSummary:
-    """One channel of a log, as :meth:`LogReader.channels` lists it.
+class LogView:
+    """The log at ``path`` seen through ``window``: only its messages with ``start_ns <= log_time < end_ns``."""
 
-    ``rate_hz`` is ``(count - 1) / (last - first)`` in Hz (0 for fewer than two messages).
-    """
+    path: Path
+    window: ResolvedRange
 
-    topic: str
-    schema_name: str
-    schema_encoding: str
-    message_encoding: str
-    message_count: int
-    first_log_time: int
-    last_log_time: int
+    def __str__(self) -> str:
+        return f"{self.path} [{self.window.describe()}]"
 
-    @property
-    def rate_hz(self) -> float:
-        span = self.last_log_time - self.first_log_time
-        return (self.message_count - 1) / (span * 1e-9) if self.message_count > 1 and span > 0 else 0.0
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready form."""
-        return {
-            "topic": self.topic,
-            "schema": self.schema_name,
-            "schema_encoding": self.schema_encoding,
-            "message_encoding": self.message_encoding,
-            "message_count": self.message_count,
-            "first_log_time": self.first_log_time,
-            "last_log_time": self.last_log_time,
-            "rate_hz": self.rate_hz,
-        }
+#: What names a log to read: a path (a whole log, or the newest layer of a chain) or a :class:`LogView`.
+LogSource = str | os.PathLike[str] | LogView
+
+
+def source_path(source: LogSource) -> Path:
+    """The file a log source names (the newest of its chain)."""
+    return source.path if isinstance(source, LogView) else Path(source)
 
 
 @dataclass(frozen=True)
@@ -115,61 +81,6 @@ class DecodedMessage:
     log_time: int
     sequence: int
     payload: Any
-
-
-def _chunk_index_problems(table: ChunkIndexTable, channels: set[int], data_end: int) -> list[str]:
-    """What is wrong with the chunk indexes (at most three of each kind): ranges outside the data
-    section, reversed time ranges, unknown channels, message indexes outside the data section.
-
-    Checked a block of chunks at a time, so the temporary arrays stay the size of a block.
-    """
-    kinds: list[list[str]] = [[], [], [], []]
-    known = np.fromiter(channels, dtype=np.int64, count=len(channels))
-    for block in table.row_blocks():
-        for kind, found in zip(kinds, _block_problems(table, block, known, data_end), strict=True):
-            kind.extend(found[:3 - len(kind)])
-        if all(len(kind) == 3 for kind in kinds):
-            break
-    return [problem for kind in kinds for problem in kind]
-
-
-def _block_problems(table: ChunkIndexTable, block: tuple[int, int, int, int], known: np.ndarray,
-                    data_end: int) -> tuple[list[str], list[str], list[str], list[str]]:
-    """:func:`_chunk_index_problems` of each kind among the chunks of one of ``table.row_blocks()``."""
-    a, b, e0, e1 = block
-    start = table.column("chunk_start_offset")[a:b]
-    end = start + table.column("chunk_length")[a:b]  # wraps past 2**64 for a damaged length: then end <= start
-
-    def chunks_where(bad: np.ndarray, what: str) -> list[str]:
-        return [f"chunk index for offset {int(start[k])} {what}" for k in np.flatnonzero(bad)[:3]]
-
-    rows, channel, offset = table.entries()
-    rows, channel, offset = rows[e0:e1] - a, channel[e0:e1], offset[e0:e1]
-    first = table.first_index_offsets()[a:b]
-    index_end = first + table.column("message_index_length")[a:b]
-    outside = (table.entry_counts(a, b) > 0) & (
-        (first < end) | (first >= data_end) | (index_end < first) | (index_end > data_end))
-    outside[rows[(offset < end[rows]) | (offset >= data_end)]] = True
-    return (
-        chunks_where((start < len(MCAP_MAGIC)) | (end <= start) | (end > data_end), "points outside the data section"),
-        chunks_where(table.column("message_start_time")[a:b] > table.column("message_end_time")[a:b],
-                     "has its time range reversed"),
-        [f"chunk index for offset {int(start[rows[k]])} names unknown channel {int(channel[k])}"
-         for k in np.flatnonzero(~np.isin(channel, known))[:3]],
-        chunks_where(outside, "has a message index outside the data section"),
-    )
-
-
-class _Peekable:
-    """An iterator whose next item can be looked at (``peek``; None at the end) before it is taken."""
-
-    def __init__(self, items: Iterator[Any]) -> None:
-        self._items = items
-        self.peek = next(items, None)
-
-    def pop(self) -> Any:
-        item, self.peek = self.peek, next(self._items, None)
-        return item
 
 
 def decode_payload(
@@ -210,12 +121,12 @@ def decode_payload(
 
 
 class LogReader:
-    """Open a starlog log for reading.
+    """Open a starlog log (one file, or the newest layer of a chain) for reading.
 
     Parameters
     ----------
-    path : path-like
-        An MCAP file with a summary section (every file starlog writes has one).
+    source : path-like or LogView
+        An MCAP file, or a :class:`LogView` of one. A layer is read with every file of its chain.
     validate_crcs : bool
         Check the summary's and every chunk's CRC (default). A mismatch raises
         :class:`CorruptLogError` / :class:`CorruptChunkError`.
@@ -223,10 +134,12 @@ class LogReader:
         Check JSON messages against their embedded JSON Schema as they are decoded (default):
         those that starlog checked when writing them only when their CRCs could not be verified;
         ``"all"``: every one, whoever wrote it.
+    chain : bool
+        Read a layer with its chain (default); False reads the one file alone.
 
     Raises
     ------
-    LogNotFoundError, TruncatedLogError, CorruptLogError
+    LogNotFoundError, TruncatedLogError, CorruptLogError, BaseMismatchError
 
     Examples
     --------
@@ -235,131 +148,28 @@ class LogReader:
     ...         image = message.payload  # 2-D uint16 array
     """
 
-    def __init__(self, path: str | os.PathLike[str] | StackedLog, *, validate_crcs: bool = True,
-                 validate_messages: bool | str = True) -> None:
+    def __init__(self, source: LogSource, *, validate_crcs: bool = True, validate_messages: bool | str = True,
+                 chain: bool = True) -> None:
         if validate_messages not in (True, False, "all"):
             raise ValueError(f"validate_messages must be True, False or 'all', got {validate_messages!r}.")
-        self._validate_crcs = validate_crcs
+        self.path = source_path(source)
+        self.window = source.window if isinstance(source, LogView) else None
+        self._lo, self._hi = (self.window.start_ns, self.window.end_ns) if self.window else (0, _END)
         self._validate_messages = validate_messages
         self._checkers: dict[int, Callable[[Any], str | None] | None] = {}
+        self._extents: dict[int, list[int]] | None = None
+        self.files: list[McapFile] = open_chain(self.path, validate_crcs=validate_crcs, follow=chain)
+        self._file_of: dict[int, McapFile] = {}
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        for file in self.files:
+            self._schemas.update(file.summary.schemas)
+            self._channels.update(file.summary.channels)
+            self._file_of.update(dict.fromkeys(file.summary.channels, file))
         self.notes: list[str] = []
-        self._summary: Summary
-        self._loose: list[LooseRun] = []
-        self._extents: dict[int, list[int]] | None = None  # count, first, last per channel (unindexed parts)
-        self._indexed = True
-        self._summary_verified = False
-        if isinstance(path, StackedLog):
-            self.path = path.path
-            self._file: BinaryIO = path.open()
-        else:
-            self.path = Path(path)
-            if not self.path.is_file():
-                raise LogNotFoundError(self.path)
-            self._file = open(self.path, "rb")
-        try:
-            self._data_end = self._open()
-        except BaseException:
-            self._file.close()
-            raise
-
-    def _open(self) -> int:
-        f = self._file
-        try:
-            data_end = locate_data_end(self.path, f)
-        except (TruncatedLogError, NotMcapError):
-            raise
-        except CorruptLogError as err:
-            raise CorruptLogError(self.path, f"{err.reason} {_hint(self.path)}") from err
-        except (ValueError, OSError, struct.error) as err:  # footer pointing before the file start
-            raise CorruptLogError(self.path, f"its footer is damaged ({err}). {_hint(self.path)}") from err
-        size = f.seek(0, os.SEEK_END)
-        f.seek(size - len(MCAP_MAGIC) - _FOOTER.size)
-        _, _, summary_start, summary_offset_start, summary_crc = _FOOTER.unpack(f.read(_FOOTER.size))
-        if summary_start == 0:
-            self._scan_everything(data_end, "it has no summary section")
-            return data_end
-        footer_start = size - len(MCAP_MAGIC) - _FOOTER.size
-        if not data_end < summary_start <= footer_start or not (
-            summary_offset_start == 0 or summary_start <= summary_offset_start <= footer_start
-        ):
-            raise CorruptLogError(self.path, f"its footer points outside the file (summary at {summary_start}, "
-                                             f"summary offsets at {summary_offset_start}). {_hint(self.path)}")
-        if self._validate_crcs and summary_crc != 0:
-            crc = computed_summary_crc(f, summary_start, summary_offset_start, footer_start)
-            if crc != summary_crc:
-                raise CorruptLogError(
-                    self.path, f"its summary section (offset {summary_start}..{footer_start}) is damaged: "
-                    f"CRC {crc:#010x} does not match the footer's {summary_crc:#010x}. {_hint(self.path)}")
-            self._summary_verified = True
-        try:
-            self._summary = read_summary(f, summary_start)
-        except (McapError, ValueError, EOFError, OSError, struct.error, KeyError, MemoryError) as err:
-            raise CorruptLogError(self.path, f"its summary cannot be read ({type(err).__name__}: {err}). "
-                                             f"{_hint(self.path)}") from err
-        self._check_summary(data_end)
-        self._find_unindexed(data_end)
-        return data_end
-
-    def _scan_everything(self, data_end: int, why: str, known: Summary | None = None) -> None:
-        """Build the missing summary by one linear scan of the data section (every chunk CRC-checked)."""
-        try:
-            result = synthesize_summary(self.path, self._file, data_end, known=known)
-        except (ValueError, struct.error, McapError, EOFError, UnicodeDecodeError) as err:
-            raise CorruptLogError(self.path, f"{why}, and a linear scan of it stops: {err}. {_hint(self.path)}"
-                                  ) from err
-        self._summary = result.summary
-        self._loose = result.loose
-        self._extents = result.extents
-        self._indexed = False
-        self._check_summary(data_end)
-        self.add_note(f"{why}: read by a linear scan of the whole file; add the indexes with: "
-                      f"starlog recover {self.path} -o INDEXED.mcap")
-
-    def _find_unindexed(self, data_end: int) -> None:
-        """Messages outside chunks, chunks the summary does not list, chunks without message indexes."""
-        try:
-            self._loose, unlisted_chunk = find_loose_runs(self._file, self._summary, data_end)
-        except (ValueError, struct.error) as err:
-            raise CorruptLogError(self.path, f"its data section is damaged outside every indexed record ({err}). "
-                                             f"{_hint(self.path)}") from err
-        if unlisted_chunk:
-            why = "its summary lists no chunk indexes" if not self._summary.chunk_indexes else \
-                "it has chunks its summary does not list"
-            self._scan_everything(data_end, why, known=self._summary)
-            return
-        bare = int(np.count_nonzero(self._summary.chunk_indexes.entry_counts() == 0))
-        if bare:
-            self.add_note(f"{bare} of {len(self._summary.chunk_indexes)} chunks have no message indexes: each is "
-                          "read by scanning it whole.")
-        if self._loose:
-            self.add_note("some messages lie outside chunks (no index lists them): they are found by walking the "
-                          "data section and read in log_time order with the rest.")
-        self._indexed = not bare and not self._loose
-
-    def _check_summary(self, data_end: int) -> None:
-        """The indexes must point inside the data section and name known channels and schemas."""
-        summary = self._summary
-        problems: list[str] = []
-        for ch in summary.channels.values():
-            if ch.schema_id != 0 and ch.schema_id not in summary.schemas:
-                problems.append(f"channel {ch.topic!r} refers to missing schema {ch.schema_id}")
-        topics = [ch.topic for ch in summary.channels.values()]
-        if len(set(topics)) != len(topics):
-            problems.append("two channels have the same topic")
-        problems += _chunk_index_problems(summary.chunk_indexes, set(summary.channels), data_end)
-        for mi in summary.metadata_indexes:
-            if not len(MCAP_MAGIC) <= mi.offset < mi.offset + mi.length <= data_end:
-                problems.append(f"metadata index {mi.name!r} points outside the data section")
-        for ai in summary.attachment_indexes:
-            if not len(MCAP_MAGIC) <= ai.offset < ai.offset + ai.length <= data_end:
-                problems.append(f"attachment index {ai.name!r} points outside the data section")
-        if summary.statistics is not None:
-            unknown = set(summary.statistics.channel_message_counts) - set(summary.channels)
-            if unknown:
-                problems.append(f"statistics count messages of unknown channels {sorted(unknown)}")
-        if problems:
-            raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
-                                             f"{_hint(self.path)}")
+        for file in self.files:
+            for note in file.notes:
+                self.add_note(note if len(self.files) == 1 else f"{file.path.name}: {note}")
 
     def add_note(self, note: str) -> None:
         """Record a one-line note about how the log was read (shown once, in reading order)."""
@@ -369,90 +179,48 @@ class LogReader:
     def __enter__(self) -> LogReader:
         return self
 
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         self.close()
 
     def close(self) -> None:
-        """Close the file."""
-        self._file.close()
+        """Close every file."""
+        for file in self.files:
+            file.close()
 
-    @property
-    def summary(self) -> Summary:
-        """The MCAP summary (schemas, channels, chunk indexes, statistics). Its ``chunk_indexes`` is a
-        :class:`~starlog.io.chunk_indexes.ChunkIndexTable`: a sequence whose items are made on access."""
-        return self._summary
-
+    # ------------------------------------------------------------------ what the log holds
     @property
     def fully_indexed(self) -> bool:
-        """Whether every message is reachable through the summary's indexes (chunk and message indexes).
+        """Whether every message is reachable through the files' indexes (chunk and message indexes).
 
         False for valid but unusual files: no summary, chunks without message indexes, messages
         outside chunks. Such files are read in full all the same, by scanning.
         """
-        return self._indexed
-
-    def _unindexed_extents(self) -> dict[int, list[int]]:
-        """``[count, first, last]`` per channel over what the indexes do not describe (scanned once, lazily).
-
-        Covers every segment when the summary has no statistics.
-        """
-        if self._extents is None:
-            table = self._summary.chunk_indexes
-            every = self._summary.statistics is None
-            segments = table if every else table.indexes_at(np.flatnonzero(table.entry_counts() == 0))
-            extents: dict[int, list[int]] = {}
-            for ci in itertools.chain(segments, self._loose):
-                for log_time, _, cid, _ in self._read_chunk(ci)[0]:
-                    e = extents.get(cid)
-                    if e is None:
-                        extents[cid] = [1, log_time, log_time]
-                    else:
-                        e[0] += 1
-                        e[1], e[2] = min(e[1], log_time), max(e[2], log_time)
-            self._extents = extents
-        return self._extents
+        return all(file.fully_indexed for file in self.files)
 
     @property
     def topics(self) -> list[str]:
         """Topics of every channel, in channel-id order."""
-        return [self._summary.channels[k].topic for k in sorted(self._summary.channels)]
+        return [self._channels[k].topic for k in sorted(self._channels)]
 
     def has_topic(self, topic: str) -> bool:
         """Whether the log has a channel named ``topic``."""
         return topic in self.topics
 
+    def _channel_extents(self) -> dict[int, list[int]]:
+        if self._extents is None:
+            self._extents = {}
+            for file in self.files:
+                self._extents.update(file.channel_extents(self._lo, self._hi))
+        return self._extents
+
     def channels(self) -> list[ChannelSummary]:
-        """Every channel with its schema, message count and time range (from the indexes)."""
-        summary = self._summary
-        counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        ranges = summary.chunk_indexes.channel_time_ranges()
-        first = {cid: lo for cid, (lo, _) in ranges.items()}
-        last = {cid: hi for cid, (_, hi) in ranges.items()}
-        if not self._indexed or summary.statistics is None:
-            extents = self._unindexed_extents()
-            for cid, (count, lo, hi) in extents.items():
-                first[cid] = min(first.get(cid, lo), lo)
-                last[cid] = max(last.get(cid, hi), hi)
-            if summary.statistics is None:
-                counts = {cid: e[0] for cid, e in extents.items()}
-        out = []
-        for cid in sorted(summary.channels):
-            ch = summary.channels[cid]
-            schema = summary.schemas.get(ch.schema_id)
-            out.append(
-                ChannelSummary(
-                    topic=ch.topic,
-                    schema_name=schema.name if schema else "",
-                    schema_encoding=schema.encoding if schema else "",
-                    message_encoding=ch.message_encoding,
-                    message_count=int(counts.get(cid, 0)),
-                    first_log_time=first.get(cid, 0),
-                    last_log_time=last.get(cid, 0),
-                )
-            )
-        return out
+        """Every channel with its schema, message count and time range (in the window, for a view)."""
+        extents = self._channel_extents()
+        summaries: dict[int, ChannelSummary] = {}
+        for file in self.files:
+            summaries.update(channel_summaries(file, extents))
+        return [summaries[cid] for cid in sorted(summaries)]
 
     def channel(self, topic: str) -> ChannelSummary:
         """The :class:`ChannelSummary` of ``topic``; :class:`ChannelNotFoundError` if absent."""
@@ -463,113 +231,29 @@ class LogReader:
 
     def time_range(self) -> tuple[int, int]:
         """First and last ``log_time`` of the whole log (0, 0 when empty)."""
-        stats = self._summary.statistics
-        if stats is None:
-            extents = self._unindexed_extents().values()
-            return (min((e[1] for e in extents), default=0), max((e[2] for e in extents), default=0))
-        if stats.message_count == 0:
-            return (0, 0)
-        return (stats.message_start_time, stats.message_end_time)
+        if self.window is None:
+            ranges = [file.time_range() for file in self.files if file.summary.statistics is None
+                      or file.summary.statistics.message_count]
+            return (min(r[0] for r in ranges), max(r[1] for r in ranges)) if ranges else (0, 0)
+        extents = [e for e in self._channel_extents().values() if e[0]]
+        return (min(e[1] for e in extents), max(e[2] for e in extents)) if extents else (0, 0)
 
-    # ------------------------------------------------------------------ chunks
-    def _chunk_error(self, ci: ChunkIndex, detail: str) -> CorruptChunkError:
-        channels = self._summary.channels
-        names = [channels[c].topic if c in channels else f"channel {c}" for c in sorted(ci.message_index_offsets)]
-        return CorruptChunkError(self.path, ci.chunk_start_offset, names, ci.message_start_time,
-                                 ci.message_end_time, detail)
+    def message_count(self) -> int:
+        """Messages of every channel (in the window, for a view)."""
+        return sum(e[0] for e in self._channel_extents().values())
 
-    def _read_chunk(self, ci: ChunkIndex) -> tuple[list[tuple[int, int, int, Message]], bool]:
-        """Every message of the chunk ``ci`` as ``(log_time, position, channel_id, message)``, fully checked,
-        and whether its CRC was verified (never for messages outside chunks)."""
-        if isinstance(ci, LooseRun):
-            try:
-                return read_loose(self._file, ci), False
-            except (ValueError, struct.error) as err:
-                raise CorruptLogError(self.path, f"the messages outside chunks at offset {ci.chunk_start_offset} are "
-                                                 f"damaged ({err}). {_hint(self.path)}") from err
-        f = self._file
-        f.seek(ci.chunk_start_offset)
-        raw = f.read(ci.chunk_length)
-        if len(raw) != ci.chunk_length:
-            raise self._chunk_error(ci, "the file ends inside it")
-        opcode, length = _RECORD_HEADER.unpack_from(raw)
-        if opcode != Opcode.CHUNK or _RECORD_HEADER.size + length != ci.chunk_length:
-            raise self._chunk_error(ci, f"no chunk record there (opcode {opcode:#04x}, length {length})")
-        try:
-            start, end, size, crc = _CHUNK_HEADER.unpack_from(raw, 9)
-            pos = 9 + _CHUNK_HEADER.size
-            (name_len,) = struct.unpack_from("<I", raw, pos)
-            compression = raw[pos + 4: pos + 4 + name_len].decode()
-            pos += 4 + name_len
-            (data_len,) = struct.unpack_from("<Q", raw, pos)
-            pos += 8
-            if pos + data_len != len(raw):
-                raise ValueError(f"its data length {data_len} does not fit its record")
-            if (start, end) != (ci.message_start_time, ci.message_end_time) or size != ci.uncompressed_size \
-                    or compression != ci.compression:
-                raise ValueError("its header disagrees with the summary's chunk index")
-            data = decompress(compression, memoryview(raw)[pos:], size)
-        except Exception as err:  # struct.error, UnicodeDecodeError, ZstdError, lz4 RuntimeError ...
-            raise self._chunk_error(ci, f"{type(err).__name__}: {err}") from err
-        if len(data) != size:
-            raise self._chunk_error(ci, f"it decompresses to {len(data)} bytes, not {size}")
-        verified = self._validate_crcs and crc != 0
-        if verified and crc32(data) != crc:
-            raise self._chunk_error(ci, f"CRC mismatch (stored {crc:#010x}, computed {crc32(data):#010x})")
-        messages: list[tuple[int, int, int, Message]] = []
-        offsets: dict[int, list[tuple[int, int]]] = {}
-        view = memoryview(data).toreadonly()  # payloads are slices of it, not copies
-        pos = 0
-        try:
-            while pos < size:
-                opcode, length = _RECORD_HEADER.unpack_from(data, pos)
-                body = pos + _RECORD_HEADER.size
-                if body + length > size:
-                    raise ValueError(f"a record at chunk offset {pos} runs past the chunk's end")
-                if opcode == Opcode.MESSAGE:
-                    cid, seq, log_time, publish_time = _MESSAGE_HEADER.unpack_from(data, body)
-                    if cid not in (ci.message_index_offsets or self._summary.channels):
-                        raise ValueError(f"it holds a message of channel {cid}, which "
-                                         f"{'its index' if ci.message_index_offsets else 'the log'} does not list")
-                    if not start <= log_time <= end:
-                        raise ValueError(f"a message at log_time {log_time} lies outside its range {start}..{end}")
-                    payload = view[body + _MESSAGE_HEADER.size: body + length]
-                    messages.append((log_time, len(messages), cid, Message(cid, log_time, payload, publish_time, seq)))
-                    offsets.setdefault(cid, []).append((log_time, pos))
-                pos = body + length
-        except (struct.error, ValueError) as err:
-            raise self._chunk_error(ci, str(err)) from err
-        self._check_message_index(ci, offsets)
-        return messages, verified
+    def _channel_id(self, topic: str) -> int:
+        for cid, channel in self._channels.items():
+            if channel.topic == topic:
+                return cid
+        raise ChannelNotFoundError(self.path, topic, self.topics)
 
-    def _check_message_index(self, ci: ChunkIndex, offsets: dict[int, list[tuple[int, int]]]) -> None:
-        """The message index records after the chunk must list exactly the chunk's messages."""
-        if not ci.message_index_offsets:  # valid MCAP: the chunk has no message index records
-            return
-        f = self._file
-        first = min(ci.message_index_offsets.values())
-        f.seek(first)
-        block = f.read(ci.message_index_length)
-        for cid, offset in ci.message_index_offsets.items():
-            rel = offset - first
-            try:
-                opcode, length = _RECORD_HEADER.unpack_from(block, rel)
-                channel_id, array_len = struct.unpack_from("<HI", block, rel + 9)
-                if opcode != Opcode.MESSAGE_INDEX or length != 6 + array_len or array_len % 16 \
-                        or channel_id != cid or rel + 9 + length > len(block):
-                    raise ValueError("not a message index record of this channel")
-                records = sorted(struct.iter_unpack("<QQ", block[rel + 15: rel + 15 + array_len]))
-            except (struct.error, ValueError) as err:
-                raise self._chunk_error(ci, f"its message index for channel {cid} at offset {offset} is damaged "
-                                            f"({err})") from err
-            if records != sorted(offsets.get(cid, [])):
-                raise self._chunk_error(ci, f"its message index for channel {cid} at offset {offset} does not match "
-                                            "the chunk's messages")
-
+    # ------------------------------------------------------------------ messages
     def raw_messages(
         self, topics: Iterable[str], *, start: int | None = None, end: int | None = None, views: bool = False,
     ) -> Iterator[tuple[Schema | None, Channel, Message]]:
-        """Undecoded messages of ``topics`` in ``log_time`` order (ties: file order), streamed chunk by chunk.
+        """Undecoded messages of ``topics`` in ``log_time`` order (ties: file order, the chain's first file
+        first), streamed chunk by chunk.
 
         ``start`` is inclusive, ``end`` exclusive. Only the chunks holding these topics are read,
         and only those whose time ranges overlap are held in memory at once. A damaged chunk
@@ -586,48 +270,21 @@ class LogReader:
         self, topics: Iterable[str], *, start: int | None, end: int | None
     ) -> Iterator[tuple[Schema | None, Channel, Message, bool]]:
         """:meth:`raw_messages`, each with whether its chunk's CRC was verified."""
-        wanted = list(topics)
-        for topic in wanted:
-            if topic not in self.topics:
-                raise ChannelNotFoundError(self.path, topic, self.topics)
-        summary = self._summary
-        ids = {cid for cid, ch in summary.channels.items() if ch.topic in wanted}
-        lo = 0 if start is None else start
-        hi = 2**64 if end is None else end
-        chunks = _Peekable(self._chunks_in_time_order(ids, lo, hi))
-        heap: list[tuple[int, int, int, int, Message, bool]] = []
-        last = -1
-        while heap or chunks.peek is not None:
-            while chunks.peek is not None and (not heap or chunks.peek.message_start_time <= heap[0][0]):
-                ci = chunks.pop()
-                messages, verified = self._read_chunk(ci)
-                for log_time, position, cid, message in messages:
-                    if cid in ids and lo <= log_time < hi:
-                        heapq.heappush(heap, (log_time, ci.chunk_start_offset, position, cid, message, verified))
-            if not heap:  # the last chunks held none of the wanted messages
-                break
-            log_time, _, _, cid, message, verified = heapq.heappop(heap)
-            if log_time < last:  # cannot happen with consistent indexes; never pass on a wrong order
-                raise CorruptLogError(self.path, f"messages come out of log_time order at {log_time}. "
-                                                 f"{_hint(self.path)}")
-            last = log_time
-            channel = summary.channels[cid]
-            yield (summary.schemas.get(channel.schema_id) if channel.schema_id else None), channel, message, verified
-
-    def _chunks_in_time_order(self, ids: set[int], lo: int, hi: int) -> Iterator[ChunkIndex]:
-        """The chunks (and runs of messages outside chunks) that may hold a message of ``ids`` with
-        ``lo <= log_time < hi``, by ``(message_start_time, offset)``; the chunk indexes are made one at a time."""
-        table: ChunkIndexTable = self._summary.chunk_indexes
-        chunks = table.indexes_at(table.rows_for_channels(ids, lo, hi))
-        loose = sorted((run for run in self._loose
-                        if (not run.message_index_offsets or not ids.isdisjoint(run.message_index_offsets))
-                        and run.message_end_time >= lo and run.message_start_time < hi),
-                       key=lambda run: (run.message_start_time, run.chunk_start_offset))
-        return heapq.merge(chunks, loose, key=lambda ci: (ci.message_start_time, ci.chunk_start_offset))
+        ids = {self._channel_id(topic) for topic in topics}
+        lo = max(self._lo, 0 if start is None else start)
+        hi = min(self._hi, _END if end is None else end)
+        streams = [file.messages(mine, lo, hi) for file in self.files
+                   if (mine := {cid for cid in ids if self._file_of[cid] is file})]
+        if not streams:
+            return
+        merged = streams[0] if len(streams) == 1 else heapq.merge(*streams, key=lambda item: item[0][0])
+        for (_, _, cid, message), verified in merged:
+            channel = self._channels[cid]
+            yield (self._schemas.get(channel.schema_id) if channel.schema_id else None), channel, message, verified
 
     def _trusted(self, channel: Channel) -> bool:
         """Whether the channel's messages were checked by starlog's writer and the summary saying so is intact."""
-        return (self._validate_messages is True and self._summary_verified
+        return (self._validate_messages is True and self._file_of[channel.id].summary_verified
                 and channel.metadata.get(VALIDATED_METADATA_KEY) == "jsonschema")
 
     def _checker(self, schema: Schema | None) -> Callable[[Any], str | None] | None:
@@ -657,39 +314,24 @@ class LogReader:
         if stride < 1:
             raise InvalidParameterError(f"stride must be >= 1; got {stride}.")
         topics = [topic] if isinstance(topic, str) else list(topic)
-        trusted = {c.id: self._trusted(c) for c in self._summary.channels.values()}
+        trusted = {cid: self._trusted(c) for cid, c in self._channels.items()}
         merged = self._merged_messages(topics, start=start, end=end)
         for schema, channel, message, verified in itertools.islice(merged, 0, None, stride):
             check = None if verified and trusted[channel.id] else self._checker(schema)
             yield DecodedMessage(
                 channel.topic, message.log_time, message.sequence,
-                decode_payload(self.path, schema, channel, message, check),
+                decode_payload(self._file_of[channel.id].path, schema, channel, message, check),
             )
 
     def chunk_message_counts(self, topic: str) -> list[tuple[int, int, int]]:
-        """``(message_start_time, message_end_time, count)`` of ``topic`` in each chunk holding it, in time order.
+        """``(message_start_time, message_end_time, count)`` of ``topic`` in each chunk holding it, in time order
+        (in the window, for a view).
 
-        Read from the message index records (a few bytes per chunk; no chunk is decompressed).
+        Read from the message index records (a few bytes per chunk; no chunk is decompressed but those
+        across a bound of the window).
         """
-        channel_id = next((c.id for c in self._summary.channels.values() if c.topic == topic), None)
-        if channel_id is None:
-            raise ChannelNotFoundError(self.path, topic, self.topics)
-        table: ChunkIndexTable = self._summary.chunk_indexes
-        rows, channels, offsets = table.entries()
-        mine = channels == channel_id
-        out = []
-        for ci, offset in zip(table.indexes_at(rows[mine]), offsets[mine].tolist(), strict=True):
-            self._file.seek(offset)
-            head = self._file.read(_RECORD_HEADER.size + 6)
-            try:
-                opcode, _ = _RECORD_HEADER.unpack_from(head, 0)
-                cid, array_len = struct.unpack_from("<HI", head, _RECORD_HEADER.size)
-            except struct.error as err:
-                raise self._chunk_error(ci, f"its message index is cut short ({err})") from err
-            if opcode != Opcode.MESSAGE_INDEX or cid != channel_id or array_len % 16:
-                raise self._chunk_error(ci, f"its message index for channel {channel_id} is damaged")
-            out.append((ci.message_start_time, ci.message_end_time, array_len // 16))
-        return sorted(out)
+        cid = self._channel_id(topic)
+        return self._file_of[cid].chunk_message_counts(cid, self._lo, self._hi)
 
     def frames(self, topic: str = "/camera/image", *, start: int | None = None, end: int | None = None,
                first_index: int = 0, on_bad: Callable[[SkippedFrame], None] | None = None,
@@ -711,26 +353,12 @@ class LogReader:
         """Like :meth:`frames`, as :class:`~starlog.io.frames.Frame` records (with the message's own stamp)."""
         return iter_frames(self, topic, start=start, end=end, first_index=first_index, on_bad=on_bad)
 
+    # ------------------------------------------------------------------ metadata
     def metadata(self, name: str | None = None) -> list[tuple[str, dict[str, str]]]:
-        """MCAP Metadata records ``(name, map)`` in file order, optionally only those named ``name``."""
-        out = []
-        for index in sorted(self._summary.metadata_indexes, key=lambda m: m.offset):
-            if name is not None and index.name != name:
-                continue
-            self._file.seek(index.offset)
-            raw = self._file.read(index.length)
-            try:
-                opcode, length = _RECORD_HEADER.unpack_from(raw)
-                if opcode != Opcode.METADATA or _RECORD_HEADER.size + length != index.length:
-                    raise ValueError(f"no metadata record there (opcode {opcode:#04x})")
-                record = Metadata.read(ReadDataStream(io.BytesIO(raw[_RECORD_HEADER.size:])))
-                if record.name != index.name:
-                    raise ValueError(f"it is named {record.name!r}, its index says {index.name!r}")
-            except (struct.error, ValueError, EOFError, McapError) as err:
-                raise CorruptLogError(self.path, f"the metadata record {index.name!r} at offset {index.offset} is "
-                                                 f"damaged ({err}). {_hint(self.path)}") from err
-            out.append((record.name, dict(record.metadata)))
-        return out
+        """MCAP Metadata records ``(name, map)`` of the chain's files in order, each file's in file order,
+        optionally only those named ``name``. The records by which layers name their bases are not listed
+        (see :meth:`layers`)."""
+        return [record for file in self.files for record in file.metadata(name) if record[0] != BASE_METADATA_NAME]
 
     def provenance(self) -> list[Provenance]:
         """Every stage recorded in the log, oldest first."""
@@ -744,3 +372,31 @@ class LogReader:
                 raise CorruptLogError(self.path, f"a provenance record is damaged ({err}).") from err
             out.append(record)
         return out
+
+    # ------------------------------------------------------------------ the chain
+    def layers(self) -> list[dict[str, Any]]:
+        """Each file of the chain, first log first: its path, size, topics and (for a layer) its base record."""
+        out = []
+        for file in self.files:
+            reference = base_reference(file)
+            stats = file.summary.statistics
+            out.append({"path": str(file.path), "size_bytes": file.size,
+                        "topics": [c.topic for _, c in sorted(file.summary.channels.items())],
+                        "message_count": stats.message_count if stats else sum(
+                            e[0] for e in file.channel_extents().values()),
+                        "chunk_count": len(file.summary.chunk_indexes),
+                        "compression": sorted({n or "none" for n in file.summary.chunk_indexes.compressions()}),
+                        "base": None if reference is None else {**reference.to_metadata(),
+                                                                 "chain": list(reference.chain)}})
+        return out
+
+    def layer_base(self) -> LayerBase:
+        """What a layer written on this log needs (:class:`~starlog.io.chain.LayerBase`); the SHA-256 of the
+        newest file is computed on a thread from now on."""
+        newest = self.files[-1]
+        reference = base_reference(newest)
+        chain = () if reference is None else (reference.sha256, *reference.chain)
+        return LayerBase(newest.path, newest.size, summary_checksum(newest), chain,
+                         next_schema_id=max(self._schemas, default=0) + 1,
+                         next_channel_id=max(self._channels, default=0) + 1,
+                         topics=frozenset(self.topics))

@@ -5,11 +5,14 @@ is kept: schemas, channels, messages of every chunk whose bytes are whole and wh
 and metadata (provenance). A chunk cut off by the end of the file, or whose CRC does not match,
 is dropped and reported — with its offset, time range and, from the message-index records that
 follow it when they survived, how many messages of which channels it held.
+
+A layer (:mod:`starlog.io.chain`) is recovered as a layer on the same base when its base record
+survived and its base is there, unchanged; otherwise its own records are recovered into a file
+that opens alone, and the report says why.
 """
 
 from __future__ import annotations
 
-import io
 import os
 import struct
 from collections import defaultdict
@@ -17,23 +20,33 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Message, MessageIndex, Metadata, Schema
-from mcap.stream_reader import breakup_chunk
+from mcap.records import Channel, Message, MessageIndex, Metadata, Schema
 
 from starlog import __version__
-from starlog.errors import CorruptLogError, LogNotFoundError
-from starlog.io.checksum import summary_crc
+from starlog.errors import CorruptLogError, LogError, LogNotFoundError
+from starlog.io.chain import BASE_METADATA_NAME, BaseReference, LayerBase
 from starlog.io.chunk_indexes import read_file_summary
+from starlog.io.layout import (
+    CHUNK_HEADER,
+    MAGIC,
+    RECORD_HEADER,
+    RecordOverrun,
+    decode_chunk,
+    iter_records,
+    parse_record,
+    read_footer,
+    summary_crc,
+    walk_records,
+)
+from starlog.io.mcap_file import McapFile
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance, file_digest
+from starlog.io.reader import LogReader
 from starlog.io.schemas import MessageType
-from starlog.io.writer import MCAP_MAGIC, LogWriter
+from starlog.io.writer import LogWriter
 
 __all__ = ["RecoveryReport", "recover_log"]
-
-_RECORD_HEADER = struct.Struct("<BQ")
 
 
 @dataclass
@@ -70,6 +83,8 @@ class RecoveryReport:
     lost_chunks: list[LostChunk] = field(default_factory=list)
     tail_bytes_lost: int = 0
     skipped_records: dict[str, int] = field(default_factory=dict)
+    base: str = ""  # the base of the recovered layer ("": the output opens alone)
+    base_note: str = ""  # why a layer's base was not kept
 
     @property
     def lost_by_topic(self) -> dict[str, int]:
@@ -92,6 +107,8 @@ class RecoveryReport:
             "lost_by_topic": self.lost_by_topic,
             "tail_bytes_lost": self.tail_bytes_lost,
             "skipped_records": dict(self.skipped_records),
+            "base": self.base,
+            "base_note": self.base_note,
         }
 
 
@@ -157,18 +174,18 @@ _COMPRESSIONS = {b"", b"zstd", b"lz4"}
 def _plausible_chunk(f: BinaryIO, offset: int, size: int) -> bool:
     """Whether a whole, self-consistent chunk record starts at ``offset`` (used to resynchronise)."""
     f.seek(offset)
-    head = f.read(9 + 28 + 4)
-    if len(head) < 41 or head[0] != Opcode.CHUNK:
+    head = f.read(RECORD_HEADER.size + CHUNK_HEADER.size + 4)
+    if len(head) < RECORD_HEADER.size + CHUNK_HEADER.size + 4 or head[0] != Opcode.CHUNK:
         return False
     (length,) = struct.unpack_from("<Q", head, 1)
-    (name_len,) = struct.unpack_from("<I", head, 37)
-    if name_len > 4 or offset + 9 + length > size:
+    (name_len,) = struct.unpack_from("<I", head, RECORD_HEADER.size + CHUNK_HEADER.size)
+    if name_len > 4 or offset + RECORD_HEADER.size + length > size:
         return False
     rest = f.read(name_len + 8)
     if len(rest) < name_len + 8 or rest[:name_len] not in _COMPRESSIONS:
         return False
     (data_len,) = struct.unpack_from("<Q", rest, name_len)
-    return 28 + 4 + name_len + 8 + data_len == length
+    return CHUNK_HEADER.size + 4 + name_len + 8 + data_len == length
 
 
 def _resync(f: BinaryIO, start: int, size: int, hints: list[int]) -> int | None:
@@ -190,120 +207,140 @@ def _resync(f: BinaryIO, start: int, size: int, hints: list[int]) -> int | None:
     return None
 
 
-def _replay_chunk(stream: ReadDataStream, length: int, offset: int, report: RecoveryReport,
-                  rebuild: _Rebuilder) -> LostChunk | None:
+def _replay_chunk(body: bytes, offset: int, report: RecoveryReport, rebuild: _Rebuilder) -> LostChunk | None:
     """Hand the records of the chunk record at ``offset`` to ``rebuild``; a damaged chunk is reported lost.
 
     Returns the :class:`LostChunk` (its message index records that follow then name what it held).
     """
-    chunk = Chunk.read(stream)
-    if stream.count != length:
-        raise ValueError(f"its fields take {stream.count} bytes, its record {length}")
+    start, end = CHUNK_HEADER.unpack_from(body)[:2]
     try:
-        if chunk.compression not in ("", "zstd", "lz4"):
-            raise ValueError(f"unknown compression {chunk.compression!r}")
-        records = breakup_chunk(chunk, validate_crc=True)
-    except Exception as err:  # CRC mismatch, damaged compressed data, bad inner record
-        lost = LostChunk(offset, f"{type(err).__name__}: {err}", chunk.message_start_time, chunk.message_end_time)
+        contents = decode_chunk(body)
+        records = [(opcode, contents.data[at: at + length]) for _, opcode, at, length in iter_records(contents.data)]
+    except Exception as err:  # CRC mismatch, damaged compressed data, a record past the chunk's end
+        lost = LostChunk(offset, f"{type(err).__name__}: {err}", start, end)
         report.lost_chunks.append(lost)
         return lost
-    for record in records:
-        if isinstance(record, Schema):
-            rebuild.schema(record)
-        elif isinstance(record, Channel):
-            rebuild.channel(record)
-        elif isinstance(record, Message):
-            rebuild.message(record)
+    for opcode, record in records:
+        if opcode == Opcode.SCHEMA:
+            rebuild.schema(parse_record(record, Schema))
+        elif opcode == Opcode.CHANNEL:
+            rebuild.channel(parse_record(record, Channel))
+        elif opcode == Opcode.MESSAGE:
+            rebuild.message(parse_record(record, Message))
     return None
+
+
+class _Replay:
+    """The records of a file in file order, handed to a :class:`_Rebuilder`; damaged ones reported lost."""
+
+    def __init__(self, f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebuilder) -> None:
+        self.f, self.size, self.report, self.rebuild = f, size, report, rebuild
+        self.pending_lost: LostChunk | None = None
+        self.last_whole: int | None = None  # the last record trusted by its length alone (see _read_records)
+
+    def record(self, offset: int, opcode: int, body: bytes) -> bool:
+        """Hand one record on; False at the DataEnd record."""
+        rebuild = self.rebuild
+        if opcode == Opcode.SCHEMA:
+            rebuild.schema(parse_record(body, Schema))
+        elif opcode == Opcode.CHANNEL:
+            rebuild.channel(parse_record(body, Channel))
+        elif opcode == Opcode.MESSAGE:
+            rebuild.message(parse_record(body, Message))
+        elif opcode == Opcode.CHUNK:
+            self.pending_lost = _replay_chunk(body, offset, self.report, rebuild)
+        elif opcode == Opcode.MESSAGE_INDEX:
+            if self.pending_lost is not None:
+                index = parse_record(body, MessageIndex)
+                channel = rebuild.channels.get(index.channel_id)
+                topic = channel.topic if channel else f"channel {index.channel_id}"
+                self.pending_lost.messages_by_topic[topic] = len(index.records)
+        elif opcode == Opcode.METADATA:
+            metadata = parse_record(body, Metadata)
+            if metadata.name == BASE_METADATA_NAME:  # the writer names the base of the recovered layer itself
+                return True
+            rebuild.writer.add_metadata(metadata.name, dict(metadata.metadata))
+            self.report.metadata_kept += 1
+        elif opcode == Opcode.DATA_END:
+            return False
+        elif opcode not in (Opcode.HEADER, Opcode.FOOTER):
+            rebuild.skip(Opcode(opcode).name)
+        return True
 
 
 def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebuilder,
                   hints: list[int] | None = None) -> None:
-    offset = len(MCAP_MAGIC)
-    pending_lost: LostChunk | None = None
+    replay = _Replay(f, size, report, rebuild)
+    offset = len(MAGIC)
     hints = sorted(hints or [])
-    skipped_by_length: int | None = None  # start of the previous record if only its length was trusted
     while offset < size:
-        f.seek(offset)
-        head = f.read(_RECORD_HEADER.size)
-        if len(head) < _RECORD_HEADER.size:
-            break
-        opcode, length = _RECORD_HEADER.unpack(head)
-        damaged: str | None = None
-        if opcode not in _KNOWN_OPCODES:
-            damaged = f"unknown record type {opcode:#04x}"
-        elif offset + _RECORD_HEADER.size + length > size:
-            damaged = f"a {Opcode(opcode).name} record of {length} bytes runs past the end of the file"
-        else:
-            body = f.read(length)
-            stream = ReadDataStream(io.BytesIO(body))
-            try:
-                if opcode == Opcode.SCHEMA:
-                    rebuild.schema(Schema.read(stream))
-                elif opcode == Opcode.CHANNEL:
-                    rebuild.channel(Channel.read(stream))
-                elif opcode == Opcode.MESSAGE:
-                    rebuild.message(Message.read(stream, length))
-                elif opcode == Opcode.CHUNK:
-                    pending_lost = _replay_chunk(stream, length, offset, report, rebuild)
-                elif opcode == Opcode.MESSAGE_INDEX:
-                    if pending_lost is not None:
-                        index = MessageIndex.read(stream)
-                        channel = rebuild.channels.get(index.channel_id)
-                        topic = channel.topic if channel else f"channel {index.channel_id}"
-                        pending_lost.messages_by_topic[topic] = len(index.records)
-                elif opcode == Opcode.METADATA:
-                    metadata = Metadata.read(stream)
-                    rebuild.writer.add_metadata(metadata.name, dict(metadata.metadata))
-                    report.metadata_kept += 1
-                elif opcode == Opcode.DATA_END:
-                    offset += _RECORD_HEADER.size + length
-                    break
-                elif opcode not in (Opcode.HEADER, Opcode.FOOTER):
-                    rebuild.skip(Opcode(opcode).name)
-            except (struct.error, ValueError, UnicodeDecodeError, EOFError, McapError, MemoryError) as err:
-                damaged = f"damaged {Opcode(opcode).name} record: {type(err).__name__}: {err}"
-        if damaged is None:
-            skipped_by_length = offset if opcode == Opcode.MESSAGE_INDEX and pending_lost is None else None
-            offset += _RECORD_HEADER.size + length
-            continue
+        damaged, cut_off = _replay_until_damage(f, offset, size, replay)
+        if damaged is None:  # the end: a DataEnd record, or the end of the file (cut_off: inside a header)
+            report.bytes_scanned = cut_off
+            return
+        offset, detail = damaged
+        skipped_by_length = replay.last_whole
         # The bytes at `offset` are not a whole record: find the next chunk and go on from there. When the
         # record before was only skipped by its length, that length may be the damage: look inside it too.
-        pending_lost = None
+        replay.pending_lost = None
         found = _resync(f, offset + 1 if skipped_by_length is None else skipped_by_length + 1, size, hints)
         if found is None:
-            if report.had_footer or offset + _RECORD_HEADER.size + length <= size or opcode not in _KNOWN_OPCODES:
-                report.lost_chunks.append(LostChunk(offset, f"{damaged}; nothing readable after it"))
+            if report.had_footer or not cut_off:
+                report.lost_chunks.append(LostChunk(offset, f"{detail}; nothing readable after it"))
             break  # else: the record cut off by the end of a truncated file (counted in tail_bytes_lost)
         if found > offset:
-            report.lost_chunks.append(LostChunk(offset, f"{damaged}; skipped {found - offset} bytes to the next chunk"))
+            report.lost_chunks.append(LostChunk(offset, f"{detail}; skipped {found - offset} bytes to the next chunk"))
         else:
-            report.lost_chunks.append(LostChunk(offset, f"{damaged}; the record before overran it: resumed at the "
+            report.lost_chunks.append(LostChunk(offset, f"{detail}; the record before overran it: resumed at the "
                                                         f"chunk at offset {found}"))
         offset = found
     report.bytes_scanned = offset
 
 
-def _summary_crc_ok(f: BinaryIO, size: int) -> bool:
+def _replay_until_damage(f: BinaryIO, offset: int, size: int, replay: _Replay) -> tuple[Any, Any]:
+    """Replay the records from ``offset``: ``((offset, what), runs past the end)`` of the first damaged record,
+    or ``(None, where reading stopped)`` at the DataEnd record or the end of the file."""
+    replay.last_whole = None
+    try:
+        for offset, opcode, length, body in walk_records(f, offset, size):
+            if opcode not in _KNOWN_OPCODES:
+                return (offset, f"unknown record type {opcode:#04x}"), False
+            try:
+                going_on = replay.record(offset, opcode, body or b"")
+            except (struct.error, ValueError, UnicodeDecodeError, EOFError, McapError, MemoryError) as err:
+                return (offset, f"damaged {Opcode(opcode).name} record: {type(err).__name__}: {err}"), False
+            # a message index that named no lost chunk was trusted by its length alone
+            replay.last_whole = offset if opcode == Opcode.MESSAGE_INDEX and replay.pending_lost is None else None
+            if not going_on:
+                return None, offset + RECORD_HEADER.size + length
+        return None, size
+    except RecordOverrun as err:
+        if err.cut_header:
+            return None, err.offset
+        f.seek(err.offset)
+        opcode, length = RECORD_HEADER.unpack(f.read(RECORD_HEADER.size))
+        if opcode not in _KNOWN_OPCODES:
+            return (err.offset, f"unknown record type {opcode:#04x}"), False
+        return (err.offset, f"a {Opcode(opcode).name} record of {length} bytes runs past the end of the file"), True
+
+
+def _summary_crc_ok(f: BinaryIO, path: Path) -> bool:
     """Whether the footer's summary CRC matches (a damaged summary must not name channels)."""
-    footer = struct.Struct("<BQQQI")
-    if size < len(MCAP_MAGIC) * 2 + footer.size:
+    try:
+        footer = read_footer(path, f)
+    except LogError:
         return False
-    f.seek(size - len(MCAP_MAGIC) - footer.size)
-    opcode, _, start, offsets_start, crc = footer.unpack(f.read(footer.size))
-    end = size - len(MCAP_MAGIC) - footer.size
-    if opcode != Opcode.FOOTER or not len(MCAP_MAGIC) < start <= end:
+    if not len(MAGIC) < footer.summary_start <= footer.offset:
         return False
-    computed = summary_crc(f, start, offsets_start, end)
-    return crc == 0 or computed == crc
+    return footer.summary_crc == 0 or summary_crc(f, footer) == footer.summary_crc
 
 
-def _seed_from_summary(f: BinaryIO, rebuild: _Rebuilder, size: int) -> list[int]:
+def _seed_from_summary(f: BinaryIO, path: Path, rebuild: _Rebuilder) -> list[int]:
     """Schemas and channels from the summary when it survived intact (a chunk holding them may not have).
 
     Returns the chunk offsets the summary lists (used to resynchronise after a damaged record).
     """
-    if not _summary_crc_ok(f, size):
+    if not _summary_crc_ok(f, path):
         rebuild.skip("damaged summary section (rebuilt from the data section)")
         return []
     try:
@@ -336,16 +373,18 @@ def recover_log(
         raise LogNotFoundError(source)
     report = RecoveryReport(output=Path(output), input_size=source.stat().st_size)
     with open(source, "rb") as f:
-        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+        if f.read(len(MAGIC)) != MAGIC:
             raise CorruptLogError(source, "does not start with the MCAP magic bytes; nothing can be recovered.")
-        footer_at = report.input_size - len(MCAP_MAGIC) - 29
-        if footer_at >= len(MCAP_MAGIC):
-            f.seek(footer_at)
-            tail = f.read()
-            report.had_footer = tail[0] == Opcode.FOOTER and tail[-len(MCAP_MAGIC):] == MCAP_MAGIC
-        with LogWriter(output, force=force, compression=compression, validate=False) as writer:  # bytes as found
+        try:
+            read_footer(source, f)
+            report.had_footer = True
+        except LogError:
+            report.had_footer = False
+        layer = _layer_base(source, report) if report.had_footer else None
+        with LogWriter(output, force=force, compression=compression, validate=False,  # bytes as found
+                       layer=layer) as writer:
             rebuild = _Rebuilder(writer, report)
-            hints = _seed_from_summary(f, rebuild, report.input_size) if report.had_footer else []
+            hints = _seed_from_summary(f, source, rebuild) if report.had_footer else []
             _read_records(f, report.input_size, report, rebuild, hints)
             report.tail_bytes_lost = 0 if report.had_footer else report.input_size - report.bytes_scanned
             writer.add_metadata(
@@ -354,3 +393,31 @@ def recover_log(
                            input_digest=file_digest(source), channels=[]).to_metadata(),
             )
     return report
+
+
+def _layer_base(source: Path, report: RecoveryReport) -> LayerBase | None:
+    """The base the recovered layer is written on: the one its intact summary names, when it is there unchanged."""
+    try:
+        with McapFile(source) as file:
+            records = file.metadata(BASE_METADATA_NAME)
+        if not records:
+            return None
+        reference = BaseReference.from_metadata(records[0][1], source)
+    except LogError:  # a damaged summary: the base record cannot be trusted
+        report.base_note = "its summary is damaged, so the base it names is not known: the output opens alone"
+        return None
+    base = reference.resolve(source)
+    try:
+        with LogReader(base) as log:
+            chain_base = log.layer_base()
+    except LogError as err:
+        report.base_note = f"it is a layer on {reference.describe()}, which cannot be read ({err}): the output " \
+                           "holds the layer's own records and opens alone"
+        return None
+    if (chain_base.size, chain_base.summary_crc) != (reference.size, reference.summary_crc):
+        chain_base.cancel()
+        report.base_note = f"it is a layer on {reference.describe()}, which has changed: the output holds the " \
+                           "layer's own records and opens alone"
+        return None
+    report.base = str(base)
+    return chain_base

@@ -18,17 +18,13 @@ indexes and counters are kept, never messages.
 
 from __future__ import annotations
 
-import io
 import struct
-import threading
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
-from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import (
     Attachment,
@@ -43,25 +39,11 @@ from mcap.records import (
 )
 from mcap.summary import Summary
 
-from starlog.io.checksum import crc32
 from starlog.io.chunk_indexes import ChunkIndexTable
+from starlog.io.layout import MAGIC, MESSAGE_HEADER, MESSAGE_INDEX_BODY, RECORD_HEADER, ChunkContents, decode_chunk, iter_records, parse_record, walk_records
 
-__all__ = [
-    "ChunkContents",
-    "LooseRun",
-    "ScanResult",
-    "chunk_record",
-    "find_loose_runs",
-    "iter_file_records",
-    "iter_records",
-    "read_loose",
-    "synthesize_summary",
-]
+__all__ = ["LooseRun", "ScanResult", "find_loose_runs", "read_loose", "synthesize_summary"]
 
-RECORD_HEADER = struct.Struct("<BQ")
-MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log_time, publish_time
-CHUNK_HEADER = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed CRC
-MAGIC_LENGTH = 8
 _RUN_MESSAGES = 1024  # loose messages per segment: bounds what one read holds in memory
 _RUN_BYTES = 8 * 1024 * 1024
 
@@ -70,144 +52,6 @@ _RUN_BYTES = 8 * 1024 * 1024
 class LooseRun(ChunkIndex):
     """Consecutive messages written outside chunks, described like a chunk (``compression`` is empty,
     ``message_index_offsets`` lists the channels it holds with offset 0: there is no index record)."""
-
-
-@dataclass(frozen=True)
-class ChunkContents:
-    """A chunk record's header fields and its decompressed, CRC-checked records."""
-
-    start: int
-    end: int
-    uncompressed_size: int
-    crc: int
-    compression: str
-    compressed_size: int
-    data: bytes
-
-
-_ZSTD = threading.local()  # a decompression context per thread (one is not safe to share between threads)
-
-
-def _zstd_one_shot(data: bytes | memoryview, size: int) -> bytes | None:
-    """Decompress a zstd frame that says it holds exactly ``size`` bytes in one call, reusing this thread's
-    decompressor; None for anything else (the frame says another size or nothing, or does not decode)."""
-    import zstandard
-
-    decompressor = getattr(_ZSTD, "decompressor", None)
-    if decompressor is None:
-        decompressor = _ZSTD.decompressor = zstandard.ZstdDecompressor()
-    try:
-        if zstandard.frame_content_size(data) != size:
-            return None
-        return decompressor.decompress(data)
-    except zstandard.ZstdError:
-        return None
-
-
-def decompress(compression: str, data: bytes | memoryview, size: int) -> bytes | memoryview:
-    """Decompress at most ``size`` + 1 bytes (a damaged frame header cannot make us allocate more).
-
-    A zstd chunk written whole (its frame header gives its size, as every MCAP writer's does) is
-    decompressed in one call; any other, or one that fails to, goes through the stream reader,
-    which reads the same bytes and gives the same errors. ``compression == ""`` returns ``data``.
-    """
-    if compression == "":
-        return data
-    if compression == "zstd":
-        import zstandard
-
-        whole = _zstd_one_shot(data, size)
-        if whole is not None:
-            return whole
-        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
-            return reader.read(size + 1)
-    if compression == "lz4":
-        import lz4.frame
-
-        return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
-    raise ValueError(f"unsupported chunk compression {compression!r}")
-
-
-def chunk_record(body: bytes | memoryview, *, check_crc: bool = True) -> ChunkContents:
-    """Parse a chunk record's body (after its opcode and length), decompress it and check its CRC.
-
-    Raises ``ValueError`` / ``struct.error`` (or the decompressor's error) naming what is wrong.
-    """
-    start, end, size, crc = CHUNK_HEADER.unpack_from(body, 0)
-    pos = CHUNK_HEADER.size
-    (name_len,) = struct.unpack_from("<I", body, pos)
-    compression = bytes(body[pos + 4: pos + 4 + name_len]).decode()
-    pos += 4 + name_len
-    (data_len,) = struct.unpack_from("<Q", body, pos)
-    pos += 8
-    if pos + data_len != len(body):
-        raise ValueError(f"its data length {data_len} does not fit its record")
-    data = decompress(compression, bytes(body[pos:]), size)
-    if len(data) != size:
-        raise ValueError(f"it decompresses to {len(data)} bytes, not {size}")
-    if check_crc and crc != 0 and crc32(data) != crc:
-        raise ValueError(f"CRC mismatch (stored {crc:#010x}, computed {crc32(data):#010x})")
-    return ChunkContents(start, end, size, crc, compression, int(data_len), data)
-
-
-def iter_records(data: bytes | memoryview, base: int = 0) -> Iterator[tuple[int, int, int, int]]:
-    """``(offset, opcode, body_start, body_length)`` of each record in ``data`` (offsets from ``base``).
-
-    Raises ``ValueError`` when a record runs past the end of ``data``.
-    """
-    pos, size = 0, len(data)
-    while pos < size:
-        if pos + RECORD_HEADER.size > size:
-            raise ValueError(f"a record header at offset {base + pos} is cut off")
-        opcode, length = RECORD_HEADER.unpack_from(data, pos)
-        body = pos + RECORD_HEADER.size
-        if body + length > size:
-            raise ValueError(f"the record at offset {base + pos} (opcode {opcode:#04x}, {length} bytes) runs past "
-                             f"the end of its section")
-        yield base + pos, opcode, body, length
-        pos = body + length
-
-
-def iter_file_records(f: BinaryIO, start: int, end: int, block: int = 1 << 20) -> Iterator[tuple[int, int, bytes]]:
-    """:func:`iter_records` of the file's bytes from ``start`` to ``end``, read a block at a time (the
-    section is never held whole): ``(offset, opcode, body)`` of each record, the same ``ValueError``."""
-    buffer, base, pos = b"", start, start  # buffer: the file's bytes from base
-
-    def through(upto: int) -> None:
-        nonlocal buffer, base
-        if upto > base + len(buffer):
-            f.seek(base + len(buffer))
-            buffer = buffer[pos - base:] + f.read(max(block, upto - base - len(buffer)))
-            base = pos
-
-    while pos < end:
-        body = pos + RECORD_HEADER.size
-        if body > end:
-            raise ValueError(f"a record header at offset {pos} is cut off")
-        through(body)
-        opcode, length = RECORD_HEADER.unpack_from(buffer, pos - base)
-        if body + length > end:
-            raise ValueError(f"the record at offset {pos} (opcode {opcode:#04x}, {length} bytes) runs past the end "
-                             "of its section")
-        through(body + length)
-        yield pos, opcode, buffer[body - base: body + length - base]
-        pos = body + length
-
-
-def _walk_file(f: BinaryIO, start: int, end: int) -> Iterator[tuple[int, int, int]]:
-    """``(offset, opcode, length)`` of each top-level record between ``start`` and ``end``, reading headers only."""
-    pos = start
-    while pos < end:
-        f.seek(pos)
-        head = f.read(RECORD_HEADER.size)
-        if len(head) < RECORD_HEADER.size:
-            raise ValueError(f"a record header at offset {pos} is cut off")
-        opcode, length = RECORD_HEADER.unpack(head)
-        if pos + RECORD_HEADER.size + length > end:
-            raise ValueError(f"the record at offset {pos} (opcode {opcode:#04x}, {length} bytes) runs past the end of "
-                             f"the data section at {end}")
-        yield pos, opcode, length
-        pos += RECORD_HEADER.size + length
 
 
 class _RunBuilder:
@@ -296,11 +140,11 @@ def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> tuple[list[
     must be read by :func:`synthesize_summary`). Raises ``ValueError`` for a damaged gap.
     """
     builder = _RunBuilder()
-    pos = MAGIC_LENGTH
+    pos = len(MAGIC)
     unindexed_chunk = False
     for lo, hi in _covered(summary) + [(data_end, data_end)]:
         if lo > pos:
-            for offset, opcode, length in _walk_file(f, pos, lo):
+            for offset, opcode, length, _ in walk_records(f, pos, lo, bodies=()):
                 if opcode == Opcode.MESSAGE:
                     channel_id, log_time = _message_head(f, offset)
                     builder.add(offset, RECORD_HEADER.size + length, channel_id, log_time)
@@ -371,9 +215,9 @@ class _Tally:
         for _, opcode, body, size in iter_records(contents.data):
             record = contents.data[body: body + size]
             if opcode == Opcode.SCHEMA:
-                self.schema(Schema.read(ReadDataStream(io.BytesIO(record))))
+                self.schema(parse_record(record, Schema))
             elif opcode == Opcode.CHANNEL:
-                self.channel(Channel.read(ReadDataStream(io.BytesIO(record))))
+                self.channel(parse_record(record, Channel))
             elif opcode == Opcode.MESSAGE:
                 cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(record, 0)
                 self.message(cid, log_time)
@@ -409,9 +253,9 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
     runs = _RunBuilder()
     last_chunk: ChunkIndex | None = None
     index_end = 0
-    for offset, opcode, length in _walk_file(f, MAGIC_LENGTH, data_end):
+    for offset, opcode, length, _ in walk_records(f, len(MAGIC), data_end, bodies=()):
         if opcode == Opcode.MESSAGE_INDEX and last_chunk is not None:
-            (channel_id,) = struct.unpack("<H", _body(f, offset, 2)[:2]) if length >= 2 else (None,)
+            channel_id = MESSAGE_INDEX_BODY.unpack(_body(f, offset, 6))[0] if length >= 6 else None
             if channel_id is not None:
                 last_chunk.message_index_offsets[channel_id] = offset
                 index_end = offset + RECORD_HEADER.size + length
@@ -429,22 +273,22 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
         runs.close()
         if opcode == Opcode.CHUNK:
             try:
-                contents = chunk_record(_body(f, offset, length))
+                contents = decode_chunk(_body(f, offset, length))
             except (ValueError, struct.error) as err:
                 raise ValueError(f"the chunk at offset {offset} is damaged: {err}") from err
             except Exception as err:  # zstd / lz4 errors
                 raise ValueError(f"the chunk at offset {offset} is damaged: {type(err).__name__}: {err}") from err
             last_chunk = tally.chunk(offset, RECORD_HEADER.size + length, contents)
         elif opcode == Opcode.SCHEMA:
-            tally.schema(Schema.read(ReadDataStream(io.BytesIO(_body(f, offset, length)))))
+            tally.schema(parse_record(_body(f, offset, length), Schema))
         elif opcode == Opcode.CHANNEL:
-            tally.channel(Channel.read(ReadDataStream(io.BytesIO(_body(f, offset, length)))))
+            tally.channel(parse_record(_body(f, offset, length), Channel))
         elif opcode == Opcode.METADATA:
-            record = Metadata.read(ReadDataStream(io.BytesIO(_body(f, offset, length))))
+            record = parse_record(_body(f, offset, length), Metadata)
             tally.summary.metadata_indexes.append(MetadataIndex(offset=offset, length=RECORD_HEADER.size + length,
                                                                 name=record.name))
         elif opcode == Opcode.ATTACHMENT:
-            record = Attachment.read(ReadDataStream(io.BytesIO(_body(f, offset, length))))
+            record = parse_record(_body(f, offset, length), Attachment)
             tally.summary.attachment_indexes.append(AttachmentIndex(
                 offset=offset, length=RECORD_HEADER.size + length, log_time=record.log_time,
                 create_time=record.create_time, data_size=len(record.data), name=record.name,

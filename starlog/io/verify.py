@@ -18,7 +18,6 @@ as :class:`~starlog.io.reader.LogReader` parses them: one that it refuses is a `
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import struct
@@ -29,23 +28,41 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
-from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, ChunkIndex, Metadata, MetadataIndex, Schema, Statistics, SummaryOffset
 
-from starlog.io.checksum import crc32, summary_crc
+from starlog.errors import CorruptLogError
+from starlog.io.chain import BASE_METADATA_NAME, BaseReference, base_problem, id_collisions
+from starlog.io.checksum import crc32
 from starlog.io.chunk_indexes import ChunkIndexTable
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import cached_image_decoder
 from starlog.io.images import is_image_schema
+from starlog.io.layout import (
+    DATA_END_RECORD_LEN,
+    FOOTER,
+    MAGIC,
+    MESSAGE_HEADER,
+    MESSAGE_INDEX_BODY,
+    MESSAGE_INDEX_ENTRY,
+    RECORD_HEADER,
+    Footer,
+    RecordOverrun,
+    chunk_header,
+    decode_chunk,
+    iter_records,
+    parse_record,
+    summary_crc,
+    walk_records,
+)
 from starlog.io.messages import compile_json_schema, decode_json
-from starlog.io.scan import MAGIC_LENGTH, MESSAGE_HEADER, RECORD_HEADER, chunk_record, iter_file_records, iter_records
+from starlog.io.provenance import BackgroundDigest
 
-__all__ = ["Problem", "VerifyReport", "verify_log"]
+__all__ = ["ChainReport", "Problem", "VerifyReport", "verify_file", "verify_log"]
 
-MAGIC = b"\x89MCAP0\r\n"
-_FOOTER = struct.Struct("<BQQQI")
-_DATA_END_LENGTH = RECORD_HEADER.size + 4
+MAGIC_LENGTH = len(MAGIC)
+_FOOTER = FOOTER
+_DATA_END_LENGTH = DATA_END_RECORD_LEN
 _PROGRESS_STEP = 8 << 20  # bytes of the data section between two progress reports
 
 
@@ -201,10 +218,6 @@ class _ChannelState:
     kind: str = "bytes"
 
 
-def _read(stream: bytes, cls: Any) -> Any:
-    return cls.read(ReadDataStream(io.BytesIO(stream)))
-
-
 class _Verifier:
     def __init__(self, path: Path, f: BinaryIO, report: VerifyReport,
                  on_progress: Callable[[int], object] | None = None) -> None:
@@ -223,6 +236,7 @@ class _Verifier:
         self.loose = 0
         self.unknown_channels: set[int] = set()
         self.bare_chunks = 0
+        self.base_records: list[dict[str, str]] = []
 
     def problem(self, kind: str, detail: str, *, severity: str = "error", offset: int | None = None,
                 channel: str | None = None, log_time: int | None = None) -> None:
@@ -267,7 +281,7 @@ class _Verifier:
                          f"offsets at {summary_offset_start})", offset=footer)
             return None
         if crc != 0:
-            computed = summary_crc(self.f, summary_start, summary_offset_start, footer)
+            computed = summary_crc(self.f, Footer(summary_start, summary_offset_start, crc, footer, 0))
             if computed != crc:
                 self.problem("summary_crc", f"the summary's CRC {computed:#010x} does not match the footer's "
                              f"{crc:#010x}: the summary section is damaged", offset=summary_start)
@@ -276,12 +290,12 @@ class _Verifier:
                    Opcode.METADATA_INDEX: ("metadata_indexes", MetadataIndex),
                    Opcode.STATISTICS: ("statistics", Statistics), Opcode.SUMMARY_OFFSET: ("offsets", SummaryOffset)}
         try:
-            for offset, opcode, body in iter_file_records(self.f, summary_start, footer):
+            for offset, opcode, _, body in walk_records(self.f, summary_start, footer):
                 if opcode == Opcode.CHUNK_INDEX:
                     self.indexes.add(offset, body)
                 elif opcode in readers:
                     name, cls = readers[opcode]
-                    record = _read(body, cls)
+                    record = parse_record(body, cls)
                     if name == "schemas":
                         self.schemas.setdefault(record.id, record)
                     elif name == "channels":
@@ -315,39 +329,33 @@ class _Verifier:
     # ------------------------------------------------------------------ data section
     def walk_data(self, limit: int, expected_end: int | None) -> None:
         """Every record from the header to the DataEnd record, chunks opened and checked."""
-        f, pos, current = self.f, MAGIC_LENGTH, None
+        current, reported, pos = None, 0, MAGIC_LENGTH
         bodies = {Opcode.CHUNK, Opcode.MESSAGE_INDEX, Opcode.MESSAGE, Opcode.SCHEMA, Opcode.CHANNEL,
                   Opcode.METADATA, Opcode.ATTACHMENT}
-        reported = 0
-        while pos < limit:
-            if self.on_progress is not None and pos - reported >= _PROGRESS_STEP:
-                self.on_progress(reported := pos)
-            f.seek(pos)
-            head = f.read(RECORD_HEADER.size)
-            if len(head) < RECORD_HEADER.size:
-                break
-            opcode, length = RECORD_HEADER.unpack(head)
-            if pos + RECORD_HEADER.size + length > limit:
-                self.problem("bad_record", f"the record at offset {pos} (opcode {opcode:#04x}, {length} bytes) runs "
-                             "past the end of the data section", offset=pos)
-                break
-            if pos == MAGIC_LENGTH and opcode != Opcode.HEADER:
-                self.problem("no_header", f"the first record is opcode {opcode:#04x}, not a header", offset=pos)
-            if current is not None and opcode != Opcode.MESSAGE_INDEX:
-                self.finish_chunk(current)
-                current = None
-            if opcode == Opcode.DATA_END:
-                if expected_end is not None and pos != expected_end:
-                    self.problem("bad_data_end", f"the data section ends at {pos}, the footer says {expected_end}",
-                                 offset=pos)
-                return
-            body = f.read(length) if opcode in bodies else b""
-            try:
-                current = self.record(pos, opcode, body, current)
-            except Exception as err:  # a record whose fields do not parse
-                self.problem("bad_record", f"the record at offset {pos} (opcode {opcode:#04x}) cannot be parsed "
-                             f"({type(err).__name__}: {err})", offset=pos)
-            pos += RECORD_HEADER.size + length
+        try:
+            for pos, opcode, length, body in walk_records(self.f, MAGIC_LENGTH, limit, bodies=bodies):
+                if self.on_progress is not None and pos - reported >= _PROGRESS_STEP:
+                    self.on_progress(reported := pos)
+                if pos == MAGIC_LENGTH and opcode != Opcode.HEADER:
+                    self.problem("no_header", f"the first record is opcode {opcode:#04x}, not a header", offset=pos)
+                if current is not None and opcode != Opcode.MESSAGE_INDEX:
+                    self.finish_chunk(current)
+                    current = None
+                if opcode == Opcode.DATA_END:
+                    if expected_end is not None and pos != expected_end:
+                        self.problem("bad_data_end", f"the data section ends at {pos}, the footer says {expected_end}",
+                                     offset=pos)
+                    return
+                try:
+                    current = self.record(pos, opcode, body or b"", current)
+                except Exception as err:  # a record whose fields do not parse
+                    self.problem("bad_record", f"the record at offset {pos} (opcode {opcode:#04x}) cannot be parsed "
+                                 f"({type(err).__name__}: {err})", offset=pos)
+                pos += RECORD_HEADER.size + length
+        except RecordOverrun as err:
+            pos = err.offset
+            if not err.cut_header:
+                self.problem("bad_record", f"{err} (the data section ends at {limit})", offset=err.offset)
         if current is not None:
             self.finish_chunk(current)
         self.problem("no_data_end", "the data section has no DataEnd record where it should end", offset=pos)
@@ -363,13 +371,16 @@ class _Verifier:
             self.loose += 1
             self.message(cid, log_time, body[MESSAGE_HEADER.size:], offset)
         elif opcode == Opcode.SCHEMA:
-            self.add_schema(_read(body, Schema), offset)
+            self.add_schema(parse_record(body, Schema), offset)
         elif opcode == Opcode.CHANNEL:
-            self.add_channel(_read(body, Channel), offset)
+            self.add_channel(parse_record(body, Channel), offset)
         elif opcode == Opcode.METADATA:
-            self.metadata[offset] = _read(body, Metadata).name
+            record = parse_record(body, Metadata)
+            self.metadata[offset] = record.name
+            if record.name == BASE_METADATA_NAME:
+                self.base_records.append(dict(record.metadata))
         elif opcode == Opcode.ATTACHMENT:
-            record = _read(body, Attachment)
+            record = parse_record(body, Attachment)
             (stored,) = struct.unpack_from("<I", body, len(body) - 4)
             if stored != 0 and crc32(body[:-4]) != stored:
                 self.problem("attachment_crc", f"the attachment {record.name!r} fails its CRC", offset=offset)
@@ -390,16 +401,13 @@ class _Verifier:
     def chunk(self, offset: int, body: bytes) -> _Seen | None:
         self.report.chunks += 1
         try:
-            start, end, size, _ = struct.unpack_from("<QQQI", body, 0)
-            (name_len,) = struct.unpack_from("<I", body, 28)
-            compression = body[32: 32 + name_len].decode()
-            (compressed_size,) = struct.unpack_from("<Q", body, 32 + name_len)
+            start, end, size, _, compression, compressed_size, _ = chunk_header(body)
         except Exception as err:
             self.problem("bad_chunk", f"the chunk header cannot be parsed ({err})", offset=offset)
             return None
         seen = _Seen(offset, RECORD_HEADER.size + len(body), start, end, compression, compressed_size, size, {})
         try:
-            contents = chunk_record(body)
+            contents = decode_chunk(body)
         except ValueError as err:
             kind = "chunk_crc" if "CRC" in str(err) else "chunk_decompress"
             self.problem(kind, f"the chunk (log_time {start}..{end}) is damaged: {err}", offset=offset)
@@ -408,7 +416,7 @@ class _Verifier:
             self.problem("chunk_decompress", f"the chunk (log_time {start}..{end}) does not decompress "
                          f"({type(err).__name__}: {err})", offset=offset)
             return seen
-        data = contents.data
+        data = bytes(contents.data)
         try:
             for rel, opcode, at, length in iter_records(data):
                 if opcode == Opcode.MESSAGE:
@@ -419,9 +427,9 @@ class _Verifier:
                                      f"chunk's range {start}..{end}", offset=offset, log_time=log_time)
                     self.message(cid, log_time, data[at + MESSAGE_HEADER.size: at + length], offset)
                 elif opcode == Opcode.SCHEMA:
-                    self.add_schema(_read(data[at: at + length], Schema), offset)
+                    self.add_schema(parse_record(data[at: at + length], Schema), offset)
                 elif opcode == Opcode.CHANNEL:
-                    self.add_channel(_read(data[at: at + length], Channel), offset)
+                    self.add_channel(parse_record(data[at: at + length], Channel), offset)
         except Exception as err:
             self.problem("bad_chunk", f"the chunk's records cannot be parsed ({type(err).__name__}: {err})",
                          offset=offset)
@@ -431,7 +439,7 @@ class _Verifier:
         if current is None:
             self.problem("stray_message_index", "a message index record that follows no chunk", offset=offset)
             return
-        cid, array_len = struct.unpack_from("<HI", body, 0)
+        cid, array_len = MESSAGE_INDEX_BODY.unpack_from(body, 0)
         topic = self.channels[cid].topic if cid in self.channels else f"#{cid}"
         if 6 + array_len != len(body) or array_len % 16:
             self.problem("bad_message_index", f"its array length {array_len} does not fit its record", offset=offset,
@@ -439,7 +447,7 @@ class _Verifier:
             return
         current.index_offsets[cid] = offset
         current.index_end = offset + RECORD_HEADER.size + len(body)
-        entries = sorted(struct.iter_unpack("<QQ", body[6:]))
+        entries = sorted(MESSAGE_INDEX_ENTRY.iter_unpack(body[6:]))
         if entries != sorted(current.positions.get(cid, [])):
             self.problem("message_index_mismatch", f"the message index of the chunk at {current.offset} does not "
                          "list the chunk's messages of this channel", offset=offset, channel=topic)
@@ -599,22 +607,27 @@ class _Verifier:
         self.report.channels = len(self.channels)
 
 
-def verify_log(path: str | os.PathLike[str], *, on_progress: Callable[[int], object] | None = None) -> VerifyReport:
-    """Check every record of the MCAP file at ``path``; never raises for a damaged file.
+def verify_file(path: str | os.PathLike[str], *, on_progress: Callable[[int], object] | None = None) -> VerifyReport:
+    """Check every record of the MCAP file at ``path`` alone; never raises for a damaged file.
 
     ``on_progress`` is called with the bytes of the data section checked so far, every few MB
     (for a progress bar).
     """
+    return _verify_file(Path(path), on_progress)[0]
+
+
+def _verify_file(path: Path, on_progress: Callable[[int], object] | None) -> tuple[VerifyReport, _Verifier | None]:
     report = VerifyReport(str(path))
+    verifier = None
     try:
         with open(path, "rb") as f:
             report.size = size = f.seek(0, os.SEEK_END)
-            verifier = _Verifier(Path(path), f, report, on_progress)
+            verifier = _Verifier(path, f, report, on_progress)
             envelope = verifier.envelope(size)
             if envelope is None:
                 if not report.problems or report.problems[0].kind != "bad_magic":
                     verifier.walk_data(size, None)  # a cut-off file: still check what is there
-                return report
+                return report, verifier
             summary_start, summary_offset_start, crc, footer = envelope
             data_end = verifier.read_summary(summary_start, summary_offset_start, crc, footer)
             verifier.walk_data(footer if data_end is None else data_end + _DATA_END_LENGTH, data_end)
@@ -623,4 +636,145 @@ def verify_log(path: str | os.PathLike[str], *, on_progress: Callable[[int], obj
         report.problems.append(Problem("unreadable", "error", f"the file cannot be read ({err.strerror or err})"))
     except Exception as err:  # never a traceback: whatever was not foreseen is still reported
         report.problems.append(Problem("unexpected", "error", f"verification stopped: {type(err).__name__}: {err}"))
+    return report, verifier
+
+
+@dataclass
+class ChainReport:
+    """What :func:`verify_log` found: each file of the chain (first log first) and the chain's own problems.
+
+    ``problems``, ``errors`` and the counts cover every file, so a report of a whole log (one file)
+    reads as that file's :class:`VerifyReport`.
+    """
+
+    path: str
+    files: list[VerifyReport] = field(default_factory=list)
+    chain_problems: list[Problem] = field(default_factory=list)
+
+    @property
+    def problems(self) -> list[Problem]:
+        return [p for f in self.files for p in f.problems] + self.chain_problems
+
+    @property
+    def errors(self) -> list[Problem]:
+        return [p for p in self.problems if p.severity == "error"]
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+    @property
+    def size(self) -> int:
+        return sum(f.size for f in self.files)
+
+    @property
+    def messages(self) -> int:
+        return sum(f.messages for f in self.files)
+
+    @property
+    def chunks(self) -> int:
+        return sum(f.chunks for f in self.files)
+
+    @property
+    def channels(self) -> int:
+        return sum(f.channels for f in self.files)
+
+    def verdict(self) -> str:
+        """One line for the whole log."""
+        if len(self.files) == 1 and not self.chain_problems:
+            return self.files[0].verdict()
+        bad = [f.path for f in self.files if not f.ok]
+        errors = [p for p in self.chain_problems if p.severity == "error"]
+        what = f"a chain of {len(self.files)} files" if len(self.files) > 1 else "a layer checked alone"
+        if not bad and not errors:
+            return f"OK: {self.path} is {what}, every file valid and every base the file its layer was written on."
+        parts = [f"damaged files: {', '.join(bad)}"] if bad else []
+        parts += [f"chain errors: {', '.join(sorted({p.kind for p in errors}))}"] if errors else []
+        return f"DAMAGED: {self.path} is {what}; {'; '.join(parts)}."
+
+    def to_dict(self) -> dict[str, Any]:
+        problems = [{**p.to_dict(), "file": f.path} for f in self.files for p in f.problems]
+        problems += [{**p.to_dict(), "file": self.path} for p in self.chain_problems]
+        return {"path": self.path, "ok": self.ok, "verdict": self.verdict(), "size_bytes": self.size,
+                "messages": self.messages, "chunks": self.chunks, "channels": self.channels,
+                "problems": problems, "files": [f.to_dict() for f in self.files]}
+
+
+def verify_log(path: str | os.PathLike[str], *, chain: bool = True,
+               on_progress: Callable[[int, int], object] | None = None) -> ChainReport:
+    """Check every record of the log at ``path`` and, for a layer, of every file of its chain (``chain=False``:
+    the file alone); never raises for a damaged file.
+
+    Besides each file's own checks (:func:`verify_file`): each base is where its layer says, of the size,
+    summary CRC and SHA-256 the layer recorded, the digests of its own chain are those the layer
+    recorded, and schema ids, channel ids and topics are unique across the chain. ``on_progress`` is
+    called with the bytes checked so far and the bytes of the files found so far.
+    """
+    report = ChainReport(str(path))
+    layer, found, done = Path(path), [], 0
+    total = layer.stat().st_size if layer.is_file() else 0
+
+    def progress(offset: int) -> None:
+        if on_progress is not None:
+            on_progress(done + offset, total)
+
+    expected: tuple[BaseReference, BackgroundDigest] | None = None
+    while True:
+        file_report, verifier = _verify_file(layer, progress)
+        report.files.insert(0, file_report)
+        found.append((layer, verifier))
+        done += file_report.size
+        reference = _base_record(report, layer, verifier)
+        if expected is not None:
+            _check_base(report, found[-2][0], layer, *expected, reference)
+        if not chain or reference is None:
+            if reference is not None:
+                report.chain_problems.append(Problem("base_not_checked", "note", f"{layer} is a layer on "
+                                               f"{reference.describe()}, not checked here (--file-only)"))
+            break
+        base = reference.resolve(layer)
+        if not base.is_file() or any(os.path.samefile(base, p) for p, _ in found):
+            why = "is missing" if not base.is_file() else "is a file of its own chain"
+            report.chain_problems.append(Problem("base_missing", "error", f"the base of {layer}, {base}, {why}; the layer "
+                                           f"was written on {reference.describe()}"))
+            break
+        total += base.stat().st_size
+        expected = (reference, BackgroundDigest(base))
+        layer = base
+    _check_ids(report, [v for _, v in reversed(found) if v is not None])
     return report
+
+
+def _base_record(report: ChainReport, layer: Path, verifier: _Verifier | None) -> BaseReference | None:
+    records = [] if verifier is None else verifier.base_records
+    if len(records) > 1:
+        report.chain_problems.append(Problem("bad_base_record", "error", f"{layer} has {len(records)} base records"))
+    try:
+        return BaseReference.from_metadata(records[0], layer) if records else None
+    except CorruptLogError as err:
+        report.chain_problems.append(Problem("bad_base_record", "error", str(err)))
+        return None
+
+
+def _check_base(report: ChainReport, layer: Path, base: Path, reference: BaseReference, digest: BackgroundDigest,
+                base_reference: BaseReference | None) -> None:
+    """Size, summary CRC, SHA-256 and chain digests of ``base`` against what ``layer`` recorded of it."""
+    def problem(kind: str, what: str) -> None:
+        report.chain_problems.append(Problem(kind, "error", f"the base of {layer}, {base}, {what}; the layer was "
+                                                            f"written on {reference.describe()}"))
+
+    changed = base_problem(base, reference)
+    if changed is not None:
+        problem("base_changed", changed)
+    sha256 = digest.result()
+    if sha256 != reference.sha256:
+        problem("base_digest", f"has SHA-256 {sha256}")
+    below = () if base_reference is None else (base_reference.sha256, *base_reference.chain)
+    if below != reference.chain:
+        problem("chain_mismatch", f"stands on files of SHA-256 {list(below)}, not {list(reference.chain)}")
+
+
+def _check_ids(report: ChainReport, verifiers: list[_Verifier]) -> None:
+    files = [(v.path, v.schemas, v.channels, [c.topic for c in v.channels.values()]) for v in verifiers]
+    for collision in id_collisions(files):
+        report.chain_problems.append(Problem("chain_collision", "error", collision))

@@ -1,19 +1,15 @@
 """Writing starlog logs: chunked, compressed, fully indexed MCAP, written atomically.
 
-Why not :class:`mcap.writer.Writer` directly? Two things it cannot do:
+Why not :class:`mcap.writer.Writer` directly? Three things it does not do:
 
-* **append without re-compressing** — the Python writer has no append mode. A stage that adds
-  a few kilobytes of centroids to a gigabyte of images must not decompress and re-compress
-  the images. :class:`LogWriter` started with ``base=INPUT`` copies the input's data section
-  byte for byte (every chunk, message index and metadata record keeps its offset; the kernel
-  copies it on a thread while the stage works, see :class:`~starlog.io.bytecopy.BackgroundCopy`),
-  writes the new chunks after it,
-  and ends with a summary that merges the input's (schemas, channels, chunk/metadata/attachment
-  indexes, statistics) with the new records — what the
-  MCAP specification allows and what the TypeScript library's ``InitializeForAppending``
-  does, except that the result goes to a *new* file so the input is never touched;
+* **write a layer** — given the :class:`~starlog.io.chain.LayerBase` of the log a stage extends,
+  the output holds only the stage's records, its schema and channel ids follow the chain's,
+  its topics must be new to the chain, and it ends with the record naming its base
+  (:mod:`starlog.io.chain`);
 * **compress on several cores** — chunks are compressed on a thread pool (zstd and lz4
-  release the GIL) and written in order, so the bytes do not depend on the number of workers.
+  release the GIL) and written in order, so the bytes do not depend on the number of workers;
+* **copy records of other files** as they are (chunks, message indexes, metadata), for
+  ``filter`` and ``flatten`` (:mod:`starlog.io.slicing`).
 
 Each channel gets chunks of its own, so a reader of small channels (centroids, truth) never
 decompresses image chunks; the open chunks of all channels are closed together. Every JSON
@@ -21,9 +17,7 @@ message is checked against its channel's JSON Schema as it is written (a compile
 see :func:`~starlog.io.messages.compile_json_schema`; or where it was encoded, e.g. in a worker
 process, see :mod:`starlog.io.checked`), and the channel is marked so (metadata
 ``starlog.validated``): a reader then need not check those messages again when their chunk's
-CRC vouches for the bytes. Given a
-:class:`~starlog.io.stack.StackedLog` as ``base``, the writer writes only its new records and
-the summary (a sidecar), every offset counted as if the stack's data were before it.
+CRC vouches for the bytes.
 
 The output goes to a temporary file beside the destination and is renamed over it only
 when :meth:`LogWriter.close` completes, so a killed stage leaves either no output or the
@@ -34,6 +28,7 @@ from __future__ import annotations
 
 import os
 import struct
+import tempfile
 from collections import defaultdict, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -41,7 +36,7 @@ from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from types import TracebackType
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 from mcap._chunk_builder import ChunkBuilder
 from mcap.data_stream import RecordBuilder
@@ -62,24 +57,20 @@ from mcap.records import (
 )
 
 from starlog import __version__
-from starlog.errors import (
-    CorruptLogError,
-    InvalidInputError,
-    InvalidParameterError,
-    OutputExistsError,
-    OutputFolderError,
-    TruncatedLogError,
-)
-from starlog.io.bytecopy import BackgroundCopy
+from starlog.errors import CorruptLogError, InvalidInputError, InvalidParameterError, OutputExistsError, OutputFolderError
+from starlog.io.chain import BASE_METADATA_NAME
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
-from starlog.io.checksum import crc32, footer_crc
-from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
-from starlog.io.layout import MCAP_MAGIC, locate_data_end
+from starlog.io.checksum import crc32
+from starlog.io.chunk_indexes import ChunkIndexTable
+from starlog.io.layout import CHUNK_HEADER, MAGIC, RECORD_HEADER, footer_crc, message_index_record
 from starlog.io.messages import decode_json
 from starlog.io.schemas import MessageType
-from starlog.io.stack import StackedLog, temporary_output
 
-__all__ = ["Compression", "LogWriter", "MCAP_MAGIC", "VALIDATED_METADATA_KEY", "locate_data_end"]
+if TYPE_CHECKING:
+    from starlog.io.chain import LayerBase
+    from starlog.io.mcap_file import McapFile
+
+__all__ = ["Compression", "LogWriter", "VALIDATED_METADATA_KEY", "temporary_output"]
 
 #: Channel metadata key set by :class:`LogWriter` on the JSON channels whose every message it
 #: checked against the channel's JSON Schema while writing.
@@ -119,6 +110,24 @@ def _compress(data: bytes, compression: Compression) -> tuple[bytes, int]:
     return data, crc
 
 
+def temporary_output(output: Path) -> tuple[int, Path]:
+    """A new file beside ``output`` to write it in, renamed over it when complete: its descriptor and path.
+
+    Its permissions are those of a file the user creates (``mkstemp``'s 0600 would survive the rename
+    and make every log private).
+    """
+    fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent or ".")
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
+    except BaseException:
+        os.close(fd)
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return fd, Path(tmp)
+
+
 @dataclass
 class _PendingChunk:
     future: Future[tuple[bytes, int]]
@@ -129,7 +138,7 @@ class _PendingChunk:
 
 
 class LogWriter:
-    """Write a new MCAP log, or a copy of ``base`` with new channels appended.
+    """Write a new MCAP log, or a layer on an existing one.
 
     Parameters
     ----------
@@ -143,15 +152,16 @@ class LogWriter:
         Threads compressing chunks (the bytes written do not depend on it).
     force : bool
         Overwrite an existing ``path``; otherwise :class:`OutputExistsError`.
-    base : path-like or StackedLog, optional
-        A complete log whose data section is copied unchanged to the start of the output; its
-        schemas, channels, indexes, metadata and statistics are carried into the new summary.
-        With a :class:`~starlog.io.stack.StackedLog`, nothing is copied: the output is a sidecar
-        holding only the new records and the summary, to be stacked on ``base``.
+    layer : LayerBase, optional
+        The log this output extends (:meth:`~starlog.io.reader.LogReader.layer_base`): the output is
+        a layer on it — its ids follow the chain's, its topics must be new to the chain, and
+        :meth:`close` adds the record naming the base (:mod:`starlog.io.chain`).
     validate : bool
         Check every message of a JSON channel against the channel's JSON Schema as it is written
         (:class:`InvalidInputError` on a violation), and mark the channel as checked. Off only
         for tools that must copy messages as they are (``recover``).
+    profile : str
+        The header's profile (e.g. ``ros2`` for a copy of a ROS 2 log).
 
     Examples
     --------
@@ -169,8 +179,9 @@ class LogWriter:
         chunk_size: int = 4 * 1024 * 1024,
         workers: int = 1,
         force: bool = False,
-        base: str | os.PathLike[str] | StackedLog | None = None,
+        layer: LayerBase | None = None,
         validate: bool = True,
+        profile: str = "",
     ) -> None:
         self.path = Path(path)
         try:
@@ -185,34 +196,25 @@ class LogWriter:
             raise InvalidParameterError(f"workers must be >= 1, got {workers}.")
         if self.path.exists() and not force:
             raise OutputExistsError(self.path)
-        if base is not None and (base.path if isinstance(base, StackedLog) else Path(base)).resolve() \
-                == self.path.resolve():
+        if layer is not None and os.path.abspath(layer.path) == os.path.abspath(self.path):
             raise InvalidParameterError(f"the output {self.path} must differ from the input log.")
         self.chunk_size = chunk_size
         self.workers = workers
         self.validate = validate
+        self.layer = layer
+        self._next_schema_id = layer.next_schema_id if layer else 1
+        self._next_channel_id = layer.next_channel_id if layer else 1
         self._checkers: dict[int, Callable[[Any], str | None]] = {}
         self._schema_digests: dict[int, bytes] = {}  # of the checked channels' schemas (see CheckedJson)
-        self._origin = 0  # offset in the complete log of this file's first byte (non-zero for a sidecar)
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
         self._topics: dict[str, int] = {}
         self._chunk_indexes = ChunkIndexTable()
-        # the base's chunk indexes, which this log's summary repeats first (its largest part, kept compact)
-        self._base_chunk_indexes = ChunkIndexTable()
         self._metadata_indexes: list[MetadataIndex] = []
         self._attachment_indexes: list[AttachmentIndex] = []
-        self._stats = Statistics(
-            message_count=0,
-            schema_count=0,
-            channel_count=0,
-            attachment_count=0,
-            metadata_count=0,
-            chunk_count=0,
-            message_start_time=0,
-            message_end_time=0,
-            channel_message_counts=defaultdict(int),
-        )
+        self._stats = Statistics(message_count=0, schema_count=0, channel_count=0, attachment_count=0,
+                                 metadata_count=0, chunk_count=0, message_start_time=0, message_end_time=0,
+                                 channel_message_counts=defaultdict(int))
         self._sequence: dict[int, int] = defaultdict(int)
         self._last_time: dict[int, int] = {}
         self._builders: dict[int, ChunkBuilder] = {}
@@ -221,19 +223,13 @@ class LogWriter:
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
-        self._writeback: BackgroundCopy | None = None
         OutputFolderError.check(self.path)
         fd, self._tmp_path = temporary_output(self.path)
         self._file: BinaryIO = os.fdopen(fd, "w+b", buffering=1024 * 1024)
         try:
-            if base is None:
-                self._file.write(MCAP_MAGIC)
-                Header(profile="", library=LIBRARY).write(self._records)
-                self._flush_records()
-            elif isinstance(base, StackedLog):
-                self._start_from_stack(base)
-            else:
-                self._start_from(Path(base))
+            self._file.write(MAGIC)
+            Header(profile=profile, library=LIBRARY).write(self._records)
+            self._flush_records()
         except BaseException:
             self.abort()
             raise
@@ -253,7 +249,7 @@ class LogWriter:
     # ------------------------------------------------------------------ registration
     @property
     def topics(self) -> dict[str, int]:
-        """Channel id of every topic in the output (inherited ones included)."""
+        """Channel id of every topic this file holds."""
         return dict(self._topics)
 
     def add_channel(self, topic: str, message_type: MessageType, *, metadata: dict[str, str] | None = None,
@@ -264,57 +260,45 @@ class LogWriter:
         channel's previous one (:class:`InvalidInputError`): per-frame channels use it, so a
         non-monotonic timestamp never reaches a log silently.
 
-        Raises :class:`InvalidInputError` if the log already has ``topic`` (a stage run twice on
-        the same log): run the stage on the log before it, or use another channel name.
+        Raises :class:`InvalidInputError` if the log (the chain, for a layer) already has ``topic``
+        (a stage run twice on the same log): run the stage on the log before it, or use another
+        channel name.
         """
-        if topic in self._topics:
+        if topic in self._topics or (self.layer is not None and topic in self.layer.topics):
             raise InvalidInputError(
                 f"the log already has a channel {topic!r}; run this stage on a log without it "
                 "(for example the stage's own input) or choose another name."
             )
         schema_id = self._schema_id(message_type)
-        channel_id = max(self._channels, default=0) + 1
+        channel_id = self._next_channel_id
         meta = {k: v for k, v in (metadata or {}).items() if k != VALIDATED_METADATA_KEY}
         checker = self._message_checker(message_type)
         if checker is not None:
             self._checkers[channel_id] = checker
             self._schema_digests[channel_id] = schema_digest(message_type.schema_data)
             meta[VALIDATED_METADATA_KEY] = "jsonschema"
-        channel = Channel(
-            id=channel_id,
-            topic=topic,
-            message_encoding=message_type.message_encoding,
-            schema_id=schema_id,
-            metadata=meta,
-        )
-        self._channels[channel_id] = channel
-        self._topics[topic] = channel_id
+        channel = Channel(id=channel_id, topic=topic, message_encoding=message_type.message_encoding,
+                          schema_id=schema_id, metadata=meta)
+        self._register_channel(channel)
         if monotonic:
             self._last_time[channel_id] = -1
-        self._stats.channel_count += 1
         builder = self._builders[channel_id] = ChunkBuilder()
         builder.add_schema(self._schemas[schema_id])  # each channel's first chunk names its schema
         builder.add_channel(channel)
         return channel_id
 
-    def _adopt(self, channel_id: int) -> None:
-        """Start chunks for a channel inherited from the base (its records are already in the base)."""
-        channel = self._channels[channel_id]
-        schema = self._schemas.get(channel.schema_id)
-        if schema is not None:
-            checker = self._message_checker(MessageType(schema.name, schema.encoding, schema.data,
-                                                        channel.message_encoding))
-            if checker is not None:
-                self._checkers[channel_id] = checker
-                self._schema_digests[channel_id] = schema_digest(schema.data)
-        self._builders[channel_id] = ChunkBuilder()
+    def _register_channel(self, channel: Channel) -> None:
+        self._channels[channel.id] = channel
+        self._topics[channel.topic] = channel.id
+        self._next_channel_id = max(self._next_channel_id, channel.id + 1)
+        self._stats.channel_count += 1
 
     def _message_checker(self, message_type: MessageType) -> Callable[[Any], str | None] | None:
         if not self.validate or message_type.message_encoding != "json" or \
                 message_type.schema_encoding != "jsonschema":
             return None
         try:
-            return _checker_of(message_type.schema_data)
+            return schema_checker(message_type.schema_data)
         except (ValueError, InvalidInputError) as err:
             raise InvalidParameterError(f"the JSON Schema {message_type.schema_name!r} cannot be compiled "
                                         f"({err}).") from err
@@ -327,16 +311,15 @@ class LogWriter:
                 message_type.schema_data,
             ):
                 return schema.id
-        schema_id = max(self._schemas, default=0) + 1
-        schema = Schema(
-            id=schema_id,
-            name=message_type.schema_name,
-            encoding=message_type.schema_encoding,
-            data=message_type.schema_data,
-        )
-        self._schemas[schema_id] = schema
+        schema = Schema(id=self._next_schema_id, name=message_type.schema_name,
+                        encoding=message_type.schema_encoding, data=message_type.schema_data)
+        self._register_schema(schema)
+        return schema.id
+
+    def _register_schema(self, schema: Schema) -> None:
+        self._schemas[schema.id] = schema
+        self._next_schema_id = max(self._next_schema_id, schema.id + 1)
         self._stats.schema_count += 1
-        return schema_id
 
     # ------------------------------------------------------------------ writing
     def write(self, channel: int | str, *, log_time: int, data: bytes, publish_time: int | None = None) -> None:
@@ -347,10 +330,9 @@ class LogWriter:
         :class:`~starlog.io.checked.CheckedJson` checked against the channel's own schema is not checked again.
         """
         channel_id = self._topics[channel] if isinstance(channel, str) else channel
-        if channel_id not in self._builders:
-            if channel_id not in self._channels:
-                raise InvalidParameterError(f"channel id {channel_id} was never registered.")
-            self._adopt(channel_id)
+        builder = self._builders.get(channel_id)
+        if builder is None:
+            raise InvalidParameterError(f"channel id {channel_id} was never registered with add_channel.")
         log_time = int(log_time)
         if not 0 <= log_time < 2**64:
             raise InvalidInputError(f"log_time must be a non-negative 64-bit integer of nanoseconds, got {log_time}.")
@@ -374,22 +356,10 @@ class LogWriter:
             self._last_time[channel_id] = log_time
         seq = self._sequence[channel_id]
         self._sequence[channel_id] = seq + 1
-        message = Message(
-            channel_id=channel_id,
-            log_time=log_time,
-            publish_time=log_time if publish_time is None else int(publish_time),
-            sequence=seq & 0xFFFFFFFF,
-            data=data,
-        )
-        stats = self._stats
-        if stats.message_count == 0:
-            stats.message_start_time = stats.message_end_time = log_time
-        else:
-            stats.message_start_time = min(stats.message_start_time, log_time)
-            stats.message_end_time = max(stats.message_end_time, log_time)
-        stats.message_count += 1
-        stats.channel_message_counts[channel_id] += 1
-        builder = self._builders[channel_id]
+        message = Message(channel_id=channel_id, log_time=log_time,
+                          publish_time=log_time if publish_time is None else int(publish_time),
+                          sequence=seq & 0xFFFFFFFF, data=data)
+        self._count(channel_id, 1, log_time, log_time)
         before = builder.count
         builder.add_message(message)
         self._open_bytes += builder.count - before
@@ -400,7 +370,7 @@ class LogWriter:
         """Add an MCAP Metadata record (indexed)."""
         self._close_chunk()
         self._drain(all_of_them=True)
-        offset = self._tell()
+        offset = self._file.tell()
         Metadata(name=name, metadata=dict(data)).write(self._records)
         length = self._records.count
         self._flush_records()
@@ -408,16 +378,16 @@ class LogWriter:
         self._stats.metadata_count += 1
 
     def close(self) -> Path:
-        """Finish the file (summary, footer), fsync it and rename it to its destination."""
+        """Finish the file (a layer's base record, the summary, the footer), fsync it and rename it into place."""
         if self._closed:
             return self.path
         try:
+            if self.layer is not None:
+                self.add_metadata(BASE_METADATA_NAME, self.layer.reference(self.path).to_metadata())
             self._close_chunk()
             self._drain(all_of_them=True)
             self._write_summary()
             self._file.flush()
-            if self._writeback is not None:
-                self._writeback.wait()
             os.fsync(self._file.fileno())
             self._file.close()
             os.replace(self._tmp_path, self.path)
@@ -437,20 +407,116 @@ class LogWriter:
         self._closed = True
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
+        if self.layer is not None:
+            self.layer.cancel()
         try:
-            if self._writeback is not None:
-                self._writeback.cancel()
             self._file.close()
         finally:
             self._tmp_path.unlink(missing_ok=True)
+
+    # ------------------------------------------------------------------ copying records of other files
+    def copy_schema(self, schema: Schema) -> None:
+        """Write ``schema`` as it is (its id kept), for the copied records that name it."""
+        schema.write(self._records)
+        self._flush_records()
+        self._register_schema(schema)
+
+    def copy_channel(self, channel: Channel) -> None:
+        """Write ``channel`` as it is (its id, topic and metadata kept), for the copied records that name it."""
+        if channel.topic in self._topics:
+            raise InvalidInputError(f"two channels named {channel.topic!r} cannot go into one log.")
+        channel.write(self._records)
+        self._flush_records()
+        self._register_channel(channel)
+
+    def copy_chunk(self, source: McapFile, ci: ChunkIndex, counts: dict[int, int]) -> int:
+        """Copy the chunk ``ci`` of ``source`` and its message index records byte for byte (``counts``: its
+        messages per channel, for the statistics); returns the bytes copied."""
+        self._drain(all_of_them=True)
+        chunk = source.read_bytes(ci.chunk_start_offset, ci.chunk_length)
+        first_index = min(ci.message_index_offsets.values())
+        indexes = source.read_bytes(first_index, ci.message_index_length)
+        if len(chunk) != ci.chunk_length or len(indexes) != ci.message_index_length:
+            raise source.chunk_error(ci, "the file ends inside it")
+        chunk_start = self._file.tell()
+        self._file.write(chunk)
+        index_start = self._file.tell()
+        self._file.write(indexes)
+        self._chunk_indexes.append(ChunkIndex(
+            message_start_time=ci.message_start_time, message_end_time=ci.message_end_time,
+            chunk_start_offset=chunk_start, chunk_length=ci.chunk_length,
+            message_index_offsets={c: o - first_index + index_start for c, o in ci.message_index_offsets.items()},
+            message_index_length=ci.message_index_length, compression=ci.compression,
+            compressed_size=ci.compressed_size, uncompressed_size=ci.uncompressed_size))
+        self._stats.chunk_count += 1
+        for cid, n in counts.items():
+            self._count(cid, n, ci.message_start_time, ci.message_end_time)
+        return len(chunk) + len(indexes)
+
+    def copy_chunk_record(self, raw: bytes, ci: ChunkIndex, indices: dict[int, list[tuple[int, int]]]) -> None:
+        """Write a chunk record as it is (``raw``) followed by new message index records (``indices``: the
+        ``(log_time, offset)`` of its messages per channel)."""
+        self._drain(all_of_them=True)
+        chunk_start = self._file.tell()
+        self._file.write(raw)
+        self._write_chunk_index(chunk_start, len(raw), ci.message_start_time, ci.message_end_time, indices,
+                                ci.compression, ci.compressed_size, ci.uncompressed_size)
+        self._count_indexed(indices)
+
+    def copy_messages(self, data: bytes, indices: dict[int, list[tuple[int, int]]]) -> None:
+        """Write message records (``data``, their bytes as read) as one new chunk, compressed as this log's
+        (``indices``: the ``(log_time, offset in data)`` of each message, per channel)."""
+        self._drain(all_of_them=True)
+        times = [t for records in indices.values() for t, _ in records]
+        future: Future[tuple[bytes, int]] = Future()
+        future.set_result(_compress(data, self.compression))
+        self._write_chunk(_PendingChunk(future, len(data), indices, min(times), max(times)))
+        self._count_indexed(indices)
+
+    def copy_record(self, source: McapFile, offset: int, length: int) -> int:
+        """Copy one top-level record (metadata, attachment) of ``source`` byte for byte; returns its offset here."""
+        self._drain(all_of_them=True)
+        data = source.read_bytes(offset, length)
+        if len(data) != length:
+            raise CorruptLogError(source.path, f"the record at offset {offset} is cut off")
+        start = self._file.tell()
+        self._file.write(data)
+        return start
+
+    def message_counts(self) -> dict[int, int]:
+        """Messages written so far per channel id (copied ones included)."""
+        return dict(self._stats.channel_message_counts)
+
+    def index_metadata(self, index: MetadataIndex) -> None:
+        """List a metadata record copied with :meth:`copy_record` in the summary."""
+        self._metadata_indexes.append(index)
+        self._stats.metadata_count += 1
+
+    def index_attachment(self, index: AttachmentIndex) -> None:
+        """List an attachment copied with :meth:`copy_record` in the summary."""
+        self._attachment_indexes.append(index)
+        self._stats.attachment_count += 1
 
     # ------------------------------------------------------------------ internals
     def _flush_records(self) -> None:
         self._file.write(self._records.end())
 
-    def _tell(self) -> int:
-        """Offset of the next byte in the complete log."""
-        return self._origin + self._file.tell()
+    def _count(self, channel_id: int, n: int, first: int, last: int) -> None:
+        """Add ``n`` messages of a channel spanning ``first..last`` to the statistics."""
+        if n <= 0:
+            return
+        stats = self._stats
+        if stats.message_count == 0:
+            stats.message_start_time, stats.message_end_time = first, last
+        else:
+            stats.message_start_time = min(stats.message_start_time, first)
+            stats.message_end_time = max(stats.message_end_time, last)
+        stats.message_count += n
+        stats.channel_message_counts[channel_id] += n
+
+    def _count_indexed(self, indices: dict[int, list[tuple[int, int]]]) -> None:
+        for cid, records in indices.items():
+            self._count(cid, len(records), min(t for t, _ in records), max(t for t, _ in records))
 
     def _close_chunk(self) -> None:
         """Close the open chunk of every channel (in channel order).
@@ -486,112 +552,48 @@ class LogWriter:
         compressed, crc = pending.future.result()
         f = self._file
         compression = b"" if self.compression is Compression.NONE else self.compression.value.encode()
-        body_len = 8 + 8 + 8 + 4 + 4 + len(compression) + 8 + len(compressed)
-        chunk_start = self._tell()
-        f.write(struct.pack("<BQQQQI", Opcode.CHUNK, body_len, pending.start_time, pending.end_time,
-                            pending.uncompressed_size, crc))
+        body_len = CHUNK_HEADER.size + 4 + len(compression) + 8 + len(compressed)
+        chunk_start = f.tell()
+        f.write(RECORD_HEADER.pack(Opcode.CHUNK, body_len))
+        f.write(CHUNK_HEADER.pack(pending.start_time, pending.end_time, pending.uncompressed_size, crc))
         f.write(struct.pack("<I", len(compression)))
         f.write(compression)
         f.write(struct.pack("<Q", len(compressed)))
         f.write(compressed)
-        chunk_length = self._tell() - chunk_start
-        index_start = self._tell()
+        self._write_chunk_index(chunk_start, f.tell() - chunk_start, pending.start_time, pending.end_time,
+                                pending.message_indices, compression.decode(), len(compressed),
+                                pending.uncompressed_size)
+
+    def _write_chunk_index(self, chunk_start: int, chunk_length: int, start_time: int, end_time: int,
+                           indices: dict[int, list[tuple[int, int]]], compression: str, compressed_size: int,
+                           uncompressed_size: int) -> None:
+        """Write the message index records of the chunk just written, list it, count its messages."""
+        index_start = self._file.tell()
         offsets: dict[int, int] = {}
-        for channel_id in sorted(pending.message_indices):
-            records = pending.message_indices[channel_id]
-            offsets[channel_id] = self._tell()
-            f.write(struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + 16 * len(records), channel_id, 16 * len(records)))
-            f.write(b"".join(struct.pack("<QQ", t, o) for t, o in records))
-        self._chunk_indexes.append(
-            ChunkIndex(
-                message_start_time=pending.start_time,
-                message_end_time=pending.end_time,
-                chunk_start_offset=chunk_start,
-                chunk_length=chunk_length,
-                message_index_offsets=offsets,
-                message_index_length=self._tell() - index_start,
-                compression=compression.decode(),
-                compressed_size=len(compressed),
-                uncompressed_size=pending.uncompressed_size,
-            )
-        )
+        for channel_id in sorted(indices):
+            records = indices[channel_id]
+            offsets[channel_id] = self._file.tell()
+            self._file.write(message_index_record(channel_id, records))
+        self._chunk_indexes.append(ChunkIndex(
+            message_start_time=start_time, message_end_time=end_time, chunk_start_offset=chunk_start,
+            chunk_length=chunk_length, message_index_offsets=offsets,
+            message_index_length=self._file.tell() - index_start, compression=compression,
+            compressed_size=compressed_size, uncompressed_size=uncompressed_size))
         self._stats.chunk_count += 1
-
-    def _start_from(self, base: Path) -> None:
-        if not base.is_file():
-            from starlog.errors import LogNotFoundError
-
-            raise LogNotFoundError(base)
-        with open(base, "rb") as src:
-            data_end = locate_data_end(base, src)
-            try:
-                summary = read_file_summary(src)
-            except Exception as err:  # ValueError, struct.error, or mcap's McapError for another record
-                raise CorruptLogError(base, f"its summary section cannot be read ({err}).") from err
-            if summary is None or not summary.chunk_indexes:  # a valid file without indexes: scan it
-                from starlog.io.scan import synthesize_summary
-
-                try:
-                    summary = synthesize_summary(base, src, data_end, known=summary).summary
-                except ValueError as err:
-                    raise CorruptLogError(base, f"it has no summary and cannot be scanned ({err}).") from err
-            # the thread copies from this very file (not the path: it may be replaced meanwhile)
-            self._writeback = BackgroundCopy(src.fileno(), self._file.fileno(), base, data_end)
-        self._file.seek(data_end)  # the new records go after the base's data section
-        self._inherit(summary)
-
-    def _start_from_stack(self, base: StackedLog) -> None:
-        """Sidecar mode: nothing copied, offsets continue after the stack's data section."""
-        with base.open() as f:
-            try:
-                summary = read_file_summary(f)
-            except Exception as err:  # ValueError, struct.error, or mcap's McapError for another record
-                raise CorruptLogError(base.path, f"its summary section cannot be read ({err}).") from err
-        if summary is None:
-            raise TruncatedLogError(base.path, "it has no summary section")
-        self._origin = base.data_end
-        self._inherit(summary)
-
-    def _inherit(self, summary: Any) -> None:
-        """Carry the base's schemas, channels, indexes and statistics into this log's summary."""
-        self._schemas = dict(summary.schemas)
-        self._channels = dict(summary.channels)
-        self._topics = {c.topic: c.id for c in summary.channels.values()}
-        self._base_chunk_indexes = summary.chunk_indexes  # a ChunkIndexTable, as read_summary makes it
-        self._chunk_indexes = ChunkIndexTable()
-        self._attachment_indexes = list(summary.attachment_indexes)
-        self._metadata_indexes = list(summary.metadata_indexes)
-        s = summary.statistics
-        if s is not None:
-            counts: defaultdict[int, int] = defaultdict(int)
-            counts.update(s.channel_message_counts)
-            self._stats = Statistics(
-                message_count=s.message_count,
-                schema_count=s.schema_count,
-                channel_count=s.channel_count,
-                attachment_count=s.attachment_count,
-                metadata_count=s.metadata_count,
-                chunk_count=s.chunk_count,
-                message_start_time=s.message_start_time,
-                message_end_time=s.message_end_time,
-                channel_message_counts=counts,
-            )
-        for cid in self._channels:
-            self._sequence[cid] = self._stats.channel_message_counts.get(cid, 0)
 
     def _write_summary(self) -> None:
         DataEnd(data_section_crc=0).write(self._records)
         self._flush_records()
-        summary_start = self._tell()
+        summary_start = self._file.tell()
         out = _SummarySink(self._file)
         offsets: list[SummaryOffset] = []
 
-        def group(opcode: Opcode, records: list[Any], *tables: ChunkIndexTable) -> None:
-            if not records and not any(tables):
+        def group(opcode: Opcode, records: list[Any], table: ChunkIndexTable | None = None) -> None:
+            if not records and not table:
                 return
             start = out.count
             out.write_records(records)
-            for table in tables:
+            if table is not None:
                 table.write_records(out.write)
             offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + start,
                                          group_length=out.count - start))
@@ -602,7 +604,7 @@ class LogWriter:
             int, {k: v for k, v in sorted(self._stats.channel_message_counts.items())}
         )
         group(Opcode.STATISTICS, [self._stats])
-        group(Opcode.CHUNK_INDEX, [], self._base_chunk_indexes, self._chunk_indexes)
+        group(Opcode.CHUNK_INDEX, [], self._chunk_indexes)
         group(Opcode.ATTACHMENT_INDEX, list(self._attachment_indexes))
         group(Opcode.METADATA_INDEX, list(self._metadata_indexes))
         summary_offset_start = summary_start + out.count
@@ -613,7 +615,7 @@ class LogWriter:
             self._records
         )
         self._flush_records()
-        self._file.write(MCAP_MAGIC)
+        self._file.write(MAGIC)
 
 
 class _SummarySink:
@@ -648,6 +650,3 @@ class _SummarySink:
         self.crc = crc32(data, self.crc)  # ISA-L when installed, as for the chunks
         self._file.write(data)
         self._parts, self._pending = [], 0
-
-
-_checker_of = schema_checker

@@ -7,11 +7,8 @@ worker decompresses each chunk it needs once, and no message crosses processes o
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-from starlog.io.reader import LogReader
-from starlog.io.stack import StackedLog
-from starlog.stages._slice import LogSource
+from starlog.io.reader import LogReader, LogSource, LogView, source_path
 
 __all__ = ["channel_blocks", "worker_log"]
 
@@ -34,17 +31,16 @@ def channel_blocks(log: LogReader, topic: str, frames_per_block: int) -> list[tu
     return blocks
 
 
-_WORKER_LOG: dict[tuple[tuple[str, int, int, int, int], ...], LogReader] = {}
+_WORKER_LOG: dict[tuple[object, ...], LogReader] = {}
 
 
-def _identity(source: LogSource) -> tuple[tuple[str, int, int, int, int], ...]:
-    """Every file ``source`` reads, each as (path, device, inode, size, modification time)."""
-    paths = source.files() if isinstance(source, StackedLog) else (Path(source),)
-    out = []
-    for path in paths:
-        info = os.stat(path)
-        out.append((os.path.abspath(path), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns))
-    return tuple(out)
+def _identity(source: LogSource) -> tuple[object, ...]:
+    """The file ``source`` names (path, device, inode, size, modification time) and its window: a chain's
+    other files are checked against it when it is opened."""
+    path = source_path(source)
+    info = os.stat(path)
+    window = source.window if isinstance(source, LogView) else None
+    return os.path.abspath(path), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns, window
 
 
 def worker_log(source: LogSource) -> LogReader:

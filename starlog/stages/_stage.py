@@ -1,22 +1,24 @@
-"""What every replay stage shares: open the input, write a new log that extends it, record provenance."""
+"""What every replay stage shares: open the input, write a layer on it, record provenance."""
 
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from starlog import __version__
+from starlog.errors import OutputExistsError, OutputFolderError
 from starlog.io import LogReader, LogWriter, Provenance
-from starlog.io.digest_cache import write_digest_cache
-from starlog.io.provenance import PROVENANCE_METADATA_NAME, BackgroundDigest
+from starlog.io.provenance import PROVENANCE_METADATA_NAME
+from starlog.io.reader import LogSource, LogView
 from starlog.io.schemas import MessageType
-from starlog.io.stack import StackedLog
-from starlog.stages._slice import slice_origin
+from starlog.io.slicing import flatten_log
 
-__all__ = ["StageOutput", "extend_log"]
+__all__ = ["StageOutput", "extend_log", "flattened_output", "hidden_layer"]
 
 
 @dataclass
@@ -41,7 +43,7 @@ class StageOutput:
 
 @contextmanager
 def extend_log(
-    input_path: str | os.PathLike[str] | StackedLog,
+    input_path: LogSource,
     output_path: str | os.PathLike[str],
     *,
     stage: str,
@@ -49,36 +51,53 @@ def extend_log(
     force: bool = False,
     compression: str = "zstd",
     workers: int = 1,
+    flatten: bool = False,
 ) -> Iterator[tuple[LogReader, StageOutput]]:
-    """Open ``input_path`` for reading and a new log at ``output_path`` that starts as its copy.
+    """Open ``input_path`` for reading and a layer on it at ``output_path`` (:mod:`starlog.io.chain`).
 
-    The input's data section is copied byte for byte (no re-compression, by the kernel); the
-    stage adds its channels; on success its provenance (name, version, parameters, the input's
-    SHA-256, hashed on a thread while the stage works, and the channels it added) is recorded
-    and the output renamed into place. On any error the output is discarded and the input is
-    untouched. The output's own SHA-256 is saved with it for the next stage
-    (:mod:`starlog.io.digest_cache`). With a :class:`StackedLog` as input, the
-    output is a sidecar to stack on it: the same records, without the copy of the input's data.
-    An input that is a time slice (``--start``/``--end``) adds its range to the parameters and
-    hashes the log the slice was cut from.
+    The stage adds its channels; on success its provenance (name, version, parameters, the input
+    file's SHA-256, hashed on a thread while the stage works, and the channels it added) is
+    recorded, the layer names its base, and it is renamed into place. On any error the output is
+    discarded and the input is untouched. A :class:`~starlog.io.reader.LogView` input (``--start`` /
+    ``--end``) adds its range to the parameters. With ``flatten``, the output is the flattened
+    chain instead: one self-contained file.
     """
-    origin = slice_origin(input_path)
-    if origin is not None:
-        parameters = {**parameters, "range": origin.time_range.to_dict()}
-    with LogReader(input_path) as reader:
-        digest = BackgroundDigest(input_path if origin is None else origin.source)
-        try:
-            with LogWriter(output_path, base=input_path, force=force, compression=compression,
-                           workers=workers) as writer:
-                out = StageOutput(writer)
-                yield reader, out
-                record = Provenance(stage=stage, version=__version__, parameters=parameters,
-                                    input_digest=digest.result(), channels=out.channels)
-                writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
-            # the output starts with the input's data section (not so for a slice or a sidecar)
-            prefix = digest.prefix() if origin is None and not isinstance(input_path, StackedLog) else None
-        finally:
-            digest.cancel()
-    if prefix is not None:
-        write_digest_cache(output_path, prefix=prefix)
+    if isinstance(input_path, LogView):
+        parameters = {**parameters, "range": input_path.window.to_dict()}
+    with flattened_output(Path(output_path), flatten=flatten, force=force) as layer_path, \
+            LogReader(input_path) as reader:
+        base = reader.layer_base()
+        with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression,
+                       workers=workers) as writer:
+            out = StageOutput(writer)
+            yield reader, out
+            record = Provenance(stage=stage, version=__version__, parameters=parameters,
+                                input_digest=base.digest(), channels=out.channels)
+            writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
 
+
+@contextmanager
+def flattened_output(output: Path, *, flatten: bool, force: bool) -> Iterator[Path]:
+    """Where to write a layer meant for ``output``: ``output`` itself, or (``flatten``) a hidden file beside it,
+    whose chain is flattened into ``output`` once the block succeeds, and which is then removed."""
+    if not flatten:
+        yield output
+        return
+    if output.exists() and not force:
+        raise OutputExistsError(output)
+    with hidden_layer(output, "layer") as layer:
+        yield layer
+        flatten_log(layer, output, force=True)
+
+
+@contextmanager
+def hidden_layer(beside: Path, label: str) -> Iterator[Path]:
+    """A new hidden path beside ``beside`` (same folder: a layer's base is named relative to it), removed at the
+    end whatever happens."""
+    OutputFolderError.check(beside)
+    fd, name = tempfile.mkstemp(prefix=f".{beside.name}.", suffix=f".{label}.mcap", dir=beside.parent or ".")
+    os.close(fd)
+    try:
+        yield Path(name)
+    finally:
+        Path(name).unlink(missing_ok=True)

@@ -138,6 +138,7 @@ def centroid_log(
     skip_bad: bool = False,
     workers: int = 1,
     force: bool = False,
+    flatten: bool = False,
     compression: str = "zstd",
     show_progress: bool = False,
     psf: str | None = None,
@@ -169,7 +170,9 @@ def centroid_log(
         the output bytes do not depend on it.
     start, end : str or int, optional
         Only the frames with ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the
-        image channel; :mod:`starlog.io.timerange`): the output holds that range of every channel.
+        image channel; :mod:`starlog.io.timerange`): the layer holds its channels for that range.
+    flatten : bool
+        Write the whole chain as one self-contained file instead of a layer on the input.
     psf : {"gaussian", "empirical"}, optional
         The PSF model PSFFIT fits. ``"empirical"``: an ePSF built once from the bright,
         isolated, unsaturated stars of the log's first frames (:func:`_log_epsf`), stored in
@@ -236,7 +239,8 @@ def centroid_log(
         summary.notes += phase.notes
 
     with _opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=digest_params,
-                                        force=force, compression=compression, workers=workers) as (log, out):
+                                        force=force, flatten=flatten, compression=compression,
+                                        workers=workers) as (log, out):
         summary.channel_messages = n_frames = log.channel(topic).message_count
         det_ch = out.add_channel(topics.DETECTIONS, json_message_type("starlog.Detections"))
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))

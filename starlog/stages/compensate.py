@@ -323,6 +323,7 @@ def compensate_log(
     workers: int = 1,
     show_progress: bool = False,
     force: bool = False,
+    flatten: bool = False,
     compression: str = "zstd",
 ) -> CompensateSummary:
     """Decompose, select and compensate the brightest track at each rate under each protocol.
@@ -382,7 +383,7 @@ def compensate_log(
         parameters |= {"motion": [m.value for m in modes], "motion_fit": fit}
     n_jobs = len(channels) * len(rates) * len(chosen) * len(modes)
     parallel = workers > 1 and n_jobs > 1
-    with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force,
+    with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force, flatten=flatten,
                     compression=compression, workers=workers) as (log, out), \
             (process_pool(workers, preload=[__name__]) if parallel else nullcontext()) as pool:
         jobs = _plan_jobs(log, channels, rates, chosen, modes, fit, burn_in=setting)

@@ -33,7 +33,7 @@ from starlog.errors import (
 from starlog.io.frames import iter_frames
 from starlog.io.images import choose_image_topic, is_image_schema
 from starlog.io.messages import encode_json
-from starlog.io.reader import ChannelSummary, LogReader, decode_payload
+from starlog.io.reader import ChannelSummary, LogReader, decode_payload, source_path
 from starlog.io.writer import LogWriter
 from starlog.stage_api import KINDS, Message, Output, Stage
 from starlog.stages._channels import check_messages_read
@@ -75,20 +75,22 @@ def run_stage(
     input_topic: str | None = None,
     workers: int = 1,
     force: bool = False,
+    flatten: bool = False,
     compression: str = "zstd",
     show_progress: bool = False,
     start: str | int | None = None,
     end: str | int | None = None,
 ) -> StageSummary:
-    """Run ``stage`` on every message of its input channel(s); the output is the input plus the stage's channels.
+    """Run ``stage`` on every message of its input channel(s); the output is a layer holding the stage's channels
+    (with ``flatten``: the whole chain as one file).
 
     With ``start`` / ``end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the first input channel;
-    :mod:`starlog.io.timerange`) the stage runs on that slice of the log, as the built-in
-    stages do, and the output holds only that range of every channel.
+    :mod:`starlog.io.timerange`) the stage runs on that window of the log, as the built-in
+    stages do, and its channels hold only that range.
 
     ``options`` override the stage's defaults; ``input_topic`` chooses the channel when the
     stage's ``reads`` matches several, or ``"all"`` reads each of them in turn (see
-    :func:`choose_inputs`). ``input_path`` may be a path or a :class:`~starlog.io.StackedLog`.
+    :func:`choose_inputs`). ``input_path`` may be a path or a :class:`~starlog.io.LogView`.
     With ``workers > 1`` batches run in worker processes (the stage must be importable by
     :attr:`Stage.reference`, else it runs here); the bytes written do not depend on ``workers``.
     """
@@ -97,13 +99,13 @@ def run_stage(
 
     run = time_sliced(first_input)(_run_whole)
     return run(input_path, output_path, stage, options=options, input_topic=input_topic, workers=workers, force=force,
-               compression=compression, show_progress=show_progress, start=start, end=end)
+               flatten=flatten, compression=compression, show_progress=show_progress, start=start, end=end)
 
 
 def _run_whole(input_path: Any, output_path: str | os.PathLike[str], stage: Stage, *, options: dict[str, Any] | None,
-               input_topic: str | None, workers: int, force: bool, compression: str,
+               input_topic: str | None, workers: int, force: bool, flatten: bool, compression: str,
                show_progress: bool) -> StageSummary:
-    """:func:`run_stage` on the whole of ``input_path`` (a slice already cut, when a range was asked for)."""
+    """:func:`run_stage` on the whole of ``input_path`` (a window of the log, when a range was asked for)."""
     chosen = stage.resolve_options(options)
     with LogReader(input_path) as probe:
         topics, note = choose_inputs(stage, probe, input_topic)
@@ -117,11 +119,11 @@ def _run_whole(input_path: Any, output_path: str | os.PathLike[str], stage: Stag
                   "input": topics[0] if len(topics) == 1 else topics, "options": chosen}
     summary = StageSummary(stage.name, stage.version, topics, records=dict.fromkeys(written, 0),
                            notes=[note] if note else [])
-    with extend_log(input_path, output_path, stage=stage.name, parameters=parameters, force=force,
+    with extend_log(input_path, output_path, stage=stage.name, parameters=parameters, force=force, flatten=flatten,
                     compression=compression, workers=workers) as (log, out):
         for topic, outputs in plan:
             ids = [out.add_channel(t, o.message_type) for t, o in outputs]
-            batch = _Batch(stage.reference, tuple(sys.path), str(input_path), topic, images[topic], chosen, outputs)
+            batch = _Batch(stage.reference, tuple(sys.path), str(source_path(input_path)), topic, images[topic], chosen, outputs)
             summary.messages += _run_channel(log, out.writer, stage, batch, ids, summary.records, workers=workers,
                                              show_progress=show_progress)
         summary.notes += [n for n in log.notes if n not in summary.notes]

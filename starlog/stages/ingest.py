@@ -28,7 +28,6 @@ import numpy as np
 from starlog import __version__
 from starlog.errors import ImageFolderError, InvalidParameterError
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
-from starlog.io.digest_cache import write_digest_cache
 from starlog.io import topics
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.stages._progress import progress
@@ -202,7 +201,6 @@ def ingest_source(
         provenance = Provenance(stage="ingest", version=__version__, parameters=parameters,
                                 channels=[topics.IMAGE, topics.FRAME_INFO])
         log.add_metadata(PROVENANCE_METADATA_NAME, provenance.to_metadata())
-    write_digest_cache(output)  # for the provenance of the stage that reads it next
     return summary
 
 

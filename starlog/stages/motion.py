@@ -145,6 +145,7 @@ def motion_log(
     model: PlatformModel | str = PlatformModel.RIGID,
     options: dict[str, Any] | None = None,
     force: bool = False,
+    flatten: bool = False,
     compression: str = "zstd",
     workers: int = 1,
 ) -> MotionSummary:
@@ -173,7 +174,7 @@ def motion_log(
         chosen = [c.topic for c in select_track_channels(probe, track)]
     summary = MotionSummary(fit=fit.value)
     parameters = {"tracks": chosen, "fit": fit.value, "options": options}
-    with extend_log(input_path, output_path, stage="motion", parameters=parameters, force=force,
+    with extend_log(input_path, output_path, stage="motion", parameters=parameters, force=force, flatten=flatten,
                     compression=compression, workers=workers) as (log, out), \
             LogReader(input_path, validate_messages=False) as tracks:
         for topic in chosen:

@@ -9,7 +9,6 @@ from pathlib import Path
 from starlog import __version__
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
-from starlog.io.digest_cache import write_digest_cache
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.sim import SimulatedFrame, SimulationConfig, Simulator
 from starlog.stages._parallel import ordered_map, process_pool
@@ -60,7 +59,6 @@ def simulate_log(
         provenance = Provenance(stage="simulate", version=__version__, parameters=config.to_dict(),
                                 channels=[topics.IMAGE, topics.FRAME_INFO, topics.TRUTH])
         log.add_metadata(PROVENANCE_METADATA_NAME, provenance.to_metadata())
-    write_digest_cache(output)  # for the provenance of the stage that reads it next
     return Path(output)
 
 

@@ -299,6 +299,7 @@ def track_log(
     tracker: dict[str, Any] | None = None,
     motion: dict[str, Any] | None = None,
     force: bool = False,
+    flatten: bool = False,
     compression: str = "zstd",
     workers: int = 1,
     show_progress: bool = False,
@@ -331,7 +332,7 @@ def track_log(
                   "motion": dict(motion or {})}
     summary = TrackSummary(method=method)
     processes = min(workers, len(chosen))
-    with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force,
+    with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force, flatten=flatten,
                     compression=compression, workers=workers) as (log, out), \
             _spools(chosen, Path(output_path), shared=processes > 1) as spools, \
             (process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else nullcontext()) as pool:

@@ -1,30 +1,43 @@
-// Usage: node check.mjs LOG.mcap
-// Prints JSON {topic: message count} read with McapIndexedReader (validating chunk CRCs),
-// exits non-zero on any error. Used by tests/test_typescript_reader.py.
+// Usage: node check.mjs LOG.mcap [MORE.mcap ...]
+// Reads each file alone with McapIndexedReader (validating chunk CRCs), as a viewer does with files opened
+// together, and prints JSON: per file its topic counts, metadata names, statistics, schema and channel ids;
+// and over all files the merged topic counts and metadata names. Exits non-zero on any error.
+// Used by tests/test_typescript_reader.py.
 import { McapIndexedReader } from "@mcap/core";
 import { FileHandleReadable } from "@mcap/nodejs";
 import { loadDecompressHandlers } from "@mcap/support";
 import { open } from "node:fs/promises";
 
-const path = process.argv[2];
-const handle = await open(path, "r");
-try {
-  const decompressHandlers = await loadDecompressHandlers();
-  const reader = await McapIndexedReader.Initialize({
-    readable: new FileHandleReadable(handle),
-    decompressHandlers,
-  });
-  const counts = {};
-  let last = -1n;
-  for await (const message of reader.readMessages({ validateCrcs: true })) {
-    const topic = reader.channelsById.get(message.channelId).topic;
-    counts[topic] = (counts[topic] ?? 0) + 1;
-    if (message.logTime < last) throw new Error("messages out of log-time order");
-    last = message.logTime;
+const decompressHandlers = await loadDecompressHandlers();
+
+async function readFile(path) {
+  const handle = await open(path, "r");
+  try {
+    const reader = await McapIndexedReader.Initialize({ readable: new FileHandleReadable(handle), decompressHandlers });
+    const counts = {};
+    let last = -1n;
+    for await (const message of reader.readMessages({ validateCrcs: true })) {
+      const topic = reader.channelsById.get(message.channelId).topic;
+      counts[topic] = (counts[topic] ?? 0) + 1;
+      if (message.logTime < last) throw new Error("messages out of log-time order");
+      last = message.logTime;
+    }
+    const metadata = [];
+    for await (const record of reader.readMetadata()) metadata.push(record.name);
+    return {
+      path, counts, metadata, statistics: Number(reader.statistics?.messageCount ?? -1),
+      schemaIds: [...reader.schemasById.keys()], channelIds: [...reader.channelsById.keys()],
+    };
+  } finally {
+    await handle.close();
   }
-  const metadata = [];
-  for await (const record of reader.readMetadata()) metadata.push(record.name);
-  console.log(JSON.stringify({ counts, metadata, statistics: Number(reader.statistics?.messageCount ?? -1) }));
-} finally {
-  await handle.close();
 }
+
+const files = [];
+for (const path of process.argv.slice(2)) files.push(await readFile(path));
+const counts = {};
+for (const file of files) for (const [topic, n] of Object.entries(file.counts)) counts[topic] = (counts[topic] ?? 0) + n;
+console.log(JSON.stringify({
+  files, counts, metadata: files.flatMap((f) => f.metadata),
+  statistics: files.reduce((sum, f) => sum + f.statistics, 0),
+}));

@@ -1,0 +1,605 @@
+"""One MCAP file, opened with every check: its summary, its chunks and their indexes.
+
+Nothing damaged is passed on. On opening, the footer, the summary's CRC and the consistency of
+its indexes are checked; while reading, every chunk's CRC, its records, and its message index are
+checked against each other. A problem raises :class:`~starlog.errors.TruncatedLogError` (file
+cut off or never finished), :class:`~starlog.errors.CorruptChunkError` (naming the chunk's offset,
+channels and time range) or :class:`~starlog.errors.CorruptLogError`, each pointing to
+``starlog recover``. Valid files that lack some indexes (no summary, chunks without message
+indexes, messages outside chunks) are read in full by scanning (:mod:`starlog.io.scan`).
+
+:class:`~starlog.io.reader.LogReader` reads a log, which is one file or a chain of them, through
+this class; the log layer's other tools (copying, verifying) use its public methods.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import os
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, BinaryIO
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.records import ChunkIndex, Header, Message, Metadata, MetadataIndex
+from mcap.summary import Summary
+
+from starlog.errors import CorruptChunkError, CorruptLogError, LogNotFoundError, NotMcapError, TruncatedLogError
+from starlog.io.chunk_indexes import ChunkIndexTable, read_summary
+from starlog.io.layout import (
+    MAGIC,
+    MESSAGE_HEADER,
+    MESSAGE_INDEX_BODY,
+    MESSAGE_INDEX_ENTRY,
+    RECORD_HEADER,
+    Footer,
+    decode_chunk,
+    iter_records,
+    locate_data_end,
+    parse_record,
+    read_footer,
+    summary_crc,
+)
+from starlog.io.scan import LooseRun, find_loose_runs, read_loose, synthesize_summary
+
+__all__ = ["ChannelSummary", "McapFile", "channel_summaries", "recover_hint"]
+
+#: ``(log_time, position in its chunk, channel id, message)`` of a message read from a chunk.
+ChunkMessage = tuple[int, int, int, Message]
+
+
+def recover_hint(path: Path) -> str:
+    """The sentence every error about a damaged file ends with."""
+    return f"Rebuild a readable copy with: starlog recover {path} -o RECOVERED.mcap"
+
+
+@dataclass(frozen=True)
+class ChannelSummary:
+    """One channel of a log, as :meth:`~starlog.io.reader.LogReader.channels` lists it.
+
+    ``rate_hz`` is ``(count - 1) / (last - first)`` in Hz (0 for fewer than two messages).
+    """
+
+    topic: str
+    schema_name: str
+    schema_encoding: str
+    message_encoding: str
+    message_count: int
+    first_log_time: int
+    last_log_time: int
+
+    @property
+    def rate_hz(self) -> float:
+        span = self.last_log_time - self.first_log_time
+        return (self.message_count - 1) / (span * 1e-9) if self.message_count > 1 and span > 0 else 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "topic": self.topic,
+            "schema": self.schema_name,
+            "schema_encoding": self.schema_encoding,
+            "message_encoding": self.message_encoding,
+            "message_count": self.message_count,
+            "first_log_time": self.first_log_time,
+            "last_log_time": self.last_log_time,
+            "rate_hz": self.rate_hz,
+        }
+
+
+def _chunk_index_problems(table: ChunkIndexTable, channels: set[int], data_end: int) -> list[str]:
+    """What is wrong with the chunk indexes (at most three of each kind): ranges outside the data
+    section, reversed time ranges, unknown channels, message indexes outside the data section.
+
+    Checked a block of chunks at a time, so the temporary arrays stay the size of a block.
+    """
+    kinds: list[list[str]] = [[], [], [], []]
+    known = np.fromiter(channels, dtype=np.int64, count=len(channels))
+    for block in table.row_blocks():
+        for kind, found in zip(kinds, _block_problems(table, block, known, data_end), strict=True):
+            kind.extend(found[:3 - len(kind)])
+        if all(len(kind) == 3 for kind in kinds):
+            break
+    return [problem for kind in kinds for problem in kind]
+
+
+def _block_problems(table: ChunkIndexTable, block: tuple[int, int, int, int], known: np.ndarray,
+                    data_end: int) -> tuple[list[str], list[str], list[str], list[str]]:
+    """:func:`_chunk_index_problems` of each kind among the chunks of one of ``table.row_blocks()``."""
+    a, b, e0, e1 = block
+    start = table.column("chunk_start_offset")[a:b]
+    end = start + table.column("chunk_length")[a:b]  # wraps past 2**64 for a damaged length: then end <= start
+
+    def chunks_where(bad: np.ndarray, what: str) -> list[str]:
+        return [f"chunk index for offset {int(start[k])} {what}" for k in np.flatnonzero(bad)[:3]]
+
+    rows, channel, offset = table.entries()
+    rows, channel, offset = rows[e0:e1] - a, channel[e0:e1], offset[e0:e1]
+    first = table.first_index_offsets()[a:b]
+    index_end = first + table.column("message_index_length")[a:b]
+    outside = (table.entry_counts(a, b) > 0) & (
+        (first < end) | (first >= data_end) | (index_end < first) | (index_end > data_end))
+    outside[rows[(offset < end[rows]) | (offset >= data_end)]] = True
+    return (
+        chunks_where((start < len(MAGIC)) | (end <= start) | (end > data_end), "points outside the data section"),
+        chunks_where(table.column("message_start_time")[a:b] > table.column("message_end_time")[a:b],
+                     "has its time range reversed"),
+        [f"chunk index for offset {int(start[rows[k]])} names unknown channel {int(channel[k])}"
+         for k in np.flatnonzero(~np.isin(channel, known))[:3]],
+        chunks_where(outside, "has a message index outside the data section"),
+    )
+
+
+class _Peekable:
+    """An iterator whose next item can be looked at (``peek``; None at the end) before it is taken."""
+
+    def __init__(self, items: Iterator[Any]) -> None:
+        self._items = items
+        self.peek = next(items, None)
+
+    def pop(self) -> Any:
+        item, self.peek = self.peek, next(self._items, None)
+        return item
+
+
+class McapFile:
+    """One MCAP file, its summary checked (or, for a file without indexes, rebuilt by a scan).
+
+    Parameters
+    ----------
+    path : path-like
+        The file.
+    validate_crcs : bool
+        Check the summary's and every chunk's CRC (default). A mismatch raises
+        :class:`CorruptLogError` / :class:`CorruptChunkError`.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, validate_crcs: bool = True) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise LogNotFoundError(self.path)
+        self.validate_crcs = validate_crcs
+        self.notes: list[str] = []
+        self.summary_verified = False
+        self._loose: list[LooseRun] = []
+        self._extents: dict[int, list[int]] | None = None  # count, first, last per channel (unindexed parts)
+        self._indexed = True
+        self._file: BinaryIO = open(self.path, "rb")
+        try:
+            self.data_end = self._open()
+        except BaseException:
+            self._file.close()
+            raise
+
+    # ------------------------------------------------------------------ opening
+    def _open(self) -> int:
+        f = self._file
+        try:
+            data_end = locate_data_end(self.path, f)
+            self.footer: Footer = read_footer(self.path, f)
+        except (TruncatedLogError, NotMcapError):
+            raise
+        except CorruptLogError as err:
+            raise CorruptLogError(self.path, f"{err.reason} {recover_hint(self.path)}") from err
+        except (ValueError, OSError, struct.error) as err:  # footer pointing before the file start
+            raise CorruptLogError(self.path, f"its footer is damaged ({err}). {recover_hint(self.path)}") from err
+        footer = self.footer
+        if footer.summary_start == 0:
+            self._scan_everything(data_end, "it has no summary section")
+            return data_end
+        if not data_end < footer.summary_start <= footer.offset or not (
+            footer.summary_offset_start == 0 or footer.summary_start <= footer.summary_offset_start <= footer.offset
+        ):
+            raise CorruptLogError(self.path, f"its footer points outside the file (summary at {footer.summary_start}, "
+                                             f"summary offsets at {footer.summary_offset_start}). "
+                                             f"{recover_hint(self.path)}")
+        if self.validate_crcs and footer.summary_crc != 0:
+            crc = summary_crc(f, footer)
+            if crc != footer.summary_crc:
+                raise CorruptLogError(
+                    self.path, f"its summary section (offset {footer.summary_start}..{footer.offset}) is damaged: "
+                    f"CRC {crc:#010x} does not match the footer's {footer.summary_crc:#010x}. "
+                    f"{recover_hint(self.path)}")
+            self.summary_verified = True
+        try:
+            self.summary: Summary = read_summary(f, footer.summary_start)
+        except (McapError, ValueError, EOFError, OSError, struct.error, KeyError, MemoryError) as err:
+            raise CorruptLogError(self.path, f"its summary cannot be read ({type(err).__name__}: {err}). "
+                                             f"{recover_hint(self.path)}") from err
+        self._check_summary(data_end)
+        self._find_unindexed(data_end)
+        return data_end
+
+    def _scan_everything(self, data_end: int, why: str, known: Summary | None = None) -> None:
+        """Build the missing summary by one linear scan of the data section (every chunk CRC-checked)."""
+        try:
+            result = synthesize_summary(self.path, self._file, data_end, known=known)
+        except (ValueError, struct.error, McapError, EOFError, UnicodeDecodeError) as err:
+            raise CorruptLogError(self.path, f"{why}, and a linear scan of it stops: {err}. "
+                                             f"{recover_hint(self.path)}") from err
+        self.summary = result.summary
+        self._loose = result.loose
+        self._extents = result.extents
+        self._indexed = False
+        self._check_summary(data_end)
+        self.add_note(f"{why}: read by a linear scan of the whole file; add the indexes with: "
+                      f"starlog recover {self.path} -o INDEXED.mcap")
+
+    def _find_unindexed(self, data_end: int) -> None:
+        """Messages outside chunks, chunks the summary does not list, chunks without message indexes."""
+        try:
+            self._loose, unlisted_chunk = find_loose_runs(self._file, self.summary, data_end)
+        except (ValueError, struct.error) as err:
+            raise CorruptLogError(self.path, f"its data section is damaged outside every indexed record ({err}). "
+                                             f"{recover_hint(self.path)}") from err
+        if unlisted_chunk:
+            why = "its summary lists no chunk indexes" if not self.summary.chunk_indexes else \
+                "it has chunks its summary does not list"
+            self._scan_everything(data_end, why, known=self.summary)
+            return
+        bare = int(np.count_nonzero(self.summary.chunk_indexes.entry_counts() == 0))
+        if bare:
+            self.add_note(f"{bare} of {len(self.summary.chunk_indexes)} chunks have no message indexes: each is "
+                          "read by scanning it whole.")
+        if self._loose:
+            self.add_note("some messages lie outside chunks (no index lists them): they are found by walking the "
+                          "data section and read in log_time order with the rest.")
+        self._indexed = not bare and not self._loose
+
+    def _check_summary(self, data_end: int) -> None:
+        """The indexes must point inside the data section and name known channels and schemas."""
+        summary = self.summary
+        problems: list[str] = []
+        for ch in summary.channels.values():
+            if ch.schema_id != 0 and ch.schema_id not in summary.schemas:
+                problems.append(f"channel {ch.topic!r} refers to missing schema {ch.schema_id}")
+        topics = [ch.topic for ch in summary.channels.values()]
+        if len(set(topics)) != len(topics):
+            problems.append("two channels have the same topic")
+        problems += _chunk_index_problems(summary.chunk_indexes, set(summary.channels), data_end)
+        for mi in summary.metadata_indexes:
+            if not len(MAGIC) <= mi.offset < mi.offset + mi.length <= data_end:
+                problems.append(f"metadata index {mi.name!r} points outside the data section")
+        for ai in summary.attachment_indexes:
+            if not len(MAGIC) <= ai.offset < ai.offset + ai.length <= data_end:
+                problems.append(f"attachment index {ai.name!r} points outside the data section")
+        if summary.statistics is not None:
+            unknown = set(summary.statistics.channel_message_counts) - set(summary.channels)
+            if unknown:
+                problems.append(f"statistics count messages of unknown channels {sorted(unknown)}")
+        if problems:
+            raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
+                                             f"{recover_hint(self.path)}")
+
+    def add_note(self, note: str) -> None:
+        """Record a one-line note about how the file was read (shown once, in reading order)."""
+        if note not in self.notes:
+            self.notes.append(note)
+
+    def __enter__(self) -> McapFile:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file."""
+        self._file.close()
+
+    # ------------------------------------------------------------------ what the file holds
+    @property
+    def size(self) -> int:
+        """The file's size in bytes."""
+        return self.footer.file_size
+
+    @property
+    def fully_indexed(self) -> bool:
+        """Whether every message is reachable through the summary's indexes (chunk and message indexes)."""
+        return self._indexed
+
+    def profile(self) -> str:
+        """The header's profile (e.g. ``ros2``; ``""`` when the header cannot be read)."""
+        try:
+            self._file.seek(len(MAGIC))
+            opcode, length = RECORD_HEADER.unpack(self._file.read(RECORD_HEADER.size))
+            if opcode != Opcode.HEADER:
+                return ""
+            return parse_record(self._file.read(length), Header).profile
+        except (struct.error, ValueError, UnicodeDecodeError, EOFError):
+            return ""
+
+    def read_bytes(self, offset: int, length: int) -> bytes:
+        """``length`` bytes of the file from ``offset`` (fewer only where the file ends)."""
+        self._file.seek(offset)
+        return self._file.read(length)
+
+    def channel_extents(self, lo: int = 0, hi: int = 2**64) -> dict[int, list[int]]:
+        """``[count, first log_time, last log_time]`` per channel id of the messages with ``lo <= log_time < hi``.
+
+        The whole file's come from the statistics and chunk indexes; a window's from the message index
+        records of the chunks it overlaps (chunks without them are read).
+        """
+        if lo <= 0 and hi >= 2**64:
+            return self._whole_extents()
+        extents: dict[int, list[int]] = {}
+        table: ChunkIndexTable = self.summary.chunk_indexes
+        rows = table.rows_for_channels(self.summary.channels, lo, hi)
+        for ci in itertools.chain(table.indexes_at(rows), self._loose_in(set(self.summary.channels), lo, hi)):
+            for cid, times in self._message_times(ci).items():
+                inside = [t for t in times if lo <= t < hi]
+                if inside:
+                    _extend(extents, cid, len(inside), min(inside), max(inside))
+        return extents
+
+    def _whole_extents(self) -> dict[int, list[int]]:
+        summary = self.summary
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
+        out = {cid: [int(counts.get(cid, 0)), lo, hi]
+               for cid, (lo, hi) in summary.chunk_indexes.channel_time_ranges().items()}
+        if not self._indexed or summary.statistics is None:
+            for cid, (count, lo, hi) in self._unindexed_extents().items():
+                e = out.setdefault(cid, [int(counts.get(cid, 0)), lo, hi])
+                e[1], e[2] = min(e[1], lo), max(e[2], hi)
+                if summary.statistics is None:
+                    e[0] = count
+        for cid in summary.channels:
+            out.setdefault(cid, [int(counts.get(cid, 0)), 0, 0])
+        return out
+
+    def _unindexed_extents(self) -> dict[int, list[int]]:
+        """``[count, first, last]`` per channel over what the indexes do not describe (scanned once, lazily).
+
+        Covers every segment when the summary has no statistics.
+        """
+        if self._extents is None:
+            table = self.summary.chunk_indexes
+            every = self.summary.statistics is None
+            segments = table if every else table.indexes_at(np.flatnonzero(table.entry_counts() == 0))
+            extents: dict[int, list[int]] = {}
+            for ci in itertools.chain(segments, self._loose):
+                for log_time, _, cid, _ in self.read_chunk(ci)[0]:
+                    _extend(extents, cid, 1, log_time, log_time)
+            self._extents = extents
+        return self._extents
+
+    def _message_times(self, ci: ChunkIndex) -> dict[int, list[int]]:
+        """The ``log_time`` of each message of the chunk ``ci``, per channel (from its message indexes when it
+        has them)."""
+        if not ci.message_index_offsets or isinstance(ci, LooseRun):
+            times: dict[int, list[int]] = {}
+            for log_time, _, cid, _ in self.read_chunk(ci)[0]:
+                times.setdefault(cid, []).append(log_time)
+            return times
+        return {cid: [t for t, _ in entries] for cid, entries in self.message_index(ci).items()}
+
+    def time_range(self) -> tuple[int, int]:
+        """First and last ``log_time`` of the file (0, 0 when it holds no message)."""
+        stats = self.summary.statistics
+        if stats is None:
+            extents = self._unindexed_extents().values()
+            return (min((e[1] for e in extents), default=0), max((e[2] for e in extents), default=0))
+        if stats.message_count == 0:
+            return (0, 0)
+        return (stats.message_start_time, stats.message_end_time)
+
+    def metadata_indexes(self) -> list[MetadataIndex]:
+        """The metadata indexes in file order."""
+        return sorted(self.summary.metadata_indexes, key=lambda m: m.offset)
+
+    def metadata(self, name: str | None = None) -> list[tuple[str, dict[str, str]]]:
+        """MCAP Metadata records ``(name, map)`` in file order, optionally only those named ``name``."""
+        return [(index.name, self.read_metadata(index)) for index in self.metadata_indexes()
+                if name is None or index.name == name]
+
+    def read_metadata(self, index: MetadataIndex) -> dict[str, str]:
+        """The map of the metadata record ``index`` points at."""
+        raw = self.read_bytes(index.offset, index.length)
+        try:
+            opcode, length = RECORD_HEADER.unpack_from(raw)
+            if opcode != Opcode.METADATA or RECORD_HEADER.size + length != index.length:
+                raise ValueError(f"no metadata record there (opcode {opcode:#04x})")
+            record = parse_record(raw[RECORD_HEADER.size:], Metadata)
+            if record.name != index.name:
+                raise ValueError(f"it is named {record.name!r}, its index says {index.name!r}")
+        except (struct.error, ValueError, EOFError, McapError) as err:
+            raise CorruptLogError(self.path, f"the metadata record {index.name!r} at offset {index.offset} is "
+                                             f"damaged ({err}). {recover_hint(self.path)}") from err
+        return dict(record.metadata)
+
+    # ------------------------------------------------------------------ chunks
+    def chunk_error(self, ci: ChunkIndex, detail: str) -> CorruptChunkError:
+        """The error that names the chunk ``ci`` as damaged (its offset, channels and time range)."""
+        channels = self.summary.channels
+        names = [channels[c].topic if c in channels else f"channel {c}" for c in sorted(ci.message_index_offsets)]
+        return CorruptChunkError(self.path, ci.chunk_start_offset, names, ci.message_start_time,
+                                 ci.message_end_time, detail)
+
+    def read_chunk(self, ci: ChunkIndex) -> tuple[list[ChunkMessage], bool]:
+        """Every message of the chunk ``ci`` as ``(log_time, position, channel_id, message)``, fully checked,
+        and whether its CRC was verified (never for messages outside chunks). Payloads are read-only views
+        of the decompressed chunk."""
+        if isinstance(ci, LooseRun):
+            try:
+                return read_loose(self._file, ci), False
+            except (ValueError, struct.error) as err:
+                raise CorruptLogError(self.path, f"the messages outside chunks at offset {ci.chunk_start_offset} "
+                                                 f"are damaged ({err}). {recover_hint(self.path)}") from err
+        contents = self._chunk_contents(ci)
+        data = contents.data
+        messages: list[ChunkMessage] = []
+        offsets: dict[int, list[tuple[int, int]]] = {}
+        view = memoryview(data).toreadonly()  # payloads are slices of it, not copies
+        known = ci.message_index_offsets or self.summary.channels
+        try:
+            for pos, opcode, body, length in iter_records(data):
+                if opcode != Opcode.MESSAGE:
+                    continue
+                cid, seq, log_time, publish_time = MESSAGE_HEADER.unpack_from(data, body)
+                if cid not in known:
+                    raise ValueError(f"it holds a message of channel {cid}, which "
+                                     f"{'its index' if ci.message_index_offsets else 'the log'} does not list")
+                if not contents.start <= log_time <= contents.end:
+                    raise ValueError(f"a message at log_time {log_time} lies outside its range "
+                                     f"{contents.start}..{contents.end}")
+                payload = view[body + MESSAGE_HEADER.size: body + length]
+                messages.append((log_time, len(messages), cid, Message(cid, log_time, payload, publish_time, seq)))
+                offsets.setdefault(cid, []).append((log_time, pos))
+        except (struct.error, ValueError) as err:
+            raise self.chunk_error(ci, str(err)) from err
+        if ci.message_index_offsets and {c: sorted(v) for c, v in self.message_index(ci).items()} != \
+                {c: sorted(offsets.get(c, [])) for c in ci.message_index_offsets}:
+            raise self.chunk_error(ci, "its message indexes do not match the chunk's messages")
+        return messages, contents.crc_checked
+
+    def _chunk_contents(self, ci: ChunkIndex) -> Any:
+        """The decompressed, CRC-checked contents of the chunk ``ci``, its header checked against the index."""
+        raw = self.read_bytes(ci.chunk_start_offset, ci.chunk_length)
+        if len(raw) != ci.chunk_length:
+            raise self.chunk_error(ci, "the file ends inside it")
+        opcode, length = RECORD_HEADER.unpack_from(raw)
+        if opcode != Opcode.CHUNK or RECORD_HEADER.size + length != ci.chunk_length:
+            raise self.chunk_error(ci, f"no chunk record there (opcode {opcode:#04x}, length {length})")
+        try:
+            contents = decode_chunk(memoryview(raw)[RECORD_HEADER.size:], check_crc=self.validate_crcs)
+        except Exception as err:  # struct.error, ValueError, UnicodeDecodeError, ZstdError, lz4 RuntimeError ...
+            raise self.chunk_error(ci, f"{type(err).__name__}: {err}") from err
+        if (contents.start, contents.end, contents.uncompressed_size, contents.compression) != \
+                (ci.message_start_time, ci.message_end_time, ci.uncompressed_size, ci.compression):
+            raise self.chunk_error(ci, "its header disagrees with the summary's chunk index")
+        return contents
+
+    def message_index(self, ci: ChunkIndex) -> dict[int, list[tuple[int, int]]]:
+        """The ``(log_time, offset)`` entries of each message index record of the chunk ``ci``, per channel."""
+        if not ci.message_index_offsets:
+            return {}
+        first = min(ci.message_index_offsets.values())
+        block = self.read_bytes(first, ci.message_index_length)
+        out = {}
+        for cid, offset in ci.message_index_offsets.items():
+            rel = offset - first
+            try:
+                opcode, length = RECORD_HEADER.unpack_from(block, rel)
+                channel_id, array_len = MESSAGE_INDEX_BODY.unpack_from(block, rel + RECORD_HEADER.size)
+                if opcode != Opcode.MESSAGE_INDEX or length != 6 + array_len or array_len % 16 \
+                        or channel_id != cid or rel + RECORD_HEADER.size + length > len(block):
+                    raise ValueError("not a message index record of this channel")
+                start = rel + RECORD_HEADER.size + 6
+                out[cid] = list(MESSAGE_INDEX_ENTRY.iter_unpack(block[start: start + array_len]))
+            except (struct.error, ValueError) as err:
+                raise self.chunk_error(ci, f"its message index for channel {cid} at offset {offset} is damaged "
+                                           f"({err})") from err
+        return out
+
+    def index_counts(self, ci: ChunkIndex) -> dict[int, int]:
+        """Messages per channel of a chunk, from the headers of its message index records (no decompression)."""
+        counts = {}
+        for cid, offset in ci.message_index_offsets.items():
+            head = self.read_bytes(offset, RECORD_HEADER.size + 6)
+            try:
+                opcode, _ = RECORD_HEADER.unpack_from(head, 0)
+                channel_id, array_len = MESSAGE_INDEX_BODY.unpack_from(head, RECORD_HEADER.size)
+            except struct.error as err:
+                raise self.chunk_error(ci, f"its message index is cut short ({err})") from err
+            if opcode != Opcode.MESSAGE_INDEX or channel_id != cid or array_len % 16:
+                raise self.chunk_error(ci, f"its message index for channel {cid} is damaged")
+            counts[cid] = array_len // 16
+        return counts
+
+    def chunk_message_counts(self, channel_id: int, lo: int = 0, hi: int = 2**64) -> list[tuple[int, int, int]]:
+        """``(message_start_time, message_end_time, count)`` of the channel's messages with ``lo <= log_time < hi``
+        in each chunk holding some, in time order (from the message index records; no chunk is decompressed
+        unless it lies across a bound)."""
+        table: ChunkIndexTable = self.summary.chunk_indexes
+        rows, channels, _ = table.entries()
+        out = []
+        for ci in table.indexes_at(rows[channels == channel_id]):
+            if not (ci.message_end_time >= lo and ci.message_start_time < hi):
+                continue
+            if lo <= ci.message_start_time and ci.message_end_time < hi:
+                out.append((ci.message_start_time, ci.message_end_time, self.index_counts(ci)[channel_id]))
+                continue
+            times = [t for t, _ in self.message_index(ci)[channel_id] if lo <= t < hi]
+            if times:
+                out.append((min(times), max(times), len(times)))
+        return sorted(out)
+
+    def messages(self, ids: set[int], lo: int, hi: int) -> Iterator[tuple[ChunkMessage, bool]]:
+        """The messages of the channels ``ids`` with ``lo <= log_time < hi``, in ``log_time`` order (ties: file
+        order), streamed chunk by chunk; each with whether its chunk's CRC was verified. Only the chunks
+        whose time ranges overlap are held in memory at once."""
+        chunks = _Peekable(self._chunks_in_time_order(ids, lo, hi))
+        heap: list[tuple[int, int, int, int, Message, bool]] = []
+        last = -1
+        while heap or chunks.peek is not None:
+            while chunks.peek is not None and (not heap or chunks.peek.message_start_time <= heap[0][0]):
+                ci = chunks.pop()
+                messages, verified = self.read_chunk(ci)
+                for log_time, position, cid, message in messages:
+                    if cid in ids and lo <= log_time < hi:
+                        heapq.heappush(heap, (log_time, ci.chunk_start_offset, position, cid, message, verified))
+            if not heap:  # the last chunks held none of the wanted messages
+                break
+            log_time, offset, position, cid, message, verified = heapq.heappop(heap)
+            if log_time < last:  # cannot happen with consistent indexes; never pass on a wrong order
+                raise CorruptLogError(self.path, f"messages come out of log_time order at {log_time}. "
+                                                 f"{recover_hint(self.path)}")
+            last = log_time
+            yield (log_time, position, cid, message), verified
+
+    def _chunks_in_time_order(self, ids: set[int], lo: int, hi: int) -> Iterator[ChunkIndex]:
+        """The chunks (and runs of messages outside chunks) that may hold a message of ``ids`` with
+        ``lo <= log_time < hi``, by ``(message_start_time, offset)``; the chunk indexes are made one at a time."""
+        table: ChunkIndexTable = self.summary.chunk_indexes
+        chunks = table.indexes_at(table.rows_for_channels(ids, lo, hi))
+        return heapq.merge(chunks, self._loose_in(ids, lo, hi),
+                           key=lambda ci: (ci.message_start_time, ci.chunk_start_offset))
+
+    def _loose_in(self, ids: set[int], lo: int, hi: int) -> list[LooseRun]:
+        return sorted((run for run in self._loose
+                       if (not run.message_index_offsets or not ids.isdisjoint(run.message_index_offsets))
+                       and run.message_end_time >= lo and run.message_start_time < hi),
+                      key=lambda run: (run.message_start_time, run.chunk_start_offset))
+
+    def records_in_file_order(self) -> Iterator[tuple[int, str, Any]]:
+        """``(offset, kind, index)`` of every chunk (``"chunk"``), run of messages outside chunks (``"loose"``),
+        metadata record (``"metadata"``) and attachment (``"attachment"``) of the file, by offset; the chunk
+        indexes are made one at a time."""
+        table: ChunkIndexTable = self.summary.chunk_indexes
+        chunks = ((ci.chunk_start_offset, "chunk", ci)
+                  for ci in table.indexes_at(np.argsort(table.column("chunk_start_offset"), kind="stable")))
+        others: list[tuple[int, str, Any]] = [(run.chunk_start_offset, "loose", run) for run in self._loose]
+        others += [(m.offset, "metadata", m) for m in self.summary.metadata_indexes]
+        others += [(a.offset, "attachment", a) for a in self.summary.attachment_indexes]
+        others.sort(key=lambda item: item[0])
+        return heapq.merge(chunks, others, key=lambda item: item[0])
+
+
+def _extend(extents: dict[int, list[int]], cid: int, count: int, first: int, last: int) -> None:
+    e = extents.get(cid)
+    if e is None:
+        extents[cid] = [count, first, last]
+    else:
+        e[0] += count
+        e[1], e[2] = min(e[1], first), max(e[2], last)
+
+
+def channel_summaries(file: McapFile, extents: dict[int, list[int]]) -> dict[int, ChannelSummary]:
+    """The :class:`ChannelSummary` of each channel of ``file`` from its ``[count, first, last]`` extents."""
+    out = {}
+    for cid in sorted(file.summary.channels):
+        ch = file.summary.channels[cid]
+        schema = file.summary.schemas.get(ch.schema_id)
+        count, first, last = extents.get(cid, (0, 0, 0))
+        out[cid] = ChannelSummary(topic=ch.topic, schema_name=schema.name if schema else "",
+                                  schema_encoding=schema.encoding if schema else "",
+                                  message_encoding=ch.message_encoding, message_count=int(count),
+                                  first_log_time=int(first), last_log_time=int(last))
+    return out
+
