@@ -1,4 +1,5 @@
-"""The stage benchmark's own arithmetic: the marginal rate and start-up, and where sampled time is attributed."""
+"""The stage benchmark's own arithmetic: the marginal rate and start-up, where sampled time is attributed, output
+shares, the names of the stages' outputs (run's layers), the chain and flatten figures and the failed-targets line."""
 
 from __future__ import annotations
 
@@ -79,29 +80,92 @@ def test_sampled_time_goes_to_the_innermost_starlog_frame(bench, modules, expect
     assert bench.classify(_stack(modules), {}) == expected
 
 
-def test_output_growth_a_frame_and_the_disk_floor_it_sets(bench):
+def test_output_growth_a_frame(bench):
     result = bench.StageResult("track STATIC", 2)
     timing = bench.Timing(1.0, 1.0, 100.0)
     result.add_pairs([300, 3000], [[timing, timing]], {300: ["a"], 3000: ["b"]})
     assert math.isnan(result.bytes_per_frame())  # sizes not recorded
-    result.output_bytes = [1_000_000 + 300 * 800_000, 1_000_000 + 3000 * 800_000]
-    assert result.bytes_per_frame() == pytest.approx(800_000)
-    # 800 kB a frame at 400 MB/s: 2 ms a frame
-    assert bench.write_floor(800_000, 400e6) == pytest.approx(2e-3)
-    assert math.isnan(bench.write_floor(math.nan, 400e6))
-    assert math.isnan(bench.write_floor(800_000, 0.0))
+    result.output_bytes = [1_000_000 + 300 * 8_000, 1_000_000 + 3000 * 8_000]
+    assert result.bytes_per_frame() == pytest.approx(8_000)
 
 
-def test_a_target_below_the_disk_floor_says_so(bench):
-    size = {"disk_rate": 400e6}
-    stage = {"bytes_per_frame": 800_000}
-    assert bench.disk_note(size, stage, 0.7e-3).endswith("BELOW THE DISK'S ESTIMATED FLOOR")  # 2 ms > 0.7 ms allowed
-    above = bench.disk_note(size, {"bytes_per_frame": 40_000}, 0.7e-3)  # 0.1 ms
-    assert "0.10 ms a frame, 0.70 allowed" in above and "FLOOR" not in above
-    assert bench.disk_note({"disk_rate": math.nan}, stage, 0.7e-3) == ""
+def _size(input_bytes, stages):
+    return {"size": 512, "lengths": [300, 3000], "input_bytes": input_bytes,
+            "stages": [{"label": label, "workers": 2, "output_bytes": sizes} for label, sizes in stages]}
 
 
-def test_the_disk_probe_writes_syncs_and_removes_its_file(bench, tmp_path):
-    rate = bench.disk_write_rate(tmp_path, 16, block_mib=8)
-    assert math.isfinite(rate) and rate > 0
-    assert list(tmp_path.iterdir()) == []
+def test_output_share_is_of_the_input_on_the_longest_log(bench):
+    s = _size([100e6, 1000e6], [("track STATIC", [9e6, 40e6])])
+    assert bench.output_share(s, s["stages"][0]) == pytest.approx(0.04)
+
+
+def test_output_size_targets_per_stage_and_none_for_run(bench):
+    s = _size([100e6, 1000e6], [("centroid GAUSSFIT", [1e6, 99e6]), ("track STATIC", [1e6, 51e6]),
+                                ("motion", [1e6, 49e6]), ("compensate 50 Hz paper", [1e6, 1e6]),
+                                ("run (paper protocol)", [1e6, 200e6]), ("run --flatten (paper protocol)", [1e6, 1200e6])])
+    results = bench.output_size_targets(s)
+    assert [ok for _, ok in results] == [True, False, True, True]  # 9.9 % <= 10; 5.1 % > 5; 4.9 %; 0.1 %
+    assert "<= 10 %" in results[0][0] and "<= 5 %" in results[1][0]
+    assert bench.share_limit("run (paper protocol)") is None
+    assert bench.share_limit("run --flatten (paper protocol)") is None
+    assert bench.share_limit("centroid MOMENT") == pytest.approx(0.10)
+
+
+def test_the_stages_one_by_one_are_named_as_runs_layers(bench, tmp_path):
+    log = tmp_path / "sim.mcap"
+    commands = {c.label: c for c in bench.pipeline_commands(log, tmp_path / "10/all", 2)}
+    alone = [commands[label].outputs[0] for label in ("centroid GAUSSFIT", "track STATIC", "compensate 50 Hz paper")]
+    assert [p.name for p in alone] == ["run.1-centroid.mcap", "run.2-track-GAUSSFIT.mcap", "run.mcap"]
+    assert all(p.parent == tmp_path / "10/all" for p in alone)
+    run = commands["run (paper protocol)"]
+    assert [p.name for p in run.outputs] == [p.name for p in alone]
+    flat = commands["run --flatten (paper protocol)"]
+    assert [p.name for p in flat.outputs] == ["run.mcap"] and "--flatten" in flat.argv
+    for other in (run.outputs[0].parent, flat.outputs[0].parent):  # siblings: a base path is relative
+        assert other != tmp_path / "10/all" and other.parent == tmp_path / "10"
+    # track, motion and compensate read the layer before them
+    track, motion, compensate = (commands[k].argv for k in ("track STATIC", "motion", "compensate 50 Hz paper"))
+    assert track[track.index("track") + 1] == str(alone[0])
+    assert motion[motion.index("motion") + 1] == str(alone[1])
+    assert compensate[compensate.index("compensate") + 1] == str(alone[1])
+
+
+def test_runs_layer_names_come_from_the_pipeline(bench, tmp_path):
+    from starlog.pipeline import layer_paths
+
+    assert bench.pipeline_layers(tmp_path) == layer_paths(tmp_path / "run.mcap", ["centroid", "track GAUSSFIT",
+                                                                                   "compensate"])
+
+
+def test_several_outputs_have_one_digest_of_their_digests(bench, tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.write_bytes(b"layer a")
+    b.write_bytes(b"layer b")
+    assert bench.outputs_digest([a]) == bench.sha256(a)
+    assert bench.outputs_digest([a, b]) != bench.outputs_digest([b, a])
+
+
+def test_a_topic_in_two_files_of_a_chain_is_found(bench):
+    assert bench.repeated_topics([["/camera/image"], ["/stars/centroids/GAUSSFIT"], ["/track/GAUSSFIT/STATIC"]]) == []
+    assert bench.repeated_topics([["/a", "/b"], ["/c"], ["/b", "/b"]]) == ["/b"]
+
+
+def test_the_cost_of_the_copy_of_run_flatten(bench):
+    # run at 400 frames/s (2.5 ms a frame), run --flatten at 250 (4 ms a frame)
+    extra, ratio = bench.flatten_cost({"rate": 400.0}, {"rate": 250.0})
+    assert extra == pytest.approx(1.5e-3)
+    assert ratio == pytest.approx(0.625)
+    assert math.isinf(bench.flatten_cost({"rate": 400.0}, {"rate": math.nan})[0])
+
+
+def test_opening_a_chain_is_judged_on_the_cli_difference(bench):
+    chain = {"info_pairs": [(0.4, 0.43)] * 9, "info_extra_s": 0.03, "open_base_s": 0.001, "open_layer_s": 0.004}
+    text, ok = bench.chain_open_target({"size": 512, "chain": chain})
+    assert ok and "30.0 ms more" in text and "median of 9" in text and "3.00 ms more" in text
+    assert not bench.chain_open_target({"size": 512, "chain": {**chain, "info_extra_s": 0.051}})[1]
+
+
+def test_failed_targets_are_named_in_one_line(bench):
+    assert bench.failed_summary([("a", True), ("b", True)]) is None
+    line = bench.failed_summary([("a", True), ("b fails", False), ("c fails", False)])
+    assert line == "FAILED 2/3 targets: b fails | c fails" and "\n" not in line

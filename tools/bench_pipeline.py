@@ -5,9 +5,16 @@ length (300 and 3000 frames at 300 Hz by default) a log is simulated once, then
 ``python -m starlog <stage>`` (this interpreter, a subprocess) is timed for:
 
 * ``centroid`` with one method on one core (``--workers 1``: MOMENT, GAUSSFIT), and GAUSSFIT on all cores;
-* ``track`` of the GAUSSFIT centroids with one model (STATIC, ``sigma_floor = 0.05``);
-* ``compensate`` of that one track at one rate (50 Hz, paper protocol);
-* ``run`` of GAUSSFIT -> STATIC -> compensate 50 Hz, paper protocol (the same options), all cores.
+* ``track`` of the GAUSSFIT centroids with one model (STATIC, ``sigma_floor = 0.05``), on the centroid layer;
+* ``motion`` (the platform motion) of that track, on the track layer;
+* ``compensate`` of that track at one rate (50 Hz, paper protocol), on the track layer;
+* ``run`` of GAUSSFIT -> STATIC -> compensate 50 Hz, paper protocol (the same options), all cores:
+  one layer per stage; and ``run --flatten``, the same written as one self-contained file.
+
+Each stage writes a layer: only what it adds, on the log it read. The outputs of the stages run one
+by one are named as ``run``'s layers (``run.1-centroid.mcap``, ``run.2-track-GAUSSFIT.mcap``,
+``run.mcap``: :func:`starlog.pipeline.layer_paths`); ``run`` writes its own in a sibling folder at the
+same depth, so each of its layers must be the very bytes of the stage run alone.
 
 Printed as Markdown tables, every ratio from this one run:
 
@@ -19,32 +26,33 @@ Printed as Markdown tables, every ratio from this one run:
    less sensitive to other jobs on a shared machine; not shown for more workers, whose pool
    processes are children of a fork server, not of the command, and escape the count);
    peak RSS (GNU time ``%M``: the largest process of the command) on the shortest and longest log;
+   the output's size: KB a frame (its growth from the shortest to the longest log), MB and percent
+   of the simulated input log on the longest log (``run``: its layers together); and what the copy
+   of ``run --flatten`` costs: its marginal ms a frame minus ``run``'s, and the ratio of their rates;
 2. the centroid stage against SEP (``sep.Background`` + ``sep.extract`` + ``sep.flux_radius`` +
    ``sep.winpos``, one core, on the same frames held in memory: no decode, no write);
 3. a breakdown per stage: the stage run in-process on one core on the shortest log under a
    wall-clock stack sampler (SIGALRM every millisecond; the time since the previous sample goes to
    the innermost starlog frame of the interrupted stack): read/decode and encode/write
    (``starlog.io``, by the reading or writing side it serves), algorithm (``starlog.detect``,
-   ``.centroid``, ``.track``, ``.compensate``), stage code (``starlog.stages``, ``.pipeline``,
-   ``.cli``: per-message conversion, orchestration), import, other (outside starlog);
-4. checks: output SHA-256 identical for ``--workers 1`` and all cores, and on a rerun;
+   ``.centroid``, ``.track``, ``.motion``, ``.compensate``), stage code (``starlog.stages``,
+   ``.pipeline``, ``.cli``: per-message conversion, orchestration), import, other (outside starlog);
+4. checks: output SHA-256 identical for ``--workers 1`` and all cores, and on a rerun; each of
+   ``run``'s layers identical to the stage run alone; a chain of five layers with no topic twice;
 5. the tracker's own time, the denominator of the ``track`` target: ``StarTracker.update`` with the
    stage's options on every frame of the longest log's centroids (decoded beforehand), in this
    process, the best of two runs, timed right after each repeat of the ``track`` stage; the target
    is the median over the repeats of each repeat's ratio, so both sides of a ratio see the machine
-   at the same speed. (Before, it was the sampled ``algorithm`` time of the breakdown on the
-   shortest log: a few tenths of a second of samples, which moved the ratio by 20 %.)
-6. the disk's estimated floor: each stage's output grows by some bytes a frame (a stage's output
-   holds its input's data section, the images included, and is synced before the command returns);
-   this folder's disk is timed writing ``--disk-probe-mib`` MiB and syncing them (before and after a
-   size's stages; the faster of the two), and bytes a frame / that rate estimates the time a frame
-   that writing the output takes here. The ``track`` and ``compensate`` targets say when their
-   allowance is below it. An estimate: a disk's rate varies (a virtual disk's by 2x from one hour
-   to the next), and a file system that shares blocks (Btrfs, XFS) does not write the copied data
-   section at all.
+   at the same speed;
+6. the cost of opening a chain, on the longest log: five layers, each on the one before (centroid
+   GAUSSFIT, track STATIC, motion, compensate, track CONSTANT_VELOCITY); ``python -m starlog info``
+   of the fifth layer and of the simulated base, run alternately in pairs (the target: the median
+   of the pairs' differences), and ``LogReader`` open + close in this process, best of 20 each (the
+   reading code alone, beside it).
 
 Before any timed run, the centroid stage runs once on a few frames with every timed method, so the
-compiled kernels' first compilation (and its disk cache) is not timed.
+compiled kernels' first compilation (and its disk cache) is not timed. The command exits with 1
+when a target is not met, after a line naming those targets.
 
 Usage::
 
@@ -93,10 +101,20 @@ tracks = ["{PIPELINE_METHOD}/{PIPELINE_MODEL}"]
 rates = [{PIPELINE_RATE}]
 protocols = "{PIPELINE_PROTOCOL}"
 """
+RUN_STAGES = ["centroid", f"track {PIPELINE_METHOD}", "compensate"]  # the names run gives its stages' layers
+RUN_LABEL, FLATTEN_LABEL = f"run ({PIPELINE_PROTOCOL} protocol)", f"run --flatten ({PIPELINE_PROTOCOL} protocol)"
+TRACK_LABEL, MOTION_LABEL = f"track {PIPELINE_MODEL}", "motion"
+COMPENSATE_LABEL = f"compensate {PIPELINE_RATE} Hz {PIPELINE_PROTOCOL}"
+CHAIN_MODEL = "CONSTANT_VELOCITY"  # the fifth layer's track model (a topic of its own in the chain)
+INFO_PAIRS, OPEN_REPEAT = 9, 20
+# the largest output a stage may write, as a share of the simulated input log (by the label's first word)
+OUTPUT_SHARE_LIMITS = {"centroid": 0.10, "track": 0.05, "motion": 0.05, "compensate": 0.05}
+CHAIN_OPEN_LIMIT_S = 0.050
 CATEGORIES = ("read", "algorithm", "write", "stage", "import", "other")
 CATEGORY_TITLES = {"read": "read/decode", "algorithm": "algorithm", "write": "encode/write",
                    "stage": "stage code", "import": "import", "other": "other"}
-ALGORITHM_PACKAGES = ("starlog.detect", "starlog.centroid", "starlog.track", "starlog.compensate", "starlog.sim")
+ALGORITHM_PACKAGES = ("starlog.detect", "starlog.centroid", "starlog.track", "starlog.motion", "starlog.compensate",
+                      "starlog.sim")
 READ_WORDS = ("decompress", "decode", "unpack", "read", "parse", "load", "digest")
 WRITE_WORDS = ("compress", "encode", "pack", "write", "dump", "serial")
 
@@ -303,31 +321,69 @@ def warm_up(log: Path, folder: Path, methods: list[str]) -> None:
     out.unlink(missing_ok=True)
 
 
-def centroid_command(log: Path, folder: Path, method: str, workers: int) -> tuple[list[str], Path]:
+@dataclass
+class Command:
+    """One stage's CLI arguments and the files it writes (``run``: one layer per stage, the last one last)."""
+
+    label: str
+    argv: list[str]
+    outputs: list[Path]
+
+
+def pipeline_layers(folder: Path) -> list[Path]:
+    """The layers ``run -o folder/run.mcap`` writes; the stages run one by one write files of the same names."""
+    from starlog.pipeline import layer_paths
+
+    return layer_paths(folder / "run.mcap", RUN_STAGES)
+
+
+def sibling(folder: Path, suffix: str) -> Path:
+    """A folder beside ``folder`` (the same depth: a layer names its base by a relative path)."""
+    return folder.with_name(f"{folder.name}-{suffix}")
+
+
+def centroid_command(log: Path, folder: Path, method: str, workers: int) -> Command:
     folder.mkdir(parents=True, exist_ok=True)
-    out = folder / f"centroid_{method}.mcap"
-    return [*STARLOG, "centroid", str(log), "-o", str(out), "--method", method, "--workers", str(workers),
-            "-q", "--force"], out
+    out = pipeline_layers(folder)[0] if method == PIPELINE_METHOD else folder / f"centroid_{method}.mcap"
+    return Command(f"centroid {method}", [*STARLOG, "centroid", str(log), "-o", str(out), "--method", method,
+                                          "--workers", str(workers), "-q", "--force"], [out])
 
 
-def chain_commands(log: Path, folder: Path, workers: int) -> list[tuple[str, list[str], Path]]:
-    """(label, CLI arguments, output) of the pipeline's stages one by one, then ``run``, in ``folder``."""
+def track_arguments(model: str) -> list[str]:
+    return ["--centroids", PIPELINE_METHOD, "--model", model, "--set", "sigma_floor=0.05"]
+
+
+def compensate_arguments() -> list[str]:
+    return ["--track", TRACK_TOPIC, "--rate", str(PIPELINE_RATE), "--protocol", PIPELINE_PROTOCOL]
+
+
+def run_pipeline_command(log: Path, folder: Path, workers: int, *, flatten: bool) -> Command:
+    """``run`` of the benchmark's config into ``folder``: its layers, or with ``flatten`` one file."""
     folder.mkdir(parents=True, exist_ok=True)
     config = folder / "pipeline.toml"
     config.write_text(RUN_CONFIG)
-    centroid, centroids = centroid_command(log, folder, PIPELINE_METHOD, workers)
-    tracks, compensated, run_out = folder / "track.mcap", folder / "compensate.mcap", folder / "run.mcap"
+    out = folder / "run.mcap"
+    argv = [*STARLOG, "run", str(log), "-o", str(out), "--config", str(config), "--workers", str(workers), "-q",
+            "--force", *(["--flatten"] if flatten else [])]
+    return Command(FLATTEN_LABEL if flatten else RUN_LABEL, argv, [out] if flatten else pipeline_layers(folder))
+
+
+def pipeline_commands(log: Path, folder: Path, workers: int) -> list[Command]:
+    """The pipeline's stages one by one in ``folder`` (outputs named as ``run``'s layers; motion and compensate
+    both on the track layer), then ``run`` and ``run --flatten``, each in a sibling folder."""
+    centroids, tracks, compensated = pipeline_layers(folder)
+    motion = folder / "motion.mcap"
     common = ["--workers", str(workers), "-q", "--force"]
     return [
-        (f"centroid {PIPELINE_METHOD}", centroid, centroids),
-        (f"track {PIPELINE_MODEL}", [*STARLOG, "track", str(centroids), "-o", str(tracks), "--centroids",
-                                     PIPELINE_METHOD, "--model", PIPELINE_MODEL, "--set", "sigma_floor=0.05",
-                                     *common], tracks),
-        (f"compensate {PIPELINE_RATE} Hz {PIPELINE_PROTOCOL}",
-         [*STARLOG, "compensate", str(tracks), "-o", str(compensated), "--track", TRACK_TOPIC, "--rate",
-          str(PIPELINE_RATE), "--protocol", PIPELINE_PROTOCOL, *common], compensated),
-        ("run (paper protocol)", [*STARLOG, "run", str(log), "-o", str(run_out), "--config", str(config), *common],
-         run_out),
+        centroid_command(log, folder, PIPELINE_METHOD, workers),
+        Command(TRACK_LABEL, [*STARLOG, "track", str(centroids), "-o", str(tracks), *track_arguments(PIPELINE_MODEL),
+                              *common], [tracks]),
+        Command(MOTION_LABEL, [*STARLOG, "motion", str(tracks), "-o", str(motion), "--track", TRACK_TOPIC, *common],
+                [motion]),
+        Command(COMPENSATE_LABEL, [*STARLOG, "compensate", str(tracks), "-o", str(compensated),
+                                   *compensate_arguments(), *common], [compensated]),
+        run_pipeline_command(log, sibling(folder, "run"), workers, flatten=False),
+        run_pipeline_command(log, sibling(folder, "flat"), workers, flatten=True),
     ]
 
 
@@ -336,7 +392,7 @@ class StageResult:
     """One timed stage across the log lengths, run as pairs (every length once per repeat, in a row).
 
     ``seconds``/``cpu_seconds``: the median per length; ``paired``/``paired_cpu``: per repeat, the
-    seconds of each length; peak: the largest.
+    seconds of each length; peak: the largest; ``output_bytes``: the size of what it wrote, per length.
     """
 
     label: str
@@ -375,32 +431,6 @@ class StageResult:
         return (self.output_bytes[-1] - self.output_bytes[0]) / (self.frames[-1] - self.frames[0])
 
 
-def disk_write_rate(folder: Path, mib: int, block_mib: int = 8) -> float:
-    """Bytes per second this folder's disk takes, ``mib`` MiB written and synced (``fdatasync``) as a
-    stage's output is. One block of random bytes written again and again: a compressing file system
-    does not flatter the rate (one that deduplicates would)."""
-    block = os.urandom(block_mib << 20)
-    path = folder / ".bench-disk-probe"
-    try:
-        start = time.perf_counter()
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        try:
-            for _ in range(max(1, mib // block_mib)):
-                os.write(fd, block)
-            getattr(os, "fdatasync", os.fsync)(fd)
-        finally:
-            os.close(fd)
-        seconds = time.perf_counter() - start
-    finally:
-        path.unlink(missing_ok=True)
-    return max(1, mib // block_mib) * len(block) / seconds
-
-
-def write_floor(bytes_per_frame: float, disk_rate: float) -> float:
-    """Seconds a frame spent writing ``bytes_per_frame`` at ``disk_rate`` bytes/s (NaN when unknown)."""
-    return bytes_per_frame / disk_rate if disk_rate > 0 and math.isfinite(bytes_per_frame) else math.nan
-
-
 def _seconds_per_frame(rate: float) -> float:
     """1 / rate; infinite for a rate that could not be measured (a line that did not rise: NaN or 0)."""
     return 1.0 / rate if rate > 0 else math.inf
@@ -411,10 +441,50 @@ def _median(values: list[float]) -> float:
     return float(np.median([v if not math.isnan(v) else 0.0 for v in values]))
 
 
-def timed(label: str, argv: list[str], out: Path) -> tuple[Timing, str]:
-    timing = run_command(argv)
+def outputs_digest(paths: Sequence[Path]) -> str:
+    """SHA-256 of one file; of several, the SHA-256 of their digests in order."""
+    digests = [sha256(p) for p in paths]
+    return digests[0] if len(digests) == 1 else hashlib.sha256(" ".join(digests).encode()).hexdigest()
+
+
+def timed(label: str, command: Command) -> tuple[Timing, str]:
+    timing = run_command(command.argv)
     print(f"  {label}: {timing.seconds:.1f} s", file=sys.stderr, flush=True)
-    return timing, sha256(out)
+    return timing, outputs_digest(command.outputs)
+
+
+def stage_plans(logs: dict[int, Path], root: Path, args: argparse.Namespace) -> dict[int, list[tuple[int, Command]]]:
+    """Per log length, the timed stages as (workers, command), in an order where a stage's input exists."""
+    plans = {}
+    for n, log in logs.items():
+        plan = [(1, centroid_command(log, root / f"{n}/workers1", m, 1)) for m in args.methods]
+        plans[n] = plan + [(args.workers_all, c) for c in pipeline_commands(log, root / f"{n}/all", args.workers_all)]
+    return plans
+
+
+def time_stages(size: int, plans: dict[int, list[tuple[int, Command]]], root: Path,
+                args: argparse.Namespace) -> tuple[list[StageResult], list[float]]:
+    """Every stage on every log length in a row, ``--repeat`` times; the tracker alone after each ``track``."""
+    lengths = sorted(plans)
+    results, tracker_times = [], []
+    centroids = pipeline_layers(root / f"{lengths[-1]}/all")[0]
+    for k, (workers, first) in enumerate(plans[lengths[0]]):
+        runs: list[list[Timing]] = []
+        digests: dict[int, list[str]] = {n: [] for n in lengths}
+        for _ in range(args.repeat):
+            runs.append([])
+            for n in lengths:
+                timing, digest = timed(f"{size} {n} {first.label} w{workers}", plans[n][k][1])
+                runs[-1].append(timing)
+                digests[n].append(digest)
+            if first.label == TRACK_LABEL:
+                tracker_times.append(tracker_alone(centroids))
+                print(f"  tracker alone: {1e3 * tracker_times[-1]:.3f} ms a frame", file=sys.stderr, flush=True)
+        result = StageResult(first.label, workers)
+        result.add_pairs(lengths, runs, digests)
+        result.output_bytes = [sum(p.stat().st_size for p in plans[n][k][1].outputs) for n in lengths]
+        results.append(result)
+    return results, tracker_times
 
 
 def bench_size(size: int, lengths: list[int], root: Path, args: argparse.Namespace) -> dict[str, Any]:
@@ -423,60 +493,27 @@ def bench_size(size: int, lengths: list[int], root: Path, args: argparse.Namespa
     Stage by stage, each repeat runs every log length in a row, so a drift of the machine's speed
     between repeats does not enter a marginal rate (the slope of one repeat's pair of lengths).
     """
-    n_all = args.workers_all
-    results: dict[tuple[str, int], StageResult] = {}
-    logs, plans = {}, {}
-    for n in lengths:
-        logs[n] = root / f"sim_{size}_{n}.mcap"
+    logs = {n: root / f"sim_{size}_{n}.mcap" for n in lengths}
+    for n, log in logs.items():
         print(f"# {size}x{size}, {n} frames: simulate", file=sys.stderr, flush=True)
-        simulate(size, n, logs[n], n_all)
-        plan = [(f"centroid {m}", 1, *centroid_command(logs[n], root / f"{n}/workers1", m, 1))
-                for m in args.methods]
-        plan += [(label, n_all, argv, out) for label, argv, out in chain_commands(logs[n], root / f"{n}/all", n_all)]
-        plans[n] = plan
+        simulate(size, n, log, args.workers_all)
+    plans = stage_plans(logs, root, args)
     warm_up(logs[lengths[0]], root, args.methods)  # args.methods holds the pipeline's method too
-    track_label = f"track {PIPELINE_MODEL}"
-    tracker_times: list[float] = []  # the tracker alone, once after each repeat of the track stage
-    disk_rates = [disk_write_rate(root, args.disk_probe_mib)]
-    print(f"  disk: {disk_rates[-1] / 1e6:.0f} MB/s written and synced", file=sys.stderr, flush=True)
-    for k, (label, workers, _, _) in enumerate(plans[lengths[0]]):  # stage order: a stage's input exists
-        runs: list[list[Timing]] = []
-        digests: dict[int, list[str]] = {n: [] for n in lengths}
-        for _ in range(args.repeat):
-            run = []
-            for n in lengths:
-                _, _, argv, out = plans[n][k]
-                timing, digest = timed(f"{size} {n} {label} w{workers}", argv, out)
-                run.append(timing)
-                digests[n].append(digest)
-            runs.append(run)
-            if label == track_label:
-                tracker_times.append(tracker_alone(root / f"{lengths[-1]}/all/centroid_{PIPELINE_METHOD}.mcap"))
-                print(f"  tracker alone: {1e3 * tracker_times[-1]:.3f} ms a frame", file=sys.stderr, flush=True)
-        results[(label, workers)] = StageResult(label, workers)
-        results[(label, workers)].add_pairs(lengths, runs, digests)
-        results[(label, workers)].output_bytes = [plans[n][k][3].stat().st_size for n in lengths]
-    disk_rates.append(disk_write_rate(root, args.disk_probe_mib))
-    print(f"  disk: {disk_rates[-1] / 1e6:.0f} MB/s written and synced", file=sys.stderr, flush=True)
-    track_runs = next(r for r in results.values() if r.label == track_label).paired
+    results, tracker_times = time_stages(size, plans, root, args)
+    track_runs = next(r for r in results if r.label == TRACK_LABEL).paired
     track_ratio = float(np.median([_seconds_per_frame(marginal_fit(lengths, run)[0]) / t
                                    for run, t in zip(track_runs, tracker_times, strict=True)]))
-    checks: list[tuple[str, bool]] = []
-    for n in lengths:
-        checks.append((f"{n} frames: centroid {PIPELINE_METHOD} --workers 1 == --workers {n_all}",
-                       _same(root / f"{n}/workers1/centroid_{PIPELINE_METHOD}.mcap",
-                             root / f"{n}/all/centroid_{PIPELINE_METHOD}.mcap")))
-        checks.append((f"{n} frames: run == centroid, track, compensate one by one",
-                       _same(root / f"{n}/all/run.mcap", root / f"{n}/all/compensate.mcap")))
+    chain, chain_check = chain_open_cost(logs[lengths[-1]], root / f"{lengths[-1]}/all", root / f"{lengths[-1]}/chain")
+    checks = [*pipeline_checks(lengths, root, args.workers_all), chain_check]
     checks += determinism_checks(logs[lengths[0]], lengths[0], root, results, args)
     sep = sep_reference(logs[lengths[0]], args.sep_frames)
     print(f"  SEP: {sep['fps']:.1f} frames/s", file=sys.stderr, flush=True)
     profiles = breakdowns(logs[lengths[0]], root / f"{lengths[0]}/profile", args)
     return {"size": size, "stars": stars_for(size), "lengths": lengths,
-            "stages": [{**asdict(r), **r.fit()} for r in results.values()],
+            "input_bytes": [logs[n].stat().st_size for n in lengths],
+            "stages": [{**asdict(r), **r.fit()} for r in results],
             "sep": sep, "breakdown": profiles, "frames_profiled": lengths[0],
-            "tracker_s_per_frame": float(np.median(tracker_times)), "track_ratio": track_ratio,
-            "disk_rates": disk_rates, "disk_rate": max(disk_rates),
+            "tracker_s_per_frame": float(np.median(tracker_times)), "track_ratio": track_ratio, "chain": chain,
             "checks": [{"check": text, "ok": ok} for text, ok in checks]}
 
 
@@ -503,26 +540,127 @@ def tracker_alone(centroids: Path, repeat: int = 2) -> float:
     return best / len(frames)
 
 
+# ---------------------------------------------------------------- opening a chain
+def five_layer_chain(stage_folder: Path, folder: Path) -> list[Path]:
+    """Five layers, each on the one before: the centroid, track and motion outputs of the stages in
+    ``stage_folder``, then, written in ``folder``, compensate on the motion layer and a track of another
+    model on the compensate layer."""
+    folder.mkdir(parents=True, exist_ok=True)
+    centroids, tracks, _ = pipeline_layers(stage_folder)
+    motion = stage_folder / "motion.mcap"
+    compensated, tracks_again = folder / "chain.4-compensate.mcap", folder / f"chain.5-track-{CHAIN_MODEL}.mcap"
+    run_command([*STARLOG, "compensate", str(motion), "-o", str(compensated), *compensate_arguments(), "-q",
+                 "--force"])
+    run_command([*STARLOG, "track", str(compensated), "-o", str(tracks_again), *track_arguments(CHAIN_MODEL), "-q",
+                 "--force"])
+    return [centroids, tracks, motion, compensated, tracks_again]
+
+
+def topics_per_file(layer: Path) -> list[list[str]]:
+    """The topics of each file of the chain ``layer`` ends, the base first."""
+    from starlog.io import LogReader
+
+    with LogReader(layer) as log:
+        return [file["topics"] for file in log.layers()]
+
+
+def repeated_topics(files: Sequence[Sequence[str]]) -> list[str]:
+    """Topics held by more than one file of a chain (none in a valid chain), sorted."""
+    seen: defaultdict[str, int] = defaultdict(int)
+    for topics in files:
+        for topic in set(topics):
+            seen[topic] += 1
+    return sorted(t for t, count in seen.items() if count > 1)
+
+
+def info_seconds(base: Path, layer: Path, pairs: int) -> list[tuple[float, float]]:
+    """``starlog info`` wall seconds of (base, layer), run alternately ``pairs`` times after one untimed pair."""
+    out = []
+    for k in range(pairs + 1):
+        pair = (run_command([*STARLOG, "info", str(base)]).seconds, run_command([*STARLOG, "info", str(layer)]).seconds)
+        if k:
+            out.append(pair)
+    return out
+
+
+def reader_open_seconds(base: Path, layer: Path, repeat: int) -> tuple[float, float]:
+    """Best ``LogReader`` open + close seconds of (base, layer) in this process, alternated ``repeat`` times."""
+    from starlog.io import LogReader
+
+    best = [math.inf, math.inf]
+    for _ in range(repeat):
+        for i, path in enumerate((base, layer)):
+            start = time.perf_counter()
+            LogReader(path).close()
+            best[i] = min(best[i], time.perf_counter() - start)
+    return best[0], best[1]
+
+
+def open_cost(base: Path, layer: Path) -> dict[str, Any]:
+    """Opening ``layer`` (and its chain) against opening ``base``: by the CLI and in this process."""
+    pairs = info_seconds(base, layer, INFO_PAIRS)
+    open_base, open_layer = reader_open_seconds(base, layer, OPEN_REPEAT)
+    return {"info_pairs": pairs, "info_base_s": float(np.median([a for a, _ in pairs])),
+            "info_layer_s": float(np.median([b for _, b in pairs])),
+            "info_extra_s": float(np.median([b - a for a, b in pairs])), "open_base_s": open_base,
+            "open_layer_s": open_layer}
+
+
+def chain_topics_check(layers: list[Path]) -> tuple[str, bool]:
+    """The last layer reads as one log of the base and every layer, no topic in two of its files."""
+    files = topics_per_file(layers[-1])
+    repeated = repeated_topics(files)
+    text = (f"chain of {len(layers)} layers ({len(files)} files read as one log): no topic in two files"
+            + (f" (repeated: {', '.join(repeated)})" if repeated else ""))
+    return text, len(files) == len(layers) + 1 and not repeated
+
+
+def chain_open_cost(log: Path, stage_folder: Path, folder: Path) -> tuple[dict[str, Any], tuple[str, bool]]:
+    """How much longer opening the fifth layer of a chain on ``log`` takes than opening ``log``; and the check
+    of the chain's topics."""
+    layers = five_layer_chain(stage_folder, folder)
+    check = chain_topics_check(layers)
+    figures = {"layers": [str(p) for p in layers], "files": len(layers) + 1, **open_cost(log, layers[-1])}
+    print(f"  chain of {len(layers)} layers: info +{1e3 * figures['info_extra_s']:.1f} ms, "
+          f"LogReader +{1e3 * (figures['open_layer_s'] - figures['open_base_s']):.1f} ms", file=sys.stderr, flush=True)
+    return figures, check
+
+
+# ---------------------------------------------------------------- checks
 def _same(a: Path, b: Path) -> bool:
     return sha256(a) == sha256(b)
 
 
-def determinism_checks(log: Path, n: int, root: Path, results: dict[tuple[str, int], StageResult],
+def pipeline_checks(lengths: list[int], root: Path, workers_all: int) -> list[tuple[str, bool]]:
+    """Per log length: the centroid stage on one core and on all; each of ``run``'s layers against the stage alone."""
+    checks = []
+    for n in lengths:
+        one, alone, run = (pipeline_layers(root / f"{n}/{f}") for f in ("workers1", "all", "all-run"))
+        checks.append((f"{n} frames: centroid {PIPELINE_METHOD} --workers 1 == --workers {workers_all}",
+                       _same(one[0], alone[0])))
+        for label, mine, theirs in zip(("centroid", "track", "compensate"), run, alone, strict=True):
+            checks.append((f"{n} frames: run's layer {mine.name} == {label} run alone (stages one by one)",
+                           _same(mine, theirs)))
+    return checks
+
+
+def determinism_checks(log: Path, n: int, root: Path, results: list[StageResult],
                        args: argparse.Namespace) -> list[tuple[str, bool]]:
     """On the shortest log: the other stages with ``--workers 1``, and a rerun of every stage on all cores."""
     checks = []
-    one = chain_commands(log, root / f"{n}/workers1", 1)
-    for label, argv, out in one[1:]:  # the centroid stage on one core is already timed
-        timed(f"{n} {label} w1 (check)", argv, out)
-    for label, argv, out in chain_commands(log, root / f"{n}/rerun", args.workers_all):
-        timed(f"{n} {label} (rerun)", argv, out)
-    for (label, _, out), (_, _, rerun) in zip(chain_commands(log, root / f"{n}/all", args.workers_all),
-                                              chain_commands(log, root / f"{n}/rerun", args.workers_all)):
-        checks.append((f"{n} frames: {label} rerun gives the same bytes", _same(out, rerun)))
-        if not label.startswith("centroid"):
-            checks.append((f"{n} frames: {label} --workers 1 == --workers {args.workers_all}",
-                           _same(root / f"{n}/workers1" / out.name, out)))
-    for result in results.values():
+    one = pipeline_commands(log, root / f"{n}/workers1", 1)
+    rerun = pipeline_commands(log, root / f"{n}/rerun", args.workers_all)
+    for command in one[1:]:  # the centroid stage on one core is already timed
+        timed(f"{n} {command.label} w1 (check)", command)
+    for command in rerun:
+        timed(f"{n} {command.label} (rerun)", command)
+    for first, again, single in zip(pipeline_commands(log, root / f"{n}/all", args.workers_all), rerun, one):
+        checks.append((f"{n} frames: {first.label} rerun gives the same bytes",
+                       all(map(_same, first.outputs, again.outputs))))
+        if not first.label.startswith("centroid"):
+            checks.append((f"{n} frames: {first.label} --workers 1 == --workers {args.workers_all}",
+                           all(map(_same, single.outputs, first.outputs))))
+    for result in results:
         for frames, digests in result.digests.items():
             if len(digests) > 1:
                 checks.append((f"{frames} frames: {result.label} w{result.workers} same bytes on all "
@@ -532,14 +670,13 @@ def determinism_checks(log: Path, n: int, root: Path, results: dict[tuple[str, i
 
 def breakdowns(log: Path, folder: Path, args: argparse.Namespace) -> dict[str, dict[str, float]]:
     """Each stage in-process on one core, under the stack sampler."""
-    folder.mkdir(parents=True, exist_ok=True)
-    plan = [(f"centroid {m}", centroid_command(log, folder, m, 1)[0]) for m in args.methods
-            if m != PIPELINE_METHOD]
-    plan += [(label, argv) for label, argv, _ in chain_commands(log, folder, 1)]
+    plan = [centroid_command(log, folder, m, 1) for m in args.methods if m != PIPELINE_METHOD]
+    plan += pipeline_commands(log, folder, 1)
     out = {}
-    for label, argv in plan:
-        out[label] = breakdown(argv[len(STARLOG):], folder / f"{label.split()[0]}_{len(out)}.json")
-        print(f"  profile {label}: {out[label]['total']:.1f} s", file=sys.stderr, flush=True)
+    for command in plan:
+        json_path = folder / f"{command.label.split()[0]}_{len(out)}.json"
+        out[command.label] = breakdown(command.argv[len(STARLOG):], json_path)
+        print(f"  profile {command.label}: {out[command.label]['total']:.1f} s", file=sys.stderr, flush=True)
     return out
 
 
@@ -573,20 +710,53 @@ def _x(ratio: float) -> str:
     return _f(ratio, 2) + ("x" if math.isfinite(ratio) else "")
 
 
+def output_share(s: dict[str, Any], stage: dict[str, Any]) -> float:
+    """The stage's output on the longest log as a share of the simulated input log of that length."""
+    return stage["output_bytes"][-1] / s["input_bytes"][-1]
+
+
 def throughput_table(sizes: list[dict[str, Any]]) -> str:
     lengths = sizes[0]["lengths"]
     headers = ["size", "stage", "workers", *(f"s @{n}" for n in lengths), "frames/s marginal", "x camera",
                "start-up s", "frames/s cpu", f"peak MiB @{lengths[0]}", f"@{lengths[-1]}", "growth",
-               "output KB/frame", "disk floor ms/frame"]
+               "output KB/frame", f"output MB @{lengths[-1]}", "output % of input"]
     rows = []
     for s in sizes:
         for r in s["stages"]:
-            floor = write_floor(r.get("bytes_per_frame", math.nan), s.get("disk_rate", math.nan))
             rows.append([f"{s['size']}², {s['stars']} stars", r["label"], r["workers"], *(_f(x, 2) for x in r["seconds"]),
                          _f(r["rate"]), _x(r["rate"] / CAMERA_HZ), _f(r["start_up"], 2),
                          _f(r["cpu_rate"]) if r["workers"] == 1 else "n/a", _f(r["peak_mib"][0]), _f(r["peak_mib"][-1]),
-                         _f(100 * r["peak_growth"]) + "%", _f(r.get("bytes_per_frame", math.nan) / 1e3),
-                         _f(1e3 * floor, 2)])
+                         _f(100 * r["peak_growth"]) + "%", _f(r["bytes_per_frame"] / 1e3),
+                         _f(r["output_bytes"][-1] / 1e6, 2), _f(100 * output_share(s, r), 2) + "%"])
+    return markdown_table(headers, rows)
+
+
+def flatten_cost(run: dict[str, Any], flat: dict[str, Any]) -> tuple[float, float]:
+    """Marginal seconds a frame ``run --flatten`` takes more than ``run``, and the ratio of their rates."""
+    extra = _seconds_per_frame(flat["rate"]) - _seconds_per_frame(run["rate"])
+    return extra, (flat["rate"] / run["rate"] if run["rate"] > 0 else math.nan)
+
+
+def flatten_lines(sizes: list[dict[str, Any]]) -> list[str]:
+    out = []
+    for s in sizes:
+        run, flat = _stage(s, RUN_LABEL), _stage(s, FLATTEN_LABEL)
+        extra, ratio = flatten_cost(run, flat)
+        out.append(f"{s['size']}²: the copy costs {_f(1e3 * extra, 3)} ms a frame (marginal ms a frame of `run --flatten` "
+                   f"{_f(1e3 * _seconds_per_frame(flat['rate']), 3)} minus `run` "
+                   f"{_f(1e3 * _seconds_per_frame(run['rate']), 3)}); frames/s of run --flatten / run = {_x(ratio)}")
+    return out
+
+
+def chain_table(sizes: list[dict[str, Any]]) -> str:
+    headers = ["size", "frames", "files", "`info` base ms", "`info` layer 5 ms", "median difference ms",
+               "LogReader base ms", "LogReader layer 5 ms", "difference ms"]
+    rows = []
+    for s in sizes:
+        c = s["chain"]
+        rows.append([f"{s['size']}²", s["lengths"][-1], c["files"], _f(1e3 * c["info_base_s"]),
+                     _f(1e3 * c["info_layer_s"]), _f(1e3 * c["info_extra_s"]), _f(1e3 * c["open_base_s"], 2),
+                     _f(1e3 * c["open_layer_s"], 2), _f(1e3 * (c["open_layer_s"] - c["open_base_s"]), 2)])
     return markdown_table(headers, rows)
 
 
@@ -627,69 +797,97 @@ def breakdown_table(sizes: list[dict[str, Any]]) -> str:
 
 
 def checks_table(sizes: list[dict[str, Any]]) -> str:
-    rows = [[f"{s['size']}²", c["check"], "same" if c["ok"] else "DIFFERENT"] for s in sizes for c in s["checks"]]
-    return markdown_table(["size", "output SHA-256", "result"], rows)
+    rows = [[f"{s['size']}²", c["check"], "ok" if c["ok"] else "FAILED"] for s in sizes for c in s["checks"]]
+    return markdown_table(["size", "check (SHA-256 of the outputs; topics of the chain)", "result"], rows)
 
 
 def targets(sizes: list[dict[str, Any]], workers_all: int) -> list[tuple[str, bool]]:
     """The stage-level targets, each judged on this run's figures (every size measured)."""
     out = []
     for s in sizes:
+        out += speed_targets(s, workers_all)
+        out += output_size_targets(s)
+        out.append(chain_open_target(s))
         tag = f"{s['size']}²"
-        run = _stage(s, "run (paper protocol)")
-        out.append((f"{tag}: run marginal {_f(run['rate'])} frames/s >= 300", run["rate"] >= 300))
-        sep_fps = s["sep"]["fps"]
-        for method, factor in (("MOMENT", 3.0), ("GAUSSFIT", 2.0)):
-            one = _stage(s, f"centroid {method}", 1)
-            if one:
-                out.append((f"{tag}: centroid {method} --workers 1 {_f(one['rate'])} frames/s >= {factor} x SEP "
-                            f"{_f(sep_fps)}", one["rate"] >= factor * sep_fps))
-        one, all_ = _stage(s, f"centroid {PIPELINE_METHOD}", 1), _stage(s, f"centroid {PIPELINE_METHOD}", workers_all)
-        out.append((f"{tag}: centroid {PIPELINE_METHOD} --workers {workers_all} / --workers 1 = "
-                    f"{_f(all_['rate'] / one['rate'], 2)} >= 1.8", all_["rate"] >= 1.8 * one["rate"]))
-        track = _stage(s, f"track {PIPELINE_MODEL}")
-        ratio = s["track_ratio"]
-        out.append((f"{tag}: track marginal time {_f(1e3 * _seconds_per_frame(track['rate']), 3)} ms / tracker's own time "
-                    f"{_f(1e3 * s['tracker_s_per_frame'], 3)} ms = {_f(ratio, 2)} <= 1.5 (median of the repeats' "
-                    "ratios)" + disk_note(s, track, 1.5 * s["tracker_s_per_frame"]), ratio <= 1.5))
-        comp = _stage(s, f"compensate {PIPELINE_RATE} Hz {PIPELINE_PROTOCOL}")
-        extra = 1200 * _seconds_per_frame(comp["rate"])
-        out.append((f"{tag}: compensate of 1200 frames = {_f(extra, 2)} s + start-up {_f(comp['start_up'], 2)} s; "
-                    "<= 1 s + start-up" + disk_note(s, comp, 1.0 / 1200), extra <= 1.0))
         for r in s["stages"]:
             out.append((f"{tag}: {r['label']} w{r['workers']} peak memory {_f(100 * r['peak_growth'])}% from "
                         f"{r['frames'][0]} to {r['frames'][-1]} frames, within 10 %", abs(r["peak_growth"]) <= 0.10))
-        for c in s["checks"]:
-            if "one by one" not in c["check"]:
-                out.append((f"{tag}: {c['check']}", c["ok"]))
+        out += [(f"{tag}: {c['check']}", c["ok"]) for c in s["checks"]]
     return out
 
 
-def disk_note(s: dict[str, Any], stage: dict[str, Any], allowed: float) -> str:
-    """What writing ``stage``'s output costs a frame on this disk (estimated from this run's probe), against the
-    ``allowed`` seconds a frame of its target; flagged when that alone exceeds the allowance."""
-    floor = write_floor(stage.get("bytes_per_frame", math.nan), s.get("disk_rate", math.nan))
-    if not math.isfinite(floor):
-        return ""
-    text = (f"; writing its output ({_f(stage['bytes_per_frame'] / 1e3)} KB a frame at "
-            f"{_f(s['disk_rate'] / 1e6, 0)} MB/s) takes {_f(1e3 * floor, 2)} ms a frame, {_f(1e3 * allowed, 2)} allowed")
-    return text + (" — BELOW THE DISK'S ESTIMATED FLOOR" if floor > allowed else "")
+def speed_targets(s: dict[str, Any], workers_all: int) -> list[tuple[str, bool]]:
+    tag = f"{s['size']}²"
+    run = _stage(s, RUN_LABEL)
+    out = [(f"{tag}: run marginal {_f(run['rate'])} frames/s >= 300", run["rate"] >= 300)]
+    sep_fps = s["sep"]["fps"]
+    for method, factor in (("MOMENT", 3.0), ("GAUSSFIT", 2.0)):
+        one = _stage(s, f"centroid {method}", 1)
+        if one:
+            out.append((f"{tag}: centroid {method} --workers 1 {_f(one['rate'])} frames/s >= {factor} x SEP "
+                        f"{_f(sep_fps)}", one["rate"] >= factor * sep_fps))
+    one, all_ = _stage(s, f"centroid {PIPELINE_METHOD}", 1), _stage(s, f"centroid {PIPELINE_METHOD}", workers_all)
+    out.append((f"{tag}: centroid {PIPELINE_METHOD} --workers {workers_all} / --workers 1 = "
+                f"{_f(all_['rate'] / one['rate'], 2)} >= 1.8", all_["rate"] >= 1.8 * one["rate"]))
+    track = _stage(s, TRACK_LABEL)
+    ratio = s["track_ratio"]
+    out.append((f"{tag}: track marginal time {_f(1e3 * _seconds_per_frame(track['rate']), 3)} ms / tracker's own time "
+                f"{_f(1e3 * s['tracker_s_per_frame'], 3)} ms = {_f(ratio, 2)} <= 1.5 (median of the repeats' "
+                "ratios)", ratio <= 1.5))
+    comp = _stage(s, COMPENSATE_LABEL)
+    extra = 1200 * _seconds_per_frame(comp["rate"])
+    out.append((f"{tag}: compensate of 1200 frames = {_f(extra, 2)} s + start-up {_f(comp['start_up'], 2)} s; "
+                "<= 1 s + start-up", extra <= 1.0))
+    return out
 
 
-def print_report(sizes: list[dict[str, Any]], args: argparse.Namespace) -> None:
+def share_limit(label: str) -> float | None:
+    """The largest output share of the input a stage may write (None: no target, e.g. ``run``)."""
+    return OUTPUT_SHARE_LIMITS.get(label.split()[0])
+
+
+def output_size_targets(s: dict[str, Any]) -> list[tuple[str, bool]]:
+    """Each stage's output (a layer) against its share of the input log, on the longest log."""
+    out = []
+    for r in s["stages"]:
+        limit = share_limit(r["label"])
+        if limit is not None:
+            share = output_share(s, r)
+            out.append((f"{s['size']}²: {r['label']} w{r['workers']} output {_f(r['output_bytes'][-1] / 1e6, 2)} MB = "
+                        f"{_f(100 * share, 2)}% of the input log ({_f(s['input_bytes'][-1] / 1e6, 1)} MB, "
+                        f"{s['lengths'][-1]} frames) <= {100 * limit:.0f} %", share <= limit))
+    return out
+
+
+def chain_open_target(s: dict[str, Any]) -> tuple[str, bool]:
+    c = s["chain"]
+    return (f"{s['size']}²: opening a chain of five layers costs {_f(1e3 * c['info_extra_s'])} ms more than its base "
+            f"(`starlog info`, median of {len(c['info_pairs'])} alternating pairs) <= {1e3 * CHAIN_OPEN_LIMIT_S:.0f} ms "
+            f"(LogReader open + close alone: {_f(1e3 * (c['open_layer_s'] - c['open_base_s']), 2)} ms more)",
+            c["info_extra_s"] <= CHAIN_OPEN_LIMIT_S)
+
+
+def print_report(sizes: list[dict[str, Any]], args: argparse.Namespace) -> list[tuple[str, bool]]:
+    """The tables and the targets (returned)."""
     load = ", ".join(f"{x:.1f}" for x in args.load_before + os.getloadavg())
     print(f"# starlog bench_pipeline (cores: {os.cpu_count()}, repeat: {args.repeat}, quick: {args.quick}; "
           f"load average 1/5/15 min before and after: {load})\n")
     print(f"Wall time of `python -m starlog <stage>` (median of {args.repeat}); frames/s marginal and start-up s: "
           "the median over the repeats of each repeat's line through (frames, seconds), the lengths run in a row; "
-          "frames/s cpu the same from user + sys seconds (one worker only); camera = 300 Hz.\n")
+          "frames/s cpu the same from user + sys seconds (one worker only); camera = 300 Hz. Output: the layer a "
+          "stage writes (run: its layers together; run --flatten: one self-contained file), against the simulated "
+          "input log on the longest log.\n")
     print("## Throughput per stage\n")
     print(throughput_table(sizes))
+    print("\n" + "\n".join(flatten_lines(sizes)))
     print("\n## Centroid stage against SEP (same frames, same run)\n")
     print(sep_table(sizes, args.workers_all))
     print(f"\n## Breakdown per stage (in-process, one core, {sizes[0]['frames_profiled']} frames; "
           "ms/frame and share of the sampled time)\n")
     print(breakdown_table(sizes))
+    print(f"\n## Opening a chain of five layers (`starlog info`: median of {INFO_PAIRS} alternating pairs; "
+          f"LogReader open + close in this process: best of {OPEN_REPEAT})\n")
+    print(chain_table(sizes))
     print("\n## Checks\n")
     print(checks_table(sizes))
     print("\n## Targets\n")
@@ -697,6 +895,13 @@ def print_report(sizes: list[dict[str, Any]], args: argparse.Namespace) -> None:
     for text, ok in results:
         print(f"{'PASS' if ok else 'FAIL'}  {text}")
     print(f"\n{sum(ok for _, ok in results)}/{len(results)} targets met")
+    return results
+
+
+def failed_summary(results: list[tuple[str, bool]]) -> str | None:
+    """One line naming the targets not met (None when all are)."""
+    failed = [text for text, ok in results if not ok]
+    return f"FAILED {len(failed)}/{len(results)} targets: " + " | ".join(failed) if failed else None
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -709,8 +914,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--json", metavar="FILE", help="also write every figure as JSON to FILE")
     ap.add_argument("--methods", default="MOMENT,GAUSSFIT", help="centroid methods timed on one core")
     ap.add_argument("--sep-frames", type=int, default=300, help="frames SEP is timed on")
-    ap.add_argument("--disk-probe-mib", type=int, default=1024,
-                    help="MiB written and synced to time the disk (the floor of a stage writing its output)")
     ap.add_argument("--profile-stage", metavar="JSON", help=argparse.SUPPRESS)
     ap.add_argument("command", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -737,11 +940,14 @@ def main(argv: list[str] | None = None) -> int:
         for size in args.sizes:
             (root / str(size)).mkdir(parents=True, exist_ok=True)
             sizes.append(bench_size(size, args.lengths, root / str(size), args))
-        print_report(sizes, args)
+        results = print_report(sizes, args)
         if args.json:
             Path(args.json).write_text(json.dumps({"cores": os.cpu_count(), "args": vars(args), "sizes": sizes},
                                                   indent=1, default=str))
-    return 0
+    summary = failed_summary(results)
+    if summary:
+        print(summary)
+    return 1 if summary else 0
 
 
 if __name__ == "__main__":
