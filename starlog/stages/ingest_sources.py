@@ -104,7 +104,7 @@ def read_image(path: Path) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
 
             image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if image is not None and image.ndim == 3:
-                image = image[..., ::-1]  # OpenCV gives BGR(A)
+                image = image[..., 2::-1]  # OpenCV gives BGR(A): RGB, without the alpha luma ignores
     except ImageFolderError:
         raise
     except Exception as err:  # decoders raise many unrelated types on damaged files
