@@ -130,7 +130,7 @@ class OutputExistsError(StarlogError, FileExistsError):
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        super().__init__(f"{self.path} exists already; pass --force (force=True) to overwrite it.")
+        super().__init__(f"{self.path} exists already; pass --force to overwrite it.")
 
 
 class ImageFolderError(StarlogError):
