@@ -40,3 +40,10 @@ def test_check_returns_whether_the_target_was_met(targets):
     run = targets()
     assert run.check("a", True) is True
     assert run.check("b", 0) is False
+
+
+def test_a_run_that_judges_nothing_says_so(targets, capsys):
+    run = targets()
+    run.check("verify 1.2 x <= 1.5", True, not_judged="--quick: too short")
+    assert run.report() == 0
+    assert "# no target judged, 0 failed, 0 informational missed, 1 not judged in this run" in capsys.readouterr().out

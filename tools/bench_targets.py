@@ -53,7 +53,8 @@ class Targets:
             print(f"# n/a: {reason}")
         for reason in dict.fromkeys(t.informational for t in self.items if t.informational and not t.not_judged):
             print(f"# informational (a miss does not fail the run): {reason}")
-        passed, failed = self.count("PASS"), self.count("FAIL")
-        print(f"# {passed}/{len(self.items) - self.count('n/a')} targets met, {failed} failed, "
-              f"{self.count('MISS')} informational missed, {self.count('n/a')} not judged in this run")
+        passed, failed, judged = self.count("PASS"), self.count("FAIL"), len(self.items) - self.count("n/a")
+        met = f"{passed}/{judged} targets met" if judged else "no target judged"
+        print(f"# {met}, {failed} failed, {self.count('MISS')} informational missed, "
+              f"{self.count('n/a')} not judged in this run")
         return 1 if failed else 0
