@@ -13,10 +13,11 @@ def bench():
         yield module
 
 
-def test_a_missed_target_fails_the_run(bench, capsys):
-    targets = [("accuracy", True, "acc"), ("masking cost", False, "cost")]
-    assert bench.report_targets(targets, quick=False) == 1
-    assert "FAIL  masking cost" in capsys.readouterr().out
+def test_a_missed_target_fails_the_run_and_a_missed_cost_is_informational(bench, capsys):
+    assert bench.report_targets([("accuracy", False, "acc")], quick=False) == 1
+    assert bench.report_targets([("accuracy", True, "acc"), ("masking cost", False, "cost")], quick=False) == 0
+    out = capsys.readouterr().out
+    assert "FAIL  accuracy" in out and "MISS  masking cost" in out
 
 
 def test_targets_set_for_the_full_run_are_not_judged_at_quick_size(bench, capsys):
@@ -30,7 +31,7 @@ def test_targets_set_for_the_full_run_are_not_judged_at_quick_size(bench, capsys
 
 
 def test_the_full_run_judges_every_target(bench, capsys):
-    targets = [(kind, False, kind) for kind in [*bench.NOT_AT_QUICK_SIZE, "acc", "compl", "art", "cost"]]
+    targets = [(kind, False, kind) for kind in [*bench.NOT_AT_QUICK_SIZE, "acc", "compl", "art"]]
     assert bench.report_targets(targets, quick=False) == 1
     assert capsys.readouterr().out.count("FAIL  ") == len(targets)
 
