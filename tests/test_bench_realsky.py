@@ -227,3 +227,13 @@ def test_phase_correction_replaces_starlog_columns_and_adds_corrected_sep_ones(b
         assert np.sqrt(np.mean((f.positions["SEP iso 1.5s"].x - tx) ** 2)) > 0.04
         for name in ("GAUSSFIT", "SEP iso 1.5s+pc"):
             assert np.sqrt(np.mean((f.positions[name].x - tx) ** 2)) < 0.01
+
+
+@pytest.mark.parametrize("make", ["nothing", "empty folder"])
+def test_missing_frames_end_in_one_line_naming_how_to_get_them(bench, tmp_path, capsys, make):
+    folder = tmp_path / "real-sky"
+    if make == "empty folder":
+        folder.mkdir()
+    assert bench.main(["--images", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "esa/tetra3" in err and "--images DIR" in err

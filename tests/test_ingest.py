@@ -86,6 +86,17 @@ def test_colour_image_is_converted_with_a_warning(tmp_path: Path) -> None:
     assert image[0, 0] == round(0.587 * 100)
 
 
+def test_rgba_png_is_converted_from_its_colours_not_its_alpha(tmp_path: Path) -> None:
+    bgra = np.zeros((4, 4, 4), np.uint8)
+    bgra[..., 2], bgra[..., 3] = 200, 255  # red, opaque
+    folder = _folder(tmp_path, {"c.png": bgra})
+    with pytest.warns(ColourImageWarning, match="converted to mono"):
+        ingest_folder(folder, tmp_path / "o.mcap", fps=10)
+    with LogReader(tmp_path / "o.mcap") as log:
+        (_, _, image), = log.frames()
+    assert (image == round(0.299 * 200)).all()
+
+
 def test_empty_folder(tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
     with pytest.raises(ImageFolderError, match="no image files"):

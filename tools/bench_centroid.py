@@ -26,23 +26,27 @@ sigma 1.2 px (starlog.sim.profiles) and compares to that PSF's own bound
 noise-free frame (the systematic, pixel-phase part a wrong PSF model leaves), px.
 
 
-Artefact run (200 hot pixels + 40 cosmic-ray tracks per frame, ``add_artifacts``): every
-realisation is exposed twice from one noise seed, clean and with artefacts, and every method
-runs with its robust windows (the default) and without (``robust=False``) on both: RMSE clean
-vs with artefacts, false detections per frame, RMSE against SEP on the same frames (and on the
-stars both matched), and the cost of the masking on the clean frames (median method time with
-and without, in the same run).
+Artefact run (200 hot pixels + 40 cosmic-ray tracks per 1024x1024 frame, as many per pixel in a
+smaller one; ``add_artifacts``): every realisation is exposed twice from one noise seed, clean and
+with artefacts, and every method runs with its robust windows (the default) and without
+(``robust=False``) on both: RMSE clean vs with artefacts, false detections per frame, RMSE against
+SEP on the same frames (and on the stars both matched), and the cost of the masking on the clean
+frames (CPU time with and without, the least of 20 calls each on every clean frame).
 
 Run: python tools/bench_centroid.py [--quick] [--reps N] [--no-photutils] [--artifacts-only] [--no-nongaussian]
 """
 
+
+
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
 import warnings
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -50,6 +54,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_targets import Targets  # noqa: E402
 from starlog.centroid import CentroidMethod, centroid_crb, estimate_psf_sigma, measure_centroids  # noqa: E402
 from starlog.centroid.crb import centroid_crb_psf  # noqa: E402
 from starlog.centroid.epsf import epsf_from_frames  # noqa: E402
@@ -60,10 +66,35 @@ from starlog.sim.profiles import AIRY_FWHM_PER_LAMBDA_D, AiryPSF, MoffatPSF, ren
 from starlog.sim.psf import render_stars  # noqa: E402
 
 SKY, RN, GAIN, BIAS = 20.0, 3.0, 1.0, 100.0
+HOT_PIXELS, CR_TRACKS = 200, 40  # per 1024x1024 frame; a smaller frame gets as many per pixel
 REGIMES = {"bright": (2e4, 1e5), "medium": (2e3, 8e3), "faint": (250.0, 800.0)}
 SIGMAS = (0.7, 1.2, 2.0)
 METHODS = [m for m in CentroidMethod]
 MATCH = 3.0
+QUICK_SIZE, FULL_SIZE = 512, 1024
+EPILOG = """\
+run time on a 2-core machine: --quick (512x512 frames, 50 stars, 4 realisations) about 25 s; the full
+run (1024x1024, 12 realisations) about 5 minutes.
+exit status: 1 when a target is missed, 0 when all are met. The masking-cost targets are informational
+(a miss prints as MISS and does not fail the run): other jobs on a shared machine move them by more than
+their margin. --quick judges the accuracy, completeness and artefact-vs-clean targets; the speed,
+false-detection and artefact-vs-SEP targets are set for the full run and print as n/a, with the reason
+on one line."""
+# Targets whose miss is printed but does not fail the run, and why.
+INFORMATIONAL = {
+    "cost": "masking cost: a CPU-time ratio of calls of 1-9 ms, which other jobs on a shared machine move by more "
+            "than its margin (MOMENT, faint s=2.0: 10 % idle, 22 % at load average 1.7)",
+}
+# Targets set for the full run that the quick run's 512x512 frames and 4 realisations cannot judge, and why.
+NOT_AT_QUICK_SIZE = {
+    "speed": "--quick: speed against SEP is set on 1024x1024 frames; on 512x512 SEP's per-pixel time is a "
+             "quarter, the methods' time per call (about 1.5 ms) is not",
+    "false": "--quick: at most 2 false detections per 1024x1024 frame; 4 frames of 512x512 are one such "
+             "frame's worth, too few detections to tell a rate of 1 from 3",
+    "art_sep": "--quick: RMSE with artefacts against SEP's; 4 realisations cannot order two RMSEs a few % apart "
+               "(faint s=2.0: 0.5 % apart in the full run)",
+}
+
 
 
 def star_field(rng: np.random.Generator, shape: tuple[int, int], n: int, margin: int = 20, sep: float = 30.0):
@@ -76,6 +107,12 @@ def star_field(rng: np.random.Generator, shape: tuple[int, int], n: int, margin:
             xs.append(x)
             ys.append(y)
     return np.array(xs), np.array(ys)
+
+
+def artifact_counts(size: int) -> tuple[int, int]:
+    """Hot pixels and cosmic-ray tracks in a ``size`` x ``size`` frame: the full run's density."""
+    area = (size / 1024) ** 2
+    return round(HOT_PIXELS * area), round(CR_TRACKS * area)
 
 
 def add_artifacts(expected: np.ndarray, rng: np.random.Generator, n_hot: int, n_cr: int) -> np.ndarray:
@@ -262,7 +299,7 @@ def _summary_row(k, acc, crb, n_true, reps, args):
 def run_regime(name, flux_range, psf, args, rng, artifacts=False, profile=None):
     tx, ty, expected, crb = _truth_and_bound(flux_range, psf, args, rng, profile)
     cam = CameraModel(read_noise=RN, gain=GAIN, bias=BIAS, adc_bits=16)
-    art = (lambda: add_artifacts(expected, rng, 200, 40)) if artifacts else (lambda: expected)
+    art = (lambda: add_artifacts(expected, rng, *artifact_counts(args.size))) if artifacts else (lambda: expected)
     reps = args.reps
     keys = [m.value for m in METHODS] + ["SEP winpos"] + (["photutils 2dg"] if args.photutils else [])
     acc = {
@@ -312,6 +349,22 @@ def _rmse(err: np.ndarray) -> float:
     return float(np.sqrt(np.nanmean(sq))) if np.isfinite(sq).any() else float("nan")
 
 
+COST_CALLS = 20  # calls timed per method, masked and plain, on each clean frame
+
+
+def masking_times(img, det, method, psf_est, *, first: bool) -> dict[bool, float]:
+    """Least CPU seconds of ``COST_CALLS`` calls of a method with masking (True) and without (False), the
+    two interleaved (``first``: the one that starts): CPU time, so that other jobs on the machine add
+    no waiting, and the least of several calls, so that what they do to the caches counts least."""
+    best = {True: math.inf, False: math.inf}
+    for call in range(COST_CALLS):
+        for robust in (first, not first) if call % 2 == 0 else (not first, first):
+            start = time.process_time()
+            measure_centroids(img, det, method=method, gain=GAIN, psf_sigma=psf_est, robust=robust)
+            best[robust] = min(best[robust], time.process_time() - start)
+    return best
+
+
 def run_artifact_regime(flux_range, psf, args, rng):
     """Paired frames of one field: each realisation exposed clean and with artefacts from the same noise
     seed. Every method with and without masking on both, SEP on both; method times on the clean frames."""
@@ -325,19 +378,20 @@ def run_artifact_regime(flux_range, psf, args, rng):
     for r in range(reps):
         seed = int(rng.integers(2**63))
         frames = {"clean": cam.expose(expected, np.random.default_rng(seed)),
-                  "art": cam.expose(add_artifacts(expected, rng, 200, 40), np.random.default_rng(seed))}
+                  "art": cam.expose(add_artifacts(expected, rng, *artifact_counts(args.size)),
+                                    np.random.default_rng(seed))}
         for kind, img in frames.items():
             det = detect_stars(img)
             psf_est = estimate_psf_sigma(img, det, gain=GAIN) if det.size else psf
             idx = match(det["x"], det["y"], tx, ty)
             false[kind, "starlog"][r] = det.size - (idx >= 0).sum()
             for m in METHODS:
-                for robust in (True, False) if r % 2 else (False, True):  # alternate which runs first
-                    t0 = time.perf_counter()
+                for robust in (True, False):
                     c = measure_centroids(img, det, method=m, gain=GAIN, psf_sigma=psf_est, robust=robust)
-                    if kind == "clean":
-                        times[m.value, robust].append(time.perf_counter() - t0)
                     _record(err, r, (kind, (m.value, robust)), idx, c["x"], c["y"], tx, ty)
+                if kind == "clean":
+                    for robust, seconds in masking_times(img, det, m, psf_est, first=bool(r % 2)).items():
+                        times[m.value, robust].append(seconds)
             sx, sy = sep_extract(img)
             sidx = match(sx, sy, tx, ty)
             false[kind, "SEP"][r] = sx.size - (sidx >= 0).sum()
@@ -356,9 +410,11 @@ def run_artifact_regime(flux_range, psf, args, rng):
 
 def artifact_section(args, rng):
     """The artefact run: RMSE clean vs with artefacts, false detections, the cost of masking on clean frames."""
-    print("\n# with 200 hot pixels (300-5000 e-) and 40 cosmic-ray tracks (0-10 px, 500-5000 e-/px) per frame;")
+    hot, tracks = artifact_counts(args.size)
+    print(f"\n# with {hot} hot pixels (300-5000 e-) and {tracks} cosmic-ray tracks (0-10 px, 500-5000 e-/px) per frame;")
     print("# each realisation exposed twice from one noise seed (clean / with artefacts). masked: robust windows")
-    print("# (default); plain: robust=False. ms: median method time per clean frame (measure_centroids, PSF known).")
+    print(f"# (default); plain: robust=False. ms: CPU time per clean frame (measure_centroids, PSF known; the least of "
+          f"{COST_CALLS} calls, median over realisations).")
     print("# common / SEP common: RMSE with artefacts on the stars both starlog and SEP matched (SEP drops faint ones).")
     print(f"{'regime':<14}{'method':<16}{'clean rmse':>11}{'art rmse':>10}{'art/clean':>10}{'plain art':>10}"
           f"{'common':>8}{'SEP com':>8}{'false/fr':>9}{'ms masked':>10}{'ms plain':>9}{'cost':>7}")
@@ -379,19 +435,22 @@ def artifact_section(args, rng):
             targets.append((f"artifacts {tag}: {m.value} rmse {art:.4f} <= 1.15 x clean {clean:.4f}",
                             bool(art <= 1.15 * clean), "art"))
             targets.append((f"artifacts {tag}: {m.value} rmse {art:.4f} <= SEP {sep_art:.4f} "
-                            f"(common stars: {common:.4f} vs SEP {sep_common:.4f})", bool(art <= sep_art), "art"))
+                            f"(common stars: {common:.4f} vs SEP {sep_common:.4f})", bool(art <= sep_art), "art_sep"))
             targets.append((f"{tag}: {m.value} masking cost on clean frames {100 * cost:.0f}% <= 15%",
                             bool(cost <= 0.15), "cost"))
         fal = rows[METHODS[0].value, True][3]
-        targets.append((f"artifacts {tag}: false detections/frame {fal:.2f} <= 2 (SEP {sep_false:.2f})",
-                        bool(fal <= 2.0), "false"))
+        per_full_frame = fal / (args.size / 1024) ** 2
+        targets.append((f"artifacts {tag}: false detections per 1024x1024 frame {per_full_frame:.2f} <= 2 "
+                        f"({fal:.2f} per {args.size}x{args.size} frame; SEP {sep_false:.2f})",
+                        bool(per_full_frame <= 2.0), "false"))
         sys.stdout.flush()
     return targets
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="small frames, few repeats (seconds)")
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=EPILOG,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="512x512 frames, 4 realisations (about 25 s)")
     ap.add_argument("--reps", type=int, default=None, help="noise realisations per regime")
     ap.add_argument("--no-photutils", dest="photutils", action="store_false")
     ap.add_argument("--seed", type=int, default=12345)
@@ -404,8 +463,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--artifacts-only", action="store_true", help="only the artefact run (and masking cost)")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
-    args.size = 512 if args.quick else 1024
-    args.nstars = 20 if args.quick else 50
+    args.size = QUICK_SIZE if args.quick else FULL_SIZE
+    args.nstars = 50  # the ePSF learns the PSF from this many pixel phases: fewer leave PSFFIT a systematic error
     args.reps = args.reps or (4 if args.quick else 12)
     args.epsf_frames = args.epsf_frames or (8 if args.quick else 12)
     args.photutils_reps = 2 if args.quick else 3
@@ -442,12 +501,16 @@ def main(argv: list[str] | None = None) -> int:
         targets += artifact_section(args, rng)
     if args.nongaussian:
         _nongaussian_section(args, rng, targets)
-    print("\n# targets")
-    for text, ok, _ in targets:
-        print(f"{'PASS' if ok else 'FAIL'}  {text}")
-    npass = sum(ok for _, ok, _ in targets)
-    print(f"# {npass}/{len(targets)} targets met")
-    return 0
+    return report_targets(targets, quick=args.quick)
+
+
+def report_targets(targets: list[tuple[str, bool, str]], *, quick: bool) -> int:
+    """Print each target's verdict (at --quick, n/a for the kinds it cannot judge); 1 if a target failed."""
+    judged = Targets()
+    for text, ok, kind in targets:
+        judged.check(text, ok, not_judged=NOT_AT_QUICK_SIZE.get(kind, "") if quick else "",
+                     informational=INFORMATIONAL.get(kind, ""))
+    return judged.report()
 
 
 if __name__ == "__main__":

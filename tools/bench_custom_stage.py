@@ -11,6 +11,10 @@ Usage::
 
     python tools/bench_custom_stage.py            # 300 / 3000 frames
     python tools/bench_custom_stage.py --quick    # 100 / 1000 frames
+
+Run time of --quick on a 2-core machine: about 40 s. Exit status 1 when
+a target is missed (peak memory flat within 10 %; the outputs of 1 and 2 workers identical), 0 when
+both are met; the seconds of 1 and 2 workers and of ``--help`` are figures, not targets.
 """
 
 from __future__ import annotations
@@ -24,8 +28,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from starlog.sim import Jitter, SimulationConfig
-from starlog.stages import simulate_log
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_targets import Targets  # noqa: E402
+from starlog.sim import Jitter, SimulationConfig  # noqa: E402
+from starlog.stages import simulate_log  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 STARLOG = str(Path(sys.executable).with_name("starlog"))
@@ -65,12 +71,13 @@ def _log(path: Path, frames: int) -> None:
                                   jitter=(Jitter(frequency_hz=25.0, amplitude_px=0.05),)), path, workers=2)
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--quick", action="store_true", help="100 / 1000 frames (about 40 s)")
     args = parser.parse_args()
     frames = 100 if args.quick else 300
     print(f"# starlog bench_custom_stage (cores: {os.cpu_count()}, load: {os.getloadavg()[0]:.2f})")
+    targets = Targets()
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as d:
         tmp = Path(d)
         config = _example(tmp)
@@ -80,8 +87,10 @@ def main() -> None:
             _, peaks[scale] = _timed([STARLOG, "run", str(tmp / f"sim{scale}.mcap"), "-o", str(tmp / f"out{scale}.mcap"),
                                       "--config", str(config), "--workers", "1", "-q"])
         print(f"\n## peak memory, {frames} vs {10 * frames} frames (256x256, 12 stars)\n")
-        print(f"peak MiB 1x {peaks[1]:.1f}, 10x {peaks[10]:.1f}, growth {100 * (peaks[10] / peaks[1] - 1):+.1f} %"
+        growth = peaks[10] / peaks[1] - 1
+        print(f"peak MiB 1x {peaks[1]:.1f}, 10x {peaks[10]:.1f}, growth {100 * growth:+.1f} %"
               "  (target: flat within 10 %)")
+        targets.check(f"peak memory, {frames} -> {10 * frames} frames: {100 * growth:+.1f} % <= 10 %", growth <= 0.10)
         log = tmp / "sim10.mcap"
         for workers in (1, 2):
             seconds[workers], _ = _timed([STARLOG, "run", str(log), "-o", str(tmp / f"w{workers}.mcap"), "--config",
@@ -92,11 +101,13 @@ def main() -> None:
         for workers, s in seconds.items():
             print(f"{workers:>8} {s:>9.2f} {10 * frames / s:>9.1f}")
         print(f"speed-up {seconds[1] / seconds[2]:.2f}x; outputs identical: {same}")
+        targets.check(f"outputs of --workers 1 and 2 identical ({same})", same)
         print("\n## starlog --help (best of 5)\n")
         for label, env in (("no installed stage", None), ("one installed stage", {**os.environ, "PYTHONPATH": d})):
             best = min(_timed([STARLOG, "--help"], env=env)[0] for _ in range(5))
             print(f"{label:<22} {best:.3f} s")
+    return targets.report()
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -23,7 +23,12 @@ seconds) and the start-up (the intercept) are separate.
 Usage::
 
     python tools/bench_filter.py            # ~300 MB log
-    python tools/bench_filter.py --quick
+    python tools/bench_filter.py --quick    # ~16 MB log
+
+Run time of --quick on a 2-core machine: about 10 s. The targets are
+informational (a miss does not fail the run; exit status 0): ``filter`` hashes its input on a
+thread while it copies, so it needs a free core, which other jobs on a shared machine decide.
+--quick does not judge them: its copies take hundredths of a second, mostly fixed costs.
 """
 
 from __future__ import annotations
@@ -38,11 +43,17 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from starlog.io import LogReader, file_digest
-from starlog.io.slicing import TopicSelection, slice_log
-from starlog.sim import SimulationConfig
-from starlog.stages import simulate_log
-from starlog.stages.filter import filter_log
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_targets import Targets  # noqa: E402
+from starlog.io import LogReader, file_digest  # noqa: E402
+from starlog.io.slicing import TopicSelection, slice_log  # noqa: E402
+from starlog.sim import SimulationConfig  # noqa: E402
+from starlog.stages import simulate_log  # noqa: E402
+from starlog.stages.filter import filter_log  # noqa: E402
+
+FREE_CORE = ("filter hashes its input on a thread while it copies: it needs a free core, which other jobs on a "
+             "shared 2-core machine decide")
+QUICK_SMALL = "--quick: a 16 MB log is copied in hundredths of a second, mostly fixed costs; judged in the full run"
 
 
 def _best(action: Callable[[], Path], repeat: int) -> tuple[float, int]:
@@ -112,9 +123,9 @@ def _ranges(log: Path) -> tuple[tuple[int, int], tuple[int, int]]:
     return (starts[1], starts[-1]), (starts[1] + step, starts[-1] - step)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="512x512 frames, a ~40 MB log")
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__.split("\n\n")[-1])
+    parser.add_argument("--quick", action="store_true", help="512x512 frames, a ~16 MB log (about 10 s)")
     parser.add_argument("--repeat", type=int, default=3, help="runs per row (the best is kept)")
     parser.add_argument("--dir", type=Path, help="folder for the logs [default: a temporary folder]")
     args = parser.parse_args()
@@ -141,11 +152,15 @@ def main() -> None:
         simulate_log(SimulationConfig(width=size, height=size, n_stars=50, n_frames=2 * frames, seed=1), long_log,
                      workers=os.cpu_count() or 1)
         long_log.read_bytes()
-        report_in_process(results, frames, size, args.repeat)
-        cli_table(log, long_log, out, args.repeat)
+        targets = Targets()
+        not_judged = QUICK_SMALL if args.quick else ""
+        report_in_process(results, frames, size, args.repeat, targets, not_judged)
+        cli_table(log, long_log, out, args.repeat, targets, not_judged)
+    return targets.report()
 
 
-def report_in_process(results: list[tuple[str, float, int]], frames: int, size: int, repeat: int) -> None:
+def report_in_process(results: list[tuple[str, float, int]], frames: int, size: int, repeat: int,
+                      targets: Targets, not_judged: str) -> None:
     """The in-process table: each operation's MB/s against copyfile and copyfile + fsync."""
     copy_speed = results[0][2] / results[0][1]
     synced_speed = results[1][2] / results[1][1]
@@ -159,6 +174,9 @@ def report_in_process(results: list[tuple[str, float, int]], frames: int, size: 
         speed = written / seconds
         print(f"| {name:<46} | {written / 1e6:>10.1f} | {seconds:>6.3f} | {speed / 1e6:>7.0f} | "
               f"{100 * speed / copy_speed:>10.0f}% | {100 * speed / synced_speed:>12.0f}% |")
+        if name.startswith("filter"):
+            targets.check(f"{name}: {100 * speed / synced_speed:.0f} % of copyfile + fsync's speed >= 50 %",
+                          speed >= 0.5 * synced_speed, not_judged=not_judged, informational=FREE_CORE)
 
 
 def _cli_filter(src: Path, dst: Path) -> Callable[[], Path]:
@@ -179,7 +197,7 @@ def _cli_copy(src: Path, dst: Path) -> Callable[[], Path]:
     return run
 
 
-def cli_table(short: Path, long: Path, out: Path, repeat: int) -> None:
+def cli_table(short: Path, long: Path, out: Path, repeat: int, targets: Targets, not_judged: str) -> None:
     """CLI filter against cp + sync on two log lengths: marginal MB/s and start-up."""
     rows = {}
     for name, make in (("starlog filter (CLI)", _cli_filter), ("cp + sync", _cli_copy)):
@@ -193,6 +211,9 @@ def cli_table(short: Path, long: Path, out: Path, repeat: int) -> None:
     for name, (t1, t2, b1, b2, marginal, startup) in rows.items():
         print(f"| {name:<22} | {t1:>7.3f} | {t2:>7.3f} | {b1 / 1e6:>8.1f} | {b2 / 1e6:>8.1f} | {marginal / 1e6:>13.0f} | "
               f"{startup:>10.2f} | {100 * marginal / base[4]:>18.0f}% | {100 * base[1] / t2:>21.0f}% |")
+    marginal, base_marginal = rows["starlog filter (CLI)"][4], base[4]
+    targets.check(f"starlog filter (CLI): marginal speed {100 * marginal / base_marginal:.0f} % of cp + sync's >= 50 %",
+                  marginal >= 0.5 * base_marginal, not_judged=not_judged, informational=FREE_CORE)
 
 
 def log_size(results: list[tuple[str, float, int]]) -> float:
@@ -200,4 +221,4 @@ def log_size(results: list[tuple[str, float, int]]) -> float:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -18,13 +18,18 @@ Three measurements, each printed as a table with PASS/FAIL against its target:
 
 Usage::
 
-    python tools/bench_motion.py                 # about 3 minutes on a slow core
+    python tools/bench_motion.py                 # the full run
+    python tools/bench_motion.py --quick         # 300-frame accuracy log, 600-frame demo log, 50 Hz only
     python tools/bench_motion.py --workdir /tmp/m   # keep (and reuse) the logs
+
+Run times on a 2-core machine: the full run about 30 s, --quick about 15 s. Exit status 1
+when a target is missed, 0 when all are met; --quick judges the same targets on its shorter logs.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,16 +37,20 @@ from typing import Any
 
 import numpy as np
 
-from starlog.io.reader import LogReader
-from starlog.motion import PlatformModel
-from starlog.sim import Jitter, SimulationConfig, Simulator
-from starlog.stages import simulate_log
-from starlog.stages.centroid import centroid_log
-from starlog.stages.compensate import compensate_log
-from starlog.stages.motion import estimate_track_motion, motion_log
-from starlog.stages.track import track_log
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_targets import Targets  # noqa: E402
+from starlog.io.reader import LogReader  # noqa: E402
+from starlog.motion import PlatformModel  # noqa: E402
+from starlog.sim import Jitter, SimulationConfig, Simulator  # noqa: E402
+from starlog.stages import simulate_log  # noqa: E402
+from starlog.stages.centroid import centroid_log  # noqa: E402
+from starlog.stages.compensate import compensate_log  # noqa: E402
+from starlog.stages.motion import estimate_track_motion, motion_log  # noqa: E402
+from starlog.stages.track import track_log  # noqa: E402
 
 FOLLOWING = ("RANDOM_WALK", "BROWNIAN_MOTION", "POLYNOMIAL_TREND", "CONSTANT_VELOCITY")
+FULL = {"accuracy_frames": 600, "demo_frames": 1200, "rates": [10.0, 50.0]}
+QUICK = {"accuracy_frames": 300, "demo_frames": 600, "rates": [50.0]}  # 10 Hz needs >= 4 s of frames
 
 
 def _separated_seed(n_stars: int, min_px: float = 12.0, **config: Any) -> int:
@@ -63,13 +72,13 @@ def _pipeline(work: Path, name: str, config: SimulationConfig, models: str) -> P
     return trk
 
 
-def accuracy(work: Path, n_stars: int) -> list[dict[str, Any]]:
+def accuracy(work: Path, n_stars: int, frames: int) -> list[dict[str, Any]]:
     """Fitted platform motion against the simulator's, and against the weighted-mean bound."""
     base = {"width": 256, "height": 256, "fps": 100.0, "margin": 12.0}
-    config = SimulationConfig(n_stars=n_stars, n_frames=600, seed=_separated_seed(n_stars, **base),
+    config = SimulationConfig(n_stars=n_stars, n_frames=frames, seed=_separated_seed(n_stars, **base),
                               jitter=(Jitter(7.0, 0.08), Jitter(23.0, 0.03)), roll_amplitude_rad=1e-3,
                               roll_frequency_hz=2.0, **base)
-    trk = _pipeline(work, f"acc{n_stars}", config, "RANDOM_WALK")
+    trk = _pipeline(work, f"acc{n_stars}-{frames}", config, "RANDOM_WALK")
     with LogReader(trk) as log:
         data, est = estimate_track_motion(log, "/track/GAUSSFIT/RANDOM_WALK", model=PlatformModel.RIGID)
         truth = [m.payload for m in log.messages("/sim/truth")]
@@ -102,11 +111,11 @@ def accuracy(work: Path, n_stars: int) -> list[dict[str, Any]]:
     return rows
 
 
-def gains(work: Path) -> list[dict[str, Any]]:
-    """keep vs separate on the README demo's log, every UKF model, 10 and 50 Hz."""
-    config = SimulationConfig(n_frames=1200, jitter=(Jitter(25.0, 0.05),))
-    trk = _pipeline(work, "demo", config, "all")
-    summary = compensate_log(trk, work / "demo-cmp.mcap", rates=[10.0, 50.0], track="all",
+def gains(work: Path, frames: int, rates: list[float]) -> list[dict[str, Any]]:
+    """keep vs separate on the README demo's log (or a shorter one), every UKF model, at ``rates``."""
+    config = SimulationConfig(n_frames=frames, jitter=(Jitter(25.0, 0.05),))
+    trk = _pipeline(work, f"demo{frames}", config, "all")
+    summary = compensate_log(trk, work / f"demo{frames}-cmp.mcap", rates=rates, track="all",
                              protocols="truth,relative", motion="keep,separate", force=True)
     out: dict[tuple[str, float, str], dict[str, float]] = {}
     for r in summary.records:
@@ -124,18 +133,17 @@ def gains(work: Path) -> list[dict[str, Any]]:
     return rows
 
 
-def timing(work: Path) -> dict[str, float]:
+def timing(work: Path, frames: int) -> dict[str, float]:
     """Process time of track (all models) and motion (one channel, and every channel) on the demo log."""
-    cen = work / "demo-cen.mcap"
+    cen, trk = work / f"demo{frames}-cen.mcap", work / f"demo{frames}-trk2.mcap"
     t0 = time.process_time()
-    track_log(cen, work / "demo-trk2.mcap", method="GAUSSFIT", models="all", tracker={"sigma_floor": 0.05},
-              force=True)
+    track_log(cen, trk, method="GAUSSFIT", models="all", tracker={"sigma_floor": 0.05}, force=True)
     t_track = time.process_time() - t0
     t0 = time.process_time()
-    motion_log(work / "demo-trk2.mcap", work / "demo-mot.mcap", track="GAUSSFIT/STATIC", force=True)
+    motion_log(trk, work / "demo-mot.mcap", track="GAUSSFIT/STATIC", force=True)
     t_one = time.process_time() - t0
     t0 = time.process_time()
-    motion_log(work / "demo-trk2.mcap", work / "demo-mot5.mcap", track="all", force=True)
+    motion_log(trk, work / "demo-mot5.mcap", track="all", force=True)
     t_all = time.process_time() - t0
     return {"track_s": t_track, "motion_one_s": t_one, "motion_all_s": t_all}
 
@@ -144,47 +152,67 @@ def _verdict(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__.split("\n\n")[-1])
+    parser.add_argument("--quick", action="store_true", help="shorter logs, 50 Hz only (about 15 s)")
     parser.add_argument("--workdir", type=Path, help="Folder for the logs (kept; reused when present).")
     parser.add_argument("--stars", type=int, default=16, help="Stars of the accuracy log (>= 12).")
     args = parser.parse_args()
+    size = QUICK if args.quick else FULL
+    targets = Targets()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.workdir or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        print(f"1. platform accuracy, rigid fit, {args.stars} stars, 600 frames at 100 Hz, jitter 7 Hz:0.08 px + "
-              "23 Hz:0.03 px, roll 2 Hz:1 mrad")
-        print(f"   {'quantity':<8} {'stars':>5} {'RMSE':>11} {'bound':>11} {'ratio':>6}  (target <= 1.3)")
-        for r in accuracy(work, args.stars):
-            unit = "rad" if r["quantity"] == "roll" else "px"
-            print(f"   {r['quantity']:<8} {r['stars']:>5} {r['rmse']:>8.3g} {unit:<3}{r['bound']:>8.3g} {unit:<3}"
-                  f"{r['ratio']:>6.2f}  {_verdict(r['ratio'] <= 1.3)}")
-        print("\n2. compensation gain on the README demo log (GAUSSFIT, 12 stars, jitter 25 Hz:0.05 px), "
-              "relative figure vs truth_series (after)")
-        print(f"   {'model':<18} {'Hz':>3} {'motion':<8} {'truth_series':>12} {'truth_fixed':>11} {'relative':>9}"
-              f" {'rel/ts after':>12}  verdict")
-        rows = gains(work)
-        keep = {(r["model"], r["rate_hz"]): r for r in rows if r["motion"] == "keep"}
-        for r in rows:
-            verdict = ""
-            if r["motion"] == "separate":
-                need = 0.5 if r["model"] in FOLLOWING else 0.0
-                verdict = _verdict(r["truth_series"] > need) + f" (truth_series gain > {need:.0%})"
-            ratio = r["relative_after"] / r["truth_series_after"]
-            print(f"   {r['model']:<18} {r['rate_hz']:>3g} {r['motion']:<8} {r['truth_series']:>11.1%} "
-                  f"{r['truth_fixed']:>11.1%} {r['relative']:>9.1%} {ratio:>12.2f}  {verdict}")
-        worse = [(m, rate) for (m, rate), k in keep.items()
-                 if next(r for r in rows if r["model"] == m and r["rate_hz"] == rate and r["motion"] == "separate")
-                 ["truth_fixed"] < k["truth_fixed"] - 0.10]
-        print(f"   separate worse than keep by > 10 points under truth_fixed in {len(worse)}/{len(keep)} cells "
-              "(it keeps the real jitter, which truth_fixed counts as error)")
-        print("\n3. time on the demo log (process time)")
-        t = timing(work)
-        share = t["motion_one_s"] / t["track_s"]
-        print(f"   track, 5 models: {t['track_s']:.2f} s; motion, one channel: {t['motion_one_s']:.2f} s "
-              f"({share:.1%} of track) {_verdict(share < 0.10)} (target < 10 %); motion, all 5 channels: "
-              f"{t['motion_all_s']:.2f} s ({t['motion_all_s'] / t['track_s']:.1%})")
+        report_accuracy(work, args.stars, size["accuracy_frames"], targets)
+        report_gains(work, size["demo_frames"], size["rates"], targets)
+        report_timing(work, size["demo_frames"], targets)
+    return targets.report()
+
+
+def report_accuracy(work: Path, stars: int, frames: int, targets: Targets) -> None:
+    print(f"1. platform accuracy, rigid fit, {stars} stars, {frames} frames at 100 Hz, jitter 7 Hz:0.08 px + "
+          "23 Hz:0.03 px, roll 2 Hz:1 mrad")
+    print(f"   {'quantity':<8} {'stars':>5} {'RMSE':>11} {'bound':>11} {'ratio':>6}  (target <= 1.3)")
+    for r in accuracy(work, stars, frames):
+        unit = "rad" if r["quantity"] == "roll" else "px"
+        ok = targets.check(f"platform {r['quantity']}: RMSE / bound {r['ratio']:.2f} <= 1.3", r["ratio"] <= 1.3)
+        print(f"   {r['quantity']:<8} {r['stars']:>5} {r['rmse']:>8.3g} {unit:<3}{r['bound']:>8.3g} {unit:<3}"
+              f"{r['ratio']:>6.2f}  {_verdict(ok)}")
+
+
+def report_gains(work: Path, frames: int, rates: list[float], targets: Targets) -> None:
+    print(f"\n2. compensation gain on the README demo log ({frames} frames; GAUSSFIT, 12 stars, jitter 25 Hz:0.05 px), "
+          "relative figure vs truth_series (after)")
+    print(f"   {'model':<18} {'Hz':>3} {'motion':<8} {'truth_series':>12} {'truth_fixed':>11} {'relative':>9}"
+          f" {'rel/ts after':>12}  verdict")
+    rows = gains(work, frames, rates)
+    keep = {(r["model"], r["rate_hz"]): r for r in rows if r["motion"] == "keep"}
+    for r in rows:
+        verdict = ""
+        if r["motion"] == "separate":
+            need = 0.5 if r["model"] in FOLLOWING else 0.0
+            ok = targets.check(f"{r['model']} {r['rate_hz']:g} Hz: separate gain against truth_series "
+                               f"{r['truth_series']:.1%} > {need:.0%}", r["truth_series"] > need)
+            verdict = _verdict(ok) + f" (truth_series gain > {need:.0%})"
+        ratio = r["relative_after"] / r["truth_series_after"]
+        print(f"   {r['model']:<18} {r['rate_hz']:>3g} {r['motion']:<8} {r['truth_series']:>11.1%} "
+              f"{r['truth_fixed']:>11.1%} {r['relative']:>9.1%} {ratio:>12.2f}  {verdict}")
+    worse = [(m, rate) for (m, rate), k in keep.items()
+             if next(r for r in rows if r["model"] == m and r["rate_hz"] == rate and r["motion"] == "separate")
+             ["truth_fixed"] < k["truth_fixed"] - 0.10]
+    print(f"   separate worse than keep by > 10 points under truth_fixed in {len(worse)}/{len(keep)} cells "
+          "(it keeps the real jitter, which truth_fixed counts as error)")
+
+
+def report_timing(work: Path, frames: int, targets: Targets) -> None:
+    print("\n3. time on the demo log (process time)")
+    t = timing(work, frames)
+    share = t["motion_one_s"] / t["track_s"]
+    ok = targets.check(f"motion on one channel: {share:.1%} of track's time < 10 %", share < 0.10)
+    print(f"   track, 5 models: {t['track_s']:.2f} s; motion, one channel: {t['motion_one_s']:.2f} s "
+          f"({share:.1%} of track) {_verdict(ok)} (target < 10 %); motion, all 5 channels: "
+          f"{t['motion_all_s']:.2f} s ({t['motion_all_s'] / t['track_s']:.1%})")
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -5,8 +5,8 @@ it cannot be used, the frame's position (for rate timing) and its time from the 
 keeps one (SER timestamp trailer, video container timestamps).
 
 Colour (RGB/BGR) frames become luma ``0.299 R + 0.587 G + 0.114 B``; Bayer frames are debayered
-to mono with OpenCV; both with a :class:`ColourImageWarning`. Lossy files (JPEG, lossy video
-codecs) give a :class:`LossyImageWarning`: compression artefacts bias sub-pixel centroids.
+to mono with OpenCV; both with a :class:`ColourImageWarning`. Lossy files (JPEG, JPEG-compressed TIFF,
+lossy video codecs) give a :class:`LossyImageWarning`: compression artefacts bias sub-pixel centroids.
 """
 
 from __future__ import annotations
@@ -96,15 +96,15 @@ def read_image(path: Path) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
         if suffix in {".fits", ".fit", ".fts"}:
             image = _read_fits(path)
         elif suffix in {".tif", ".tiff"}:
-            import tifffile
+            from starlog.stages.ingest_tiff import read_tiff
 
-            image = tifffile.imread(path)
+            image = read_tiff(path)
         else:
             import cv2
 
             image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if image is not None and image.ndim == 3:
-                image = image[..., ::-1]  # OpenCV gives BGR(A)
+                image = image[..., 2::-1]  # OpenCV gives BGR(A): RGB, without the alpha luma ignores
     except ImageFolderError:
         raise
     except Exception as err:  # decoders raise many unrelated types on damaged files
