@@ -13,9 +13,10 @@ import importlib
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 from mcap.records import Schema
 
-__all__ = ["message_decoder", "schema_key"]
+__all__ = ["message_decoder", "schema_key", "to_plain"]
 
 _DECODERS: dict[tuple[str, str, str, bytes], Callable[[bytes], Any] | None] = {}
 
@@ -82,3 +83,28 @@ def message_decoder(schema: Schema | None, message_encoding: str) -> Callable[[b
     if key not in _DECODERS:
         _DECODERS[key] = _build(schema, message_encoding)
     return _DECODERS[key]
+
+
+def to_plain(value: Any) -> Any:
+    """A decoded message (protobuf, ROS 1/2 object, dict) as dicts, lists, bytes and Python scalars."""
+    if isinstance(value, dict):
+        return {str(k): to_plain(v) for k, v in value.items()}
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return bytes(value)
+    if isinstance(value, (list, tuple)):
+        return [to_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    descriptor = getattr(value, "DESCRIPTOR", None)
+    if descriptor is not None and hasattr(descriptor, "fields"):  # protobuf message
+        return {f.name: to_plain(getattr(value, f.name)) for f in descriptor.fields}
+    slots = getattr(value, "__slots__", None)
+    if slots:  # ROS 1 (genpy) and ROS 2 (mcap-ros2-support) messages
+        return {name: to_plain(getattr(value, name)) for name in slots if not name.startswith("_")}
+    if hasattr(value, "__iter__"):  # protobuf repeated containers
+        return [to_plain(v) for v in value]
+    return str(value)

@@ -22,7 +22,7 @@ from typing import Any
 
 from mcap.records import Channel, Schema
 
-from starlog.io.flatten import to_plain
+from starlog.io.foreign import to_plain
 from starlog.io.foreign import message_decoder
 from starlog.io.images import IMAGE_SCHEMAS, RAW, _fields, decompress_to_mono
 from starlog.io.messages import decode_json

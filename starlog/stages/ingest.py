@@ -5,7 +5,7 @@ Sources (read by :mod:`starlog.stages.ingest_sources`):
 * a folder of 8- and 16-bit PNG and TIFF (any compression cameras and libraries write:
   :mod:`starlog.stages.ingest_tiff`), BMP, JPEG (lossy: a warning), and FITS with the ``fits``
   extra (``pip install starlog[fits]``), in natural file-name order (``img2.png`` before ``img10.png``);
-* a SER file (:mod:`starlog.io.ser`): 8/16-bit mono, RGB/BGR and Bayer frames;
+* a SER file (:mod:`starlog.stages.ingest_ser`): 8/16-bit mono, RGB/BGR and Bayer frames;
 * an AVI/MP4/MOV/MKV video, decoded by OpenCV to 8 bits.
 
 Timestamps come from a frame rate (``fps``, ``start_ns``), from the file names (``time_pattern``,

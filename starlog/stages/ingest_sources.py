@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import ImageFolderError
-from starlog.io.ser import HEADER_SIZE, SerReader
+from starlog.stages.ingest_ser import HEADER_SIZE, SerReader
 from starlog.stages._parallel import ordered_map
 
 __all__ = ["IMAGE_SUFFIXES", "SER_SUFFIXES", "VIDEO_SUFFIXES", "ColourImageWarning", "LossyImageWarning",
@@ -182,7 +182,7 @@ def folder_frames(files: Sequence[Path], workers: int) -> Iterator[SourceFrame]:
 
 # ---------------------------------------------------------------- SER
 def ser_frames(path: Path) -> tuple[int, bool, Iterator[SourceFrame]]:
-    """``(frame count, has timestamps, frames)`` of a SER file (format: :mod:`starlog.io.ser`)."""
+    """``(frame count, has timestamps, frames)`` of a SER file (format: :mod:`starlog.stages.ingest_ser`)."""
     with SerReader(path) as reader:
         count, times = reader.header.frame_count, reader.timestamps_ns()
         if count == 0:

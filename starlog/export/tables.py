@@ -20,7 +20,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.io.flatten import export_image_frames, export_topic
+from starlog.export.channels import export_image_frames, export_topic
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.io.schemas import schema_dir
 from starlog.io import topics
@@ -194,10 +194,10 @@ def export_log(
         Overwrite existing Parquet files.
     topics : iterable of str
         Channels exported as flat tables too (any JSON, protobuf, ROS 1 or ROS 2 channel),
-        one ``<topic>.parquet`` each (see :func:`starlog.io.flatten.export_topic`).
+        one ``<topic>.parquet`` each (see :func:`starlog.export.channels.export_topic`).
 
     A log without starlog's frame channel but with image channels gets a ``frames`` table of
-    those (:func:`starlog.io.flatten.export_image_frames`). Nothing to export raises
+    those (:func:`starlog.export.channels.export_image_frames`). Nothing to export raises
     :class:`InvalidParameterError` listing the log's channels.
     """
     known = [t.name for t in TABLES]

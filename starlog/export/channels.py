@@ -23,38 +23,13 @@ from starlog.errors import (
     MessageDecodeError,
     OutputExistsError,
 )
-from starlog.io.foreign import message_decoder
+from starlog.io.foreign import message_decoder, to_plain
 from starlog.io.frames import cached_image_decoder
 from starlog.io.images import IMAGE_SCHEMAS, is_image_schema
 from starlog.io.messages import decode_json
 from starlog.io.reader import LogReader
 
-__all__ = ["flatten", "to_plain", "export_topic", "export_image_frames", "topic_file_name"]
-
-
-def to_plain(value: Any) -> Any:
-    """A decoded message (protobuf, ROS 1/2 object, dict) as dicts, lists, bytes and Python scalars."""
-    if isinstance(value, dict):
-        return {str(k): to_plain(v) for k, v in value.items()}
-    if isinstance(value, (bytes, bytearray, memoryview)):
-        return bytes(value)
-    if isinstance(value, (list, tuple)):
-        return [to_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    descriptor = getattr(value, "DESCRIPTOR", None)
-    if descriptor is not None and hasattr(descriptor, "fields"):  # protobuf message
-        return {f.name: to_plain(getattr(value, f.name)) for f in descriptor.fields}
-    slots = getattr(value, "__slots__", None)
-    if slots:  # ROS 1 (genpy) and ROS 2 (mcap-ros2-support) messages
-        return {name: to_plain(getattr(value, name)) for name in slots if not name.startswith("_")}
-    if hasattr(value, "__iter__"):  # protobuf repeated containers
-        return [to_plain(v) for v in value]
-    return str(value)
+__all__ = ["flatten", "export_topic", "export_image_frames", "topic_file_name"]
 
 
 def flatten(plain: dict[str, Any], prefix: str = "") -> dict[str, Any]:
