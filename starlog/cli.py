@@ -108,18 +108,20 @@ RANGE_HELP = ("log time in ns (1234567), seconds on the same clock with an 's' s
               "(the N-th message, 0-based, of {what})")
 
 
-def time_range_options(what: str) -> Callable[[F], F]:
-    """--start / --end: the half-open range [start, end) of log_time to process and keep."""
+STAGE_RANGE = "The stage reads [start, end) of every channel; its channels hold that range."
+COPY_RANGE = "Every channel's messages in [start, end) are kept."
+
+
+def time_range_options(what: str, effect: str = STAGE_RANGE) -> Callable[[F], F]:
+    """--start / --end: the half-open range [start, end) of log_time to process (``effect`` says how)."""
 
     def add(f: F) -> F:
         f = click.option("--end", metavar="TIME",
-                         help=f"Keep and process only messages before this time (exclusive): {RANGE_HELP.format(what=what)}. "
+                         help=f"Only messages before this time (exclusive): {RANGE_HELP.format(what=what)}. "
                               "Default: after the last message.")(f)
         f = click.option("--start", metavar="TIME",
-                         help=f"Keep and process only messages from this time on (inclusive): "
-                              f"{RANGE_HELP.format(what=what)}. The stage reads [start, end) of every channel; "
-                              "its channels hold that range. "
-                              "Default: the first message.")(f)
+                         help=f"Only messages from this time on (inclusive): {RANGE_HELP.format(what=what)}. "
+                              f"{effect} Default: the first message.")(f)
         return f
 
     return add
@@ -708,7 +710,8 @@ def _batch_report(output: Path, force: bool) -> str:
 @click.option("--print-config", is_flag=True, help="Print the built-in config (a starting point) and exit.")
 @click.option("--table", "full_table", is_flag=True,
               help="Print every compensation row (one log), not only the short summary.")
-@time_range_options("the first stage's input channel (the image channel for centroid)")
+@time_range_options("the first stage's input channel (the image channel for centroid)",
+                    "The first stage reads [start, end) of every channel; the others process what it wrote.")
 @scheduler_option
 @json_option
 @click.option("--flatten", is_flag=True, help="Write OUTPUT as one self-contained log (the input and every stage's "
@@ -869,7 +872,7 @@ def topic_selection_options(f: F) -> F:
 @input_log
 @output_option()
 @topic_selection_options
-@time_range_options("--frame-topic")
+@time_range_options("--frame-topic", COPY_RANGE)
 @click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
 @click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
               help="Compression of the chunks that must be re-encoded (those only partly kept); chunks kept whole "
@@ -910,7 +913,7 @@ def filter_command(log: Path, output: Path, topics: tuple[str, ...], exclude_top
 @cli.command(context_settings=CONTEXT)
 @input_log
 @topic_selection_options
-@time_range_options("--frame-topic")
+@time_range_options("--frame-topic", COPY_RANGE)
 @click.option("--limit", type=click.IntRange(0), help="Stop after this many messages.")
 def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], frame_topic: str | None,
         start: str | None, end: str | None, limit: int | None) -> None:
@@ -1098,7 +1101,7 @@ def flatten(log: Path, output: Path, force: bool, quiet: bool, as_json: bool) ->
     Example:
       starlog flatten result.mcap -o result-all.mcap
     """
-    from starlog.io.slicing import flatten_log
+    from starlog.io.copying import flatten_log
 
     report = flatten_log(log, output, force=force)
     d = report.to_dict()

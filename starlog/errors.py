@@ -91,16 +91,19 @@ class NotMcapError(CorruptLogError):
 class BaseMismatchError(LogError):
     """A layer's base (the log it extends) is missing or is not the file the layer was written on.
 
-    Names the layer, the file it expects (where, its size and SHA-256) and how to fix it.
+    Names the layer, where its base should be, what the layer recorded of it (``expected``: its
+    relative path, size and SHA-256), what is wrong (``problem``) and how to fix it.
     """
 
     def __init__(self, layer: str | Path, base: str | Path, expected: str, problem: str) -> None:
         self.base = Path(base)
+        self.expected = expected
+        self.problem = problem
         super().__init__(
             layer,
-            f"its base {self.base} {problem}; the layer was written on {expected}. Put that file back at this "
-            "path (a layer and its base move together, the base is found relative to the layer), or run the "
-            "stage again on the base you have.")
+            f"its base {self.base} {problem} (the layer recorded {expected}). Put that file back there (a layer "
+            "and its base move together: the base is found relative to the layer), or run the stage again on "
+            "the log you have.")
 
 
 class OutputFolderError(StarlogError, FileNotFoundError):

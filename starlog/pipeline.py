@@ -5,8 +5,8 @@ whose table is absent is skipped. Each stage writes a layer (:mod:`starlog.io.ch
 one before it: ``run LOG -o OUT.mcap`` writes ``OUT.1-centroid.mcap``, ``OUT.2-track-NONE.mcap``,
 ... and the last stage's layer as ``OUT.mcap`` itself, each file the bytes the stage run alone
 with the same options and output name gives; reading ``OUT.mcap`` reads the whole chain. With
-``flatten``, ``OUT.mcap`` is then the chain flattened into one self-contained log, and the other
-layers are removed. The built-in config is :data:`DEFAULT_CONFIG_TOML` (``starlog run
+``flatten`` the layers go to a hidden folder beside ``OUT.mcap``, removed once their chain is
+flattened into ``OUT.mcap``, one self-contained log. The built-in config is :data:`DEFAULT_CONFIG_TOML` (``starlog run
 --print-config`` prints it).
 
 Your own stages (:mod:`starlog.stage_api`) come after the built-in ones: one table
@@ -27,11 +27,12 @@ from typing import TYPE_CHECKING, Any
 from starlog.compensate import MIN_SAMPLES, decimation_indices
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.io.reader import LogReader, LogSource
-from starlog.io.slicing import flatten_log
+from starlog.io.copying import flatten_log
 from starlog.io.timerange import TimeRange
+from starlog.io.writer import temporary_folder
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
-from starlog.stages._slice import window_of
+from starlog.stages.window import window_of
 from starlog.stages.custom import run_stage
 from starlog.stages.track import track_log
 
@@ -204,11 +205,11 @@ def run_pipeline(
     """Run the stages of ``config`` on ``input_path``, each writing a layer on the one before it
     (:func:`layer_paths`); the last one is ``output_path``.
 
-    With ``flatten``, ``output_path`` is then rewritten as the whole chain in one self-contained file
-    (the bytes ``starlog flatten`` of the layers gives) and the other layers are removed. With ``start`` / ``end`` the first stage runs on that window
-    of the input (``frame:N`` counts its input channel) and the others on what it wrote: the layers
-    are those of the first stage run with the same range, then the others without. If a stage fails,
-    the layers this run wrote are removed.
+    With ``flatten``, the layers are written in a hidden folder beside ``output_path`` and removed once
+    their chain is flattened into ``output_path``, one self-contained file. With ``start`` / ``end`` the
+    first stage runs on that window of the input (``frame:N`` counts its input channel) and the others
+    on what it wrote: the layers are those of the first stage run with the same range, then the others
+    without. If a stage fails, the layers this run wrote are removed.
     """
     output = Path(output_path)
     steps = _steps(config, workers=workers, compression=compression, show_progress=show_progress)
@@ -217,16 +218,18 @@ def run_pipeline(
     frame_topic, options = _frame_channel(config)
     source = window_of(input_path, TimeRange.parse(start, end), lambda log: frame_topic(log, options))
     _check_long_enough(source, config, frame_topic, options)
-    result = PipelineResult(output=output, layers=layer_paths(output, [name for name, _ in steps]))
-    _refuse_existing(result.layers, force=force)
-    _run_steps(source, steps, result.layers, result, on_stage=on_stage)
-    if flatten:
-        try:
-            flatten_log(output, output, force=True)
-        finally:
-            for layer in result.layers[:-1]:
-                layer.unlink(missing_ok=True)
-        result.layers = []
+    names = [name for name, _ in steps]
+    if not flatten:
+        result = PipelineResult(output=output, layers=layer_paths(output, names))
+        _refuse_existing(result.layers, force=force)
+        _run_steps(source, steps, result.layers, result, on_stage=on_stage)
+        return result
+    _refuse_existing([output], force=force)
+    result = PipelineResult(output=output)
+    with temporary_folder(output) as folder:
+        layers = layer_paths(folder / output.name, names)
+        _run_steps(source, steps, layers, result, on_stage=on_stage)
+        flatten_log(layers[-1], output, force=True)
     return result
 
 

@@ -11,6 +11,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
@@ -21,10 +22,17 @@ from mcap.reader import make_reader
 from starlog.cli import cli
 from starlog.errors import BaseMismatchError, CorruptLogError, InvalidInputError
 from starlog.export import export_log
-from starlog.io import LogReader, LogWriter, file_digest, json_message_type
-from starlog.io.chain import BASE_METADATA_NAME, LayerBase
+from starlog.io import (
+    LogReader,
+    LogWriter,
+    encode_raw_image,
+    file_digest,
+    json_message_type,
+    protobuf_message_type,
+)
+from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference
 from starlog.io.recover import recover_log
-from starlog.io.slicing import flatten_log
+from starlog.io.copying import flatten_log
 from starlog.io.verify import verify_log
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
@@ -110,10 +118,10 @@ def test_ids_and_topics_are_unique_across_a_chain(chain: dict[str, Path]) -> Non
 def test_a_layer_holds_only_what_its_stage_adds_and_names_its_base(chain: dict[str, Path]) -> None:
     with LogReader(chain["trk"], chain=False) as layer:
         assert layer.topics == ["/track/GAUSSFIT/STATIC"]
-        (base,) = [f["base"] for f in layer.layers()]
-    assert base["path"] == "cen.mcap" and base["size"] == str(chain["cen"].stat().st_size)
-    assert base["sha256"] == file_digest(chain["cen"])
-    assert base["chain"] == [file_digest(chain["sim"])]
+        base = base_reference(layer.files[0])
+    assert base is not None and base.path == "cen.mcap" and base.size == chain["cen"].stat().st_size
+    assert base.sha256 == file_digest(chain["cen"])
+    assert base.chain == (file_digest(chain["sim"]),)
     with LogReader(chain["trk"]) as log:
         assert log.provenance()[-1].input_digest == file_digest(chain["cen"])
 
@@ -176,9 +184,72 @@ def test_a_base_changed_inside_its_chunks_is_caught_by_verify_and_never_read_sil
     sim.write_bytes(bytes(data))
     report = verify_log(out)
     assert not report.ok and {"base_digest", "chunk_crc"} <= {p.kind for p in report.errors}
-    assert verify_log(out, chain=False).ok  # the layer alone is intact
+    alone = verify_log(out, chain=False)
+    assert alone.ok and "its base was not checked" in alone.verdict()  # the layer alone is intact
+    assert "has changed (its SHA-256" in recover_log(out, tmp_path / "rec.mcap").base_note
     with LogReader(out) as log, pytest.raises(CorruptLogError):
         list(log.frames())
+
+
+def _frames_log(path: Path, seed: int) -> Path:
+    """Five uncompressed 16x16 frames of random pixels: logs of two seeds differ in their pixels only."""
+    pixels = np.random.default_rng(seed).integers(0, 4096, (5, 16, 16), dtype=np.uint16)
+    with LogWriter(path, compression="none", force=True) as writer:
+        channel = writer.add_channel("/camera/image", protobuf_message_type("foxglove.RawImage"))
+        for n, image in enumerate(pixels):
+            writer.write(channel, log_time=n * 10_000_000, data=encode_raw_image(image, log_time=n * 10_000_000))
+    return path
+
+
+def test_a_base_replaced_by_another_of_the_same_size_and_summary_is_refused(tmp_path: Path) -> None:
+    """Two uncompressed logs of one layout: the same size and summary, other pixels; the data section's CRC
+    tells them apart."""
+    base, layer = _frames_log(tmp_path / "frames.mcap", 1), tmp_path / "layer.mcap"
+    _layer_on(base, layer)
+    with open(base, "rb") as f:
+        summary = f.read()[-200:]
+    _frames_log(base, 2)
+    assert base.read_bytes()[-200:] == summary  # the same summary section, footer and CRC
+    with pytest.raises(BaseMismatchError, match="its data section is not the one the layer recorded"):
+        LogReader(layer)
+    report = recover_log(layer, tmp_path / "rec.mcap")
+    assert not report.base and "data section" in report.base_note
+
+
+def _layer_on(base: Path, layer: Path) -> None:
+    with LogReader(base) as log:
+        layer_base = log.layer_base()
+    with LogWriter(layer, layer=layer_base) as writer:
+        channel = writer.add_channel("/extra", json_message_type("starlog.FrameInfo"))
+        writer.write(channel, log_time=0, data=b'{"frame":0,"width":16,"height":16,"encoding":"mono16",'
+                                               b'"bit_depth":16,"source":""}')
+
+
+def test_an_output_is_never_a_file_of_its_own_chain(chain: dict[str, Path], tmp_path: Path) -> None:
+    copy = _copy_chain(chain, tmp_path / "c")
+    before = {k: p.read_bytes() for k, p in copy.items()}
+    runner = CliRunner()
+    for args in (["track", str(copy["cen"]), "-o", str(copy["sim"]), "--centroids", "MOMENT", "--force"],
+                 ["centroid", str(copy["sim"]), "-o", str(copy["sim"]), "--flatten", "--force"],
+                 ["flatten", str(copy["trk"]), "-o", str(copy["cen"]), "--force"],
+                 ["filter", str(copy["trk"]), "-o", str(copy["sim"]), "--force"]):
+        result = runner.invoke(cli, args)
+        assert result.exit_code == 1 and "is one of the files it is written from" in result.output, result.output
+    assert {k: p.read_bytes() for k, p in copy.items()} == before
+
+
+def test_a_chain_reads_through_symbolic_links(chain: dict[str, Path], tmp_path: Path) -> None:
+    data = _copy_chain(chain, tmp_path / "data" / "sub")
+    (tmp_path / "home").mkdir()
+    (tmp_path / "home" / "link").symlink_to(data["sim"].parent, target_is_directory=True)
+    (tmp_path / "home" / "trk.mcap").symlink_to(data["trk"])
+    expected = _messages(chain["trk"])
+    assert _messages(tmp_path / "home" / "link" / "trk.mcap") == expected
+    assert _messages(tmp_path / "home" / "trk.mcap") == expected
+    (tmp_path / "out").mkdir()
+    (tmp_path / "results").symlink_to(tmp_path / "out", target_is_directory=True)
+    motion_log(tmp_path / "home" / "link" / "trk.mcap", tmp_path / "results" / "mot.mcap")
+    assert _messages(tmp_path / "results" / "mot.mcap") == _messages(tmp_path / "out" / "mot.mcap")
 
 
 def test_verify_reports_a_missing_base_and_ids_that_collide(chain: dict[str, Path], tmp_path: Path) -> None:
@@ -187,7 +258,8 @@ def test_verify_reports_a_missing_base_and_ids_that_collide(chain: dict[str, Pat
     report = verify_log(copy["trk"])
     assert [p.kind for p in report.errors] == ["base_missing"] and len(report.files) == 2
     bad = tmp_path / "c" / "bad.mcap"
-    with LogWriter(bad, layer=LayerBase(chain["trk"], chain["trk"].stat().st_size, 0, (), 1, 1, frozenset())) as w:
+    layer = LayerBase(chain["trk"], chain["trk"].stat().st_size, 0, 0, (), (), 1, 1, frozenset())
+    with LogWriter(bad, layer=layer) as w:
         w.add_channel("/other", json_message_type("starlog.FrameInfo"))  # channel id 1: the base's camera
     assert "chain_collision" in {p.kind for p in verify_log(bad).errors}
 
@@ -200,7 +272,7 @@ def test_recover_keeps_a_layer_on_its_base_or_makes_it_stand_alone(chain: dict[s
         assert log.channel("/camera/image").message_count == 30 and log.has_topic("/track/GAUSSFIT/STATIC")
     copy["cen"].unlink()
     report = recover_log(copy["trk"], tmp_path / "alone.mcap")
-    assert not report.base and "cannot be read" in report.base_note
+    assert not report.base and f"base {copy['cen']} is missing" in report.base_note
     with LogReader(tmp_path / "alone.mcap") as log:
         assert log.topics == ["/track/GAUSSFIT/STATIC"] and len(log.files) == 1
 
@@ -242,6 +314,8 @@ def test_flatten_and_stage_flatten_write_the_same_self_contained_log(chain: dict
 
 
 def test_run_flatten_is_run_then_flatten_and_leaves_one_file(chain: dict[str, Path], tmp_path: Path) -> None:
+    """The same messages and records (the stages' inputs are other files, so their digests differ), the same
+    bytes on a rerun, and nothing left but the output."""
     from starlog.pipeline import PipelineConfig, run_pipeline
 
     config = PipelineConfig.from_dict({"centroid": {"methods": ["MOMENT"], "options": {"psf_sigma": 1.2}},
@@ -251,8 +325,16 @@ def test_run_flatten_is_run_then_flatten_and_leaves_one_file(chain: dict[str, Pa
     layers = run_pipeline(chain["sim"], tmp_path / "a" / "out.mcap", config).layers
     flatten_log(layers[-1], tmp_path / "a" / "flat.mcap")
     run_pipeline(chain["sim"], tmp_path / "b" / "out.mcap", config, flatten=True)
-    assert (tmp_path / "b" / "out.mcap").read_bytes() == (tmp_path / "a" / "flat.mcap").read_bytes()
+    assert _messages(tmp_path / "b" / "out.mcap") == _messages(tmp_path / "a" / "flat.mcap")
+    assert _without_digests(tmp_path / "b" / "out.mcap") == _without_digests(tmp_path / "a" / "flat.mcap")
+    once = (tmp_path / "b" / "out.mcap").read_bytes()
+    run_pipeline(chain["sim"], tmp_path / "b" / "out.mcap", config, flatten=True, force=True)
+    assert (tmp_path / "b" / "out.mcap").read_bytes() == once
     assert [p.name for p in (tmp_path / "b").iterdir()] == ["out.mcap"]
+
+
+def _without_digests(path: Path) -> list[tuple[str, dict[str, str]]]:
+    return [(name, {k: v for k, v in data.items() if k != "input_digest"}) for name, data in _metadata(path)]
 
 
 def test_a_stage_refuses_a_topic_already_in_the_chain(chain: dict[str, Path], tmp_path: Path) -> None:

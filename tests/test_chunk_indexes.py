@@ -15,7 +15,7 @@ from mcap.records import ChunkIndex
 from mcap.writer import CompressionType, Writer
 
 from starlog.io import LogReader
-from starlog.io.slicing import flatten_log
+from starlog.io.copying import flatten_log
 from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
 
 U64 = st.integers(0, 2**64 - 1)

@@ -1,5 +1,5 @@
 """--start / --end on the replay stages and ``run``: only the range is read and written, and it is recorded;
-``filter`` (and the slicing behind it) cuts a range of every channel into a new log."""
+``filter`` (and the copying behind it) cuts a range of every channel into a new log."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from starlog.cli import cli
 from starlog.errors import InvalidParameterError
 from starlog.io import LogReader, file_digest
-from starlog.io.slicing import slice_log
+from starlog.io.copying import copy_log
 from starlog.io.timerange import TimeRange
 from starlog.pipeline import PipelineConfig, run_pipeline
 from starlog.stages import simulate_log
@@ -46,14 +46,15 @@ def test_slice_copies_inner_chunks_and_reencodes_the_boundaries(long_log: Path, 
         groups = sorted({(ci.message_start_time, ci.message_end_time) for ci in log.files[-1].summary.chunk_indexes})
     assert len(groups) >= 3, "the fixture must span several chunk groups"
     resolved = TimeRange.parse("frame:5", "frame:90").resolve(lambda n: times[n] if n < len(times) else None)
-    report = slice_log(long_log, tmp_path / "s.mcap", time_range=resolved)
+    report = copy_log(long_log, tmp_path / "s.mcap", time_range=resolved)
     assert report.chunks_copied >= 3 and report.chunks_reencoded >= 2
     assert set(_counts(tmp_path / "s.mcap").values()) == {85}
     assert _frame_times(tmp_path / "s.mcap") == times[5:90]
     source = long_log.read_bytes()
     out = (tmp_path / "s.mcap").read_bytes()
     with LogReader(tmp_path / "s.mcap") as log:
-        inner = [ci for ci in log.files[-1].summary.chunk_indexes if resolved.covers(ci.message_start_time, ci.message_end_time)
+        inner = [ci for ci in log.files[-1].summary.chunk_indexes
+                 if resolved.covers(ci.message_start_time, ci.message_end_time)
                  and times[5] < ci.message_start_time and ci.message_end_time < times[89]]
         assert inner
         for ci in inner:  # a chunk inside the range is the input's chunk, byte for byte

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from starlog.io import LogReader, LogWriter, encode_json, json_message_type
-from starlog.io.slicing import flatten_log
+from starlog.io.copying import flatten_log
 
 TS_DIR = Path(__file__).resolve().parent.parent / "tools" / "ts_reader"
 

@@ -46,7 +46,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
 from starlog.io import LogReader, file_digest  # noqa: E402
-from starlog.io.slicing import TopicSelection, slice_log  # noqa: E402
+from starlog.io.copying import TopicSelection, copy_log  # noqa: E402
 from starlog.sim import SimulationConfig  # noqa: E402
 from starlog.stages import simulate_log  # noqa: E402
 from starlog.stages.filter import filter_log  # noqa: E402
@@ -92,7 +92,7 @@ def _slice(src: Path, dst: Path) -> Callable[[], Path]:
     """The topic filter's copy without its provenance record (no digest of the input)."""
 
     def run() -> Path:
-        slice_log(src, dst, topics=TopicSelection(("/camera/*",)), force=True)
+        copy_log(src, dst, topics=TopicSelection(("/camera/*",)), force=True)
         return dst
 
     return run
@@ -144,7 +144,7 @@ def main() -> int:
             ("filter --topic '/camera/*'", _filter(log, out, topics=["/camera/*"])),
             ("filter --start/--end on chunk boundaries", _filter(log, out, start=aligned[0], end=aligned[1])),
             ("filter --start/--end off chunk boundaries", _filter(log, out, start=unaligned[0], end=unaligned[1])),
-            ("  of which: chunk copy alone (slice_log)", _slice(log, out)),
+            ("  of which: chunk copy alone (copy_log)", _slice(log, out)),
             ("  of which: input SHA-256 for the provenance", _digest(log, out)),
         ]
         results = [(name, *_best(action, args.repeat)) for name, action in rows]

@@ -561,7 +561,7 @@ def topics_per_file(layer: Path) -> list[list[str]]:
     from starlog.io import LogReader
 
     with LogReader(layer) as log:
-        return [file["topics"] for file in log.layers()]
+        return [[c.topic for c in file.summary.channels.values()] for file in log.files]
 
 
 def repeated_topics(files: Sequence[Sequence[str]]) -> list[str]:

@@ -3,7 +3,7 @@
 A starlog log is an MCAP file, or a chain of them: a stage never modifies its input, it writes
 a *layer* — a complete MCAP file holding only the channels, metadata and provenance it adds,
 and a record naming the log it extends (:mod:`starlog.io.chain`). :class:`LogReader` reads a
-chain as one log; ``starlog flatten`` writes it as one file (:mod:`starlog.io.slicing`). Images
+chain as one log; ``starlog flatten`` writes it as one file (:mod:`starlog.io.copying`). Images
 use the Foxglove well-known protobuf schemas (``foxglove.RawImage``,
 ``foxglove.ImageAnnotations``); starlog's own messages are JSON with JSON Schemas from
 ``schemas/``. Every output appears only once complete (temp file + rename).

@@ -37,12 +37,12 @@ from starlog.io.chain import BASE_METADATA_NAME
 from starlog.io.layout import MESSAGE_HEADER, RECORD_HEADER, decode_chunk, iter_records
 from starlog.io.mcap_file import McapFile
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
-from starlog.io.reader import LogReader, LogSource
+from starlog.io.reader import LogReader, LogView
 from starlog.io.scan import LooseRun
 from starlog.io.timerange import ResolvedRange
 from starlog.io.writer import LogWriter
 
-__all__ = ["SliceReport", "TopicSelection", "check_topics_exist", "flatten_log", "frame_time_lookup", "slice_log"]
+__all__ = ["CopyReport", "TopicSelection", "check_topics_exist", "flatten_log", "frame_time_lookup", "copy_log"]
 
 
 @dataclass(frozen=True)
@@ -64,8 +64,8 @@ class TopicSelection:
 
 
 @dataclass
-class SliceReport:
-    """What :func:`slice_log` wrote: messages kept per topic and how each chunk was handled."""
+class CopyReport:
+    """What :func:`copy_log` wrote: messages kept per topic and how each chunk was handled."""
 
     output: Path
     messages: dict[str, int] = field(default_factory=dict)
@@ -115,14 +115,16 @@ class _Slicer:
     """Walks one file's indexed records in file order and writes what is kept."""
 
     def __init__(self, file: McapFile, writer: LogWriter, kept: set[int], time_range: ResolvedRange | None,
-                 report: SliceReport) -> None:
+                 report: CopyReport) -> None:
         self.file, self.writer, self.kept, self.range, self.report = file, writer, kept, time_range, report
 
     def keeps(self, cid: int, log_time: int) -> bool:
         return cid in self.kept and (self.range is None or self.range.contains(log_time))
 
     def record(self, kind: str, index: Any) -> None:
-        getattr(self, kind)(index)
+        """Handle one record of :meth:`~starlog.io.mcap_file.McapFile.records_in_file_order`."""
+        handlers = {"chunk": self.chunk, "loose": self.loose, "metadata": self.metadata, "attachment": self.attachment}
+        handlers[kind](index)
 
     def chunk(self, ci: ChunkIndex) -> None:
         if self.range is not None and not self.range.overlaps(ci.message_start_time, ci.message_end_time):
@@ -200,8 +202,8 @@ class _Slicer:
             data_size=index.data_size, name=index.name, media_type=index.media_type))
 
 
-def slice_log(
-    input_path: LogSource,
+def copy_log(
+    input_path: str | os.PathLike[str],
     output_path: str | os.PathLike[str],
     *,
     topics: TopicSelection | None = None,
@@ -209,17 +211,20 @@ def slice_log(
     force: bool = False,
     compression: str = "zstd",
     provenance: Callable[[], Provenance] | None = None,
-) -> SliceReport:
+) -> CopyReport:
     """Write the channels of ``topics`` (default: all) and the messages in ``time_range`` (default: all) of a log
     (a whole chain: every file's records, the first file's first) to one self-contained file.
 
-    Chunks kept whole are copied byte for byte; re-encoded chunks use ``compression``.
-    ``provenance``: makes the record added last (the ``filter`` command's own; called at the end, so
-    a digest of the input can be computed meanwhile). Raises
-    :class:`InvalidParameterError` when no channel is selected.
+    Chunks kept whole are copied byte for byte; re-encoded chunks use ``compression``. Every schema of the
+    chain is kept when every channel is, else those of the kept channels. ``provenance``: makes the record
+    added last (the ``filter`` command's own; called at the end, so a digest of the input can be computed
+    meanwhile). Raises :class:`InvalidParameterError` when no channel is selected, or when the output is
+    one of the chain's files.
     """
+    if isinstance(input_path, LogView):
+        raise InvalidParameterError(f"{input_path}: give the range as time_range, not as a window of the input.")
     selection = topics or TopicSelection()
-    report = SliceReport(Path(output_path), time_range=time_range)
+    report = CopyReport(Path(output_path), time_range=time_range)
     with LogReader(input_path) as log:
         channels = [c for f in log.files for _, c in sorted(f.summary.channels.items()) if selection.keeps(c.topic)]
         if not channels:
@@ -228,12 +233,8 @@ def slice_log(
                 f"(channels: {', '.join(log.topics) or 'none'}).")
         kept = {c.id for c in channels}
         with LogWriter(output_path, force=force, compression=compression, validate=False,
-                       profile=log.files[0].profile()) as writer:
-            for file in log.files:
-                for schema_id in sorted({c.schema_id for c in channels if c.schema_id in file.summary.schemas}):
-                    writer.copy_schema(file.summary.schemas[schema_id])
-            for channel in channels:
-                writer.copy_channel(channel)
+                       profile=log.files[0].profile(), inputs=[f.path for f in log.files]) as writer:
+            _copy_definitions(log, channels, writer, every_schema=len(channels) == len(log.topics))
             for file in log.files:
                 slicer = _Slicer(file, writer, kept, time_range, report)
                 for _, kind, index in file.records_in_file_order():
@@ -245,14 +246,26 @@ def slice_log(
     return report
 
 
-def flatten_log(input_path: LogSource, output_path: str | os.PathLike[str], *, force: bool = False) -> SliceReport:
+def _copy_definitions(log: LogReader, channels: list[Any], writer: LogWriter, *, every_schema: bool) -> None:
+    """Write the schemas (all of the chain's, or those the channels use) and the channels, their ids kept."""
+    used = {c.schema_id for c in channels}
+    for file in log.files:
+        for schema_id, schema in sorted(file.summary.schemas.items()):
+            if every_schema or schema_id in used:
+                writer.copy_schema(schema)
+    for channel in channels:
+        writer.copy_channel(channel)
+
+
+def flatten_log(input_path: str | os.PathLike[str], output_path: str | os.PathLike[str], *,
+                force: bool = False) -> CopyReport:
     """Write the log at ``input_path`` (a chain: its base and every layer) as one self-contained file.
 
     Every message, schema, metadata and attachment record of the chain's files is kept, each chunk
     copied byte for byte (nothing is re-compressed); the records by which layers name their bases are
     left out, since the file holds the bases themselves.
     """
-    return slice_log(input_path, output_path, force=force)
+    return copy_log(input_path, output_path, force=force)
 
 
 def check_topics_exist(log: LogReader, patterns: Sequence[str]) -> None:

@@ -8,8 +8,10 @@ import os
 from pathlib import Path
 from typing import Any
 
+from starlog.io.chain import base_reference
 from starlog.io.frames import stamp_disagreement
 from starlog.io.images import is_image_schema
+from starlog.io.mcap_file import McapFile
 from starlog.io.reader import LogReader
 from starlog.io import topics
 
@@ -26,7 +28,7 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
                 note = stamp_disagreement(log, channel.topic)
                 if note:
                     log.add_note(note)
-        files = log.layers()
+        files = [_file_description(file) for file in log.files]
         return {
             "path": str(Path(path)),
             "size_bytes": sum(f["size_bytes"] for f in files),
@@ -41,6 +43,17 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "provenance": [p.to_dict() for p in log.provenance()],
             "notes": list(log.notes),
         } | _epsf_summaries(log) | _phase_summaries(log)
+
+
+def _file_description(file: McapFile) -> dict[str, Any]:
+    """One file of a chain: its path, size, what it holds and (for a layer) what it records of its base."""
+    reference = base_reference(file)
+    return {"path": str(file.path), "size_bytes": file.size,
+            "topics": [c.topic for _, c in sorted(file.summary.channels.items())],
+            "message_count": sum(e[0] for e in file.channel_extents().values()),
+            "chunk_count": len(file.summary.chunk_indexes),
+            "compression": sorted({n or "none" for n in file.summary.chunk_indexes.compressions()}),
+            "base": None if reference is None else reference.to_dict()}
 
 
 def _epsf_summaries(log: LogReader) -> dict[str, Any]:

@@ -25,6 +25,7 @@ from starlog.io.checksum import crc32, file_crc32
 
 __all__ = [
     "CHUNK_HEADER",
+    "DATA_END",
     "DATA_END_RECORD_LEN",
     "FOOTER",
     "FOOTER_RECORD_LEN",
@@ -32,7 +33,6 @@ __all__ = [
     "MESSAGE_HEADER",
     "MESSAGE_INDEX_BODY",
     "MESSAGE_INDEX_ENTRY",
-    "MESSAGE_INDEX_HEADER",
     "RECORD_HEADER",
     "ChunkContents",
     "Footer",
@@ -42,7 +42,9 @@ __all__ = [
     "footer_crc",
     "iter_records",
     "locate_data_end",
+    "chunk_record",
     "message_index_record",
+    "parse_message_index",
     "parse_record",
     "read_footer",
     "summary_crc",
@@ -53,12 +55,12 @@ MAGIC = b"\x89MCAP0\r\n"
 RECORD_HEADER = struct.Struct("<BQ")  # opcode, body length
 MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log_time, publish_time
 CHUNK_HEADER = struct.Struct("<QQQI")  # message start time, end time, uncompressed size, uncompressed CRC
-MESSAGE_INDEX_HEADER = struct.Struct("<BQHI")  # opcode, length, channel id, bytes of (log_time, offset) pairs
 MESSAGE_INDEX_BODY = struct.Struct("<HI")  # a Message Index record's body: channel id, bytes of the pairs
 MESSAGE_INDEX_ENTRY = struct.Struct("<QQ")  # log_time, offset of the message in the uncompressed chunk
 FOOTER = struct.Struct("<BQQQI")  # opcode, length (20), summary start, summary offset start, summary CRC
 FOOTER_RECORD_LEN = FOOTER.size
-DATA_END_RECORD_LEN = RECORD_HEADER.size + 4
+DATA_END = struct.Struct("<BQI")  # opcode, length (4), CRC of the data section (0: none)
+DATA_END_RECORD_LEN = DATA_END.size
 
 
 @dataclass(frozen=True)
@@ -112,8 +114,8 @@ def locate_data_end(path: Path, f: BinaryIO) -> int:
     data_end = (footer.summary_start if footer.summary_start else footer.offset) - DATA_END_RECORD_LEN
     f.seek(max(data_end, 0))
     record = f.read(DATA_END_RECORD_LEN)
-    if data_end < len(MAGIC) or len(record) != DATA_END_RECORD_LEN or record[0] != Opcode.DATA_END \
-            or RECORD_HEADER.unpack_from(record)[1] != 4:
+    if data_end < len(MAGIC) or len(record) != DATA_END_RECORD_LEN or DATA_END.unpack(record)[:2] != (
+            Opcode.DATA_END, 4):
         raise CorruptLogError(path, f"no DataEnd record at offset {data_end} where the footer says the summary starts")
     return data_end
 
@@ -195,7 +197,26 @@ def parse_record(body: bytes | memoryview, record_type: Any) -> Any:
 def message_index_record(channel_id: int, entries: list[tuple[int, int]]) -> bytes:
     """A Message Index record: ``(log_time, offset in the uncompressed chunk)`` of each message of a channel."""
     array = b"".join(MESSAGE_INDEX_ENTRY.pack(t, o) for t, o in entries)
-    return MESSAGE_INDEX_HEADER.pack(Opcode.MESSAGE_INDEX, 6 + len(array), channel_id, len(array)) + array
+    return (RECORD_HEADER.pack(Opcode.MESSAGE_INDEX, MESSAGE_INDEX_BODY.size + len(array))
+            + MESSAGE_INDEX_BODY.pack(channel_id, len(array)) + array)
+
+
+def parse_message_index(body: bytes | memoryview) -> tuple[int, list[tuple[int, int]]]:
+    """A Message Index record's body (after its opcode and length): its channel id and its ``(log_time, offset)``
+    entries. Raises ``ValueError`` / ``struct.error`` when the entries do not fill the record."""
+    channel_id, array_len = MESSAGE_INDEX_BODY.unpack_from(body, 0)
+    if MESSAGE_INDEX_BODY.size + array_len != len(body) or array_len % MESSAGE_INDEX_ENTRY.size:
+        raise ValueError(f"its array length {array_len} does not fit its record")
+    return channel_id, list(MESSAGE_INDEX_ENTRY.iter_unpack(body[MESSAGE_INDEX_BODY.size:]))
+
+
+def chunk_record(start: int, end: int, uncompressed_size: int, crc: int, compression: str,
+                 data: bytes | memoryview) -> list[bytes | memoryview]:
+    """The pieces of a Chunk record holding ``data`` (compressed with ``compression``, ``""`` for none)."""
+    name = compression.encode()
+    body_len = CHUNK_HEADER.size + 4 + len(name) + 8 + len(data)
+    return [RECORD_HEADER.pack(Opcode.CHUNK, body_len), CHUNK_HEADER.pack(start, end, uncompressed_size, crc),
+            struct.pack("<I", len(name)) + name + struct.pack("<Q", len(data)), data]
 
 
 @dataclass(frozen=True)
@@ -255,9 +276,10 @@ def decompress(compression: str, data: bytes | memoryview, size: int) -> bytes |
     raise ValueError(f"unsupported chunk compression {compression!r}")
 
 
-def chunk_header(body: bytes | memoryview) -> tuple[int, int, int, int, str, int, int]:
+def chunk_header(body: bytes | memoryview, *, whole: bool = True) -> tuple[int, int, int, int, str, int, int]:
     """``(start, end, uncompressed_size, crc, compression, compressed_size, data_offset)`` of a chunk record's
-    body (after its opcode and length). Raises ``ValueError`` / ``struct.error`` when they do not fit it."""
+    body (after its opcode and length; with ``whole=False``, only its start). Raises ``ValueError`` /
+    ``struct.error`` when they do not fit it (the compressed data must end the record, for a whole body)."""
     start, end, size, crc = CHUNK_HEADER.unpack_from(body, 0)
     pos = CHUNK_HEADER.size
     (name_len,) = struct.unpack_from("<I", body, pos)
@@ -265,7 +287,7 @@ def chunk_header(body: bytes | memoryview) -> tuple[int, int, int, int, str, int
     pos += 4 + name_len
     (data_len,) = struct.unpack_from("<Q", body, pos)
     pos += 8
-    if pos + data_len != len(body):
+    if whole and pos + data_len != len(body):
         raise ValueError(f"its data length {data_len} does not fit its record")
     return start, end, size, crc, compression, data_len, pos
 

@@ -33,6 +33,7 @@ from mcap.summary import Summary
 from starlog.errors import CorruptChunkError, CorruptLogError, LogNotFoundError, NotMcapError, TruncatedLogError
 from starlog.io.chunk_indexes import ChunkIndexTable, read_summary
 from starlog.io.layout import (
+    DATA_END,
     MAGIC,
     MESSAGE_HEADER,
     MESSAGE_INDEX_BODY,
@@ -42,11 +43,13 @@ from starlog.io.layout import (
     decode_chunk,
     iter_records,
     locate_data_end,
+    parse_message_index,
     parse_record,
     read_footer,
     summary_crc,
 )
 from starlog.io.scan import LooseRun, find_loose_runs, read_loose, synthesize_summary
+from starlog.io.timerange import END_OF_TIME
 
 __all__ = ["ChannelSummary", "McapFile", "channel_summaries", "recover_hint"]
 
@@ -173,6 +176,7 @@ class McapFile:
         self._file: BinaryIO = open(self.path, "rb")
         try:
             self.data_end = self._open()
+            self.data_section_crc: int = DATA_END.unpack(self.read_bytes(self.data_end, DATA_END.size))[2]
         except BaseException:
             self._file.close()
             raise
@@ -320,13 +324,13 @@ class McapFile:
         self._file.seek(offset)
         return self._file.read(length)
 
-    def channel_extents(self, lo: int = 0, hi: int = 2**64) -> dict[int, list[int]]:
+    def channel_extents(self, lo: int = 0, hi: int = END_OF_TIME) -> dict[int, list[int]]:
         """``[count, first log_time, last log_time]`` per channel id of the messages with ``lo <= log_time < hi``.
 
         The whole file's come from the statistics and chunk indexes; a window's from the message index
         records of the chunks it overlaps (chunks without them are read).
         """
-        if lo <= 0 and hi >= 2**64:
+        if lo <= 0 and hi >= END_OF_TIME:
             return self._whole_extents()
         extents: dict[int, list[int]] = {}
         table: ChunkIndexTable = self.summary.chunk_indexes
@@ -486,12 +490,12 @@ class McapFile:
             rel = offset - first
             try:
                 opcode, length = RECORD_HEADER.unpack_from(block, rel)
-                channel_id, array_len = MESSAGE_INDEX_BODY.unpack_from(block, rel + RECORD_HEADER.size)
-                if opcode != Opcode.MESSAGE_INDEX or length != 6 + array_len or array_len % 16 \
-                        or channel_id != cid or rel + RECORD_HEADER.size + length > len(block):
-                    raise ValueError("not a message index record of this channel")
-                start = rel + RECORD_HEADER.size + 6
-                out[cid] = list(MESSAGE_INDEX_ENTRY.iter_unpack(block[start: start + array_len]))
+                body = block[rel + RECORD_HEADER.size: rel + RECORD_HEADER.size + length]
+                if opcode != Opcode.MESSAGE_INDEX or len(body) != length:
+                    raise ValueError("not a message index record")
+                channel_id, out[cid] = parse_message_index(body)
+                if channel_id != cid:
+                    raise ValueError(f"it is channel {channel_id}'s")
             except (struct.error, ValueError) as err:
                 raise self.chunk_error(ci, f"its message index for channel {cid} at offset {offset} is damaged "
                                            f"({err})") from err
@@ -501,18 +505,18 @@ class McapFile:
         """Messages per channel of a chunk, from the headers of its message index records (no decompression)."""
         counts = {}
         for cid, offset in ci.message_index_offsets.items():
-            head = self.read_bytes(offset, RECORD_HEADER.size + 6)
+            head = self.read_bytes(offset, RECORD_HEADER.size + MESSAGE_INDEX_BODY.size)
             try:
                 opcode, _ = RECORD_HEADER.unpack_from(head, 0)
                 channel_id, array_len = MESSAGE_INDEX_BODY.unpack_from(head, RECORD_HEADER.size)
             except struct.error as err:
                 raise self.chunk_error(ci, f"its message index is cut short ({err})") from err
-            if opcode != Opcode.MESSAGE_INDEX or channel_id != cid or array_len % 16:
+            if opcode != Opcode.MESSAGE_INDEX or channel_id != cid or array_len % MESSAGE_INDEX_ENTRY.size:
                 raise self.chunk_error(ci, f"its message index for channel {cid} is damaged")
-            counts[cid] = array_len // 16
+            counts[cid] = array_len // MESSAGE_INDEX_ENTRY.size
         return counts
 
-    def chunk_message_counts(self, channel_id: int, lo: int = 0, hi: int = 2**64) -> list[tuple[int, int, int]]:
+    def chunk_message_counts(self, channel_id: int, lo: int = 0, hi: int = END_OF_TIME) -> list[tuple[int, int, int]]:
         """``(message_start_time, message_end_time, count)`` of the channel's messages with ``lo <= log_time < hi``
         in each chunk holding some, in time order (from the message index records; no chunk is decompressed
         unless it lies across a bound)."""

@@ -37,20 +37,17 @@ from starlog.errors import (
     InvalidParameterError,
     MessageDecodeError,
 )
-from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference, open_chain, summary_checksum
+from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference, open_chain
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
 from starlog.io.images import is_image_schema
 from starlog.io.mcap_file import ChannelSummary, McapFile, channel_summaries
 from starlog.io.messages import compile_json_schema, decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
-from starlog.io.timerange import ResolvedRange
+from starlog.io.timerange import END_OF_TIME, ResolvedRange
 from starlog.io.writer import VALIDATED_METADATA_KEY
 
 __all__ = ["ChannelSummary", "DecodedMessage", "LogReader", "LogSource", "LogView"]
-
-_END = 2**64
-
 
 @dataclass(frozen=True)
 class LogView:
@@ -154,11 +151,12 @@ class LogReader:
             raise ValueError(f"validate_messages must be True, False or 'all', got {validate_messages!r}.")
         self.path = source_path(source)
         self.window = source.window if isinstance(source, LogView) else None
-        self._lo, self._hi = (self.window.start_ns, self.window.end_ns) if self.window else (0, _END)
+        self._lo, self._hi = (self.window.start_ns, self.window.end_ns) if self.window else (0, END_OF_TIME)
         self._validate_messages = validate_messages
         self._checkers: dict[int, Callable[[Any], str | None] | None] = {}
         self._extents: dict[int, list[int]] | None = None
         self.files: list[McapFile] = open_chain(self.path, validate_crcs=validate_crcs, follow=chain)
+        self._whole_chain = chain
         self._file_of: dict[int, McapFile] = {}
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
@@ -231,10 +229,6 @@ class LogReader:
 
     def time_range(self) -> tuple[int, int]:
         """First and last ``log_time`` of the whole log (0, 0 when empty)."""
-        if self.window is None:
-            ranges = [file.time_range() for file in self.files if file.summary.statistics is None
-                      or file.summary.statistics.message_count]
-            return (min(r[0] for r in ranges), max(r[1] for r in ranges)) if ranges else (0, 0)
         extents = [e for e in self._channel_extents().values() if e[0]]
         return (min(e[1] for e in extents), max(e[2] for e in extents)) if extents else (0, 0)
 
@@ -272,7 +266,7 @@ class LogReader:
         """:meth:`raw_messages`, each with whether its chunk's CRC was verified."""
         ids = {self._channel_id(topic) for topic in topics}
         lo = max(self._lo, 0 if start is None else start)
-        hi = min(self._hi, _END if end is None else end)
+        hi = min(self._hi, END_OF_TIME if end is None else end)
         streams = [file.messages(mine, lo, hi) for file in self.files
                    if (mine := {cid for cid in ids if self._file_of[cid] is file})]
         if not streams:
@@ -357,7 +351,7 @@ class LogReader:
     def metadata(self, name: str | None = None) -> list[tuple[str, dict[str, str]]]:
         """MCAP Metadata records ``(name, map)`` of the chain's files in order, each file's in file order,
         optionally only those named ``name``. The records by which layers name their bases are not listed
-        (see :meth:`layers`)."""
+        (:func:`~starlog.io.chain.base_reference`)."""
         return [record for file in self.files for record in file.metadata(name) if record[0] != BASE_METADATA_NAME]
 
     def provenance(self) -> list[Provenance]:
@@ -374,29 +368,9 @@ class LogReader:
         return out
 
     # ------------------------------------------------------------------ the chain
-    def layers(self) -> list[dict[str, Any]]:
-        """Each file of the chain, first log first: its path, size, topics and (for a layer) its base record."""
-        out = []
-        for file in self.files:
-            reference = base_reference(file)
-            stats = file.summary.statistics
-            out.append({"path": str(file.path), "size_bytes": file.size,
-                        "topics": [c.topic for _, c in sorted(file.summary.channels.items())],
-                        "message_count": stats.message_count if stats else sum(
-                            e[0] for e in file.channel_extents().values()),
-                        "chunk_count": len(file.summary.chunk_indexes),
-                        "compression": sorted({n or "none" for n in file.summary.chunk_indexes.compressions()}),
-                        "base": None if reference is None else {**reference.to_metadata(),
-                                                                 "chain": list(reference.chain)}})
-        return out
-
     def layer_base(self) -> LayerBase:
         """What a layer written on this log needs (:class:`~starlog.io.chain.LayerBase`); the SHA-256 of the
         newest file is computed on a thread from now on."""
-        newest = self.files[-1]
-        reference = base_reference(newest)
-        chain = () if reference is None else (reference.sha256, *reference.chain)
-        return LayerBase(newest.path, newest.size, summary_checksum(newest), chain,
-                         next_schema_id=max(self._schemas, default=0) + 1,
-                         next_channel_id=max(self._channels, default=0) + 1,
-                         topics=frozenset(self.topics))
+        if not self._whole_chain and base_reference(self.files[-1]) is not None:
+            raise InvalidParameterError(f"{self.path} was opened without its chain: a layer cannot be written on it.")
+        return LayerBase.of(self.files)

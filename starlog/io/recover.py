@@ -25,14 +25,15 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Message, MessageIndex, Metadata, Schema
 
 from starlog import __version__
-from starlog.errors import CorruptLogError, LogError, LogNotFoundError
-from starlog.io.chain import BASE_METADATA_NAME, BaseReference, LayerBase
+from starlog.errors import BaseMismatchError, CorruptLogError, LogError, LogNotFoundError
+from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference
 from starlog.io.chunk_indexes import read_file_summary
 from starlog.io.layout import (
     CHUNK_HEADER,
     MAGIC,
     RECORD_HEADER,
     RecordOverrun,
+    chunk_header,
     decode_chunk,
     iter_records,
     parse_record,
@@ -40,7 +41,6 @@ from starlog.io.layout import (
     summary_crc,
     walk_records,
 )
-from starlog.io.mcap_file import McapFile
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance, file_digest
 from starlog.io.reader import LogReader
 from starlog.io.schemas import MessageType
@@ -113,6 +113,8 @@ class RecoveryReport:
 
 
 class _Rebuilder:
+    """The records of a file, handed over in file order, written again; damaged chunks reported lost."""
+
     def __init__(self, writer: LogWriter, report: RecoveryReport) -> None:
         self.writer = writer
         self.report = report
@@ -120,6 +122,58 @@ class _Rebuilder:
         self.channels: dict[int, Channel] = {}
         self.out_ids: dict[int, int] = {}
         self.by_topic: dict[str, tuple[MessageType, int]] = {}
+        self.pending_lost: LostChunk | None = None  # the chunk just lost: its message indexes say what it held
+        self.last_whole: int | None = None  # the last record trusted by its length alone (see _read_records)
+        self.base_record: dict[str, str] | None = None  # a layer's record naming its base, when met
+
+    def record(self, offset: int, opcode: int, body: bytes | memoryview) -> bool:
+        """Hand one record on; False at the DataEnd record."""
+        if opcode == Opcode.SCHEMA:
+            self.schema(parse_record(body, Schema))
+        elif opcode == Opcode.CHANNEL:
+            self.channel(parse_record(body, Channel))
+        elif opcode == Opcode.MESSAGE:
+            self.message(parse_record(body, Message))
+        elif opcode == Opcode.CHUNK:
+            self.pending_lost = self.chunk(body, offset)
+        elif opcode == Opcode.MESSAGE_INDEX and self.pending_lost is not None:
+            self.lost_index(self.pending_lost, parse_record(body, MessageIndex))
+        elif opcode == Opcode.METADATA:
+            self.metadata(parse_record(body, Metadata))
+        elif opcode == Opcode.DATA_END:
+            return False
+        elif opcode not in (Opcode.HEADER, Opcode.FOOTER, Opcode.MESSAGE_INDEX):
+            self.skip(Opcode(opcode).name)
+        return True
+
+    def chunk(self, body: bytes | memoryview, offset: int) -> LostChunk | None:
+        """Hand on the records of the chunk record at ``offset``; a damaged chunk is reported lost and returned
+        (its message index records that follow then name what it held)."""
+        start, end = CHUNK_HEADER.unpack_from(body)[:2]
+        try:
+            contents = decode_chunk(body)
+            records = [(opcode, contents.data[at: at + n]) for _, opcode, at, n in iter_records(contents.data)]
+        except Exception as err:  # CRC mismatch, damaged compressed data, a record past the chunk's end
+            lost = LostChunk(offset, f"{type(err).__name__}: {err}", start, end)
+            self.report.lost_chunks.append(lost)
+            return lost
+        for opcode, record in records:
+            if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+                self.record(offset, opcode, record)
+        return None
+
+    def lost_index(self, lost: LostChunk, index: MessageIndex) -> None:
+        """A message index record of the chunk just lost: what it held."""
+        channel = self.channels.get(index.channel_id)
+        topic = channel.topic if channel else f"channel {index.channel_id}"
+        lost.messages_by_topic[topic] = len(index.records)
+
+    def metadata(self, record: Metadata) -> None:
+        if record.name == BASE_METADATA_NAME:  # the writer names the base of the recovered layer itself
+            self.base_record = dict(record.metadata)
+            return
+        self.writer.add_metadata(record.name, dict(record.metadata))
+        self.report.metadata_kept += 1
 
     def skip(self, what: str) -> None:
         self.report.skipped_records[what] = self.report.skipped_records.get(what, 0) + 1
@@ -174,18 +228,14 @@ _COMPRESSIONS = {b"", b"zstd", b"lz4"}
 def _plausible_chunk(f: BinaryIO, offset: int, size: int) -> bool:
     """Whether a whole, self-consistent chunk record starts at ``offset`` (used to resynchronise)."""
     f.seek(offset)
-    head = f.read(RECORD_HEADER.size + CHUNK_HEADER.size + 4)
-    if len(head) < RECORD_HEADER.size + CHUNK_HEADER.size + 4 or head[0] != Opcode.CHUNK:
+    head = f.read(RECORD_HEADER.size + CHUNK_HEADER.size + 4 + max(map(len, _COMPRESSIONS)) + 8)
+    try:
+        opcode, length = RECORD_HEADER.unpack_from(head)
+        *_, compression, data_len, data_at = chunk_header(memoryview(head)[RECORD_HEADER.size:], whole=False)
+    except (struct.error, UnicodeDecodeError):
         return False
-    (length,) = struct.unpack_from("<Q", head, 1)
-    (name_len,) = struct.unpack_from("<I", head, RECORD_HEADER.size + CHUNK_HEADER.size)
-    if name_len > 4 or offset + RECORD_HEADER.size + length > size:
-        return False
-    rest = f.read(name_len + 8)
-    if len(rest) < name_len + 8 or rest[:name_len] not in _COMPRESSIONS:
-        return False
-    (data_len,) = struct.unpack_from("<Q", rest, name_len)
-    return CHUNK_HEADER.size + 4 + name_len + 8 + data_len == length
+    return (opcode == Opcode.CHUNK and compression.encode() in _COMPRESSIONS and data_at + data_len == length
+            and offset + RECORD_HEADER.size + length <= size)
 
 
 def _resync(f: BinaryIO, start: int, size: int, hints: list[int]) -> int | None:
@@ -207,77 +257,17 @@ def _resync(f: BinaryIO, start: int, size: int, hints: list[int]) -> int | None:
     return None
 
 
-def _replay_chunk(body: bytes, offset: int, report: RecoveryReport, rebuild: _Rebuilder) -> LostChunk | None:
-    """Hand the records of the chunk record at ``offset`` to ``rebuild``; a damaged chunk is reported lost.
-
-    Returns the :class:`LostChunk` (its message index records that follow then name what it held).
-    """
-    start, end = CHUNK_HEADER.unpack_from(body)[:2]
-    try:
-        contents = decode_chunk(body)
-        records = [(opcode, contents.data[at: at + length]) for _, opcode, at, length in iter_records(contents.data)]
-    except Exception as err:  # CRC mismatch, damaged compressed data, a record past the chunk's end
-        lost = LostChunk(offset, f"{type(err).__name__}: {err}", start, end)
-        report.lost_chunks.append(lost)
-        return lost
-    for opcode, record in records:
-        if opcode == Opcode.SCHEMA:
-            rebuild.schema(parse_record(record, Schema))
-        elif opcode == Opcode.CHANNEL:
-            rebuild.channel(parse_record(record, Channel))
-        elif opcode == Opcode.MESSAGE:
-            rebuild.message(parse_record(record, Message))
-    return None
-
-
-class _Replay:
-    """The records of a file in file order, handed to a :class:`_Rebuilder`; damaged ones reported lost."""
-
-    def __init__(self, f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebuilder) -> None:
-        self.f, self.size, self.report, self.rebuild = f, size, report, rebuild
-        self.pending_lost: LostChunk | None = None
-        self.last_whole: int | None = None  # the last record trusted by its length alone (see _read_records)
-
-    def record(self, offset: int, opcode: int, body: bytes) -> bool:
-        """Hand one record on; False at the DataEnd record."""
-        rebuild = self.rebuild
-        if opcode == Opcode.SCHEMA:
-            rebuild.schema(parse_record(body, Schema))
-        elif opcode == Opcode.CHANNEL:
-            rebuild.channel(parse_record(body, Channel))
-        elif opcode == Opcode.MESSAGE:
-            rebuild.message(parse_record(body, Message))
-        elif opcode == Opcode.CHUNK:
-            self.pending_lost = _replay_chunk(body, offset, self.report, rebuild)
-        elif opcode == Opcode.MESSAGE_INDEX:
-            if self.pending_lost is not None:
-                index = parse_record(body, MessageIndex)
-                channel = rebuild.channels.get(index.channel_id)
-                topic = channel.topic if channel else f"channel {index.channel_id}"
-                self.pending_lost.messages_by_topic[topic] = len(index.records)
-        elif opcode == Opcode.METADATA:
-            metadata = parse_record(body, Metadata)
-            if metadata.name == BASE_METADATA_NAME:  # the writer names the base of the recovered layer itself
-                return True
-            rebuild.writer.add_metadata(metadata.name, dict(metadata.metadata))
-            self.report.metadata_kept += 1
-        elif opcode == Opcode.DATA_END:
-            return False
-        elif opcode not in (Opcode.HEADER, Opcode.FOOTER):
-            rebuild.skip(Opcode(opcode).name)
-        return True
-
-
 def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebuilder,
-                  hints: list[int] | None = None) -> None:
-    replay = _Replay(f, size, report, rebuild)
+                  hints: list[int] | None = None) -> dict[str, str] | None:
+    """Replay every readable record of the file; the base record of a layer, when one was met."""
+    replay = rebuild
     offset = len(MAGIC)
     hints = sorted(hints or [])
     while offset < size:
         damaged, cut_off = _replay_until_damage(f, offset, size, replay)
         if damaged is None:  # the end: a DataEnd record, or the end of the file (cut_off: inside a header)
             report.bytes_scanned = cut_off
-            return
+            return replay.base_record
         offset, detail = damaged
         skipped_by_length = replay.last_whole
         # The bytes at `offset` are not a whole record: find the next chunk and go on from there. When the
@@ -295,9 +285,10 @@ def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebu
                                                         f"chunk at offset {found}"))
         offset = found
     report.bytes_scanned = offset
+    return replay.base_record
 
 
-def _replay_until_damage(f: BinaryIO, offset: int, size: int, replay: _Replay) -> tuple[Any, Any]:
+def _replay_until_damage(f: BinaryIO, offset: int, size: int, replay: _Rebuilder) -> tuple[Any, Any]:
     """Replay the records from ``offset``: ``((offset, what), runs past the end)`` of the first damaged record,
     or ``(None, where reading stopped)`` at the DataEnd record or the end of the file."""
     replay.last_whole = None
@@ -382,10 +373,14 @@ def recover_log(
             report.had_footer = False
         layer = _layer_base(source, report) if report.had_footer else None
         with LogWriter(output, force=force, compression=compression, validate=False,  # bytes as found
-                       layer=layer) as writer:
+                       layer=layer, inputs=[source]) as writer:
             rebuild = _Rebuilder(writer, report)
             hints = _seed_from_summary(f, source, rebuild) if report.had_footer else []
-            _read_records(f, report.input_size, report, rebuild, hints)
+            found_base = _read_records(f, report.input_size, report, rebuild, hints)
+            if found_base is not None and layer is None and not report.base_note:
+                report.base_note = (f"it was a layer on {found_base.get('path', '?')!r} "
+                                    f"({found_base.get('sha256', '')}); its summary is lost, so the output holds the "
+                                    "layer's own records and opens alone")
             report.tail_bytes_lost = 0 if report.had_footer else report.input_size - report.bytes_scanned
             writer.add_metadata(
                 PROVENANCE_METADATA_NAME,
@@ -396,28 +391,24 @@ def recover_log(
 
 
 def _layer_base(source: Path, report: RecoveryReport) -> LayerBase | None:
-    """The base the recovered layer is written on: the one its intact summary names, when it is there unchanged."""
+    """The base to write the recovered layer on: the one ``source`` names, when its summary is intact and the
+    base is there, the very file the layer recorded (size, CRCs and SHA-256)."""
     try:
-        with McapFile(source) as file:
-            records = file.metadata(BASE_METADATA_NAME)
-        if not records:
-            return None
-        reference = BaseReference.from_metadata(records[0][1], source)
+        with LogReader(source) as log:
+            reference = base_reference(log.files[-1])
+            if reference is None:
+                return None
+            base = LayerBase.of(log.files[:-1])
+    except BaseMismatchError as err:
+        report.base_note = f"it is a layer whose base {err.base} {err.problem}: the output holds the layer's own " \
+                           "records and opens alone"
+        return None
     except LogError:  # a damaged summary: the base record cannot be trusted
         report.base_note = "its summary is damaged, so the base it names is not known: the output opens alone"
         return None
-    base = reference.resolve(source)
-    try:
-        with LogReader(base) as log:
-            chain_base = log.layer_base()
-    except LogError as err:
-        report.base_note = f"it is a layer on {reference.describe()}, which cannot be read ({err}): the output " \
-                           "holds the layer's own records and opens alone"
+    if (base.digest(), base.chain) != (reference.sha256, reference.chain):
+        report.base_note = f"it is a layer on {base.path}, which has changed (its SHA-256 is not the one the layer " \
+                           "recorded): the output holds the layer's own records and opens alone"
         return None
-    if (chain_base.size, chain_base.summary_crc) != (reference.size, reference.summary_crc):
-        chain_base.cancel()
-        report.base_note = f"it is a layer on {reference.describe()}, which has changed: the output holds the " \
-                           "layer's own records and opens alone"
-        return None
-    report.base = str(base)
-    return chain_base
+    report.base = str(base.path)
+    return base

@@ -40,7 +40,17 @@ from mcap.records import (
 from mcap.summary import Summary
 
 from starlog.io.chunk_indexes import ChunkIndexTable
-from starlog.io.layout import MAGIC, MESSAGE_HEADER, MESSAGE_INDEX_BODY, RECORD_HEADER, ChunkContents, decode_chunk, iter_records, parse_record, walk_records
+from starlog.io.layout import (
+    MAGIC,
+    MESSAGE_HEADER,
+    MESSAGE_INDEX_BODY,
+    RECORD_HEADER,
+    ChunkContents,
+    decode_chunk,
+    iter_records,
+    parse_record,
+    walk_records,
+)
 
 __all__ = ["LooseRun", "ScanResult", "find_loose_runs", "read_loose", "synthesize_summary"]
 
@@ -255,7 +265,8 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
     index_end = 0
     for offset, opcode, length, _ in walk_records(f, len(MAGIC), data_end, bodies=()):
         if opcode == Opcode.MESSAGE_INDEX and last_chunk is not None:
-            channel_id = MESSAGE_INDEX_BODY.unpack(_body(f, offset, 6))[0] if length >= 6 else None
+            size = MESSAGE_INDEX_BODY.size
+            channel_id = MESSAGE_INDEX_BODY.unpack(_body(f, offset, size))[0] if length >= size else None
             if channel_id is not None:
                 last_chunk.message_index_offsets[channel_id] = offset
                 index_end = offset + RECORD_HEADER.size + length

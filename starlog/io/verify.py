@@ -31,8 +31,8 @@ import numpy as np
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, ChunkIndex, Metadata, MetadataIndex, Schema, Statistics, SummaryOffset
 
-from starlog.errors import CorruptLogError
-from starlog.io.chain import BASE_METADATA_NAME, BaseReference, base_problem, id_collisions
+from starlog.errors import BaseMismatchError, CorruptLogError
+from starlog.io.chain import BASE_METADATA_NAME, BaseReference, id_collisions, open_base
 from starlog.io.checksum import crc32
 from starlog.io.chunk_indexes import ChunkIndexTable
 from starlog.io.foreign import message_decoder
@@ -44,13 +44,13 @@ from starlog.io.layout import (
     MAGIC,
     MESSAGE_HEADER,
     MESSAGE_INDEX_BODY,
-    MESSAGE_INDEX_ENTRY,
     RECORD_HEADER,
     Footer,
     RecordOverrun,
     chunk_header,
     decode_chunk,
     iter_records,
+    parse_message_index,
     parse_record,
     summary_crc,
     walk_records,
@@ -439,15 +439,15 @@ class _Verifier:
         if current is None:
             self.problem("stray_message_index", "a message index record that follows no chunk", offset=offset)
             return
-        cid, array_len = MESSAGE_INDEX_BODY.unpack_from(body, 0)
+        cid = MESSAGE_INDEX_BODY.unpack_from(body, 0)[0]
         topic = self.channels[cid].topic if cid in self.channels else f"#{cid}"
-        if 6 + array_len != len(body) or array_len % 16:
-            self.problem("bad_message_index", f"its array length {array_len} does not fit its record", offset=offset,
-                         channel=topic)
+        try:
+            entries = sorted(parse_message_index(body)[1])
+        except ValueError as err:
+            self.problem("bad_message_index", str(err), offset=offset, channel=topic)
             return
         current.index_offsets[cid] = offset
         current.index_end = offset + RECORD_HEADER.size + len(body)
-        entries = sorted(MESSAGE_INDEX_ENTRY.iter_unpack(body[6:]))
         if entries != sorted(current.positions.get(cid, [])):
             self.problem("message_index_mismatch", f"the message index of the chunk at {current.offset} does not "
                          "list the chunk's messages of this channel", offset=offset, channel=topic)
@@ -650,6 +650,8 @@ class ChainReport:
     path: str
     files: list[VerifyReport] = field(default_factory=list)
     chain_problems: list[Problem] = field(default_factory=list)
+    base_checked: bool = True  # False when the newest file is a layer checked alone
+    missing_base: str = ""  # the base that is missing (or a file of its own chain), when one is
 
     @property
     def problems(self) -> list[Problem]:
@@ -681,15 +683,19 @@ class ChainReport:
 
     def verdict(self) -> str:
         """One line for the whole log."""
-        if len(self.files) == 1 and not self.chain_problems:
+        if len(self.files) == 1 and self.base_checked and not self.chain_problems:
             return self.files[0].verdict()
+        what = (f"a layer checked alone (its base was not checked: verify {self.path} without --file-only)"
+                if not self.base_checked else
+                f"a chain of {len(self.files)} files whose base {self.missing_base} could not be checked"
+                if self.missing_base else f"a chain of {len(self.files)} files")
         bad = [f.path for f in self.files if not f.ok]
-        errors = [p for p in self.chain_problems if p.severity == "error"]
-        what = f"a chain of {len(self.files)} files" if len(self.files) > 1 else "a layer checked alone"
+        errors = sorted({p.kind for p in self.chain_problems if p.severity == "error"})
         if not bad and not errors:
-            return f"OK: {self.path} is {what}, every file valid and every base the file its layer was written on."
-        parts = [f"damaged files: {', '.join(bad)}"] if bad else []
-        parts += [f"chain errors: {', '.join(sorted({p.kind for p in errors}))}"] if errors else []
+            checked = "" if not self.base_checked else ", every base the file its layer was written on"
+            return f"OK: {self.path} is {what}: every file valid{checked}."
+        parts = [f"damaged files: {', '.join(bad)} (keep what is intact with starlog recover)"] if bad else []
+        parts += [f"chain errors: {', '.join(errors)} (see above)"] if errors else []
         return f"DAMAGED: {self.path} is {what}; {'; '.join(parts)}."
 
     def to_dict(self) -> dict[str, Any]:
@@ -705,44 +711,58 @@ def verify_log(path: str | os.PathLike[str], *, chain: bool = True,
     """Check every record of the log at ``path`` and, for a layer, of every file of its chain (``chain=False``:
     the file alone); never raises for a damaged file.
 
-    Besides each file's own checks (:func:`verify_file`): each base is where its layer says, of the size,
-    summary CRC and SHA-256 the layer recorded, the digests of its own chain are those the layer
-    recorded, and schema ids, channel ids and topics are unique across the chain. ``on_progress`` is
-    called with the bytes checked so far and the bytes of the files found so far.
+    Besides each file's own checks (:func:`verify_file`): each base is the file its layer recorded (where,
+    size, CRCs, SHA-256), the digests of its own chain are those the layer recorded, and schema ids, channel
+    ids and topics are unique across the chain. ``on_progress`` is called with the bytes checked so far and
+    the bytes of the files found so far.
     """
     report = ChainReport(str(path))
-    layer, found, done = Path(path), [], 0
+    layer, verified, done = Path(path), [], 0
     total = layer.stat().st_size if layer.is_file() else 0
 
     def progress(offset: int) -> None:
         if on_progress is not None:
             on_progress(done + offset, total)
 
-    expected: tuple[BaseReference, BackgroundDigest] | None = None
+    expected: tuple[Path, BaseReference, BackgroundDigest] | None = None
     while True:
         file_report, verifier = _verify_file(layer, progress)
         report.files.insert(0, file_report)
-        found.append((layer, verifier))
+        verified.append(verifier)
         done += file_report.size
         reference = _base_record(report, layer, verifier)
         if expected is not None:
-            _check_base(report, found[-2][0], layer, *expected, reference)
-        if not chain or reference is None:
-            if reference is not None:
-                report.chain_problems.append(Problem("base_not_checked", "note", f"{layer} is a layer on "
-                                               f"{reference.describe()}, not checked here (--file-only)"))
+            _check_base(report, *expected, reference)
+        if reference is None:
             break
-        base = reference.resolve(layer)
-        if not base.is_file() or any(os.path.samefile(base, p) for p, _ in found):
-            why = "is missing" if not base.is_file() else "is a file of its own chain"
-            report.chain_problems.append(Problem("base_missing", "error", f"the base of {layer}, {base}, {why}; the layer "
-                                           f"was written on {reference.describe()}"))
+        if not chain:
+            report.base_checked = False
+            break
+        base = _followable_base(report, layer, reference, [Path(f.path) for f in report.files])
+        if base is None:
             break
         total += base.stat().st_size
-        expected = (reference, BackgroundDigest(base))
+        expected = (layer, reference, BackgroundDigest(base))
         layer = base
-    _check_ids(report, [v for _, v in reversed(found) if v is not None])
+    _check_ids(report, [v for v in reversed(verified) if v is not None])
     return report
+
+
+def _followable_base(report: ChainReport, layer: Path, reference: BaseReference, seen: list[Path]) -> Path | None:
+    """The base of ``layer`` when it can be checked next; else None, with the problem reported."""
+    base = reference.resolve(layer)
+    problem = ("is missing" if not base.is_file() else
+               "is a file of its own chain" if any(os.path.samefile(base, p) for p in seen if p.is_file()) else None)
+    if problem is not None:
+        report.chain_problems.append(_base_problem("base_missing" if problem == "is missing" else "base_cycle",
+                                                   layer, base, reference, problem))
+        report.missing_base = str(base)
+        return None
+    return base
+
+
+def _base_problem(kind: str, layer: Path, base: Path, reference: BaseReference, problem: str) -> Problem:
+    return Problem(kind, "error", str(BaseMismatchError(layer, base, reference.describe(), problem)))
 
 
 def _base_record(report: ChainReport, layer: Path, verifier: _Verifier | None) -> BaseReference | None:
@@ -756,22 +776,25 @@ def _base_record(report: ChainReport, layer: Path, verifier: _Verifier | None) -
         return None
 
 
-def _check_base(report: ChainReport, layer: Path, base: Path, reference: BaseReference, digest: BackgroundDigest,
+def _check_base(report: ChainReport, layer: Path, reference: BaseReference, digest: BackgroundDigest,
                 base_reference: BaseReference | None) -> None:
-    """Size, summary CRC, SHA-256 and chain digests of ``base`` against what ``layer`` recorded of it."""
-    def problem(kind: str, what: str) -> None:
-        report.chain_problems.append(Problem(kind, "error", f"the base of {layer}, {base}, {what}; the layer was "
-                                                            f"written on {reference.describe()}"))
-
-    changed = base_problem(base, reference)
-    if changed is not None:
-        problem("base_changed", changed)
-    sha256 = digest.result()
+    """Size, CRCs, SHA-256 and chain digests of the base of ``layer`` against what the layer recorded of it."""
+    base = reference.resolve(layer)
+    try:
+        open_base(layer, reference).close()
+    except BaseMismatchError as err:
+        report.chain_problems.append(_base_problem("base_changed", layer, base, reference, err.problem))
+    try:
+        sha256 = digest.result()
+    except OSError as err:
+        sha256 = f"unreadable ({err.strerror or err})"
     if sha256 != reference.sha256:
-        problem("base_digest", f"has SHA-256 {sha256}")
+        report.chain_problems.append(_base_problem("base_digest", layer, base, reference, f"has SHA-256 {sha256}"))
     below = () if base_reference is None else (base_reference.sha256, *base_reference.chain)
     if below != reference.chain:
-        problem("chain_mismatch", f"stands on files of SHA-256 {list(below)}, not {list(reference.chain)}")
+        report.chain_problems.append(_base_problem("chain_mismatch", layer, base, reference,
+                                                   f"stands on files of SHA-256 {list(below)}, not the "
+                                                   f"{list(reference.chain)} recorded"))
 
 
 def _check_ids(report: ChainReport, verifiers: list[_Verifier]) -> None:

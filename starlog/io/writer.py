@@ -9,7 +9,7 @@ Why not :class:`mcap.writer.Writer` directly? Three things it does not do:
 * **compress on several cores** — chunks are compressed on a thread pool (zstd and lz4
   release the GIL) and written in order, so the bytes do not depend on the number of workers;
 * **copy records of other files** as they are (chunks, message indexes, metadata), for
-  ``filter`` and ``flatten`` (:mod:`starlog.io.slicing`).
+  ``filter`` and ``flatten`` (:mod:`starlog.io.copying`).
 
 Each channel gets chunks of its own, so a reader of small channels (centroids, truth) never
 decompresses image chunks; the open chunks of all channels are closed together. Every JSON
@@ -27,10 +27,10 @@ previous file, never a half-written one under the final name.
 from __future__ import annotations
 
 import os
-import struct
 import tempfile
 from collections import defaultdict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import Enum
@@ -57,12 +57,18 @@ from mcap.records import (
 )
 
 from starlog import __version__
-from starlog.errors import CorruptLogError, InvalidInputError, InvalidParameterError, OutputExistsError, OutputFolderError
+from starlog.errors import (
+    CorruptLogError,
+    InvalidInputError,
+    InvalidParameterError,
+    OutputExistsError,
+    OutputFolderError,
+)
 from starlog.io.chain import BASE_METADATA_NAME
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
 from starlog.io.checksum import crc32
 from starlog.io.chunk_indexes import ChunkIndexTable
-from starlog.io.layout import CHUNK_HEADER, MAGIC, RECORD_HEADER, footer_crc, message_index_record
+from starlog.io.layout import MAGIC, chunk_record, footer_crc, message_index_record
 from starlog.io.messages import decode_json
 from starlog.io.schemas import MessageType
 
@@ -70,7 +76,7 @@ if TYPE_CHECKING:
     from starlog.io.chain import LayerBase
     from starlog.io.mcap_file import McapFile
 
-__all__ = ["Compression", "LogWriter", "VALIDATED_METADATA_KEY", "temporary_output"]
+__all__ = ["Compression", "LogWriter", "VALIDATED_METADATA_KEY", "temporary_folder", "temporary_output"]
 
 #: Channel metadata key set by :class:`LogWriter` on the JSON channels whose every message it
 #: checked against the channel's JSON Schema while writing.
@@ -128,6 +134,15 @@ def temporary_output(output: Path) -> tuple[int, Path]:
     return fd, Path(tmp)
 
 
+@contextmanager
+def temporary_folder(beside: Path) -> Iterator[Path]:
+    """A new hidden folder beside ``beside`` (e.g. for the layers of a chain that is then flattened into
+    ``beside``), removed at the end whatever happens."""
+    OutputFolderError.check(beside)
+    with tempfile.TemporaryDirectory(prefix=f".{beside.name}.", suffix=".layers", dir=beside.parent or ".") as name:
+        yield Path(name)
+
+
 @dataclass
 class _PendingChunk:
     future: Future[tuple[bytes, int]]
@@ -182,22 +197,17 @@ class LogWriter:
         layer: LayerBase | None = None,
         validate: bool = True,
         profile: str = "",
+        inputs: Iterable[str | os.PathLike[str]] = (),
     ) -> None:
         self.path = Path(path)
         try:
-            self.compression = Compression(compression)
-        except ValueError as err:
-            raise InvalidParameterError(
-                f"unknown compression {compression!r}; choose one of {[c.value for c in Compression]}."
-            ) from err
-        if chunk_size < 1024:
-            raise InvalidParameterError(f"chunk_size must be at least 1024 bytes, got {chunk_size}.")
-        if workers < 1:
-            raise InvalidParameterError(f"workers must be >= 1, got {workers}.")
-        if self.path.exists() and not force:
-            raise OutputExistsError(self.path)
-        if layer is not None and os.path.abspath(layer.path) == os.path.abspath(self.path):
-            raise InvalidParameterError(f"the output {self.path} must differ from the input log.")
+            self._check_options(compression, chunk_size, workers, force, [*(layer.chain_paths if layer else ()),
+                                                                           *inputs])
+        except BaseException:
+            if layer is not None:
+                layer.cancel()
+            raise
+        self.compression = Compression(compression)
         self.chunk_size = chunk_size
         self.workers = workers
         self.validate = validate
@@ -223,9 +233,8 @@ class LogWriter:
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
-        OutputFolderError.check(self.path)
         fd, self._tmp_path = temporary_output(self.path)
-        self._file: BinaryIO = os.fdopen(fd, "w+b", buffering=1024 * 1024)
+        self._file = _DataSectionFile(os.fdopen(fd, "w+b", buffering=1024 * 1024))
         try:
             self._file.write(MAGIC)
             Header(profile=profile, library=LIBRARY).write(self._records)
@@ -233,6 +242,24 @@ class LogWriter:
         except BaseException:
             self.abort()
             raise
+
+    def _check_options(self, compression: Compression | str, chunk_size: int, workers: int, force: bool,
+                       inputs: list[str | os.PathLike[str]]) -> None:
+        """Refuse what cannot be written: bad options, an existing output (without ``force``), an output that is
+        one of the files it is written from (the files of a layer's chain, ``inputs``), a missing folder."""
+        if compression not in [c.value for c in Compression] + list(Compression):
+            raise InvalidParameterError(
+                f"unknown compression {compression!r}; choose one of {[c.value for c in Compression]}.")
+        if chunk_size < 1024:
+            raise InvalidParameterError(f"chunk_size must be at least 1024 bytes, got {chunk_size}.")
+        if workers < 1:
+            raise InvalidParameterError(f"workers must be >= 1, got {workers}.")
+        if self.path.exists() and any(os.path.exists(p) and os.path.samefile(self.path, p) for p in inputs):
+            raise InvalidParameterError(f"the output {self.path} is one of the files it is written from; choose "
+                                        "another name (an input is never overwritten).")
+        if self.path.exists() and not force:
+            raise OutputExistsError(self.path)
+        OutputFolderError.check(self.path)
 
     # ------------------------------------------------------------------ context manager
     def __enter__(self) -> LogWriter:
@@ -550,19 +577,13 @@ class LogWriter:
 
     def _write_chunk(self, pending: _PendingChunk) -> None:
         compressed, crc = pending.future.result()
-        f = self._file
-        compression = b"" if self.compression is Compression.NONE else self.compression.value.encode()
-        body_len = CHUNK_HEADER.size + 4 + len(compression) + 8 + len(compressed)
-        chunk_start = f.tell()
-        f.write(RECORD_HEADER.pack(Opcode.CHUNK, body_len))
-        f.write(CHUNK_HEADER.pack(pending.start_time, pending.end_time, pending.uncompressed_size, crc))
-        f.write(struct.pack("<I", len(compression)))
-        f.write(compression)
-        f.write(struct.pack("<Q", len(compressed)))
-        f.write(compressed)
-        self._write_chunk_index(chunk_start, f.tell() - chunk_start, pending.start_time, pending.end_time,
-                                pending.message_indices, compression.decode(), len(compressed),
-                                pending.uncompressed_size)
+        compression = "" if self.compression is Compression.NONE else self.compression.value
+        chunk_start = self._file.tell()
+        for piece in chunk_record(pending.start_time, pending.end_time, pending.uncompressed_size, crc, compression,
+                                  compressed):
+            self._file.write(piece)
+        self._write_chunk_index(chunk_start, self._file.tell() - chunk_start, pending.start_time, pending.end_time,
+                                pending.message_indices, compression, len(compressed), pending.uncompressed_size)
 
     def _write_chunk_index(self, chunk_start: int, chunk_length: int, start_time: int, end_time: int,
                            indices: dict[int, list[tuple[int, int]]], compression: str, compressed_size: int,
@@ -582,7 +603,7 @@ class LogWriter:
         self._stats.chunk_count += 1
 
     def _write_summary(self) -> None:
-        DataEnd(data_section_crc=0).write(self._records)
+        DataEnd(data_section_crc=self._file.crc).write(self._records)
         self._flush_records()
         summary_start = self._file.tell()
         out = _SummarySink(self._file)
@@ -618,13 +639,38 @@ class LogWriter:
         self._file.write(MAGIC)
 
 
+class _DataSectionFile:
+    """The output file, keeping the CRC-32 of every byte written to it (until the summary, that of the data
+    section, which the DataEnd record stores: the reference MCAP writers do the same)."""
+
+    def __init__(self, file: BinaryIO) -> None:
+        self._file = file
+        self.crc = 0
+
+    def write(self, data: bytes | memoryview) -> int:
+        self.crc = crc32(data, self.crc)
+        return self._file.write(data)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def fileno(self) -> int:
+        return self._file.fileno()
+
+    def close(self) -> None:
+        self._file.close()
+
+
 class _SummarySink:
     """The summary section written to the file as it is made (a few MiB at a time), with its CRC:
     the summary of an hour-long log (millions of chunk indexes) is never held whole."""
 
     _FLUSH_AT = 4 << 20
 
-    def __init__(self, file: BinaryIO) -> None:
+    def __init__(self, file: _DataSectionFile) -> None:
         self._file = file
         self._parts: list[bytes] = []
         self._pending = 0

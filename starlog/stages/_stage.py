@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -11,14 +10,15 @@ from pathlib import Path
 from typing import Any
 
 from starlog import __version__
-from starlog.errors import OutputExistsError, OutputFolderError
+from starlog.errors import OutputExistsError
 from starlog.io import LogReader, LogWriter, Provenance
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.io.reader import LogSource, LogView
 from starlog.io.schemas import MessageType
-from starlog.io.slicing import flatten_log
+from starlog.io.copying import flatten_log
+from starlog.io.writer import temporary_folder
 
-__all__ = ["StageOutput", "extend_log", "flattened_output", "hidden_layer"]
+__all__ = ["StageOutput", "extend_log", "layer_path_for"]
 
 
 @dataclass
@@ -64,7 +64,7 @@ def extend_log(
     """
     if isinstance(input_path, LogView):
         parameters = {**parameters, "range": input_path.window.to_dict()}
-    with flattened_output(Path(output_path), flatten=flatten, force=force) as layer_path, \
+    with layer_path_for(Path(output_path), flatten=flatten, force=force) as layer_path, \
             LogReader(input_path) as reader:
         base = reader.layer_base()
         with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression,
@@ -77,27 +77,16 @@ def extend_log(
 
 
 @contextmanager
-def flattened_output(output: Path, *, flatten: bool, force: bool) -> Iterator[Path]:
-    """Where to write a layer meant for ``output``: ``output`` itself, or (``flatten``) a hidden file beside it,
-    whose chain is flattened into ``output`` once the block succeeds, and which is then removed."""
+def layer_path_for(output: Path, *, flatten: bool, force: bool) -> Iterator[Path]:
+    """Where to write a layer meant for ``output``: ``output`` itself, or (``flatten``) a file in a hidden
+    folder beside it, whose chain is flattened into ``output`` once the block succeeds; the folder is
+    removed whatever happens."""
     if not flatten:
         yield output
         return
     if output.exists() and not force:
         raise OutputExistsError(output)
-    with hidden_layer(output, "layer") as layer:
+    with temporary_folder(output) as folder:
+        layer = folder / output.name
         yield layer
         flatten_log(layer, output, force=True)
-
-
-@contextmanager
-def hidden_layer(beside: Path, label: str) -> Iterator[Path]:
-    """A new hidden path beside ``beside`` (same folder: a layer's base is named relative to it), removed at the
-    end whatever happens."""
-    OutputFolderError.check(beside)
-    fd, name = tempfile.mkstemp(prefix=f".{beside.name}.", suffix=f".{label}.mcap", dir=beside.parent or ".")
-    os.close(fd)
-    try:
-        yield Path(name)
-    finally:
-        Path(name).unlink(missing_ok=True)

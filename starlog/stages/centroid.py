@@ -53,7 +53,8 @@ from starlog.stages._blocks import channel_blocks, worker_log
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
-from starlog.stages._slice import LogSource, time_sliced
+from starlog.io.reader import LogSource
+from starlog.stages.window import windowed
 from starlog.stages._stage import extend_log
 
 __all__ = ["CentroidSummary", "centroid_log", "parse_methods"]
@@ -125,7 +126,7 @@ def _camera_from_provenance(log: LogReader) -> dict[str, float]:
     return {}
 
 
-@time_sliced(lambda log, options: choose_image_topic(log.path, log.channels(), options.get("image_topic"))[0])
+@windowed(lambda log, options: choose_image_topic(log.path, log.channels(), options.get("image_topic"))[0])
 def centroid_log(
     input_path: str | os.PathLike[str],
     output_path: str | os.PathLike[str],

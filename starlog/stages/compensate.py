@@ -57,7 +57,7 @@ from starlog.motion import star_reference
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._channels import check_messages_read, select_track_channels
-from starlog.stages._slice import time_sliced
+from starlog.stages.window import windowed
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.motion import estimate_track_motion
 
@@ -307,7 +307,7 @@ def parse_protocols(spec: str | Sequence[str], *, has_truth: bool) -> list[Scori
     return list(dict.fromkeys(out))
 
 
-@time_sliced(lambda log, options: select_track_channels(log, options.get("track"))[0].topic)
+@windowed(lambda log, options: select_track_channels(log, options.get("track"))[0].topic)
 def compensate_log(
     input_path: str | os.PathLike[str],
     output_path: str | os.PathLike[str],
@@ -361,7 +361,9 @@ def compensate_log(
         A progress bar over the evaluations (stderr).
     start, end : str or int, optional
         Only the range ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the first
-        track channel; :mod:`starlog.io.timerange`): the output holds that range of every channel.
+        track channel; :mod:`starlog.io.timerange`): the layer holds its channels for that range.
+    flatten : bool
+        Write the whole chain as one self-contained file instead of a layer on the input.
     """
     if not rates:
         raise InvalidParameterError("give at least one rate (--rate HZ).")

@@ -39,7 +39,7 @@ from starlog.stage_api import KINDS, Message, Output, Stage
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
-from starlog.stages._slice import time_sliced
+from starlog.stages.window import windowed
 from starlog.stages._stage import extend_log
 
 __all__ = ["StageSummary", "choose_inputs", "run_stage"]
@@ -97,7 +97,7 @@ def run_stage(
     def first_input(log: LogReader, _: dict[str, Any]) -> str:
         return choose_inputs(stage, log, input_topic)[0][0]
 
-    run = time_sliced(first_input)(_run_whole)
+    run = windowed(first_input)(_run_whole)
     return run(input_path, output_path, stage, options=options, input_topic=input_topic, workers=workers, force=force,
                flatten=flatten, compression=compression, show_progress=show_progress, start=start, end=end)
 
@@ -123,7 +123,8 @@ def _run_whole(input_path: Any, output_path: str | os.PathLike[str], stage: Stag
                     compression=compression, workers=workers) as (log, out):
         for topic, outputs in plan:
             ids = [out.add_channel(t, o.message_type) for t, o in outputs]
-            batch = _Batch(stage.reference, tuple(sys.path), str(source_path(input_path)), topic, images[topic], chosen, outputs)
+            batch = _Batch(stage.reference, tuple(sys.path), str(source_path(input_path)), topic, images[topic], chosen,
+                           outputs)
             summary.messages += _run_channel(log, out.writer, stage, batch, ids, summary.records, workers=workers,
                                              show_progress=show_progress)
         summary.notes += [n for n in log.notes if n not in summary.notes]

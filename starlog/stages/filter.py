@@ -3,7 +3,7 @@
 Both select channels by :mod:`fnmatch` globs (``--topic``, ``--exclude-topic``) and messages by
 ``--start`` / ``--end`` (half-open, :mod:`starlog.io.timerange`). ``frame:N`` counts the messages
 of ``frame_topic``: by default the only channel selected, else the log's image channel (as the
-stages choose it). ``filter`` writes a new log through :func:`starlog.io.slicing.slice_log`
+stages choose it). ``filter`` writes a new log through :func:`starlog.io.copying.copy_log`
 (chunks kept whole are copied byte for byte) and records its own provenance; ``cat`` streams
 each message as one JSON object (:mod:`starlog.io.message_json`).
 """
@@ -20,7 +20,7 @@ from starlog.io.images import choose_image_topic
 from starlog.io.message_json import MessageRenderer
 from starlog.io.provenance import BackgroundDigest, Provenance
 from starlog.io.reader import LogReader
-from starlog.io.slicing import SliceReport, TopicSelection, check_topics_exist, frame_time_lookup, slice_log
+from starlog.io.copying import CopyReport, TopicSelection, check_topics_exist, frame_time_lookup, copy_log
 from starlog.io.timerange import ResolvedRange, TimeRange
 
 __all__ = ["cat_messages", "filter_log"]
@@ -73,7 +73,7 @@ def filter_log(
     frame_topic: str | None = None,
     force: bool = False,
     compression: str = "zstd",
-) -> SliceReport:
+) -> CopyReport:
     """Write the channels matching ``topics`` (default: all) and not ``exclude_topics``, in ``[start, end)``.
 
     Keeps schemas, metadata (provenance) and attachments in the range; adds a provenance record
@@ -88,7 +88,7 @@ def filter_log(
             resolved = _resolve(log, TimeRange.parse(start, end), chosen, frame_topic)
         parameters: dict[str, Any] = {**selection.to_dict(),
                                       "range": None if resolved is None else resolved.to_dict()}
-        report = slice_log(input_path, output_path, topics=selection, time_range=resolved, force=force,
+        report = copy_log(input_path, output_path, topics=selection, time_range=resolved, force=force,
                            compression=compression,
                            provenance=lambda: Provenance(stage="filter", version=__version__, parameters=parameters,
                                                          input_digest=digest.result(), channels=[]))

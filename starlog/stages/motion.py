@@ -30,7 +30,7 @@ from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import LogReader
 from starlog.motion import Observations, PlatformEstimate, PlatformModel, estimate_platform
 from starlog.stages._channels import check_messages_read, select_track_channels
-from starlog.stages._slice import time_sliced
+from starlog.stages.window import windowed
 from starlog.stages._stage import StageOutput, extend_log
 
 __all__ = ["MotionSummary", "TrackObservations", "image_centre", "motion_log", "read_track_observations",
@@ -136,7 +136,7 @@ def _channel_summary(data: TrackObservations, est: PlatformEstimate, min_stars: 
     }
 
 
-@time_sliced(lambda log, options: select_track_channels(log, options.get("track"))[0].topic)
+@windowed(lambda log, options: select_track_channels(log, options.get("track"))[0].topic)
 def motion_log(
     input_path: str | os.PathLike[str],
     output_path: str | os.PathLike[str],
@@ -163,7 +163,9 @@ def motion_log(
         max_iterations, tol, max_rejections).
     start, end : str or int, optional
         Only the range ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the first
-        track channel; :mod:`starlog.io.timerange`): the output holds that range of every channel.
+        track channel; :mod:`starlog.io.timerange`): the layer holds its channels for that range.
+    flatten : bool
+        Write the whole chain as one self-contained file instead of a layer on the input.
     """
     try:
         fit = PlatformModel(str(model).lower())

@@ -41,7 +41,7 @@ from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._spool import Spool, opened, read_block, read_blocks, write_block
-from starlog.stages._slice import time_sliced
+from starlog.stages.window import windowed
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.track import (
     MotionModel,
@@ -289,7 +289,7 @@ def _configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
         raise InvalidParameterError(f"unknown tracker option: {err}.") from err
 
 
-@time_sliced(lambda log, options: topics.centroid_topic(str(options["method"]).upper()))
+@windowed(lambda log, options: topics.centroid_topic(str(options["method"]).upper()))
 def track_log(
     input_path: str | os.PathLike[str],
     output_path: str | os.PathLike[str],
@@ -322,7 +322,9 @@ def track_log(
         the messages) and threads compressing the output's chunks. The output does not depend on it.
     start, end : str or int, optional
         Only the range ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the centroid
-        channel; :mod:`starlog.io.timerange`): the output holds that range of every channel.
+        channel; :mod:`starlog.io.timerange`): the layer holds its channels for that range.
+    flatten : bool
+        Write the whole chain as one self-contained file instead of a layer on the input.
     """
     chosen = parse_models(models)
     configs = _configs(chosen, tracker, motion)

@@ -18,10 +18,10 @@ from typing import Any, TypeVar
 
 from starlog.errors import InvalidParameterError
 from starlog.io.reader import LogReader, LogSource, LogView, source_path
-from starlog.io.slicing import frame_time_lookup
+from starlog.io.copying import frame_time_lookup
 from starlog.io.timerange import ResolvedRange, TimeRange
 
-__all__ = ["LogSource", "time_sliced", "window_of"]
+__all__ = ["window_of", "windowed"]
 
 FrameTopic = Callable[[LogReader, dict[str, Any]], str]
 F = TypeVar("F", bound=Callable[..., Any])
@@ -57,7 +57,7 @@ def window_of(source: str | os.PathLike[str], time_range: TimeRange | None, fram
     return view
 
 
-def time_sliced(frame_topic: FrameTopic) -> Callable[[F], F]:
+def windowed(frame_topic: FrameTopic) -> Callable[[F], F]:
     """Give a stage function ``start`` / ``end`` keywords: with either, the stage runs on that window.
 
     ``frame_topic(log, keywords)`` names the channel ``frame:N`` counts, from the stage's keywords.
