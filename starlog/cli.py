@@ -76,9 +76,13 @@ def output_option(help_text: str = "Output log (.mcap). Written atomically.") ->
                         help=help_text)
 
 
+def quiet_option(f: F) -> F:
+    return click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)(f)
+
+
 def write_options(f: F) -> F:
     """--force, --compression, --workers, --quiet."""
-    f = click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)(f)
+    f = quiet_option(f)
     f = click.option("--workers", type=click.IntRange(1, 256), default=os.cpu_count() or 1,
                      show_default="all cores",
                      help="Cores for per-frame work, image decoding and chunk compression; the output "
@@ -323,7 +327,8 @@ def ingest(source: Path, output: Path, fps: float | None, start_ns: int, time_pa
 @cli.command(context_settings=CONTEXT)
 @input_log
 @json_option
-def info(log: Path, as_json: bool) -> None:
+@quiet_option
+def info(log: Path, as_json: bool, quiet: bool) -> None:
     """Show a log's channels, time range and the provenance of every stage.
 
     \b
@@ -336,8 +341,10 @@ def info(log: Path, as_json: bool) -> None:
     description = describe_log(log)
     if as_json:
         _print_json(description)
-    else:
-        click.echo(format_description(description))
+        return
+    click.echo(format_description(description))
+    for note in description["notes"]:  # how the log was read, not what it holds
+        _status(quiet, f"note: {note}")
 
 
 # ---------------------------------------------------------------- export
@@ -371,7 +378,7 @@ def _report_batch(outcomes: list[Any], as_json: bool, describe: Callable[[Any], 
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
               help="With several logs: local Dask workers.")
 @scheduler_option
-@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@quiet_option
 @json_option
 def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], export_topics: tuple[str, ...], force: bool,
            workers: int, scheduler: str | None, quiet: bool, as_json: bool) -> None:
@@ -493,7 +500,8 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
         _print_json(d)
     else:
         for method, count in d["centroids"].items():
-            click.echo(f"  {method:<15} {count:>8} centroids, {d['fit_failed'][method]} fit failures")
+            click.echo(f"  {method:<15} {count:>8} centroids, {d['fit_failed'][method]} not measured (flag "
+                       "FIT_FAILED: the detection's position kept)")
 
 
 # ---------------------------------------------------------------- track
@@ -654,7 +662,7 @@ def format_records(records: list[dict[str, Any]]) -> str:
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Processes for the (track, rate, protocol) evaluations; pays off for many of them (reading "
                    "the tracks dominates otherwise). The output does not depend on it.")
-@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@quiet_option
 @click.option("--burn-in", "burn_in", default="auto", show_default=True, metavar="auto|off|SECONDS", help=BURN_IN_HELP)
 def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str, motion: str,
                settings: tuple[str, ...], start: str | None, end: str | None, as_json: bool, flatten: bool,
@@ -817,7 +825,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
               help="Local Dask workers for the independent runs (1: serial).")
 @scheduler_option
 @click.option("--force", is_flag=True, help="Overwrite an existing output folder's results.")
-@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@quiet_option
 @json_option
 @click.option("--burn-in", "burn_in", default="auto", show_default=True, metavar="auto|off|SECONDS", help=BURN_IN_HELP)
 def experiment(output: Path, quick: bool, sweep: bool, regimes: tuple[str, ...], top_k: int, force_top_k: bool,
@@ -877,7 +885,7 @@ def topic_selection_options(f: F) -> F:
 @click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
               help="Compression of the chunks that must be re-encoded (those only partly kept); chunks kept whole "
                    "are copied as they are.")
-@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@quiet_option
 @json_option
 def filter_command(log: Path, output: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...],
                    frame_topic: str | None, start: str | None, end: str | None, force: bool, compression: str,
@@ -915,8 +923,9 @@ def filter_command(log: Path, output: Path, topics: tuple[str, ...], exclude_top
 @topic_selection_options
 @time_range_options("--frame-topic", COPY_RANGE)
 @click.option("--limit", type=click.IntRange(0), help="Stop after this many messages.")
+@quiet_option
 def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], frame_topic: str | None,
-        start: str | None, end: str | None, limit: int | None) -> None:
+        start: str | None, end: str | None, limit: int | None, quiet: bool) -> None:
     """Print messages as JSON lines, in log_time order, for jq and scripts.
 
     Each line is {"topic", "log_time", "publish_time", "sequence", "message"}. starlog's JSON
@@ -932,14 +941,17 @@ def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], fra
     """
     from starlog.stages.filter import cat_messages
 
+    notes: list[str] = []
     lines = cat_messages(log, topics=topics, exclude_topics=exclude_topics, start=start, end=end,
-                         frame_topic=frame_topic, limit=limit)
+                         frame_topic=frame_topic, limit=limit, notes=notes)
     out = sys.stdout
     try:
         for line in lines:
             out.write(json.dumps(line, separators=(",", ":"), allow_nan=False))
             out.write("\n")
         out.flush()
+        for note in notes:  # how the log was read
+            _status(quiet, f"note: {note}")
     except BrokenPipeError:  # the reader (head, jq ...) has what it wanted: stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, out.fileno())  # the interpreter's final flush must not fail again
@@ -952,7 +964,8 @@ def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], fra
 @output_option("Output HTML file; one self-contained file (no network needed to view it). Written atomically.")
 @click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
 @json_option
-def report_command(log: Path, output: Path, force: bool, as_json: bool) -> None:
+@quiet_option
+def report_command(log: Path, output: Path, force: bool, as_json: bool, quiet: bool) -> None:
     """Write an HTML report of a log: figures and tables of every stage it holds.
 
     A frame with its centroids, the tracks of every star, the brightest star's error and its
@@ -971,11 +984,10 @@ def report_command(log: Path, output: Path, force: bool, as_json: bool) -> None:
 
     data = collect_report_data(log)
     write_text_atomic(output, render_report(data), force=force)
+    _status(quiet, f"wrote {output}" + (f" ({len(data.missing)} parts missing: {', '.join(data.missing)})"
+                                        if data.missing else ""))
     if as_json:
         _print_json({"output": str(output), "missing": data.missing})
-    else:
-        click.echo(f"wrote {output}" + (f" ({len(data.missing)} parts missing: {', '.join(data.missing)})"
-                                        if data.missing else ""))
 
 
 # ---------------------------------------------------------------- recover
@@ -984,7 +996,8 @@ def report_command(log: Path, output: Path, force: bool, as_json: bool) -> None:
 @output_option("Output log (.mcap), complete and fully indexed.")
 @click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
 @json_option
-def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
+@quiet_option
+def recover(log: Path, output: Path, force: bool, as_json: bool, quiet: bool) -> None:
     """Rebuild a readable, indexed log from a truncated, unfinished or damaged one.
 
     Keeps every complete message (chunks whose bytes are whole and whose CRC checks) and the
@@ -1004,7 +1017,8 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
     if as_json:
         _print_json(report.to_dict())
         return
-    click.echo(f"wrote {output}: {sum(report.kept_by_topic.values())} messages kept"
+    _status(quiet, f"wrote {output}")
+    click.echo(f"{sum(report.kept_by_topic.values())} messages kept"
                f"{'' if report.had_footer else f', the last {report.tail_bytes_lost} bytes were unreadable'}")
     if report.base:
         click.echo(f"  a layer on {report.base}, as the input was")
@@ -1026,7 +1040,7 @@ def recover(log: Path, output: Path, force: bool, as_json: bool) -> None:
 @input_log
 @click.option("--file-only", is_flag=True, help="Check this one file alone, not the bases of a layer.")
 @json_option
-@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@quiet_option
 def verify(log: Path, file_only: bool, as_json: bool, quiet: bool) -> None:
     """Check every record of an MCAP log and report every problem found (like `mcap doctor`).
 
@@ -1087,7 +1101,7 @@ def _print_problems(problems: list[Any]) -> None:
 @input_log
 @output_option("Output log (.mcap): one self-contained file. Written atomically.")
 @click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
-@click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)
+@quiet_option
 @json_option
 def flatten(log: Path, output: Path, force: bool, quiet: bool, as_json: bool) -> None:
     """Write a layer and its chain (the log it extends, and so on) as one self-contained log.
@@ -1154,9 +1168,9 @@ def stage_command(declared: Any, name: str) -> click.Command:
     @click.command(name=name, context_settings=CONTEXT, help=help_text)
     @input_log
     @output_option()
-    @click.option("--input", "input_topic", metavar="TOPIC",
+    @click.option("--input-topic", "--input", "input_topic", metavar="TOPIC",
                   help=f"Channel to read, or all: each {declared.reads} channel in turn [default: the log's only "
-                       f"{declared.reads} channel].")
+                       f"{declared.reads} channel]. (--input is the same option.)")
     @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
                   help="Option of the stage (values parsed as JSON when they can be). Repeatable.")
     @time_range_options(f"the {declared.reads} channel the stage reads")

@@ -11,7 +11,8 @@ flattened into ``OUT.mcap``, one self-contained log. The built-in config is :dat
 
 Your own stages (:mod:`starlog.stage_api`) come after the built-in ones: one table
 ``[stages.NAME]`` each, with ``uses = "package.module:function"`` (or an installed stage's
-name), optionally ``input = "TOPIC"`` (or ``"all"``), and the stage's options. They run in the
+name), optionally ``input_topic = "TOPIC"`` (or ``"all"``; ``input`` is its old name), and the stage's
+options. They run in the
 order of their tables, so each can read what the stages before it wrote.
 """
 
@@ -328,13 +329,16 @@ def _custom_stages(tables: Any, *, source: str, folder: str | None) -> tuple[Cus
         where = f"{source}: [stages.{label}]"
         if not isinstance(table, dict):
             raise InvalidParameterError(f"{where} must be a table.")
-        uses, topic = table.get("uses"), table.get("input")
+        if "input" in table and "input_topic" in table:
+            raise InvalidParameterError(f"{where}: give input_topic once (input is its old name).")
+        uses, topic = table.get("uses"), table.get("input_topic", table.get("input"))
         if not isinstance(uses, str) or not uses:
             raise InvalidParameterError(f'{where} needs uses = "package.module:function" (or an installed '
                                         "stage's name).")
         if topic is not None and not isinstance(topic, str):
-            raise InvalidParameterError(f'{where}: input must be a topic, e.g. input = "/stars/centroids/GAUSSFIT".')
-        options = {k: v for k, v in table.items() if k not in ("uses", "input")}
+            raise InvalidParameterError(f'{where}: input_topic must be a topic, e.g. input_topic = '
+                                        '"/stars/centroids/GAUSSFIT".')
+        options = {k: v for k, v in table.items() if k not in ("uses", "input", "input_topic")}
         config = CustomStageConfig(str(label), uses, topic, options, (folder,) if folder else ())
         try:
             config.load().resolve_options(options, where=where)

@@ -166,6 +166,7 @@ def test_opening_a_chain_is_judged_on_the_cli_difference(bench):
 
 
 def test_failed_targets_are_named_in_one_line(bench):
-    assert bench.failed_summary([("a", True), ("b", True)]) is None
-    line = bench.failed_summary([("a", True), ("b fails", False), ("c fails", False)])
+    assert bench.failed_summary([("a", True), ("b", True), ("c (informational)", None)]) is None
+    line = bench.failed_summary([("a", True), ("b fails", False), ("c fails", False), ("d (n/a)", None)])
     assert line == "FAILED 2/3 targets: b fails | c fails" and "\n" not in line
+    assert [bench.verdict(ok) for ok in (True, False, None)] == ["PASS", "FAIL", "INFO"]

@@ -265,7 +265,7 @@ def test_run_with_custom_stages_equals_the_stages_one_by_one(stage_folder: Path,
     sim = tmp_path / "sim.mcap"
     simulate_log(small_config(n_frames=40), sim)
     config = _config(f'[centroid]\nmethods = ["NONE", "GAUSSFIT"]\n'
-                     f'[stages.bright]\nuses = "{MODULE}:brightest_flux"\ninput = "/stars/centroids/GAUSSFIT"\n'
+                     f'[stages.bright]\nuses = "{MODULE}:brightest_flux"\ninput_topic = "/stars/centroids/GAUSSFIT"\n'
                      f'min_snr = 5\n'
                      f'[stages.kilo]\nuses = "{MODULE}:kilo_flux"\nthreshold = 20000\n', stage_folder)
     (tmp_path / "run").mkdir()
@@ -304,7 +304,7 @@ def test_a_run_whose_stage_fails_leaves_only_its_input(stage_folder: Path, tmp_p
     (f'[stages.x]\nuses = "{MODULE}:SCHEMA"\n', "is not a declared stage"),
     (f'[stages.x]\nuses = "{MODULE}:brightest_flux"\nmin_snrr = 1\n',
      r"\[stages.x\]: unknown option\(s\) \['min_snrr'\]"),
-    (f'[stages.x]\nuses = "{MODULE}:brightest_flux"\ninput = 3\n', "input must be a topic"),
+    (f'[stages.x]\nuses = "{MODULE}:brightest_flux"\ninput = 3\n', "input_topic must be a topic"),
     ('[stages.x]\nuses = "not_installed_stage"\n', "no installed stage named 'not_installed_stage'"),
     ('[stage.x]\nuses = "a:b"\n', r"unknown table\(s\) \['stage'\]"),
 ])

@@ -213,16 +213,20 @@ def test_parallel_centroiding_gives_the_same_bytes(pipeline_logs: dict[str, Path
     assert (tmp_path / "w1.mcap").read_bytes() == (tmp_path / "w2.mcap").read_bytes()
 
 
-def test_parallel_tracking_gives_the_same_bytes(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:
-    """Models tracked in worker processes, or one after the other, write the same log (the CLI's too)."""
+@pytest.mark.parametrize("models", ["all", "STATIC"])
+def test_parallel_tracking_gives_the_same_bytes(pipeline_logs: dict[str, Path], tmp_path: Path, models: str) -> None:
+    """Models tracked in worker processes, or one model with its reading and encoding in worker processes, write
+    the log that tracking in this process writes (the CLI's too, for all models)."""
     for name in ("sim", "cen"):  # a layer names its base relative to itself: the same names beside it
         shutil.copy(pipeline_logs[name], tmp_path / pipeline_logs[name].name)
     for workers in (1, 2):
-        track_log(tmp_path / "cen.mcap", tmp_path / f"w{workers}.mcap", method="GAUSSFIT", models="all",
+        track_log(tmp_path / "cen.mcap", tmp_path / f"w{workers}.mcap", method="GAUSSFIT", models=models,
                   tracker={"sigma_floor": 0.05}, workers=workers)
     serial = (tmp_path / "w1.mcap").read_bytes()
     assert serial == (tmp_path / "w2.mcap").read_bytes()
-    assert serial == pipeline_logs["trk"].read_bytes()
+    if models == "all":
+        assert serial == pipeline_logs["trk"].read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cen.mcap", "sim.mcap", "w1.mcap", "w2.mcap"]
 
 
 def test_run_equals_the_stages_one_by_one(pipeline_logs: dict[str, Path], tmp_path: Path) -> None:

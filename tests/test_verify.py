@@ -361,3 +361,14 @@ def test_progress_is_reported_in_bytes_of_the_data_section(logs: dict[str, Path]
     assert done == sorted(set(done)) and 0 < done[0] and done[-1] < report.size
     result = CliRunner().invoke(cli, ["verify", str(logs["raw"]), "-q"])
     assert result.exit_code == 0 and result.output.startswith("OK: ")
+
+
+def test_a_truncated_log_counts_the_channels_read_as_recover_keeps_them(logs: dict[str, Path], tmp_path: Path) -> None:
+    from starlog.io.recover import recover_log
+
+    data = logs["sim"].read_bytes()
+    broken = tmp_path / "cut.mcap"
+    broken.write_bytes(data[: int(len(data) * 0.8)])
+    report = verify_log(broken)
+    kept = recover_log(broken, tmp_path / "rec.mcap").kept_by_topic
+    assert not report.ok and report.channels == len(kept) > 0 and report.messages >= sum(kept.values())

@@ -167,6 +167,4 @@ def format_description(info: dict[str, Any]) -> str:
             lines.append(f"epsf       {e['size_px']}x{e['size_px']} px, oversampling {e['oversampling']} "
                          f"(grid {e['grid'][0]}x{e['grid'][1]}), {e['n_stars']} stars, FWHM {e['fwhm_px']:.3f} px")
     lines += _phase_lines(info.get("phase_correction", []))
-    for note in info.get("notes", []):
-        lines.append(f"note: {note}")
     return "\n".join(lines)

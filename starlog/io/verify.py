@@ -627,6 +627,7 @@ def _verify_file(path: Path, on_progress: Callable[[int], object] | None) -> tup
             if envelope is None:
                 if not report.problems or report.problems[0].kind != "bad_magic":
                     verifier.walk_data(size, None)  # a cut-off file: still check what is there
+                    report.channels = len(verifier.channels)  # those the records read define
                 return report, verifier
             summary_start, summary_offset_start, crc, footer = envelope
             data_end = verifier.read_summary(summary_start, summary_offset_start, crc, footer)

@@ -445,7 +445,15 @@ def _evaluate_job(job: _Job, options: dict[str, Any]) -> Evaluation:
                                **options)
     except (InvalidInputError, InvalidParameterError) as err:
         raise type(err)(f"{job.track_topic} at {job.rate:g} Hz ({job.idx.size} samples), protocol "
-                        f"{job.protocol.value}, motion {job.motion.value}: {err}") from err
+                        f"{job.protocol.value}, motion {job.motion.value}: {err}{_ways_out(job)}") from err
+
+
+def _ways_out(job: _Job) -> str:
+    """What a user of the command can do when a protocol lacks samples: the options that give more."""
+    others = ",".join(p.value for p in ScoringProtocol if p is not job.protocol)
+    calibration = " or --set calibration_fraction=F (the leak-free calibration's share)" \
+        if job.protocol is ScoringProtocol.LEAKFREE else ""
+    return (f" With the command: give a longer log or range, a higher --rate, --protocol {others}{calibration}.")
 
 
 def _evaluated(jobs: Iterable[_Job], options: dict[str, Any], pool: Executor | None, *,

@@ -187,8 +187,8 @@ def choose_inputs(stage: Stage, log: LogReader, requested: str | None) -> tuple[
         raise InvalidInputError(f"{log.path} has no {reads} channel for stage {stage.name!r} "
                                 f"(channels: {', '.join(by_topic) or 'none'}).")
     raise InvalidParameterError(f"{log.path} has several {reads} channels ({', '.join(matching)}); choose one for "
-                                f"stage {stage.name!r} with --input TOPIC, or read each with --input all "
-                                '(in a run config: input = "TOPIC" or "all").')
+                                f"stage {stage.name!r} with --input-topic TOPIC, or read each with --input-topic all "
+                                '(in a run config: input_topic = "TOPIC" or "all").')
 
 
 def _matches(channel: ChannelSummary, reads: str) -> bool:

@@ -110,8 +110,10 @@ def cat_messages(
     end: str | int | None = None,
     frame_topic: str | None = None,
     limit: int | None = None,
+    notes: list[str] | None = None,
 ) -> Iterator[dict[str, Any]]:
-    """Each selected message, in ``log_time`` order, as ``{topic, log_time, publish_time, sequence, message}``."""
+    """Each selected message, in ``log_time`` order, as ``{topic, log_time, publish_time, sequence, message}``;
+    ``notes`` gets the reader's notes on how the log was read, once every message is given."""
     if limit is not None and limit < 0:
         raise InvalidParameterError(f"--limit must be >= 0, got {limit}.")
     selection = TopicSelection(tuple(topics), tuple(exclude_topics))
@@ -122,6 +124,8 @@ def cat_messages(
         lo, hi = (None, None) if resolved is None else (resolved.start_ns, resolved.end_ns)
         for count, (schema, channel, message) in enumerate(log.raw_messages(chosen, start=lo, end=hi, views=True)):
             if limit is not None and count >= limit:
-                return
+                break
             yield {"topic": channel.topic, "log_time": message.log_time, "publish_time": message.publish_time,
                    "sequence": message.sequence, "message": render(schema, channel, message.data)}
+        if notes is not None:
+            notes.extend(log.notes)

@@ -11,13 +11,15 @@ motion jointly with every star's static position and centroid noise
   fitted position, with its predicted sigma and whether it was used or flagged.
 
 The channel is read once.  The joint estimate needs every measurement at once, so they are held
-as flat arrays (about 50 bytes per star per frame: 10 MB for 12 stars over an hour at 50 Hz);
-the outputs are written frame by frame from them.
+as flat arrays (about 50 bytes per star per frame: 10 MB for 12 stars over an hour at 50 Hz, and
+the estimate's own arrays of about the same size): the stage's memory grows with the log's length,
+unlike the other stages'. The outputs are written frame by frame from them.
 """
 
 from __future__ import annotations
 
 import os
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -56,10 +58,8 @@ def read_track_observations(log: LogReader, topic: str) -> TrackObservations:
     Only the fields used are read (``log`` may skip the schema check: a message without them is
     reported as not a track message).
     """
-    times: list[int] = []
-    frames: list[int] = []
-    index: list[int] = []
-    rows: list[tuple[int, float, float, float]] = []
+    times, frames, index, track = array("q"), array("q"), array("q"), array("q")
+    values = array("d")  # meas_x, meas_y, meas_sigma of each measurement
     method = model = ""
     for k, message in enumerate(log.messages(topic)):
         msg = message.payload
@@ -69,19 +69,21 @@ def read_track_observations(log: LogReader, topic: str) -> TrackObservations:
             for row in msg["tracks"]:
                 if row["meas_sigma"] > 0:
                     index.append(k)
-                    rows.append((row["track"], row["meas_x"], row["meas_y"], row["meas_sigma"]))
+                    track.append(row["track"])
+                    values.extend((row["meas_x"], row["meas_y"], row["meas_sigma"]))
         except (KeyError, TypeError, ValueError) as err:
             raise InvalidInputError(f"{topic} at log_time {message.log_time}: not a starlog.Tracks message ({err!r}); "
                                     "`starlog verify` lists every problem of the log.") from err
         times.append(message.log_time)
     check_messages_read(log, topic, len(times))
-    if not rows:
+    if not track:
         raise InvalidInputError(f"{topic} has no associated measurement; nothing to fit.")
-    table = np.asarray(rows, dtype=np.float64)
-    track = table[:, 0].astype(np.int64)
-    obs = Observations.build(np.asarray(index), track, table[:, 1], table[:, 2], table[:, 3], n_frames=len(times))
-    return TrackObservations(method, model, np.asarray(times, dtype=np.int64), np.asarray(frames, dtype=np.int64),
-                             np.unique(track), obs)
+    table = np.frombuffer(values, dtype=np.float64).reshape(-1, 3)
+    tracks = np.frombuffer(track, dtype=np.int64)
+    obs = Observations.build(np.frombuffer(index, dtype=np.int64), tracks, table[:, 0], table[:, 1], table[:, 2],
+                             n_frames=len(times))
+    return TrackObservations(method, model, np.frombuffer(times, dtype=np.int64), np.frombuffer(frames, dtype=np.int64),
+                             np.unique(tracks), obs)
 
 
 def image_centre(log: LogReader, obs: Observations) -> tuple[float, float]:

@@ -14,6 +14,11 @@ streaming block by block so that memory does not grow with the log's length:
 3. **write** — the rows are encoded (the brightest track now known) block by block, in
    parallel when ``workers > 1``, and written in frame order, model after model.
 
+One model on several workers goes another way, with the tracker alone on this process's critical
+path: worker processes decode the centroid blocks ahead of it and encode each tracked block while
+it tracks the next — every row as not the brightest, to a file; once the brightest track is known,
+its rows are marked in the encoded messages as they are written (:func:`_track_pipelined`).
+
 The bytes written do not depend on ``workers``.
 """
 
@@ -24,7 +29,7 @@ import operator
 import os
 import tempfile
 from collections.abc import Iterator, Sequence
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from contextlib import ExitStack, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,8 +40,10 @@ import numpy.typing as npt
 
 from starlog.errors import InvalidParameterError
 from starlog.io import json_message_type, topics
-from starlog.io.reader import LogReader
+from starlog.io.reader import LogReader, LogSource
+from starlog.io.checked import CheckedJson, schema_digest
 from starlog.io.records import record_encoder
+from starlog.stages._blocks import channel_blocks, worker_log
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
@@ -117,12 +124,23 @@ class _CentroidBlock:
         self.counts.append(len(stars))
         self.values.extend(map(_STAR_FIELDS, stars))
 
+    def table(self) -> npt.NDArray[np.float64]:
+        """The ``(k, 4)`` x/y/sigma/flux of every star of the block."""
+        return np.fromiter(itertools.chain.from_iterable(self.values), dtype=np.float64,
+                           count=4 * len(self.values)).reshape(len(self.values), 4)
+
     def write(self, file: BinaryIO) -> None:
         """Spool ``(frame, log_time, stars per frame, (k, 4) x/y/sigma/flux)``."""
-        table = np.fromiter(itertools.chain.from_iterable(self.values), dtype=np.float64,
-                            count=4 * len(self.values)).reshape(len(self.values), 4)
         write_block(file, np.array(self.frames, dtype=np.int64), np.array(self.times, dtype=np.int64),
-                    np.array(self.counts, dtype=np.int64), table)
+                    np.array(self.counts, dtype=np.int64), self.table())
+
+
+def _decode_centroid_block(source: LogSource, topic: str, start: int, end: int) -> _CentroidBlock:
+    """Worker: the centroid messages with ``start <= log_time < end`` as arrays (the worker reads them itself)."""
+    block = _CentroidBlock()
+    for message in worker_log(source).messages(topic, start=start, end=end):
+        block.add(message.log_time, message.payload)
+    return block
 
 
 def _spool_centroids(log: LogReader, topic: str, spool: Spool, *, show_progress: bool) -> int:
@@ -166,22 +184,18 @@ def _no_track_hint(model: MotionModel, source: str, err: NoTrackError) -> NoTrac
 
 def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Spool) -> _ModelRun:
     """Pass 2 for one model: track every spooled frame, spool the rows, find the brightest track."""
-    tracker = StarTracker(config)
-    nis_sum, nis_n = 0.0, 0
+    tracker, nis = StarTracker(config), _NisSum()
     offsets = []
     with opened(spool, "wb") as file:
         for frames, times, counts, table in read_blocks(centroids, 4):
-            ends = np.cumsum(counts).tolist()
-            starts = [0, *ends[:-1]]
-            out = []
-            for t, a, b in zip(times.tolist(), starts, ends, strict=True):
-                rows = tracker.update(t, table[a:b, 0], table[a:b, 1], table[a:b, 2], table[a:b, 3])
-                applied = rows["measured"] & (rows["age"] > 0)
-                nis_sum += float(rows["nis"][applied].sum())
-                nis_n += int(applied.sum())
-                out.append(rows)
+            out = _track_block(tracker, times.tolist(), counts.tolist(), table, nis)
             row_counts = np.array([r.size for r in out], dtype=np.int64)
             offsets.append(write_block(file, frames, times, row_counts, _concatenated(out)))
+    return _model_run(tracker, source, nis, spool, offsets)
+
+
+def _model_run(tracker: StarTracker, source: str, nis: _NisSum, spool: Spool, offsets: list[int]) -> _ModelRun:
+    """What one model's tracking found: the brightest track and the statistics."""
     try:
         brightest = tracker.brightest_track()
     except NoTrackError as err:
@@ -189,7 +203,7 @@ def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Sp
     stats = tracker.track_stats()
     return _ModelRun(brightest=brightest, spool=spool, offsets=offsets, tracks=int(stats.size),
                      confirmed=int(stats["confirmed"].sum()), gated=int(stats["gated"].sum()),
-                     mean_nis=nis_sum / nis_n if nis_n else 0.0)
+                     mean_nis=nis.total / nis.count if nis.count else 0.0)
 
 
 def _concatenated(tables: list[npt.NDArray[np.void]]) -> npt.NDArray[np.void]:
@@ -198,6 +212,116 @@ def _concatenated(tables: list[npt.NDArray[np.void]]) -> npt.NDArray[np.void]:
     out = np.empty(sum(t.size for t in tables), dtype=tables[0].dtype)
     np.concatenate(tables, out=out)
     return out
+
+
+# ---------------------------------------------------------------- one model on several cores
+def _track_pipelined(log: LogReader, source: LogSource, config: TrackerConfig, method: str, folder: Path,
+                     blocks: list[tuple[int, int, int]], pool: Executor, workers: int, *,
+                     show_progress: bool) -> tuple[int, _ModelRun, list[Path]]:
+    """Passes 1 and 2 of one model with the reading and the encoding done by worker processes around the
+    tracker: workers decode the centroid blocks ahead of it, and encode each tracked block (every row not the
+    brightest, which is known only at the end: :func:`_write_patched` marks it) into a file while it tracks
+    the next. Returns the frames read, the model's run and the encoded blocks' files, in order."""
+    topic = topics.centroid_topic(method)
+    decoded = ordered_map(pool, _decode_centroid_block, ((source, topic, start, end) for start, end, _ in blocks),
+                          window=2 * workers)
+    tracker, stats = StarTracker(config), _NisSum()
+    encoded: list[Future[None]] = []
+    files: list[Path] = []
+    n_frames = 0
+    for k, block in enumerate(progress(decoded, total=len(blocks), description="track", enabled=show_progress,
+                                       unit="block")):
+        rows = _track_block(tracker, block.times, block.counts, block.table(), stats)
+        spool = folder / f"rows-{k}"
+        with open(spool, "wb") as file:
+            write_block(file, np.array(block.frames, dtype=np.int64), np.array(block.times, dtype=np.int64),
+                        np.array([r.size for r in rows], dtype=np.int64), _concatenated(rows))
+        files.append(folder / f"encoded-{k}")
+        encoded.append(pool.submit(_encode_unmarked, spool, method, config.model.value, files[-1]))
+        n_frames += len(block.frames)
+    for future in encoded:
+        future.result()
+    return n_frames, _model_run(tracker, topic, stats, folder, []), files
+
+
+@dataclass
+class _NisSum:
+    """The NIS of every applied measurement, summed, for the model's mean NIS."""
+
+    total: float = 0.0
+    count: int = 0
+
+
+def _track_block(tracker: StarTracker, times: Sequence[int], counts: Sequence[int], table: npt.NDArray[np.float64],
+                 nis: _NisSum) -> list[npt.NDArray[np.void]]:
+    """Each frame of a block through the tracker: its rows."""
+    ends = np.cumsum(counts).tolist()
+    out = []
+    for t, a, b in zip(times, [0, *ends[:-1]], ends, strict=True):
+        rows = tracker.update(t, table[a:b, 0], table[a:b, 1], table[a:b, 2], table[a:b, 3])
+        applied = rows["measured"] & (rows["age"] > 0)
+        nis.total += float(rows["nis"][applied].sum())
+        nis.count += int(applied.sum())
+        out.append(rows)
+    return out
+
+
+_UNMARKED, _MARKED = b'"brightest":false}', b'"brightest":true}'
+
+
+def _encode_unmarked(spool: Path, method: str, model: str, out: Path) -> None:
+    """Worker: one spooled block of rows encoded as :func:`_encode_block` does, no row marked the brightest, to
+    ``out``: each message's ``log_time`` and bytes, and each row's track and where its bytes end."""
+    frames, times, counts, rows = read_block(spool, 0, 4)
+    encoder = record_encoder("starlog.Tracks", "tracks")
+    records = encoder.rows(rows, {"brightest": np.zeros(rows.size, dtype=bool)})
+    ends = np.cumsum(counts).tolist()
+    messages, row_ends = [], []
+    for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True):
+        message = encoder.message({"frame": frame, "method": method, "model": model}, records[a:b])
+        joined = sum(map(len, records[a:b])) + max(b - a - 1, 0)  # the records and the commas between them
+        row_ends += _row_ends(len(message) - joined - len(b"]}"), records[a:b])
+        messages.append(message)
+    with open(out, "wb") as file:
+        write_block(file, times, np.array([len(m) for m in messages], dtype=np.int64), counts, rows["track"],
+                    np.array(row_ends, dtype=np.int64), np.frombuffer(b"".join(messages), dtype=np.uint8))
+    spool.unlink()
+
+
+def _row_ends(head: int, records: Sequence[bytes]) -> list[int]:
+    """Where each record's bytes end (exclusive) in a message whose records start at ``head``, one comma
+    between two."""
+    ends, position = [], head
+    for record in records:
+        position += len(record)
+        ends.append(position)
+        position += 1
+    return ends
+
+
+def _write_patched(out: StageOutput, channel: int, files: list[Path], brightest: int, n_frames: int, *,
+                   show_progress: bool) -> None:
+    """Pass 3 of :func:`_track_pipelined`: each encoded message, the brightest track's row marked, written (a
+    message checked against its schema where it was encoded stays valid with a row marked)."""
+    digest = schema_digest(json_message_type("starlog.Tracks").schema_data)
+
+    def messages() -> Iterator[tuple[int, bytes]]:
+        for path in files:
+            times, lengths, counts, tracks, row_ends, data = read_block(path, 0, 6)
+            starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+            row_starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            for t, start, length, r0, n in zip(times.tolist(), starts.tolist(), lengths.tolist(),
+                                               row_starts.tolist(), counts.tolist()):
+                message = data[start:start + length].tobytes()
+                for k in np.flatnonzero(tracks[r0:r0 + n] == brightest).tolist():
+                    end = int(row_ends[r0 + k])
+                    assert message[end - len(_UNMARKED):end] == _UNMARKED
+                    message = message[:end - len(_UNMARKED)] + _MARKED + message[end:]
+                yield t, CheckedJson(message, digest)
+            path.unlink()
+
+    for t, message in progress(messages(), total=n_frames, description="track (write)", enabled=show_progress):
+        out.writer.write(channel, log_time=t, data=message)
 
 
 # ---------------------------------------------------------------- pass 3: write
@@ -257,6 +381,34 @@ def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: 
 
 
 # ---------------------------------------------------------------- the stage
+def _track_every_model(log: LogReader, out: StageOutput, configs: dict[MotionModel, TrackerConfig], method: str,
+                       summary: TrackSummary, workers: int, *, show_progress: bool) -> dict[MotionModel, _ModelRun]:
+    """The three passes, each model tracked in a worker process when there are several workers."""
+    source = topics.centroid_topic(method)
+    processes = min(workers, len(configs))
+    with _spools(list(configs), Path(out.writer.path), shared=processes > 1) as spools, \
+            (process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else nullcontext()) as pool:
+        summary.frames = _spool_centroids(log, source, spools.centroids, show_progress=show_progress)
+        summary.channel_messages = check_messages_read(log, source, summary.frames)
+        runs = _track_models(configs, source, spools, pool)
+        _write_tracks(out, runs, method, summary.frames, pool, show_progress=show_progress)
+    return runs
+
+
+def _track_one_model(log: LogReader, input_path: LogSource, out: StageOutput, config: TrackerConfig, method: str,
+                     summary: TrackSummary, blocks: list[tuple[int, int, int]], workers: int, *,
+                     show_progress: bool) -> dict[MotionModel, _ModelRun]:
+    """One model on several cores (:func:`_track_pipelined`), written as :func:`_track_every_model` writes it."""
+    channel = out.add_channel(topics.track_topic(method, config.model.value), json_message_type("starlog.Tracks"))
+    with tempfile.TemporaryDirectory(prefix=f".{out.writer.path.name}.track-", dir=out.writer.path.parent) as tmp, \
+            process_pool(workers, preload=["starlog.stages.track"]) as pool:
+        summary.frames, run, files = _track_pipelined(log, input_path, config, method, Path(tmp), blocks, pool,
+                                                      workers, show_progress=show_progress)
+        summary.channel_messages = check_messages_read(log, topics.centroid_topic(method), summary.frames)
+        _write_patched(out, channel, files, run.brightest, summary.frames, show_progress=show_progress)
+    return {config.model: run}
+
+
 @dataclass(frozen=True)
 class _Spools:
     """Where the centroids and each model's rows are spooled."""
@@ -333,15 +485,14 @@ def track_log(
     parameters = {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
                   "motion": dict(motion or {})}
     summary = TrackSummary(method=method)
-    processes = min(workers, len(chosen))
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force, flatten=flatten,
-                    compression=compression, workers=workers) as (log, out), \
-            _spools(chosen, Path(output_path), shared=processes > 1) as spools, \
-            (process_pool(processes, preload=["starlog.stages.track"]) if processes > 1 else nullcontext()) as pool:
-        summary.frames = _spool_centroids(log, source, spools.centroids, show_progress=show_progress)
-        summary.channel_messages = check_messages_read(log, source, summary.frames)
-        runs = _track_models(configs, source, spools, pool)
-        _write_tracks(out, runs, method, summary.frames, pool, show_progress=show_progress)
+                    compression=compression, workers=workers) as (log, out):
+        blocks = channel_blocks(log, source, BLOCK_FRAMES) if workers > 1 and len(chosen) == 1 else None
+        if blocks is not None and log.fully_indexed:
+            runs = _track_one_model(log, input_path, out, configs[chosen[0]], method, summary, blocks, workers,
+                                    show_progress=show_progress)
+        else:
+            runs = _track_every_model(log, out, configs, method, summary, workers, show_progress=show_progress)
     for m, run in runs.items():
         summary.brightest[m.value] = run.brightest
         summary.tracks[m.value] = run.tracks
