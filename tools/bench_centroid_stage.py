@@ -38,7 +38,7 @@ from starlog.centroid import CentroidMethod, measure_centroids
 from starlog.detect import detect_stars
 from starlog.io.reader import LogReader
 from starlog.io.records import record_encoder
-from starlog.stages.centroid import _reuse_frame_buffers
+from starlog.stages._centroid_frames import reuse_frame_buffers
 
 STARLOG = [sys.executable, "-m", "starlog"]
 
@@ -84,7 +84,7 @@ def in_process_parts(log: Path, methods: list[str], count: int) -> dict[str, flo
         frames = [img for _, _, img in itertools.islice(reader.frames(), count)]
     out = {"decode": (time.process_time() - c0) / len(frames), "SEP": per_frame_cpu(sep_frame, frames)}
     cv2.setNumThreads(1)  # as the stage runs them, allocator setting included
-    _reuse_frame_buffers()
+    reuse_frame_buffers()
     detect_stars(frames[0])  # compiled kernels load on first use: a process's cost, not a frame's
     out["detection"] = per_frame_cpu(detect_stars, frames)
     dets = [detect_stars(f) for f in frames]
