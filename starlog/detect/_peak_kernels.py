@@ -158,6 +158,83 @@ def _window(img, yc, xc, r, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _saturation_and_spike(raw, box, saturation, nse, sharpness_ratio):  # type: ignore[no-untyped-def]
+    """:func:`~starlog.detect.screening.screen`'s saturation and spike tests on the 5 x 5 window (``raw``, and
+    ``box`` above the background): (saturated, the 3 x 3 core's maximum, a spike)."""
+    sat = False
+    top = box[6]
+    for a in range(1, 4):
+        for b in range(1, 4):
+            sat = sat or raw[a * 5 + b] >= saturation
+            v = box[a * 5 + b]
+            if top == top and not (v <= top):
+                top = v
+    centre = box[12]
+    lowest = _minimum(0.5 * (box[11] + box[13]), 0.5 * (box[7] + box[17]))
+    spike = (centre - lowest > 8.0 * nse) and (lowest < sharpness_ratio * centre) and not sat
+    return sat, top, spike
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _elongation(fil, level, fb, term):  # type: ignore[no-untyped-def]
+    """:func:`~starlog.detect.screening.screen`'s elongation: the axis ratio of the second moments of the 7 x 7
+    filtered window ``fil`` above ``level`` (``fb`` and ``term``: scratch of 49 values)."""
+    for k in range(49):
+        fb[k] = _maximum(fil[k] - level, 0.0)
+    s0 = _window_sum(fb, 49)
+    s0 = s0 if s0 > 0 else 1.0
+    for k in range(49):
+        term[k] = fb[k] * (k % 7 - 3.0)
+    mx = _window_sum(term, 49) / s0
+    for k in range(49):
+        term[k] = fb[k] * (k // 7 - 3.0)
+    my = _window_sum(term, 49) / s0
+    for k in range(49):
+        d = k % 7 - 3.0 - mx
+        term[k] = fb[k] * d * d
+    sxx = _window_sum(term, 49) / s0
+    for k in range(49):
+        d = k // 7 - 3.0 - my
+        term[k] = fb[k] * d * d
+    syy = _window_sum(term, 49) / s0
+    for k in range(49):
+        term[k] = fb[k] * (k % 7 - 3.0 - mx) * (k // 7 - 3.0 - my)
+    sxy = _window_sum(term, 49) / s0
+    tr, det = sxx + syy, sxx * syy - sxy * sxy
+    disc = math.sqrt(_maximum(tr * tr / 4 - det, 0.0))
+    l1, l2 = tr / 2 + disc, _maximum(tr / 2 - disc, 1e-12)
+    return _maximum(math.sqrt(l1 / l2), 1.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _moment_offsets(box, term, fb, out):  # type: ignore[no-untyped-def]
+    """``out`` = the moment offsets (x, y) of the 5 x 5 window ``box`` above the background
+    (:func:`~starlog.detect.position.coarse_offsets`; ``term`` and ``fb``: scratch of 25 values)."""
+    for k in range(25):
+        term[k] = _maximum(box[k], 0.0)
+    w0 = _window_sum(term, 25)
+    w0s = w0 if w0 > 0 else 1.0
+    for k in range(25):
+        fb[k] = term[k] * (k % 5 - 2.0)
+    out[0] = _window_sum(fb, 25) / w0s if w0 > 0 else 0.0
+    for k in range(25):
+        fb[k] = term[k] * (k // 5 - 2.0)
+    out[1] = _window_sum(fb, 25) / w0s if w0 > 0 else 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _parabola_values(fil, level, out):  # type: ignore[no-untyped-def]
+    """``out`` = the log-parabola's three filtered values above ``level`` through the centre of the 7 x 7 window
+    ``fil``, in x then in y (1 where one is not positive, as in :func:`~starlog.detect.position.log_parabola`)."""
+    fm, f0, fp = fil[3 * 7 + 2] - level, fil[3 * 7 + 3] - level, fil[3 * 7 + 4] - level
+    ok = fm > 0 and f0 > 0 and fp > 0
+    out[0], out[1], out[2] = (fm, f0, fp) if ok else (1.0, 1.0, 1.0)
+    fm, fp = fil[2 * 7 + 3] - level, fil[4 * 7 + 3] - level
+    ok = fm > 0 and f0 > 0 and fp > 0
+    out[3], out[4], out[5] = (fm, f0, fp) if ok else (1.0, 1.0, 1.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def candidate_rows(work, filtered, level_grid, noise_grid, mesh, edge_factor, py, px, component, fval, flux,
                    blended, area, x_min, x_max, y_min, y_max, saturation, sharpness_ratio, max_elongation,
                    elongation_flag, threshold, knorm, border, bits, background, noise_out, peak, snr, elong,
@@ -193,42 +270,8 @@ def candidate_rows(work, filtered, level_grid, noise_grid, mesh, edge_factor, py
         for k in range(25):
             box[k] = raw[k] - level
         # screening: saturation, spike, elongation (screening.screen)
-        sat = False
-        top = box[6]
-        for a in range(1, 4):
-            for b in range(1, 4):
-                sat = sat or raw[a * 5 + b] >= saturation
-                v = box[a * 5 + b]
-                if top == top and not (v <= top):
-                    top = v
-        centre = box[12]
-        lowest = _minimum(0.5 * (box[11] + box[13]), 0.5 * (box[7] + box[17]))
-        spike = (centre - lowest > 8.0 * nse) and (lowest < sharpness_ratio * centre) and not sat
-        for k in range(49):
-            fb[k] = _maximum(fil[k] - level, 0.0)
-        s0 = _window_sum(fb, 49)
-        s0 = s0 if s0 > 0 else 1.0
-        for k in range(49):
-            term[k] = fb[k] * (k % 7 - 3.0)
-        mx = _window_sum(term, 49) / s0
-        for k in range(49):
-            term[k] = fb[k] * (k // 7 - 3.0)
-        my = _window_sum(term, 49) / s0
-        for k in range(49):
-            d = k % 7 - 3.0 - mx
-            term[k] = fb[k] * d * d
-        sxx = _window_sum(term, 49) / s0
-        for k in range(49):
-            d = k // 7 - 3.0 - my
-            term[k] = fb[k] * d * d
-        syy = _window_sum(term, 49) / s0
-        for k in range(49):
-            term[k] = fb[k] * (k % 7 - 3.0 - mx) * (k // 7 - 3.0 - my)
-        sxy = _window_sum(term, 49) / s0
-        tr, det = sxx + syy, sxx * syy - sxy * sxy
-        disc = math.sqrt(_maximum(tr * tr / 4 - det, 0.0))
-        l1, l2 = tr / 2 + disc, _maximum(tr / 2 - disc, 1e-12)
-        e = _maximum(math.sqrt(l1 / l2), 1.0)
+        sat, top, spike = _saturation_and_spike(raw, box, saturation, nse, sharpness_ratio)
+        e = _elongation(fil, level, fb, term)
         too_long = e > max_elongation and not blended[i] and not sat
         # significance with the filter's larger noise near the edges (detection._edge_noise_factor)
         dist = min(x, cols - 1 - x)
@@ -238,22 +281,8 @@ def candidate_rows(work, filtered, level_grid, noise_grid, mesh, edge_factor, py
         filtered_noise = nse * knorm * fx * fy
         keep[i] = not spike and not too_long and fval[i] > threshold * filtered_noise
         # coarse position (position.coarse_offsets): moments here, the log-parabola after numpy's log
-        for k in range(25):
-            term[k] = _maximum(box[k], 0.0)
-        w0 = _window_sum(term, 25)
-        w0s = w0 if w0 > 0 else 1.0
-        for k in range(25):
-            fb[k] = term[k] * (k % 5 - 2.0)
-        moments[i, 0] = _window_sum(fb, 25) / w0s if w0 > 0 else 0.0
-        for k in range(25):
-            fb[k] = term[k] * (k // 5 - 2.0)
-        moments[i, 1] = _window_sum(fb, 25) / w0s if w0 > 0 else 0.0
-        fm, f0, fp = fil[3 * 7 + 2] - level, fil[3 * 7 + 3] - level, fil[3 * 7 + 4] - level
-        ok = fm > 0 and f0 > 0 and fp > 0
-        three[i, 0], three[i, 1], three[i, 2] = (fm, f0, fp) if ok else (1.0, 1.0, 1.0)
-        fm, fp = fil[2 * 7 + 3] - level, fil[4 * 7 + 3] - level
-        ok = fm > 0 and f0 > 0 and fp > 0
-        three[i, 3], three[i, 4], three[i, 5] = (fm, f0, fp) if ok else (1.0, 1.0, 1.0)
+        _moment_offsets(box, term, fb, moments[i])
+        _parabola_values(fil, level, three[i])
         s = fval[i] / filtered_noise
         flag = 0
         if sat:
