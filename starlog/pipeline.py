@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import os
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from starlog.batch import BatchOutcome, BatchTask, run_batch
 from starlog.compensate import MIN_SAMPLES, decimation_indices
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.io.reader import LogReader, LogSource
@@ -41,7 +42,7 @@ if TYPE_CHECKING:
     from starlog.stage_api import Stage
 
 __all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "layer_paths", "load_config",
-           "run_pipeline", "run_pipeline_task"]
+           "report_path", "run_pipeline", "run_pipeline_batch", "run_pipeline_task", "stage_line"]
 
 #: The built-in config, a starting point for your own (``starlog run --print-config``).
 DEFAULT_CONFIG_TOML = """\
@@ -298,6 +299,37 @@ def run_pipeline_task(input_path: str, output_path: str, config: PipelineConfig,
     """One log of a batch (a picklable top-level function for Dask): serial per-frame work, JSON-ready result."""
     return run_pipeline(input_path, output_path, config, workers=1, force=force, flatten=flatten,
                         compression=compression, start=start, end=end).to_dict()
+
+
+def run_pipeline_batch(logs: Sequence[Path], folder: Path, config: PipelineConfig, *, scheduler: str | None = None,
+                       workers: int = 1, show_progress: bool = False, force: bool = False, flatten: bool = False,
+                       compression: str = "zstd", start: str | int | None = None,
+                       end: str | int | None = None) -> list[BatchOutcome]:
+    """:func:`run_pipeline_task` on each log, its output of the same name in ``folder`` (created if missing), on a
+    Dask cluster (:func:`starlog.batch.run_batch`); a failed log is reported in its outcome, the others complete."""
+    folder.mkdir(parents=True, exist_ok=True)
+    options = {"force": force, "flatten": flatten, "compression": compression, "start": start, "end": end}
+    tasks = [BatchTask(str(log), run_pipeline_task, (str(log.absolute()), str((folder / log.name).absolute()), config),
+                       options) for log in logs]
+    return run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=show_progress, description="run")
+
+
+def report_path(output: Path) -> Path:
+    """The HTML report ``starlog run`` writes beside its output: the output with the suffix ``.html``."""
+    return output.with_suffix(".html") if output.suffix != ".html" else output.with_name(output.name + ".html")
+
+
+def stage_line(stage: str, result: dict[str, Any]) -> str | None:
+    """One line on a finished stage of :func:`run_pipeline` (its ``on_stage`` report): the centroid stage's stars
+    per frame, each track stage's brightest star; None for the other stages."""
+    if stage == "centroid":
+        return (f"centroid: {result['frames']} frames, {result['detections_per_frame']:.1f} stars/frame, "
+                f"methods {', '.join(result['methods'])}")
+    if stage.startswith("track"):
+        models = ", ".join(f"{m} (track {v['brightest_track']}, NIS {v['mean_nis']:.2f})"
+                           for m, v in result["models"].items())
+        return f"track {result['method']}: brightest star under {models}"
+    return None
 
 
 # ---------------------------------------------------------------- your own stages

@@ -111,6 +111,25 @@ class RecoveryReport:
             "base_note": self.base_note,
         }
 
+    def lines(self) -> list[str]:
+        """Messages kept, the base, what each channel kept, the chunks lost and the records skipped."""
+        lines = [f"{sum(self.kept_by_topic.values())} messages kept"
+                 f"{'' if self.had_footer else f', the last {self.tail_bytes_lost} bytes were unreadable'}"]
+        if self.base:
+            lines.append(f"  a layer on {self.base}, as the input was")
+        if self.base_note:
+            lines.append(f"  note: {self.base_note}")
+        for topic, count in sorted(self.kept_by_topic.items()):
+            lo, hi = self.kept_time_range[topic]
+            lines.append(f"  kept {topic}: {count} messages, log_time {lo}..{hi}")
+        for chunk in self.lost_chunks:
+            what = ", ".join(f"{t}: {n}" for t, n in chunk.messages_by_topic.items()) or "channels unknown"
+            lines.append(f"  lost chunk at offset {chunk.offset} (log_time {chunk.message_start_time}.."
+                         f"{chunk.message_end_time}; {what}): {chunk.reason}")
+        for what, n in sorted(self.skipped_records.items()):
+            lines.append(f"  skipped {n} x {what}")
+        return lines
+
 
 class _Rebuilder:
     """The records of a file, handed over in file order, written again; damaged chunks reported lost."""

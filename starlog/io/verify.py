@@ -706,6 +706,31 @@ class ChainReport:
                 "messages": self.messages, "chunks": self.chunks, "channels": self.channels,
                 "problems": problems, "files": [f.to_dict() for f in self.files]}
 
+    def lines(self, per_kind: int = 20) -> list[str]:
+        """Every problem, at most ``per_kind`` of a kind per file (and of the chain), each file's verdict when
+        there are several, and the verdict."""
+        several = len(self.files) > 1
+        lines = []
+        for file in self.files:
+            lines += [f"{file.path}:"] if several else []
+            lines += _problem_lines(file.problems, per_kind)
+            lines += [f"  {file.verdict()}"] if several else []
+        return lines + _problem_lines(self.chain_problems, per_kind) + [self.verdict()]
+
+
+def _problem_lines(problems: list[Problem], per_kind: int) -> list[str]:
+    """One line per problem, at most ``per_kind`` of a kind, then how many more of each kind (all with --json)."""
+    shown: dict[str, int] = {}
+    lines = []
+    for problem in problems:
+        shown[problem.kind] = shown.get(problem.kind, 0) + 1
+        if shown[problem.kind] <= per_kind:
+            lines.append(problem.line())
+    for kind, count in shown.items():
+        if count > per_kind:
+            lines.append(f"... {count - per_kind} more {kind} problems (all of them with --json)")
+    return lines
+
 
 def verify_log(path: str | os.PathLike[str], *, chain: bool = True,
                on_progress: Callable[[int, int], object] | None = None) -> ChainReport:

@@ -74,6 +74,11 @@ class CentroidSummary:
             "gain": self.gain,
         } | extra
 
+    def lines(self) -> list[str]:
+        """Per method: the centroids written and those not measured."""
+        return [f"  {method:<15} {count:>8} centroids, {self.failed[method]} not measured (flag FIT_FAILED: the "
+                "detection's position kept)" for method, count in self.centroids.items()]
+
 
 @windowed(lambda log, options: choose_image_topic(log.path, log.channels(), options.get("image_topic"))[0])
 def centroid_log(

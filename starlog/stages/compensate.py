@@ -61,8 +61,8 @@ from starlog.stages.window import windowed
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.motion import estimate_track_motion
 
-__all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "evaluate_series", "read_brightest_series",
-           "select_track_channels"]
+__all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "decision_table", "evaluate_series",
+           "read_brightest_series", "select_track_channels"]
 
 
 @dataclass(frozen=True)
@@ -288,6 +288,23 @@ class CompensateSummary:
 
     def to_dict(self) -> dict[str, Any]:
         return {"records": self.records}
+
+
+def decision_table(records: list[dict[str, Any]]) -> str:
+    """Readable table of compensation decision records: one row per protocol figure, the passes run on the first."""
+    motion = any(r.get("motion", "keep") != "keep" for r in records)
+    lines = [f"{'method':<9} {'model':<17} {'Hz':>5} {'protocol':<9} " + ("motion   " if motion else "")
+             + f"{'reference':<13} {'RMSE before':>11} {'after':>8} {'gain':>6}  passes (x = rolled back)"]
+    for r in records:
+        for k, fig in enumerate(r["figures"]):
+            passes = " > ".join(p["strategy"] + ("" if p["kept"] else " x") for p in r["compensation"]["passes"])
+            head = (f"{r['method']:<9} {r['model']:<17} {r['rate_hz']:>5g} {r['protocol']:<9}" if k == 0
+                    else " " * 43)
+            if motion:
+                head += f" {r.get('motion', 'keep'):<8}" if k == 0 else " " * 9
+            lines.append(f"{head} {fig['reference']:<13} {fig['rmse_before']:>11.4f} {fig['rmse_after']:>8.4f} "
+                         f"{100 * fig['effective']:>5.1f}%  {passes if k == 0 else ''}")
+    return "\n".join(lines)
 
 
 def parse_protocols(spec: str | Sequence[str], *, has_truth: bool) -> list[ScoringProtocol]:

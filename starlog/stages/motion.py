@@ -116,6 +116,21 @@ class MotionSummary:
     def to_dict(self) -> dict[str, Any]:
         return {"fit": self.fit, "channels": self.channels}
 
+    def lines(self) -> list[str]:
+        """Per track channel: frames with a motion, stars, outliers, RMS motion, 1-sigma, each star's noise."""
+        lines = []
+        for topic, ch in self.channels.items():
+            lines.append(f"{topic}: {ch['frames_with_motion']}/{ch['frames']} frames with a motion, {ch['stars']} "
+                         f"stars, {ch['outliers']} outliers, {ch['short_tracks']} short tracks left out")
+            if ch["frames_without_motion"]:
+                lines.append(f"  {ch['frames_without_motion']} frames without a motion ({ch['without_motion_reason']})")
+            lines.append(f"  RMS dx {ch['rms_dx']:.4f} px, dy {ch['rms_dy']:.4f} px, roll {ch['rms_roll']:.3g} rad; "
+                         f"median 1-sigma dx {ch['median_sigma_dx']:.4f} px, dy {ch['median_sigma_dy']:.4f} px; "
+                         f"median residual RMS {ch['median_residual_rms']:.4f} px")
+            noise = ", ".join(f"{track}: {value:.4f}" for track, value in ch["star_noise"].items())
+            lines.append(f"  centroid noise per track (px, 1 sigma per axis): {noise}")
+        return lines
+
 
 def _channel_summary(data: TrackObservations, est: PlatformEstimate, min_stars: int) -> dict[str, Any]:
     valid = est.valid

@@ -106,6 +106,14 @@ class TrackSummary:
             },
         }
 
+    def lines(self) -> list[str]:
+        """A table of the models: tracks, confirmed tracks, gated measurements, mean NIS, brightest track."""
+        lines = [f"  {'model':<18} {'tracks':>7} {'confirmed':>9} {'gated':>6} {'mean NIS':>9} {'brightest':>9}"]
+        for model, m in self.to_dict()["models"].items():
+            lines.append(f"  {model:<18} {m['tracks']:>7} {m['confirmed_tracks']:>9} {m['gated_measurements']:>6} "
+                         f"{m['mean_nis']:>9.2f} {m['brightest_track']:>9}")
+        return lines
+
 
 # ---------------------------------------------------------------- pass 1: read
 class _CentroidBlock:
