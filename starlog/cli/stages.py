@@ -1,0 +1,288 @@
+"""The replay stages' commands: ``centroid``, ``track``, ``motion``, ``compensate``, and one per declared stage
+(:func:`stage_command`, for the stages installed packages register)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import click
+
+from starlog.cli.options import (
+    BURN_IN_HELP,
+    CONTEXT,
+    burn_in_setting,
+    echo_status,
+    flatten_option,
+    image_topic_option,
+    input_log,
+    json_option,
+    key_values,
+    output_option,
+    print_json,
+    quiet_option,
+    time_range_options,
+    write_options,
+)
+
+__all__ = ["centroid", "compensate", "motion", "stage_command", "track"]
+
+
+@click.command(context_settings=CONTEXT)
+@input_log
+@output_option()
+@click.option("--method", "methods", default="all", show_default=True,
+              help="Sub-pixel methods, comma-separated: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, "
+                   "PSFFIT, or all (all but MOMENT_SQUARED and PSFFIT).")
+@click.option("--psf", type=click.Choice(["gaussian", "empirical"]),
+              help="PSF model of PSFFIT. empirical: an ePSF built once from the log's bright isolated stars, stored "
+                   "in the output (metadata starlog.epsf, shown by info). gaussian: the pixel-integrated Gaussian. "
+                   "[default: empirical when PSFFIT is among the methods]")
+@click.option("--gain", type=float, help="Camera gain e-/DN [default: from the simulator's provenance, else 1].")
+@click.option("--read-noise", type=float, help="Read noise e- [default: from the simulator's provenance, else estimated].")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Option of starlog.centroid.extract_stars, e.g. --set threshold=5. Repeatable.")
+@image_topic_option
+@click.option("--skip-bad", is_flag=True, help="Leave out frames that do not decode or do not fit (each named) "
+                                              "instead of stopping.")
+@click.option("--hot-pixels", "hot_pixels", metavar="auto|FILE",
+              help="Hot-pixel map: 'auto' learns it from the log (pixels that are single-pixel spikes in most "
+                   "of its first frames), or a FILE: .npy boolean mask of the frame's shape, or text/CSV lines "
+                   "'x,y' (column,row). Hot pixels are never stars and are left out of the star windows.")
+@click.option("--phase-correction", "phase_correction", metavar="auto|off|FILE", default="off", show_default=True,
+              help="Remove each method's pixel-phase bias (S-curve; under-sampled or non-Gaussian PSFs). auto: "
+                   "learnt from the log's own stars (its first 16-256 frames, each distinct star once, no catalogue; "
+                   "a method with too few is left uncorrected, with a note). FILE: calibrations in JSON (the "
+                   "--json output of an earlier auto run, or 'starlog info --json' of its output log). Recorded "
+                   "in the provenance and shown by info.")
+@time_range_options("the image channel")
+@json_option
+@flatten_option
+@write_options
+def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float | None, read_noise: float | None,
+             settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, hot_pixels: str | None,
+             phase_correction: str, start: str | None, end: str | None, as_json: bool, flatten: bool, force: bool,
+             compression: str, workers: int, quiet: bool) -> None:
+    """Detect stars and measure sub-pixel centroids in every frame.
+
+    Writes a layer on the log (the frames stay in the input) holding /stars/detections,
+    /stars/centroids/<METHOD> per method and /stars/annotations (circles over the frames in
+    Foxglove); reading the layer reads the whole log.
+
+    \b
+    Example:
+      starlog centroid sim.mcap -o cen.mcap --method GAUSSFIT,MOMENT
+      starlog centroid lab.mcap -o cen.mcap --method all --gain 2.1 --workers 2
+      starlog centroid sim.mcap -o cen.mcap --start 0.5s --end frame:300
+      starlog centroid sim.mcap -o cen.mcap --method PSFFIT,GAUSSFIT --psf empirical
+      starlog centroid lab.mcap -o cen.mcap --hot-pixels auto
+      starlog centroid sky.mcap -o cen.mcap --method MOMENT,GAUSSFIT --phase-correction auto
+    """
+    from starlog.stages.centroid import centroid_log
+
+    summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise, psf=psf,
+                           options=key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
+                           workers=workers, force=force, compression=compression, show_progress=not quiet,
+                           hot_pixels=hot_pixels, phase_correction=phase_correction, start=start, end=end,
+                           flatten=flatten)
+    d = summary.to_dict()
+    for note in d["notes"]:
+        click.echo(f"note: {note}", err=True)
+    echo_status(quiet, f"wrote {output}: {d['frames']} of {d['channel_messages']} frames of {d['image_topic']} read, "
+                       f"{d['detections_per_frame']:.1f} stars/frame")
+    for skipped in d["skipped_frames"]:
+        click.echo(f"  skipped frame {skipped['index']} (log_time {skipped['log_time']}): {skipped['reason']}",
+                   err=True)
+    if as_json:
+        print_json(d)
+    else:
+        for line in summary.lines():
+            click.echo(line)
+
+
+@click.command(context_settings=CONTEXT)
+@input_log
+@output_option()
+@click.option("--centroids", "method", required=True, help="Centroid method whose channel is tracked, e.g. GAUSSFIT.")
+@click.option("--model", "models", default="all", show_default=True,
+              help="Motion models, comma-separated: STATIC, RANDOM_WALK, BROWNIAN_MOTION, POLYNOMIAL_TREND, "
+                   "CONSTANT_VELOCITY, or all.")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Tracker option (gate_probability, association_radius, confirm_hits, max_missed, max_gated, "
+                   "sigma_floor). Repeatable.")
+@click.option("--motion", "motion", multiple=True, metavar="KEY=VALUE",
+              help="Process noise (q_floor, q_position, q_velocity, tau, q_acceleration, q_jerk). Repeatable.")
+@time_range_options("the centroid channel")
+@json_option
+@flatten_option
+@write_options
+def track(log: Path, output: Path, method: str, models: str, settings: tuple[str, ...], motion: tuple[str, ...],
+          start: str | None, end: str | None, as_json: bool, flatten: bool, force: bool, compression: str,
+          workers: int, quiet: bool) -> None:
+    """Track every star with an Unscented Kalman Filter under each motion model.
+
+    Writes a layer on the log holding /track/<METHOD>/<MODEL> per model: filtered position,
+    covariance, innovation, NIS, gating and track id of every star in every frame; the
+    brightest star's track is marked.
+
+    \b
+    Example:
+      starlog track cen.mcap -o trk.mcap --centroids GAUSSFIT --model all
+      starlog track cen.mcap -o trk.mcap --centroids NONE --model STATIC --set sigma_floor=0.05
+    """
+    from starlog.stages.track import track_log
+
+    summary = track_log(log, output, method=method, models=models, tracker=key_values(settings, "--set"),
+                        motion=key_values(motion, "--motion"), force=force, compression=compression,
+                        workers=workers, show_progress=not quiet, start=start, end=end, flatten=flatten)
+    echo_status(quiet, f"wrote {output}: {summary.frames} frames of {summary.method} centroids")
+    if as_json:
+        print_json(summary.to_dict())
+    else:
+        for line in summary.lines():
+            click.echo(line)
+
+
+@click.command(context_settings=CONTEXT)
+@input_log
+@output_option()
+@click.option("--track", "track_topic", help="Track channel, e.g. /track/GAUSSFIT/STATIC, or all [default: the only one].")
+@click.option("--model", "fit", type=click.Choice(["translation", "rigid", "similarity"]), default="rigid",
+              show_default=True, help="2-D platform motion fitted per frame about the image centre.")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Option of starlog.motion.estimate_platform (k_sigma, min_stars, min_star_frames, max_iterations, "
+                   "tol, max_rejections). Repeatable.")
+@time_range_options("the (first) track channel")
+@json_option
+@flatten_option
+@write_options
+def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings: tuple[str, ...], start: str | None,
+           end: str | None, as_json: bool, flatten: bool, force: bool, compression: str, workers: int,
+           quiet: bool) -> None:
+    """Fit the platform motion to all tracked stars; each star's residual is its centroid error alone.
+
+    Per frame, a weighted least-squares fit of the stars' measured positions (meas_x, meas_y of
+    the track channel) to their static positions, estimated jointly over the log; stars more
+    than k_sigma off the fit are left out and flagged. Writes a layer on the log holding
+    /platform/<METHOD>/<MODEL> (dx, dy, roll, 1-sigma, stars used, residual RMS) and
+    /stars/residuals/<METHOD>/<MODEL>. Frames with
+    fewer than 3 usable stars get no motion. The per-star noise printed is each star's centroid
+    noise measured without a simulator.
+
+    \b
+    Example:
+      starlog motion trk.mcap -o mot.mcap --track /track/GAUSSFIT/STATIC
+      starlog motion trk.mcap -o mot.mcap --track all --model translation --set k_sigma=4 --json
+    """
+    from starlog.stages.motion import motion_log
+
+    summary = motion_log(log, output, track=track_topic, model=fit, options=key_values(settings, "--set"),
+                         force=force, compression=compression, workers=workers, start=start, end=end,
+                         flatten=flatten)
+    echo_status(quiet, f"wrote {output}: {fit} platform motion of {len(summary.channels)} track channel(s)")
+    if as_json:
+        print_json(summary.to_dict())
+        return
+    for line in summary.lines():
+        click.echo(line)
+
+
+@click.command(context_settings=CONTEXT)
+@input_log
+@output_option()
+@click.option("--track", "track_topic", help="Track channel, e.g. /track/GAUSSFIT/STATIC [default: the only one].")
+@click.option("--rate", "rates", required=True, help="Down-sampling rates in Hz, comma-separated, e.g. 10,50.")
+@click.option("--protocol", "protocols", default="all", show_default=True,
+              help="paper, truth (simulated logs), leakfree, relative (truth-free: against the motion fitted to the "
+                   "other stars), comma-separated, or all (= paper, truth, leakfree).")
+@click.option("--motion", "motion", default="keep", show_default=True,
+              help="keep: compensate the positions (the paper's method); separate: compensate the star's residual "
+                   "from the platform motion fitted to the other stars and add the motion back; or keep,separate.")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+              help="Option of starlog.compensate.evaluate (accuracy_source, calibration_fraction, top_k, "
+                   "rollback_threshold, leakfree_reference). Repeatable.")
+@time_range_options("the (first) track channel")
+@json_option
+@flatten_option
+@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+@click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
+              help="Chunk compression of the output log.")
+@click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
+              help="Processes for the (track, rate, protocol) evaluations; pays off for many of them (reading "
+                   "the tracks dominates otherwise). The output does not depend on it.")
+@quiet_option
+@click.option("--burn-in", "burn_in", default="auto", show_default=True, metavar="auto|off|SECONDS", help=BURN_IN_HELP)
+def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str, motion: str,
+               settings: tuple[str, ...], start: str | None, end: str | None, as_json: bool, flatten: bool,
+               force: bool, compression: str, workers: int, quiet: bool, burn_in: str) -> None:
+    """Decompose the brightest star's error, select strategies and compensate (paper 2.2-2.5).
+
+    For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
+    strategies with rollback below 1 %, under each protocol. Writes a layer on the log holding
+    the series before/after and one decision record per (rate, protocol) on
+    /compensated/<METHOD>/<MODEL>/decisions.
+
+    \b
+    Example:
+      starlog compensate trk.mcap -o comp.mcap --track /track/GAUSSFIT/STATIC --rate 10,50
+      starlog compensate trk.mcap -o comp.mcap --rate 50 --protocol paper --json
+      starlog compensate trk.mcap -o comp.mcap --rate 10,50 --protocol truth,relative --motion keep,separate
+    """
+    from starlog.stages.compensate import compensate_log, decision_table
+
+    try:
+        rate_values = [float(r) for r in rates.split(",") if r.strip()]
+    except ValueError:
+        raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
+    summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
+                             options=key_values(settings, "--set"), motion=motion, workers=workers,
+                             show_progress=not quiet, force=force, compression=compression, start=start, end=end,
+                             burn_in=burn_in_setting(burn_in), flatten=flatten)
+    echo_status(quiet, f"wrote {output}: {len(summary.records)} decision records")
+    if as_json:
+        print_json(summary.to_dict())
+    else:
+        click.echo(decision_table(summary.records))
+
+
+def stage_command(declared: Any, name: str) -> click.Command:
+    """The ``starlog NAME LOG -o OUT`` command of a declared stage (:mod:`starlog.stage_api`)."""
+    options = ", ".join(f"{k}={json.dumps(v)}" for k, v in declared.options.items())
+    options += "".join(f", {k} (required)" for k in declared.required_options)
+    writes = ", ".join(o.topic for o in declared.outputs)
+    templated = " ({name}: the last part of the input topic)" if "{name}" in writes else ""
+    help_text = (f"{declared.description or 'A declared stage.'}\n\n"
+                 f"Stage {declared.name} {declared.version} ({declared.reference}): reads {declared.reads}, writes "
+                 f"{writes}{templated}. Options: {options.strip(', ') or 'none'}."
+                 f"\n\n\b\nExample:\n  starlog {name} LOG -o OUT.mcap")
+
+    @click.command(name=name, context_settings=CONTEXT, help=help_text)
+    @input_log
+    @output_option()
+    @click.option("--input-topic", "--input", "input_topic", metavar="TOPIC",
+                  help=f"Channel to read, or all: each {declared.reads} channel in turn [default: the log's only "
+                       f"{declared.reads} channel]. (--input is the same option.)")
+    @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
+                  help="Option of the stage (values parsed as JSON when they can be). Repeatable.")
+    @time_range_options(f"the {declared.reads} channel the stage reads")
+    @json_option
+    @flatten_option
+    @write_options
+    def command(log: Path, output: Path, input_topic: str | None, settings: tuple[str, ...], start: str | None,
+                end: str | None, as_json: bool, flatten: bool, force: bool, compression: str, workers: int,
+                quiet: bool) -> None:
+        from starlog.stages.custom import run_stage
+
+        summary = run_stage(declared, log, output, options=key_values(settings, "--set"), input_topic=input_topic,
+                            workers=workers, force=force, compression=compression, show_progress=not quiet,
+                            start=start, end=end, flatten=flatten)
+        d = summary.to_dict()
+        for note in d["notes"]:
+            click.echo(f"note: {note}", err=True)
+        written = ", ".join(f"{n} records on {t}" for t, n in d["records"].items())
+        echo_status(quiet, f"wrote {output}: {d['messages']} messages of {', '.join(d['inputs'])} read; {written}")
+        if as_json:
+            print_json(d)
+
+    return command
