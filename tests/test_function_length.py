@@ -1,0 +1,42 @@
+"""No function of the package is over 100 lines of code: longer ones are split into named steps."""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parent.parent / "starlog"
+MAX_LINES = 100
+
+
+def code_lines(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Lines from ``def`` to the function's last line, its docstring left out (decorators are not counted)."""
+    assert function.end_lineno is not None
+    lines = function.end_lineno - function.lineno + 1
+    first = function.body[0]
+    if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+        assert first.end_lineno is not None
+        lines -= first.end_lineno - first.lineno + 1
+    return lines
+
+
+def long_functions(source: str, name: str) -> Iterator[str]:
+    """``name:line function (N lines)`` for each function (nested ones and methods too) over :data:`MAX_LINES`."""
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and code_lines(node) > MAX_LINES:
+            yield f"{name}:{node.lineno} {node.name} ({code_lines(node)} lines)"
+
+
+def test_no_function_is_over_100_lines() -> None:
+    found = [line for path in sorted(PACKAGE.rglob("*.py"))
+             for line in long_functions(path.read_text(encoding="utf-8"), str(path.relative_to(PACKAGE.parent)))]
+    assert not found, "functions over 100 lines of code (split them):\n" + "\n".join(found)
+
+
+def test_the_count_leaves_out_the_docstring_only() -> None:
+    body = "".join(f"    x{i} = {i}\n" for i in range(MAX_LINES - 1))
+    docstring = '    """What it does.\n\n    At length.\n    """\n'
+    at_limit = f"def f():\n{docstring}{body}"
+    assert not list(long_functions(at_limit, "m"))
+    assert list(long_functions(at_limit + "    return x0\n", "m")) == ["m:1 f (101 lines)"]
