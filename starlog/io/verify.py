@@ -14,6 +14,9 @@ and the summary section a block at a time (once for its CRC, once for its record
 one chunk, per-channel counters and the summary's chunk indexes by column (about 100 bytes a
 chunk: each is compared with its chunk as the walk finishes that chunk). Chunk indexes are parsed
 as :class:`~starlog.io.reader.LogReader` parses them: one that it refuses is a ``bad_summary``.
+
+One module of over 500 lines: the checks are the methods of one walk over the file
+(:class:`_Verifier`), which share its state, and the reports are what that walk fills in.
 """
 
 from __future__ import annotations
