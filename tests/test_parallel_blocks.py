@@ -19,8 +19,8 @@ from starlog.stages._parallel import _Pool, ordered_map, process_pool
 from starlog.stages.centroid import centroid_log
 from starlog.stages.track import _concatenated
 from starlog.track import TRACK_DTYPE
-from tests.conftest import small_config
 from tests.foreign_logs import write_plain
+from tests.helpers import small_config
 
 
 def _log_of_chunks(*chunks: tuple[int, int, int]) -> LogReader:

@@ -12,8 +12,8 @@ from starlog.errors import CorruptLogError
 from starlog.io import LogReader, LogWriter, encode_json, file_digest, json_message_type
 from starlog.io import topics
 from starlog.io.recover import recover_log
-from tests.conftest import small_config
 from starlog.stages import simulate_log
+from tests.helpers import small_config
 
 
 @pytest.fixture(scope="module")

@@ -40,7 +40,7 @@ from starlog.io import topics
 from starlog.io.recover import recover_log
 from starlog.io.schemas import MessageType
 from starlog.stages import simulate_log
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 Content = dict[tuple[str, int, int], bytes]  # (topic, log_time, n-th message at that time) -> bytes
 

@@ -22,7 +22,7 @@ from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.track import track_log
 from tests.chromium import INSTALL_HINT, Browser, find_chromium
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 CONFIG = ('[centroid]\nmethods = ["GAUSSFIT"]\n[track]\nmethods = ["GAUSSFIT"]\nmodels = ["STATIC", "RANDOM_WALK"]\n'
           '[track.tracker]\nsigma_floor = 0.05\n[compensate]\nrates = [25, 50]\nprotocols = "all"\n')

@@ -14,7 +14,7 @@ from starlog.stages import compensate as compensate_stage
 from starlog.stages.compensate import compensate_log
 from starlog.stages.simulate import simulate_log
 from starlog.stages.track import track_log
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 
 def _layer(base: Path, out: Path) -> None:

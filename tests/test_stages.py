@@ -29,7 +29,7 @@ from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
 from starlog.stages.track import track_log
 from starlog.track import TRACK_DTYPE
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 
 def _invoke(*args: str) -> str:

@@ -22,8 +22,8 @@ from starlog.io import topics
 from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen, verify_file, verify_log
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
-from tests.conftest import small_config
 from tests.foreign_logs import write_foxglove_compressed, write_numbers, write_plain, write_ros1, write_ros2
+from tests.helpers import small_config
 
 
 def _verify_cli(path: Path) -> tuple[int, dict]:
