@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from starlog.io import LogWriter
 from starlog.sim import CameraModel, Jitter, SimulationConfig
 
 
@@ -12,3 +13,15 @@ def small_config(**overrides: object) -> SimulationConfig:
                                      camera=CameraModel(read_noise=3.0, bias=100.0))
     params.update(overrides)
     return SimulationConfig(**params)  # type: ignore[arg-type]
+
+
+def killed_writer_bytes(writer: LogWriter) -> bytes:
+    """What a writer killed now leaves: the header, every chunk and its message indexes flushed, no summary
+    and no footer. The writer is then aborted (its temporary file removed)."""
+    # LogWriter has no public way to flush without finishing: its private steps leave what a kill leaves
+    writer._close_chunk()
+    writer._drain(all_of_them=True)
+    writer._file.flush()
+    data = writer._tmp_path.read_bytes()
+    writer.abort()
+    return data
