@@ -10,6 +10,7 @@ import pytest
 
 from starlog.experiment import realisations
 from starlog.experiment.datasets import MIN_SEPARATION_PX, min_separation, paper_datasets
+# private _Sweep: which realisations a run adds shows publicly only in a full experiment (minutes); checked directly
 from starlog.experiment.experiment import _Sweep
 from dataclasses import replace
 
