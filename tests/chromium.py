@@ -25,7 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["Browser", "find_chromium", "INSTALL_HINT"]
+__all__ = ["Browser", "drawn_fraction", "figures_drawn", "find_chromium", "INSTALL_HINT"]
 
 INSTALL_HINT = ("no Chromium found (looked for chromium, chromium-browser, google-chrome, and $CHROMIUM); "
                 "install it with `apt-get install chromium` (Debian/Ubuntu) to run the report's browser test")
@@ -216,3 +216,28 @@ class Browser:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+#: Each ``figure.fig``'s name and the page box of its SVG (page coordinates, CSS px), as JSON.
+_FIGURE_BOXES = ("JSON.stringify([...document.querySelectorAll('figure.fig')].map(f => {"
+                 "const r = f.querySelector('svg').getBoundingClientRect();"
+                 "return {name: f.dataset.figure, x: r.x + scrollX, y: r.y + scrollY, w: r.width, h: r.height};}))")
+
+
+def drawn_fraction(image: np.ndarray) -> float:
+    """Fraction of pixels unlike the box's most common colour (0 for a blank box)."""
+    flat = image.reshape(-1, image.shape[-1]).astype(np.int32)
+    colors, counts = np.unique(flat, axis=0, return_counts=True)
+    background = colors[np.argmax(counts)]
+    return float(np.mean(np.abs(flat - background).sum(axis=1) > 24))
+
+
+def figures_drawn(browser: Browser, page: Path) -> dict[str, float]:
+    """Each figure's drawn fraction in the rendered page (every figure's box larger than 50 x 50 px)."""
+    browser.open(page)
+    boxes = json.loads(browser.evaluate(_FIGURE_BOXES))
+    drawn = {}
+    for box in boxes:
+        assert box["w"] > 50 and box["h"] > 50, box
+        drawn[box["name"]] = drawn_fraction(browser.screenshot(box["x"], box["y"], box["w"], box["h"]))
+    return drawn

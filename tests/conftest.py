@@ -1,4 +1,7 @@
-"""Shared fixtures: tiny simulated logs built with starlog's own writer."""
+"""Shared fixtures: tiny simulated logs built with starlog's own writer.
+
+Plain helpers that tests import (such as ``small_config``) live in ``tests/helpers.py``.
+"""
 
 from __future__ import annotations
 
@@ -6,17 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from starlog.sim import CameraModel, Jitter, SimulationConfig
 from starlog.stages import simulate_log
-
-
-def small_config(**overrides: object) -> SimulationConfig:
-    """A small, fast simulated dataset (64x48 px, 20 frames, 3 stars)."""
-    params: dict[str, object] = dict(width=64, height=48, n_stars=3, n_frames=20, fps=100.0, margin=8.0,
-                                     jitter=(Jitter(frequency_hz=7.0, amplitude_px=0.1),), seed=3,
-                                     camera=CameraModel(read_noise=3.0, bias=100.0))
-    params.update(overrides)
-    return SimulationConfig(**params)  # type: ignore[arg-type]
+from tests.helpers import small_config
 
 
 @pytest.fixture(scope="session")

@@ -75,6 +75,7 @@ def write_ros2(src: Path, dst: Path, *, topic: str = "/camera/image_raw", encodi
 
 def write_ros1(src: Path, dst: Path, *, topic: str = "/camera/image_raw", compressed: str | None = None) -> Path:
     """A ROS 1 log (``sensor_msgs/Image`` mono16, or ``CompressedImage``) written with mcap-ros1-support."""
+    # mcap-ros1-support's private _vendor: its ROS 1 message classes are made only by the genpy it vendors
     from mcap_ros1._vendor.genpy import Time, dynamic
     from mcap_ros1.writer import Writer
 

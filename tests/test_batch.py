@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from starlog.batch import BatchTask, run_batch
 from starlog.cli import cli
 from starlog.stages import simulate_log
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 CONFIG = ('[centroid]\nmethods = ["GAUSSFIT"]\n[track]\nmethods = ["GAUSSFIT"]\nmodels = "STATIC"\n'
           '[track.tracker]\nsigma_floor = 0.05\n[compensate]\nrates = [50]\nprotocols = "paper"\n')

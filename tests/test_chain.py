@@ -38,7 +38,7 @@ from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.motion import motion_log
 from starlog.stages.track import track_log
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 
 @pytest.fixture(scope="module")

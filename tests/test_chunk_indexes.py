@@ -77,6 +77,7 @@ same_layouts = st.builds(  # few layouts, so that runs of records of one length 
 )
 
 
+# private _READ_BLOCK: the summary's read size (1 MiB) has no public setting; made tiny to split runs across reads
 @settings(max_examples=300, deadline=None)
 @given(st.lists(same_layouts, max_size=40), st.sampled_from([9, 64, 1 << 20]))
 def test_a_summary_of_chunk_indexes_reads_back_run_by_run_as_record_by_record(
@@ -165,6 +166,7 @@ def test_a_log_of_many_chunks_reads_in_time_order(tmp_path: Path) -> None:
     assert counts == {"/camera/frame": (1000, 0, 2_997_000), "/other": (2000, 1000, 2_999_000)}
 
 
+# private _READ_BLOCK, _SummarySink._FLUSH_AT: read and write sizes have no public setting; made small for small logs
 def test_summaries_read_and_written_in_pieces_are_the_same_bytes(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """Reading in blocks smaller than a record, and a summary written out every few records, change nothing."""
@@ -189,6 +191,7 @@ def test_summaries_read_and_written_in_pieces_are_the_same_bytes(tmp_path: Path,
         assert log.channel("/camera/frame").message_count + log.channel("/other").message_count == 2000
 
 
+# private scan._covered: the merged ranges are seen publicly only as the loose runs found between them; tested directly
 def test_gaps_between_indexed_records_are_those_of_the_objects(tmp_path: Path) -> None:
     """The merged ranges the indexes cover leave the same gaps as the ranges taken one by one."""
     from starlog.io.scan import _covered
@@ -256,6 +259,7 @@ nearby_chunk_indexes = st.builds(
 )
 
 
+# private _chunk_index_problems, _covered: their blocks need 65,536+ chunks in a real log; tested directly on tables
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.one_of(chunk_indexes, nearby_chunk_indexes), max_size=9), st.integers(1, 4),
        st.one_of(st.integers(0, 2**64 - 1), SMALL), st.sets(st.integers(0, 3), max_size=3))

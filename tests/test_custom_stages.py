@@ -23,7 +23,7 @@ from starlog.plugins import load_reference
 from starlog.stage_api import Stage, run_stage, stage
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text(encoding="utf-8")

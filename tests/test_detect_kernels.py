@@ -13,6 +13,7 @@ from numpy.testing import assert_array_equal
 import starlog.detect.components as components
 import starlog.detect.detection as detection
 from starlog.detect import detect_stars
+# private _window_sum: the kernels' copy of numpy's summation order, checked alone on sums where the order shows
 from starlog.detect._peak_kernels import _window_sum
 from starlog.detect.components import Components, Peaks, component_peaks, find_components, find_components_vectorised
 from starlog.errors import InvalidInputError
@@ -52,6 +53,7 @@ def _scene(seed: int, size: int, n: int, psf: float, *, kind: str = "uint16", ho
     return img
 
 
+# private _prepare, _foreground: detect_stars's intermediate frames, the inputs its private steps are compared on
 def _stages(img: np.ndarray, *, opening: bool = True, min_area: int = 3, deblend: bool = True):
     """detect_stars up to its candidates: the arguments of _local_maxima and _candidates."""
     arr = np.asarray(img)
@@ -74,6 +76,7 @@ def _candidate_options(saturation: float) -> dict:
                 border=3)
 
 
+# private _candidates vs its numpy reference _candidates_vectorised: one step of detect_stars, checked alone
 def _same_candidates(peaks, comp, work, filtered, bg, k1, knorm, saturation):
     opts = _candidate_options(saturation)
     with warnings.catch_warnings():
@@ -112,6 +115,7 @@ def test_pixel_listing_kernel_matches_numpy_on_random_masks(seed, fill, rows, co
     _same_components(mask, min_area, max_area)
 
 
+# private _prepare, _foreground: the thresholded frame detect_stars labels, built as it builds it
 @settings(max_examples=40, deadline=None, derandomize=True)
 @given(**scenes, opening=st.booleans(), min_area=st.sampled_from([1, 3]))
 def test_pixel_listing_kernel_matches_numpy_on_star_fields(seed, size, n, psf, kind, holes, saturate, opening,
@@ -132,6 +136,7 @@ def test_ring_and_nested_component():
     assert comp.count == 1 and comp.area[0] == mask.sum()
 
 
+# private _local_maxima vs its numpy reference _local_maxima_vectorised: one step of detect_stars, checked alone
 @settings(max_examples=60, deadline=None, derandomize=True)
 @given(**scenes, opening=st.booleans(), min_area=st.sampled_from([1, 3]))
 def test_local_maxima_kernel_matches_numpy(seed, size, n, psf, kind, holes, saturate, opening, min_area):
@@ -140,6 +145,7 @@ def test_local_maxima_kernel_matches_numpy(seed, size, n, psf, kind, holes, satu
     assert_array_equal(components._local_maxima(comp, filtered), components._local_maxima_vectorised(comp, filtered))
 
 
+# private _local_maxima vs its numpy reference _local_maxima_vectorised: one step of detect_stars, checked alone
 @settings(max_examples=40, deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**31 - 1), fill=st.floats(0.05, 0.7), rows=st.integers(1, 40), cols=st.integers(1, 40),
        nan=st.floats(0, 0.3), levels=st.sampled_from([3, 1000]))
@@ -157,6 +163,7 @@ def test_local_maxima_kernel_on_ties_and_nan(seed, fill, rows, cols, nan, levels
     assert_array_equal(components._local_maxima(comp, fine), components._local_maxima_vectorised(comp, fine))
 
 
+# private _local_maxima vs its numpy reference _local_maxima_vectorised: one step of detect_stars, checked alone
 def test_a_component_without_a_local_maximum_gets_its_brightest_pixel():
     mask = np.zeros((6, 6), np.uint8)
     mask[2, 1:4] = 1
@@ -184,7 +191,9 @@ def test_candidates_kernel_matches_numpy(seed, size, n, psf, kind, holes, satura
     work, filtered, bg, k1, knorm, comp, peaks = _stages(img, opening=opening, deblend=deblend)
     if peaks is None:
         return
-    saturation = 4095.0 if saturate else detection._default_saturation(img)
+    # detect_stars's default saturation: the integer type's maximum, none for floating-point frames
+    default = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else np.inf
+    saturation = 4095.0 if saturate else default
     _same_candidates(peaks, comp, work, filtered, bg, k1, knorm, saturation)
 
 
@@ -232,6 +241,7 @@ def test_window_sum_is_numpys_summation_order(seed, m, k, spread):
     assert got.tobytes() == want.tobytes()
 
 
+# private names patched: detect_stars run with its numpy references in place of the compiled steps
 def _vectorised(stack):
     stack.setattr(detection, "find_components", components.find_components_vectorised)
     stack.setattr(components, "_local_maxima", components._local_maxima_vectorised)
@@ -256,6 +266,7 @@ def test_detect_stars_is_byte_identical_with_the_numpy_references(seed, size, n,
     assert got.tobytes() == want.tobytes()
 
 
+# private _candidates, _local_maxima, _member_pixels: their own input checks, which detect_stars never trips
 def test_mismatched_or_out_of_range_inputs_are_refused():
     img = _scene(8, 80, 10, 1.2)
     work, filtered, bg, k1, knorm, comp, peaks = _stages(img)

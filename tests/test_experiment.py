@@ -217,14 +217,13 @@ def test_html_report_and_short_summary(quick_run: ExperimentSummary) -> None:
 
 
 def test_html_report_renders_in_chromium(quick_run: ExperimentSummary) -> None:
-    from tests.chromium import INSTALL_HINT, Browser, find_chromium
-    from tests.test_report import _render
+    from tests.chromium import INSTALL_HINT, Browser, figures_drawn, find_chromium
 
     executable = find_chromium()
     if executable is None:
         pytest.skip(INSTALL_HINT)
     with Browser(executable, timeout=60) as browser:
-        drawn = _render(browser, quick_run.output_dir / "report.html")
+        drawn = figures_drawn(browser, quick_run.output_dir / "report.html")
         assert len(drawn) == len(REGIMES) * len(DATASETS) * 4 and min(drawn.values()) > 0.02, drawn
         assert browser.errors() == []
 

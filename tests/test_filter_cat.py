@@ -17,8 +17,8 @@ from starlog.io.verify import verify_log
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.filter import cat_messages, filter_log
-from tests.conftest import small_config
 from tests.foreign_logs import write_plain, write_ros2
+from tests.helpers import small_config
 
 
 @pytest.fixture(scope="module")

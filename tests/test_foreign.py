@@ -21,8 +21,8 @@ from starlog.io import LogReader, topics
 from starlog.io.images import pixels_to_mono
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
-from tests.conftest import small_config
 from tests.foreign_logs import native_frames, write_foxglove_compressed, write_plain, write_ros1, write_ros2
+from tests.helpers import small_config
 
 METHOD = "GAUSSFIT"
 

@@ -21,7 +21,7 @@ from starlog.io.recover import recover_log
 from starlog.io.layout import MAGIC as MCAP_MAGIC
 from starlog.stages import simulate_log
 from starlog.stages.ingest import ColourImageWarning, ingest_folder
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 

@@ -303,7 +303,7 @@ def test_compensate_relative_and_separate_records_channels_and_tables(compensate
 
 # ---------------------------------------------------------------- the regime map (experiment --sweep)
 def test_regime_map_configs_tables_and_plot(tmp_path: Path) -> None:
-    from starlog.experiment.plots import plot_regime_map
+    from starlog.report.experiment_figures import plot_regime_map
     from starlog.experiment.regime import (
         FIGURES,
         RATES,

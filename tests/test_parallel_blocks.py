@@ -14,13 +14,16 @@ import pytest
 from starlog.io import LogReader, LogView, topics
 from starlog.io.timerange import TimeRange
 from starlog.stages import simulate_log
+# private module _blocks: how the stages split a channel among workers; its edge cases need stand-in logs
 from starlog.stages._blocks import channel_blocks
+# private module _parallel: the stages' pool; only a _Pool never started (process_pool starts it) runs all items here
 from starlog.stages._parallel import _Pool, ordered_map, process_pool
 from starlog.stages.centroid import centroid_log
+# private _concatenated: track's join of a block's row tables, checked against numpy (an empty table included)
 from starlog.stages.track import _concatenated
 from starlog.track import TRACK_DTYPE
-from tests.conftest import small_config
 from tests.foreign_logs import write_plain
+from tests.helpers import small_config
 
 
 def _log_of_chunks(*chunks: tuple[int, int, int]) -> LogReader:
@@ -74,6 +77,7 @@ def test_ordered_map_computes_here_until_the_workers_are_up() -> None:
 def test_an_error_while_the_workers_start_stops_them() -> None:
     with pytest.raises(KeyboardInterrupt), process_pool(2) as pool:
         raise KeyboardInterrupt
+    # private _processes (concurrent.futures'): no public way lists a pool's processes, as _parallel says too
     processes = list((pool._processes or {}).values())
     assert all(not p.is_alive() for p in processes)
 

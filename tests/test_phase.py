@@ -58,6 +58,7 @@ def test_no_s_curve_leaves_positions_unchanged() -> None:
     assert np.array_equal(x, measured[0]) and np.array_equal(y, measured[1])
 
 
+# private _applied: its edge (2.9 standard errors, 0 +- 0) cannot be reached exactly through estimated amplitudes
 def test_an_amplitude_is_applied_only_above_three_standard_errors_and_shrunk() -> None:
     assert _applied(0.029, 0.01) == 0.0 and _applied(0.0, 0.0) == 0.0
     assert _applied(-0.04, 0.01) == pytest.approx(-0.04 * (1 - 1 / 16))

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from starlog.stages import simulate_log
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), flags=re.S)

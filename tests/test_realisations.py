@@ -10,6 +10,7 @@ import pytest
 
 from starlog.experiment import realisations
 from starlog.experiment.datasets import MIN_SEPARATION_PX, min_separation, paper_datasets
+# private _Sweep: which realisations a run adds shows publicly only in a full experiment (minutes); checked directly
 from starlog.experiment.experiment import _Sweep
 from dataclasses import replace
 
@@ -103,12 +104,14 @@ def test_the_full_run_adds_realisations_for_the_paper_regime_only(tmp_path: Path
 
 
 def test_the_html_report_shows_the_realisations_of_a_full_run():
-    from starlog.report.experiment_report import render_experiment_report
+    from starlog.report.experiment_data import ExperimentReportData
+    from starlog.report.experiment_html import render_experiment_html
 
     summary = {"output_dir": "/tmp/x", "datasets": [], "quick": False, "regimes": ["paper"], "wall_time_s": 1.0,
                "executor": "serial", "window_note": "6 s", "headline": [], "null_checks": [], "files": {},
                "realisations": realisations.summarise([_row("300Hz", 301, 5.0, 0.40), _row("300Hz", 302, 5.0, 0.50)],
                                                       [])}
-    html = render_experiment_report(summary, {})
+    html = render_experiment_html(ExperimentReportData(summary))
     assert "Table 2 over realisations" in html and "0.4000–0.5000" in html
-    assert "Table 2 over realisations" not in render_experiment_report({**summary, "realisations": []}, {})
+    assert "Table 2 over realisations" not in render_experiment_html(ExperimentReportData({**summary,
+                                                                                           "realisations": []}))

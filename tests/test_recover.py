@@ -12,8 +12,8 @@ from starlog.errors import CorruptLogError
 from starlog.io import LogReader, LogWriter, encode_json, file_digest, json_message_type
 from starlog.io import topics
 from starlog.io.recover import recover_log
-from tests.conftest import small_config
 from starlog.stages import simulate_log
+from tests.helpers import killed_writer_bytes, small_config
 
 
 @pytest.fixture(scope="module")
@@ -82,11 +82,7 @@ def test_unfinished_log_without_summary(tmp_path: Path) -> None:
     for n in range(50):
         writer.write(ch, log_time=n, data=encode_json({"frame": n, "width": 1, "height": 1, "encoding": "mono8",
                                                          "bit_depth": 8, "source": ""}))
-    writer._close_chunk()
-    writer._drain(all_of_them=True)
-    writer._file.flush()
-    path.write_bytes(writer._tmp_path.read_bytes())  # what a killed writer leaves: flushed, never finished
-    writer.abort()
+    path.write_bytes(killed_writer_bytes(writer))  # flushed, never finished
     report = recover_log(path, tmp_path / "rec.mcap")
     assert report.kept_by_topic == {"/a": 50}
 

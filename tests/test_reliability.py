@@ -40,7 +40,7 @@ from starlog.io import topics
 from starlog.io.recover import recover_log
 from starlog.io.schemas import MessageType
 from starlog.stages import simulate_log
-from tests.conftest import small_config
+from tests.helpers import killed_writer_bytes, small_config
 
 Content = dict[tuple[str, int, int], bytes]  # (topic, log_time, n-th message at that time) -> bytes
 
@@ -191,12 +191,8 @@ def test_unfinished_log_flushed_never_finished(good_log: Path, good_content: Con
                 ids[channel.topic] = writer.add_channel(channel.topic, MessageType(
                     schema.name, schema.encoding, schema.data, channel.message_encoding))  # type: ignore[union-attr]
             writer.write(ids[channel.topic], log_time=message.log_time, data=message.data)
-    writer._close_chunk()
-    writer._drain(all_of_them=True)
-    writer._file.flush()
     broken = tmp_path / "unfinished.mcap"
-    broken.write_bytes(writer._tmp_path.read_bytes())
-    writer.abort()
+    broken.write_bytes(killed_writer_bytes(writer))
     report, recovered = check_every_command(broken, good_content, tmp_path, expect=TruncatedLogError,
                                             match="unfinished")
     assert recovered == good_content and not report.lost_chunks

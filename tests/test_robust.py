@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from starlog.centroid import CentroidFlag, CentroidMethod, measure_centroids
+# private module _stamps: the robust functions take stamps, which only it cuts; its model is the true star
 from starlog.centroid._stamps import gather_stamps, model
 from starlog.centroid.robust import (
     clip_level,

@@ -17,7 +17,7 @@ from starlog.pipeline import PipelineConfig, run_pipeline
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.track import track_log
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 FPS = 100.0
 

@@ -4,17 +4,18 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from starlog.io import LogReader, LogWriter, Provenance, file_digest, json_message_type
+from starlog.io import LogReader, LogWriter, Provenance, file_digest, json_message_type, topics
 from starlog.io.provenance import BackgroundDigest
-from starlog.stages import compensate as compensate_stage
 from starlog.stages.compensate import compensate_log
 from starlog.stages.simulate import simulate_log
 from starlog.stages.track import track_log
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 
 def _layer(base: Path, out: Path) -> None:
@@ -66,11 +67,16 @@ def test_the_paper_protocol_never_reads_the_truth(tmp_path: Path, monkeypatch: p
     track_log(cen, trk, method="MOMENT", models=["STATIC"])
     paper = compensate_log(trk, tmp_path / "paper.mcap", rates=[50], protocols="paper")
 
-    def unread(*args: object, **kwargs: object) -> None:
-        raise AssertionError("the truth was read")
+    def unread(read: Any) -> Any:
+        def guarded(self: LogReader, topic: str | Iterable[str], **kwargs: Any) -> Any:
+            wanted = [topic] if isinstance(topic, str) else list(topic)
+            if topics.TRUTH in wanted:
+                raise AssertionError("the truth was read")
+            return read(self, wanted, **kwargs)
+        return guarded
 
-    monkeypatch.setattr(compensate_stage, "_star_truth", unread)
-    monkeypatch.setattr(compensate_stage, "_nearest_star", unread)
+    for method in ("messages", "raw_messages"):  # the reader's ways to a channel's messages
+        monkeypatch.setattr(LogReader, method, unread(getattr(LogReader, method)))
     assert compensate_log(trk, tmp_path / "again.mcap", rates=[50], protocols="paper").records == paper.records
     with pytest.raises(AssertionError, match="truth was read"):
         compensate_log(trk, tmp_path / "truth.mcap", rates=[50], protocols="truth")

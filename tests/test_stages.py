@@ -24,12 +24,13 @@ from starlog.io import LogReader, file_digest, json_message_type, load_json_sche
 from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.sim import Jitter
 from starlog.stages import simulate_log
+# private module _stage: the layer the built-in stages write through; its channel-order rule is tested without one
 from starlog.stages._stage import extend_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
 from starlog.stages.track import track_log
 from starlog.track import TRACK_DTYPE
-from tests.conftest import small_config
+from tests.helpers import small_config
 
 
 def _invoke(*args: str) -> str:
@@ -344,6 +345,7 @@ def test_stage_refuses_to_read_fewer_messages_than_the_channel_holds(
     assert not (tmp_path / "o.mcap").exists()
 
 
+# private _blocks.worker_log's cache (_WORKER_LOG) and McapFile._file: a worker's open logs have no public view
 def test_a_worker_opens_each_log_once(tmp_path: Path) -> None:
     from starlog.stages import _blocks as blocks
 

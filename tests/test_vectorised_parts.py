@@ -10,13 +10,22 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
 import starlog.detect.components as components
-from starlog.centroid._stamps import fisher_sigma, gather_stamps, model, profile_1d
-from starlog.centroid.gaussfit import _Problem, _Profiles, fit_gaussians
-from starlog.centroid.moment import _centre_of_weights
+from starlog.centroid.gaussfit import fit_gaussians
 from starlog.detect import estimate_background
-from starlog.detect.background import Background, _edge_padded, _fit_planes, _fit_planes_vectorised
+from starlog.detect.background import Background
 from starlog.detect.components import find_components_vectorised
-from starlog.detect.detection import _edge_noise_factor, matched_filter
+from starlog.detect.detection import matched_filter
+
+# private module _stamps: the stamps and Gaussian model every fit uses, checked against their definitions
+from starlog.centroid._stamps import fisher_sigma, gather_stamps, model, profile_1d
+# private _Problem, _Profiles: GAUSSFIT's normal equations, checked against the dense Jacobian they stand for
+from starlog.centroid.gaussfit import _Problem, _Profiles
+# private _centre_of_weights: MOMENT's centre, checked against the weighted mean it computes
+from starlog.centroid.moment import _centre_of_weights
+# private _edge_padded, _fit_planes(_vectorised): the background's padding and its compiled and numpy cell fits
+from starlog.detect.background import _edge_padded, _fit_planes, _fit_planes_vectorised
+# private _edge_noise_factor: detection's cached edge-noise table, checked against its definition
+from starlog.detect.detection import _edge_noise_factor
 
 
 def _random_mask(seed: int, shape: tuple[int, int], fill: float) -> np.ndarray:
@@ -30,6 +39,7 @@ def _components_tuple(comp: components.Components) -> tuple[np.ndarray, ...]:
     return (comp.y, comp.x, comp.label, comp.start, comp.area, comp.x_min, comp.x_max, comp.y_min, comp.y_max)
 
 
+# private _CROPS_UP_TO: which labelling a mask gets is a module constant; -1 sends every box through the graph
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), fill=st.floats(0.05, 0.6), rows=st.integers(1, 40), cols=st.integers(1, 40))
 def test_overlapping_boxes_as_crops_match_the_pixel_graph(seed, fill, rows, cols):
@@ -204,6 +214,7 @@ def _grid_line_maximum(sm: np.ndarray, other: float, axis: int, lo: float, hi: f
     return float(grid[np.argmax(values)]), values
 
 
+# private _line_maximum, _values_along: one axis step of BICUBIC's peak search, checked alone against a grid
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), sigma=st.floats(0.5, 2.0), snr=st.floats(5.0, 200.0),
        start=st.floats(1.0, 9.0), other=st.floats(1.0, 9.0), axis=st.integers(0, 1))
@@ -229,6 +240,7 @@ def test_bicubic_line_maxima_in_closed_form_match_a_fine_grid_search(seed, sigma
         assert _keys_surface(sm, *point)[0] >= values.max() - 1e-9 * max(1.0, abs(values.max()))
 
 
+# private _line_maximum: a rounding edge case of one search step, which a whole centroid would not show
 def test_bicubic_finds_a_maximum_that_sits_on_a_pixel_centre():
     """A symmetric peak centred on a pixel: the slope's zero is at an interval's end, where rounding
     can put it a hair outside both intervals that share it."""

@@ -19,11 +19,13 @@ from mcap.records import ChunkIndex
 from starlog.cli import cli
 from starlog.io import LogReader, LogWriter, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
-from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen, verify_file, verify_log
+from starlog.io.verify import verify_file, verify_log
+# private: verify's walk-time chunk-index check, tested directly on hypothesis's tables (a file for each is too slow)
+from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
-from tests.conftest import small_config
 from tests.foreign_logs import write_foxglove_compressed, write_numbers, write_plain, write_ros1, write_ros2
+from tests.helpers import small_config
 
 
 def _verify_cli(path: Path) -> tuple[int, dict]:
@@ -350,6 +352,7 @@ def test_a_chunk_index_the_reader_refuses_is_a_damaged_summary(tmp_path: Path) -
             list(log.messages("/numbers"))
 
 
+# private _PROGRESS_STEP: progress comes every 8 MiB, with no public setting; 1 byte makes a small log report
 def test_progress_is_reported_in_bytes_of_the_data_section(logs: dict[str, Path],
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     import starlog.io.verify as verify_module

@@ -12,8 +12,9 @@ and a ``report.md``.  Independent runs go to any ``concurrent.futures.Executor``
 from __future__ import annotations
 
 from starlog.experiment.datasets import SIGMA_FLOOR_PX, Dataset, paper_datasets
-from starlog.experiment.experiment import ExperimentSummary, experiment_command, run_experiment
+from starlog.experiment.experiment import experiment_command, run_experiment
 from starlog.experiment.runner import RESULT_FIELDS, WINDOW_S
+from starlog.experiment.summary import ExperimentSummary
 from starlog.experiment.tables import TABLE_FIELDS
 
 __all__ = [

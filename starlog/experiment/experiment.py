@@ -1,32 +1,35 @@
-"""``run_experiment``: the whole reproduction (datasets → stages → sweep → tables, plots, report)."""
+"""``run_experiment``: the whole reproduction (datasets → stages → sweep; then :mod:`~starlog.experiment.outputs`
+writes the tables, figures and reports)."""
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import pyarrow as pa
 from tqdm import tqdm
 
 from starlog.batch import executor_for
 from starlog.compensate import BurnInSetting, burn_in_label, parse_burn_in
 from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.experiment import null_check, plots, realisations, report, tables
-from starlog.report.experiment_report import render_experiment_report
-from starlog.report.log_report import write_text_atomic
-from starlog.experiment.datasets import JITTER, REGIMES, SIGMA_FLOOR_PX, Dataset, jitter_rms_px, regime_datasets
-from starlog.experiment.parquet import write_rows
+from starlog.experiment import null_check, realisations, tables
+from starlog.experiment.datasets import REGIMES, SIGMA_FLOOR_PX, Dataset, regime_datasets
+from starlog.experiment.outputs import (
+    TRAJECTORY,
+    log_files,
+    write_plots,
+    write_realisations,
+    write_reports,
+    write_results,
+    write_tables,
+)
 from starlog.experiment.regime import RegimeSummary, run_regime_map
 from starlog.experiment.runner import (
     COMPENSATED_RATES,
     METHODS,
     MODELS,
-    RESULT_FIELDS,
     TABLE4_RATE,
     UNCOMPENSATED_RATES,
     WINDOW_S,
@@ -37,98 +40,12 @@ from starlog.experiment.runner import (
     sort_rows,
     track_and_score,
 )
+from starlog.experiment.summary import ExperimentSummary
 
 __all__ = ["ExperimentSummary", "experiment_command", "run_experiment"]
 
 _SHOWCASE_RATES = (10.0, 50.0)
-_TRAJECTORY = ("300Hz", "NONE", ("STATIC", "RANDOM_WALK"), 50.0)
 _Key = tuple[str, str, str, str]  # kind, regime, dataset, detail
-
-
-@dataclass
-class ExperimentSummary:
-    """What :func:`run_experiment` produced.
-
-    Attributes
-    ----------
-    output_dir : Path
-        Where everything was written.
-    quick : bool
-        CI-sized datasets.
-    wall_time_s : float
-        Wall time of the whole run, s.
-    executor : str
-        ``serial`` or the executor's class name.
-    files : dict
-        Output name → path relative to ``output_dir`` (tables, Parquet, PNGs, logs, report).
-    rows : list of dict
-        Every result row (:data:`starlog.experiment.runner.RESULT_FIELDS`), canonical order.
-    tables : dict
-        ``table2`` / ``table3`` / ``table4`` / ``figure5`` → long-format rows
-        (:data:`starlog.experiment.tables.TABLE_FIELDS`).
-    headline : list of dict
-        :func:`starlog.experiment.report.headline_rows`.
-    """
-
-    output_dir: Path
-    quick: bool
-    wall_time_s: float
-    executor: str
-    datasets: list[dict[str, Any]]
-    sigma_floor_px: float
-    window_s: float | None
-    files: dict[str, str] = field(default_factory=dict)
-    tracks: dict[str, Any] = field(default_factory=dict)
-    rows: list[dict[str, Any]] = field(default_factory=list)
-    tables: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
-    headline: list[dict[str, Any]] = field(default_factory=list)
-    showcase_check: float | None = None
-    regimes: tuple[str, ...] = REGIMES
-    table3_models: dict[str, str] = field(default_factory=dict)
-    null_checks: list[dict[str, Any]] = field(default_factory=list)
-    realisations: list[dict[str, Any]] = field(default_factory=list)
-    compensation: dict[str, Any] = field(default_factory=dict)
-    burn_in: str = "auto"
-
-    @property
-    def window_note(self) -> str:
-        if self.window_s is None:
-            return "every decimated sample (whole sequence)"
-        short = " (fewer in --quick, whose datasets last 3.7 s)" if self.quick else ""
-        return (f"the first {self.window_s:g} s of each decimated sequence (floor({self.window_s:g} s × f + 0.5) "
-                f"samples: 60 at 10 Hz, 300 at 50 Hz — the paper's 'Image number'){short}; results.parquet also has "
-                "every run scored over the whole sequence (window = full)")
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready summary (no per-row data; see ``results.parquet`` for that)."""
-        return {
-            "output_dir": str(self.output_dir), "quick": self.quick, "wall_time_s": self.wall_time_s,
-            "executor": self.executor, "datasets": self.datasets, "sigma_floor_px": self.sigma_floor_px,
-            "jitter_rms_px": jitter_rms_px(JITTER), "window_s": self.window_s, "window_note": self.window_note,
-            "files": dict(self.files), "tracks": self.tracks, "headline": self.headline,
-            "showcase_check": self.showcase_check, "n_rows": len(self.rows), "regimes": list(self.regimes),
-            "table3_models": dict(self.table3_models), "null_checks": self.null_checks,
-            "realisations": self.realisations,
-            "compensation": dict(self.compensation), "burn_in": self.burn_in,
-        }
-
-    def text(self) -> str:
-        """A short plain-text summary for the command line: Table 3's headline per regime, and where the report is."""
-        lines = [f"experiment ({'quick' if self.quick else 'full'}, regimes {', '.join(self.regimes)}) in "
-                 f"{self.wall_time_s:.0f} s [{self.executor}] -> {self.output_dir}"]
-
-        def f(v: float | None) -> str:
-            return "—" if v is None else f"{v:.4f}"
-
-        for h in self.headline:
-            if h["table"] == "table3" and (h["protocol"], h["reference"]) in (("paper", "global_mean"),
-                                                                             ("truth", "truth_fixed")):
-                paper = f" (paper: {f(h['paper_before'])} -> {f(h['paper_after'])})" if h["protocol"] == "paper" else ""
-                lines.append(f"  {h['regime']} regime, Table 3, {h['protocol']}/{h['reference']}: median RMSE "
-                             f"{f(h['before'])} -> {f(h['after'])} px{paper}")
-        lines.append(f"report: {self.output_dir / self.files.get('report_html', 'report.html')} (open it in a browser; "
-                     f"Markdown: {self.files.get('report', 'report.md')}, tables: table2-4.md, figure5.md)")
-        return "\n".join(lines)
 
 
 class _Serial:
@@ -218,24 +135,21 @@ def run_experiment(
     summary.table3_models = dict(sorted(sweep.best_models.items()))
     summary.null_checks = null_check.sort_records([r for n in sweep.null_results for r in n])
     summary.showcase_check = _cross_check(summary.rows, sweep.showcases)
-    _write_results(summary.rows, out / "results.parquet")
+    write_results(summary.rows, out / "results.parquet")
     files: dict[str, str] = {"results": "results.parquet"}
-    tables_md = _write_tables(summary, out, files)
+    tables_md = write_tables(summary, out, files)
     files["null_check"] = null_check.write_parquet(summary.null_checks, out / "null_check.parquet").name
-    _write_realisations(summary, sweep.realisation_rows, out, files)
+    write_realisations(summary, sweep.realisation_rows, out, files)
     if plot:
-        _write_plots(summary, sweep.series, out, files, executor)
-    files.update({k: v for k, v in _log_files(datasets).items() if (out / v).exists()})
+        write_plots(summary, sweep.series, out, files, executor)
+    files.update({k: v for k, v in log_files(datasets).items() if (out / v).exists()})
     files["summary"] = "summary.json"
     files["report"] = "report.md"
     files["report_html"] = "report.html"
     summary.files = files
-    summary.headline = report.headline_rows(summary.tables)
+    summary.headline = tables.headline_rows(summary.tables)
     summary.wall_time_s = time.perf_counter() - t0
-    data = summary.to_dict()
-    (out / "summary.json").write_text(json.dumps(data, indent=1), encoding="utf-8")
-    (out / "report.md").write_text(report.render_report(data, tables_md, summary.headline), encoding="utf-8")
-    write_text_atomic(out / "report.html", render_experiment_report(data, summary.tables))
+    write_reports(summary, tables_md, out)
     return summary
 
 
@@ -344,7 +258,7 @@ class _Sweep:
         self._futures[self._pool.submit(fn, *args, **kwargs)] = key
 
     def _track(self, ds: Dataset, method: str, models: list[str]) -> None:
-        keep = (TABLE4_RATE,) if (ds.name, method) == _TRAJECTORY[:2] else ()
+        keep = (TABLE4_RATE,) if (ds.name, method) == TRAJECTORY[:2] else ()
         self._submit(("track", ds.regime, ds.name, method), track_and_score, self._path(ds, "centroids"),
                      self._path(ds, f"track_{method}"), dataset=ds.name, regime=ds.regime, method=method,
                      models=models, tracker=dict(ds.tracker), motion=dict(ds.motion),
@@ -387,77 +301,6 @@ class _Sweep:
                          burn_in=self.burn_in, force=_OVERWRITE)
 
 
-def _write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) -> dict[str, str]:
-    """Tables 2-4 and Figure 5 as Parquet and Markdown; returns the Markdown by table name."""
-    tables_md: dict[str, str] = {}
-    for name in ("table2", "table3", "table4", "figure5"):
-        trows = tables.build_table(name, summary.rows, table3_models=summary.table3_models)
-        summary.tables[name] = trows
-        tables.write_parquet(trows, out / f"{name}.parquet", description=tables.TABLE_TITLES[name])
-        tables_md[name] = tables.table_markdown(name, trows, note=f"Scored samples: {summary.window_note}.",
-                                                table3_models=summary.table3_models)
-        (out / f"{name}.md").write_text(tables_md[name], encoding="utf-8")
-        files[f"{name}.parquet"] = f"{name}.parquet"
-        files[f"{name}.md"] = f"{name}.md"
-    return tables_md
-
-
-def _write_realisations(summary: ExperimentSummary, rows: list[dict[str, Any]], out: Path,
-                        files: dict[str, str]) -> None:
-    """``table2_realisations.parquet`` (every realisation's cells) and the summary beside Table 2."""
-    if not rows:
-        return
-    rows = realisations.sort_records(rows)
-    files["table2_realisations"] = realisations.write_parquet(rows, out / "table2_realisations.parquet").name
-    summary.realisations = realisations.summarise(rows, summary.tables["table2"], window_s=summary.window_s)
-
-
-def _write_plots(summary: ExperimentSummary, series: dict[str, Any], out: Path, files: dict[str, str],
-                 executor: Executor | None = None) -> None:
-    """Per regime: Figures 4 and 5, and the trajectory of the brightest star (before/after) per model.
-
-    With an ``executor`` the plots are drawn on its workers, in parallel (the same files)."""
-    ds_name, method, models, rate = _TRAJECTORY
-    window_s = summary.window_s
-    out = out.resolve()  # the workers' working directory may differ
-    jobs: list[tuple[str, Any, tuple[Any, ...], dict[str, Any]]] = []
-    for regime in summary.regimes:
-        t3 = [r for r in summary.tables["table3"] if r["regime"] == regime]
-        f5 = [r for r in summary.tables["figure5"] if r["regime"] == regime]
-        jobs.append((f"figure4_{regime}", plots.plot_figure4, (t3, out / f"figure4_{regime}.png"),
-                     {"model": summary.table3_models.get(regime, "STATIC"), "label": f"regime {regime}"}))
-        jobs.append((f"figure5_{regime}", plots.plot_figure5, (f5, out / f"figure5_{regime}.png"), {}))
-        for m in models:
-            key = f"{regime}/{ds_name}/{method}/{m}/{rate:g}Hz/{window_s:g}s" if window_s is not None else ""
-            if key not in series:
-                continue
-            name = f"trajectory_{regime}_{m.lower()}"
-            jobs.append((name, plots.plot_trajectory, (series[key], out / f"{name}.png"),
-                         {"title": f"{regime} {ds_name} dataset, {method} centroids, {m} UKF, {rate:g} Hz — brightest star"}))
-    if executor is None:
-        for name, fn, args, kwargs in jobs:
-            files[name] = fn(*args, **kwargs).name
-        return
-    futures = [(name, executor.submit(fn, *args, **kwargs)) for name, fn, args, kwargs in jobs]
-    for name, future in futures:
-        files[name] = future.result().name
-
-
-def _log_files(datasets: list[Dataset]) -> dict[str, str]:
-    """Output name → path of every log the experiment writes."""
-    files: dict[str, str] = {}
-    for ds in datasets:
-        for kind in ("sim", "centroids"):
-            files[f"{ds.stem}_{kind}"] = f"logs/{ds.stem}_{kind}.mcap"
-        for method in METHODS:
-            files[f"{ds.stem}_track_{method}"] = f"logs/{ds.stem}_track_{method}.mcap"
-        files[f"{ds.stem}_compensated"] = f"logs/{ds.stem}_compensated.mcap"
-    for regime in sorted({d.regime for d in datasets}):
-        for kind in ("sim", "centroids", "track"):
-            files[f"{regime}_null_{kind}"] = f"logs/{regime}_null_{kind}.mcap"
-    return files
-
-
 def _cross_check(rows: list[dict[str, Any]], showcases: list[dict[str, Any]]) -> float | None:
     """Largest |difference| between the compensate stage's figures and the sweep's (full window)."""
     index = {(r["regime"], r["dataset"], r["method"], r["model"], r["rate_hz"], r["protocol"], r["reference"]): r
@@ -473,13 +316,6 @@ def _cross_check(rows: list[dict[str, Any]], showcases: list[dict[str, Any]]) ->
                 d = max(abs(r["rmse_before"] - fig["rmse_before"]), abs(r["rmse_after"] - fig["rmse_after"]))
                 worst = d if worst is None else max(worst, d)
     return worst
-
-
-def _write_results(rows: list[dict[str, Any]], path: Path) -> None:
-    types = {"burn_in_samples": pa.int64(), "rate_hz": pa.float64(), "effective_rate_hz": pa.float64(), "n_samples": pa.int64(),
-             "compensated": pa.bool_(), "n_scored": pa.int64(), "rmse_before": pa.float64(),
-             "rmse_after": pa.float64(), "effective": pa.float64(), "dominant_frequency_hz": pa.float64()}
-    write_rows(rows, {n: (types.get(n, pa.string()), d) for n, d in RESULT_FIELDS.items()}, path)
 
 
 def experiment_command(

@@ -36,7 +36,8 @@ __all__ = ["REALISATIONS", "REALISATION_FIELDS", "markdown", "realisation_seeds"
 REALISATIONS = 8
 #: The cells: Table 2's model and method, at Table 2's rates.
 _MODEL, _METHOD, _RATES = "STATIC", "NONE", (5.0, 10.0)
-#: A cell within this fraction of the paper's figure "reproduces" it (the issue's tolerance).
+#: A cell within this fraction of the paper's figure "reproduces" it: the target the ``paper``
+#: regime's conditions were derived for (docs/PAPER_REGIME.md, "target 0.85–1.15").
 TOLERANCE = 0.15
 
 REALISATION_FIELDS: dict[str, tuple[pa.DataType, str]] = {

@@ -32,9 +32,9 @@ from tqdm import tqdm
 from starlog.compensate import MotionMode, ScoringProtocol, sampled_rate
 from starlog.errors import OutputExistsError
 from starlog.experiment.parquet import write_rows
-from starlog.experiment.plots import plot_regime_map
 from starlog.experiment.runner import MODELS
 from starlog.io.reader import LogReader
+from starlog.report.experiment_figures import plot_regime_map
 from starlog.sim import Jitter, SimulationConfig, Simulator
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log

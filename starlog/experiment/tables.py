@@ -1,4 +1,4 @@
-"""Tables 2–4 and Figure 5's data: long-format rows, Parquet and Markdown writers.
+"""Tables 2–4 and Figure 5's data: long-format rows, Parquet and Markdown writers, headline medians.
 
 Every table is one Parquet file in long format (one row per dataset × method × model × rate ×
 protocol × reference, columns :data:`TABLE_FIELDS`, the paper's number beside ours on every row
@@ -10,6 +10,7 @@ protocol's section (the only protocol the paper used).
 from __future__ import annotations
 
 import math
+import statistics
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,7 @@ __all__ = [
     "TABLE_FIELDS",
     "TABLE_TITLES",
     "build_table",
+    "headline_rows",
     "primary_window",
     "table_markdown",
     "write_parquet",
@@ -294,3 +296,48 @@ def table_markdown(table: str, rows: Sequence[dict[str, Any]], *, note: str = ""
                 if section:
                     parts.append(section)
     return "\n\n".join(parts) + "\n"
+
+
+# ---------------------------------------------------------------- headline medians
+def _median(values: Sequence[float | None]) -> float | None:
+    vals = [v for v in values if v is not None]
+    return statistics.median(vals) if vals else None
+
+
+def headline_rows(tables: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Per regime × table × protocol × reference: medians of our before/after/gain and of the paper's numbers.
+
+    Medians over every cell of the table (datasets, methods/models, rates) that the paper also
+    reports, plus the median over all our cells (``*_all``).
+    """
+    out = []
+    regimes = sorted({r["regime"] for t in tables.values() for r in t},
+                     key=lambda g: ({"paper": 0, "modern": 1}.get(g, 9), g))
+    for regime, name in ((g, n) for g in regimes for n in ("table2", "table3", "table4")):
+        rows = [r for r in tables.get(name, []) if r["regime"] == regime]
+        for protocol, references in PROTOCOL_REFERENCES.items():
+            for reference in references:
+                sel = [r for r in rows if r["protocol"] == protocol and r["reference"] == reference]
+                if not sel:
+                    continue
+                both = [r for r in sel if r["paper_rmse_before"] is not None]
+                if name == "table2":  # uncompensated: only the before figures belong to it
+                    sel = [{**r, "rmse_after": None, "effective": None} for r in sel]
+                    both = [{**r, "rmse_after": None, "effective": None} for r in both]
+                out.append({
+                    "regime": regime, "table": name, "protocol": protocol, "reference": reference, "cells": len(sel),
+                    "before_all": _median([r["rmse_before"] for r in sel]),
+                    "after_all": _median([r["rmse_after"] for r in sel]),
+                    "gain_all": _median([r["effective"] for r in sel]),
+                    "cells_with_paper": len(both),
+                    "before": _median([r["rmse_before"] for r in both]),
+                    "after": _median([r["rmse_after"] for r in both]),
+                    "gain": _median([r["effective"] for r in both]),
+                    "paper_before": _median([r["paper_rmse_before"] for r in both]),
+                    "paper_after": _median([r["paper_rmse_after"] for r in both]),
+                    "paper_gain": _median([
+                        (r["paper_rmse_before"] - r["paper_rmse_after"]) / r["paper_rmse_before"]
+                        for r in both if r["paper_rmse_after"] is not None and r["paper_rmse_before"]
+                    ]),
+                })
+    return out

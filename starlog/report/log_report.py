@@ -14,7 +14,7 @@ import numpy as np
 from starlog.errors import OutputExistsError
 from starlog.report.collect import ReportData, collect_report_data
 from starlog.report.page import Raw, figure, html_page, missing, table
-from starlog.report.svg import PALETTE, Bars, Series, bar_chart, frame_figure, line_chart
+from starlog.report.figures import PALETTE, Bars, Series, bar_chart, frame_figure, line_chart
 
 __all__ = ["amplitude_spectrum", "render_report", "write_report", "write_text_atomic"]
 

@@ -1,4 +1,4 @@
-"""Running a declared stage (:mod:`starlog.stage_api`) on a log, with the guarantees of the built-in stages.
+"""Running a declared stage (:mod:`starlog.stage_declaration`) on a log, with the guarantees of the built-in stages.
 
 The input channel is read in batches of consecutive messages, undecoded; each batch is decoded
 (images to 2-D arrays, per-star tables to structured arrays), handed message by message to the
@@ -35,7 +35,7 @@ from starlog.io.images import choose_image_topic, is_image_schema
 from starlog.io.messages import encode_json
 from starlog.io.reader import ChannelSummary, LogReader, decode_payload, source_path
 from starlog.io.writer import LogWriter
-from starlog.stage_api import KINDS, Message, Output, Stage
+from starlog.stage_declaration import KINDS, Message, Output, Stage
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress

@@ -6,7 +6,8 @@ keeps one (SER timestamp trailer, video container timestamps).
 
 Colour (RGB/BGR) frames become luma ``0.299 R + 0.587 G + 0.114 B``; Bayer frames are debayered
 to mono with OpenCV; both with a :class:`ColourImageWarning`. Lossy files (JPEG, JPEG-compressed TIFF,
-lossy video codecs) give a :class:`LossyImageWarning`: compression artefacts bias sub-pixel centroids.
+lossy video codecs) give a :class:`LossyImageWarning`: compression artefacts bias sub-pixel centroids
+(both warnings in :mod:`starlog.stages.ingest_warnings`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy.typing as npt
 
 from starlog.errors import ImageFolderError
 from starlog.stages.ingest_ser import HEADER_SIZE, SerReader
+from starlog.stages.ingest_warnings import ColourImageWarning, LossyImageWarning, lossy_warning
 from starlog.stages._parallel import ordered_map
 
 __all__ = ["IMAGE_SUFFIXES", "SER_SUFFIXES", "VIDEO_SUFFIXES", "ColourImageWarning", "LossyImageWarning",
@@ -36,14 +38,6 @@ VIDEO_SUFFIXES = {".avi", ".mp4", ".mov", ".mkv"}
 _LUMA = np.array([0.299, 0.587, 0.114])
 # FourCCs of lossless codecs OpenCV/FFmpeg read; anything else is treated as lossy.
 _LOSSLESS_FOURCCS = {"FFV1", "HFYU", "FFVH", "MPNG", "PNG ", "RGBA", "Y800", "GREY", "Y16 ", "LAGS", "UTVD", "DIB "}
-
-
-class ColourImageWarning(UserWarning):
-    """A colour image was converted to mono (luma) on ingest."""
-
-
-class LossyImageWarning(UserWarning):
-    """Lossy-compressed frames were ingested; their compression biases sub-pixel centroids."""
 
 
 @dataclass
@@ -68,11 +62,6 @@ class SourceFrame:
 def natural_key(name: str) -> list[Any]:
     """Sort key that orders digit runs by value: ``f2`` < ``f10``."""
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
-
-
-def lossy_warning(what: str) -> LossyImageWarning:
-    return LossyImageWarning(f"{what} is lossy: its compression biases sub-pixel centroids "
-                             "(prefer PNG, TIFF, FITS or SER from the camera).")
 
 
 def luma(image: npt.NDArray[Any]) -> npt.NDArray[Any]:

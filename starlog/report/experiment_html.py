@@ -1,9 +1,10 @@
 """``report.html`` of ``starlog experiment``: the headline, Figure 5 as inline SVG, Tables 2-4, Table 2 over
 realisations and the null check.
 
-Built from the experiment's summary (:meth:`ExperimentSummary.to_dict`) and its long-format
-table rows (:mod:`starlog.experiment.tables`), so it shows exactly what the Markdown and Parquet
-files hold; like the log report it needs no network to view.
+Rendered from :class:`~starlog.report.experiment_data.ExperimentReportData`, the same data as
+``report.md`` (:mod:`starlog.report.experiment_markdown`), so it shows exactly what the Markdown
+and Parquet files hold; Figure 5's panels are drawn as the PNG file's are
+(:mod:`starlog.report.experiment_figures`). Like the log report it needs no network to view.
 """
 
 from __future__ import annotations
@@ -13,16 +14,12 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from starlog.report.experiment_data import ExperimentReportData
+from starlog.report.experiment_figures import FIGURE5_PANELS, figure5_panel_svg
 from starlog.report.page import figure, html_page, missing, table
-from starlog.report.svg import PALETTE, Series, line_chart
 
-__all__ = ["render_experiment_report"]
+__all__ = ["render_experiment_html"]
 
-#: Figure 5's panels: each protocol's primary reference, and the instantaneous truth.
-FIGURE5_PANELS = (("paper", "global_mean"), ("truth", "truth_fixed"), ("leakfree", "heldout_mean"),
-                  ("truth", "truth_series"))
 _TABLE_COLUMNS = ("regime", "dataset", "method", "model", "rate_hz", "protocol", "reference", "n_scored",
                   "rmse_before", "rmse_after", "effective", "paper_rmse_before", "paper_rmse_after")
 
@@ -65,29 +62,17 @@ def _figure5(rows: Sequence[dict[str, Any]]) -> str:
     if not rows:
         return missing("No Figure 5 rows: `starlog experiment` (without --sweep) writes them.")
     out = []
-    models = list(dict.fromkeys(r["model"] for r in rows))
     for regime in dict.fromkeys(r["regime"] for r in rows):
-        for dataset in dict.fromkeys(r["dataset"] for r in rows if r["regime"] == regime):
+        mine = [r for r in rows if r["regime"] == regime]
+        for dataset in dict.fromkeys(r["dataset"] for r in mine):
             for protocol, reference in FIGURE5_PANELS:
-                sel = [r for r in rows if (r["regime"], r["dataset"], r["protocol"], r["reference"])
-                       == (regime, dataset, protocol, reference) and r["rmse_after"] is not None]
-                if not sel:
+                if not any((r["dataset"], r["protocol"], r["reference"]) == (dataset, protocol, reference)
+                           and r["rmse_after"] is not None for r in mine):
                     continue
-                series = []
-                for k, model in enumerate(models):
-                    pts = sorted((r["rate_hz"], r["rmse_before"], r["rmse_after"]) for r in sel if r["model"] == model)
-                    if pts:
-                        rate, before, after = (np.asarray(v, float) for v in zip(*pts, strict=True))
-                        color = PALETTE[k % len(PALETTE)]
-                        series += [Series(f"{model} after", rate, after, color, 2.0),
-                                   Series(f"{model} before", rate, before, color, 0.8)]
                 title = f"Figure 5, {regime} regime, {dataset}: {protocol} / {reference}"
-                out.append(figure(line_chart(series, title=title, x_label="down-sample rate (Hz)", y_label="RMSE (px)",
-                                             legend=False, width=540, height=260),
-                                  f"{escape(title)}. Thick: after compensation, thin: before; "
-                                  + ", ".join(f'<span style="color:{PALETTE[k % len(PALETTE)]}">■</span> {escape(m)}'
-                                              for k, m in enumerate(models)),
-                                  f"figure5_{regime}_{dataset}_{protocol}_{reference}"))
+                svg = figure5_panel_svg(mine, dataset=dataset, protocol=protocol, reference=reference, title=title)
+                out.append(figure(svg, f"{escape(title)}. Solid: after compensation, dashed: before; one colour per "
+                                       "UKF model.", f"figure5_{regime}_{dataset}_{protocol}_{reference}"))
     return "".join(out)
 
 
@@ -125,15 +110,14 @@ def _files(summary: dict[str, Any], output_dir: Path) -> str:
             "LOG.html`).</p>" + table(["output", "file"], rows))
 
 
-def render_experiment_report(summary: dict[str, Any], tables: dict[str, list[dict[str, Any]]]) -> str:
-    """The HTML document of an experiment (``summary``: :meth:`ExperimentSummary.to_dict`)."""
-    from starlog.experiment.tables import TABLE_TITLES
-
+def render_experiment_html(data: ExperimentReportData) -> str:
+    """The HTML document of ``report.html``."""
+    summary, tables = data.summary, data.tables
     sections = [
         ("run", "What was run", _overview(summary)),
         ("headline", "Headline: ours beside the paper's", _headline(summary)),
         ("figure5", "Figure 5: RMSE before/after against the rate", _figure5(tables.get("figure5", []))),
-        ("tables", "Tables 2–4", "".join(_table(tables.get(n, []), TABLE_TITLES[n])
+        ("tables", "Tables 2–4", "".join(_table(tables.get(n, []), data.table_titles.get(n, n))
                                          for n in ("table2", "table3", "table4"))),
         ("null", "Null check", _null_check(summary)),
         ("files", "Files", _files(summary, Path(summary["output_dir"]))),

@@ -1,0 +1,135 @@
+"""The shape of starlog's imports: no cycle among its modules (imports inside functions count), and the layers
+that must not import each other do not.
+
+Every module is parsed with ``ast``; each ``import`` and ``from ... import`` (at the top, inside a
+function or under ``if TYPE_CHECKING``) that names a ``starlog`` module is an edge. Importing
+``a.c.y`` also runs the ``__init__`` of each package on its path that the importer is not itself
+inside, so those packages are edges too (``a.b.x`` importing ``a.c.y`` runs ``a/c/__init__.py``).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _modules(root: Path, package: str) -> dict[str, tuple[Path, bool]]:
+    """Dotted name → (file, is a package) of every module under ``root / package``."""
+    found = {}
+    for path in sorted((root / package).rglob("*.py")):
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        is_package = parts[-1] == "__init__"
+        found[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+    return found
+
+
+def _ancestors(name: str) -> set[str]:
+    parts = name.split(".")
+    return {".".join(parts[:k]) for k in range(1, len(parts))}
+
+
+def _imported(node: ast.AST, package: str, modules: dict[str, tuple[Path, bool]]) -> list[str]:
+    """The names an import statement imports as modules (``from m import name``: ``m``, or ``m.name`` if a module)."""
+    if isinstance(node, ast.Import):
+        return [alias.name for alias in node.names]
+    if not isinstance(node, ast.ImportFrom):
+        return []
+    if node.level:
+        parts = package.split(".")
+        base = parts[: len(parts) - node.level + 1]
+        prefix = ".".join(base + ([node.module] if node.module else []))
+    else:
+        prefix = node.module or ""
+    submodules = [f"{prefix}.{a.name}" for a in node.names if f"{prefix}.{a.name}" in modules]
+    return submodules + ([prefix] if len(submodules) < len(node.names) else [])
+
+
+def import_graph(root: Path, package: str) -> dict[str, set[str]]:
+    """Module → the modules of ``package`` it imports, anywhere in its code."""
+    modules = _modules(root, package)
+    graph: dict[str, set[str]] = {name: set() for name in modules}
+    for name, (path, is_package) in modules.items():
+        inside = _ancestors(name) | ({name} if is_package else set())
+        own_package = name if is_package else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            for target in _imported(node, own_package, modules):
+                while target and target not in modules:
+                    target = target.rpartition(".")[0]
+                if target:
+                    graph[name] |= ({target} | (_ancestors(target) - inside)) - {name}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm, without recursion)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+    for start in sorted(graph):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, edges = work[-1]
+            child = next(edges, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return sorted(found)
+
+
+def _describe(graph: dict[str, set[str]], component: list[str]) -> str:
+    return "; ".join(f"{m} -> {', '.join(sorted(graph[m] & set(component)))}" for m in component)
+
+
+def test_no_import_cycle_among_starlog_modules() -> None:
+    graph = import_graph(ROOT, "starlog")
+    assert len(graph) > 100
+    found = cycles(graph)
+    assert not found, "\n".join(_describe(graph, c) for c in found)
+
+
+def test_the_reports_and_the_stage_declaration_import_only_downwards() -> None:
+    graph = import_graph(ROOT, "starlog")
+    report = {dep for name, deps in graph.items() if name.startswith("starlog.report") for dep in deps}
+    assert not {d for d in report if d.startswith("starlog.experiment")}, "the report imports the experiment"
+    assert not graph["starlog.stage_declaration"] & {"starlog.plugins", "starlog.stage_api", "starlog.stages.custom"}
+
+
+def test_the_check_finds_a_cycle_through_a_function_local_import(tmp_path: Path) -> None:
+    (tmp_path / "pkg" / "sub").mkdir(parents=True)
+    (tmp_path / "pkg" / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "sub" / "__init__.py").write_text("from pkg.sub.b import B\n")
+    (tmp_path / "pkg" / "a.py").write_text("def f():\n    from pkg.sub import b\n    return b\n")
+    (tmp_path / "pkg" / "sub" / "b.py").write_text("from . import c\nB = 1\n")
+    (tmp_path / "pkg" / "sub" / "c.py").write_text("from pkg import a\n")
+    (tmp_path / "pkg" / "d.py").write_text("import pkg.a\n")
+    graph = import_graph(tmp_path, "pkg")
+    assert graph["pkg.a"] == {"pkg.sub", "pkg.sub.b"} and graph["pkg.d"] == {"pkg.a"}
+    assert cycles(graph) == [["pkg.a", "pkg.sub", "pkg.sub.b", "pkg.sub.c"]]
