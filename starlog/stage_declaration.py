@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from starlog.errors import InvalidParameterError
-from starlog.io.messages import compile_json_schema
+from starlog.io.json_schema import compile_json_schema
 from starlog.io.schemas import MessageType
 
 __all__ = ["KINDS", "Message", "Output", "Stage", "stage"]

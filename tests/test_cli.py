@@ -87,6 +87,22 @@ def test_bad_option_formats(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "FREQ_HZ:AMPLITUDE_PX" in result.output
 
 
+
+def test_centroid_set_routes_flat_options_to_detection_and_centroiding(tmp_path: Path) -> None:
+    runner = CliRunner()
+    log = tmp_path / "s.mcap"
+    assert runner.invoke(cli, ["simulate", "-o", str(log), *SMALL]).exit_code == 0
+    args = ["centroid", str(log), "--method", "MOMENT", "-q", "--set", "threshold=6", "--set", "robust=false"]
+    result = runner.invoke(cli, [*args, "-o", str(tmp_path / "c.mcap")])
+    assert result.exit_code == 0, result.output
+    with LogReader(tmp_path / "c.mcap") as reader:
+        options = next(p for p in reader.provenance() if p.stage == "centroid").parameters["options"]
+    assert options["detect_options"] == {"threshold": 6} and options["centroid_options"] == {"robust": False}
+    result = runner.invoke(cli, ["centroid", str(log), "-o", str(tmp_path / "d.mcap"), "--set", "thresh=6"])
+    assert result.exit_code == 1 and "unknown centroid option 'thresh'" in result.output
+    assert "threshold" in result.output and not (tmp_path / "d.mcap").exists()
+
+
 # ---------------------------------------------------------------- every option does something
 def _names_used(function: Callable[..., Any]) -> set[str]:
     """Names the function's body reads (nested functions included), not its signature."""

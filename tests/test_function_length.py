@@ -1,4 +1,8 @@
-"""No function of the package is over 100 lines of code: longer ones are split into named steps."""
+"""No function of the package is over 100 lines of code, and no module over about 500 lines without a reason.
+
+Longer functions are split into named steps; a longer module says in its docstring why it is one
+module ("One module of over 500 lines: ...").
+"""
 
 from __future__ import annotations
 
@@ -8,6 +12,8 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "starlog"
 MAX_LINES = 100
+MODULE_LINES = 520
+MODULE_REASON = "One module of over 500 lines:"
 
 
 def code_lines(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
@@ -40,3 +46,23 @@ def test_the_count_leaves_out_the_docstring_only() -> None:
     at_limit = f"def f():\n{docstring}{body}"
     assert not list(long_functions(at_limit, "m"))
     assert list(long_functions(at_limit + "    return x0\n", "m")) == ["m:1 f (101 lines)"]
+
+
+def modules_without_reason(source: str, name: str) -> Iterator[str]:
+    """``name (N lines)`` when the module is over :data:`MODULE_LINES` and its docstring gives no reason."""
+    lines = source.count("\n")
+    docstring = ast.get_docstring(ast.parse(source)) or ""
+    if lines > MODULE_LINES and MODULE_REASON not in " ".join(docstring.split()):
+        yield f"{name} ({lines} lines)"
+
+
+def test_long_modules_say_why() -> None:
+    found = [line for path in sorted(PACKAGE.rglob("*.py"))
+             for line in modules_without_reason(path.read_text(encoding="utf-8"), str(path.relative_to(PACKAGE.parent)))]
+    assert not found, f"modules over {MODULE_LINES} lines without '{MODULE_REASON} ...' in the docstring:\n" + "\n".join(found)
+
+
+def test_a_long_module_needs_the_reason() -> None:
+    body = "x = 1\n" * (MODULE_LINES + 1)
+    assert list(modules_without_reason(f'"""A module."""\n{body}', "m")) == [f"m ({MODULE_LINES + 2} lines)"]
+    assert not list(modules_without_reason(f'"""A module.\n\n{MODULE_REASON} one class."""\n{body}', "m"))

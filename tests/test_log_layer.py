@@ -14,7 +14,8 @@ from mcap.writer import Writer as McapWriter
 
 from starlog.errors import InvalidInputError, InvalidMessageError
 from starlog.io import LogReader, LogWriter, encode_json, json_message_type, topics
-from starlog.io.messages import compile_json_schema, decode_json
+from starlog.io.json_schema import compile_json_schema
+from starlog.io.messages import decode_json
 from starlog.io.schemas import load_json_schema, schema_dir
 from starlog.io.writer import VALIDATED_METADATA_KEY
 

@@ -45,7 +45,7 @@ import cv2
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
 from starlog.io import LogReader, decode_json, encode_json  # noqa: E402
-from starlog.io.messages import _compile_walker, compile_json_schema  # noqa: E402
+from starlog.io.json_schema import _compile_walker, compile_json_schema  # noqa: E402
 from starlog.io.schemas import load_json_schema  # noqa: E402
 from starlog.sim import SimulationConfig, Simulator  # noqa: E402
 from starlog.stages import ingest_folder, simulate_log  # noqa: E402

@@ -6,6 +6,9 @@ at once, removes the method's pixel-phase (S-curve) and window-truncation bias w
 pixel-integrated Gaussian model of the star (``debias``), measures the flux with a weighted PSF
 fit and attaches an uncertainty. :func:`extract_stars` runs detection and several methods.
 
+One module of over 500 lines: the three entry points share one dispatch of the methods (the
+fallbacks, the robust re-measure, the table of results), which is the bulk of the module.
+
 Coordinates: x = column, y = row, 0-based, (0, 0) at the centre of the top-left pixel.
 """
 

@@ -42,7 +42,8 @@ __all__ = ["centroid", "compensate", "motion", "stage_command", "track"]
 @click.option("--gain", type=float, help="Camera gain e-/DN [default: from the simulator's provenance, else 1].")
 @click.option("--read-noise", type=float, help="Read noise e- [default: from the simulator's provenance, else estimated].")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
-              help="Option of starlog.centroid.extract_stars, e.g. --set threshold=5. Repeatable.")
+              help="Detection or centroiding option: a keyword of starlog.detect.detect_stars (e.g. --set threshold=5) "
+                   "or of starlog.centroid.measure_centroids (e.g. --set robust=false). Repeatable.")
 @image_topic_option
 @click.option("--skip-bad", is_flag=True, help="Leave out frames that do not decode or do not fit (each named) "
                                               "instead of stopping.")

@@ -16,7 +16,8 @@ from collections.abc import Callable
 from typing import Any
 
 from starlog.errors import InvalidInputError
-from starlog.io.messages import compile_json_schema, decode_json, encode_json
+from starlog.io.json_schema import compile_json_schema
+from starlog.io.messages import decode_json, encode_json
 from starlog.io.schemas import MessageType
 
 __all__ = ["CheckedJson", "encode_checked_json", "schema_checker", "schema_digest"]
@@ -26,7 +27,7 @@ _DIGESTS: dict[bytes, bytes] = {}
 
 
 def schema_checker(schema_data: bytes) -> Callable[[Any], str | None]:
-    """The compiled checker (:func:`~starlog.io.messages.compile_json_schema`) of a JSON Schema text,
+    """The compiled checker (:func:`~starlog.io.json_schema.compile_json_schema`) of a JSON Schema text,
     compiled once per process."""
     checker = _CHECKERS.get(schema_data)
     if checker is None:

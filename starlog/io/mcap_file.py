@@ -10,6 +10,9 @@ indexes, messages outside chunks) are read in full by scanning (:mod:`starlog.io
 
 :class:`~starlog.io.reader.LogReader` reads a log, which is one file or a chain of them, through
 this class; the log layer's other tools (copying, verifying) use its public methods.
+
+One module of over 500 lines: :class:`McapFile`'s summary checks and chunk reads share the parsed
+summary and the open file, so they are one class.
 """
 
 from __future__ import annotations

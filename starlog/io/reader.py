@@ -42,7 +42,8 @@ from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
 from starlog.io.images import is_image_schema
 from starlog.io.mcap_file import ChannelSummary, McapFile, channel_summaries
-from starlog.io.messages import compile_json_schema, decode_json
+from starlog.io.json_schema import compile_json_schema
+from starlog.io.messages import decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
 from starlog.io.timerange import END_OF_TIME, ResolvedRange
 from starlog.io.writer import VALIDATED_METADATA_KEY
@@ -88,7 +89,7 @@ def decode_payload(
 
     JSON → dict; an image type (:mod:`starlog.io.images`) → 2-D mono ndarray; other protobuf,
     ROS 2 (cdr) and ROS 1 messages → the object their support library decodes; anything else → bytes.
-    ``check`` (a :func:`~starlog.io.messages.compile_json_schema` checker) validates a JSON
+    ``check`` (a :func:`~starlog.io.json_schema.compile_json_schema` checker) validates a JSON
     payload; a violation raises :class:`InvalidMessageError`.
     """
     try:

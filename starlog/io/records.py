@@ -25,7 +25,8 @@ import orjson
 
 from starlog.errors import InvalidInputError
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
-from starlog.io.messages import compile_json_schema, decode_json, encode_json
+from starlog.io.json_schema import compile_json_schema
+from starlog.io.messages import decode_json, encode_json
 from starlog.io.schemas import MessageType, json_message_type
 
 __all__ = ["RecordEncoder", "record_encoder", "structured_to_dicts"]

@@ -58,7 +58,8 @@ from starlog.io.layout import (
     summary_crc,
     walk_records,
 )
-from starlog.io.messages import compile_json_schema, decode_json
+from starlog.io.json_schema import compile_json_schema
+from starlog.io.messages import decode_json
 from starlog.io.provenance import BackgroundDigest
 
 __all__ = ["ChainReport", "Problem", "VerifyReport", "verify_file", "verify_log"]

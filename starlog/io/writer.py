@@ -14,7 +14,7 @@ Why not :class:`mcap.writer.Writer` directly? Three things it does not do:
 Each channel gets chunks of its own, so a reader of small channels (centroids, truth) never
 decompresses image chunks; the open chunks of all channels are closed together. Every JSON
 message is checked against its channel's JSON Schema as it is written (a compiled checker,
-see :func:`~starlog.io.messages.compile_json_schema`; or where it was encoded, e.g. in a worker
+see :func:`~starlog.io.json_schema.compile_json_schema`; or where it was encoded, e.g. in a worker
 process, see :mod:`starlog.io.checked`), and the channel is marked so (metadata
 ``starlog.validated``): a reader then need not check those messages again when their chunk's
 CRC vouches for the bytes.
@@ -22,6 +22,9 @@ CRC vouches for the bytes.
 The output goes to a temporary file beside the destination and is renamed over it only
 when :meth:`LogWriter.close` completes, so a killed stage leaves either no output or the
 previous file, never a half-written one under the final name.
+
+One module of over 500 lines: :class:`LogWriter`'s chunking, indexing, summary and atomic rename
+share one open file's state (open chunks, indexes, offsets), so they are one class.
 """
 
 from __future__ import annotations

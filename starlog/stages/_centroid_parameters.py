@@ -9,6 +9,7 @@ gathers what the provenance records: a :class:`CentroidParameters`, which
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 from collections.abc import Iterator, Sequence
@@ -18,7 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid import CentroidMethod, estimate_psf_sigma
+from starlog.centroid import CentroidMethod, estimate_psf_sigma, measure_centroids
 from starlog.centroid.epsf import EPSF, epsf_from_frames
 from starlog.centroid.extract import window_half_size
 from starlog.centroid.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
@@ -38,7 +39,7 @@ from starlog.stages._centroid_frames import FrameExtractor, opencv_threads
 from starlog.stages._progress import progress
 
 __all__ = ["HOT_PIXEL_FRAMES", "PHASE_MAX_FRAMES", "PHASE_MIN_FRAMES", "CentroidParameters", "PhaseCorrection",
-           "parse_methods", "resolve_centroid_parameters"]
+           "extract_options", "parse_methods", "resolve_centroid_parameters"]
 
 
 def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
@@ -60,6 +61,47 @@ def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
     if not out:
         raise InvalidParameterError("give at least one centroid method (or 'all').")
     return list(dict.fromkeys(out))
+
+
+#: Options the stage passes to :func:`starlog.centroid.extract_stars` as they are.
+_EXTRACT_KEYS = ("psf_sigma", "window", "saturation", "detect_options", "centroid_options")
+#: Keywords the stage sets itself (``--gain``, ``--read-noise``, ``--method``, ``--psf``, ``--hot-pixels``).
+_STAGE_KEYS = {"image", "detections", "method", "methods", "gain", "read_noise", "epsf", "hot_pixels", "background"}
+
+
+def _keywords(function: Any) -> list[str]:
+    return [name for name, p in inspect.signature(function).parameters.items()
+            if p.kind is inspect.Parameter.KEYWORD_ONLY and name not in _STAGE_KEYS and name not in _EXTRACT_KEYS]
+
+
+def extract_options(options: dict[str, Any] | None) -> dict[str, Any]:
+    """Flat ``KEY=VALUE`` options (``--set``) → keyword options of :func:`starlog.centroid.extract_stars`.
+
+    A key of :func:`starlog.detect.detect_stars` (``threshold``, ``min_area``, …) goes into
+    ``detect_options``, a key of :func:`starlog.centroid.measure_centroids` (``debias``,
+    ``robust``, …) into ``centroid_options``; ``psf_sigma``, ``window``, ``saturation`` and the two
+    mappings themselves stay as they are. Any other key is an error that lists the valid ones.
+    """
+    detect_keys, centroid_keys = _keywords(detect_stars), _keywords(measure_centroids)
+    out: dict[str, Any] = {}
+    for key, value in (options or {}).items():
+        if key in _EXTRACT_KEYS:
+            if key.endswith("_options"):
+                if not isinstance(value, dict):
+                    raise InvalidParameterError(f"{key} must be a mapping of options, e.g. {{\"threshold\": 5}}; "
+                                                f"got {value!r}.")
+                out[key] = {**out.get(key, {}), **value}
+            else:
+                out[key] = value
+        elif key in detect_keys:
+            out.setdefault("detect_options", {})[key] = value
+        elif key in centroid_keys:
+            out.setdefault("centroid_options", {})[key] = value
+        else:
+            raise InvalidParameterError(
+                f"unknown centroid option {key!r}. Detection: {', '.join(detect_keys)}; centroiding: "
+                f"{', '.join(centroid_keys)}; also {', '.join(_EXTRACT_KEYS)}.")
+    return out
 
 
 @dataclass(frozen=True)
@@ -100,7 +142,7 @@ def resolve_centroid_parameters(
     the log gives where an option is not set; reads the first frames of the log for the PSF sigma, the ePSF,
     the hot-pixel map and the phase calibrations."""
     chosen = parse_methods(methods)
-    options = dict(options or {})
+    options = extract_options(options)
     with opencv_threads(1), LogReader(input_path) as probe:
         topic, chosen_note = choose_image_topic(input_path, probe.channels(), image_topic)
         camera = _camera_from_provenance(probe)

@@ -19,6 +19,9 @@ The sequence of one track is held in memory (the method needs its global mean); 
 that is a few MB per hour of recording.  The evaluations of one track (every rate × protocol)
 are independent: with ``workers > 1`` they run in worker processes, and are written in the
 same order, so the output does not depend on ``workers``.
+
+One module of over 500 lines: reading the brightest series, the evaluations and the decision
+records are the stage's three steps, each short, and the summary the command prints.
 """
 
 from __future__ import annotations

@@ -20,6 +20,9 @@ it tracks the next — every row as not the brightest, to a file; once the brigh
 its rows are marked in the encoded messages as they are written (:func:`_track_pipelined`).
 
 The bytes written do not depend on ``workers``.
+
+One module of over 500 lines: the two ways of running (passes; one model pipelined) write the
+same bytes and share the spool and encoding helpers, so they stay together.
 """
 
 from __future__ import annotations

@@ -45,6 +45,9 @@ live track. Each frame:
 
 Coordinates: x = column, y = row, px, (0, 0) at the centre of the top-left pixel; times are
 int ns ``log_time``.
+
+One module of over 500 lines: :class:`StarTracker`'s steps (predict, associate, update, start,
+life cycle) act on one set of live tracks, so they are one class.
 """
 
 from __future__ import annotations

@@ -25,6 +25,9 @@ The per-object :mod:`filterpy` filter is kept as a reference path
 (:func:`make_filterpy_ukf`, :func:`filterpy_step`); the batched path agrees with it to
 rounding error and is the one starlog uses.
 
+One module of over 500 lines: the sigma points, predict, update and the batched filter built on
+them are one algorithm, kept beside the reference filter it is tested against.
+
 References
 ----------
 R. van der Merwe, "Sigma-Point Kalman Filters for Probabilistic Inference in Dynamic
