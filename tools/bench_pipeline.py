@@ -113,6 +113,8 @@ CHAIN_OPEN_LIMIT_S = 0.050
 #: The frame size at which the centroid stage's speed against SEP is a target (smaller frames cost starlog
 #: a larger share of per-call work than SEP).
 SEP_TARGET_SIZE = 1024
+#: The frame size the target of ``run`` (300 frames/s: the camera keeps up) is set for.
+RUN_TARGET_SIZE = 512
 #: Why the motion stage's memory is not a target: its estimate is joint over the whole log.
 MOTION_MEMORY = "the motion estimate is joint over the log and holds every measurement, by design"
 CATEGORIES = ("read", "algorithm", "write", "stage", "import", "other")
@@ -829,7 +831,9 @@ def targets(sizes: list[dict[str, Any]], workers_all: int) -> list[tuple[str, bo
 def speed_targets(s: dict[str, Any], workers_all: int) -> list[tuple[str, bool | None]]:
     tag = f"{s['size']}²"
     run = _stage(s, RUN_LABEL)
-    out = [(f"{tag}: run marginal {_f(run['rate'])} frames/s >= 300", run["rate"] >= 300)]
+    text = f"{tag}: run marginal {_f(run['rate'])} frames/s >= 300"
+    judged = s["size"] == RUN_TARGET_SIZE
+    out = [(text if judged else f"{text} (n/a: set for {RUN_TARGET_SIZE}² frames)", run["rate"] >= 300 if judged else None)]
     sep_fps = s["sep"]["fps"]
     for method, factor in (("MOMENT", 3.0), ("GAUSSFIT", 2.0)):
         one = _stage(s, f"centroid {method}", 1)

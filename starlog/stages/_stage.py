@@ -50,7 +50,6 @@ def extend_log(
     parameters: dict[str, Any],
     force: bool = False,
     compression: str = "zstd",
-    workers: int = 1,
     flatten: bool = False,
 ) -> Iterator[tuple[LogReader, StageOutput]]:
     """Open ``input_path`` for reading and a layer on it at ``output_path`` (:mod:`starlog.io.chain`).
@@ -61,14 +60,16 @@ def extend_log(
     discarded and the input is untouched. A :class:`~starlog.io.reader.LogView` input (``--start`` /
     ``--end``) adds its range to the parameters. With ``flatten``, the output is the flattened
     chain instead: one self-contained file.
+
+    The layer's chunks are compressed on the calling thread: what a stage derives is small beside the
+    images it reads, and compression threads would hold several chunks of it in memory at once.
     """
     if isinstance(input_path, LogView):
         parameters = {**parameters, "range": input_path.window.to_dict()}
     with layer_path_for(Path(output_path), flatten=flatten, force=force) as layer_path, \
             LogReader(input_path) as reader:
         base = reader.layer_base()
-        with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression,
-                       workers=workers) as writer:
+        with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression) as writer:
             out = StageOutput(writer)
             yield reader, out
             record = Provenance(stage=stage, version=__version__, parameters=parameters,

@@ -121,8 +121,7 @@ def centroid_log(
     skip_bad : bool
         Leave out frames that do not decode or do not fit (named in the summary) instead of stopping.
     workers : int
-        Processes extracting blocks of frames in parallel (and threads compressing chunks);
-        the output bytes do not depend on it.
+        Processes extracting blocks of frames in parallel; the output bytes do not depend on it.
     start, end : str or int, optional
         Only the frames with ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the
         image channel; :mod:`starlog.io.timerange`): the layer holds its channels for that range.
@@ -169,8 +168,7 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
                               phase_correction=p.provenance.get("phase_correction"),
                               centroids={m.value: 0 for m in p.methods}, failed={m.value: 0 for m in p.methods})
     with opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=p.provenance,
-                                       force=force, flatten=flatten, compression=compression,
-                                       workers=workers) as (log, out):
+                                       force=force, flatten=flatten, compression=compression) as (log, out):
         summary.channel_messages = n_frames = log.channel(p.image_topic).message_count
         det_ch = out.add_channel(topics.DETECTIONS, json_message_type("starlog.Detections"))
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))

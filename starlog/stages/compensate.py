@@ -406,7 +406,7 @@ def compensate_log(
     n_jobs = len(channels) * len(rates) * len(chosen) * len(modes)
     parallel = workers > 1 and n_jobs > 1
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force, flatten=flatten,
-                    compression=compression, workers=workers) as (log, out), \
+                    compression=compression) as (log, out), \
             (process_pool(workers, preload=[__name__]) if parallel else nullcontext()) as pool:
         jobs = _plan_jobs(log, channels, rates, chosen, modes, fit, burn_in=setting)
         done = _evaluated(jobs, options, pool, window=2 * workers)

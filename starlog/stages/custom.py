@@ -120,7 +120,7 @@ def _run_whole(input_path: Any, output_path: str | os.PathLike[str], stage: Stag
     summary = StageSummary(stage.name, stage.version, topics, records=dict.fromkeys(written, 0),
                            notes=[note] if note else [])
     with extend_log(input_path, output_path, stage=stage.name, parameters=parameters, force=force, flatten=flatten,
-                    compression=compression, workers=workers) as (log, out):
+                    compression=compression) as (log, out):
         for topic, outputs in plan:
             ids = [out.add_channel(t, o.message_type) for t, o in outputs]
             batch = _Batch(stage.reference, tuple(sys.path), str(source_path(input_path)), topic, images[topic], chosen,

@@ -194,7 +194,7 @@ def motion_log(
     summary = MotionSummary(fit=fit.value)
     parameters = {"tracks": chosen, "fit": fit.value, "options": options}
     with extend_log(input_path, output_path, stage="motion", parameters=parameters, force=force, flatten=flatten,
-                    compression=compression, workers=workers) as (log, out), \
+                    compression=compression) as (log, out), \
             LogReader(input_path, validate_messages=False) as tracks:
         for topic in chosen:
             data, est = estimate_track_motion(tracks, topic, model=fit, options=options)

@@ -36,7 +36,7 @@ from concurrent.futures import Executor, Future
 from contextlib import ExitStack, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -146,12 +146,23 @@ class _CentroidBlock:
                     np.array(self.counts, dtype=np.int64), self.table())
 
 
-def _decode_centroid_block(source: LogSource, topic: str, start: int, end: int) -> _CentroidBlock:
+class _DecodedBlock(NamedTuple):
+    """A block of centroid messages as arrays: what a worker sends back (numpy arrays pickle compactly, and
+    leave no Python objects per star behind in the tracking process)."""
+
+    frames: npt.NDArray[np.int64]
+    times: npt.NDArray[np.int64]
+    counts: npt.NDArray[np.int64]
+    table: npt.NDArray[np.float64]
+
+
+def _decode_centroid_block(source: LogSource, topic: str, start: int, end: int) -> _DecodedBlock:
     """Worker: the centroid messages with ``start <= log_time < end`` as arrays (the worker reads them itself)."""
     block = _CentroidBlock()
     for message in worker_log(source).messages(topic, start=start, end=end):
         block.add(message.log_time, message.payload)
-    return block
+    return _DecodedBlock(np.array(block.frames, dtype=np.int64), np.array(block.times, dtype=np.int64),
+                         np.array(block.counts, dtype=np.int64), block.table())
 
 
 def _spool_centroids(log: LogReader, topic: str, spool: Spool, *, show_progress: bool) -> int:
@@ -242,14 +253,14 @@ def _track_pipelined(log: LogReader, source: LogSource, config: TrackerConfig, m
     n_frames = 0
     for k, block in enumerate(progress(decoded, total=len(blocks), description="track", enabled=show_progress,
                                        unit="block")):
-        rows = _track_block(tracker, block.times, block.counts, block.table(), stats)
+        rows = _track_block(tracker, block.times.tolist(), block.counts.tolist(), block.table, stats)
         spool = folder / f"rows-{k}"
         with open(spool, "wb") as file:
-            write_block(file, np.array(block.frames, dtype=np.int64), np.array(block.times, dtype=np.int64),
-                        np.array([r.size for r in rows], dtype=np.int64), _concatenated(rows))
+            write_block(file, block.frames, block.times, np.array([r.size for r in rows], dtype=np.int64),
+                        _concatenated(rows))
         files.append(folder / f"encoded-{k}")
         encoded.append(pool.submit(_encode_unmarked, spool, method, config.model.value, files[-1]))
-        n_frames += len(block.frames)
+        n_frames += block.frames.size
     for future in encoded:
         future.result()
     return n_frames, _model_run(tracker, topic, stats, folder, []), files
@@ -482,7 +493,8 @@ def track_log(
         :class:`~starlog.track.MotionModelConfig` fields (process-noise intensities).
     workers : int
         Processes tracking the models (at most one per model; with several, they also encode
-        the messages) and threads compressing the output's chunks. The output does not depend on it.
+        the messages; with one model, they read and encode around the tracker). The output does not
+        depend on it.
     start, end : str or int, optional
         Only the range ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the centroid
         channel; :mod:`starlog.io.timerange`): the layer holds its channels for that range.
@@ -497,7 +509,7 @@ def track_log(
                   "motion": dict(motion or {})}
     summary = TrackSummary(method=method)
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force, flatten=flatten,
-                    compression=compression, workers=workers) as (log, out):
+                    compression=compression) as (log, out):
         blocks = channel_blocks(log, source, BLOCK_FRAMES) if workers > 1 and len(chosen) == 1 else None
         if blocks is not None and log.fully_indexed:
             runs = _track_one_model(log, input_path, out, configs[chosen[0]], method, summary, blocks, workers,
