@@ -116,8 +116,9 @@ def _ranges(log: Path) -> tuple[tuple[int, int], tuple[int, int]]:
     truth chunks that straddle a boundary are re-encoded); off them, two image chunks are too.
     """
     with LogReader(log) as f:
-        image = next(c.id for c in f.summary.channels.values() if c.topic == "/camera/image")
-        starts = sorted(ci.message_start_time for ci in f.summary.chunk_indexes if image in ci.message_index_offsets)
+        summary = f.files[0].summary  # a recording: one file
+        image = next(c.id for c in summary.channels.values() if c.topic == "/camera/image")
+        starts = sorted(ci.message_start_time for ci in summary.chunk_indexes if image in ci.message_index_offsets)
         first, last = f.time_range()
     step = (last - first) // 50
     return (starts[1], starts[-1]), (starts[1] + step, starts[-1] - step)
