@@ -42,6 +42,7 @@ __all__ = [
     "image_decoder",
     "is_image_schema",
     "choose_image_topic",
+    "image_fields",
 ]
 
 RAW = "raw"
@@ -185,7 +186,7 @@ def _json_bytes(value: Any) -> bytes:
     raise InvalidInputError("the JSON image's data is neither base64 text nor a list of bytes.")
 
 
-def _fields(msg: Any, schema_name: str) -> dict[str, Any]:
+def image_fields(msg: Any, schema_name: str) -> dict[str, Any]:
     """Common fields of one decoded image message (foxglove protobuf/JSON or ROS 1/2 object)."""
     if isinstance(msg, dict):
         out = {"stamp": _foxglove_stamp(msg.get("timestamp", {})), "frame_id": str(msg.get("frame_id", "")),
@@ -233,7 +234,7 @@ def image_decoder(schema: Schema | None, message_encoding: str
 
     def decode(data: bytes | memoryview) -> DecodedImage:
         try:
-            f = _fields(parse(data if isinstance(data, bytes) else bytes(data)), schema.name)
+            f = image_fields(parse(data if isinstance(data, bytes) else bytes(data)), schema.name)
         except InvalidInputError:
             raise
         except Exception as err:  # protobuf DecodeError, struct.error, ROS deserialisation errors, binascii

@@ -24,7 +24,7 @@ from mcap.records import Channel, Schema
 
 from starlog.io.foreign import to_plain
 from starlog.io.foreign import message_decoder
-from starlog.io.images import IMAGE_SCHEMAS, RAW, _fields, decompress_to_mono
+from starlog.io.images import IMAGE_SCHEMAS, RAW, decompress_to_mono, image_fields
 from starlog.io.messages import decode_json
 from starlog.io.rawimage_wire import parse_raw_image
 
@@ -66,7 +66,7 @@ def image_summary(schema: Schema, message_encoding: str, data: bytes | memoryvie
     parse = decode_json if message_encoding == "json" else message_decoder(schema, message_encoding)
     if parse is None:
         raise ValueError(f"no decoder for {schema.name} in {message_encoding}")
-    fields = _fields(parse(bytes(data)), schema.name)
+    fields = image_fields(parse(bytes(data)), schema.name)
     pixels = fields["data"]
     if IMAGE_SCHEMAS[schema.name] == RAW:
         width, height, encoding = int(fields["width"]), int(fields["height"]), str(fields["encoding"])
