@@ -114,13 +114,16 @@ def bench_tracker(model: MotionModel, frames) -> tuple[float, float, int]:
 
 
 STAGE_STARS = 40
+# The child's peak is its VmHWM: getrusage's ru_maxrss of a process started by fork/vfork + exec also
+# counts the parent's resident set at the fork (Linux carries the old address space's high-water mark).
 _STAGE_CHILD = """
-import json, resource, sys, time
+import json, sys, time
 from starlog.stages.track import track_log
 t0 = time.process_time()
 track_log(sys.argv[1], sys.argv[2], method=sys.argv[3], models="STATIC", force=True)
-print(json.dumps({"cpu": time.process_time() - t0,
-                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+with open("/proc/self/status") as status:
+    peak_kb = next(int(line.split()[1]) for line in status if line.startswith("VmHWM:"))
+print(json.dumps({"cpu": time.process_time() - t0, "peak_mb": peak_kb / 1024}))
 """
 
 
