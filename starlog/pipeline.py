@@ -9,6 +9,11 @@ with the same options and output name gives; reading ``OUT.mcap`` reads the whol
 flattened into ``OUT.mcap``, one self-contained log. The built-in config is :data:`DEFAULT_CONFIG_TOML` (``starlog run
 --print-config`` prints it).
 
+Before any stage runs, the ``[compensate]`` rates and protocols are checked against the log's length
+(:func:`starlog.stages.compensate.track_shortfalls`, the rule the compensate stage applies): the built-in
+config leaves out those the log is too short for (:attr:`PipelineResult.skipped`); a config file that names
+one is refused, naming each with the log length it needs.
+
 Your own stages (:mod:`starlog.stage_api`) come after the built-in ones: one table
 ``[stages.NAME]`` each, with ``uses = "package.module:function"`` (or an installed stage's
 name), optionally ``input_topic = "TOPIC"`` (or ``"all"``; ``input`` is its old name), and the stage's
@@ -21,19 +26,20 @@ from __future__ import annotations
 import os
 import tomllib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from starlog.batch import BatchOutcome, BatchTask, run_batch
-from starlog.compensate import MIN_SAMPLES, decimation_indices
+from starlog.compensate import Shortfall
 from starlog.errors import InvalidParameterError, OutputExistsError
+from starlog.io import topics
 from starlog.io.reader import LogReader, LogSource
 from starlog.io.copying import flatten_log
 from starlog.io.timerange import TimeRange
 from starlog.io.writer import temporary_folder
 from starlog.stages.centroid import centroid_log
-from starlog.stages.compensate import compensate_log
+from starlog.stages.compensate import compensate_log, parse_protocols, too_short_message, track_shortfalls
 from starlog.stages.window import window_of
 from starlog.stages.custom import run_stage
 from starlog.stages.track import track_log
@@ -62,8 +68,8 @@ sigma_floor = 0.05      # px: the platform jitter a STATIC model must absorb
 
 [compensate]
 tracks = "all"          # or ["GAUSSFIT/STATIC", ...]
-rates = [10, 50]
-protocols = "all"
+rates = [10, 50]        # built-in config: a rate or protocol the log is too short for is left out;
+protocols = "all"       # in a --config file, it is refused before any stage runs
 [compensate.options]    # keyword options of starlog.compensate.evaluate
 """
 
@@ -76,13 +82,16 @@ _STAGE_KEYS: dict[str, set[str]] = {
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Parsed pipeline config: each stage's table, or None when the stage is skipped."""
+    """Parsed pipeline config: each stage's table, or None when the stage is skipped. ``builtin``: the built-in
+    config (:func:`load_config` without a file), which leaves out the ``[compensate]`` rates and protocols a log is
+    too short for; any other config that names one is refused."""
 
     centroid: dict[str, Any] | None = None
     track: dict[str, Any] | None = None
     compensate: dict[str, Any] | None = None
     source: str = "<default>"
     stages: tuple[CustomStageConfig, ...] = ()
+    builtin: bool = False
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], *, source: str = "<dict>", folder: str | None = None) -> PipelineConfig:
@@ -117,7 +126,8 @@ class PipelineConfig:
 def load_config(path: str | os.PathLike[str] | None) -> PipelineConfig:
     """Read a TOML pipeline config (the default config when ``path`` is None)."""
     if path is None:
-        return PipelineConfig.from_dict(tomllib.loads(DEFAULT_CONFIG_TOML), source="<default config>")
+        config = PipelineConfig.from_dict(tomllib.loads(DEFAULT_CONFIG_TOML), source="the built-in config")
+        return replace(config, builtin=True)
     try:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as err:
@@ -135,15 +145,17 @@ def _list(value: Any) -> list[str]:
 
 @dataclass
 class PipelineResult:
-    """What each stage of :func:`run_pipeline` reported, in order."""
+    """What each stage of :func:`run_pipeline` reported, in order, and the ``[compensate]`` rates and protocols
+    the built-in config left out because the log is too short for them."""
 
     output: Path
     stages: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
     layers: list[Path] = field(default_factory=list)
+    skipped: list[Shortfall] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {"output": str(self.output), "layers": [str(p) for p in self.layers],
-                "stages": [{"stage": s, **r} for s, r in self.stages]}
+                "stages": [{"stage": s, **r} for s, r in self.stages], "skipped": [s.to_dict() for s in self.skipped]}
 
 
 Step = Callable[[LogSource, Path], dict[str, Any]]
@@ -154,6 +166,7 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
     layer (the caller refuses existing files first, unless told to overwrite them)."""
     steps: list[tuple[str, Step]] = []
     common: dict[str, Any] = {"compression": compression, "force": True}
+    skip_short = config.builtin
     if config.centroid is not None:
         c = config.centroid
         steps.append(("centroid", lambda i, o: centroid_log(
@@ -170,7 +183,7 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
         k = config.compensate
         steps.append(("compensate", lambda i, o: compensate_log(
             i, o, rates=k["rates"], track=k.get("tracks", "all"), protocols=k.get("protocols", "all"),
-            options=k.get("options"), show_progress=show_progress, **common).to_dict()))
+            options=k.get("options"), skip_short=skip_short, show_progress=show_progress, **common).to_dict()))
     for custom in config.stages:
         steps.append((custom.label, lambda i, o, c=custom: run_stage(
             c.load(), i, o, options=c.options, input_topic=c.input, workers=workers, show_progress=show_progress,
@@ -201,6 +214,7 @@ def run_pipeline(
     compression: str = "zstd",
     show_progress: bool = False,
     on_stage: Callable[[str, dict[str, Any]], None] | None = None,
+    on_skip: Callable[[Shortfall], None] | None = None,
     start: str | int | None = None,
     end: str | int | None = None,
 ) -> PipelineResult:
@@ -212,22 +226,29 @@ def run_pipeline(
     first stage runs on that window of the input (``frame:N`` counts its input channel) and the others
     on what it wrote: the layers are those of the first stage run with the same range, then the others
     without. If a stage fails, the layers this run wrote are removed.
+
+    Before any stage runs, the ``[compensate]`` rates and protocols are checked against the log's length: the
+    built-in config leaves out those it is too short for (``on_skip`` is called with each, before the first
+    stage), any other config is refused with :class:`InvalidParameterError`.
     """
     output = Path(output_path)
-    steps = _steps(config, workers=workers, compression=compression, show_progress=show_progress)
-    if not steps:
+    if not _steps(config, workers=workers, compression=compression, show_progress=show_progress):
         raise InvalidParameterError(f"{config.source}: the config runs no stage.")
     frame_topic, options = _frame_channel(config)
     source = window_of(input_path, TimeRange.parse(start, end), lambda log: frame_topic(log, options))
-    _check_long_enough(source, config, frame_topic, options)
+    config, skipped = _fit_to_length(source, config, frame_topic, options)
+    if on_skip:
+        for shortfall in skipped:
+            on_skip(shortfall)
+    steps = _steps(config, workers=workers, compression=compression, show_progress=show_progress)
     names = [name for name, _ in steps]
     if not flatten:
-        result = PipelineResult(output=output, layers=layer_paths(output, names))
+        result = PipelineResult(output=output, layers=layer_paths(output, names), skipped=skipped)
         _refuse_existing(result.layers, force=force)
         _run_steps(source, steps, result.layers, result, on_stage=on_stage)
         return result
     _refuse_existing([output], force=force)
-    result = PipelineResult(output=output)
+    result = PipelineResult(output=output, skipped=skipped)
     with temporary_folder(output) as folder:
         layers = layer_paths(folder / output.name, names)
         _run_steps(source, steps, layers, result, on_stage=on_stage)
@@ -252,26 +273,31 @@ def _refuse_existing(paths: list[Path], *, force: bool) -> None:
             raise OutputExistsError(path)
 
 
-def _check_long_enough(source: LogSource, config: PipelineConfig, frame_topic: Any, options: dict[str, Any]) -> None:
-    """Fail before any stage runs when a ``[compensate]`` rate would leave fewer samples than the error
-    decomposition needs under any protocol (:data:`~starlog.compensate.MIN_SAMPLES`), rather than after the
-    other stages' work. (The leak-free protocol needs twice as many; the compensate stage checks that.)"""
+def _fit_to_length(source: LogSource, config: PipelineConfig, frame_topic: Any,
+                   options: dict[str, Any]) -> tuple[PipelineConfig, list[Shortfall]]:
+    """``config`` as it runs on ``source`` and the ``[compensate]`` rates and protocols it leaves out: those
+    the log's first-stage channel is too short for (:func:`~starlog.stages.compensate.track_shortfalls`). The
+    built-in config leaves them out (and the compensate stage when none is left); any other config is refused
+    here, before any stage runs."""
     if config.compensate is None:
-        return
+        return config, []
+    k = config.compensate
     with LogReader(source) as log:
         channel = log.channel(frame_topic(log, options))
-    native = channel.rate_hz
-    for target in sorted(float(r) for r in config.compensate["rates"]):
-        if native <= 0 or not 0 < target <= native:
-            continue  # the compensate stage says what is wrong with such a rate
-        n = decimation_indices(channel.message_count, native_rate=native, target_rate=target).size
-        if n < MIN_SAMPLES:
-            span = (channel.last_log_time - channel.first_log_time) * 1e-9
-            raise InvalidParameterError(
-                f"{config.source}: [compensate] at {target:g} Hz would keep {n} samples of the "
-                f"{channel.message_count} messages ({span:.2f} s) on {channel.topic}; the error decomposition needs "
-                f"{MIN_SAMPLES} ({(MIN_SAMPLES - 1) / target:.2f} s at {target:g} Hz). Give a longer log or range, "
-                "or higher rates in [compensate].")
+        protocols = parse_protocols(k.get("protocols", "all"), has_truth=log.has_topic(topics.TRUTH))
+        short = track_shortfalls(log, [channel], k["rates"], protocols, options=k.get("options") or {})
+    if not short:
+        return config, []
+    if not config.builtin:
+        length = f"{channel.message_count} frames, {(channel.last_log_time - channel.first_log_time) * 1e-9:.2f} s"
+        raise InvalidParameterError(too_short_message(
+            f"{config.source}, [compensate]: {channel.topic} ({length})", short,
+            "Give a longer log or range, or other rates or protocols in [compensate] (the built-in config, "
+            "without --config, leaves out what a log is too short for)."))
+    pairs = {(float(r), p) for r in k["rates"] for p in protocols}
+    if pairs <= {(s.rate_hz, s.protocol) for s in short}:
+        return replace(config, compensate=None), short
+    return config, short
 
 
 def _run_steps(source: LogSource, steps: list[tuple[str, Step]], layers: list[Path], result: PipelineResult, *,

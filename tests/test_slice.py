@@ -156,9 +156,10 @@ def test_run_refuses_a_compensate_rate_too_low_for_the_range_before_any_stage(lo
                                                                              tmp_path: Path) -> None:
     stages = {"centroid": {"methods": ["MOMENT"]}, "track": {"methods": ["MOMENT"], "models": ["STATIC"]}}
     config = PipelineConfig.from_dict({**stages, "compensate": {"rates": [50, 10]}})
-    with pytest.raises(InvalidParameterError, match=r"at 10 Hz would keep 10 samples .* needs 16"):
+    with pytest.raises(InvalidParameterError, match=r"\(96 frames, 0.95 s\) is too short .*\n  10 Hz paper: 9 samples, "
+                                                     r"needs 16 \(a log of at least 1.67 s: 167 frames at 100 Hz\)"):
         run_pipeline(long_log, tmp_path / "run.mcap", config)  # 96 frames at 100 Hz: 0.95 s
     assert sorted(p.name for p in tmp_path.iterdir()) == []  # no output, no sidecar left behind
     config = PipelineConfig.from_dict({**stages, "compensate": {"rates": [50]}})
-    with pytest.raises(InvalidParameterError, match="at 50 Hz would keep 13 samples of the 26 messages"):
+    with pytest.raises(InvalidParameterError, match=r"\(26 frames, 0.25 s\) is too short .*\n  50 Hz paper: 12 samples"):
         run_pipeline(long_log, tmp_path / "run.mcap", config, start="frame:70")

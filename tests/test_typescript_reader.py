@@ -12,6 +12,9 @@ import pytest
 
 from starlog.io import LogReader, LogWriter, encode_json, json_message_type
 from starlog.io.copying import flatten_log
+from starlog.io.verify import verify_file
+from starlog.stages.filter import filter_log
+from tests.foreign_logs import write_plain
 
 TS_DIR = Path(__file__).resolve().parent.parent / "tools" / "ts_reader"
 
@@ -65,3 +68,16 @@ def test_typescript_reader_reads_each_file_of_a_chain_and_together_they_are_the_
     for kind in ("schemaIds", "channelIds"):
         ids = [i for f in together["files"] for i in f[kind]]
         assert len(ids) == len(set(ids)) and sorted(ids) == sorted(alone["files"][0][kind])
+
+
+def test_typescript_reader_refuses_chunks_without_message_indexes_until_filter_rewrites_them(
+        node_reader: Path, sim_log: Path, tmp_path: Path) -> None:
+    """What verify's note on such a file says: valid MCAP, which Foxglove's reader refuses; filter rewrites it."""
+    bare = write_plain(sim_log, tmp_path / "bare.mcap", message_indexes=False, chunk_size=4096)
+    refused = subprocess.run(["node", str(node_reader), str(bare)], capture_output=True, text=True, timeout=120)
+    assert refused.returncode != 0 and "chunk index without message indexes" in refused.stderr
+    report = verify_file(bare)
+    assert report.ok and "Foxglove will not open this file" in report.problems[0].detail
+    filter_log(bare, tmp_path / "indexed.mcap")
+    assert _read_with_node(node_reader, tmp_path / "indexed.mcap")["counts"] == {
+        "/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20}

@@ -86,6 +86,24 @@ def test_foreign_and_unusual_logs_are_clean_with_notes(logs: dict[str, Path], tm
     assert verify_log(out).ok
 
 
+def test_the_note_on_chunks_without_message_indexes_says_foxglove_refuses_them_and_how_to_rewrite(
+        logs: dict[str, Path], tmp_path: Path) -> None:
+    bare = write_plain(logs["sim"], tmp_path / "bare.mcap", message_indexes=False, chunk_size=4096)
+    code, report = _verify_cli(bare)
+    assert code == 0 and report["ok"]
+    (note,) = report["problems"]
+    assert note["kind"] == "no_message_indexes" and note["severity"] == "note"
+    assert "Foxglove will not open this file" in note["detail"]
+    assert f"starlog filter {bare} -o INDEXED.mcap rewrites it with them" in note["detail"]
+    rewritten = tmp_path / "indexed.mcap"
+    assert CliRunner().invoke(cli, ["filter", str(bare), "-o", str(rewritten), "-q"]).exit_code == 0
+    assert _verify_cli(rewritten)[1]["problems"] == []
+    # without a summary, no chunk index lists the bare chunks: Foxglove's indexed reader is not what reads them
+    unlisted = write_plain(logs["sim"], tmp_path / "unlisted.mcap", message_indexes=False, summary=False)
+    notes = {p["kind"]: p["detail"] for p in _verify_cli(unlisted)[1]["problems"]}
+    assert set(notes) == {"no_summary", "no_message_indexes"} and "Foxglove" not in notes["no_message_indexes"]
+
+
 # ---------------------------------------------------------------- the damaged corpus
 def _summary_crc(data: bytearray) -> None:
     """Recompute the footer's summary CRC, so only the planted damage remains."""

@@ -36,6 +36,13 @@ def _batch_report(output: Path, force: bool) -> str:
     return f"; report {report}"
 
 
+def _skipped_note(skipped: list[dict[str, Any]]) -> str:
+    """``; log too short for compensate at 10 Hz leakfree``: what one log of a batch ``run`` left out."""
+    if not skipped:
+        return ""
+    return "; log too short for compensate at " + ", ".join(f"{s['rate_hz']:g} Hz {s['protocol']}" for s in skipped)
+
+
 @click.command(context_settings=CONTEXT)
 @click.argument("logs", nargs=-1, type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(path_type=Path),
@@ -69,6 +76,11 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
     they run in parallel on a Dask cluster (--scheduler, or a local one with --workers), a
     failed log is reported and the others complete.
 
+    Before any stage runs, the [compensate] rates and protocols are checked against the log's
+    length (the compensate stage's own rule): without --config, those the log is too short for
+    are left out, one line each on stderr and in the summary; a --config file that names one
+    is refused at once, with the log length it needs.
+
     \b
     Example:
       starlog run --print-config > pipeline.toml
@@ -89,9 +101,11 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
                                       show_progress=not quiet, force=force, flatten=flatten, compression=compression,
                                       start=start, end=end)
         reports = {o.result["output"]: _batch_report(Path(o.result["output"]), force) for o in outcomes if o.ok}
-        report_batch(outcomes, as_json, lambda r: f"wrote {r['output']} ({len(r['stages'])} stages){reports[r['output']]}")
+        report_batch(outcomes, as_json, lambda r: f"wrote {r['output']} ({len(r['stages'])} stages"
+                     f"{_skipped_note(r['skipped'])}){reports[r['output']]}")
         return
 
+    from starlog.compensate import Shortfall
     from starlog.errors import OutputExistsError
     from starlog.pipeline import report_path, stage_line
     from starlog.report import write_report
@@ -106,8 +120,12 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
     html = report_path(output)
     if html.exists() and not force:
         raise OutputExistsError(html)
+    def skipping(shortfall: Shortfall) -> None:
+        echo_status(quiet, f"skipped, log too short: compensate {shortfall.describe()}")
+
     result = run_pipeline(logs[0], output, config, workers=workers, force=force, flatten=flatten,
-                          compression=compression, show_progress=not quiet, on_stage=stage_done, start=start, end=end)
+                          compression=compression, show_progress=not quiet, on_stage=stage_done, on_skip=skipping,
+                          start=start, end=end)
     if result.layers:
         echo_status(quiet, f"wrote {len(result.layers)} layers on {logs[0]}: "
                            f"{', '.join(str(p) for p in result.layers)}")
@@ -121,7 +139,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
         for stage, summary in result.stages:
             if stage == "compensate":
                 click.echo(decision_table(summary["records"]))
-    click.echo("\n".join(run_summary_lines(output, result.stages, html)))
+    click.echo("\n".join(run_summary_lines(output, result.stages, html, [s.to_dict() for s in result.skipped])))
 
 
 @click.command(context_settings=CONTEXT)

@@ -214,15 +214,20 @@ def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings:
                    "the tracks dominates otherwise). The output does not depend on it.")
 @quiet_option
 @click.option("--burn-in", "burn_in", default="auto", show_default=True, metavar="auto|off|SECONDS", help=BURN_IN_HELP)
+@click.option("--skip-short", is_flag=True,
+              help="Leave out the rates and protocols the track is too short for (one line each on stderr) instead "
+                   "of refusing the log.")
 def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str, motion: str,
                settings: tuple[str, ...], start: str | None, end: str | None, as_json: bool, flatten: bool,
-               force: bool, compression: str, workers: int, quiet: bool, burn_in: str) -> None:
+               force: bool, compression: str, workers: int, quiet: bool, burn_in: str, skip_short: bool) -> None:
     """Decompose the brightest star's error, select strategies and compensate (paper 2.2-2.5).
 
     For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
     strategies with rollback below 1 %, under each protocol. Writes a layer on the log holding
     the series before/after and one decision record per (rate, protocol) on
-    /compensated/<METHOD>/<MODEL>/decisions.
+    /compensated/<METHOD>/<MODEL>/decisions. A track too short for a rate and protocol (too
+    few samples after the filter's start-up; leakfree needs about twice as many) is refused
+    before anything is written, naming the log length it needs; --skip-short leaves those out.
 
     \b
     Example:
@@ -239,7 +244,9 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
                              options=key_values(settings, "--set"), motion=motion, workers=workers,
                              show_progress=not quiet, force=force, compression=compression, start=start, end=end,
-                             burn_in=burn_in_setting(burn_in), flatten=flatten)
+                             burn_in=burn_in_setting(burn_in), skip_short=skip_short, flatten=flatten)
+    for skipped in summary.skipped:
+        echo_status(quiet, f"skipped (track too short): {skipped.describe()}")
     echo_status(quiet, f"wrote {output}: {len(summary.records)} decision records")
     if as_json:
         print_json(summary.to_dict())

@@ -14,7 +14,9 @@ importing only those above it:
 * :mod:`~starlog.compensate.strategies` — the five compensation strategies (eq. 1–11);
 * :mod:`~starlog.compensate.selection` — scores (eq. 12), the positive-score strategies (at most three) run with rollback (eq. 13);
 * :mod:`~starlog.compensate.protocols` — RMSE (eq. 15), the figures of each protocol and
-  :func:`evaluate`.
+  :func:`evaluate`;
+* :mod:`~starlog.compensate.lengths` — the samples each protocol needs, and which rates and
+  protocols a log of ``n`` frames is too short for (:func:`shortfalls`), known before tracking.
 """
 
 from __future__ import annotations
@@ -29,9 +31,11 @@ from starlog.compensate.burnin import (
     burn_in_cap,
     burn_in_label,
     fixed_burn_in,
+    longest_burn_in,
     parse_burn_in,
 )
 from starlog.compensate.decimate import (
+    RATE_TOLERANCE,
     decimate,
     decimation_indices,
     effective_rate,
@@ -44,6 +48,14 @@ from starlog.compensate.decomposition import (
     SpectralPeak,
     decompose,
 )
+from starlog.compensate.lengths import (
+    Shortfall,
+    enough_samples,
+    fewest_samples,
+    frames_needed,
+    samples_needed,
+    shortfalls,
+)
 from starlog.compensate.protocols import (
     FIGURE_DTYPE,
     Evaluation,
@@ -53,6 +65,7 @@ from starlog.compensate.protocols import (
     rmse,
 )
 from starlog.compensate.references import (
+    CALIBRATION_FRACTION,
     MotionMode,
     ReferenceMode,
     ScoringProtocol,
@@ -88,11 +101,13 @@ from starlog.compensate.strategies import (
 __all__ = [
     "AR_THETA",
     "BURN_IN_RATIO",
+    "CALIBRATION_FRACTION",
     "FIGURE_DTYPE",
     "MAX_BURN_IN_FRACTION",
     "MAX_BURN_IN_S",
     "MIN_SAMPLES",
     "PASS_DTYPE",
+    "RATE_TOLERANCE",
     "TABLE_1",
     "AccuracySource",
     "BurnIn",
@@ -106,6 +121,7 @@ __all__ = [
     "ReferenceMode",
     "RmseFigure",
     "ScoringProtocol",
+    "Shortfall",
     "SpectralPeak",
     "Strategy",
     "StrategyProfile",
@@ -116,6 +132,8 @@ __all__ = [
     "burn_in_cap",
     "burn_in_label",
     "fixed_burn_in",
+    "frames_needed",
+    "longest_burn_in",
     "parse_burn_in",
     "ar_prediction",
     "compensate",
@@ -125,7 +143,9 @@ __all__ = [
     "decimation_indices",
     "decompose",
     "effective_rate",
+    "enough_samples",
     "evaluate",
+    "fewest_samples",
     "global_mean_reference",
     "local_smoothing",
     "protocol_figures",
@@ -134,7 +154,9 @@ __all__ = [
     "rmse",
     "running_mean_reference",
     "sampled_rate",
+    "samples_needed",
     "scored_start",
+    "shortfalls",
     "strategy_scores",
     "trend_window",
 ]

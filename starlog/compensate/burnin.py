@@ -34,7 +34,7 @@ from starlog.compensate._series import as_samples
 from starlog.errors import InvalidParameterError
 
 __all__ = ["BURN_IN_RATIO", "MAX_BURN_IN_FRACTION", "MAX_BURN_IN_S", "BurnIn", "BurnInSetting", "burn_in",
-           "burn_in_cap", "burn_in_label", "fixed_burn_in", "parse_burn_in"]
+           "burn_in_cap", "burn_in_label", "fixed_burn_in", "longest_burn_in", "parse_burn_in"]
 
 #: The filter has settled once its position variance is within this factor of the steady state.
 BURN_IN_RATIO = 2.0
@@ -132,3 +132,13 @@ def fixed_burn_in(n: int, *, native_rate: float, seconds: float) -> BurnIn:
     """A burn-in of ``seconds`` of frames (``floor(seconds · rate + 0.5)``, at most ``n - 1``); no variance test (``steady_variance`` 0)."""
     samples = max(0, min(int(math.floor(seconds * native_rate + 0.5)), n - 1))
     return BurnIn(samples=samples, steady_variance=0.0, capped=False)
+
+
+def longest_burn_in(n: int, *, native_rate: float, setting: BurnInSetting) -> int:
+    """The most of ``n`` samples at ``native_rate`` Hz that the burn-in under ``setting`` can skip: the cap
+    (:func:`burn_in_cap`) for ``"auto"``, none for ``"off"``, :func:`fixed_burn_in` for seconds."""
+    if setting == "off":
+        return 0
+    if isinstance(setting, str):
+        return burn_in_cap(n, native_rate=native_rate)
+    return fixed_burn_in(n, native_rate=native_rate, seconds=float(setting)).samples

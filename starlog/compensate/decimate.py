@@ -18,8 +18,9 @@ native frame nearest to it (fractional-step selection):
   sequence of a few seconds.  Use it as ``rate_hz`` downstream.
 
 No anti-alias filter is applied (the paper's "equidistant sampling" keeps raw samples).
-A target rate above the native rate is rejected; the 10–100 Hz range of the paper is not
-enforced (its Table 2 also uses 5 Hz).
+A target rate above the native rate is rejected (one within :data:`RATE_TOLERANCE` of it, a
+native rate measured from frame times, is the native rate); the 10–100 Hz range of the paper
+is not enforced (its Table 2 also uses 5 Hz).
 """
 
 from __future__ import annotations
@@ -32,18 +33,22 @@ import numpy.typing as npt
 from starlog.compensate._series import check_rate
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["decimate", "decimation_indices", "effective_rate", "sampled_rate"]
+__all__ = ["RATE_TOLERANCE", "decimate", "decimation_indices", "effective_rate", "sampled_rate"]
+
+#: Relative excess over the native rate that a target rate may have and still be the native rate (a native
+#: rate measured from frame times, ``(n - 1) / span``, rounds a little below the nominal one).
+RATE_TOLERANCE = 1e-9
 
 
 def _checked_rates(native_rate: float, target_rate: float) -> tuple[float, float]:
     fn = check_rate(native_rate, name="native_rate")
     ft = check_rate(target_rate, name="target_rate")
-    if ft > fn:
+    if ft > fn * (1 + RATE_TOLERANCE):
         raise InvalidParameterError(
             f"target_rate {ft} Hz is above the native rate {fn} Hz; decimation can only lower "
             "the rate."
         )
-    return fn, ft
+    return fn, min(ft, fn)
 
 
 def _check_count(value: object, name: str) -> int:

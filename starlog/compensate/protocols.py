@@ -18,6 +18,7 @@ import numpy.typing as npt
 
 from starlog.compensate._series import as_reference, as_series, improvement, parse_choice, radial_rms
 from starlog.compensate.references import (
+    CALIBRATION_FRACTION,
     MotionMode,
     ReferenceMode,
     ScoringProtocol,
@@ -309,7 +310,7 @@ def evaluate(
     sigma: npt.ArrayLike | None = None,
     accuracy_source: AccuracySource | str = AccuracySource.ZERO,
     leakfree_reference: ReferenceMode | str = ReferenceMode.CALIBRATION,
-    calibration_fraction: float = 0.5,
+    calibration_fraction: float = CALIBRATION_FRACTION,
     top_k: int = 3,
     rollback_threshold: float = 0.01,
     motion: MotionMode | str = MotionMode.KEEP,

@@ -48,10 +48,12 @@ from starlog.compensate._series import as_series, parse_choice
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = [
+    "CALIBRATION_FRACTION",
     "MotionMode",
     "ReferenceMode",
     "ScoringProtocol",
     "SelectionReference",
+    "calibration_fits",
     "calibration_length",
     "global_mean_reference",
     "protocols_for",
@@ -61,6 +63,10 @@ __all__ = [
     "selection_reference",
     "split_index",
 ]
+
+
+#: Default share of a leak-free series in its unscored calibration segment.
+CALIBRATION_FRACTION = 0.5
 
 
 class ScoringProtocol(enum.StrEnum):
@@ -167,14 +173,20 @@ def split_index(n: int, *, fraction: float) -> int:
     return int(math.floor(f * n + 0.5))
 
 
+def calibration_fits(n: int, *, fraction: float, minimum: int) -> bool:
+    """Whether ``n`` samples split at ``fraction`` (:func:`split_index`) give a calibration segment of at
+    least ``minimum`` samples with at least one sample left to score."""
+    return minimum <= split_index(n, fraction=fraction) < n
+
+
 def calibration_length(n: int, *, fraction: float, minimum: int) -> int:
     """Number of calibration samples, :func:`split_index`, checked to be usable.
 
     Raises :class:`InvalidInputError` unless the calibration segment has at least ``minimum``
-    samples and at least one sample is left to score.
+    samples and at least one sample is left to score (:func:`calibration_fits`).
     """
     n_cal = split_index(n, fraction=fraction)
-    if n_cal < minimum or n_cal >= n:
+    if not calibration_fits(n, fraction=fraction, minimum=minimum):
         raise InvalidInputError(
             f"a series of {n} samples with calibration_fraction={float(fraction)} gives a "
             f"calibration segment of {n_cal} samples; it needs >= {minimum} samples and at least "

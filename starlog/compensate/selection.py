@@ -55,6 +55,7 @@ from starlog.compensate.decomposition import (
     decompose,
 )
 from starlog.compensate.references import (
+    CALIBRATION_FRACTION,
     ReferenceMode,
     ScoringProtocol,
     SelectionReference,
@@ -422,7 +423,7 @@ def compensate(
     flux: npt.ArrayLike | None = None,
     sigma: npt.ArrayLike | None = None,
     reference_mode: ReferenceMode | str = ReferenceMode.GLOBAL_MEAN,
-    calibration_fraction: float = 0.5,
+    calibration_fraction: float = CALIBRATION_FRACTION,
     accuracy_source: AccuracySource | str = AccuracySource.ZERO,
     top_k: int = 3,
     rollback_threshold: float = 0.01,

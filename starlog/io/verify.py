@@ -556,6 +556,20 @@ class _Verifier:
         elif state.decode is not None:
             state.decode(data)
 
+    def bare_chunks_detail(self) -> str:
+        """The note on chunks without message indexes; when the summary's chunk indexes list such chunks (with
+        messages), the TypeScript indexed reader Foxglove uses refuses to read them: say so, and how to rewrite."""
+        detail = f"{self.bare_chunks} chunks have no message index records (valid; readers scan those chunks)"
+        table = self.indexes.table
+        if self.summary_damaged or not len(table):
+            return detail
+        bare = table.column("message_index_length") == 0
+        timed = (table.column("message_start_time") != 0) | (table.column("message_end_time") != 0)
+        if not np.any(bare & timed):
+            return detail
+        return (f"{detail}; Foxglove will not open this file (its reader refuses a chunk index without message "
+                f"indexes): starlog filter {self.path} -o INDEXED.mcap rewrites it with them")
+
     # ------------------------------------------------------------------ indexes against contents
     def check_indexes(self) -> None:
         for offset, detail in self.indexes.problems():
@@ -598,8 +612,7 @@ class _Verifier:
                              "defined", channel=channel.topic)
         self.check_indexes()
         if self.bare_chunks:
-            self.problem("no_message_indexes", f"{self.bare_chunks} chunks have no message index records (valid; "
-                         "readers scan those chunks)", severity="note")
+            self.problem("no_message_indexes", self.bare_chunks_detail(), severity="note")
         if self.loose:
             self.problem("messages_outside_chunks", f"{self.loose} messages are written outside chunks (valid; no "
                          "index lists them)", severity="note")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +20,10 @@ def _best(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [r for r in mine if r["rate_hz"] == top]
 
 
-def run_summary_lines(output: Path, stages: list[tuple[str, dict[str, Any]]], report: Path | None) -> list[str]:
-    """What ran, the headline compensation figures of one track channel, and where the report and the rows are."""
+def run_summary_lines(output: Path, stages: list[tuple[str, dict[str, Any]]], report: Path | None,
+                      skipped: Sequence[dict[str, Any]] = ()) -> list[str]:
+    """What ran, the headline compensation figures of one track channel, what was ``skipped`` because the log is
+    too short (:meth:`starlog.compensate.Shortfall.to_dict` each), and where the report and the rows are."""
     lines = [f"{output}: " + ", ".join(name for name, _ in stages)]
     for name, result in stages:
         if name == "centroid":
@@ -37,6 +40,9 @@ def run_summary_lines(output: Path, stages: list[tuple[str, dict[str, Any]]], re
         f_d = best[0]["compensation"]["decomposition"]["dominant_frequency"]
         lines.append(f"  compensate: {len(records)} runs; {best[0]['method']}/{best[0]['model']} at "
                      f"{best[0]['rate_hz']:g} Hz, RMSE px {figures}; f_d = {f_d:.3g} Hz")
+    if skipped:
+        lines.append("  skipped, log too short: compensate " + ", ".join(
+            f"{s['rate_hz']:g} Hz {s['protocol']} (needs {s['seconds_needed']:.2f} s)" for s in skipped))
     if report is not None:
         lines.append(f"report: {report} (open it in a browser)")
     if records:

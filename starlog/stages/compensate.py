@@ -20,8 +20,13 @@ that is a few MB per hour of recording.  The evaluations of one track (every rat
 are independent: with ``workers > 1`` they run in worker processes, and are written in the
 same order, so the output does not depend on ``workers``.
 
-One module of over 500 lines: reading the brightest series, the evaluations and the decision
-records are the stage's three steps, each short, and the summary the command prints.
+Before anything is written, the stage checks that the track gives every rate and protocol the samples
+it needs (:func:`track_shortfalls`): it refuses a track too short for any of them, naming each with the
+log length it needs, or with ``skip_short`` leaves those out.
+
+One module of over 500 lines: checking the track's length, reading the brightest series, the
+evaluations and the decision records are the stage's steps, each short, and the summary the command
+prints.
 """
 
 from __future__ import annotations
@@ -38,6 +43,8 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.compensate import (
+    CALIBRATION_FRACTION,
+    RATE_TOLERANCE,
     BurnIn,
     Evaluation,
     MotionMode,
@@ -48,10 +55,12 @@ from starlog.compensate import (
     fixed_burn_in,
     parse_burn_in,
     ScoringProtocol,
+    Shortfall,
     decimation_indices,
     evaluate,
     protocols_for,
     sampled_rate,
+    shortfalls,
 )
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
@@ -65,7 +74,7 @@ from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.motion import estimate_track_motion
 
 __all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "decision_table", "evaluate_series",
-           "read_brightest_series", "select_track_channels"]
+           "read_brightest_series", "select_track_channels", "too_short_message", "track_shortfalls"]
 
 
 @dataclass(frozen=True)
@@ -285,12 +294,14 @@ def parse_motion_modes(spec: str | Sequence[str]) -> list[MotionMode]:
 
 @dataclass
 class CompensateSummary:
-    """Every evaluation :func:`compensate_log` ran: ``records[i]`` is one decision record."""
+    """Every evaluation :func:`compensate_log` ran: ``records[i]`` is one decision record; ``skipped``: the rates
+    and protocols the track was too short for (with ``skip_short``)."""
 
     records: list[dict[str, Any]] = field(default_factory=list)
+    skipped: list[Shortfall] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"records": self.records}
+        return {"records": self.records, "skipped": [s.to_dict() for s in self.skipped]}
 
 
 def decision_table(records: list[dict[str, Any]]) -> str:
@@ -340,6 +351,7 @@ def compensate_log(
     motion_fit: str = "rigid",
     skip_burn_in: bool = True,
     burn_in: BurnInSetting = "auto",
+    skip_short: bool = False,
     workers: int = 1,
     show_progress: bool = False,
     force: bool = False,
@@ -374,6 +386,10 @@ def compensate_log(
         What the start-up is when ``skip_burn_in``: ``"auto"`` (the filter's variance rule,
         default), ``"off"`` (nothing skipped) or a number of seconds; recorded in every
         decision record.
+    skip_short : bool
+        Leave out the rates and protocols the track is too short for (:func:`starlog.compensate.shortfalls`,
+        listed in the summary's ``skipped`` and the stage's parameters) instead of refusing the log, before
+        anything is written.
     workers : int
         Processes for the evaluations (1: in this process) and threads for chunk compression;
         the output does not depend on it.
@@ -395,20 +411,30 @@ def compensate_log(
     with LogReader(input_path) as probe:
         channels = select_track_channels(probe, track)
         has_truth = probe.has_topic(topics.TRUTH)
-    chosen = parse_protocols(protocols, has_truth=has_truth)
+        chosen = parse_protocols(protocols, has_truth=has_truth)
+        short = track_shortfalls(probe, channels, rates, chosen, options=options, burn_in=setting)
+    skipped = {(s.rate_hz, s.protocol) for s in short}
+    pairs_left = sum((float(r), p) not in skipped for r in rates for p in chosen)
+    if short and (not skip_short or not pairs_left):
+        raise InvalidParameterError(too_short_message(
+            f"{channels[0].topic} ({_length(channels[0])})", short, "Give a longer log or range, higher --rate or "
+            "other --protocol values" + (", or --skip-short to leave these out." if pairs_left else ".")))
+    summary.skipped = short
     modes = parse_motion_modes(motion)
     parameters = {"tracks": [c.topic for c in channels], "rates": [float(r) for r in rates],
                   "protocols": [p.value for p in chosen], "options": options, "skip_burn_in": skip_burn_in,
                   "burn_in": burn_in_label(setting)}
+    if short:
+        parameters["skipped"] = [s.to_dict() for s in short]
     fit = motion_fit if (ScoringProtocol.RELATIVE in chosen or MotionMode.SEPARATE in modes) else None
     if modes != [MotionMode.KEEP] or fit is not None:
         parameters |= {"motion": [m.value for m in modes], "motion_fit": fit}
-    n_jobs = len(channels) * len(rates) * len(chosen) * len(modes)
+    n_jobs = len(channels) * pairs_left * len(modes)
     parallel = workers > 1 and n_jobs > 1
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force, flatten=flatten,
                     compression=compression) as (log, out), \
             (process_pool(workers, preload=[__name__]) if parallel else nullcontext()) as pool:
-        jobs = _plan_jobs(log, channels, rates, chosen, modes, fit, burn_in=setting)
+        jobs = _plan_jobs(log, channels, rates, chosen, modes, fit, burn_in=setting, skipped=skipped)
         done = _evaluated(jobs, options, pool, window=2 * workers)
         decisions: dict[str, int] = {}
         for job, evaluation in progress(done, total=n_jobs, description="compensate", enabled=show_progress,
@@ -419,6 +445,32 @@ def compensate_log(
                     json_message_type("starlog.CompensationRecord"), unordered=True)
             summary.records.append(_write_evaluation(out, decisions[job.track_topic], job, evaluation))
     return summary
+
+
+def track_shortfalls(log: LogReader, channels: Sequence[ChannelSummary], rates: Sequence[float],
+                     protocols: Sequence[ScoringProtocol], *, options: dict[str, Any],
+                     burn_in: BurnInSetting = "auto") -> list[Shortfall]:
+    """The rates and protocols the shortest of ``channels`` gives too few samples for
+    (:func:`starlog.compensate.shortfalls`), at the frame rate :func:`read_brightest_series` uses."""
+    image_rate = log.channel(topics.IMAGE).rate_hz if log.has_topic(topics.IMAGE) else 0.0
+    shortest = min(channels, key=lambda c: c.message_count)
+    native = image_rate if image_rate > 0 else shortest.rate_hz
+    fraction = options.get("calibration_fraction", CALIBRATION_FRACTION)
+    return shortfalls(shortest.message_count, native_rate=native, rates=rates, protocols=protocols,
+                      calibration_fraction=fraction, burn_in=burn_in)
+
+
+def too_short_message(what: str, short: Sequence[Shortfall], ways_out: str) -> str:
+    """The error for a channel too short for some rates and protocols: ``what`` (the channel), one line per
+    shortfall, ``ways_out``."""
+    lines = "".join(f"\n  {s.describe()}" for s in short)
+    return (f"{what} is too short for {len(short)} of the rates and protocols asked for (the samples left after "
+            f"the longest filter start-up the burn-in allows):{lines}\n{ways_out}")
+
+
+def _length(channel: ChannelSummary) -> str:
+    """``300 messages, 1.00 s``: a channel's length."""
+    return f"{channel.message_count} messages, {(channel.last_log_time - channel.first_log_time) * 1e-9:.2f} s"
 
 
 @dataclass(frozen=True)
@@ -437,9 +489,9 @@ class _Job:
 
 def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[float],
                chosen: list[ScoringProtocol], modes: list[MotionMode], fit: str | None, *,
-               burn_in: BurnInSetting) -> Iterator[_Job]:
-    """Every (track channel, rate, protocol, motion mode), in output order; each channel's series read when
-    reached (with its platform reference when ``fit`` is given)."""
+               burn_in: BurnInSetting, skipped: set[tuple[float, ScoringProtocol]]) -> Iterator[_Job]:
+    """Every (track channel, rate, protocol, motion mode) but the ``skipped`` (rate, protocol) pairs, in output
+    order; each channel's series read when reached (with its platform reference when ``fit`` is given)."""
     truth_cache: dict[int, StarTruth] = {}
     with_truth = any(p is not ScoringProtocol.PAPER for p in chosen)
     for channel in channels:
@@ -448,13 +500,13 @@ def _plan_jobs(log: LogReader, channels: list[ChannelSummary], rates: Sequence[f
             series = with_platform_reference(log, series, channel.topic, fit=fit)
         jobs = []
         for rate in rates:
-            if not rate > 0 or rate > series.native_rate * (1 + 1e-9):
+            if not rate > 0 or rate > series.native_rate * (1 + RATE_TOLERANCE):
                 raise InvalidParameterError(
                     f"rate {rate} Hz must be > 0 and at most the frame rate {series.native_rate:g} Hz.")
             idx = series.indices(rate, burn_in=burn_in)
             rate_hz = sampled_rate(idx, native_rate=series.native_rate)
             jobs += [_Job(channel.topic, series, float(rate), idx, rate_hz, p, m, burn_in) for p in chosen
-                     for m in modes]
+                     if (float(rate), p) not in skipped for m in modes]
         yield from jobs
 
 
