@@ -64,7 +64,7 @@ def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
 
 
 #: Options the stage passes to :func:`starlog.centroid.extract_stars` as they are.
-_EXTRACT_KEYS = ("psf_sigma", "window", "saturation", "detect_options", "centroid_options")
+_EXTRACT_KEYS = ("psf_sigma", "window", "saturation", "drop_artefacts", "detect_options", "centroid_options")
 #: Keywords the stage sets itself (``--gain``, ``--read-noise``, ``--method``, ``--psf``, ``--hot-pixels``).
 _STAGE_KEYS = {"image", "detections", "method", "methods", "gain", "read_noise", "epsf", "hot_pixels", "background"}
 
