@@ -39,6 +39,9 @@ are left out (flag ARTEFACT, ``starlog.centroid.artefact_detections``), and befo
 clean frames and SEP; true stars left out as artefacts. Every table takes starlog's detections as
 the centroid stage keeps them.
 
+One module of over 500 lines: its sections share the simulated fields, the matching to the truth,
+SEP's extraction and the judging of the targets.
+
 Run: python tools/bench_centroid.py [--quick] [--reps N] [--no-photutils] [--artifacts-only] [--no-nongaussian]
 """
 
