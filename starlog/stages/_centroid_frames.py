@@ -35,7 +35,8 @@ __all__ = ["FrameExtractor", "FrameMessages", "extract_parallel", "extract_seria
 
 @dataclass(frozen=True)
 class FrameMessages:
-    """One frame's encoded messages (detections, annotations, centroids per method) and counts."""
+    """One frame's encoded messages (detections, annotations, centroids per method) and counts
+    (``n_artefacts``: detections flagged ``ARTEFACT``, in the detections only)."""
 
     log_time: int
     detections: bytes
@@ -44,6 +45,7 @@ class FrameMessages:
     n_detections: int
     n_centroids: tuple[int, ...]
     n_failed: tuple[int, ...]
+    n_artefacts: int = 0
 
 
 @dataclass(frozen=True)
@@ -84,6 +86,7 @@ class FrameExtractor:
             n_detections=int(detections.size),
             n_centroids=tuple(int(c.size) for c in per_method),
             n_failed=tuple(int(np.count_nonzero(c["flags"] & CentroidFlag.FIT_FAILED)) for c in per_method),
+            n_artefacts=int(np.count_nonzero(detections["flags"] & CentroidFlag.ARTEFACT)),
         )
 
 
