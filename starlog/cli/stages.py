@@ -51,7 +51,7 @@ __all__ = ["centroid", "compensate", "motion", "stage_command", "track"]
               help="Hot-pixel map: 'auto' learns it from the log (pixels that are single-pixel spikes in most "
                    "of its first frames), or a FILE: .npy boolean mask of the frame's shape, or text/CSV lines "
                    "'x,y' (column,row). Hot pixels are never stars and are left out of the star windows.")
-@click.option("--phase-correction", "phase_correction", metavar="auto|off|FILE", default="off", show_default=True,
+@click.option("--phase-correction", "phase_correction", metavar="auto|off|FILE", default="auto", show_default=True,
               help="Remove each method's pixel-phase bias (S-curve; under-sampled or non-Gaussian PSFs). auto: "
                    "learnt from the log's own stars (its first 16-256 frames, each distinct star once, no catalogue; "
                    "a method with too few is left uncorrected, with a note). FILE: calibrations in JSON (the "

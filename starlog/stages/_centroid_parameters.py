@@ -135,7 +135,7 @@ def resolve_centroid_parameters(
     image_topic: str | None = None,
     psf: str | None = None,
     hot_pixels: str | os.PathLike[str] | None = None,
-    phase_correction: str | os.PathLike[str] | None = None,
+    phase_correction: str | os.PathLike[str] | None = "auto",
     show_progress: bool = False,
 ) -> CentroidParameters:
     """The parameters of :func:`starlog.stages.centroid.centroid_log` (its options, same meanings), with what

@@ -98,7 +98,7 @@ def centroid_log(
     show_progress: bool = False,
     psf: str | None = None,
     hot_pixels: str | os.PathLike[str] | None = None,
-    phase_correction: str | os.PathLike[str] | None = None,
+    phase_correction: str | os.PathLike[str] | None = "auto",
 ) -> CentroidSummary:
     """Detect stars and measure their centroids by each method, for every frame of the log.
 
@@ -147,7 +147,9 @@ def centroid_log(
         few distinct bright stars is left uncorrected, with a note. A path reads the calibrations
         (JSON: ``--json`` output of an earlier run, or its ``phase_correction`` records). The
         calibrations are recorded in the provenance and stored as the metadata record
-        ``starlog.phase_correction`` (shown by ``info``). Default (or ``"off"``): no correction.
+        ``starlog.phase_correction`` (shown by ``info``). Default ``"auto"``; ``"off"`` (or None): no
+        correction. On a log whose stars already match starlog's model (pixel-integrated Gaussians) the
+        estimated amplitudes stay below their significance and nothing changes.
     """
     reuse_frame_buffers()
     parameters = resolve_centroid_parameters(input_path, methods=methods, gain=gain, read_noise=read_noise,
