@@ -34,7 +34,7 @@ __all__ = ["centroid", "compensate", "motion", "stage_command", "track"]
 @output_option()
 @click.option("--method", "methods", default="all", show_default=True,
               help="Sub-pixel methods, comma-separated: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, "
-                   "PSFFIT, or all (all but MOMENT_SQUARED and PSFFIT).")
+                   "PSFFIT, WINPOS, or all (all but MOMENT_SQUARED, PSFFIT and WINPOS).")
 @click.option("--psf", type=click.Choice(["gaussian", "empirical"]),
               help="PSF model of PSFFIT. empirical: an ePSF built once from the log's bright isolated stars, stored "
                    "in the output (metadata starlog.epsf, shown by info). gaussian: the pixel-integrated Gaussian. "
