@@ -25,6 +25,9 @@ def run_summary_lines(output: Path, stages: list[tuple[str, dict[str, Any]]], re
     for name, result in stages:
         if name == "centroid":
             lines.append(f"  centroid: {result['frames']} frames, {result['detections_per_frame']:.1f} stars/frame")
+            trust = result.get("recommended") or {}
+            if trust.get("reason"):
+                lines.append(f"  trust {trust['reason']}" if trust.get("method") else f"  centroid method: {trust['reason']}")
         elif name.startswith("track") and result.get("models"):
             model, figures = next(iter(result["models"].items()))
             lines.append(f"  {name}: {len(result['models'])} models, brightest star = track "

@@ -21,6 +21,7 @@ import numpy.typing as npt
 
 from starlog.centroid import CentroidFlag, CentroidMethod, extract_stars
 from starlog.centroid.epsf import EPSF
+from starlog.centroid.evidence import FrameEvidence, frame_evidence
 from starlog.centroid.phase import PhaseCalibration
 from starlog.io import encode_image_annotations
 from starlog.io.frames import SkippedFrame
@@ -44,6 +45,8 @@ class FrameMessages:
     n_detections: int
     n_centroids: tuple[int, ...]
     n_failed: tuple[int, ...]
+    evidence: FrameEvidence | None = None
+    """Each method's differences to the other methods' median (:mod:`starlog.centroid.evidence`)."""
 
 
 @dataclass(frozen=True)
@@ -84,6 +87,7 @@ class FrameExtractor:
             n_detections=int(detections.size),
             n_centroids=tuple(int(c.size) for c in per_method),
             n_failed=tuple(int(np.count_nonzero(c["flags"] & CentroidFlag.FIT_FAILED)) for c in per_method),
+            evidence=frame_evidence(per_method),
         )
 
 
