@@ -88,7 +88,7 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
                            hot_pixels=hot_pixels, phase_correction=phase_correction, start=start, end=end,
                            flatten=flatten)
     d = summary.to_dict()
-    for note in [] if quiet else d["notes"]:
+    for note in d["notes"]:
         click.echo(f"note: {note}", err=True)
     echo_status(quiet, f"wrote {output}: {d['frames']} of {d['channel_messages']} frames of {d['image_topic']} read, "
                        f"{d['detections_per_frame']:.1f} stars/frame")
