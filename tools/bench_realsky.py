@@ -468,14 +468,19 @@ def solve_frame(solver, positions: Positions, shape: tuple[int, int], *, brighte
     Solved without distortion first (fast, and the solver's distortion estimate from its coarse
     matches can be off), with a searched distortion range when that fails. The solver's own
     matches use a radius of 1 % of the image width and may hold mismatches: :func:`refine_camera`
-    re-matches before any comparison.
+    re-matches before any comparison. cedar-solve 0.5 raises an IndexError when a candidate pattern
+    leaves no catalogue star in the field (its empty list of nearby stars, sorted, is a float array):
+    that attempt counts as unsolved.
     """
     order = np.argsort(-positions.flux)[:brightest]
     # the solver's pixel convention puts (0.5, 0.5) at the top-left pixel's centre, (y, x) order
     yx = np.column_stack([positions.y[order] + 0.5, positions.x[order] + 0.5])
     for distortion in (0.0, (-0.2, 0.1)):
-        sol = solver.solve_from_centroids(yx, size=shape, distortion=distortion, return_matches=True,
-                                          match_threshold=1e-7, solve_timeout=timeout_ms)
+        try:
+            sol = solver.solve_from_centroids(yx, size=shape, distortion=distortion, return_matches=True,
+                                              match_threshold=1e-7, solve_timeout=timeout_ms)
+        except IndexError:
+            continue
         if sol.get("RA") is not None:
             break
     else:
