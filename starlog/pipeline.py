@@ -57,6 +57,7 @@ methods = ["NONE", "MOMENT", "BICUBIC", "GAUSSFIT", "GRADIENT"]
 # gain = 1.0            # e-/DN; default: from the simulator's provenance, else 1
 # read_noise = 3.0      # e-; default: from the simulator's provenance, else estimated
 # image_topic = "/camera/image_raw"  # default: /camera/image, else the log's only image channel
+phase_correction = "auto"  # pixel-phase calibration from the log's own stars; "off", or a calibration file
 [centroid.options]      # keyword options of starlog.centroid.extract_stars
 
 [track]
@@ -74,7 +75,7 @@ protocols = "all"       # in a --config file, it is refused before any stage run
 """
 
 _STAGE_KEYS: dict[str, set[str]] = {
-    "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad", "psf"},
+    "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad", "psf", "phase_correction"},
     "track": {"methods", "models", "tracker", "motion"},
     "compensate": {"tracks", "rates", "protocols", "options"},
 }
@@ -172,7 +173,8 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
         steps.append(("centroid", lambda i, o: centroid_log(
             i, o, methods=c.get("methods", "all"), gain=c.get("gain"), read_noise=c.get("read_noise"),
             options=c.get("options"), image_topic=c.get("image_topic"), skip_bad=bool(c.get("skip_bad", False)),
-            workers=workers, show_progress=show_progress, psf=c.get("psf"), **common).to_dict()))
+            workers=workers, show_progress=show_progress, psf=c.get("psf"),
+            phase_correction=c.get("phase_correction", "auto"), **common).to_dict()))
     if config.track is not None:
         t = config.track
         for method in _list(t.get("methods", ["GAUSSFIT"])):

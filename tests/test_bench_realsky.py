@@ -237,3 +237,21 @@ def test_missing_frames_end_in_one_line_naming_how_to_get_them(bench, tmp_path, 
     assert bench.main(["--images", str(folder)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "esa/tetra3" in err and "--images DIR" in err
+
+
+def test_degraded_copies_are_written_in_the_format_each_kind_names(bench, tmp_path):
+    import tifffile
+
+    images = tmp_path / "frames"
+    images.mkdir()
+    rng = np.random.default_rng(0)
+    tifffile.imwrite(str(images / "a.tiff"), (rng.integers(0, 4096, (64, 80)) * 16).astype(np.uint16))
+    for kind in bench.DEGRADED:
+        out = tmp_path / kind
+        out.mkdir()
+        bench.write_degraded(images, kind, out)
+        (written,) = bench.list_images(out)
+        image, saturation = bench.load_grey(written)
+        expected = (32, 40) if kind.startswith("binned") else (64, 80)
+        assert image.shape == expected
+        assert saturation == (255.0 if kind == "8-bit" or kind.startswith("jpeg") else 65535.0)

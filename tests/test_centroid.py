@@ -31,6 +31,7 @@ NOISE_FREE_TOL = {
     CentroidMethod.GAUSSFIT: 1e-4,
     CentroidMethod.GRADIENT: 1e-3,
     CentroidMethod.PSFFIT: 1e-4,
+    CentroidMethod.WINPOS: 1e-4,
 }
 
 

@@ -157,6 +157,26 @@ def test_uint8_and_float_frames():
         assert_allclose([det["x"][0], det["y"][0]], [31.4, 30.2], rtol=0, atol=0.3)
 
 
+@pytest.mark.parametrize("gain", [20.0, 40.0, 80.0])
+def test_quantised_frame_with_noise_below_one_step_finds_the_stars_not_the_noise(gain):
+    """An 8-bit camera of high gain: noise of 0.52, 0.26 and 0.13 DN (sky 100 e-, read noise 3 e-), a
+    level half-way between two values at gain 40, most pixels one or two values. The background's noise
+    is the digitised values' spread, never below the quantisation error 1/sqrt(12) DN, so the detections
+    are the 36 simulated stars (all found, none made of noise); the same as float with NaN holes."""
+    rng = np.random.default_rng(3)
+    x, y = _grid(6, 45, 30, rng)
+    camera = CameraModel(read_noise=3.0, gain=gain, bias=10.0, adc_bits=8)
+    img = camera.expose(100.0 + render_stars((300, 300), x, y, gain * rng.uniform(40, 200, x.size), 1.2), rng)
+    blank = camera.expose(np.full((300, 300), 100.0), rng)
+    noise = estimate_background(img).global_noise
+    assert np.float32(1 / np.sqrt(12)) <= noise <= 1.15 * max(float(np.std(blank)), 1 / np.sqrt(12))
+    holed = img.astype(np.float64)
+    holed[7, 11] = holed[200, 5] = np.nan
+    for frame in (img, holed):
+        det = detect_stars(frame)
+        assert _match(det, x, y).all() and det.size == x.size
+
+
 @pytest.mark.parametrize(
     ("image", "kwargs", "error"),
     [

@@ -134,7 +134,7 @@ def test_a_simulated_log_shows_its_frame_and_names_the_missing_stages(logs: dict
     missing = " ".join(_missing(html))
     for stage in ("starlog centroid", "starlog track", "starlog compensate"):
         assert stage in missing
-    assert html.count('<section id="') == 8  # every section is there, none is a blank box
+    assert html.count('<section id="') == 9  # every section is there, none is a blank box
 
 
 def test_a_centroid_log_draws_the_centroids_of_its_frame(logs: dict[str, Path]) -> None:

@@ -309,6 +309,22 @@ def test_compiled_cell_planes_match_the_vectorised_fit(seed, cells, m, holes, cl
         assert_allclose(a, b, rtol=1e-5, atol=1e-4)
 
 
+def test_compiled_and_vectorised_cell_planes_agree_on_digitised_values():
+    """Whole-number samples of a noise below one step (start noise: one step): both fits measure the
+    digitised values' spread, and a cell whose samples are all one value gets noise 0 in both."""
+    rng = np.random.default_rng(4)
+    cells, m = 12, 16
+    level = rng.uniform(10, 14, cells)
+    vals = np.rint(level[:, None] + rng.normal(0, 0.3, (cells, m * m))).astype(np.float32)
+    vals[0] = np.float32(12)
+    start_level, start_noise = np.median(vals, axis=1).astype(np.float64), np.ones(cells)
+    got = _fit_planes(vals, start_level, start_noise, 1, 3.0)
+    want = _fit_planes_vectorised(vals, start_level, start_noise, 1, 3.0)
+    for a, b in zip(got, want):
+        assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert got[3][0] == 0.0 and np.all(got[3][1:] > 0.1)
+
+
 def test_a_pixel_exactly_at_the_threshold_is_not_above_it():
     """On a one-cell grid the threshold is level + k x noise exactly, with no interpolation: equal is not above."""
     level, noise = np.full((1, 1), 100.0, np.float32), np.full((1, 1), 2.0, np.float32)

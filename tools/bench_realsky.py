@@ -468,14 +468,19 @@ def solve_frame(solver, positions: Positions, shape: tuple[int, int], *, brighte
     Solved without distortion first (fast, and the solver's distortion estimate from its coarse
     matches can be off), with a searched distortion range when that fails. The solver's own
     matches use a radius of 1 % of the image width and may hold mismatches: :func:`refine_camera`
-    re-matches before any comparison.
+    re-matches before any comparison. cedar-solve 0.5 raises an IndexError when a candidate pattern
+    leaves no catalogue star in the field (its empty list of nearby stars, sorted, is a float array):
+    that attempt counts as unsolved.
     """
     order = np.argsort(-positions.flux)[:brightest]
     # the solver's pixel convention puts (0.5, 0.5) at the top-left pixel's centre, (y, x) order
     yx = np.column_stack([positions.y[order] + 0.5, positions.x[order] + 0.5])
     for distortion in (0.0, (-0.2, 0.1)):
-        sol = solver.solve_from_centroids(yx, size=shape, distortion=distortion, return_matches=True,
-                                          match_threshold=1e-7, solve_timeout=timeout_ms)
+        try:
+            sol = solver.solve_from_centroids(yx, size=shape, distortion=distortion, return_matches=True,
+                                              match_threshold=1e-7, solve_timeout=timeout_ms)
+        except IndexError:
+            continue
         if sol.get("RA") is not None:
             break
     else:
@@ -796,10 +801,71 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="compare only these centroiders (names as in the table's header)")
     ap.add_argument("--by-mag", action="store_true", help="also print the RMSE per catalogue magnitude")
     ap.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    ap.add_argument("--degraded", action="store_true",
+                    help="also run on degraded copies of the frames, built in a temporary folder: 8-bit, JPEG at "
+                         "qualities 95/85/70, 2x2 binned, defocused (Gaussian blur of 1 px); about 6 s each")
     args = ap.parse_args(argv)
     args.starlog_options = parse_options(args.starlog_option)
     args.images = args.images or default_images()
     return args
+
+
+@dataclass
+class BenchRun:
+    """One run of the protocol on a folder of frames: per-frame results, pooled RMSEs, the headline ratio."""
+
+    results: list[FrameResult]
+    names: list[str]
+    pooled: dict[str, float]
+    best: str
+    best_sep: str
+    ratio: float
+    calibrations: dict
+
+
+def run_folder(folder: Path, solver, args) -> BenchRun:
+    """Steps 1-6 on every frame of ``folder`` (with the pixel-phase calibration as ``args`` say)."""
+    frames = [measure_frame(p, args) for p in list_images(folder)]
+    calibrations: dict = {}
+    if args.phase_correction == "auto":
+        frames, calibrations = phase_corrected(frames, harmonics=args.phase_harmonics)
+    if args.phase_equalise:
+        frames = phase_equalised(frames)
+    results = [compare_frame(f, solver, args) for f in frames]
+    names = list(results[0].detections)
+    pooled = {n: pooled_rmse(results, n) for n in names}
+    best, best_sep, ratio = best_ratio(pooled)
+    return BenchRun(results, names, pooled, best, best_sep, ratio, calibrations)
+
+
+def print_run(run: BenchRun, args) -> None:
+    """The tables and headline lines of one run."""
+    print(f"# {len(run.results)} frames from {args.images}; gain {args.gain} e-/DN, read noise "
+          f"{args.read_noise if args.read_noise is not None else 'from the frame'}; match radius "
+          f"{args.match_radius} px, margin {args.margin} px, distortion {'off' if args.no_distortion else 'k r^2'}, "
+          f"plate terms of order {args.plate_order}; "
+          f"starlog options {args.starlog_options or 'defaults'}")
+    print("# RMSE px per axis on the stars matched by every centroider, camera refitted per centroider")
+    pooled = print_table(run.results, run.names)
+    best, best_sep = run.best, run.best_sep
+    lo, hi = bootstrap_ratio(run.results, best, best_sep)
+    print(f"\nbest starlog {best} {pooled[best]:.4f} px / best SEP {best_sep} {pooled[best_sep]:.4f} px = "
+          f"{run.ratio:.3f} (95 % bootstrap over stars {lo:.3f} .. {hi:.3f})")
+    corrected = {k[:-3]: v for k, v in pooled.items() if k.endswith("+pc")}
+    if corrected:
+        pc_sep = min(corrected, key=corrected.get)
+        print(f"the same, SEP phase-corrected too: best starlog {best} {pooled[best]:.4f} px / best SEP {pc_sep}+pc "
+              f"{corrected[pc_sep]:.4f} px = {pooled[best] / corrected[pc_sep]:.3f}")
+    if run.calibrations:
+        print_calibrations(run.calibrations)
+    equalised = {k[:-3]: v for k, v in pooled.items() if k.endswith("+eq")}
+    if equalised:
+        eq, eq_sep, eq_ratio = best_ratio(equalised)
+        print(f"investigation, both phase-equalised: best starlog {eq}+eq {equalised[eq]:.4f} px / best SEP "
+              f"{eq_sep}+eq {equalised[eq_sep]:.4f} px = {eq_ratio:.3f}; against SEP as it is: "
+              f"{equalised[eq] / pooled[best_sep]:.3f}")
+    if args.by_mag:
+        print_by_magnitude(run.results, run.names)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -808,49 +874,70 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         print(f"bench_realsky: {problem}", file=sys.stderr)
         return 2
-    paths = list_images(args.images)
     solver = load_solver()
     t0 = time.perf_counter()
-    frames = [measure_frame(p, args) for p in paths]
-    calibrations = {}
-    if args.phase_correction == "auto":
-        frames, calibrations = phase_corrected(frames, harmonics=args.phase_harmonics)
-    if args.phase_equalise:
-        frames = phase_equalised(frames)
-    results = [compare_frame(f, solver, args) for f in frames]
-    names = list(results[0].detections)
-    print(f"# {len(paths)} frames from {args.images}; gain {args.gain} e-/DN, read noise {args.read_noise if args.read_noise is not None else 'from the frame'}; match radius "
-          f"{args.match_radius} px, margin {args.margin} px, distortion {'off' if args.no_distortion else 'k r^2'}, "
-          f"plate terms of order {args.plate_order}; "
-          f"starlog options {args.starlog_options or 'defaults'}")
-    print("# RMSE px per axis on the stars matched by every centroider, camera refitted per centroider")
-    pooled = print_table(results, names)
-    best, best_sep, ratio = best_ratio(pooled)
-    lo, hi = bootstrap_ratio(results, best, best_sep)
-    print(f"\nbest starlog {best} {pooled[best]:.4f} px / best SEP {best_sep} {pooled[best_sep]:.4f} px = {ratio:.3f} "
-          f"(95 % bootstrap over stars {lo:.3f} .. {hi:.3f})")
-    corrected = {k[:-3]: v for k, v in pooled.items() if k.endswith("+pc")}
-    if corrected:
-        pc_sep = min(corrected, key=corrected.get)
-        print(f"the same, SEP phase-corrected too: best starlog {best} {pooled[best]:.4f} px / best SEP {pc_sep}+pc "
-              f"{corrected[pc_sep]:.4f} px = {pooled[best] / corrected[pc_sep]:.3f}")
-    if calibrations:
-        print_calibrations(calibrations)
-    equalised = {k[:-3]: v for k, v in pooled.items() if k.endswith("+eq")}
-    if equalised:
-        eq, eq_sep, eq_ratio = best_ratio(equalised)
-        print(f"investigation, both phase-equalised: best starlog {eq}+eq {equalised[eq]:.4f} px / best SEP "
-              f"{eq_sep}+eq {equalised[eq_sep]:.4f} px = {eq_ratio:.3f}; against SEP as it is: "
-              f"{equalised[eq] / pooled[best_sep]:.3f}")
-    if args.by_mag:
-        print_by_magnitude(results, names)
+    run = run_folder(args.images, solver, args)
+    print_run(run, args)
+    if args.degraded:
+        print_degraded(args, solver, run)
     print(f"# {time.perf_counter() - t0:.1f} s; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     if args.json:
-        payload = {"frames": [frame_record(r) for r in results], "pooled": pooled, "best_starlog": best,
-                   "best_sep": best_sep, "ratio": ratio, "ratio_95": [lo, hi],
-                   "phase_calibrations": {k: v if isinstance(v, str) else v.to_dict() for k, v in calibrations.items()}}
+        lo, hi = bootstrap_ratio(run.results, run.best, run.best_sep)
+        payload = {"frames": [frame_record(r) for r in run.results], "pooled": run.pooled, "best_starlog": run.best,
+                   "best_sep": run.best_sep, "ratio": run.ratio, "ratio_95": [lo, hi],
+                   "phase_calibrations": {k: v if isinstance(v, str) else v.to_dict()
+                                          for k, v in run.calibrations.items()}}
         args.json.write_text(json.dumps(payload, indent=2))
     return 0
+
+
+# ----------------------------------------------------------------------------- degraded copies
+
+DEGRADED = ("8-bit", "jpeg-95", "jpeg-85", "jpeg-70", "binned-2x2", "defocused-1.0")
+"""``--degraded``: the frames as a cheaper camera or pipeline would give them: 8 bits (the top 8 of the 16),
+JPEG of that 8-bit frame at three qualities, 2 x 2 binned (the mean of each block, 16 bits) and defocused (a
+Gaussian blur of sigma 1 px, 16 bits)."""
+
+
+def write_degraded(images: Path, kind: str, folder: Path) -> None:
+    """The frames of ``images`` degraded as ``kind`` (:data:`DEGRADED`) into ``folder`` (PNG, JPEG or TIFF)."""
+    import cv2
+    import tifffile
+
+    for path in list_images(images):
+        image, _ = load_grey(path)
+        image = np.asarray(image)
+        stem = folder / path.stem
+        if kind == "8-bit" or kind.startswith("jpeg"):
+            eight = (image.astype(np.uint32) * 255 // int(np.iinfo(image.dtype).max)).astype(np.uint8)
+            if kind == "8-bit":
+                cv2.imwrite(str(stem) + ".png", eight)
+            else:
+                cv2.imwrite(str(stem) + ".jpg", eight, [cv2.IMWRITE_JPEG_QUALITY, int(kind.split("-")[1])])
+        elif kind == "binned-2x2":
+            rows, cols = image.shape[0] // 2 * 2, image.shape[1] // 2 * 2
+            blocks = image[:rows, :cols].astype(np.float64).reshape(rows // 2, 2, cols // 2, 2)
+            tifffile.imwrite(str(stem) + ".tiff", np.rint(blocks.mean(axis=(1, 3))).astype(image.dtype))
+        else:
+            blurred = cv2.GaussianBlur(image.astype(np.float64), (0, 0), float(kind.split("-")[1]))
+            tifffile.imwrite(str(stem) + ".tiff", np.rint(blurred).astype(image.dtype))
+
+
+def print_degraded(args, solver, original: BenchRun) -> None:
+    """``--degraded``: the protocol on each degraded copy of the frames (built in a temporary folder, removed
+    after), one line each: best starlog against best SEP, and each starlog method's pooled RMSE."""
+    import tempfile
+
+    ours = [n for n in original.names if not n.startswith("SEP")]
+    print(f"\ndegraded copies (pooled RMSE px on each copy's common stars)\n{'copy':<16}{'common':>7}  "
+          + "".join(f"{n:>16}" for n in ours) + f"{'best SEP':>24}  ratio")
+    for kind in DEGRADED:
+        with tempfile.TemporaryDirectory(prefix="realsky-") as tmp:
+            write_degraded(args.images, kind, Path(tmp))
+            run = run_folder(Path(tmp), solver, args)
+        common = sum(r.comparison.common.size for r in run.results if r.comparison is not None)
+        print(f"{kind:<16}{common:>7}  " + "".join(f"{run.pooled[n]:>16.4f}" for n in ours)
+              + f"{run.best_sep:>18} {run.pooled[run.best_sep]:.4f}  {run.ratio:.3f} ({run.best})")
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ from starlog.centroid.moment import squared_centroid, weighted_centroid
 from starlog.centroid.psffit import fit_psf
 from starlog.centroid.robust import mask_windows, suspect_pixels, take_stamps
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
+from starlog.centroid.winpos import window_sigma, windowed_centroid, windowed_centroid_sigma
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 
@@ -57,10 +58,12 @@ EFFICIENCY: dict[CentroidMethod, float] = {
     CentroidMethod.GAUSSFIT: 1.0,
     CentroidMethod.GRADIENT: 1.08,
     CentroidMethod.PSFFIT: 1.0,
+    CentroidMethod.WINPOS: 1.0,
 }
 """Ratio of each method's measured RMS error to the Cramer-Rao bound (median over the
 benchmark's regimes, ``tools/bench_centroid.py``); ``sigma`` = bound x this factor.
-GAUSSFIT and PSFFIT take their sigma from the fit covariance instead."""
+GAUSSFIT and PSFFIT take their sigma from the fit covariance instead, WINPOS from its own error
+propagation (:func:`starlog.centroid.winpos.windowed_centroid_sigma`)."""
 
 _SQUARED_SMOOTH = 0.5
 _GRADIENT_SMOOTH = 0.75
@@ -184,6 +187,8 @@ class _Estimator:
             return bicubic_peak(data, st, smooth_sigma=self.smooth)
         if method is CentroidMethod.GRADIENT:
             return radial_symmetry_centre(data, st, smooth_sigma=_GRADIENT_SMOOTH * self.smooth)
+        if method is CentroidMethod.WINPOS:
+            return windowed_centroid(data, st.valid, st.u, x0, y0, window_sigma(self.psf))
         raise InvalidParameterError(f"no estimator for method {method!r}.")  # pragma: no cover
 
 
@@ -229,18 +234,36 @@ def _estimate(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf
     if debias:
         on_model = replace(estimator, iterations=4)  # the model's estimate starts next to its fixed point
         # MOMENT's raw bias is already < 3e-4 px: one pass leaves ~1e-7 px
-        for _ in range(passes or (1 if meth is CentroidMethod.MOMENT else 2)):
+        secant = meth is CentroidMethod.WINPOS  # its S-curve's slope is far from 1 on under-sampled stars
+        previous: tuple[F64, F64, F64, F64] | None = None
+        for _ in range(passes or {CentroidMethod.MOMENT: 1, CentroidMethod.WINPOS: 4}.get(meth, 2)):
             mdl = np.minimum(fm[:, None, None] * model(st, dx, dy, psf), se.clip[:, None, None]) * se.valid
             mx, my, mok = on_model(mdl, se, dx, dy)
             good = ok & mok & np.isfinite(mx) & np.isfinite(my)
-            dx = np.where(good, dx + (ex - mx), dx)
-            dy = np.where(good, dy + (ey - my), dy)
+            sx, sy = (_secant_slope(dx, mx, previous[0], previous[1]), _secant_slope(dy, my, previous[2], previous[3])
+                      ) if secant and previous is not None else (1.0, 1.0)
+            previous = (dx, mx, dy, my)
+            dx = np.where(good, dx + (ex - mx) / sx, dx)
+            dy = np.where(good, dy + (ey - my) / sy, dy)
     ok &= np.isfinite(dx) & np.isfinite(dy) & (np.abs(dx) < st.h) & (np.abs(dy) < st.h)
     cx, cy = np.where(ok, dx, dx0), np.where(ok, dy, dy0)
     unit = model(st, cx, cy, psf)
     flux, ferr = linear_flux(st, unit, f0, iterations=1)
-    sig = fisher_sigma(st, cx, cy, np.maximum(flux, 0), psf) * EFFICIENCY[meth]
+    if meth is CentroidMethod.WINPOS:
+        sig = windowed_centroid_sigma(np.maximum(flux, 0)[:, None, None] * unit, se.valid, st.u, cx, cy,
+                                      window_sigma(psf), st.noise, gain)
+    else:
+        sig = fisher_sigma(st, cx, cy, np.maximum(flux, 0), psf) * EFFICIENCY[meth]
     return _Measured(dx, dy, ok, flux, ferr, sig, psf, np.zeros_like(flux), unit)
+
+
+def _secant_slope(position: F64, estimate: F64, position_before: F64, estimate_before: F64) -> F64:
+    """Slope of a method's estimate against the true position from two debiasing passes (1 where they are too
+    close to tell, kept within [0.2, 2]): the fixed-point step divided by it is the secant method's."""
+    step = position - position_before
+    with np.errstate(all="ignore"):
+        slope = np.where(np.abs(step) > 1e-9, (estimate - estimate_before) / step, 1.0)
+    return np.where(np.isfinite(slope), np.clip(slope, 0.2, 2.0), 1.0)
 
 
 def _with_fallback(m: _Measured, st: Stamps, dx0: F64, dy0: F64, f0: F64) -> _Measured:
@@ -317,7 +340,7 @@ def measure_centroids(
         From :func:`starlog.detect.detect_stars` (fields star, x, y, background, noise, flux,
         flags are used).
     method : CentroidMethod or str
-        NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT or PSFFIT.
+        NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, PSFFIT or WINPOS.
     gain : float
         Camera gain, e-/DN (for the star's shot noise in weights and ``sigma``).
     read_noise : float, optional

@@ -42,6 +42,11 @@ class CentroidMethod(enum.StrEnum):
         circular Gaussian plus a constant background; sigma from the fit covariance.
     GRADIENT
         Radial-symmetry centre (Parthasarathy 2012) of the (adaptively smoothed) window.
+    WINPOS
+        The windowed position of SExtractor (``XWIN_IMAGE``) and ``sep.winpos``: the centre of
+        gravity under a circular Gaussian window (sigma from the star's half-light radius)
+        centred on the estimate itself, iterated to its fixed point (:mod:`starlog.centroid.winpos`);
+        sigma from its own error propagation.
     PSFFIT
         Weighted least-squares fit of a pixel PSF model (position, flux, background; sigma
         from the fit covariance): the log's empirical PSF (:mod:`starlog.centroid.epsf`, built
@@ -62,6 +67,7 @@ class CentroidMethod(enum.StrEnum):
     GAUSSFIT = "GAUSSFIT"
     GRADIENT = "GRADIENT"
     PSFFIT = "PSFFIT"
+    WINPOS = "WINPOS"
 
 
 CENTROID_DTYPE = np.dtype(

@@ -34,7 +34,7 @@ __all__ = ["centroid", "compensate", "motion", "stage_command", "track"]
 @output_option()
 @click.option("--method", "methods", default="all", show_default=True,
               help="Sub-pixel methods, comma-separated: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, "
-                   "PSFFIT, or all (all but MOMENT_SQUARED and PSFFIT).")
+                   "PSFFIT, WINPOS, or all (all but MOMENT_SQUARED, PSFFIT and WINPOS).")
 @click.option("--psf", type=click.Choice(["gaussian", "empirical"]),
               help="PSF model of PSFFIT. empirical: an ePSF built once from the log's bright isolated stars, stored "
                    "in the output (metadata starlog.epsf, shown by info). gaussian: the pixel-integrated Gaussian. "
@@ -51,7 +51,7 @@ __all__ = ["centroid", "compensate", "motion", "stage_command", "track"]
               help="Hot-pixel map: 'auto' learns it from the log (pixels that are single-pixel spikes in most "
                    "of its first frames), or a FILE: .npy boolean mask of the frame's shape, or text/CSV lines "
                    "'x,y' (column,row). Hot pixels are never stars and are left out of the star windows.")
-@click.option("--phase-correction", "phase_correction", metavar="auto|off|FILE", default="off", show_default=True,
+@click.option("--phase-correction", "phase_correction", metavar="auto|off|FILE", default="auto", show_default=True,
               help="Remove each method's pixel-phase bias (S-curve; under-sampled or non-Gaussian PSFs). auto: "
                    "learnt from the log's own stars (its first 16-256 frames, each distinct star once, no catalogue; "
                    "a method with too few is left uncorrected, with a note). FILE: calibrations in JSON (the "

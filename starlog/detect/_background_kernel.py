@@ -21,7 +21,9 @@ def fit_planes(values, level, noise, clip_sigma, iterations, slope_x, slope_y): 
 
     ``values`` (cells, m * m) float32 holds each cell's samples row by row (NaN: none); each
     iteration keeps the samples within ``clip_sigma`` x noise of the current plane and refits
-    level and slopes to them (at least 8 kept, else the cell keeps its values).
+    level and slopes to them (at least 8 kept, else the cell keeps its values). Samples that all
+    lie on the plane (digitised values of a noise below one step) give a noise of 0, rounding's
+    negative variance too: the caller's floor applies.
     """
     m = int(round(math.sqrt(values.shape[1])))
     offset = np.empty(m, np.float32)
@@ -48,7 +50,7 @@ def fit_planes(values, level, noise, clip_sigma, iterations, slope_x, slope_y): 
             if n < 8:
                 continue
             d0, dbx, dby = s0 / n, sx / sxx, sy / syy
-            var = (s2 - n * d0 * d0 - dbx * dbx * sxx - dby * dby * syy) / max(n - 3.0, 1.0)
-            if math.isfinite(d0) and math.isfinite(dbx) and math.isfinite(dby) and var > 0:
+            var = max((s2 - n * d0 * d0 - dbx * dbx * sxx - dby * dby * syy) / max(n - 3.0, 1.0), 0.0)
+            if math.isfinite(d0) and math.isfinite(dbx) and math.isfinite(dby) and var >= 0:
                 med, bx, by, sig = med + d0, bx + dbx, by + dby, math.sqrt(var)
         level[cell], noise[cell], slope_x[cell], slope_y[cell] = med, sig, bx, by

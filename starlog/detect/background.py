@@ -9,6 +9,19 @@ compiled pass (:mod:`starlog.detect._background_kernel`). The cell grid may be m
 centres (linear extrapolation in the outer half cells): :meth:`Background.map`, or, for the
 detection threshold, :meth:`Background.above` without making the map.
 
+Quantised frames. A digitised value stands for an interval one step wide: on a frame whose
+values are whole numbers (integer frames, and float frames holding whole numbers, such as an
+integer frame with hot pixels set to NaN) the step is 1 DN in the units the detector sees
+(frames reach it in DN as logged: luma and debayering are rounded to integers at ingest, the gain
+only weighs the centroids). When the noise is not much larger than the step (an 8-bit frame of
+a dark sky), most of a cell's pixels take one or two values, and the median and the 15.9th
+percentile often coincide: a spread of 0 only says "less than one step". The clipping then
+starts from one step (it keeps the values within three steps of the median, whatever the
+spread) and the fitted plane's residuals measure the spread of the digitised values (noise and
+quantisation error together, the variance that reaches the matched filter); the noise map is
+never below the quantisation error's own, step / sqrt(12), the standard deviation of a uniform
+error over one step. Where the noise is several steps neither bound is reached and nothing changes.
+
 Coordinates follow the starlog convention (x = column, y = row, 0-based, pixel-centre origin).
 """
 
@@ -17,6 +30,7 @@ from __future__ import annotations
 import functools
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -191,6 +205,15 @@ def _cells(img: npt.NDArray[np.float32], mesh: int, sub: int) -> tuple[npt.NDArr
     return cells, ny, nx
 
 
+def _quantisation_step(image: npt.NDArray[Any], samples: npt.NDArray[np.float32]) -> float | None:
+    """The step between the values the estimate sees: 1 DN for an integer frame or a float frame whose
+    sampled finite values are all whole numbers; None (continuous values) otherwise."""
+    if np.issubdtype(image.dtype, np.integer):
+        return 1.0
+    finite = samples[np.isfinite(samples)]
+    return 1.0 if finite.size and np.array_equal(finite, np.rint(finite)) else None
+
+
 def _robust_start(cells: npt.NDArray[np.float32]) -> tuple[F64, F64, npt.NDArray[np.float32]]:
     """Per cell: median, robust sigma (median - 15.9th percentile: the lower half of the
     distribution is free of stars) and the values with non-finite ones as NaN."""
@@ -253,8 +276,8 @@ def _fit_planes_vectorised(vals: npt.NDArray[np.float32], med: F64, sig: F64, it
             dby = (v0 @ cy).astype(np.float64) / syy
             s2 = np.einsum("ij,ij->i", v0, v0, dtype=np.float64)
             # residual variance about the refitted plane (x, y nearly orthogonal in a cell)
-            var = (s2 - n * d0**2 - dbx**2 * sxx - dby**2 * syy) / np.maximum(n - 3, 1)
-        good = (n >= 8) & np.isfinite(d0) & np.isfinite(dbx) & np.isfinite(dby) & (var > 0)
+            var = np.maximum((s2 - n * d0**2 - dbx**2 * sxx - dby**2 * syy) / np.maximum(n - 3, 1), 0.0)
+        good = (n >= 8) & np.isfinite(d0) & np.isfinite(dbx) & np.isfinite(dby) & (var >= 0)
         med = np.where(good, med + d0, med)
         bx = np.where(good, bx + dbx, bx)
         by = np.where(good, by + dby, by)
@@ -293,8 +316,9 @@ def estimate_background(
     subsample : int
         Use every ``subsample``-th pixel in each direction (speed; 1 = all pixels).
     min_noise : float, optional
-        Floor on the noise map, DN. Default: the quantisation noise ``1/sqrt(12)`` for integer
-        images, ``1e-6 * max(1, |level|)`` for float images.
+        Floor on the noise map, DN. Default: the quantisation error ``step / sqrt(12)`` for
+        whole-number values (step 1 DN: integer frames, float frames of whole numbers; see the
+        module's notes on quantised frames), ``1e-6 * max(1, |level|)`` for other float frames.
 
     Returns
     -------
@@ -311,12 +335,14 @@ def estimate_background(
             f"got mesh={mesh!r}, subsample={subsample!r}, iterations={iterations!r}, "
             f"clip_sigma={clip_sigma!r}, filter_size={filter_size!r}."
         )
-    integer = np.issubdtype(arr.dtype, np.integer)
     img = arr
     mesh = min(mesh, max(8, subsample * -(-max(img.shape) // subsample)))
     mesh = -(-mesh // subsample) * subsample
     cells, ny, nx = _cells(img, mesh, subsample)
+    step = _quantisation_step(arr, cells)
     med, sig, vals = _robust_start(cells)
+    if step is not None:  # order statistics of digitised values resolve no spread below one step
+        sig = np.maximum(sig, step)
     med, bx, by, sig = _fit_planes(vals, med, sig, iterations, clip_sigma)
     # the sub-sampled pixels are centred (m-1)/2 samples from the cell's corner, not on the
     # cell's centre: move the fitted plane's level to the true cell centre
@@ -329,7 +355,7 @@ def estimate_background(
     sig = sig / trunc
     shape = (int(arr.shape[0]), int(arr.shape[1]))
     return _background(med.reshape(ny, nx), sig.reshape(ny, nx), mesh, shape, filter_size,
-                       min_noise if min_noise is not None else (1.0 / np.sqrt(12.0) if integer else None))
+                       min_noise if min_noise is not None else (None if step is None else step / np.sqrt(12.0)))
 
 
 def _background(level_grid: F64, noise_grid: F64, mesh: int, shape: tuple[int, int], filter_size: int,

@@ -42,7 +42,7 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "channels": channels,
             "provenance": [p.to_dict() for p in log.provenance()],
             "notes": list(log.notes),
-        } | _epsf_summaries(log) | _phase_summaries(log)
+        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log)
 
 
 def _file_description(file: McapFile) -> dict[str, Any]:
@@ -84,6 +84,42 @@ def _phase_summaries(log: LogReader) -> dict[str, Any]:
         except (KeyError, ValueError) as err:
             out.append({"error": f"unreadable phase-correction record: {err!r}"})
     return {"phase_correction": out} if out else {}
+
+
+def evidence_summaries(log: LogReader) -> dict[str, Any]:
+    """``{"centroid_evidence": [...]}``: each stored record of which centroid method to trust (per method the
+    evidence, and the method recommended with its reason; :data:`starlog.io.topics.EVIDENCE_METADATA`); none: {}."""
+    out = []
+    for _, meta in log.metadata(topics.EVIDENCE_METADATA):
+        try:
+            out.append({"methods": json.loads(meta["methods"]), "recommended": meta.get("recommended") or None,
+                        "reason": meta.get("reason", "")})
+        except (KeyError, ValueError) as err:
+            out.append({"error": f"unreadable centroid-evidence record: {err!r}"})
+    return {"centroid_evidence": out} if out else {}
+
+
+def _px(value: Any, width: int = 9) -> str:
+    return f"{value:>{width}.4f}" if isinstance(value, (int, float)) else f"{'-':>{width}}"
+
+
+def evidence_lines(records: list[dict[str, Any]], indent: str = "           ") -> list[str]:
+    """Lines on which centroid method to trust: per method its frame-to-frame noise, median reported sigma,
+    difference to the other methods, phase S-curve applied +- standard error; then the method recommended."""
+    lines = []
+    for r in records:
+        if "error" in r:
+            lines.append(f"trust      {r['error']}")
+            continue
+        lines.append("trust      which centroid method (per axis, px): frame-to-frame noise, median own sigma, "
+                     "RMS apart from the others' median, S-curve applied x/y +- error")
+        for method, e in r["methods"].items():
+            amp, err = e.get("phase_amplitude_px"), e.get("phase_error_px")
+            phase = (f"{amp[0]:+.4f}/{amp[1]:+.4f} +- {max(err):.4f}" if amp and err else "no calibration")
+            lines.append(f"{indent}{method:<15}{_px(e.get('noise_px'))}{_px(e.get('median_sigma_px'))}"
+                         f"{_px(e.get('apart_px'))}   {phase}")
+        lines.append(f"{indent}recommended: {r['reason']}")
+    return lines
 
 
 def _phase_lines(records: list[dict[str, Any]]) -> list[str]:
@@ -167,4 +203,5 @@ def format_description(info: dict[str, Any]) -> str:
             lines.append(f"epsf       {e['size_px']}x{e['size_px']} px, oversampling {e['oversampling']} "
                          f"(grid {e['grid'][0]}x{e['grid'][1]}), {e['n_stars']} stars, FWHM {e['fwhm_px']:.3f} px")
     lines += _phase_lines(info.get("phase_correction", []))
+    lines += evidence_lines(info.get("centroid_evidence", []))
     return "\n".join(lines)

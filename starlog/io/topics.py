@@ -49,6 +49,10 @@ EPSF_METADATA = "starlog.epsf"
 #: --phase-correction``): source, and the calibrations as a JSON list (:mod:`starlog.centroid.phase`).
 PHASE_METADATA = "starlog.phase_correction"
 
+#: Name of the metadata record holding the evidence on which centroid method to trust, and the method
+#: recommended (:mod:`starlog.centroid.evidence`): ``methods`` (JSON), ``recommended``, ``reason``.
+EVIDENCE_METADATA = "starlog.centroid_evidence"
+
 
 def centroid_topic(method: str) -> str:
     """``/stars/centroids/<METHOD>``."""

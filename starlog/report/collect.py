@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from starlog.errors import StarlogError
 from starlog.io.images import choose_image_topic
+from starlog.io.info import evidence_summaries
 from starlog.io.provenance import Provenance
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.io.topics import FRAME_INFO
@@ -88,6 +89,8 @@ class ReportData:
     compensated_rate_hz: float | None = None
     missing: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    #: the centroid stage's records of which method to trust (``starlog info``'s ``centroid_evidence``)
+    evidence: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def primary_records(self) -> list[dict[str, Any]]:
@@ -254,4 +257,5 @@ def collect_report_data(path: str | os.PathLike[str]) -> ReportData:
             data.missing["decisions"] = ("This log has no compensation records (/compensated/<METHOD>/<MODEL>/decisions): "
                                          "`starlog compensate` makes them from a track channel.")
         data.notes.extend(log.notes)
+        data.evidence = evidence_summaries(log).get("centroid_evidence", [])
     return data

@@ -184,6 +184,30 @@ def _decisions_section(data: ReportData) -> str:
             + table(["run", "samples", "f_d (Hz)", *_words(STRATEGIES), "passes (eq. 13)", "kept"], rows))
 
 
+def _trust_section(data: ReportData) -> str:
+    """Which centroid method to trust: the evidence per method and the method recommended
+    (:mod:`starlog.centroid.evidence`)."""
+    if not data.evidence:
+        return missing("This log holds no centroid evidence: `starlog centroid` records it.")
+    out = ""
+    for r in data.evidence:
+        if "error" in r:
+            out += missing(r["error"])
+            continue
+        rows = []
+        for method, e in r["methods"].items():
+            amp, err = e.get("phase_amplitude_px"), e.get("phase_error_px")
+            rows.append([method, *(round(e[k], 5) if isinstance(e.get(k), (int, float)) else "—"
+                                   for k in ("noise_px", "median_sigma_px", "apart_px")),
+                         f"{amp[0]:+.4f} / {amp[1]:+.4f} ± {max(err):.4f}" if amp and err else "—"])
+        out += (f'<p class="stat">{escape(r["reason"])}</p><p>The rule: the method of least frame-to-frame noise '
+                "(a star's displacement between consecutive frames minus the median displacement of all stars, "
+                "divided by √2), from the log alone; the other columns are evidence beside it.</p>"
+                + table(["method", "frame-to-frame noise (px)", "median own sigma (px)",
+                         "RMS apart from the others' median (px)", "S-curve applied x / y ± error (px)"], rows))
+    return out
+
+
 def _provenance_section(data: ReportData) -> str:
     if not data.provenance:
         return missing("This log holds no provenance record: it was not written by a starlog stage.")
@@ -197,6 +221,7 @@ def render_report(data: ReportData) -> str:
     sections = [
         ("overview", "Log", _overview(data)),
         ("frame", "A frame and its centroids", _frame_section(data)),
+        ("trust", "Which centroid method to trust", _trust_section(data)),
         ("tracks", "Tracks of every star", _tracks_section(data)),
         ("error", "The brightest star's error and its spectrum", _error_section(data)),
         ("decomposition", "Error decomposition", _decomposition_section(data)),

@@ -27,7 +27,11 @@ def run_summary_lines(output: Path, stages: list[tuple[str, dict[str, Any]]], re
     lines = [f"{output}: " + ", ".join(name for name, _ in stages)]
     for name, result in stages:
         if name == "centroid":
-            lines.append(f"  centroid: {result['frames']} frames, {result['detections_per_frame']:.1f} stars/frame")
+            method = (result.get("recommended") or {}).get("method")
+            noise = result.get("evidence", {}).get(method, {}).get("noise_px") if method else None
+            trust = f"; trust {method} (least frame-to-frame noise, {noise:.4f} px)" if noise is not None else ""
+            lines.append(f"  centroid: {result['frames']} frames, {result['detections_per_frame']:.1f} stars/frame"
+                         + trust)
         elif name.startswith("track") and result.get("models"):
             model, figures = next(iter(result["models"].items()))
             lines.append(f"  {name}: {len(result['models'])} models, brightest star = track "

@@ -21,6 +21,7 @@ import numpy.typing as npt
 
 from starlog.centroid import CentroidFlag, CentroidMethod, extract_stars
 from starlog.centroid.epsf import EPSF
+from starlog.centroid.evidence import FrameEvidence, frame_evidence
 from starlog.centroid.phase import PhaseCalibration
 from starlog.io import encode_image_annotations
 from starlog.io.frames import SkippedFrame
@@ -46,6 +47,8 @@ class FrameMessages:
     n_centroids: tuple[int, ...]
     n_failed: tuple[int, ...]
     n_artefacts: int = 0
+    evidence: FrameEvidence | None = None
+    """Each method's differences to the other methods' median (:mod:`starlog.centroid.evidence`)."""
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,7 @@ class FrameExtractor:
             n_centroids=tuple(int(c.size) for c in per_method),
             n_failed=tuple(int(np.count_nonzero(c["flags"] & CentroidFlag.FIT_FAILED)) for c in per_method),
             n_artefacts=int(np.count_nonzero(detections["flags"] & CentroidFlag.ARTEFACT)),
+            evidence=frame_evidence(per_method),
         )
 
 

@@ -135,7 +135,7 @@ def resolve_centroid_parameters(
     image_topic: str | None = None,
     psf: str | None = None,
     hot_pixels: str | os.PathLike[str] | None = None,
-    phase_correction: str | os.PathLike[str] | None = None,
+    phase_correction: str | os.PathLike[str] | None = "auto",
     show_progress: bool = False,
 ) -> CentroidParameters:
     """The parameters of :func:`starlog.stages.centroid.centroid_log` (its options, same meanings), with what
@@ -314,7 +314,9 @@ def _phase_correction_for(path: LogSource, topic: str, extract: FrameExtractor, 
         calibrations = {m: loaded[m] for m in methods if m in loaded}
         declined = {m: f"no calibration for {m} in {os.fspath(spec)}" for m in methods if m not in loaded}
         source = f"file: {os.fspath(spec)}"
-    notes = [f"phase correction: {m} left uncorrected: {why}" for m, why in declined.items()]
+    # learnt by default, a calibration declined for want of stars is routine: recorded (``info`` shows it), not a note
+    notes = [] if source.startswith("auto") else [f"phase correction: {m} left uncorrected: {why}"
+                                                  for m, why in declined.items()]
     return PhaseCorrection(source, calibrations, declined, notes)
 
 

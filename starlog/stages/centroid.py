@@ -21,11 +21,13 @@ every frame left out.
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from starlog.centroid.evidence import EvidenceAccumulator, recommend
 from starlog.io import json_message_type, protobuf_message_type, topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
@@ -59,9 +61,12 @@ class CentroidSummary:
     notes: list[str] = field(default_factory=list)
     epsf: dict[str, Any] | None = None
     phase_correction: dict[str, Any] | None = None
+    evidence: dict[str, dict[str, Any]] = field(default_factory=dict)
+    recommended: str | None = None
+    reason: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        extra = {"epsf": self.epsf} if self.epsf is not None else {}
+        extra: dict[str, Any] = {"epsf": self.epsf} if self.epsf is not None else {}
         if self.phase_correction is not None:
             extra["phase_correction"] = self.phase_correction
         return {
@@ -77,6 +82,8 @@ class CentroidSummary:
             "fit_failed": dict(self.failed),
             "artefacts": self.artefacts,
             "gain": self.gain,
+            "evidence": self.evidence,
+            "recommended": {"method": self.recommended, "reason": self.reason},
         } | extra
 
     def lines(self) -> list[str]:
@@ -105,7 +112,7 @@ def centroid_log(
     show_progress: bool = False,
     psf: str | None = None,
     hot_pixels: str | os.PathLike[str] | None = None,
-    phase_correction: str | os.PathLike[str] | None = None,
+    phase_correction: str | os.PathLike[str] | None = "auto",
 ) -> CentroidSummary:
     """Detect stars and measure their centroids by each method, for every frame of the log.
 
@@ -154,7 +161,9 @@ def centroid_log(
         few distinct bright stars is left uncorrected, with a note. A path reads the calibrations
         (JSON: ``--json`` output of an earlier run, or its ``phase_correction`` records). The
         calibrations are recorded in the provenance and stored as the metadata record
-        ``starlog.phase_correction`` (shown by ``info``). Default (or ``"off"``): no correction.
+        ``starlog.phase_correction`` (shown by ``info``). Default ``"auto"``; ``"off"`` (or None): no
+        correction. On a log whose stars already match starlog's model (pixel-integrated Gaussians) the
+        estimated amplitudes stay below their significance and nothing changes.
     """
     reuse_frame_buffers()
     parameters = resolve_centroid_parameters(input_path, methods=methods, gain=gain, read_noise=read_noise,
@@ -188,10 +197,13 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
             results = extract_parallel(log, input_path, p.image_topic, blocks, p.extract, workers, skip_bad)
         else:
             results = extract_serial(log, p.image_topic, p.extract, skip_bad)
+        evidence = EvidenceAccumulator(summary.methods)
         for encoded in progress(results, total=n_frames, description="centroid", enabled=show_progress):
             if isinstance(encoded, SkippedFrame):
                 summary.skipped.append(encoded)
                 continue
+            if encoded.evidence is not None:
+                evidence.add(encoded.evidence)
             t = encoded.log_time
             out.writer.write(det_ch, log_time=t, data=encoded.detections)
             out.writer.write(ann_ch, log_time=t, data=encoded.annotations)
@@ -209,7 +221,24 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
             out.writer.add_metadata(topics.EPSF_METADATA, p.epsf.to_metadata())
         if p.phase is not None:
             out.writer.add_metadata(topics.PHASE_METADATA, p.phase.to_metadata())
+        _record_evidence(out.writer, summary, evidence, p)
     return summary
+
+
+def _record_evidence(writer: Any, summary: CentroidSummary, evidence: EvidenceAccumulator,
+                     p: CentroidParameters) -> None:
+    """The evidence on which method to trust (:mod:`starlog.centroid.evidence`), each method's phase
+    calibration beside it, and the method recommended: into the summary and the metadata record."""
+    summary.evidence = evidence.result()
+    calibrations = p.phase.calibrations if p.phase is not None else {}
+    for method, figures in summary.evidence.items():
+        cal = calibrations.get(method)
+        figures["phase_amplitude_px"] = None if cal is None else [cal.amplitude_x[0], cal.amplitude_y[0]]
+        figures["phase_error_px"] = None if cal is None else [cal.error_x[0], cal.error_y[0]]
+    summary.recommended, summary.reason = recommend(summary.evidence)
+    writer.add_metadata(topics.EVIDENCE_METADATA, {"methods": json.dumps(summary.evidence),
+                                                   "recommended": summary.recommended or "",
+                                                   "reason": summary.reason})
 
 
 def _check_frame_count(log: LogReader, topic: str, summary: CentroidSummary) -> None:
