@@ -803,7 +803,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
     ap.add_argument("--degraded", action="store_true",
                     help="also run on degraded copies of the frames, built in a temporary folder: 8-bit, JPEG at "
-                         "qualities 95/85/70, 2x2 binned, defocused (Gaussian blur of 1 px); about 6 s each")
+                         "qualities 95/85/70, 2x2 binned, defocused (Gaussian blur of 1 px); about 15 min for the six on a "
+                         "2-core machine (the JPEG copies' hundreds of detections per frame and the solver's "
+                         "timeouts on frames it cannot solve take most of it)")
     args = ap.parse_args(argv)
     args.starlog_options = parse_options(args.starlog_option)
     args.images = args.images or default_images()
