@@ -21,7 +21,6 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid.artefacts import detection_threshold, find_artefacts, light_reach
 from starlog.centroid._stamps import (
     Stamps,
     fisher_sigma,
@@ -39,14 +38,21 @@ from starlog.centroid.gradient import radial_symmetry_centre
 from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.moment import squared_centroid, weighted_centroid
 from starlog.centroid.psffit import fit_psf
-from starlog.centroid.robust import mask_windows, suspect_pixels, take_stamps
+from starlog.centroid.robust import (
+    core_flux,
+    gaussian_predictor,
+    mask_outliers,
+    suspect_pixels,
+    symmetry_centre,
+    take_stamps,
+)
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
 from starlog.centroid.winpos import window_sigma, windowed_centroid, windowed_centroid_sigma
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["EFFICIENCY", "artefact_detections", "estimate_psf_sigma", "extract_stars", "measure_centroids",
-           "measure_methods", "window_half_size"]
+__all__ = ["EFFICIENCY", "estimate_psf_sigma", "extract_stars", "measure_centroids", "measure_methods",
+           "window_half_size"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -479,7 +485,11 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     rows = np.flatnonzero(suspect.any(axis=(1, 2)) | strayed)
     if rows.size == 0:
         return m, st, n_out
-    clean, mask, fx, fy = mask_windows(st, rows, psf, error)
+    sub = take_stamps(st, rows)
+    sx, sy = symmetry_centre(sub)  # not pulled by an artefact, unlike the coarse position
+    unit = model(sub, sx, sy, psf[rows])
+    start = core_flux(sub, unit)[:, None, None] * unit
+    clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), sx, sy, start, error=error)
     hit = mask.any(axis=(1, 2)) | strayed[rows]
     rows, clean, fx, fy = rows[hit], take_stamps(clean, np.flatnonzero(hit)), fx[hit], fy[hit]
     if rows.size == 0:
@@ -498,9 +508,9 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
 
 
 def _strayed(dx: F64, dy: F64, psf: F64) -> npt.NDArray[np.bool_]:
-    """Centroids farther from the detection than a star's light reaches (:func:`light_reach`):
+    """Centroids farther from the detection than a star's light reaches (``max(2, 1.5 psf_sigma)`` px):
     drawn off by an artefact in the window (a cosmic ray a re-weighted centre of gravity converged on)."""
-    return np.hypot(dx, dy) > light_reach(psf)
+    return np.hypot(dx, dy) > np.maximum(2.0, 1.5 * psf)
 
 
 def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: float, read_noise: float | None,
@@ -556,7 +566,6 @@ def extract_stars(
     centroid_options: Mapping[str, Any] | None = None,
     epsf: EPSF | None = None,
     hot_pixels: npt.NDArray[np.bool_] | None = None,
-    drop_artefacts: bool = True,
 ) -> tuple[npt.NDArray[np.void], dict[CentroidMethod, npt.NDArray[np.void]]]:
     """Detect the stars of a frame and centroid them with each method.
 
@@ -578,17 +587,12 @@ def extract_stars(
     hot_pixels : (rows, cols) bool array, optional
         Hot-pixel map (:mod:`starlog.centroid.hotpixels`): these pixels are never detections
         and are left out of every star's window (counted in ``n_masked``).
-    drop_artefacts : bool
-        Leave the detections that exist only because of an artefact (flag ``ARTEFACT``,
-        :mod:`starlog.centroid.artefacts`) out of the centroids. They are flagged either way.
 
     Returns
     -------
     detections : ndarray of DETECTION_DTYPE
-        Every detection, ``ARTEFACT`` flagged.
     centroids : dict
-        ``{CentroidMethod: ndarray of CENTROID_DTYPE}`` with one row per detection (per detection
-        not flagged ``ARTEFACT`` with ``drop_artefacts``), ``star`` naming its detection.
+        ``{CentroidMethod: ndarray of CENTROID_DTYPE}`` with one row per detection.
     """
     meths = [CentroidMethod(m) for m in methods]
     if hot_pixels is not None:
@@ -597,36 +601,11 @@ def extract_stars(
         image = without_hot_pixels(raw, hot_pixels)
     det = detect_stars(image, saturation=saturation, **dict(detect_options or {}))
     arr = np.asarray(image)
-    measured = det
-    if det.size:
-        if psf_sigma is None:
-            psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
-        artefact = artefact_detections(arr, det, psf_sigma=float(psf_sigma), gain=gain, read_noise=read_noise,
-                                       window=window, saturation=saturation, detect_options=detect_options)
-        det["flags"][artefact] |= np.uint16(CentroidFlag.ARTEFACT)
-        measured = det[~artefact] if drop_artefacts else det
-    out = measure_methods(arr, measured, meths, gain=gain, read_noise=read_noise, psf_sigma=psf_sigma, window=window,
+    if det.size and psf_sigma is None:
+        psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
+    out = measure_methods(arr, det, meths, gain=gain, read_noise=read_noise, psf_sigma=psf_sigma, window=window,
                           saturation=saturation, **dict(centroid_options or {}),
                           **({"epsf": epsf} if epsf is not None else {}))
     return det, out
-
-
-def artefact_detections(image: npt.ArrayLike, detections: npt.NDArray[Any], *, psf_sigma: float, gain: float = 1.0,
-                        read_noise: float | None = None, window: int | None = None, saturation: float | None = None,
-                        detect_options: Mapping[str, Any] | None = None) -> npt.NDArray[np.bool_]:
-    """Which detections exist only because of an artefact (:mod:`starlog.centroid.artefacts`), judged in
-    their windows (``window``, ``gain``, ``read_noise``, ``saturation`` as in :func:`measure_centroids`)
-    under the threshold rule of the detector's ``detect_options`` (:func:`starlog.detect.detect_stars`)."""
-    arr = _check_image(image)
-    det = _check_detections(detections)
-    if det.size == 0:
-        return np.zeros(0, np.bool_)
-    psf = float(psf_sigma)
-    frame = _prepare(arr, det, window_half_size(psf, window), psf, gain, read_noise, _default_saturation(arr, saturation))
-    noise = np.asarray(det["noise"], np.float64)
-    noise = np.where(np.isfinite(noise) & (noise > 0), noise, frame.st.noise)
-    threshold, filter_sigma = detection_threshold(detect_options)
-    return find_artefacts(frame.st, frame.dx0, frame.dy0, frame.f0, frame.psf, noise, threshold=threshold,
-                          filter_sigma=filter_sigma)
 
 

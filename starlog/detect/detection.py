@@ -40,8 +40,7 @@ from starlog.detect.position import coarse_offsets
 from starlog.detect.screening import gather, screen
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["DETECTION_DTYPE", "DetectionWarning", "detect_stars", "empty_detections", "matched_filter",
-           "matched_filter_kernel"]
+__all__ = ["DETECTION_DTYPE", "DetectionWarning", "detect_stars", "empty_detections"]
 
 DETECTION_DTYPE = np.dtype(
     [
@@ -94,7 +93,7 @@ elongation : float64
     Axis ratio (>= 1) from the second moments of the filtered image around the peak.
 flags : uint16
     :class:`starlog.detect.DetectionFlag` bits (SATURATED, BORDER, BLENDED, ELONGATED,
-    LOW_SNR, MASKED; ARTEFACT is set by :func:`starlog.centroid.extract_stars`).
+    LOW_SNR, MASKED).
 """
 
 
@@ -263,19 +262,13 @@ def _prepare(arr: npt.NDArray[Any], background: Background | None, mesh: int
 def matched_filter(work: npt.NDArray[np.float32],
                    filter_sigma: float) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64]]:
     """The frame smoothed by a Gaussian of ``filter_sigma`` px (reflected at the edges), and the 1-D kernel."""
-    k1 = matched_filter_kernel(filter_sigma)
+    k1 = _gaussian_kernel(float(filter_sigma))
     return cv2.sepFilter2D(work, cv2.CV_32F, k1, k1, borderType=cv2.BORDER_REFLECT), k1
-
-
-def matched_filter_kernel(filter_sigma: float) -> npt.NDArray[np.float64]:
-    """The matched filter's 1-D kernel (2 sigma each side, at least one pixel, unit sum), read-only; the 2-D
-    filter is its outer product with itself."""
-    return _gaussian_kernel(float(filter_sigma))
 
 
 @functools.lru_cache(maxsize=8)
 def _gaussian_kernel(filter_sigma: float) -> npt.NDArray[np.float64]:
-    """:func:`matched_filter_kernel`, made once per sigma."""
+    """The matched filter's 1-D kernel (2 sigma each side, at least one pixel), made once per sigma (read-only)."""
     r = max(1, int(np.ceil(2.0 * filter_sigma)))
     k1 = cv2.getGaussianKernel(2 * r + 1, filter_sigma, cv2.CV_64F).ravel()
     k1.flags.writeable = False
