@@ -108,7 +108,7 @@ _CODEC_CHANNELS = [("/sim/truth", "starlog.SimTruth"), ("/stars/detections", "st
 
 
 def bench_codec(frames: int, tmp: Path) -> list[tuple[str, int, float, float, float, float, float, float]]:
-    """Per channel: bytes/message; read µs before/after (and after, checked); write µs before/after; log read µs."""
+    """Per channel: bytes/message; read µs naive / starlog's (and checked); write µs naive / starlog's; log read µs."""
     config = SimulationConfig(width=512, height=512, n_stars=40, n_frames=frames, seed=3)
     sim, cen, trk = tmp / "codec_sim.mcap", tmp / "codec_cen.mcap", tmp / "codec_trk.mcap"
     simulate_log(config, sim, compression="lz4")
@@ -121,35 +121,35 @@ def bench_codec(frames: int, tmp: Path) -> list[tuple[str, int, float, float, fl
             values = [decode_json(r) for r in raw]
             walker, checker = _compile_walker(load_json_schema(name)), compile_json_schema(load_json_schema(name))
 
-            def read_before(data: bytes) -> None:
+            def read_naive(data: bytes) -> None:
                 walker(json.loads(data.decode("utf-8")), "$")
 
-            def write_before(value: Any) -> None:
+            def write_naive(value: Any) -> None:
                 json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
 
-            def write_after(value: Any) -> None:
+            def write_checked(value: Any) -> None:
                 checker(decode_json(encode_json(value)))  # what the stage and LogWriter.write do
 
             start = time.perf_counter()
             n = sum(1 for _ in log.messages(topic))
             log_read = (time.perf_counter() - start) / n * 1e6
-            rows.append((topic, sum(map(len, raw)) // len(raw), _per_call_us(read_before, raw),
+            rows.append((topic, sum(map(len, raw)) // len(raw), _per_call_us(read_naive, raw),
                          _per_call_us(decode_json, raw), _per_call_us(lambda d: checker(decode_json(d)), raw),
-                         _per_call_us(write_before, values), _per_call_us(write_after, values), log_read))
+                         _per_call_us(write_naive, values), _per_call_us(write_checked, values), log_read))
     return rows
 
 
 def print_codec(rows: list[tuple[str, int, float, float, float, float, float, float]]) -> None:
-    print(f"{'channel':<27} {'B/msg':>6}  {'read before':>11} {'read after':>10} {'(checked)':>9}  "
-          f"{'write before':>12} {'write after':>11}  {'LogReader':>9}")
+    print(f"{'channel':<27} {'B/msg':>6}  {'read naive':>11} {'read':>10} {'(checked)':>9}  "
+          f"{'write naive':>12} {'write':>11}  {'LogReader':>9}")
     for topic, size, rb, ra, rc, wb, wa, lr in rows:
         print(f"{topic:<27} {size:>6}  {rb:>9.1f}us {ra:>8.1f}us {rc:>7.1f}us  {wb:>10.1f}us {wa:>9.1f}us  "
               f"{lr:>7.1f}us")
     print(f"{'MB/s of JSON':<27} {'':>6}  " + "  ".join(
         f"{sum(r[1] for r in rows) / sum(r[k] for r in rows):>9.1f}" for k in (2, 3, 4, 5, 6, 7)))
-    print("\nread before: json.loads + schema walk (every message, every read); read after: orjson.loads (a channel\n"
-          "starlog checked on write, CRC verified); (checked): + compiled check (foreign or old logs); write before:\n"
-          "json.dumps, unchecked; write after: orjson.dumps + decode + compiled check; LogReader: per message of\n"
+    print("\nread naive: json.loads + schema walk (every message, every read); read: orjson.loads, starlog's (a channel\n"
+          "starlog checked on write, CRC verified); (checked): + compiled check (foreign or old logs); write naive:\n"
+          "json.dumps, unchecked; write: orjson.dumps + decode + compiled check; LogReader: per message of\n"
           "LogReader.messages on the log (chunk read, decompression, index checks, decode).\n")
 
 
