@@ -25,6 +25,15 @@ def print_json(data: Any) -> None:
     click.echo(json.dumps(data, indent=2, allow_nan=False))
 
 
+def print_result(summary: Any, as_json: bool, data: dict[str, Any] | None = None) -> None:
+    """A stage's result on stdout: ``data`` (default ``summary.to_dict()``) as JSON, or ``summary.lines()``."""
+    if as_json:
+        print_json(summary.to_dict() if data is None else data)
+        return
+    for line in summary.lines():
+        click.echo(line)
+
+
 def echo_status(quiet: bool, text: str) -> None:
     """A status line (what was written where) on stderr, unless ``--quiet``; results go to stdout."""
     if not quiet:

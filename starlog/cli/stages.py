@@ -14,6 +14,7 @@ from starlog.cli.options import (
     CONTEXT,
     burn_in_setting,
     echo_status,
+    print_result,
     flatten_option,
     image_topic_option,
     input_log,
@@ -95,11 +96,7 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
     for skipped in d["skipped_frames"]:
         click.echo(f"  skipped frame {skipped['index']} (log_time {skipped['log_time']}): {skipped['reason']}",
                    err=True)
-    if as_json:
-        print_json(d)
-    else:
-        for line in summary.lines():
-            click.echo(line)
+    print_result(summary, as_json, d)
 
 
 @click.command(context_settings=CONTEXT)
@@ -138,11 +135,7 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
                         motion=key_values(motion, "--motion"), force=force, compression=compression,
                         workers=workers, show_progress=not quiet, start=start, end=end, flatten=flatten)
     echo_status(quiet, f"wrote {output}: {summary.frames} frames of {summary.method} centroids")
-    if as_json:
-        print_json(summary.to_dict())
-    else:
-        for line in summary.lines():
-            click.echo(line)
+    print_result(summary, as_json)
 
 
 @click.command(context_settings=CONTEXT)
@@ -182,11 +175,7 @@ def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings:
                          force=force, compression=compression, workers=workers, start=start, end=end,
                          flatten=flatten)
     echo_status(quiet, f"wrote {output}: {fit} platform motion of {len(summary.channels)} track channel(s)")
-    if as_json:
-        print_json(summary.to_dict())
-        return
-    for line in summary.lines():
-        click.echo(line)
+    print_result(summary, as_json)
 
 
 @click.command(context_settings=CONTEXT)
