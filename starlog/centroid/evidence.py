@@ -83,12 +83,12 @@ class EvidenceAccumulator:
     """The evidence of a log's frames, pooled per method (:meth:`add` in frame order, :meth:`result`)."""
 
     methods: list[str]
-    steps: list[float] = field(default_factory=list)  # sum of squared platform-free displacements, both axes
-    pairs: int = 0
-    apart: list[float] = field(default_factory=list)  # sum of squared differences to the others' median
-    stars: int = 0
-    sigmas: list[list[npt.NDArray[np.float64]]] = field(default_factory=list)
-    previous: FrameEvidence | None = None
+    steps: list[float] = field(init=False)  # per method: sum of squared platform-free displacements, both axes
+    apart: list[float] = field(init=False)  # per method: sum of squared differences to the others' median
+    sigmas: list[list[npt.NDArray[np.float64]]] = field(init=False)
+    pairs: int = field(default=0, init=False)
+    stars: int = field(default=0, init=False)
+    previous: FrameEvidence | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         self.steps, self.apart = [0.0] * len(self.methods), [0.0] * len(self.methods)

@@ -29,6 +29,7 @@ from starlog.io import json_message_type, protobuf_message_type, topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader, LogSource
+from starlog.io.writer import LogWriter
 from starlog.stages._blocks import channel_blocks
 from starlog.stages._centroid_frames import extract_parallel, extract_serial, opencv_threads, reuse_frame_buffers
 from starlog.stages._centroid_parameters import CentroidParameters, parse_methods, resolve_centroid_parameters
@@ -216,7 +217,7 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
     return summary
 
 
-def _record_evidence(writer: Any, summary: CentroidSummary, evidence: EvidenceAccumulator,
+def _record_evidence(writer: LogWriter, summary: CentroidSummary, evidence: EvidenceAccumulator,
                      p: CentroidParameters) -> None:
     """The evidence on which method to trust (:mod:`starlog.centroid.evidence`), each method's phase
     calibration beside it, and the method recommended: into the summary and the metadata record."""
