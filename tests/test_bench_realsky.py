@@ -254,4 +254,14 @@ def test_degraded_copies_are_written_in_the_format_each_kind_names(bench, tmp_pa
         image, saturation = bench.load_grey(written)
         expected = (32, 40) if kind.startswith("binned") else (64, 80)
         assert image.shape == expected
-        assert saturation == (255.0 if kind == "8-bit" or kind.startswith("jpeg") else 65535.0)
+        top = 255.0 if kind == "8-bit" or "jpeg" in kind else 65535.0
+        assert saturation == (3 * top if kind.startswith(("colour", "bayer")) else top)
+
+
+def test_the_demosaiced_copy_is_the_frame_through_a_bayer_mosaic(bench):
+    """A flat frame through the mosaic: each channel at its response everywhere (OpenCV fills the others)."""
+    image = np.full((16, 16), 1000, np.uint16)
+    colour = bench.demosaiced(image)
+    assert colour.shape == (16, 16, 3)
+    np.testing.assert_allclose(colour[4:-4, 4:-4].reshape(-1, 3).mean(axis=0),
+                               1000 * np.array(bench.CHANNEL_RESPONSE), atol=1)

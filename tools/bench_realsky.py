@@ -803,9 +803,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
     ap.add_argument("--degraded", action="store_true",
                     help="also run on degraded copies of the frames, built in a temporary folder: 8-bit, JPEG at "
-                         "qualities 95/85/70, 2x2 binned, defocused (Gaussian blur of 1 px); about 15 min for the six on a "
-                         "2-core machine (the JPEG copies' hundreds of detections per frame and the solver's "
-                         "timeouts on frames it cannot solve take most of it)")
+                         "qualities 95/85/70, colour JPEG, Bayer-demosaiced colour, 2x2 binned, defocused (Gaussian "
+                         "blur of 1 px); about 3 min for the eight on a 2-core machine")
     args = ap.parse_args(argv)
     args.starlog_options = parse_options(args.starlog_option)
     args.images = args.images or default_images()
@@ -895,10 +894,17 @@ def main(argv: list[str] | None = None) -> int:
 
 # ----------------------------------------------------------------------------- degraded copies
 
-DEGRADED = ("8-bit", "jpeg-95", "jpeg-85", "jpeg-70", "binned-2x2", "defocused-1.0")
+DEGRADED = ("8-bit", "jpeg-95", "jpeg-85", "jpeg-70", "colour-jpeg-90", "bayer-demosaiced", "binned-2x2",
+            "defocused-1.0")
 """``--degraded``: the frames as a cheaper camera or pipeline would give them: 8 bits (the top 8 of the 16),
-JPEG of that 8-bit frame at three qualities, 2 x 2 binned (the mean of each block, 16 bits) and defocused (a
-Gaussian blur of sigma 1 px, 16 bits)."""
+JPEG of that 8-bit frame at three qualities, a colour JPEG (the 8-bit frame in three channels of unequal
+response, quality 90, chroma subsampled 4:2:0 as cameras write them), a colour sensor's frame (the 16-bit frame
+through an RGGB Bayer mosaic of unequal channel responses, demosaiced by OpenCV, 16-bit colour), 2 x 2 binned
+(the mean of each block, 16 bits) and defocused (a Gaussian blur of sigma 1 px, 16 bits). Colour frames are
+read as the sum of their channels (step 1)."""
+
+CHANNEL_RESPONSE = (0.6, 1.0, 0.8)
+"""Relative response of the blue, green and red channels of the colour copies."""
 
 
 def write_degraded(images: Path, kind: str, folder: Path) -> None:
@@ -916,6 +922,12 @@ def write_degraded(images: Path, kind: str, folder: Path) -> None:
                 cv2.imwrite(str(stem) + ".png", eight)
             else:
                 cv2.imwrite(str(stem) + ".jpg", eight, [cv2.IMWRITE_JPEG_QUALITY, int(kind.split("-")[1])])
+        elif kind == "colour-jpeg-90":
+            eight = image.astype(np.float64) * 255 / float(np.iinfo(image.dtype).max)
+            colour = np.stack([np.rint(eight * r) for r in CHANNEL_RESPONSE], axis=-1).astype(np.uint8)
+            cv2.imwrite(str(stem) + ".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        elif kind == "bayer-demosaiced":
+            tifffile.imwrite(str(stem) + ".tiff", demosaiced(image))
         elif kind == "binned-2x2":
             rows, cols = image.shape[0] // 2 * 2, image.shape[1] // 2 * 2
             blocks = image[:rows, :cols].astype(np.float64).reshape(rows // 2, 2, cols // 2, 2)
@@ -923,6 +935,20 @@ def write_degraded(images: Path, kind: str, folder: Path) -> None:
         else:
             blurred = cv2.GaussianBlur(image.astype(np.float64), (0, 0), float(kind.split("-")[1]))
             tifffile.imwrite(str(stem) + ".tiff", np.rint(blurred).astype(image.dtype))
+
+
+def demosaiced(image: np.ndarray) -> np.ndarray:
+    """``image`` as a colour sensor would give it: each pixel keeps the channel of an RGGB Bayer mosaic,
+    scaled by that channel's :data:`CHANNEL_RESPONSE`, and OpenCV interpolates the other two (BGR, the
+    image's dtype)."""
+    import cv2
+
+    blue, green, red = CHANNEL_RESPONSE
+    rows, cols = np.indices(image.shape)
+    response = np.where((rows % 2 == 0) & (cols % 2 == 0), red,
+                        np.where((rows % 2 == 1) & (cols % 2 == 1), blue, green))
+    mosaic = np.rint(image.astype(np.float64) * response).astype(image.dtype)
+    return cv2.cvtColor(mosaic, cv2.COLOR_BayerBG2BGR)
 
 
 def print_degraded(args, solver, original: BenchRun) -> None:

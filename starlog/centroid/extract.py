@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from starlog.centroid.artefacts import detection_threshold, find_artefacts, light_reach
 from starlog.centroid._stamps import (
     Stamps,
     fisher_sigma,
@@ -38,21 +39,15 @@ from starlog.centroid.gradient import radial_symmetry_centre
 from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.moment import squared_centroid, weighted_centroid
 from starlog.centroid.psffit import fit_psf
-from starlog.centroid.robust import (
-    core_flux,
-    gaussian_predictor,
-    mask_outliers,
-    suspect_pixels,
-    symmetry_centre,
-    take_stamps,
-)
+from starlog.centroid.robust import mask_windows, suspect_pixels, take_stamps
 from starlog.centroid.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
 from starlog.centroid.winpos import window_sigma, windowed_centroid, windowed_centroid_sigma
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["EFFICIENCY", "estimate_psf_sigma", "extract_stars", "measure_centroids", "measure_methods",
-           "window_half_size"]
+__all__ = ["EFFICIENCY", "HOT_PIXEL_SHARPNESS", "UNDERSAMPLED_PSF_SIGMA", "artefact_candidates", "artefact_detections",
+           "detect_options_for_psf", "estimate_psf_sigma", "extract_stars",
+           "measure_centroids", "measure_methods", "window_half_size"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -161,6 +156,27 @@ def estimate_psf_sigma(
     if not good.any():
         return float(g0)
     return float(np.median(fit.psf_sigma[good]))
+
+
+UNDERSAMPLED_PSF_SIGMA = 0.7
+"""PSF sigma, px, below which a frame's stars are near the limit of the detector's default spike test
+(a Gaussian of sigma 0.55 px centred on a pixel has neighbours at its ``sharpness_ratio`` 0.2 of the
+peak): part of them, the sharpest sub-pixel phases and the noisiest, would be rejected as hot pixels."""
+
+HOT_PIXEL_SHARPNESS = 0.02
+"""The spike test's ``sharpness_ratio`` for undersampled frames: a Gaussian of sigma 0.25 px centred on a
+pixel has neighbours at 0.024 of its peak, so only a candidate sharper than any focused star (a hot pixel,
+a one-pixel cosmic-ray hit: neighbours at the noise) is rejected."""
+
+
+def detect_options_for_psf(psf_sigma: float, detect_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The detector's options for a frame of PSF sigma ``psf_sigma``: for an undersampled PSF
+    (:data:`UNDERSAMPLED_PSF_SIGMA`) the spike test keeps every star a focused optic gives
+    (:data:`HOT_PIXEL_SHARPNESS`), unless the options set ``sharpness_ratio`` themselves."""
+    options = dict(detect_options or {})
+    if psf_sigma < UNDERSAMPLED_PSF_SIGMA and "sharpness_ratio" not in options:
+        options["sharpness_ratio"] = HOT_PIXEL_SHARPNESS
+    return options
 
 
 @dataclass(frozen=True)
@@ -485,11 +501,7 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
     rows = np.flatnonzero(suspect.any(axis=(1, 2)) | strayed)
     if rows.size == 0:
         return m, st, n_out
-    sub = take_stamps(st, rows)
-    sx, sy = symmetry_centre(sub)  # not pulled by an artefact, unlike the coarse position
-    unit = model(sub, sx, sy, psf[rows])
-    start = core_flux(sub, unit)[:, None, None] * unit
-    clean, mask, fx, fy = mask_outliers(sub, gaussian_predictor(psf[rows]), sx, sy, start, error=error)
+    clean, mask, fx, fy = mask_windows(st, rows, psf, error)
     hit = mask.any(axis=(1, 2)) | strayed[rows]
     rows, clean, fx, fy = rows[hit], take_stamps(clean, np.flatnonzero(hit)), fx[hit], fy[hit]
     if rows.size == 0:
@@ -508,9 +520,9 @@ def _remeasure_robust(meth: CentroidMethod, st: Stamps, m: _Measured, dx0: F64, 
 
 
 def _strayed(dx: F64, dy: F64, psf: F64) -> npt.NDArray[np.bool_]:
-    """Centroids farther from the detection than a star's light reaches (``max(2, 1.5 psf_sigma)`` px):
+    """Centroids farther from the detection than a star's light reaches (:func:`light_reach`):
     drawn off by an artefact in the window (a cosmic ray a re-weighted centre of gravity converged on)."""
-    return np.hypot(dx, dy) > np.maximum(2.0, 1.5 * psf)
+    return np.hypot(dx, dy) > light_reach(psf)
 
 
 def _star_stamps(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, gain: float, read_noise: float | None,
@@ -566,6 +578,7 @@ def extract_stars(
     centroid_options: Mapping[str, Any] | None = None,
     epsf: EPSF | None = None,
     hot_pixels: npt.NDArray[np.bool_] | None = None,
+    drop_artefacts: bool = True,
 ) -> tuple[npt.NDArray[np.void], dict[CentroidMethod, npt.NDArray[np.void]]]:
     """Detect the stars of a frame and centroid them with each method.
 
@@ -579,7 +592,9 @@ def extract_stars(
         As in :func:`measure_centroids` (``saturation`` is passed to detection too). The PSF
         sigma is estimated once per frame when not given.
     detect_options : mapping, optional
-        Extra keyword options of :func:`starlog.detect.detect_stars` (threshold, ...).
+        Extra keyword options of :func:`starlog.detect.detect_stars` (threshold, ...). On a frame
+        whose PSF is undersampled the spike test is relaxed unless these set it
+        (:func:`detect_options_for_psf`; with the PSF sigma estimated, the frame is detected again).
     centroid_options : mapping, optional
         Extra keyword options of :func:`measure_centroids` (debias, weighting, ...).
     epsf : EPSF, optional
@@ -587,25 +602,84 @@ def extract_stars(
     hot_pixels : (rows, cols) bool array, optional
         Hot-pixel map (:mod:`starlog.centroid.hotpixels`): these pixels are never detections
         and are left out of every star's window (counted in ``n_masked``).
+    drop_artefacts : bool
+        Leave the detections that exist only because of an artefact (flag ``ARTEFACT``,
+        :mod:`starlog.centroid.artefacts`) out of the centroids. They are flagged either way.
 
     Returns
     -------
     detections : ndarray of DETECTION_DTYPE
+        Every detection, ``ARTEFACT`` flagged.
     centroids : dict
-        ``{CentroidMethod: ndarray of CENTROID_DTYPE}`` with one row per detection.
+        ``{CentroidMethod: ndarray of CENTROID_DTYPE}`` with one row per detection (per detection
+        not flagged ``ARTEFACT`` with ``drop_artefacts``), ``star`` naming its detection.
     """
     meths = [CentroidMethod(m) for m in methods]
     if hot_pixels is not None:
         raw = np.asarray(image)
         saturation = _default_saturation(raw, saturation)  # of the frame's own type, before the float copy
         image = without_hot_pixels(raw, hot_pixels)
-    det = detect_stars(image, saturation=saturation, **dict(detect_options or {}))
     arr = np.asarray(image)
+    if psf_sigma is not None:
+        detect_options = detect_options_for_psf(psf_sigma, detect_options)
+    det = detect_stars(image, saturation=saturation, **dict(detect_options or {}))
     if det.size and psf_sigma is None:
         psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
+        if detect_options_for_psf(psf_sigma, detect_options) != dict(detect_options or {}):
+            detect_options = detect_options_for_psf(psf_sigma, detect_options)
+            det = detect_stars(image, saturation=saturation, **detect_options)
+            psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation) if det.size else psf_sigma
     out = measure_methods(arr, det, meths, gain=gain, read_noise=read_noise, psf_sigma=psf_sigma, window=window,
                           saturation=saturation, **dict(centroid_options or {}),
                           **({"epsf": epsf} if epsf is not None else {}))
+    if det.size:
+        artefact = artefact_detections(arr, det, psf_sigma=float(psf_sigma), gain=gain, read_noise=read_noise,
+                                       window=window, saturation=saturation, detect_options=detect_options,
+                                       candidates=artefact_candidates(det, out.values()))
+        det["flags"][artefact] |= np.uint16(CentroidFlag.ARTEFACT)
+        for rows in out.values():
+            rows["flags"][artefact] |= np.uint16(CentroidFlag.ARTEFACT)
+        if drop_artefacts and artefact.any():
+            out = {m: rows[~artefact] for m, rows in out.items()}
     return det, out
+
+
+def artefact_candidates(detections: npt.NDArray[Any], centroids: Iterable[npt.NDArray[Any]]) -> npt.NDArray[np.bool_]:
+    """The detections that can exist because of an artefact, from their centroids by any method (tables
+    of one row per detection): the window lost pixels (``n_masked`` > 0), the centroid strayed beyond a
+    star's light from the detection (:func:`~starlog.centroid.artefacts.light_reach`), or the fit failed.
+    A window with none of these is explained by its star's profile."""
+    det = np.asarray(detections)
+    out = np.zeros(det.size, np.bool_)
+    for rows in centroids:
+        off = np.hypot(rows["x"] - det["x"], rows["y"] - det["y"])
+        out |= ((np.asarray(rows["n_masked"]) > 0) | ~(off <= light_reach(rows["psf_sigma"]))
+                | ((rows["flags"] & CentroidFlag.FIT_FAILED) != 0))
+    return out
+
+
+def artefact_detections(image: npt.ArrayLike, detections: npt.NDArray[Any], *, psf_sigma: float, gain: float = 1.0,
+                        read_noise: float | None = None, window: int | None = None, saturation: float | None = None,
+                        detect_options: Mapping[str, Any] | None = None,
+                        candidates: npt.NDArray[np.bool_] | None = None) -> npt.NDArray[np.bool_]:
+    """Which detections exist only because of an artefact (:mod:`starlog.centroid.artefacts`), judged in
+    their windows (``window``, ``gain``, ``read_noise``, ``saturation`` as in :func:`measure_centroids`)
+    under the threshold rule of the detector's ``detect_options`` (:func:`starlog.detect.detect_stars`).
+
+    ``candidates``: judge only these detections (the others are not artefacts), e.g. the
+    :func:`masked_rows` of their centroids: a window the robust pass left whole is one its star's
+    profile explains, so a clean frame costs nothing here.
+    """
+    arr = _check_image(image)
+    det = _check_detections(detections)
+    if det.size == 0 or (candidates is not None and not np.any(candidates)):
+        return np.zeros(det.size, np.bool_)
+    psf = float(psf_sigma)
+    frame = _prepare(arr, det, window_half_size(psf, window), psf, gain, read_noise, _default_saturation(arr, saturation))
+    noise = np.asarray(det["noise"], np.float64)
+    noise = np.where(np.isfinite(noise) & (noise > 0), noise, frame.st.noise)
+    threshold, filter_sigma = detection_threshold(detect_options)
+    return find_artefacts(frame.st, frame.dx0, frame.dy0, frame.f0, frame.psf, noise, threshold=threshold,
+                          filter_sigma=filter_sigma, candidates=candidates)
 
 

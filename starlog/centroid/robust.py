@@ -48,6 +48,7 @@ __all__ = [
     "core_flux",
     "gaussian_predictor",
     "mask_outliers",
+    "mask_windows",
     "model_error",
     "outlier_pixels",
     "skew_corrected",
@@ -351,3 +352,18 @@ def mask_outliers(st: Stamps, predict: Predictor, dx: F64, dy: F64, start: F64, 
             break
         mask = new
     return without_pixels(st, mask), mask, cx, cy
+
+
+def mask_windows(st: Stamps, rows: npt.NDArray[np.intp], psf: F64, error: ModelError = ModelError()
+                 ) -> tuple[Stamps, Mask, F64, F64]:
+    """:func:`mask_outliers` of the stars ``rows`` with the pixel-integrated Gaussian of width ``psf``
+    (one value per star of ``st``), started from the model at their :func:`symmetry_centre` scaled
+    to their :func:`core_flux` (neither is pulled by an artefact, unlike the coarse position).
+
+    Returns the stamps of those stars without the masked pixels, the mask and the fitted centre.
+    """
+    sub = take_stamps(st, rows)
+    sx, sy = symmetry_centre(sub)
+    unit = model(sub, sx, sy, psf[rows])
+    start = core_flux(sub, unit)[:, None, None] * unit
+    return mask_outliers(sub, gaussian_predictor(psf[rows]), sx, sy, start, error=error)

@@ -33,7 +33,14 @@ class StarFlag(enum.IntFlag):
     LOW_SNR : 32
         The star's SNR is below 5: the centroid is valid but its error is large.
     MASKED : 64
-        Non-finite (NaN/inf) pixels fell in the star's window; they were left out.
+        Pixels of the star's window were left out: non-finite (NaN/inf) or hot pixels, or
+        pixels its fitted profile plus noise cannot explain (a cosmic ray, a hot pixel, a
+        neighbour's wing; :mod:`starlog.centroid.robust`).
+    ARTEFACT : 128
+        The detection exists only because of an artefact: once the pixels its star's profile
+        cannot explain are masked, nothing within the reach of a star's light passes the
+        detector's own threshold (:mod:`starlog.centroid.artefacts`). The centroid stage keeps
+        it in the detections and leaves it out of the centroids.
     """
 
     SATURATED = 1
@@ -43,3 +50,4 @@ class StarFlag(enum.IntFlag):
     ELONGATED = 16
     LOW_SNR = 32
     MASKED = 64
+    ARTEFACT = 128

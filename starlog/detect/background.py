@@ -181,6 +181,21 @@ class Background:
         value = ((a0 * g[y0, x0]) * b0 + (a0 * g[y0, x1]) * b1) + (a1 * g[y1, x0]) * b0 + (a1 * g[y1, x1]) * b1
         return value.reshape(shape)
 
+    def level_noise_grid(self, rows: npt.NDArray[np.intp], cols: npt.NDArray[np.intp]
+                         ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Level and noise at every pixel of the grid ``rows`` x ``cols`` (``(len(rows), len(cols))``
+        arrays, DN): :meth:`level_at` and :meth:`noise_at` there, interpolated one axis at a time."""
+        return (self._grid_interp(self.mesh_level, rows, cols, True),
+                self._grid_interp(self.mesh_noise, rows, cols, False))
+
+    def _grid_interp(self, grid: npt.NDArray[np.float32], rows: npt.NDArray[np.intp], cols: npt.NDArray[np.intp],
+                     extrapolate: bool) -> npt.NDArray[np.float64]:
+        g = grid.astype(np.float64)
+        y0, y1, a0, a1 = _axis_weights(np.asarray(rows, np.float64), grid.shape[0], self.mesh, extrapolate)
+        x0, x1, b0, b1 = _axis_weights(np.asarray(cols, np.float64), grid.shape[1], self.mesh, extrapolate)
+        along_rows = a0[:, None] * g[y0] + a1[:, None] * g[y1]
+        return along_rows[:, x0] * b0 + along_rows[:, x1] * b1
+
     def level_at(self, x: npt.ArrayLike, y: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Background level at pixel positions (x = column, y = row), DN."""
         return self._interp(self.mesh_level, x, y, True)

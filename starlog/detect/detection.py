@@ -6,7 +6,9 @@ components, morphology, screening, moments + second-order fit"; docs/PAPER.md, "
 1. background level and noise maps (:func:`starlog.detect.estimate_background`);
 2. denoising: the background-subtracted frame is smoothed with a Gaussian of
    ``filter_sigma`` px (a matched filter for a Gaussian PSF);
-3. foreground: pixels whose filtered value exceeds ``threshold`` times the filtered noise;
+3. foreground: pixels whose filtered value exceeds ``threshold`` times the filtered noise (the
+   white-noise prediction, or the frame's measured filtered noise where neighbouring pixels'
+   noise is correlated: JPEG, demosaicing, blur; :mod:`starlog.detect.correlated_noise`);
 4. morphology: a 3x3 cross opening removes one-pixel bridges and specks;
 5. connected components (8-connectivity), screened by area; each component's local maxima
    of the filtered image are peaks, and a component with several peaks separated by a
@@ -36,11 +38,13 @@ import numpy.typing as npt
 from starlog.detect._flags import StarFlag
 from starlog.detect.background import Background, estimate_background
 from starlog.detect.components import Components, Peaks, component_peaks, find_components
+from starlog.detect.correlated_noise import filtered_noise_factor
 from starlog.detect.position import coarse_offsets
 from starlog.detect.screening import gather, screen
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["DETECTION_DTYPE", "DetectionWarning", "detect_stars", "empty_detections"]
+__all__ = ["DETECTION_DTYPE", "DetectionWarning", "detect_stars", "empty_detections", "matched_filter",
+           "matched_filter_kernel"]
 
 DETECTION_DTYPE = np.dtype(
     [
@@ -93,7 +97,7 @@ elongation : float64
     Axis ratio (>= 1) from the second moments of the filtered image around the peak.
 flags : uint16
     :class:`starlog.detect.DetectionFlag` bits (SATURATED, BORDER, BLENDED, ELONGATED,
-    LOW_SNR, MASKED).
+    LOW_SNR, MASKED; ARTEFACT is set by :func:`starlog.centroid.extract_stars`).
 """
 
 
@@ -184,6 +188,7 @@ def detect_stars(
     work, bg, missing = frame
     filtered, k1 = matched_filter(work, filter_sigma)
     knorm = float(np.sum(k1**2))  # filtered white-noise sigma = noise * sum(k1^2)
+    knorm *= filtered_noise_factor(filtered, bg, k1)
     comp = find_components(_foreground(filtered, bg, threshold * knorm, opening=opening), min_area, max_area)
     if comp.count == 0:
         return empty_detections()
@@ -262,13 +267,19 @@ def _prepare(arr: npt.NDArray[Any], background: Background | None, mesh: int
 def matched_filter(work: npt.NDArray[np.float32],
                    filter_sigma: float) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64]]:
     """The frame smoothed by a Gaussian of ``filter_sigma`` px (reflected at the edges), and the 1-D kernel."""
-    k1 = _gaussian_kernel(float(filter_sigma))
+    k1 = matched_filter_kernel(filter_sigma)
     return cv2.sepFilter2D(work, cv2.CV_32F, k1, k1, borderType=cv2.BORDER_REFLECT), k1
+
+
+def matched_filter_kernel(filter_sigma: float) -> npt.NDArray[np.float64]:
+    """The matched filter's 1-D kernel (2 sigma each side, at least one pixel, unit sum), read-only; the 2-D
+    filter is its outer product with itself."""
+    return _gaussian_kernel(float(filter_sigma))
 
 
 @functools.lru_cache(maxsize=8)
 def _gaussian_kernel(filter_sigma: float) -> npt.NDArray[np.float64]:
-    """The matched filter's 1-D kernel (2 sigma each side, at least one pixel), made once per sigma (read-only)."""
+    """:func:`matched_filter_kernel`, made once per sigma."""
     r = max(1, int(np.ceil(2.0 * filter_sigma)))
     k1 = cv2.getGaussianKernel(2 * r + 1, filter_sigma, cv2.CV_64F).ravel()
     k1.flags.writeable = False

@@ -36,7 +36,8 @@ __all__ = ["FrameExtractor", "FrameMessages", "extract_parallel", "extract_seria
 
 @dataclass(frozen=True)
 class FrameMessages:
-    """One frame's encoded messages (detections, annotations, centroids per method) and counts."""
+    """One frame's encoded messages (detections, annotations, centroids per method) and counts
+    (``n_artefacts``: detections flagged ``ARTEFACT``, in the detections only)."""
 
     log_time: int
     detections: bytes
@@ -45,6 +46,7 @@ class FrameMessages:
     n_detections: int
     n_centroids: tuple[int, ...]
     n_failed: tuple[int, ...]
+    n_artefacts: int = 0
     evidence: FrameEvidence | None = None
     """Each method's differences to the other methods' median (:mod:`starlog.centroid.evidence`)."""
 
@@ -87,6 +89,7 @@ class FrameExtractor:
             n_detections=int(detections.size),
             n_centroids=tuple(int(c.size) for c in per_method),
             n_failed=tuple(int(np.count_nonzero(c["flags"] & CentroidFlag.FIT_FAILED)) for c in per_method),
+            n_artefacts=int(np.count_nonzero(detections["flags"] & CentroidFlag.ARTEFACT)),
             evidence=frame_evidence(per_method),
         )
 

@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid import CentroidMethod, estimate_psf_sigma, measure_centroids
+from starlog.centroid import CentroidMethod, artefact_detections, estimate_psf_sigma, measure_centroids
 from starlog.centroid.epsf import EPSF, epsf_from_frames
-from starlog.centroid.extract import window_half_size
+from starlog.centroid.extract import detect_options_for_psf, window_half_size
 from starlog.centroid.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
 from starlog.centroid.phase import (
     DISTINCT_CELL,
@@ -64,7 +64,7 @@ def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
 
 
 #: Options the stage passes to :func:`starlog.centroid.extract_stars` as they are.
-_EXTRACT_KEYS = ("psf_sigma", "window", "saturation", "detect_options", "centroid_options")
+_EXTRACT_KEYS = ("psf_sigma", "window", "saturation", "drop_artefacts", "detect_options", "centroid_options")
 #: Keywords the stage sets itself (``--gain``, ``--read-noise``, ``--method``, ``--psf``, ``--hot-pixels``).
 _STAGE_KEYS = {"image", "detections", "method", "methods", "gain", "read_noise", "epsf", "hot_pixels", "background"}
 
@@ -154,6 +154,9 @@ def resolve_centroid_parameters(
         if options.get("psf_sigma") is None:
             options["psf_sigma"] = _log_psf_sigma(probe, topic, gain=gain,
                                                   detect_options=options.get("detect_options"))
+        detect_options = detect_options_for_psf(options["psf_sigma"], options.get("detect_options"))
+        if detect_options != (options.get("detect_options") or {}):
+            options["detect_options"] = detect_options  # an undersampled PSF: recorded in the provenance
         hot_map = _hot_pixel_map(probe, topic, hot_pixels)
     epsf = _epsf_for(input_path, topic, chosen, psf, gain=gain, read_noise=read_noise, options=options)
     notes = [chosen_note] if chosen_note else []
@@ -209,13 +212,17 @@ def _log_epsf(log: LogReader, topic: str, *, gain: float, read_noise: float | No
               window: int | None, saturation: float | None, detect_options: dict[str, Any] | None,
               max_frames: int = 20, max_stars: int = 2000) -> EPSF:
     """The ePSF of the first ``max_frames`` frames' bright, isolated, unsaturated stars (at most
-    ``max_stars``), on windows of the centroid window's half-size (an ePSF one pixel wider)."""
+    ``max_stars``; detections only an artefact made left out), on windows of the centroid window's
+    half-size (an ePSF one pixel wider)."""
 
     def frames() -> Iterator[tuple[npt.NDArray[Any], npt.NDArray[Any]]]:
         for index, _, image in log.frames(topic, on_bad=lambda skipped: None):
             if index >= max_frames:
                 break
-            yield image, detect_stars(image, saturation=saturation, **(detect_options or {}))
+            found = detect_stars(image, saturation=saturation, **(detect_options or {}))
+            yield image, found[~artefact_detections(image, found, psf_sigma=psf_sigma, gain=gain, read_noise=read_noise,
+                                                    window=window, saturation=saturation,
+                                                    detect_options=detect_options)]
 
     try:
         return epsf_from_frames(frames(), psf_sigma=psf_sigma, half_size=window_half_size(psf_sigma, window), gain=gain,

@@ -27,6 +27,8 @@ class StageOutput:
 
     writer: LogWriter
     channels: list[str] = field(default_factory=list)
+    results: dict[str, Any] = field(default_factory=dict)
+    """What the stage found that its provenance records beside its parameters (key ``results``)."""
 
     def add_channel(self, topic: str, message_type: MessageType, *, unordered: bool = False) -> int:
         """Register a new channel and record it for the provenance.
@@ -54,8 +56,9 @@ def extend_log(
 ) -> Iterator[tuple[LogReader, StageOutput]]:
     """Open ``input_path`` for reading and a layer on it at ``output_path`` (:mod:`starlog.io.chain`).
 
-    The stage adds its channels; on success its provenance (name, version, parameters, the input
-    file's SHA-256, hashed on a thread while the stage works, and the channels it added) is
+    The stage adds its channels; on success its provenance (name, version, parameters with the
+    stage's ``results`` when it gave any, the input file's SHA-256, hashed on a thread while the
+    stage works, and the channels it added) is
     recorded, the layer names its base, and it is renamed into place. On any error the output is
     discarded and the input is untouched. A :class:`~starlog.io.reader.LogView` input (``--start`` /
     ``--end``) adds its range to the parameters. With ``flatten``, the output is the flattened
@@ -72,7 +75,8 @@ def extend_log(
         with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression) as writer:
             out = StageOutput(writer)
             yield reader, out
-            record = Provenance(stage=stage, version=__version__, parameters=parameters,
+            recorded = {**parameters, "results": dict(out.results)} if out.results else parameters
+            record = Provenance(stage=stage, version=__version__, parameters=recorded,
                                 input_digest=base.digest(), channels=out.channels)
             writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
 

@@ -4,7 +4,10 @@ Reads an image channel (``/camera/image`` by default; any image type of
 :mod:`starlog.io.images`, chosen with ``image_topic``) and writes ``/stars/detections`` (starlog.Detections),
 ``/stars/centroids/<METHOD>`` per method (starlog.Centroids) and ``/stars/annotations``
 (foxglove.ImageAnnotations: circles at the first method's centroids, so the stars show over
-the frames in Foxglove), each message at its frame's ``log_time``. Frames are processed one at
+the frames in Foxglove), each message at its frame's ``log_time``. A detection that exists only
+because of an artefact (flag ``ARTEFACT``, :mod:`starlog.centroid.artefacts`) stays in the
+detections and is left out of the centroids and annotations; the summary and the provenance
+(``results.artefacts``) count them. Frames are processed one at
 a time (memory flat in log length). With ``workers > 1`` the log is split into blocks of
 consecutive image chunks; each worker process opens the log itself, decodes and extracts its
 block (so no image crosses a process boundary), and the results are written in frame order:
@@ -51,6 +54,7 @@ class CentroidSummary:
     detections: int = 0
     centroids: dict[str, int] = field(default_factory=dict)
     failed: dict[str, int] = field(default_factory=dict)
+    artefacts: int = 0
     gain: float = 1.0
     image_topic: str = topics.IMAGE
     channel_messages: int = 0
@@ -77,15 +81,18 @@ class CentroidSummary:
             "detections_per_frame": self.detections / self.frames if self.frames else 0.0,
             "centroids": dict(self.centroids),
             "fit_failed": dict(self.failed),
+            "artefacts": self.artefacts,
             "gain": self.gain,
             "evidence": self.evidence,
             "recommended": {"method": self.recommended, "reason": self.reason},
         } | extra
 
     def lines(self) -> list[str]:
-        """Per method: the centroids written and those not measured."""
+        """Per method: the centroids written and those not measured; the detections dropped as artefacts."""
         return [f"  {method:<15} {count:>8} centroids, {self.failed[method]} not measured (flag FIT_FAILED: the "
-                "detection's position kept)" for method, count in self.centroids.items()]
+                "detection's position kept)" for method, count in self.centroids.items()] + [
+                f"  {self.artefacts} detections only an artefact made, left out of the centroids (flag ARTEFACT "
+                f"in {topics.DETECTIONS})"]
 
 
 @windowed(lambda log, options: choose_image_topic(log.path, log.channels(), options.get("image_topic"))[0])
@@ -207,7 +214,9 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
                 summary.failed[m.value] += encoded.n_failed[k]
             summary.frames += 1
             summary.detections += encoded.n_detections
+            summary.artefacts += encoded.n_artefacts
         _check_frame_count(log, p.image_topic, summary)
+        out.results["artefacts"] = summary.artefacts
         summary.notes += [n for n in log.notes if n not in summary.notes]
         if p.epsf is not None:
             out.writer.add_metadata(topics.EPSF_METADATA, p.epsf.to_metadata())
