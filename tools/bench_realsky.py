@@ -777,7 +777,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--images", type=Path, default=None, help="folder of TIFF/PNG/JPEG frames")
     ap.add_argument("--quick", action="store_true",
                     help="the same run (it takes about 7 s): the pixel-phase calibration is learnt from the "
-                         "frames' own stars, so fewer frames change the figures (2 of the 8: ratio 1.09, not 0.76)")
+                         "frames' own stars, so a subset of the frames would change the figures (a calibration from fewer "
+                         "distinct stars)")
     ap.add_argument("--gain", default="auto",
                     help="camera gain e-/DN, or 'auto' (default): from each frame's background photon transfer, "
                          "1 when that cannot tell")
@@ -804,7 +805,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--degraded", action="store_true",
                     help="also run on degraded copies of the frames, built in a temporary folder: 8-bit, JPEG at "
                          "qualities 95/85/70, colour JPEG, Bayer-demosaiced colour, 2x2 binned, defocused (Gaussian "
-                         "blur of 1 px); about 3 min for the eight on a 2-core machine")
+                         "blur of 1 px); about 2 minutes for the eight on a 2-core machine")
     args = ap.parse_args(argv)
     args.starlog_options = parse_options(args.starlog_option)
     args.images = args.images or default_images()
