@@ -143,3 +143,39 @@ def test_solve_command_prints_the_residual_table_and_the_attitude_error(logs, tm
     assert "attitude error against the true attitude" in result.output
     bad = CliRunner().invoke(cli, ["solve", str(logs["cen"]), "-o", str(tmp_path / "x.mcap"), "--centroids", "PSFFIT"])
     assert bad.exit_code == 1 and "no centroid channel /stars/centroids/PSFFIT" in bad.output
+
+
+def test_report_shows_the_attitude_residuals_and_error_per_method(logs, tmp_path):
+    from starlog.report import write_report
+
+    html = write_report(logs["att"], tmp_path / "r.html").read_text(encoding="utf-8")
+    assert "Attitude and catalogue residuals per centroid method" in html
+    assert "attitude from GAUSSFIT centroids" in html
+    assert "residual RMS (arcsec)" in html and "cross-boresight error / sigma" in html
+    section = html[html.index('<section id="attitude">'):html.index('<section id="provenance">')]
+    assert section.count("<td>MOMENT</td>") == 2  # the residual table and the error table
+
+
+def test_info_states_the_camera_and_residuals_per_method(logs):
+    result = CliRunner().invoke(cli, ["info", str(logs["att"])])
+    assert result.exit_code == 0, result.output
+    assert "solve      per centroid method" in result.output
+    text = result.output[result.output.index("solve      per centroid method"):]
+    line = next(ln for ln in text.splitlines() if ln.strip().startswith("GAUSSFIT "))
+    assert f"{SKY['n_frames']}/{SKY['n_frames']}" in line and "10.0000" in line
+    assert "attitude error RMS arcsec" in result.output
+
+
+def test_run_config_chains_centroid_and_solve(logs, tmp_path):
+    from starlog.pipeline import load_config, run_pipeline, stage_line
+
+    config_file = tmp_path / "p.toml"
+    config_file.write_text('[centroid]\nmethods = ["GAUSSFIT"]\n[solve]\ncentroids = "all"\n[solve.options]\n'
+                           'match_radius = 2.5\n', encoding="utf-8")
+    result = run_pipeline(logs["sky"], tmp_path / "out.mcap", load_config(config_file), end="frame:5")
+    assert [name for name, _ in result.stages] == ["centroid", "solve"]
+    assert [p.name for p in result.layers] == ["out.1-centroid.mcap", "out.mcap"]
+    line = stage_line("solve", result.stages[1][1])
+    assert line == "solve: GAUSSFIT 5/5 solved, residual " + line.split("residual ")[1]
+    with LogReader(tmp_path / "out.mcap") as log:
+        assert log.provenance()[-1].parameters["options"] == {"match_radius": 2.5}

@@ -39,6 +39,8 @@ __all__ = [
     "identified_annotations_topic",
     "EPSF_METADATA",
     "PHASE_METADATA",
+    "EVIDENCE_METADATA",
+    "SOLVE_METADATA",
 ]
 
 IMAGE = "/camera/image"
@@ -58,6 +60,10 @@ PHASE_METADATA = "starlog.phase_correction"
 #: Name of the metadata record holding the evidence on which centroid method to trust, and the method
 #: recommended (:mod:`starlog.centroid.evidence`): ``methods`` (JSON), ``recommended``, ``reason``.
 EVIDENCE_METADATA = "starlog.centroid_evidence"
+
+#: Name of the metadata record of a ``starlog solve`` run: ``methods`` (JSON), per centroid method the frames
+#: solved, the catalogue residuals, the fitted camera and, on simulated sky, the attitude error.
+SOLVE_METADATA = "starlog.solve"
 
 
 def centroid_topic(method: str) -> str:

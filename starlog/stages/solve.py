@@ -20,6 +20,7 @@ camera (field of view, no distortion) comes from the simulator's provenance unle
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -362,4 +363,5 @@ def solve_log(
             figures = _solve_channel(log, out, topic, tracker, truth, show_progress=show_progress)
             summary.methods[topic.rsplit("/", 1)[-1]] = figures.to_dict(cols)
             summary.seconds[topic.rsplit("/", 1)[-1]] = figures.seconds
+        out.writer.add_metadata(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods)})
     return summary
