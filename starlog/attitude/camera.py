@@ -48,16 +48,18 @@ class Camera:
 
     def undistort(self, x: npt.NDArray[np.float64], y: npt.NDArray[np.float64]
                   ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """Undistorted offsets (px) from the principal point of pixel positions (the distortion inverted by
-        fixed-point iteration; exact to 1e-9 px for ``|k| < 0.2``)."""
+        """Undistorted offsets (px) from the principal point of pixel positions: the cubic
+        ``r_d = r_u (1 + k r_u^2)`` solved for ``r_u`` by Newton's method from ``r_u = r_d`` (8 steps; exact to
+        1e-9 px over the frame for ``|k| <= 0.05``)."""
         xd, yd = np.asarray(x, np.float64) - self.cx, np.asarray(y, np.float64) - self.cy
         if self.k == 0.0:
             return xd, yd
-        rd2 = (xd * xd + yd * yd) / (self.half_width * self.half_width)
-        scale = np.ones_like(rd2)
-        for _ in range(12):
-            scale = 1.0 + self.k * rd2 / (scale * scale)
-        return xd / scale, yd / scale
+        rd = np.hypot(xd, yd) / self.half_width
+        ru = rd.copy()
+        for _ in range(8):
+            ru -= (ru * (1.0 + self.k * ru * ru) - rd) / (1.0 + 3.0 * self.k * ru * ru)
+        scale = np.divide(ru, rd, out=np.ones_like(rd), where=rd > 0)
+        return xd * scale, yd * scale
 
     def pixel_vectors(self, x: npt.NDArray[np.float64], y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """Camera-frame unit vectors (n, 3) of the directions seen at pixels (x, y)."""

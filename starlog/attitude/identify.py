@@ -7,7 +7,8 @@ Per frame, from its centroids (x, y, flux, sigma):
   star when they are each other's nearest and closer than ``match_radius`` px
   (:func:`~starlog.attitude.matching.match_mutual`), and the attitude is refined by Davenport's
   q-method weighting each star by its centroid's ``1 / sigma^2``
-  (:func:`~starlog.attitude.qmethod.davenport_q_method`); matched and refined twice. Fewer than
+  (:func:`~starlog.attitude.qmethod.davenport_q_method`); matched and refined twice, then refitted
+  without the pairs whose residual is an outlier (:func:`outlier_pairs`). Fewer than
   ``min_matches`` pairs: the frame falls back to
 * **lost in space** (:func:`~starlog.attitude.lost_in_space.solve_lost_in_space`): cedar-solve's pattern
   match, the camera fitted to its matches, then re-matched to the catalogue with shrinking radii (4 px
@@ -37,7 +38,8 @@ from starlog.attitude.lost_in_space import LostInSpace, solve_lost_in_space
 from starlog.attitude.matching import match_mutual, match_nearest
 from starlog.attitude.qmethod import QMethodResult, davenport_q_method
 
-__all__ = ["ARCSEC_PER_RAD", "AttitudeTracker", "FrameAttitude", "TrackerSettings", "identify_and_refine"]
+__all__ = ["ARCSEC_PER_RAD", "AttitudeTracker", "FrameAttitude", "TrackerSettings", "identify_and_refine",
+           "outlier_pairs"]
 
 ARCSEC_PER_RAD = 180.0 * 3600.0 / math.pi
 _EMPTY = np.zeros(0, np.int64)
@@ -81,29 +83,52 @@ class FrameAttitude:
 
 
 def _q_method(camera: Camera, vectors: npt.NDArray[np.float64], x: npt.NDArray[np.float64],
-              y: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64]) -> tuple[Camera, QMethodResult]:
+              y: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64], *,
+              covariance: bool = True) -> tuple[Camera, QMethodResult]:
     """The camera's attitude replaced by the q-method's for matched (sky vector, pixel, sigma px) stars."""
-    fit = davenport_q_method(camera.pixel_vectors(x, y), vectors, camera.angular_sigma(sigma))
+    fit = davenport_q_method(camera.pixel_vectors(x, y), vectors, camera.angular_sigma(sigma), covariance=covariance)
     return replace(camera, rotation=fit.attitude), fit
 
 
 def identify_and_refine(camera: Camera, catalogue: Catalogue, candidates: npt.NDArray[np.int64],
                         x: npt.NDArray[np.float64], y: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64], *,
-                        radius: float, min_matches: int, passes: int = 2) -> FrameAttitude:
+                        radius: float, min_matches: int, passes: int = 2, reject: float = 4.0) -> FrameAttitude:
     """Match ``candidates`` (catalogue rows) projected with ``camera`` to the centroids within ``radius`` px and
-    refine the attitude by the q-method, ``passes`` times; unsolved when fewer than ``min_matches`` match."""
+    refine the attitude by the q-method, ``passes`` times; unsolved when fewer than ``min_matches`` match.
+    Then the pairs whose residual is an outlier (:func:`outlier_pairs`, ``reject`` > 0) are left out and the
+    attitude refitted."""
     vectors = catalogue.vectors[candidates]
     fit = None
-    for _ in range(passes):
+    rows, cols = 2.0 * camera.cy + 1.0, 2.0 * camera.cx + 1.0
+    for k in range(passes):
         px, py, front = camera.project(vectors)
-        px = np.where(front, px, np.inf)
-        cat, det = match_mutual(px, py, x, y, radius)
+        seen = np.flatnonzero(front & (px > -radius) & (px < cols + radius) & (py > -radius) & (py < rows + radius))
+        cat, det = match_mutual(px[seen], py[seen], x, y, radius)
+        cat = seen[cat]
         if cat.size < min_matches:
             return FrameAttitude(False, f"tracking: {cat.size} stars matched within {radius:g} px "
                                         f"(fewer than {min_matches})")
-        camera, fit = _q_method(camera, vectors[cat], x[det], y[det], sigma[det])
+        camera, fit = _q_method(camera, vectors[cat], x[det], y[det], sigma[det], covariance=k == passes - 1)
     px, py, _ = camera.project(vectors[cat])
+    if reject > 0:
+        keep = ~outlier_pairs(x[det] - px, y[det] - py, sigma[det], reject)
+        if not keep.all() and keep.sum() >= min_matches:
+            cat, det = cat[keep], det[keep]
+            camera, fit = _q_method(camera, vectors[cat], x[det], y[det], sigma[det])
+            px, py, _ = camera.project(vectors[cat])
     return FrameAttitude(True, "", "tracking", camera, fit, candidates[cat], det, px, py)
+
+
+def outlier_pairs(dx: npt.NDArray[np.float64], dy: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64],
+                  reject: float) -> npt.NDArray[np.bool_]:
+    """Pairs whose normalised residual ``z = sqrt((dx^2 + dy^2) / 2) / sigma`` exceeds ``reject`` times the
+    pairs' robust scale of ``z`` (its median over 0.8326, the median of ``z`` for Gaussian errors of the stated
+    sigma). Relative to the pairs' own scale, so that a camera model or catalogue error common to every star
+    (real sky: residuals many times the centroids' sigmas) rejects nothing, while a star whose centroid is pulled
+    (an unresolved neighbour) is left out."""
+    z = np.sqrt((dx * dx + dy * dy) / 2.0) / sigma
+    scale = float(np.median(z)) / 0.8326
+    return z > reject * max(scale, 1e-12)
 
 
 def _refine_rounds(camera: Camera, vectors: npt.NDArray[np.float64], magnitude: npt.NDArray[np.float64],
@@ -146,7 +171,9 @@ class TrackerSettings:
     px and ``k``; None: fitted on each lost-in-space frame and kept while tracking); ``brightest``: centroids
     given to the solver; ``timeout_ms``: the solver's time limit per attempt; ``try_mirrored``: solve a frame
     with its columns reversed when it does not solve as it is; ``tracking``: False solves every frame lost in
-    space; ``max_magnitude``: catalogue stars fainter are never identified.
+    space; ``max_magnitude``: catalogue stars fainter are never identified; ``reject``: a pair whose normalised
+    residual exceeds this many times the frame's robust scale is left out of the attitude (0: none;
+    :func:`outlier_pairs`).
     """
 
     match_radius: float = 3.0
@@ -161,6 +188,7 @@ class TrackerSettings:
     try_mirrored: bool = True
     tracking: bool = True
     max_magnitude: float | None = None
+    reject: float = 4.0
 
 
 class AttitudeTracker:
@@ -188,7 +216,7 @@ class AttitudeTracker:
         tracked = None
         if self.camera is not None and s.tracking:
             tracked = identify_and_refine(self.camera, self.catalogue, self._field_rows(self.camera), x, y, sigma,
-                                          radius=s.match_radius, min_matches=s.min_matches)
+                                          radius=s.match_radius, min_matches=s.min_matches, reject=s.reject)
             if tracked.solved:
                 self.camera = tracked.camera
                 return tracked
@@ -245,7 +273,7 @@ class AttitudeTracker:
             return FrameAttitude(False, f"lost-in-space: the solution is not confirmed by the catalogue (fewer than "
                                         f"{s.min_matches} stars re-matched)", solver=lis.solver)
         result = identify_and_refine(refined, self.catalogue, self._field_rows(refined), x, y, sigma,
-                                     radius=s.match_radius, min_matches=s.min_matches)
+                                     radius=s.match_radius, min_matches=s.min_matches, reject=s.reject)
         if not result.solved:
             return replace(result, reason=f"lost-in-space: {result.reason}", solver=lis.solver)
         note = "mirrored image (columns reversed): solved with parity -1" if mirrored or refined.parity < 0 else ""

@@ -55,12 +55,12 @@ def _shuster_matrix(q: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
 
 
 def davenport_q_method(observed: npt.NDArray[np.float64], reference: npt.NDArray[np.float64],
-                       sigma: npt.NDArray[np.float64]) -> QMethodResult:
+                       sigma: npt.NDArray[np.float64], *, covariance: bool = True) -> QMethodResult:
     """The rotation taking ``reference`` (n, 3) onto ``observed`` (n, 3), unit vectors, weighted by
     ``1 / sigma**2`` (``sigma``: each observation's 1-sigma error, rad); Davenport's q-method.
 
     Needs at least two non-parallel pairs. The covariance is :func:`shuster_covariance` of the observed
-    vectors.
+    vectors (NaN with ``covariance=False``, for an intermediate fit).
     """
     b = np.asarray(observed, np.float64)
     r = np.asarray(reference, np.float64)
@@ -77,6 +77,8 @@ def davenport_q_method(observed: npt.NDArray[np.float64], reference: npt.NDArray
     values, vectors = np.linalg.eigh(k)
     attitude = _shuster_matrix(vectors[:, -1])
     loss = float(w.sum() - values[-1])
+    if not covariance:
+        return QMethodResult(attitude, np.full(4, np.nan), np.full((3, 3), np.nan), max(loss, 0.0))
     return QMethodResult(attitude, quaternion_from_matrix(attitude), shuster_covariance(b, sigma), max(loss, 0.0))
 
 
