@@ -179,3 +179,20 @@ def test_run_config_chains_centroid_and_solve(logs, tmp_path):
     assert line == "solve: GAUSSFIT 5/5 solved, residual " + line.split("residual ")[1]
     with LogReader(tmp_path / "out.mcap") as log:
         assert log.provenance()[-1].parameters["options"] == {"match_radius": 2.5}
+
+
+def test_the_readme_solve_block_runs_as_written(tmp_path, monkeypatch):
+    import re
+    import shlex
+
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
+    block = next(b for b in re.findall(r"```bash\n(.*?)```", readme, flags=re.S) if "--sky-attitude" in b)
+    monkeypatch.chdir(tmp_path)
+    output = ""
+    for command in block.strip().split(" && "):
+        words = shlex.split(command)
+        assert words[0] == "starlog"
+        result = CliRunner().invoke(cli, words[1:])
+        assert result.exit_code == 0, f"{command}: {result.output}"
+        output = result.stdout
+    assert "GAUSSFIT" in output and "MOMENT" in output and "attitude error against the true attitude" in output

@@ -12,6 +12,10 @@ Physics per frame ``n`` at time ``t = n / fps``:
 4. the camera (:class:`~starlog.sim.camera.CameraModel`) applies Poisson shot noise, read
    noise, gain, bias, quantisation and ADC saturation.
 
+With ``sky_attitude`` the field is the real sky instead: the catalogue's stars projected through a
+gnomonic camera at that attitude, and the platform motion turns the camera (its offset moves the
+boresight, its roll turns it about the boresight), each frame's attitude kept as the truth.
+
 Every random draw comes from generators seeded by ``(seed, purpose, frame)``, so a frame does
 not depend on the frames before it (frames can be rendered in parallel) and the same
 configuration always gives the same frames.
