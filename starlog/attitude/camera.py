@@ -102,26 +102,61 @@ def initial_rotation(cam: Camera, vectors: npt.NDArray[np.float64], x: npt.NDArr
     return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
 
 
+def _projection_jacobian(cam: Camera, vectors: npt.NDArray[np.float64]
+                         ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Pixel residual model of :func:`fit_camera`: the projected (x, y) stacked (2n,), and their derivatives
+    (2n, 5) with respect to a small rotation (3, applied before ``cam.rotation``), ``log f`` and ``k``."""
+    u = vectors @ cam.rotation.T
+    ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
+    hw2 = cam.half_width * cam.half_width
+    xu, yu = cam.parity * cam.focal * ux / uz, cam.focal * uy / uz
+    r2 = (xu * xu + yu * yu) / hw2
+    scale = 1.0 + cam.k * r2
+    # d u / d theta_j = e_j x u
+    zero = np.zeros_like(ux)
+    du = np.stack([np.column_stack([zero, -uz, uy]), np.column_stack([uz, zero, -ux]),
+                   np.column_stack([-uy, ux, zero])], axis=2)  # (n, 3 components, 3 angles)
+    dxu = cam.parity * cam.focal * (du[:, 0, :] * uz[:, None] - ux[:, None] * du[:, 2, :]) / (uz * uz)[:, None]
+    dyu = cam.focal * (du[:, 1, :] * uz[:, None] - uy[:, None] * du[:, 2, :]) / (uz * uz)[:, None]
+    dxu = np.column_stack([dxu, xu])  # log f scales both offsets
+    dyu = np.column_stack([dyu, yu])
+    dscale = 2.0 * cam.k * (xu[:, None] * dxu + yu[:, None] * dyu) / hw2
+    jx = np.column_stack([scale[:, None] * dxu + xu[:, None] * dscale, xu * r2])
+    jy = np.column_stack([scale[:, None] * dyu + yu[:, None] * dscale, yu * r2])
+    return np.concatenate([cam.cx + xu * scale, cam.cy + yu * scale]), np.vstack([jx, jy])
+
+
 def fit_camera(cam: Camera, vectors: npt.NDArray[np.float64], x: npt.NDArray[np.float64],
-               y: npt.NDArray[np.float64], *, fit_distortion: bool = True) -> Camera:
-    """Least-squares refit (Levenberg–Marquardt) of the attitude, focal length (and distortion) to observed
-    pixels of known sky vectors."""
-    from scipy.optimize import least_squares
+               y: npt.NDArray[np.float64], *, fit_distortion: bool = True, iterations: int = 20) -> Camera:
+    """Least-squares refit of the attitude, focal length (and distortion) to observed pixels of known sky
+    vectors: Gauss–Newton with the projection's analytic derivatives (:func:`_projection_jacobian`), each step
+    halved until the sum of squares decreases; stops when a step changes no pixel by more than 1e-7 px."""
+    observed = np.concatenate([x, y])
+    columns = 5 if fit_distortion else 4
 
-    def unpack(p: npt.NDArray[np.float64]) -> Camera:
-        rot = small_rotation(p[:3]) @ cam.rotation
-        return replace(cam, rotation=rot, focal=cam.focal * (1.0 + p[3]), k=float(p[4]) if fit_distortion else cam.k)
+    def step(c: Camera, p: npt.NDArray[np.float64]) -> Camera:
+        k = c.k + float(p[4]) if fit_distortion else c.k
+        return replace(c, rotation=small_rotation(p[:3]) @ c.rotation, focal=c.focal * math.exp(p[3]), k=k)
 
-    def residuals(p: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        px, py, _ = unpack(p).project(vectors)
-        return np.concatenate([px - x, py - y])
-
-    start = np.array([0.0, 0.0, 0.0, 0.0, cam.k])
-    if fit_distortion:
-        fit = least_squares(residuals, start, x_scale=1e-3, method="lm")
-        return unpack(fit.x)
-    fit = least_squares(lambda p: residuals(np.append(p, cam.k)), start[:4], x_scale=1e-3, method="lm")
-    return unpack(np.append(fit.x, cam.k))
+    model, jac = _projection_jacobian(cam, vectors)
+    cost = float(np.sum((observed - model) ** 2))
+    for _ in range(iterations):
+        p = np.linalg.lstsq(jac[:, :columns], observed - model, rcond=None)[0]
+        p = np.append(p, 0.0) if not fit_distortion else p
+        for _ in range(30):
+            trial = step(cam, p)
+            trial_model, trial_jac = _projection_jacobian(trial, vectors)
+            trial_cost = float(np.sum((observed - trial_model) ** 2))
+            if trial_cost <= cost:
+                break
+            p = p / 2.0
+        else:
+            return cam
+        change = float(np.max(np.abs(trial_model - model)))
+        cam, model, jac, cost = trial, trial_model, trial_jac, trial_cost
+        if change < 1e-7:
+            break
+    return cam
 
 
 def camera_from_pairs(shape: tuple[int, int], focal: float, vectors: npt.NDArray[np.float64],

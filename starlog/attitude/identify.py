@@ -35,7 +35,7 @@ import numpy.typing as npt
 from starlog.attitude.camera import Camera, fit_camera
 from starlog.attitude.catalogue import Catalogue
 from starlog.attitude.lost_in_space import LostInSpace, solve_lost_in_space
-from starlog.attitude.matching import match_mutual, match_nearest
+from starlog.attitude.matching import match_mutual
 from starlog.attitude.qmethod import QMethodResult, davenport_q_method
 
 __all__ = ["ARCSEC_PER_RAD", "AttitudeTracker", "FrameAttitude", "TrackerSettings", "identify_and_refine",
@@ -141,17 +141,15 @@ def _refine_rounds(camera: Camera, vectors: npt.NDArray[np.float64], magnitude: 
     bright_det = np.argsort(-flux, kind="stable")[:brightest]
     every = np.arange(x.size)
     for radius, cat_rows, det_rows in ((4.0, bright_cat, bright_det), (2.0, np.arange(magnitude.size), every)):
-        v = vectors[cat_rows]
-        px, py, _ = camera.project(v)
-        idx = match_nearest(px, py, x[det_rows], y[det_rows], radius)
-        ok = idx >= 0
-        if ok.sum() < min_matches:
+        px, py, _ = camera.project(vectors[cat_rows])
+        cat, det = match_mutual(px, py, x[det_rows], y[det_rows], radius)
+        if cat.size < min_matches:
             return None
-        det = det_rows[idx[ok]]
+        v, det = vectors[cat_rows[cat]], det_rows[det]
         if fit_intrinsics:
-            camera = fit_camera(camera, v[ok], x[det], y[det], fit_distortion=fit_distortion and ok.sum() >= 8)
+            camera = fit_camera(camera, v, x[det], y[det], fit_distortion=fit_distortion and cat.size >= 8)
         else:
-            camera, _ = _q_method(camera, v[ok], x[det], y[det], sigma[det])
+            camera, _ = _q_method(camera, v, x[det], y[det], sigma[det])
     return camera
 
 
