@@ -42,5 +42,8 @@ def test_real_sky_frames_are_solved_and_agree_with_cedar_solve(bench, targets, t
     images = bench.default_images()
     if bench.missing_images(images):
         pytest.skip(bench.missing_images(images))
-    bench.real_sky(images, tmp_path, targets)
+    solved = bench.real_sky(images, tmp_path, targets)
     assert targets.items and all(t.verdict == "PASS" for t in targets.items), [t.text for t in targets.items]
+    bench.lost_in_space_time(bench.list_images(images), solved, targets)
+    mirrored = targets.items[-1]
+    assert mirrored.text.startswith("mirrored frames 8/8") and mirrored.verdict == "PASS", mirrored.text

@@ -19,7 +19,8 @@ and, for part 1, the real frames in ``../shared/data/real-sky/`` (esa/tetra3's t
    solver's pattern match, the camera refit against the catalogue, the q-method) against the solver
    alone, ``Tetra3.solve_from_image`` on the image file (its own centroiding and solve). Target: not
    slower. The solver's pattern match alone on the same centroids (``solve_from_centroids``) is printed
-   beside it: the difference is starlog's catalogue refinement.
+   beside it: the difference is starlog's catalogue refinement. The same centroids with their columns
+   reversed (a mirrored image) must solve, say they are mirrored, and give the frame's own attitude.
 
 Run: python tools/bench_attitude.py [--quick] [--images DIR]. The full run about 25 s on a 2-core machine,
 --quick (one simulated field of 60 frames, 1000 tracked frames) about 10 s. Exit status 1 when a target is
@@ -51,7 +52,8 @@ from starlog.attitude.camera import camera_for_image, focal_from_fov  # noqa: E4
 from starlog.attitude.catalogue import load_catalogue  # noqa: E402
 from starlog.attitude.identify import AttitudeTracker, TrackerSettings  # noqa: E402
 from starlog.attitude.lost_in_space import load_solver  # noqa: E402
-from starlog.attitude.rotation import attitude_from_radec_roll, radec_vectors, small_rotation  # noqa: E402
+from starlog.attitude.rotation import (  # noqa: E402
+    attitude_from_radec_roll, radec_roll, radec_vectors, small_rotation)
 from starlog.io.reader import LogReader  # noqa: E402
 from starlog.sim import Jitter, SimulationConfig  # noqa: E402
 from starlog.stages import ingest_source, simulate_log  # noqa: E402
@@ -191,13 +193,14 @@ def tracking_speed(frames: int, targets: Targets, stars: int = 30) -> None:
 
 
 def lost_in_space_time(images: list[Path], solved_log: Path, targets: Targets) -> None:
-    """Part 4."""
+    """Part 4, and each frame's centroids with their columns reversed (a mirrored image) solved too."""
     solver = load_solver()
     catalogue = load_catalogue()
-    ours, centroids_only = [], []
+    ours, centroids_only, mirrored = [], [], []
     with LogReader(solved_log) as log:
         shape = next((int(m.payload["height"]), int(m.payload["width"])) for m in log.messages("/camera/frame"))
-        for message in log.messages("/stars/centroids/GAUSSFIT"):
+        attitudes = [m.payload for m in log.messages("/attitude/GAUSSFIT")]
+        for message, solved in zip(log.messages("/stars/centroids/GAUSSFIT"), attitudes):
             s = [r for r in message.payload["stars"] if r["sigma"] > 0 and not r["flags"] & 4]
             x, y, flux, sigma = (np.array([r[k] for r in s]) for k in ("x", "y", "flux", "sigma"))
             tracker = AttitudeTracker(catalogue, shape, TrackerSettings(tracking=False), solver=solver)
@@ -209,6 +212,12 @@ def lost_in_space_time(images: list[Path], solved_log: Path, targets: Targets) -
             solver.solve_from_centroids(np.column_stack([y[order] + 0.5, x[order] + 0.5]), size=shape,
                                         distortion=0.0, match_threshold=1e-7, solve_timeout=5000)
             centroids_only.append(time.perf_counter() - start)
+            flipped = AttitudeTracker(catalogue, shape, TrackerSettings(tracking=False), solver=solver).solve(
+                shape[1] - 1.0 - x, y, flux, sigma)
+            if flipped.solved and "mirrored" in flipped.reason:
+                ra, dec, roll = radec_roll(flipped.camera.rotation)
+                mirrored.append((angle_between(ra, dec, solved["ra_deg"], solved["dec_deg"]),
+                                 abs((roll - solved["roll_deg"] + 180.0) % 360.0 - 180.0)))
     _, image_seconds = cedar_solutions(images)
     a, b, c = (1000 * float(np.median(v)) for v in (ours, image_seconds, centroids_only))
     print(f"\n4. lost in space, median per frame: starlog {a:.1f} ms; cedar-solve solve_from_image {b:.1f} ms; "
@@ -216,6 +225,13 @@ def lost_in_space_time(images: list[Path], solved_log: Path, targets: Targets) -
           f"{' '.join(f'{v:.2f}' for v in os.getloadavg())})")
     targets.check(f"lost in space {a:.1f} ms <= the solver alone on the image {b:.1f} ms", a <= b,
                   informational="wall clock on a shared machine")
+    sep = max((m[0] for m in mirrored), default=math.inf)
+    roll = max((m[1] for m in mirrored), default=math.inf)
+    print(f"   mirrored (columns reversed): {len(mirrored)}/{len(attitudes)} frames solved and said mirrored; largest "
+          f"difference from the frame's own attitude {sep:.2f} arcsec boresight, {roll:.4f} deg roll")
+    targets.check(f"mirrored frames {len(mirrored)}/{len(attitudes)} solved and said mirrored, same attitude within "
+                  f"1 arcsec ({sep:.2f}) and 0.001 deg ({roll:.4f})",
+                  len(mirrored) == len(attitudes) and sep <= 1.0 and roll <= 0.001)
 
 
 def main(argv: list[str] | None = None) -> int:

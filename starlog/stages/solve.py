@@ -341,7 +341,7 @@ def solve_log(
     options : dict, optional
         Fields of :class:`starlog.attitude.identify.TrackerSettings` (match_radius, min_matches, min_stars,
         fov_deg, focal_px, distortion, fit_distortion, brightest, timeout_ms, try_mirrored, tracking,
-        max_magnitude) and ``camera`` (``"auto"``: a simulated sky field's camera from the simulator's
+        max_magnitude, reject) and ``camera`` (``"auto"``: a simulated sky field's camera from the simulator's
         provenance, else fitted; ``"fit"``).
     start, end : str or int, optional
         Only the range ``start <= log_time < end`` (``frame:N`` counts the first centroid channel).
