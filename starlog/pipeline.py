@@ -1,7 +1,9 @@
 """``starlog run``: replay a log through several stages from one TOML config file.
 
-A config has one table per stage, run in the order centroid → track → compensate; a stage
-whose table is absent is skipped. Each stage writes a layer (:mod:`starlog.io.chain`) on the
+A config has one table per stage, run in the order centroid → track → compensate → solve; a
+stage whose table is absent is skipped (``[solve]``: ``centroids``, methods or ``"all"``, and
+``[solve.options]``, the options of :func:`starlog.stages.solve.solve_log`; it needs the optional
+cedar-solve, ``pip install 'starlog[solve]'``). Each stage writes a layer (:mod:`starlog.io.chain`) on the
 one before it: ``run LOG -o OUT.mcap`` writes ``OUT.1-centroid.mcap``, ``OUT.2-track-NONE.mcap``,
 ... and the last stage's layer as ``OUT.mcap`` itself, each file the bytes the stage run alone
 with the same options and output name gives; reading ``OUT.mcap`` reads the whole chain. With
@@ -78,6 +80,7 @@ _STAGE_KEYS: dict[str, set[str]] = {
     "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad", "psf", "phase_correction"},
     "track": {"methods", "models", "tracker", "motion"},
     "compensate": {"tracks", "rates", "protocols", "options"},
+    "solve": {"centroids", "options"},
 }
 
 
@@ -90,6 +93,7 @@ class PipelineConfig:
     centroid: dict[str, Any] | None = None
     track: dict[str, Any] | None = None
     compensate: dict[str, Any] | None = None
+    solve: dict[str, Any] | None = None
     source: str = "<default>"
     stages: tuple[CustomStageConfig, ...] = ()
     builtin: bool = False
@@ -103,8 +107,8 @@ class PipelineConfig:
         unknown = sorted(set(data) - set(_STAGE_KEYS) - {"stages"})
         if unknown:
             raise InvalidParameterError(
-                f"{source}: unknown table(s) {unknown}; a pipeline config has [centroid], [track], [compensate] "
-                "and [stages.NAME] tables.")
+                f"{source}: unknown table(s) {unknown}; a pipeline config has [centroid], [track], [compensate], "
+                "[solve] and [stages.NAME] tables.")
         stages: dict[str, dict[str, Any] | None] = {}
         for stage, keys in _STAGE_KEYS.items():
             table = data.get(stage)
@@ -186,11 +190,22 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
         steps.append(("compensate", lambda i, o: compensate_log(
             i, o, rates=k["rates"], track=k.get("tracks", "all"), protocols=k.get("protocols", "all"),
             options=k.get("options"), skip_short=skip_short, show_progress=show_progress, **common).to_dict()))
+    if config.solve is not None:
+        v = config.solve
+        steps.append(("solve", lambda i, o: _solve_step(i, o, v, show_progress=show_progress, **common)))
     for custom in config.stages:
         steps.append((custom.label, lambda i, o, c=custom: run_stage(
             c.load(), i, o, options=c.options, input_topic=c.input, workers=workers, show_progress=show_progress,
             **common).to_dict()))
     return steps
+
+
+def _solve_step(source: LogSource, layer: Path, table: dict[str, Any], **keywords: Any) -> dict[str, Any]:
+    """The ``[solve]`` step (imported when it runs: the stage needs the optional cedar-solve)."""
+    from starlog.stages.solve import solve_log
+
+    return solve_log(source, layer, centroids=table.get("centroids", "all"), options=table.get("options"),
+                     **keywords).to_dict()
 
 
 def _frame_channel(config: PipelineConfig) -> tuple[Any, dict[str, Any]]:
@@ -200,6 +215,10 @@ def _frame_channel(config: PipelineConfig) -> tuple[Any, dict[str, Any]]:
         stage, options = centroid_log, {"image_topic": config.centroid.get("image_topic")}
     elif config.track is not None:
         stage, options = track_log, {"method": _list(config.track.get("methods", ["GAUSSFIT"]))[0]}
+    elif config.compensate is None and config.solve is not None:
+        from starlog.stages.solve import solve_log
+
+        stage, options = solve_log, {"centroids": config.solve.get("centroids", "all")}
     else:
         stage, options = compensate_log, {"track": (config.compensate or {}).get("tracks", "all")}
     return stage.frame_topic, options
@@ -357,6 +376,10 @@ def stage_line(stage: str, result: dict[str, Any]) -> str | None:
         models = ", ".join(f"{m} (track {v['brightest_track']}, NIS {v['mean_nis']:.2f})"
                            for m, v in result["models"].items())
         return f"track {result['method']}: brightest star under {models}"
+    if stage == "solve":
+        methods = ", ".join(f"{m} {v['solved']}/{v['frames']} solved, residual {v['residual_px']:.4f} px"
+                            for m, v in result["methods"].items())
+        return f"solve: {methods}"
     return None
 
 

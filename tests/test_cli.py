@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import importlib.util
 import inspect
 import json
 import pkgutil
@@ -171,6 +172,10 @@ QUIET_COMMANDS = {  # name: (arguments, writes a log, shows progress or status w
     "info": (["info", "trk.mcap"], False, False),
     "cat": (["cat", "sim.mcap", "--topic", "/sim/truth", "--limit", "2"], False, False),
 }
+HAS_SOLVER = importlib.util.find_spec("tetra3") is not None  # solve needs the optional cedar-solve
+if HAS_SOLVER:
+    QUIET_COMMANDS["solve"] = (["solve", "cen.mcap", "-o", "OUT.mcap", "--centroids", "NONE", "--end", "frame:2",
+                                "--set", "timeout_ms=50", "--set", "try_mirrored=false"], True, True)
 
 
 @pytest.fixture
@@ -188,7 +193,7 @@ def progress_bars_shown(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_every_command_with_quiet_is_covered() -> None:
     with_quiet = {name for name, command in cli.commands.items() if any(p.name == "quiet" for p in command.params)}
-    assert with_quiet == set(QUIET_COMMANDS) | {"experiment"}
+    assert with_quiet == set(QUIET_COMMANDS) | {"experiment"} | (set() if HAS_SOLVER else {"solve"})
 
 
 @pytest.mark.parametrize("name", sorted(QUIET_COMMANDS))

@@ -69,9 +69,14 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-from scipy.optimize import least_squares  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
+# the camera model, matching and plate solving live in starlog.attitude; the names below are also this
+# module's (the benchmark's tests and tools/bench_attitude.py use them from here)
+from starlog.attitude.camera import (  # noqa: E402, F401
+    Camera, camera_for_image, camera_from_pairs, fit_camera, initial_rotation, residual_rmse)
+from starlog.attitude.lost_in_space import load_solver, solve_lost_in_space  # noqa: E402
+from starlog.attitude.matching import isolated, match_nearest  # noqa: E402
+from starlog.attitude.rotation import radec_vectors  # noqa: E402, F401
 from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars  # noqa: E402
 from starlog.centroid.epsf import EPSF, epsf_from_frames  # noqa: E402
 from starlog.centroid.extract import window_half_size  # noqa: E402
@@ -270,48 +275,6 @@ def sep_positions(image: np.ndarray, threshold: float) -> dict[str, Positions]:
 
 # ----------------------------------------------------------------------------- camera model
 
-@dataclass(frozen=True)
-class Camera:
-    """Pinhole camera with one radial distortion term.
-
-    A unit vector ``v`` (catalogue frame) maps to ``u = rotation @ v``; the undistorted focal-plane
-    offsets are ``(parity * f u_x / u_z, f u_y / u_z)`` px from the principal point ``(cx, cy)``
-    (the image centre), scaled by ``1 + k r^2`` with r the offset in units of ``half_width``.
-    """
-
-    rotation: np.ndarray
-    focal: float
-    k: float
-    cx: float
-    cy: float
-    half_width: float
-    parity: float = 1.0
-
-    def project(self, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Pixel (x, y) of unit vectors (n, 3), and whether each is in front of the camera."""
-        u = vectors @ self.rotation.T
-        front = u[:, 2] > 1e-6
-        z = np.where(front, u[:, 2], 1.0)
-        xu = self.parity * self.focal * u[:, 0] / z
-        yu = self.focal * u[:, 1] / z
-        scale = 1.0 + self.k * (xu * xu + yu * yu) / (self.half_width * self.half_width)
-        return self.cx + xu * scale, self.cy + yu * scale, front
-
-
-def camera_for_image(shape: tuple[int, int], focal: float, *, parity: float = 1.0) -> Camera:
-    rows, cols = shape
-    return Camera(np.eye(3), float(focal), 0.0, (cols - 1) / 2.0, (rows - 1) / 2.0, cols / 2.0, parity)
-
-
-def initial_rotation(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Best proper rotation taking catalogue vectors onto the pixels' undistorted view directions (Kabsch)."""
-    p = np.column_stack([cam.parity * (x - cam.cx), y - cam.cy, np.full(x.size, cam.focal)])
-    p /= np.linalg.norm(p, axis=1)[:, None]
-    u, _, vt = np.linalg.svd(vectors.T @ p)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-
-
 def plate_basis(x: np.ndarray, y: np.ndarray, cam: Camera, order: int) -> np.ndarray:
     """Monomials u^i v^j, i + j <= order, of the offsets (u, v) from the image centre in half-widths."""
     u, v = (x - cam.cx) / cam.half_width, (y - cam.cy) / cam.half_width
@@ -325,70 +288,7 @@ def without_plate_terms(res: np.ndarray, basis: np.ndarray) -> np.ndarray:
     return res - basis @ np.linalg.lstsq(basis, res, rcond=None)[0]
 
 
-def fit_camera(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray, *,
-               fit_distortion: bool = True) -> Camera:
-    """Least-squares refit of the rotation, focal length (and distortion) to observed pixels."""
-
-    def unpack(p: np.ndarray) -> Camera:
-        rot = Rotation.from_rotvec(p[:3]).as_matrix() @ cam.rotation
-        return replace(cam, rotation=rot, focal=cam.focal * (1.0 + p[3]), k=p[4] if fit_distortion else cam.k)
-
-    def residuals(p: np.ndarray) -> np.ndarray:
-        px, py, _ = unpack(p).project(vectors)
-        return np.concatenate([px - x, py - y])
-
-    start = np.array([0.0, 0.0, 0.0, 0.0, cam.k])
-    fit = least_squares(residuals if fit_distortion else (lambda p: residuals(np.append(p, cam.k))),
-                        start if fit_distortion else start[:4], x_scale=1e-3, method="lm")
-    return unpack(fit.x if fit_distortion else np.append(fit.x, cam.k))
-
-
-def camera_from_pairs(shape: tuple[int, int], focal: float, vectors: np.ndarray, x: np.ndarray,
-                      y: np.ndarray) -> Camera:
-    """The camera fitted to matched (catalogue vector, pixel) pairs; both parities tried, the better kept."""
-    best, best_rms = None, np.inf
-    for parity in (1.0, -1.0):
-        cam = camera_for_image(shape, focal, parity=parity)
-        cam = replace(cam, rotation=initial_rotation(cam, vectors, x, y))
-        cam = fit_camera(cam, vectors, x, y)
-        rms = residual_rmse(cam, vectors, x, y)
-        if rms < best_rms:
-            best, best_rms = cam, rms
-    assert best is not None
-    return best
-
-
-def residual_rmse(cam: Camera, vectors: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
-    """Per-axis RMS of the residuals, px: sqrt(mean(dx^2 + dy^2) / 2)."""
-    px, py, _ = cam.project(vectors)
-    return float(np.sqrt(np.mean((px - x) ** 2 + (py - y) ** 2) / 2.0))
-
-
 # ----------------------------------------------------------------------------- matching
-
-def match_nearest(cat_x: np.ndarray, cat_y: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float) -> np.ndarray:
-    """Greedy one-to-one nearest matching: the index of the detection per catalogue star (-1: none)."""
-    out = np.full(cat_x.size, -1)
-    if x.size == 0 or cat_x.size == 0:
-        return out
-    d = np.hypot(x[None, :] - cat_x[:, None], y[None, :] - cat_y[:, None])
-    used = np.zeros(x.size, bool)
-    for i in np.argsort(d.min(axis=1)):
-        j = int(np.argmin(np.where(used, np.inf, d[i])))
-        if d[i, j] <= radius:
-            out[i] = j
-            used[j] = True
-    return out
-
-
-def isolated(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
-    """True for points with no other point closer than ``distance``."""
-    if x.size < 2:
-        return np.ones(x.size, bool)
-    d = np.hypot(x[None, :] - x[:, None], y[None, :] - y[:, None])
-    np.fill_diagonal(d, np.inf)
-    return d.min(axis=1) >= distance
-
 
 @dataclass(frozen=True)
 class FrameComparison:
@@ -445,51 +345,13 @@ def field_stars(cam: Camera, catalogue: np.ndarray, shape: tuple[int, int], *, m
 
 # ----------------------------------------------------------------------------- plate solving
 
-def radec_vectors(ra_deg: np.ndarray, dec_deg: np.ndarray) -> np.ndarray:
-    ra, dec = np.radians(ra_deg), np.radians(dec_deg)
-    return np.column_stack([np.cos(ra) * np.cos(dec), np.sin(ra) * np.cos(dec), np.sin(dec)])
-
-
-def load_solver():
-    """cedar-solve's Tetra3 with its shipped database (no download)."""
-    import numpy
-
-    if not hasattr(numpy, "math"):  # cedar-solve 0.5 calls np.math.factorial, gone in NumPy 2
-        numpy.math = math
-    import tetra3
-
-    return tetra3.Tetra3()
-
-
 def solve_frame(solver, positions: Positions, shape: tuple[int, int], *, brightest: int = 50,
                 timeout_ms: int = 10000) -> Camera | None:
-    """Lost-in-space solve from the brightest centroids; the camera fitted to the solver's matches.
-
-    Solved without distortion first (fast, and the solver's distortion estimate from its coarse
-    matches can be off), with a searched distortion range when that fails. The solver's own
-    matches use a radius of 1 % of the image width and may hold mismatches: :func:`refine_camera`
-    re-matches before any comparison. cedar-solve 0.5 raises an IndexError when a candidate pattern
-    leaves no catalogue star in the field (its empty list of nearby stars, sorted, is a float array):
-    that attempt counts as unsolved.
-    """
-    order = np.argsort(-positions.flux)[:brightest]
-    # the solver's pixel convention puts (0.5, 0.5) at the top-left pixel's centre, (y, x) order
-    yx = np.column_stack([positions.y[order] + 0.5, positions.x[order] + 0.5])
-    for distortion in (0.0, (-0.2, 0.1)):
-        try:
-            sol = solver.solve_from_centroids(yx, size=shape, distortion=distortion, return_matches=True,
-                                              match_threshold=1e-7, solve_timeout=timeout_ms)
-        except IndexError:
-            continue
-        if sol.get("RA") is not None:
-            break
-    else:
-        return None
-    stars = np.asarray(sol["matched_stars"], np.float64)
-    yx_m = np.asarray(sol["matched_centroids"], np.float64)
-    focal = shape[1] / 2.0 / math.tan(math.radians(float(sol["FOV"])) / 2.0)
-    return camera_from_pairs(shape, focal, radec_vectors(stars[:, 0], stars[:, 1]), yx_m[:, 1] - 0.5,
-                             yx_m[:, 0] - 0.5)
+    """Lost-in-space solve from the brightest centroids; the camera fitted to the solver's matches
+    (:func:`starlog.attitude.lost_in_space.solve_lost_in_space`). The solver's own matches use a radius of 1 %
+    of the image width and may hold mismatches: :func:`refine_camera` re-matches before any comparison."""
+    return solve_lost_in_space(positions.x, positions.y, positions.flux, shape, brightest=brightest,
+                               timeout_ms=timeout_ms, solver=solver).camera
 
 
 def refine_camera(cam: Camera, vectors: np.ndarray, magnitudes: np.ndarray, positions: Positions, *,

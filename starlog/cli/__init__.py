@@ -4,7 +4,7 @@ Every command has ``--help`` with an example; commands that print results accept
 Errors starlog raises on purpose are printed as one sentence with exit status 1.
 
 One module per group of commands, each command a call of the library: :mod:`~starlog.cli.logs`
-(simulate, ingest), :mod:`~starlog.cli.stages` (centroid, track, motion, compensate, and the
+(simulate, ingest), :mod:`~starlog.cli.stages` (centroid, track, motion, compensate, solve, and the
 command of each installed stage), :mod:`~starlog.cli.pipeline` (run, experiment),
 :mod:`~starlog.cli.inspect` (info, cat, export, report) and :mod:`~starlog.cli.maintain`
 (filter, flatten, recover, verify); the options they share are in :mod:`~starlog.cli.options`.
@@ -25,7 +25,7 @@ from starlog.cli.logs import ingest, simulate
 from starlog.cli.maintain import filter_command, flatten, recover, verify
 from starlog.cli.options import CONTEXT
 from starlog.cli.pipeline import experiment, run
-from starlog.cli.stages import centroid, compensate, motion, stage_command, track
+from starlog.cli.stages import centroid, compensate, motion, solve, stage_command, track
 from starlog.errors import StarlogError
 
 __all__ = ["cli", "main"]
@@ -83,7 +83,7 @@ def cli() -> None:
     """
 
 
-for _command in (simulate, ingest, info, export, centroid, track, motion, compensate, run, experiment,
+for _command in (simulate, ingest, info, export, centroid, track, motion, compensate, solve, run, experiment,
                  filter_command, cat, report_command, recover, verify, flatten):
     cli.add_command(_command)
 

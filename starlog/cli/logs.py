@@ -93,6 +93,17 @@ def _psf_shape(psf_model: str, psf_fwhm: float, moffat_beta: float, airy_lambda_
 @click.option("--random-walk", type=float, default=0.0, show_default=True, help="Platform random walk, px/sqrt(s).")
 @click.option("--roll", metavar="FREQ:AMP", help="Platform roll about the image centre, FREQ_HZ:AMPLITUDE_RAD "
                                                "(sinusoidal), e.g. 2:0.001. Default: none.")
+@click.option("--sky-attitude", metavar="RA,DEC,ROLL",
+              help="Render the real sky: the catalogue stars (cedar-solve's Hipparcos table; pip install "
+                   "'starlog[solve]') seen at this attitude, degrees (roll: north from the image's up, counter-"
+                   "clockwise); --stars and --flux are then unused, platform motion turns the camera and the true "
+                   "attitude goes to /sim/truth.")
+@click.option("--fov", "fov_deg", type=float, default=12.0, show_default=True,
+              help="With --sky-attitude: horizontal field of view, degrees.")
+@click.option("--mag-limit", type=float, default=6.5, show_default=True,
+              help="With --sky-attitude: faintest catalogue magnitude rendered.")
+@click.option("--flux-mag6", type=float, default=20000.0, show_default=True,
+              help="With --sky-attitude: signal of a magnitude-6 star, e-/frame.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--start-ns", type=click.IntRange(0), default=0, show_default=True, help="log_time of frame 0.")
 @write_options
@@ -100,7 +111,8 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
              n_frames: int | None, duration: float | None, psf_sigma: float, psf_model: str, psf_fwhm: float,
              moffat_beta: float, airy_lambda_d: float, airy_zero: float, sky: float, read_noise: float,
              gain: float, bias: float, adc_bits: int, hot_pixels: int, cosmic_rays: float, jitter: tuple[str, ...],
-             drift: str, random_walk: float, roll: str | None, seed: int, start_ns: int, force: bool,
+             drift: str, random_walk: float, roll: str | None, sky_attitude: str | None, fov_deg: float,
+             mag_limit: float, flux_mag6: float, seed: int, start_ns: int, force: bool,
              compression: str, workers: int, quiet: bool) -> None:
     """Write a simulated star-camera log.
 
@@ -113,18 +125,24 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
     Example:
       starlog simulate -o sim.mcap --frames 600 --jitter 25:0.05 --seed 7
       starlog simulate -o paper300.mcap --preset paper300 --size 128x128
+      starlog simulate -o sky.mcap --size 512x512 --sky-attitude 80,20,30 --fov 10 --jitter 5:0.5
     """
-    from starlog.sim import CameraModel, SimulationConfig
+    from starlog.sim import CameraModel, SimulationConfig, Simulator
     from starlog.stages import simulate_log
 
+    params: dict[str, Any] = {}
     try:
         width, height = (int(v) for v in size.lower().split("x"))
         flux_min, flux_max = (float(v) for v in flux.split(":"))
         drift_x, drift_y = (float(v) for v in drift.split(","))
         roll_hz, roll_rad = (float(v) for v in roll.split(":")) if roll else (1.0, 0.0)
+        attitude = tuple(float(v) for v in sky_attitude.split(",")) if sky_attitude else None
     except ValueError as err:
-        raise click.BadParameter(f"{err}; see --help for the formats of --size, --flux, --drift and --roll.")
-    params = _timing(preset, fps, n_frames, duration)
+        raise click.BadParameter(f"{err}; see --help for the formats of --size, --flux, --drift, --roll and "
+                                 "--sky-attitude.")
+    if attitude is not None:
+        params.update(sky_attitude=attitude, fov_deg=fov_deg, magnitude_limit=mag_limit, flux_mag6=flux_mag6)
+    params.update(_timing(preset, fps, n_frames, duration))
     camera = CameraModel(read_noise=read_noise, gain=gain, bias=bias, adc_bits=adc_bits)
     params.update(_psf_shape(psf_model, psf_fwhm, moffat_beta, airy_lambda_d, airy_zero))
     config = SimulationConfig(width=width, height=height, n_stars=n_stars, flux_min=flux_min, flux_max=flux_max,
@@ -133,8 +151,9 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
                               drift_px_per_s=(drift_x, drift_y), random_walk_px_per_sqrt_s=random_walk,
                               roll_amplitude_rad=roll_rad, roll_frequency_hz=roll_hz, seed=seed, start_time_ns=start_ns, **params)
     simulate_log(config, output, compression=compression, workers=workers, force=force, show_progress=not quiet)
+    stars = n_stars if attitude is None else f"{Simulator(config).field.x.size} catalogue"
     echo_status(quiet, f"wrote {output}: {config.n_frames} frames of {width}x{height} at {config.fps:g} Hz, "
-                       f"{n_stars} stars")
+                       f"{stars} stars")
 
 
 @click.command(context_settings=CONTEXT)

@@ -62,7 +62,7 @@ def _skipped_note(skipped: list[dict[str, Any]]) -> str:
 def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, print_config: bool, full_table: bool,
         start: str | None, end: str | None, scheduler: str | None, as_json: bool, flatten: bool, force: bool,
         compression: str, workers: int, quiet: bool) -> None:
-    """Replay logs through several stages (centroid, track, compensate) from one config file.
+    """Replay logs through several stages (centroid, track, compensate, solve) from one config file.
 
     Each stage's parameters come from its table in the TOML config; your own stages run after
     them from [stages.NAME] tables (uses = "module:function"). Each stage writes a layer on the

@@ -120,6 +120,19 @@ def _decision_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]
                "kept": p["kept"]}
 
 
+def _attitude_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    """A frame's attitude: the quaternion in four columns, the attitude error NaN without a true attitude."""
+    qx, qy, qz, qw = msg["quaternion"]
+    nan = float("nan")
+    yield {"log_time": log_time, **msg, "qx": qx, "qy": qy, "qz": qz, "qw": qw,
+           **{k: msg.get(k, nan) for k in ("error_x_arcsec", "error_y_arcsec", "error_roll_arcsec")}}
+
+
+def _identified_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
+    for star in msg["stars"]:
+        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], **star}
+
+
 def _topic_is(topic: str) -> Callable[[ChannelSummary], bool]:
     return lambda ch: ch.topic == topic
 
@@ -139,6 +152,8 @@ TABLES: tuple[TableSpec, ...] = (
     TableSpec("residuals", _schema_is("starlog.StarResiduals"), _residual_rows),
     TableSpec("compensation", _schema_is("starlog.CompensatedSample"), _series_rows),
     TableSpec("decisions", _schema_is("starlog.CompensationRecord"), _decision_rows),
+    TableSpec("attitude", _schema_is("starlog.Attitude"), _attitude_rows),
+    TableSpec("identified", _schema_is("starlog.IdentifiedStars"), _identified_rows),
 )
 
 

@@ -42,7 +42,7 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "channels": channels,
             "provenance": [p.to_dict() for p in log.provenance()],
             "notes": list(log.notes),
-        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log)
+        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log) | _solve_summaries(log)
 
 
 def _file_description(file: McapFile) -> dict[str, Any]:
@@ -97,6 +97,42 @@ def evidence_summaries(log: LogReader) -> dict[str, Any]:
         except (KeyError, ValueError) as err:
             out.append({"error": f"unreadable centroid-evidence record: {err!r}"})
     return {"centroid_evidence": out} if out else {}
+
+
+def _solve_summaries(log: LogReader) -> dict[str, Any]:
+    """``{"solve": [...]}``: each ``starlog solve`` run's figures per centroid method
+    (:data:`starlog.io.topics.SOLVE_METADATA`); none: {}."""
+    out = []
+    for _, meta in log.metadata(topics.SOLVE_METADATA):
+        try:
+            out.append({"methods": json.loads(meta["methods"])})
+        except (KeyError, ValueError) as err:
+            out.append({"error": f"unreadable solve record: {err!r}"})
+    return {"solve": out} if out else {}
+
+
+def _solve_lines(records: list[dict[str, Any]]) -> list[str]:
+    """Per centroid method: frames solved, stars matched, catalogue residuals, the fitted camera, the attitude
+    error against the truth when known."""
+    lines = []
+    for r in records:
+        if "error" in r:
+            lines.append(f"solve      {r['error']}")
+            continue
+        lines.append("solve      per centroid method: frames solved, stars matched / frame, catalogue residual RMS "
+                     "px (arcsec), camera focal length px, field of view deg, distortion k")
+        for method, m in r["methods"].items():
+            cam = m["camera"]
+            lines.append(f"           {method:<10} {m['solved']}/{m['frames']}  {m['matched_per_frame']:.1f}  "
+                         f"{m['residual_px']:.4f} ({m['residual_arcsec']:.2f})  {cam['focal_px']:.1f}  "
+                         f"{cam['fov_deg']:.4f}  {cam['distortion']:+.5f}")
+            e = m.get("attitude_error")
+            if e:
+                a = e["rms_arcsec"]
+                lines.append(f"           {'':<10} attitude error RMS arcsec x {a['x']:.3f}, y {a['y']:.3f}, roll "
+                             f"{a['roll']:.2f}; / q-method sigma: cross-boresight {e['ratio']['cross_boresight']:.2f}, "
+                             f"roll {e['ratio']['roll']:.2f}")
+    return lines
 
 
 def _px(value: Any, width: int = 9) -> str:
@@ -204,4 +240,5 @@ def format_description(info: dict[str, Any]) -> str:
                          f"(grid {e['grid'][0]}x{e['grid'][1]}), {e['n_stars']} stars, FWHM {e['fwhm_px']:.3f} px")
     lines += _phase_lines(info.get("phase_correction", []))
     lines += evidence_lines(info.get("centroid_evidence", []))
+    lines += _solve_lines(info.get("solve", []))
     return "\n".join(lines)

@@ -14,6 +14,9 @@ topic                                     schema                       written b
 ``/stars/residuals/<METHOD>/<MODEL>``     starlog.StarResiduals        motion
 ``/compensated/<METHOD>/<MODEL>/<R>Hz``   starlog.CompensatedSample    compensate
 ``/compensated/<METHOD>/<MODEL>/decisions``  starlog.CompensationRecord  compensate
+``/attitude/<METHOD>``                    starlog.Attitude             solve
+``/stars/identified/<METHOD>``            starlog.IdentifiedStars      solve
+``/stars/identified/<METHOD>/annotations``  foxglove.ImageAnnotations  solve
 ========================================  ===========================  ======================
 """
 
@@ -31,8 +34,13 @@ __all__ = [
     "residuals_topic",
     "compensated_topic",
     "decisions_topic",
+    "attitude_topic",
+    "identified_topic",
+    "identified_annotations_topic",
     "EPSF_METADATA",
     "PHASE_METADATA",
+    "EVIDENCE_METADATA",
+    "SOLVE_METADATA",
 ]
 
 IMAGE = "/camera/image"
@@ -52,6 +60,10 @@ PHASE_METADATA = "starlog.phase_correction"
 #: Name of the metadata record holding the evidence on which centroid method to trust, and the method
 #: recommended (:mod:`starlog.centroid.evidence`): ``methods`` (JSON), ``recommended``, ``reason``.
 EVIDENCE_METADATA = "starlog.centroid_evidence"
+
+#: Name of the metadata record of a ``starlog solve`` run: ``methods`` (JSON), per centroid method the frames
+#: solved, the catalogue residuals, the fitted camera and, on simulated sky, the attitude error.
+SOLVE_METADATA = "starlog.solve"
 
 
 def centroid_topic(method: str) -> str:
@@ -82,3 +94,18 @@ def compensated_topic(method: str, model: str, rate_hz: float, protocol: str) ->
 def decisions_topic(method: str, model: str) -> str:
     """``/compensated/<METHOD>/<MODEL>/decisions``: one decision record per (rate, protocol)."""
     return f"/compensated/{method}/{model}/decisions"
+
+
+def attitude_topic(method: str) -> str:
+    """``/attitude/<METHOD>``: the attitude solved from ``/stars/centroids/<METHOD>``."""
+    return f"/attitude/{method}"
+
+
+def identified_topic(method: str) -> str:
+    """``/stars/identified/<METHOD>``: the catalogue stars identified among ``/stars/centroids/<METHOD>``."""
+    return f"/stars/identified/{method}"
+
+
+def identified_annotations_topic(method: str) -> str:
+    """``/stars/identified/<METHOD>/annotations``: circles and catalogue labels of the identified stars."""
+    return f"/stars/identified/{method}/annotations"

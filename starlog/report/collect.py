@@ -23,6 +23,7 @@ from starlog.io.info import evidence_summaries
 from starlog.io.provenance import Provenance
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.io.topics import FRAME_INFO
+from starlog.report.attitude import AttitudeSeries, read_attitude
 
 __all__ = ["MAX_SERIES_SAMPLES", "MAX_TRACK_SAMPLES", "ErrorSeries", "FrameView", "ReportData", "TrackPaths",
            "collect_report_data"]
@@ -91,6 +92,8 @@ class ReportData:
     notes: list[str] = field(default_factory=list)
     #: the centroid stage's records of which method to trust (``starlog info``'s ``centroid_evidence``)
     evidence: list[dict[str, Any]] = field(default_factory=list)
+    #: ``starlog solve``'s attitude channels, by centroid method
+    attitude: dict[str, AttitudeSeries] = field(default_factory=dict)
 
     @property
     def primary_records(self) -> list[dict[str, Any]]:
@@ -258,4 +261,5 @@ def collect_report_data(path: str | os.PathLike[str]) -> ReportData:
                                          "`starlog compensate` makes them from a track channel.")
         data.notes.extend(log.notes)
         data.evidence = evidence_summaries(log).get("centroid_evidence", [])
+        data.attitude = read_attitude(log, channels, data.time_range[0])
     return data

@@ -1,5 +1,6 @@
 """The report of one log: its frame and centroids, tracks, the brightest star's error and spectrum, the
-error decomposition, compensation before/after per protocol, the strategy decisions and the provenance."""
+error decomposition, compensation before/after per protocol, the strategy decisions, the attitude per centroid
+method and the provenance."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from starlog.errors import OutputExistsError
+from starlog.report.attitude import attitude_section
 from starlog.report.collect import ReportData, collect_report_data
 from starlog.report.page import Raw, figure, html_page, missing, table
 from starlog.report.figures import PALETTE, Bars, Series, bar_chart, frame_figure, line_chart
@@ -229,6 +231,9 @@ def render_report(data: ReportData) -> str:
         ("decisions", "Strategy decisions", _decisions_section(data)),
         ("provenance", "Provenance of every stage", _provenance_section(data)),
     ]
+    if data.attitude:  # solve is optional (it needs cedar-solve): its section only where it ran
+        sections.insert(-1, ("attitude", "Attitude and catalogue residuals per centroid method",
+                             attitude_section(data.attitude)))
     return html_page(f"starlog report: {data.path.name}", f"{escape(str(data.path))}", sections)
 
 

@@ -12,6 +12,10 @@ Physics per frame ``n`` at time ``t = n / fps``:
 4. the camera (:class:`~starlog.sim.camera.CameraModel`) applies Poisson shot noise, read
    noise, gain, bias, quantisation and ADC saturation.
 
+With ``sky_attitude`` the field is the real sky instead: the catalogue's stars projected through a
+gnomonic camera at that attitude, and the platform motion turns the camera (its offset moves the
+boresight, its roll turns it about the boresight), each frame's attitude kept as the truth.
+
 Every random draw comes from generators seeded by ``(seed, purpose, frame)``, so a frame does
 not depend on the frames before it (frames can be rendered in parallel) and the same
 configuration always gives the same frames.
@@ -20,7 +24,7 @@ configuration always gives the same frames.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -104,6 +108,21 @@ class SimulationConfig:
         Platform roll ``roll_amplitude_rad * sin(2π roll_frequency_hz t)`` about the image centre
         ``((width - 1) / 2, (height - 1) / 2)``, counter-clockwise in (x, y) = (column, row).
         0 (default): no roll.
+    sky_attitude : (float, float, float) or None
+        ``(ra, dec, roll)`` in degrees: render the real sky instead of a random field. The stars are
+        the catalogue's (cedar-solve's Hipparcos star table, :mod:`starlog.attitude.catalogue`) of
+        magnitude <= ``magnitude_limit`` seen by a gnomonic camera of horizontal field of view
+        ``fov_deg`` at that attitude (:mod:`starlog.attitude.rotation`'s convention), at least
+        ``margin`` px inside the frame; ``n_stars``, ``flux_min`` and ``flux_max`` are then unused.
+        Platform motion becomes a rotation of the camera: the offset ``(dx, dy)`` turns the boresight
+        towards the pixel offset from the centre, the roll turns it about the boresight, and every
+        star is projected through the frame's attitude, recorded as the truth.
+    fov_deg : float
+        Horizontal field of view of the sky camera, degrees.
+    magnitude_limit : float
+        Faintest catalogue magnitude rendered.
+    flux_mag6 : float
+        Signal of a magnitude-6 star, photo-electrons per frame (``flux_mag6 * 10**(-0.4 (mag - 6))``).
     seed : int
         Seed of every random draw.
     """
@@ -132,6 +151,10 @@ class SimulationConfig:
     margin: float = 10.0
     roll_amplitude_rad: float = 0.0
     roll_frequency_hz: float = 1.0
+    sky_attitude: tuple[float, float, float] | None = None
+    fov_deg: float = 12.0
+    magnitude_limit: float = 6.5
+    flux_mag6: float = 20_000.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -160,6 +183,10 @@ class SimulationConfig:
              f"roll_amplitude_rad must be within -0.1..0.1 rad, got {self.roll_amplitude_rad}.")
         need(self.roll_frequency_hz > 0 and np.isfinite(self.roll_frequency_hz),
              f"roll_frequency_hz must be > 0, got {self.roll_frequency_hz}.")
+        need(0.5 <= self.fov_deg <= 90 and self.flux_mag6 > 0,
+             f"need fov_deg within 0.5..90 and flux_mag6 > 0, got {self.fov_deg}, {self.flux_mag6}.")
+        need(self.sky_attitude is None or len(self.sky_attitude) == 3,
+             f"sky_attitude is (ra, dec, roll) in degrees, got {self.sky_attitude!r}.")
         need(2 * self.margin < min(self.width, self.height),
              f"margin {self.margin} px leaves no room for stars in a {self.width}x{self.height} frame.")
 
@@ -188,6 +215,11 @@ class SimulationConfig:
         if self.psf_model == "gaussian":
             for key in ("psf_model", "psf_fwhm", "moffat_beta", "airy_lambda_d"):
                 d.pop(key)
+        if self.sky_attitude is None:
+            for key in ("sky_attitude", "fov_deg", "magnitude_limit", "flux_mag6"):
+                d.pop(key)
+        else:
+            d["sky_attitude"] = [float(v) for v in self.sky_attitude]
         d["jitter"] = [asdict(j) for j in self.jitter]
         d["drift_px_per_s"] = list(self.drift_px_per_s)
         return d
@@ -199,6 +231,8 @@ class SimulationConfig:
         d["camera"] = CameraModel(**d.get("camera", {}))
         d["jitter"] = tuple(Jitter(**j) for j in d.get("jitter", ()))
         d["drift_px_per_s"] = tuple(d.get("drift_px_per_s", (0.0, 0.0)))
+        if d.get("sky_attitude") is not None:
+            d["sky_attitude"] = tuple(d["sky_attitude"])
         return cls(**d)
 
 
@@ -211,11 +245,15 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 @dataclass(frozen=True)
 class StarField:
-    """Fixed star positions (px) and fluxes (e⁻), one entry per star id."""
+    """Fixed star positions (px) and fluxes (e⁻), one entry per star id; for a sky field, also each star's
+    catalogue number, magnitude and sky unit vector."""
 
     x: npt.NDArray[np.float64]
     y: npt.NDArray[np.float64]
     flux: npt.NDArray[np.float64]
+    catalogue_id: npt.NDArray[np.int64] | None = None
+    magnitude: npt.NDArray[np.float64] | None = None
+    vectors: npt.NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)
@@ -235,6 +273,7 @@ class SimulatedFrame:
     platform_dx: float
     platform_dy: float
     platform_roll: float = 0.0
+    attitude: npt.NDArray[np.float64] | None = None  # sky fields: the true attitude matrix (sky -> camera)
 
 
 class Simulator:
@@ -251,10 +290,13 @@ class Simulator:
         self.config = config
         rng = np.random.default_rng([config.seed, _SEED_FIELD])
         c = config
-        x = rng.uniform(c.margin, c.width - 1 - c.margin, c.n_stars)
-        y = rng.uniform(c.margin, c.height - 1 - c.margin, c.n_stars)
-        flux = np.exp(rng.uniform(np.log(c.flux_min), np.log(c.flux_max), c.n_stars))
-        self.field = StarField(x=x, y=y, flux=flux)
+        if c.sky_attitude is not None:
+            self.field = sky_field(c)
+        else:
+            x = rng.uniform(c.margin, c.width - 1 - c.margin, c.n_stars)
+            y = rng.uniform(c.margin, c.height - 1 - c.margin, c.n_stars)
+            flux = np.exp(rng.uniform(np.log(c.flux_min), np.log(c.flux_max), c.n_stars))
+            self.field = StarField(x=x, y=y, flux=flux)
         jrng = np.random.default_rng([config.seed, _SEED_JITTER])
         self._jitter_phase = jrng.uniform(0, 2 * np.pi, (len(c.jitter), 2))
         hrng = np.random.default_rng([config.seed, _SEED_HOT])
@@ -288,9 +330,20 @@ class Simulator:
         c = self.config
         return float(c.roll_amplitude_rad * np.sin(2 * np.pi * c.roll_frequency_hz * frame / c.fps))
 
+    def true_attitude(self, frame: int) -> npt.NDArray[np.float64] | None:
+        """Sky fields: the frame's attitude matrix (sky → camera), the platform's rotation applied to the
+        configured attitude (:class:`SimulationConfig`); None for a random field."""
+        if self.config.sky_attitude is None:
+            return None
+        dx, dy = self.platform_offset(frame)
+        return platform_attitude(self.config, dx, dy, self.platform_roll(frame))
+
     def true_positions(self, frame: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """Instantaneous true star positions ``(x, y)`` at frame ``frame``, px."""
         c = self.config
+        if c.sky_attitude is not None:
+            x, y, _ = sky_camera(c, self.true_attitude(frame)).project(self.field.vectors)
+            return x, y
         dx, dy = self.platform_offset(frame)
         if c.roll_amplitude_rad == 0:
             return self.field.x + dx, self.field.y + dy
@@ -348,6 +401,7 @@ class Simulator:
             platform_dx=dx,
             platform_dy=dy,
             platform_roll=self.platform_roll(frame),
+            attitude=self.true_attitude(frame),
         )
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[SimulatedFrame]:
@@ -355,3 +409,50 @@ class Simulator:
         stop = self.config.n_frames if stop is None else stop
         for n in range(start, stop):
             yield self.render(n)
+
+
+# ---------------------------------------------------------------- sky fields
+def sky_camera(config: SimulationConfig, attitude: npt.NDArray[np.float64]) -> Any:
+    """The gnomonic camera (:class:`starlog.attitude.camera.Camera`) of a sky field at ``attitude``."""
+    from starlog.attitude.camera import camera_for_image, focal_from_fov
+
+    camera = camera_for_image((config.height, config.width), focal_from_fov(config.fov_deg, config.width))
+    return replace(camera, rotation=attitude)
+
+
+def platform_attitude(config: SimulationConfig, dx: float, dy: float, roll: float) -> npt.NDArray[np.float64]:
+    """The attitude of a sky field under platform motion: the configured attitude rolled by ``roll`` (rad,
+    counter-clockwise in (x, y) about the boresight), then turned so that the boresight's image moves by
+    ``(dx, dy)`` px."""
+    from starlog.attitude.camera import focal_from_fov
+    from starlog.attitude.rotation import attitude_from_radec_roll, small_rotation
+
+    assert config.sky_attitude is not None
+    base = attitude_from_radec_roll(*config.sky_attitude)
+    cos, sin = np.cos(roll), np.sin(roll)
+    rolled = np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]]) @ base
+    shift = float(np.hypot(dx, dy))
+    if shift == 0.0:
+        return rolled
+    angle = np.arctan2(shift, focal_from_fov(config.fov_deg, config.width))
+    return small_rotation(np.array([-dy, dx, 0.0]) / shift * angle) @ rolled
+
+
+def sky_field(config: SimulationConfig) -> StarField:
+    """The catalogue stars of a sky field (:class:`SimulationConfig`'s ``sky_attitude``) at its attitude."""
+    from starlog.attitude.catalogue import load_catalogue
+    from starlog.attitude.rotation import attitude_from_radec_roll
+
+    assert config.sky_attitude is not None
+    catalogue = load_catalogue()
+    attitude = attitude_from_radec_roll(*config.sky_attitude)
+    camera = sky_camera(config, attitude)
+    rows = catalogue.cone(attitude[2], config.fov_deg)
+    rows = rows[catalogue.magnitude[rows] <= config.magnitude_limit]
+    x, y, front = camera.project(catalogue.vectors[rows])
+    m = config.margin
+    inside = front & (x >= m) & (x <= config.width - 1 - m) & (y >= m) & (y <= config.height - 1 - m)
+    rows, x, y = rows[inside], x[inside], y[inside]
+    magnitude = catalogue.magnitude[rows]
+    return StarField(x=x, y=y, flux=config.flux_mag6 * 10.0 ** (-0.4 * (magnitude - 6.0)),
+                     catalogue_id=catalogue.ids[rows], magnitude=magnitude, vectors=catalogue.vectors[rows])

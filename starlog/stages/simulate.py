@@ -5,10 +5,12 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from starlog import __version__
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
+from starlog.attitude.rotation import quaternion_from_matrix, radec_roll
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.sim import SimulatedFrame, SimulationConfig, Simulator
 from starlog.stages._parallel import ordered_map, process_pool
@@ -46,20 +48,34 @@ def simulate_log(
             info = {"frame": frame.index, "width": config.width, "height": config.height, "encoding": "mono16",
                     "bit_depth": config.camera.adc_bits, "source": ""}
             log.write(info_ch, log_time=t, data=encode_json(info))
-            stars = [
-                {"star": i, "x": float(frame.x[i]), "y": float(frame.y[i]), "x_static": float(simulator.field.x[i]),
-                 "y_static": float(simulator.field.y[i]), "flux": float(frame.flux[i])}
-                for i in range(len(frame.x))
-            ]
-            truth = {"frame": frame.index, "platform_dx": frame.platform_dx, "platform_dy": frame.platform_dy,
-                     "stars": stars}
-            if config.roll_amplitude_rad:
-                truth["platform_roll"] = frame.platform_roll
-            log.write(truth_ch, log_time=t, data=encode_json(truth))
+            log.write(truth_ch, log_time=t, data=encode_json(_truth(config, simulator, frame)))
         provenance = Provenance(stage="simulate", version=__version__, parameters=config.to_dict(),
                                 channels=[topics.IMAGE, topics.FRAME_INFO, topics.TRUTH])
         log.add_metadata(PROVENANCE_METADATA_NAME, provenance.to_metadata())
     return Path(output)
+
+
+def _truth(config: SimulationConfig, simulator: Simulator, frame: SimulatedFrame) -> dict[str, Any]:
+    """The frame's ``/sim/truth`` record: true positions, platform motion, and for a sky field the true attitude
+    and each star's catalogue number and magnitude."""
+    field = simulator.field
+    stars = [
+        {"star": i, "x": float(frame.x[i]), "y": float(frame.y[i]), "x_static": float(field.x[i]),
+         "y_static": float(field.y[i]), "flux": float(frame.flux[i])}
+        for i in range(len(frame.x))
+    ]
+    if field.catalogue_id is not None and field.magnitude is not None:
+        for row, number, magnitude in zip(stars, field.catalogue_id.tolist(), field.magnitude.tolist()):
+            row["catalogue_id"], row["magnitude"] = int(number), float(magnitude)
+    truth: dict[str, Any] = {"frame": frame.index, "platform_dx": frame.platform_dx,
+                             "platform_dy": frame.platform_dy, "stars": stars}
+    if config.roll_amplitude_rad:
+        truth["platform_roll"] = frame.platform_roll
+    if frame.attitude is not None:
+        ra, dec, roll = radec_roll(frame.attitude)
+        truth["attitude"] = {"quaternion": quaternion_from_matrix(frame.attitude).tolist(), "ra_deg": ra,
+                             "dec_deg": dec, "roll_deg": roll}
+    return truth
 
 
 def _render_block(config: SimulationConfig, start: int, stop: int) -> list[SimulatedFrame]:

@@ -1,0 +1,367 @@
+"""The ``solve`` stage: star identities and the camera's attitude, frame by frame, from centroid channels.
+
+Reads ``/stars/centroids/<METHOD>`` (one or more methods, each solved on its own), identifies the
+stars in cedar-solve's Hipparcos catalogue and estimates the attitude with its covariance
+(:class:`starlog.attitude.identify.AttitudeTracker`: a lost-in-space plate solve, then tracking from the
+previous attitude, Davenport's q-method weighted by each centroid's sigma), and writes a layer holding
+
+* ``/attitude/<METHOD>`` (starlog.Attitude): quaternion, RA/Dec/roll, field of view, camera model,
+  stars matched, residual RMS in px and arcsec, the 3 x 3 covariance, solved or why not; on a
+  simulated sky field (``simulate --sky-attitude``) also the attitude error against the true attitude;
+* ``/stars/identified/<METHOD>`` (starlog.IdentifiedStars): per identified star its catalogue number and
+  magnitude, the catalogue position projected to pixels, and the residual;
+* ``/stars/identified/<METHOD>/annotations`` (foxglove.ImageAnnotations): a circle and the catalogue
+  number at each identified star, over the frames in Foxglove.
+
+A frame that cannot be solved (too few stars, no solution) is written with ``solved: false`` and the
+reason; nothing stops the log. The image size comes from ``/camera/frame``; on a simulated sky field the
+camera (field of view, no distortion) comes from the simulator's provenance unless ``camera = "fit"``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from starlog.attitude.camera import focal_from_fov
+from starlog.attitude.catalogue import Catalogue, load_catalogue, solver_data_file
+from starlog.attitude.identify import ARCSEC_PER_RAD, AttitudeTracker, FrameAttitude, TrackerSettings
+from starlog.attitude.rotation import attitude_error, matrix_from_quaternion, radec_roll
+from starlog.centroid.table import CentroidFlag
+from starlog.errors import InvalidInputError, InvalidParameterError
+from starlog.io import encode_json, json_message_type, protobuf_message_type, topics
+from starlog.io.reader import LogReader
+from starlog.stages._channels import check_messages_read
+from starlog.stages._progress import progress
+from starlog.stages._stage import StageOutput, extend_log
+from starlog.stages.window import windowed
+
+__all__ = ["SolveSummary", "select_centroid_channels", "solve_log", "tracker_settings"]
+
+
+def select_centroid_channels(log: LogReader, centroids: str | Sequence[str] | None) -> list[str]:
+    """Centroid channels named by ``centroids``: methods or topics (comma-separated or a list), ``"all"``, or
+    None for the only one."""
+    channels = [c.topic for c in log.channels() if c.schema_name == "starlog.Centroids"]
+    if not channels:
+        raise InvalidInputError(f"{log.path} has no centroid channel; run `starlog centroid` on it first.")
+    names = [] if centroids is None else (centroids.split(",") if isinstance(centroids, str) else list(centroids))
+    names = [n.strip() for n in names if n.strip()]
+    if not names:
+        if len(channels) == 1:
+            return channels
+        raise InvalidParameterError("the log has several centroid channels; choose with --centroids (or all): "
+                                    + ", ".join(channels))
+    if [n.lower() for n in names] == ["all"]:
+        return channels
+    chosen = []
+    for name in names:
+        topic = name if name.startswith("/") else topics.centroid_topic(name.upper())
+        if topic not in channels:
+            raise InvalidParameterError(f"{log.path} has no centroid channel {topic}; it has: {', '.join(channels)}.")
+        chosen.append(topic)
+    return chosen
+
+
+def tracker_settings(log: LogReader, options: dict[str, Any], width: int) -> TrackerSettings:
+    """:class:`TrackerSettings` from the stage's options (its fields, and ``camera``: ``"auto"``, the default,
+    takes a simulated sky field's camera from the simulator's provenance; ``"fit"`` fits it)."""
+    options = dict(options)
+    camera = options.pop("camera", "auto")
+    if camera not in ("auto", "fit"):
+        raise InvalidParameterError(f"camera must be 'auto' or 'fit', got {camera!r}.")
+    known = {f.name for f in fields(TrackerSettings)}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise InvalidParameterError(f"unknown solve option(s) {unknown}; known: {sorted(known | {'camera'})}.")
+    if camera == "auto" and "focal_px" not in options:
+        for record in log.provenance():
+            if record.stage == "simulate" and record.parameters.get("sky_attitude") is not None:
+                options["focal_px"] = focal_from_fov(float(record.parameters["fov_deg"]), width)
+                options.setdefault("distortion", 0.0)
+    return TrackerSettings(**options)
+
+
+def _image_shape(log: LogReader) -> tuple[int, int]:
+    """``(rows, cols)`` of the frames, from ``/camera/frame``."""
+    if log.has_topic(topics.FRAME_INFO):
+        for message in log.messages(topics.FRAME_INFO):
+            return int(message.payload["height"]), int(message.payload["width"])
+    raise InvalidInputError(f"{log.path} has no {topics.FRAME_INFO} channel: the image size is unknown.")
+
+
+def _true_attitudes(log: LogReader) -> dict[int, npt.NDArray[np.float64]]:
+    """log_time → the simulator's true attitude matrix (empty unless the log is a simulated sky field)."""
+    if not log.has_topic(topics.TRUTH):
+        return {}
+    out = {}
+    for message in log.messages(topics.TRUTH):
+        attitude = message.payload.get("attitude")
+        if attitude is None:
+            return {}
+        out[message.log_time] = matrix_from_quaternion(attitude["quaternion"])
+    return out
+
+
+@dataclass(frozen=True)
+class _Centroids:
+    """One frame's usable centroids (finite, sigma > 0, fit not failed) as columns."""
+
+    star: npt.NDArray[np.int64]
+    x: npt.NDArray[np.float64]
+    y: npt.NDArray[np.float64]
+    flux: npt.NDArray[np.float64]
+    sigma: npt.NDArray[np.float64]
+
+    @classmethod
+    def from_payload(cls, payload: dict[str, Any]) -> _Centroids:
+        rows = payload["stars"]
+        table = np.array([(r["x"], r["y"], r["flux"], r["sigma"], r["flags"], r["star"]) for r in rows],
+                         dtype=np.float64).reshape(-1, 6)
+        ok = (np.isfinite(table[:, :4]).all(axis=1) & (table[:, 3] > 0)
+              & ((table[:, 4].astype(np.int64) & int(CentroidFlag.FIT_FAILED)) == 0))
+        t = table[ok]
+        return cls(t[:, 5].astype(np.int64), t[:, 0], t[:, 1], t[:, 2], t[:, 3])
+
+
+def _attitude_record(frame: int, method: str, result: FrameAttitude, stars: _Centroids,
+                     truth: npt.NDArray[np.float64] | None) -> dict[str, Any]:
+    """The ``/attitude/<METHOD>`` message of one frame (numbers 0 when unsolved)."""
+    record: dict[str, Any] = {"frame": frame, "method": method, "solved": result.solved, "mode": result.mode,
+                              "reason": result.reason, "n_stars": int(stars.x.size), "n_matched": result.n_matched,
+                              "solver_ms": float(result.solver.get("t_solve", 0.0))}
+    cam, fit = result.camera, result.fit
+    if not result.solved or cam is None or fit is None:
+        zero = {"quaternion": [0.0] * 4, "ra_deg": 0.0, "dec_deg": 0.0, "roll_deg": 0.0, "fov_deg": 0.0,
+                "focal_px": 0.0, "distortion": 0.0, "mirrored": False, "residual_px": 0.0, "residual_arcsec": 0.0,
+                "covariance": [0.0] * 9, "sigma_x_arcsec": 0.0, "sigma_y_arcsec": 0.0, "sigma_roll_arcsec": 0.0}
+        return {**record, **zero}
+    ra, dec, roll = radec_roll(cam.rotation)
+    rms = result.residual_rms(stars.x, stars.y)
+    sd = np.sqrt(np.abs(np.diag(fit.covariance))) * ARCSEC_PER_RAD
+    record.update({"quaternion": [float(v) for v in fit.quaternion], "ra_deg": ra, "dec_deg": dec, "roll_deg": roll,
+                   "fov_deg": cam.fov_deg, "focal_px": float(cam.focal), "distortion": float(cam.k),
+                   "mirrored": bool(cam.parity < 0), "residual_px": rms, "residual_arcsec": rms / cam.focal * ARCSEC_PER_RAD,
+                   "covariance": [float(v) for v in fit.covariance.reshape(-1)], "sigma_x_arcsec": float(sd[0]),
+                   "sigma_y_arcsec": float(sd[1]), "sigma_roll_arcsec": float(sd[2])})
+    if truth is not None:
+        error = attitude_error(cam.rotation, truth) * ARCSEC_PER_RAD
+        record.update({"error_x_arcsec": float(error[0]), "error_y_arcsec": float(error[1]),
+                       "error_roll_arcsec": float(error[2])})
+    return record
+
+
+def _identified_record(frame: int, method: str, result: FrameAttitude, stars: _Centroids,
+                       catalogue: Catalogue) -> dict[str, Any]:
+    """The ``/stars/identified/<METHOD>`` message of one frame."""
+    rows = result.centroid_rows
+    cat = result.catalogue_rows
+    out = []
+    for k in range(rows.size):
+        i = int(rows[k])
+        x, y, cx, cy = float(stars.x[i]), float(stars.y[i]), float(result.cat_x[k]), float(result.cat_y[k])
+        out.append({"star": int(stars.star[i]), "catalogue_id": int(catalogue.ids[cat[k]]),
+                    "magnitude": float(catalogue.magnitude[cat[k]]), "x": x, "y": y, "sigma": float(stars.sigma[i]),
+                    "x_catalogue": cx, "y_catalogue": cy, "residual_x": x - cx, "residual_y": y - cy})
+    return {"frame": frame, "method": method, "stars": out}
+
+
+def _annotations(record: dict[str, Any], log_time: int) -> bytes:
+    """Circles at the identified stars and their catalogue numbers (``HIP n``) as foxglove.ImageAnnotations
+    (0.5 px added: Foxglove's origin is the top-left pixel's corner)."""
+    from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+
+    message = ImageAnnotations()
+    for star in record["stars"]:
+        x, y = star["x"] + 0.5, star["y"] + 0.5
+        circle = message.circles.add()
+        circle.timestamp.FromNanoseconds(log_time)
+        circle.position.x, circle.position.y = x, y
+        circle.diameter, circle.thickness = 10.0, 1.0
+        circle.outline_color.r, circle.outline_color.g, circle.outline_color.b, circle.outline_color.a = 1, 0.8, 0.1, 1
+        text = message.texts.add()
+        text.timestamp.FromNanoseconds(log_time)
+        text.position.x, text.position.y = x + 7.0, y - 7.0
+        text.text = f"HIP {star['catalogue_id']}"
+        text.font_size = 10.0
+        text.text_color.r, text.text_color.g, text.text_color.b, text.text_color.a = 1, 0.8, 0.1, 1
+    return message.SerializeToString(deterministic=True)
+
+
+@dataclass
+class _MethodFigures:
+    """Running figures of one method's frames, for the summary."""
+
+    frames: int = 0
+    modes: Counter[str] = field(default_factory=Counter)
+    reasons: Counter[str] = field(default_factory=Counter)
+    matched: list[int] = field(default_factory=list)
+    residuals: list[npt.NDArray[np.float64]] = field(default_factory=list)
+    focal: list[float] = field(default_factory=list)
+    distortion: list[float] = field(default_factory=list)
+    errors: list[npt.NDArray[np.float64]] = field(default_factory=list)
+    sigmas: list[npt.NDArray[np.float64]] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def add(self, result: FrameAttitude, stars: _Centroids, record: dict[str, Any]) -> None:
+        self.frames += 1
+        if not result.solved or result.camera is None:
+            self.reasons[record["reason"].split(" (")[0]] += 1
+            return
+        self.modes[result.mode] += 1
+        self.matched.append(result.n_matched)
+        self.residuals.append(result.residuals(stars.x, stars.y))
+        self.focal.append(result.camera.focal)
+        self.distortion.append(result.camera.k)
+        if "error_x_arcsec" in record:
+            self.errors.append(np.array([record[f"error_{a}_arcsec"] for a in ("x", "y", "roll")]))
+            self.sigmas.append(np.array([record[f"sigma_{a}_arcsec"] for a in ("x", "y", "roll")]))
+
+    def to_dict(self, width: int) -> dict[str, Any]:
+        solved = sum(self.modes.values())
+        res = np.concatenate(self.residuals) if self.residuals else np.zeros((0, 2))
+        focal = float(np.median(self.focal)) if self.focal else math.nan
+        rms = float(np.sqrt(np.mean(res**2))) if res.size else math.nan
+        out: dict[str, Any] = {
+            "frames": self.frames, "solved": solved, "lost_in_space": self.modes["lost_in_space"],
+            "tracking": self.modes["tracking"], "unsolved": dict(self.reasons),
+            "matched_per_frame": float(np.mean(self.matched)) if self.matched else 0.0,
+            "residual_px": rms, "residual_arcsec": rms / focal * ARCSEC_PER_RAD if self.focal else math.nan,
+            "camera": {"focal_px": focal, "fov_deg": math.degrees(2 * math.atan(width / 2 / focal)) if self.focal
+                       else math.nan, "distortion": float(np.median(self.distortion)) if self.distortion else math.nan},
+        }
+        if self.errors:
+            err, sig = np.array(self.errors), np.array(self.sigmas)
+            rms_err = np.sqrt(np.mean(err**2, axis=0))
+            rms_sig = np.sqrt(np.mean(sig**2, axis=0))
+            out["attitude_error"] = {
+                "frames": int(err.shape[0]),
+                "rms_arcsec": {"x": float(rms_err[0]), "y": float(rms_err[1]), "roll": float(rms_err[2])},
+                "sigma_arcsec": {"x": float(rms_sig[0]), "y": float(rms_sig[1]), "roll": float(rms_sig[2])},
+                "ratio": {"cross_boresight": float(np.sqrt(np.mean((err[:, :2] / sig[:, :2]) ** 2))),
+                          "roll": float(np.sqrt(np.mean((err[:, 2] / sig[:, 2]) ** 2)))}}
+        return out
+
+
+@dataclass
+class SolveSummary:
+    """What :func:`solve_log` wrote: per centroid method, frames solved, residuals, camera model, and the
+    attitude error against the truth on a simulated sky field."""
+
+    width: int
+    methods: dict[str, dict[str, Any]] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)  # time spent solving each method's frames (not a result)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"methods": self.methods}
+
+    def lines(self) -> list[str]:
+        """One table: per method the frames solved, stars identified, catalogue residuals and camera model;
+        then the attitude error per method when the log has the true attitude."""
+        lines = [f"{'method':<10}{'solved':>12}{'lis':>5}{'track':>7}{'matched':>9}{'resid px':>10}"
+                 f"{'arcsec':>9}{'focal px':>10}{'fov deg':>9}{'k':>9}"]
+        for method, m in self.methods.items():
+            cam = m["camera"]
+            lines.append(f"{method:<10}{m['solved']:>6}/{m['frames']:<5}{m['lost_in_space']:>5}{m['tracking']:>7}"
+                         f"{m['matched_per_frame']:>9.1f}{m['residual_px']:>10.4f}{m['residual_arcsec']:>9.2f}"
+                         f"{cam['focal_px']:>10.1f}{cam['fov_deg']:>9.4f}{cam['distortion']:>9.5f}")
+            for reason, count in m["unsolved"].items():
+                lines.append(f"  {count} frame(s) unsolved: {reason}")
+        with_truth = {k: m["attitude_error"] for k, m in self.methods.items() if "attitude_error" in m}
+        if with_truth:
+            lines.append("attitude error against the true attitude, RMS arcsec (1-sigma from the covariance), "
+                         "and RMS error / sigma")
+            for method, e in with_truth.items():
+                r, s = e["rms_arcsec"], e["sigma_arcsec"]
+                lines.append(f"{method:<10} x {r['x']:.3f} ({s['x']:.3f})  y {r['y']:.3f} ({s['y']:.3f})  roll "
+                             f"{r['roll']:.2f} ({s['roll']:.2f});  cross-boresight {e['ratio']['cross_boresight']:.2f}, "
+                             f"roll {e['ratio']['roll']:.2f}  ({e['frames']} frames)")
+        return lines
+
+
+def _solve_channel(log: LogReader, out: StageOutput, topic: str, tracker: AttitudeTracker,
+                   truth: dict[int, npt.NDArray[np.float64]], *, show_progress: bool) -> _MethodFigures:
+    """Solve every frame of one centroid channel and write its three channels."""
+    method = topic.rsplit("/", 1)[-1]
+    attitude_ch = out.add_channel(topics.attitude_topic(method), json_message_type("starlog.Attitude"))
+    identified_ch = out.add_channel(topics.identified_topic(method), json_message_type("starlog.IdentifiedStars"))
+    annotations_ch = out.add_channel(topics.identified_annotations_topic(method),
+                                     protobuf_message_type("foxglove.ImageAnnotations"))
+    figures = _MethodFigures()
+    count = log.channel(topic).message_count
+    for message in progress(log.messages(topic), total=count, description=f"solve {method}", enabled=show_progress):
+        try:
+            stars = _Centroids.from_payload(message.payload)
+            frame = int(message.payload["frame"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise InvalidInputError(f"{topic} at log_time {message.log_time}: not a starlog.Centroids message "
+                                    f"({err!r}).") from err
+        start = time.perf_counter()
+        result = tracker.solve(stars.x, stars.y, stars.flux, stars.sigma)
+        figures.seconds += time.perf_counter() - start
+        record = _attitude_record(frame, method, result, stars, truth.get(message.log_time))
+        identified = _identified_record(frame, method, result, stars, tracker.catalogue)
+        t = message.log_time
+        out.writer.write(attitude_ch, log_time=t, data=encode_json(record))
+        out.writer.write(identified_ch, log_time=t, data=encode_json(identified))
+        out.writer.write(annotations_ch, log_time=t, data=_annotations(identified, t))
+        figures.add(result, stars, record)
+    check_messages_read(log, topic, figures.frames)
+    return figures
+
+
+@windowed(lambda log, options: select_centroid_channels(log, options.get("centroids"))[0])
+def solve_log(
+    input_path: str | os.PathLike[str],
+    output_path: str | os.PathLike[str],
+    *,
+    centroids: str | Sequence[str] | None = None,
+    options: dict[str, Any] | None = None,
+    force: bool = False,
+    flatten: bool = False,
+    compression: str = "zstd",
+    show_progress: bool = False,
+) -> SolveSummary:
+    """Identify the stars of centroid channel(s) and solve the attitude of every frame (module docstring).
+
+    Parameters
+    ----------
+    centroids : str or sequence of str, optional
+        Centroid methods or topics (``GAUSSFIT``, ``/stars/centroids/GAUSSFIT``, comma-separated), or
+        ``"all"``; default: the only one.
+    options : dict, optional
+        Fields of :class:`starlog.attitude.identify.TrackerSettings` (match_radius, min_matches, min_stars,
+        fov_deg, focal_px, distortion, fit_distortion, brightest, timeout_ms, try_mirrored, tracking,
+        max_magnitude, reject) and ``camera`` (``"auto"``: a simulated sky field's camera from the simulator's
+        provenance, else fitted; ``"fit"``).
+    start, end : str or int, optional
+        Only the range ``start <= log_time < end`` (``frame:N`` counts the first centroid channel).
+    """
+    solver_data_file()  # a clear error naming the extra before anything is read
+    options = dict(options or {})
+    with LogReader(input_path) as probe:
+        chosen = select_centroid_channels(probe, centroids)
+        rows, cols = _image_shape(probe)
+        settings = tracker_settings(probe, options, cols)
+    catalogue = load_catalogue()
+    summary = SolveSummary(width=cols)
+    parameters = {"centroids": chosen, "options": options, "catalogue": catalogue.name}
+    with extend_log(input_path, output_path, stage="solve", parameters=parameters, force=force, flatten=flatten,
+                    compression=compression) as (log, out):
+        truth = _true_attitudes(log)
+        for topic in chosen:
+            tracker = AttitudeTracker(catalogue, (rows, cols), settings)
+            figures = _solve_channel(log, out, topic, tracker, truth, show_progress=show_progress)
+            summary.methods[topic.rsplit("/", 1)[-1]] = figures.to_dict(cols)
+            summary.seconds[topic.rsplit("/", 1)[-1]] = figures.seconds
+        out.writer.add_metadata(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods)})
+    return summary
