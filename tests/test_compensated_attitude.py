@@ -130,3 +130,14 @@ def test_a_run_config_compensates_every_star_and_solves_before_and_after(logs, t
         assert log.has_topic("/attitude/MOMENT")
         for which in ("before", "after"):
             assert log.has_topic(f"/attitude/compensated/MOMENT/RANDOM_WALK/50Hz/paper/{which}")
+
+
+def test_export_keeps_the_brightest_decisions_and_every_attitude(logs, tmp_path):
+    from starlog.export import export_log
+
+    written = export_log(logs["folder"] / "att.mcap", tmp_path, tables=["decisions", "attitude"])
+    frames = logs["compensated"].stars[0]["frames"]
+    assert written["attitude"] == 4 * frames
+    with LogReader(logs["folder"] / "att.mcap") as log:
+        brightest = [m.payload for m in log.messages("/compensated/MOMENT/RANDOM_WALK/decisions")]
+    assert written["decisions"] == sum(len(r["compensation"]["passes"]) for r in brightest)
