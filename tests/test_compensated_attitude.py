@@ -1,6 +1,6 @@
 """The attitude before and after compensation: simulate a catalogue field with jitter, centroid, track,
 ``compensate --stars all``, then ``solve --compensated``: the all-star channels, the attitude channels before and
-after with their error against the simulator's truth, and ``--stars brightest`` writing the same bytes as before.
+after with their error against the simulator's truth, and ``--stars brightest`` writing the same bytes as a run without the option.
 Skipped without cedar-solve (tetra3)."""
 
 from __future__ import annotations
