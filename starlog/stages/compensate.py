@@ -739,8 +739,9 @@ def _left_out(series: BrightestSeries, idx: npt.NDArray[np.int64], protocol: Sco
         return "too short"
     if protocol is ScoringProtocol.TRUTH and series.truth_series is None:
         return "without truth"
-    if (protocol is ScoringProtocol.RELATIVE or mode is MotionMode.SEPARATE) and series.displacement is None:
-        return "without motion"
+    if protocol is ScoringProtocol.RELATIVE or mode is MotionMode.SEPARATE:
+        if series.displacement is None or not np.isfinite(series.displacement[idx]).all(axis=1).any():
+            return "without motion"
     return ""
 
 
