@@ -1,7 +1,9 @@
 """``starlog run``: replay a log through several stages from one TOML config file.
 
 A config has one table per stage, run in the order centroid → track → compensate → solve; a
-stage whose table is absent is skipped (``[solve]``: ``centroids``, methods or ``"all"``, and
+stage whose table is absent is skipped (``[compensate]``: ``stars = "all"`` also compensates every confirmed
+track; ``[solve]``: ``centroids``, methods or ``"all"``, ``compensated`` (``"50/truth"`` or ``"all"``: the attitude
+before and after compensation), and
 ``[solve.options]``, the options of :func:`starlog.stages.solve.solve_log`; it needs the optional
 cedar-solve, ``pip install 'starlog[solve]'``). Each stage writes a layer (:mod:`starlog.io.chain`) on the
 one before it: ``run LOG -o OUT.mcap`` writes ``OUT.1-centroid.mcap``, ``OUT.2-track-NONE.mcap``,
@@ -79,8 +81,8 @@ protocols = "all"       # in a --config file, it is refused before any stage run
 _STAGE_KEYS: dict[str, set[str]] = {
     "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad", "psf", "phase_correction"},
     "track": {"methods", "models", "tracker", "motion"},
-    "compensate": {"tracks", "rates", "protocols", "options"},
-    "solve": {"centroids", "options"},
+    "compensate": {"tracks", "rates", "protocols", "options", "stars"},
+    "solve": {"centroids", "options", "compensated"},
 }
 
 
@@ -189,7 +191,8 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
         k = config.compensate
         steps.append(("compensate", lambda i, o: compensate_log(
             i, o, rates=k["rates"], track=k.get("tracks", "all"), protocols=k.get("protocols", "all"),
-            options=k.get("options"), skip_short=skip_short, show_progress=show_progress, **common).to_dict()))
+            options=k.get("options"), skip_short=skip_short, show_progress=show_progress, stars=k.get("stars", "brightest"),
+            **common).to_dict()))
     if config.solve is not None:
         v = config.solve
         steps.append(("solve", lambda i, o: _solve_step(i, o, v, show_progress=show_progress, **common)))
@@ -204,8 +207,8 @@ def _solve_step(source: LogSource, layer: Path, table: dict[str, Any], **keyword
     """The ``[solve]`` step (imported when it runs: the stage needs the optional cedar-solve)."""
     from starlog.stages.solve import solve_log
 
-    return solve_log(source, layer, centroids=table.get("centroids", "all"), options=table.get("options"),
-                     **keywords).to_dict()
+    return solve_log(source, layer, centroids=table.get("centroids", "all"), compensated=table.get("compensated"),
+                     options=table.get("options"), **keywords).to_dict()
 
 
 def _frame_channel(config: PipelineConfig) -> tuple[Any, dict[str, Any]]:

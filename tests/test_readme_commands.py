@@ -30,6 +30,9 @@ NOT_RUN = {
     "dask scheduler": "it needs a Dask cluster on a network; tests/test_batch.py runs a local one",
     "starlog simulate -o sky.mcap --size 384x384 --sky-attitude": "it needs the optional cedar-solve; "
                                                                   "tests/test_solve.py runs it where it is installed",
+    "starlog simulate -o sky.mcap --size 256x256 --sky-attitude": "it needs the optional cedar-solve; "
+                                                                  "tests/test_compensated_attitude.py runs it (smaller) "
+                                                                  "where it is installed",
 }
 
 

@@ -206,9 +206,14 @@ def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings:
 @click.option("--skip-short", is_flag=True,
               help="Leave out the rates and protocols the track is too short for (one line each on stderr) instead "
                    "of refusing the log.")
+@click.option("--stars", type=click.Choice(["brightest", "all"]), default="brightest", show_default=True,
+              help="all: also compensate every confirmed track (each its own strategy selection; tracks too short "
+                   "are left out and counted) and write them per frame on /compensated/<METHOD>/<MODEL>/stars/"
+                   "<RATE>Hz/<PROTOCOL>, which solve --compensated reads: the attitude before and after.")
 def compensate(log: Path, output: Path, track_topic: str | None, rates: str, protocols: str, motion: str,
                settings: tuple[str, ...], start: str | None, end: str | None, as_json: bool, flatten: bool,
-               force: bool, compression: str, workers: int, quiet: bool, burn_in: str, skip_short: bool) -> None:
+               force: bool, compression: str, workers: int, quiet: bool, burn_in: str, skip_short: bool,
+               stars: str) -> None:
     """Decompose the brightest star's error, select strategies and compensate (paper 2.2-2.5).
 
     For each rate: equidistant decimation, error decomposition, eq. 12 scores, the top three
@@ -223,6 +228,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
       starlog compensate trk.mcap -o comp.mcap --track /track/GAUSSFIT/STATIC --rate 10,50
       starlog compensate trk.mcap -o comp.mcap --rate 50 --protocol paper --json
       starlog compensate trk.mcap -o comp.mcap --rate 10,50 --protocol truth,relative --motion keep,separate
+      starlog compensate trk.mcap -o comp.mcap --rate 50 --protocol paper --stars all
     """
     from starlog.stages.compensate import compensate_log, decision_table
 
@@ -233,7 +239,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
                              options=key_values(settings, "--set"), motion=motion, workers=workers,
                              show_progress=not quiet, force=force, compression=compression, start=start, end=end,
-                             burn_in=burn_in_setting(burn_in), skip_short=skip_short, flatten=flatten)
+                             burn_in=burn_in_setting(burn_in), skip_short=skip_short, flatten=flatten, stars=stars)
     for skipped in summary.skipped:
         echo_status(quiet, f"skipped (track too short): {skipped.describe()}")
     echo_status(quiet, f"wrote {output}: {len(summary.records)} decision records")
@@ -241,13 +247,19 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
         print_json(summary.to_dict())
     else:
         click.echo(decision_table(summary.records))
+        for line in summary.star_lines():
+            click.echo(line)
 
 
 @click.command(context_settings=CONTEXT)
 @input_log
 @output_option()
 @click.option("--centroids", "methods", help="Centroid methods to solve, comma-separated (e.g. GAUSSFIT,MOMENT), "
-                                            "or all [default: the only centroid channel].")
+                                            "or all [default: the only centroid channel; none with --compensated].")
+@click.option("--compensated", "compensated", metavar="RATE/PROTOCOL|all",
+              help="Also (alone: only) solve all-star compensated channels of compensate --stars all, e.g. 50/truth "
+                   "or 50/paper/separate, comma-separated, or all: each from the positions before and after "
+                   "compensation, on /attitude/compensated/<METHOD>/<MODEL>/<RATE>Hz/<PROTOCOL>/before|after.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Solve option: match_radius (px, 3), min_matches (6), min_stars (4), fov_deg (the solver's "
                    "field-of-view hint; default: searched), focal_px and distortion (a known camera), fit_distortion, "
@@ -260,8 +272,9 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 @click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
               help="Chunk compression of the output log.")
 @quiet_option
-def solve(log: Path, output: Path, methods: str | None, settings: tuple[str, ...], start: str | None,
-          end: str | None, as_json: bool, flatten: bool, force: bool, compression: str, quiet: bool) -> None:
+def solve(log: Path, output: Path, methods: str | None, compensated: str | None, settings: tuple[str, ...],
+          start: str | None, end: str | None, as_json: bool, flatten: bool, force: bool, compression: str,
+          quiet: bool) -> None:
     """Identify the stars in a catalogue and solve the camera's attitude in every frame.
 
     Per centroid method: a lost-in-space plate solve (cedar-solve, pip install 'starlog[solve]'; its
@@ -276,10 +289,12 @@ def solve(log: Path, output: Path, methods: str | None, settings: tuple[str, ...
     Example:
       starlog solve cen.mcap -o att.mcap --centroids GAUSSFIT
       starlog solve cen.mcap -o att.mcap --centroids all --set match_radius=2 --json
+      starlog solve comp.mcap -o att.mcap --compensated 50/truth
     """
     from starlog.stages.solve import solve_log
 
-    summary = solve_log(log, output, centroids=methods, options=key_values(settings, "--set"), force=force,
+    summary = solve_log(log, output, centroids=methods, compensated=compensated,
+                        options=key_values(settings, "--set"), force=force,
                         compression=compression, show_progress=not quiet, start=start, end=end, flatten=flatten)
     solved = sum(m["solved"] for m in summary.methods.values())
     frames = sum(m["frames"] for m in summary.methods.values())

@@ -151,7 +151,9 @@ TABLES: tuple[TableSpec, ...] = (
     TableSpec("motion", _schema_is("starlog.PlatformMotion"), _motion_rows),
     TableSpec("residuals", _schema_is("starlog.StarResiduals"), _residual_rows),
     TableSpec("compensation", _schema_is("starlog.CompensatedSample"), _series_rows),
-    TableSpec("decisions", _schema_is("starlog.CompensationRecord"), _decision_rows),
+    # the brightest track's records; the per-star records of ``compensate --stars all`` stay in the log
+    TableSpec("decisions", lambda ch: ch.schema_name == "starlog.CompensationRecord"
+              and not ch.topic.endswith("/stars/decisions"), _decision_rows),
     TableSpec("attitude", _schema_is("starlog.Attitude"), _attitude_rows),
     TableSpec("identified", _schema_is("starlog.IdentifiedStars"), _identified_rows),
 )

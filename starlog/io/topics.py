@@ -14,6 +14,8 @@ topic                                     schema                       written b
 ``/stars/residuals/<METHOD>/<MODEL>``     starlog.StarResiduals        motion
 ``/compensated/<METHOD>/<MODEL>/<R>Hz``   starlog.CompensatedSample    compensate
 ``/compensated/<METHOD>/<MODEL>/decisions``  starlog.CompensationRecord  compensate
+``/compensated/<METHOD>/<MODEL>/stars/<R>Hz``  starlog.CompensatedStars  compensate --stars all
+``/compensated/<METHOD>/<MODEL>/stars/decisions``  starlog.CompensationRecord  compensate --stars all
 ``/attitude/<METHOD>``                    starlog.Attitude             solve
 ``/stars/identified/<METHOD>``            starlog.IdentifiedStars      solve
 ``/stars/identified/<METHOD>/annotations``  foxglove.ImageAnnotations  solve
@@ -34,6 +36,8 @@ __all__ = [
     "residuals_topic",
     "compensated_topic",
     "decisions_topic",
+    "compensated_stars_topic",
+    "stars_decisions_topic",
     "attitude_topic",
     "identified_topic",
     "identified_annotations_topic",
@@ -89,6 +93,16 @@ def residuals_topic(method: str, model: str) -> str:
 def compensated_topic(method: str, model: str, rate_hz: float, protocol: str) -> str:
     """``/compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>``."""
     return f"/compensated/{method}/{model}/{rate_hz:g}Hz/{protocol}"
+
+
+def compensated_stars_topic(method: str, model: str, rate_hz: float, protocol: str) -> str:
+    """``/compensated/<METHOD>/<MODEL>/stars/<RATE>Hz/<protocol>``: every compensated star, per frame."""
+    return f"/compensated/{method}/{model}/stars/{rate_hz:g}Hz/{protocol}"
+
+
+def stars_decisions_topic(method: str, model: str) -> str:
+    """``/compensated/<METHOD>/<MODEL>/stars/decisions``: one decision record per star, rate and protocol."""
+    return f"/compensated/{method}/{model}/stars/decisions"
 
 
 def decisions_topic(method: str, model: str) -> str:

@@ -15,6 +15,14 @@ residual from the platform motion fitted to the other stars, :mod:`starlog.motio
   with the error magnitudes, the dominant frequency, every strategy's score, the order run,
   RMSE before/after each pass, what was rolled back, and the protocol's RMSE figures.
 
+With ``stars="all"`` (``--stars all``) it also compensates every confirmed track of the channel with the same
+pipeline (each star its own decomposition and strategy selection) at the channel's frames decimated to each
+rate, and writes ``/compensated/<METHOD>/<MODEL>/stars/<RATE>Hz/<protocol>`` (starlog.CompensatedStars): one
+message per frame holding every star before and after, with its centroid sigma, which ``solve --compensated``
+turns into the attitude before and after compensation; one decision record per star goes to
+``/compensated/<METHOD>/<MODEL>/stars/decisions``. Tracks too short for a rate and protocol (or without the truth
+or the motion it needs) are left out and counted in the summary.
+
 The sequence of one track is held in memory (the method needs its global mean); at ≤ 100 Hz
 that is a few MB per hour of recording.  The evaluations of one track (every rate × protocol)
 are independent: with ``workers > 1`` they run in worker processes, and are written in the
@@ -26,7 +34,7 @@ log length it needs, or with ``skip_short`` leaves those out.
 
 One module of over 500 lines: checking the track's length, reading the brightest series, the
 evaluations and the decision records are the stage's steps, each short, and the summary the command
-prints.
+prints; the all-star run reuses those same steps (its jobs, evaluations and records), so it lives beside them.
 """
 
 from __future__ import annotations
@@ -57,6 +65,7 @@ from starlog.compensate import (
     ScoringProtocol,
     Shortfall,
     decimation_indices,
+    enough_samples,
     evaluate,
     protocols_for,
     sampled_rate,
@@ -68,13 +77,16 @@ from starlog.io.reader import ChannelSummary, LogReader
 from starlog.motion import star_reference
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
-from starlog.stages._channels import check_messages_read, select_track_channels
+from starlog.stages._channels import select_track_channels
+from starlog.stages._compensate_stars import (CentroidSigmas, StarFrames, TrackRows, centroid_sigmas,
+                                              collect_track_rows)
 from starlog.stages.window import windowed
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.motion import estimate_track_motion
 
 __all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "decision_table", "evaluate_series",
-           "read_brightest_series", "select_track_channels", "too_short_message", "track_shortfalls"]
+           "read_brightest_series", "read_track_series", "select_track_channels", "too_short_message",
+           "track_shortfalls"]
 
 
 @dataclass(frozen=True)
@@ -139,68 +151,82 @@ def read_brightest_series(log: LogReader, topic: str, *, truth_cache: dict[int, 
     star is then read from the log once, not once per channel. ``with_truth=False`` leaves the
     truth unread (only the ``paper`` protocol runs: it never sees the truth).
     """
-    times, frames, xy, flux, meas, var = [], [], [], [], [], []
-    method = model = ""
-    track_id = -1
-    read = 0
-    for message in log.messages(topic):
-        read += 1
-        msg = message.payload
-        method, model = msg["method"], msg["model"]
-        for row in msg["tracks"]:
-            if row["brightest"]:
-                track_id = row["track"]
-                times.append(message.log_time)
-                frames.append(msg["frame"])
-                xy.append((row["x"], row["y"]))
-                flux.append(row["flux"])
-                meas.append((row["meas_x"], row["meas_y"], row["meas_sigma"], row["measured"] or row["gated"]))
-                var.append(0.5 * (row["cov_xx"] + row["cov_yy"]))
-    check_messages_read(log, topic, read)
-    if not times:
+    method, model, rows, _ = collect_track_rows(log, topic, lambda row: bool(row["brightest"]))
+    if not rows:
         raise InvalidInputError(f"{topic} has no row of a brightest track; nothing to compensate.")
-    t = np.asarray(times, dtype=np.int64)
+    track_id, kept = next(iter(rows.items()))
+    t = np.asarray(kept.times, dtype=np.int64)
     span = (t[-1] - t[0]) * 1e-9
     image_rate = log.channel(topics.IMAGE).rate_hz if log.has_topic(topics.IMAGE) else 0.0
     native = image_rate if image_rate > 0 else ((t.size - 1) / span if span > 0 else 0.0)
     if native <= 0:
         raise InvalidInputError(f"{topic}: cannot tell the frame rate from fewer than two samples.")
-    sigma, sigma_source = _accuracy(log, method, t, meas)
-    series = BrightestSeries(method=method, model=model, track=track_id, log_time=t,
-                             frame=np.asarray(frames, dtype=np.int64), xy=np.asarray(xy, dtype=np.float64),
-                             flux=np.asarray(flux, dtype=np.float64), sigma=sigma, sigma_source=sigma_source,
-                             native_rate=float(native), position_var=np.asarray(var, dtype=np.float64))
+    series = _series_from_rows(log, method, model, track_id, kept, float(native))
     if not with_truth or not log.has_topic(topics.TRUTH):
         return series
     return _with_truth(log, series, {} if truth_cache is None else truth_cache)
 
 
+def _series_from_rows(log: LogReader, method: str, model: str, track_id: int, rows: TrackRows, native: float, *,
+                      sigmas: CentroidSigmas | None = None) -> BrightestSeries:
+    """One track's rows as a series (``sigmas``: the centroid channel's sigmas, read once for many tracks)."""
+    t = np.asarray(rows.times, dtype=np.int64)
+    sigma, sigma_source = _accuracy(log, method, t, rows.meas, sigmas=sigmas)
+    return BrightestSeries(method=method, model=model, track=track_id, log_time=t,
+                           frame=np.asarray(rows.frames, dtype=np.int64), xy=np.asarray(rows.xy, dtype=np.float64),
+                           flux=np.asarray(rows.flux, dtype=np.float64), sigma=sigma, sigma_source=sigma_source,
+                           native_rate=native, position_var=np.asarray(rows.var, dtype=np.float64))
+
+
+def read_track_series(log: LogReader, topic: str, *, truth_cache: dict[int, StarTruth] | None = None,
+                      with_truth: bool = True) -> tuple[list[BrightestSeries], npt.NDArray[np.int64]]:
+    """Every confirmed track of ``topic`` as a series (in track id order), read as
+    :func:`read_brightest_series` reads the brightest one, and the times of the channel's frames; the frame
+    rate is the image channel's, else the track channel's."""
+    method, model, rows, frame_times = collect_track_rows(log, topic, lambda row: True)
+    confirmed = {k: r for k, r in rows.items() if r.confirmed}
+    image_rate = log.channel(topics.IMAGE).rate_hz if log.has_topic(topics.IMAGE) else 0.0
+    native = image_rate if image_rate > 0 else log.channel(topic).rate_hz
+    if native <= 0:
+        raise InvalidInputError(f"{topic}: cannot tell the frame rate from fewer than two samples.")
+    sigmas = centroid_sigmas(log, method)
+    cache = {} if truth_cache is None else truth_cache
+    out = []
+    for track_id in sorted(confirmed):
+        series = _series_from_rows(log, method, model, track_id, confirmed[track_id], float(native), sigmas=sigmas)
+        out.append(_with_truth(log, series, cache) if with_truth and log.has_topic(topics.TRUTH) else series)
+    return out, frame_times
+
+
 def _accuracy(log: LogReader, method: str, times: npt.NDArray[np.int64],
-              meas: list[tuple[float, float, float, bool]]) -> tuple[npt.NDArray[np.float64], str]:
+              meas: list[tuple[float, float, float, bool]], *,
+              sigmas: CentroidSigmas | None = None) -> tuple[npt.NDArray[np.float64], str]:
     """``A`` of eq. 10 per sample and where it came from.
 
     The centroid's own ``sigma`` (``/stars/centroids/<METHOD>``, the centroid at the track's
     ``meas_x``, ``meas_y`` in the same frame) when the log has that channel; otherwise the
     track's ``meas_sigma`` (the tracker's ``sigma_floor`` applied).  0 where no centroid was
-    associated.
+    associated.  ``sigmas``: that channel's sigmas already read (:func:`centroid_sigmas`).
     """
     fallback = np.array([m[2] for m in meas], dtype=np.float64)
     topic = topics.centroid_topic(method)
     if not log.has_topic(topic):
         return fallback, "track meas_sigma (floored)"
-    wanted = {int(t): k for k, t in enumerate(times)}
+    if sigmas is None:
+        wanted: dict[int, set[tuple[float, float]]] = {}
+        for t, m in zip(times.tolist(), meas):
+            wanted.setdefault(t, set()).update([(m[0], m[1])] if m[3] else [])
+        sigmas = centroid_sigmas(log, method, only=wanted)
     out = np.zeros(len(meas))
-    for message in log.messages(topic):
-        k = wanted.get(message.log_time)
-        if k is None or not meas[k][3]:
+    for k, t in enumerate(times.tolist()):
+        if not meas[k][3]:
             continue
-        mx, my = meas[k][0], meas[k][1]
-        for star in message.payload["stars"]:
-            if star["x"] == mx and star["y"] == my:
-                out[k] = star["sigma"]
-                break
-        else:
+        if t not in sigmas:
+            continue
+        found = sigmas[t].get((meas[k][0], meas[k][1]))
+        if found is None:
             return fallback, "track meas_sigma (floored)"
+        out[k] = found
     return out, f"{topic} sigma"
 
 
@@ -247,9 +273,14 @@ def with_platform_reference(log: LogReader, series: BrightestSeries, topic: str,
                             fit: str = "rigid") -> BrightestSeries:
     """``series`` with its reference from the other stars of ``topic`` (:func:`starlog.motion.star_reference`)."""
     data, est = estimate_track_motion(log, topic, model=fit)
+    return _attach_reference(series, data, est, topic)
+
+
+def _attach_reference(series: BrightestSeries, data: Any, est: Any, topic: str) -> BrightestSeries:
+    """``series`` with its reference from the motion ``est`` fitted to the tracks ``data`` of ``topic``."""
     slot = int(np.searchsorted(data.track_ids, series.track))
     if slot >= data.track_ids.size or data.track_ids[slot] != series.track:
-        raise InvalidInputError(f"{topic}: the brightest track {series.track} has no measurement to fit.")
+        raise InvalidInputError(f"{topic}: the track {series.track} has no measurement to fit.")
     frames = np.searchsorted(data.log_time, series.log_time).astype(np.int64)
     reference, variance = star_reference(data.obs, est, slot, frames)
     static = est.static[slot].copy()
@@ -299,9 +330,22 @@ class CompensateSummary:
 
     records: list[dict[str, Any]] = field(default_factory=list)
     skipped: list[Shortfall] = field(default_factory=list)
+    stars: list[dict[str, Any]] = field(default_factory=list)
+    """With ``stars="all"``: per all-star channel, the tracks compensated and those left out, and why."""
 
     def to_dict(self) -> dict[str, Any]:
-        return {"records": self.records, "skipped": [s.to_dict() for s in self.skipped]}
+        out = {"records": self.records, "skipped": [s.to_dict() for s in self.skipped]}
+        return out | ({"stars": self.stars} if self.stars else {})
+
+    def star_lines(self) -> list[str]:
+        """One line per all-star channel: tracks compensated, left out, frames and the median RMSE."""
+        lines = []
+        for g in self.stars:
+            left = ", ".join(f"{n} {why}" for why, n in g["left_out"].items() if n)
+            lines.append(f"{g['topic']}: {g['compensated']} of {g['tracks']} confirmed tracks compensated"
+                         + (f" ({left})" if left else "") + f", {g['frames']} frames; median RMSE px "
+                         f"{g['median_rmse_before']:.4f} -> {g['median_rmse_after']:.4f} ({g['reference']})")
+        return lines
 
 
 def decision_table(records: list[dict[str, Any]]) -> str:
@@ -352,6 +396,7 @@ def compensate_log(
     skip_burn_in: bool = True,
     burn_in: BurnInSetting = "auto",
     skip_short: bool = False,
+    stars: str = "brightest",
     workers: int = 1,
     show_progress: bool = False,
     force: bool = False,
@@ -390,6 +435,12 @@ def compensate_log(
         Leave out the rates and protocols the track is too short for (:func:`starlog.compensate.shortfalls`,
         listed in the summary's ``skipped`` and the stage's parameters) instead of refusing the log, before
         anything is written.
+    stars : str
+        ``"brightest"`` (default): the brightest track alone. ``"all"``: also every confirmed track, each with
+        the same pipeline and its own strategy selection, on a common frame grid per rate, written per frame on
+        ``/compensated/<METHOD>/<MODEL>/stars/<RATE>Hz/<protocol>`` (what ``solve`` reads to solve the attitude
+        before and after compensation), with one decision record per star on ``.../stars/decisions``; tracks
+        too short for a rate and protocol are left out and counted (:attr:`CompensateSummary.stars`).
     workers : int
         Processes for the evaluations (1: in this process) and threads for chunk compression;
         the output does not depend on it.
@@ -405,6 +456,8 @@ def compensate_log(
         raise InvalidParameterError("give at least one rate (--rate HZ).")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InvalidParameterError(f"workers must be an integer >= 1, got {workers!r}.")
+    if stars not in ("brightest", "all"):
+        raise InvalidParameterError(f"stars must be 'brightest' or 'all', got {stars!r}.")
     options = dict(options or {})
     setting = parse_burn_in(burn_in) if skip_burn_in else "off"
     summary = CompensateSummary()
@@ -429,8 +482,10 @@ def compensate_log(
     fit = motion_fit if (ScoringProtocol.RELATIVE in chosen or MotionMode.SEPARATE in modes) else None
     if modes != [MotionMode.KEEP] or fit is not None:
         parameters |= {"motion": [m.value for m in modes], "motion_fit": fit}
+    if stars == "all":
+        parameters["stars"] = "all"
     n_jobs = len(channels) * pairs_left * len(modes)
-    parallel = workers > 1 and n_jobs > 1
+    parallel = workers > 1 and (n_jobs > 1 or stars == "all")
     with extend_log(input_path, output_path, stage="compensate", parameters=parameters, force=force, flatten=flatten,
                     compression=compression) as (log, out), \
             (process_pool(workers, preload=[__name__]) if parallel else nullcontext()) as pool:
@@ -444,6 +499,11 @@ def compensate_log(
                     topics.decisions_topic(job.series.method, job.series.model),
                     json_message_type("starlog.CompensationRecord"), unordered=True)
             summary.records.append(_write_evaluation(out, decisions[job.track_topic], job, evaluation))
+        if stars == "all":
+            plan = _StarPlan(rates=list(rates), protocols=[p for p in chosen], modes=modes, fit=fit, burn_in=setting,
+                             skipped=skipped, options=options)
+            summary.stars = _compensate_all_stars(log, out, channels, plan, pool, window=2 * workers,
+                                                  show_progress=show_progress)
     return summary
 
 
@@ -560,7 +620,15 @@ def _write_evaluation(out: StageOutput, decision_channel: int, job: _Job, evalua
                   "x_after": float(after[k, 0]), "y_after": float(after[k, 1]),
                   "scored": bool(k >= evaluation.scored_start)}
         out.writer.write(sample_ch, log_time=int(series.log_time[i]), data=encode_json(sample))
-    record = {
+    record = _decision_record(job, evaluation, topic)
+    out.writer.write(decision_channel, log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
+    return record
+
+
+def _decision_record(job: _Job, evaluation: Evaluation, topic: str) -> dict[str, Any]:
+    """The decision record of one job whose series went to ``topic``."""
+    series, idx = job.series, job.idx
+    return {
         "method": series.method, "model": series.model, "track": series.track,
         "track_topic": job.track_topic, "series_topic": topic, "rate_hz": job.rate,
         "effective_rate_hz": job.rate_hz, "native_rate_hz": series.native_rate,
@@ -571,5 +639,139 @@ def _write_evaluation(out: StageOutput, decision_channel: int, job: _Job, evalua
         "accuracy_from": series.sigma_source if evaluation.result.accuracy_source == "sigma" else "none (A = 0)",
         **evaluation.to_dict(),
     }
-    out.writer.write(decision_channel, log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
-    return record
+
+
+@dataclass
+class _StarPlan:
+    """What ``--stars all`` runs for every confirmed track: the stage's rates, protocols, motion modes, motion fit,
+    burn-in setting, the (rate, protocol) pairs left out for the whole log, and evaluate's options."""
+
+    rates: list[float]
+    protocols: list[ScoringProtocol]
+    modes: list[MotionMode]
+    fit: str | None
+    burn_in: BurnInSetting
+    skipped: set[tuple[float, ScoringProtocol]]
+    options: dict[str, Any]
+
+
+@dataclass
+class _StarGroup:
+    """The stars of one (track channel, rate, protocol, motion mode): their frames and what was left out."""
+
+    frames: StarFrames
+    decisions: str
+    tracks: int
+    left_out: dict[str, int] = field(default_factory=lambda: {"too short": 0, "without truth": 0,
+                                                              "without motion": 0})
+    figures: list[tuple[float, float, str]] = field(default_factory=list)
+
+    def to_dict(self, written: int) -> dict[str, Any]:
+        before = [f[0] for f in self.figures]
+        after = [f[1] for f in self.figures]
+        return {"topic": self.frames.topic, "rate_hz": self.frames.rate_hz, "protocol": self.frames.protocol,
+                "tracks": self.tracks, "compensated": len(self.figures), "left_out": dict(self.left_out),
+                "frames": written, "reference": self.figures[0][2] if self.figures else "",
+                "median_rmse_before": float(np.median(before)) if before else float("nan"),
+                "median_rmse_after": float(np.median(after)) if after else float("nan")}
+
+
+def _star_series(log: LogReader, topic: str, plan: _StarPlan,
+                 truth_cache: dict[int, StarTruth]) -> tuple[list[BrightestSeries], npt.NDArray[np.int64]]:
+    """Every confirmed track of ``topic`` (with its platform reference when the plan fits a motion: a track the
+    fit has no measurement of keeps none) and the channel's frame times."""
+    with_truth = any(p is not ScoringProtocol.PAPER for p in plan.protocols)
+    all_series, frame_times = read_track_series(log, topic, truth_cache=truth_cache, with_truth=with_truth)
+    if plan.fit is None:
+        return all_series, frame_times
+    data, est = estimate_track_motion(log, topic, model=plan.fit)
+    out = []
+    for series in all_series:
+        try:
+            out.append(_attach_reference(series, data, est, topic))
+        except InvalidInputError:
+            out.append(series)
+    return out, frame_times
+
+
+def _star_jobs(log: LogReader, channels: list[ChannelSummary], plan: _StarPlan,
+               groups: dict[tuple[str, float, str, str], _StarGroup]) -> Iterator[_Job]:
+    """One job per confirmed track, channel, rate, protocol and motion mode, grouped in that order; each group
+    added to ``groups`` (with the tracks it leaves out) before its first job. The frames of a rate are the
+    channel's frames decimated from its first frame; a track keeps those after its own filter start-up."""
+    truth_cache: dict[int, StarTruth] = {}
+    fraction = plan.options.get("calibration_fraction", CALIBRATION_FRACTION)
+    for channel in channels:
+        all_series, frame_times = _star_series(log, channel.topic, plan, truth_cache)
+        if not all_series:
+            continue
+        native = all_series[0].native_rate
+        method, model = all_series[0].method, all_series[0].model
+        for rate in plan.rates:
+            grid_idx = decimation_indices(frame_times.size, native_rate=native, target_rate=rate)
+            rate_hz = sampled_rate(grid_idx, native_rate=native)
+            kept = []
+            for series in all_series:
+                start = series.burn_in(plan.burn_in).samples
+                on_grid = np.isin(series.log_time, frame_times[grid_idx])
+                kept.append(np.flatnonzero(on_grid & (np.arange(series.log_time.size) >= start)).astype(np.int64))
+            for protocol in plan.protocols:
+                if (float(rate), protocol) in plan.skipped:
+                    continue
+                for mode in plan.modes:
+                    topic = topics.compensated_stars_topic(method, model, rate, protocol.value)
+                    topic += "/separate" if mode is MotionMode.SEPARATE else ""
+                    group = _StarGroup(StarFrames(topic, float(rate), protocol.value),
+                                       topics.stars_decisions_topic(method, model), len(all_series))
+                    groups[(channel.topic, float(rate), protocol.value, mode.value)] = group
+                    for series, idx in zip(all_series, kept):
+                        why = _left_out(series, idx, protocol, mode, fraction)
+                        if why:
+                            group.left_out[why] += 1
+                            continue
+                        yield _Job(channel.topic, series, float(rate), idx, rate_hz, protocol, mode, plan.burn_in)
+
+
+def _left_out(series: BrightestSeries, idx: npt.NDArray[np.int64], protocol: ScoringProtocol, mode: MotionMode,
+              fraction: float) -> str:
+    """Why a track is not compensated at these samples under ``protocol`` and ``mode`` ("" when it is)."""
+    if not enough_samples(protocol, int(idx.size), calibration_fraction=fraction):
+        return "too short"
+    if protocol is ScoringProtocol.TRUTH and series.truth_series is None:
+        return "without truth"
+    if protocol is ScoringProtocol.RELATIVE or mode is MotionMode.SEPARATE:
+        if series.displacement is None or not np.isfinite(series.displacement[idx]).all(axis=1).any():
+            return "without motion"
+    return ""
+
+
+def _compensate_all_stars(log: LogReader, out: StageOutput, channels: list[ChannelSummary], plan: _StarPlan,
+                          pool: Executor | None, *, window: int, show_progress: bool) -> list[dict[str, Any]]:
+    """Compensate every confirmed track (:func:`_star_jobs`) and write each group's frames once it is complete,
+    and a decision record per star; returns one summary entry per group."""
+    groups: dict[tuple[str, float, str, str], _StarGroup] = {}
+    decisions: dict[str, int] = {}
+    written: dict[tuple[str, float, str, str], int] = {}
+    current: tuple[str, float, str, str] | None = None
+    done = _evaluated(_star_jobs(log, channels, plan, groups), plan.options, pool, window=window)
+    for job, evaluation in progress(done, total=None, description="compensate stars", enabled=show_progress,
+                                    unit="star"):
+        key = (job.track_topic, job.rate, job.protocol.value, job.motion.value)
+        if current is not None and key != current:
+            written[current] = groups[current].frames.write(out)
+        current = key
+        group = groups[key]
+        series, idx = job.series, job.idx
+        scored = np.arange(idx.size) >= evaluation.scored_start
+        group.frames.add(series.track, series.log_time[idx], series.frame[idx], series.xy[idx],
+                         evaluation.compensated, series.sigma[idx], series.flux[idx], scored)
+        first = evaluation.figures[0]
+        group.figures.append((first.rmse_before, first.rmse_after, first.reference))
+        if group.decisions not in decisions:
+            decisions[group.decisions] = out.add_channel(group.decisions, json_message_type("starlog.CompensationRecord"),
+                                                         unordered=True)
+        record = _decision_record(job, evaluation, group.frames.topic)
+        out.writer.write(decisions[group.decisions], log_time=int(series.log_time[idx[-1]]), data=encode_json(record))
+    if current is not None:
+        written[current] = groups[current].frames.write(out)
+    return [group.to_dict(written.get(key, 0)) for key, group in groups.items()]

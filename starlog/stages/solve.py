@@ -13,6 +13,12 @@ previous attitude, Davenport's q-method weighted by each centroid's sigma), and 
 * ``/stars/identified/<METHOD>/annotations`` (foxglove.ImageAnnotations): a circle and the catalogue
   number at each identified star, over the frames in Foxglove.
 
+With ``compensated``, it also reads the all-star channels of ``compensate --stars all``
+(``/compensated/<METHOD>/<MODEL>/stars/<RATE>Hz/<protocol>``, starlog.CompensatedStars) and solves each
+twice, from the positions before and after compensation, under the names
+``compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>[/separate]/before`` and ``.../after``: the attitude before
+and after compensation at the compensated rate's frames, each with its error against the truth when simulated.
+
 A frame that cannot be solved (too few stars, no solution) is written with ``solved: false`` and the
 reason; nothing stops the log. The image size comes from ``/camera/frame``; on a simulated sky field the
 camera (field of view, no distortion) comes from the simulator's provenance unless ``camera = "fit"``.
@@ -45,7 +51,11 @@ from starlog.stages._progress import progress
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.window import windowed
 
-__all__ = ["SolveSummary", "select_centroid_channels", "solve_log", "tracker_settings"]
+__all__ = ["SolveSummary", "compensated_name", "select_centroid_channels", "select_compensated_channels", "solve_log",
+           "tracker_settings"]
+
+#: The schema of the all-star channels ``compensate --stars all`` writes.
+COMPENSATED_STARS = "starlog.CompensatedStars"
 
 
 def select_centroid_channels(log: LogReader, centroids: str | Sequence[str] | None) -> list[str]:
@@ -70,6 +80,40 @@ def select_centroid_channels(log: LogReader, centroids: str | Sequence[str] | No
             raise InvalidParameterError(f"{log.path} has no centroid channel {topic}; it has: {', '.join(channels)}.")
         chosen.append(topic)
     return chosen
+
+
+def select_compensated_channels(log: LogReader, compensated: str | Sequence[str] | None) -> list[str]:
+    """All-star compensated channels (``compensate --stars all``) named by ``compensated``: ``RATE/PROTOCOL``
+    (``50/truth``, ``50Hz/paper/separate``) or topics, comma-separated or a list, or ``"all"``; None: none."""
+    if compensated is None:
+        return []
+    channels = [c.topic for c in log.channels() if c.schema_name == COMPENSATED_STARS]
+    if not channels:
+        raise InvalidInputError(f"{log.path} has no all-star compensated channel; run `starlog compensate --stars all` "
+                                "on it first.")
+    names = compensated.split(",") if isinstance(compensated, str) else list(compensated)
+    names = [n.strip() for n in names if n.strip()]
+    if [n.lower() for n in names] == ["all"]:
+        return channels
+    chosen = []
+    for name in names:
+        if name.startswith("/"):
+            found = [name] if name in channels else []
+        else:
+            rate, _, rest = name.partition("/")
+            suffix = f"/stars/{rate.removesuffix('Hz')}Hz/{rest}"
+            found = [c for c in channels if c.endswith(suffix)]
+        if not found:
+            raise InvalidParameterError(f"{log.path} has no all-star compensated channel {name!r}; it has: "
+                                        + ", ".join(channels) + ".")
+        chosen += [c for c in found if c not in chosen]
+    return chosen
+
+
+def compensated_name(topic: str, which: str) -> str:
+    """``compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>[/separate]/<before|after>``: the name the attitude of
+    an all-star channel is written under (``/attitude/<name>``)."""
+    return topic.strip("/").replace("/stars/", "/", 1) + "/" + which
 
 
 def tracker_settings(log: LogReader, options: dict[str, Any], width: int) -> TrackerSettings:
@@ -131,6 +175,16 @@ class _Centroids:
               & ((table[:, 4].astype(np.int64) & int(CentroidFlag.FIT_FAILED)) == 0))
         t = table[ok]
         return cls(t[:, 5].astype(np.int64), t[:, 0], t[:, 1], t[:, 2], t[:, 3])
+
+    @classmethod
+    def from_compensated(cls, payload: dict[str, Any], which: str) -> _Centroids:
+        """The stars of a ``starlog.CompensatedStars`` frame, ``before`` or ``after`` compensation (``star``: the
+        track id); a row with sigma 0 (no centroid associated in that frame) is left out."""
+        rows = payload["stars"]
+        table = np.array([(r[f"x_{which}"], r[f"y_{which}"], r["flux"], r["sigma"], r["track"]) for r in rows],
+                         dtype=np.float64).reshape(-1, 5)
+        t = table[np.isfinite(table[:, :4]).all(axis=1) & (table[:, 3] > 0)]
+        return cls(t[:, 4].astype(np.int64), t[:, 0], t[:, 1], t[:, 2], t[:, 3])
 
 
 def _attitude_record(frame: int, method: str, result: FrameAttitude, stars: _Centroids,
@@ -267,11 +321,12 @@ class SolveSummary:
     def lines(self) -> list[str]:
         """One table: per method the frames solved, stars identified, catalogue residuals and camera model;
         then the attitude error per method when the log has the true attitude."""
-        lines = [f"{'method':<10}{'solved':>12}{'lis':>5}{'track':>7}{'matched':>9}{'resid px':>10}"
+        w = max([10] + [len(k) + 1 for k in self.methods])
+        lines = [f"{'method':<{w}}{'solved':>12}{'lis':>5}{'track':>7}{'matched':>9}{'resid px':>10}"
                  f"{'arcsec':>9}{'focal px':>10}{'fov deg':>9}{'k':>9}"]
         for method, m in self.methods.items():
             cam = m["camera"]
-            lines.append(f"{method:<10}{m['solved']:>6}/{m['frames']:<5}{m['lost_in_space']:>5}{m['tracking']:>7}"
+            lines.append(f"{method:<{w}}{m['solved']:>6}/{m['frames']:<5}{m['lost_in_space']:>5}{m['tracking']:>7}"
                          f"{m['matched_per_frame']:>9.1f}{m['residual_px']:>10.4f}{m['residual_arcsec']:>9.2f}"
                          f"{cam['focal_px']:>10.1f}{cam['fov_deg']:>9.4f}{cam['distortion']:>9.5f}")
             for reason, count in m["unsolved"].items():
@@ -282,16 +337,32 @@ class SolveSummary:
                          "and RMS error / sigma")
             for method, e in with_truth.items():
                 r, s = e["rms_arcsec"], e["sigma_arcsec"]
-                lines.append(f"{method:<10} x {r['x']:.3f} ({s['x']:.3f})  y {r['y']:.3f} ({s['y']:.3f})  roll "
+                lines.append(f"{method:<{w - 1}} x {r['x']:.3f} ({s['x']:.3f})  y {r['y']:.3f} ({s['y']:.3f})  roll "
                              f"{r['roll']:.2f} ({s['roll']:.2f});  cross-boresight {e['ratio']['cross_boresight']:.2f}, "
                              f"roll {e['ratio']['roll']:.2f}  ({e['frames']} frames)")
+        return lines + self.compensation_lines()
+
+    def compensation_lines(self) -> list[str]:
+        """Per all-star compensated channel solved before and after compensation: the attitude error's RMS
+        before -> after (on a simulated sky field)."""
+        lines = []
+        for name, m in self.methods.items():
+            after = self.methods.get(name.removesuffix("/before") + "/after", {})
+            if not name.endswith("/before") or "attitude_error" not in m or "attitude_error" not in after:
+                continue
+            b, a = m["attitude_error"]["rms_arcsec"], after["attitude_error"]["rms_arcsec"]
+            lines.append(f"{name.removesuffix('/before')}: attitude error RMS arcsec before -> after compensation: "
+                         f"x {b['x']:.3f} -> {a['x']:.3f}, y {b['y']:.3f} -> {a['y']:.3f}, roll {b['roll']:.2f} -> "
+                         f"{a['roll']:.2f}")
         return lines
 
 
 def _solve_channel(log: LogReader, out: StageOutput, topic: str, tracker: AttitudeTracker,
-                   truth: dict[int, npt.NDArray[np.float64]], *, show_progress: bool) -> _MethodFigures:
-    """Solve every frame of one centroid channel and write its three channels."""
-    method = topic.rsplit("/", 1)[-1]
+                   truth: dict[int, npt.NDArray[np.float64]], *, show_progress: bool,
+                   which: str | None = None) -> _MethodFigures:
+    """Solve every frame of one centroid channel, or with ``which`` (``before``, ``after``) of an all-star
+    compensated channel, and write its three channels."""
+    method = topic.rsplit("/", 1)[-1] if which is None else compensated_name(topic, which)
     attitude_ch = out.add_channel(topics.attitude_topic(method), json_message_type("starlog.Attitude"))
     identified_ch = out.add_channel(topics.identified_topic(method), json_message_type("starlog.IdentifiedStars"))
     annotations_ch = out.add_channel(topics.identified_annotations_topic(method),
@@ -300,10 +371,12 @@ def _solve_channel(log: LogReader, out: StageOutput, topic: str, tracker: Attitu
     count = log.channel(topic).message_count
     for message in progress(log.messages(topic), total=count, description=f"solve {method}", enabled=show_progress):
         try:
-            stars = _Centroids.from_payload(message.payload)
+            stars = (_Centroids.from_payload(message.payload) if which is None
+                     else _Centroids.from_compensated(message.payload, which))
             frame = int(message.payload["frame"])
         except (KeyError, TypeError, ValueError) as err:
-            raise InvalidInputError(f"{topic} at log_time {message.log_time}: not a starlog.Centroids message "
+            kind = "starlog.Centroids" if which is None else COMPENSATED_STARS
+            raise InvalidInputError(f"{topic} at log_time {message.log_time}: not a {kind} message "
                                     f"({err!r}).") from err
         start = time.perf_counter()
         result = tracker.solve(stars.x, stars.y, stars.flux, stars.sigma)
@@ -319,12 +392,22 @@ def _solve_channel(log: LogReader, out: StageOutput, topic: str, tracker: Attitu
     return figures
 
 
-@windowed(lambda log, options: select_centroid_channels(log, options.get("centroids"))[0])
+def _chosen_channels(log: LogReader, centroids: str | Sequence[str] | None,
+                     compensated: str | Sequence[str] | None) -> list[str]:
+    """The centroid channels, then the all-star compensated channels, to solve: with ``compensated`` alone,
+    only those."""
+    if compensated is not None and centroids is None:
+        return select_compensated_channels(log, compensated)
+    return select_centroid_channels(log, centroids) + select_compensated_channels(log, compensated)
+
+
+@windowed(lambda log, options: _chosen_channels(log, options.get("centroids"), options.get("compensated"))[0])
 def solve_log(
     input_path: str | os.PathLike[str],
     output_path: str | os.PathLike[str],
     *,
     centroids: str | Sequence[str] | None = None,
+    compensated: str | Sequence[str] | None = None,
     options: dict[str, Any] | None = None,
     force: bool = False,
     flatten: bool = False,
@@ -337,7 +420,13 @@ def solve_log(
     ----------
     centroids : str or sequence of str, optional
         Centroid methods or topics (``GAUSSFIT``, ``/stars/centroids/GAUSSFIT``, comma-separated), or
-        ``"all"``; default: the only one.
+        ``"all"``; default: the only one (none when only ``compensated`` is given).
+    compensated : str or sequence of str, optional
+        All-star compensated channels (``compensate --stars all``): ``RATE/PROTOCOL`` (``50/truth``,
+        ``50Hz/paper/separate``), topics, or ``"all"``. Each is solved twice, from the positions before and
+        after compensation, on ``/attitude/compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>/before`` and
+        ``.../after`` (and the identified stars likewise; ``star`` is the track id); on a simulated sky field
+        each reports its attitude error against the truth, at the compensated rate's frames.
     options : dict, optional
         Fields of :class:`starlog.attitude.identify.TrackerSettings` (match_radius, min_matches, min_stars,
         fov_deg, focal_px, distortion, fit_distortion, brightest, timeout_ms, try_mirrored, tracking,
@@ -349,19 +438,25 @@ def solve_log(
     solver_data_file()  # a clear error naming the extra before anything is read
     options = dict(options or {})
     with LogReader(input_path) as probe:
-        chosen = select_centroid_channels(probe, centroids)
+        chosen = _chosen_channels(probe, centroids, compensated)
+        kinds = {c.topic: c.schema_name for c in probe.channels()}
         rows, cols = _image_shape(probe)
         settings = tracker_settings(probe, options, cols)
     catalogue = load_catalogue()
     summary = SolveSummary(width=cols)
-    parameters = {"centroids": chosen, "options": options, "catalogue": catalogue.name}
+    parameters = {"centroids": [t for t in chosen if kinds[t] != COMPENSATED_STARS], "options": options,
+                  "catalogue": catalogue.name}
+    if compensated is not None:
+        parameters["compensated"] = [t for t in chosen if kinds[t] == COMPENSATED_STARS]
     with extend_log(input_path, output_path, stage="solve", parameters=parameters, force=force, flatten=flatten,
                     compression=compression) as (log, out):
         truth = _true_attitudes(log)
-        for topic in chosen:
+        runs = [(t, w) for t in chosen for w in ((None,) if kinds[t] != COMPENSATED_STARS else ("before", "after"))]
+        for topic, which in runs:
             tracker = AttitudeTracker(catalogue, (rows, cols), settings)
-            figures = _solve_channel(log, out, topic, tracker, truth, show_progress=show_progress)
-            summary.methods[topic.rsplit("/", 1)[-1]] = figures.to_dict(cols)
-            summary.seconds[topic.rsplit("/", 1)[-1]] = figures.seconds
+            figures = _solve_channel(log, out, topic, tracker, truth, show_progress=show_progress, which=which)
+            name = topic.rsplit("/", 1)[-1] if which is None else compensated_name(topic, which)
+            summary.methods[name] = figures.to_dict(cols)
+            summary.seconds[name] = figures.seconds
         out.writer.add_metadata(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods)})
     return summary

@@ -1,0 +1,124 @@
+"""Reading tracks row by row and writing the all-star series of ``compensate --stars all``.
+
+:func:`collect_track_rows` reads the rows of a track channel per track (the brightest track alone, or every
+track), :func:`centroid_sigmas` the centroid channel's sigmas once for many tracks. The ``compensate``
+stage compensates each confirmed track with the brightest track's pipeline; :class:`StarFrames` gathers the
+results of one (rate, protocol, motion mode) and writes them as one ``starlog.CompensatedStars`` message
+per frame: the rows :mod:`starlog.stages.solve` reads to solve the attitude before and after compensation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from starlog.io import encode_json, json_message_type, topics
+from starlog.io.reader import LogReader
+from starlog.stages._channels import check_messages_read
+from starlog.stages._stage import StageOutput
+
+__all__ = ["CentroidSigmas", "StarFrames", "TrackRows", "centroid_sigmas", "collect_track_rows"]
+
+#: log_time → (x, y) of a centroid → its sigma (the first centroid at that position).
+CentroidSigmas = dict[int, dict[tuple[float, float], float]]
+
+
+@dataclass
+class TrackRows:
+    """One track's rows in frame order: time, frame, filtered position, flux, the associated measurement
+    ``(meas_x, meas_y, meas_sigma, measured or gated)`` and the posterior position variance."""
+
+    times: list[int] = field(default_factory=list)
+    frames: list[int] = field(default_factory=list)
+    xy: list[tuple[float, float]] = field(default_factory=list)
+    flux: list[float] = field(default_factory=list)
+    meas: list[tuple[float, float, float, bool]] = field(default_factory=list)
+    var: list[float] = field(default_factory=list)
+    confirmed: bool = False
+
+
+def collect_track_rows(log: LogReader, topic: str,
+                       keep: Callable[[dict[str, Any]], bool]
+                       ) -> tuple[str, str, dict[int, TrackRows], npt.NDArray[np.int64]]:
+    """The method, the motion model, the rows ``keep`` accepts of every track of ``topic`` and the times of
+    the channel's messages (one pass)."""
+    method = model = ""
+    rows: dict[int, TrackRows] = {}
+    times: list[int] = []
+    for message in log.messages(topic):
+        times.append(message.log_time)
+        msg = message.payload
+        method, model = msg["method"], msg["model"]
+        for row in msg["tracks"]:
+            if not keep(row):
+                continue
+            track = rows.setdefault(int(row["track"]), TrackRows())
+            track.times.append(message.log_time)
+            track.frames.append(msg["frame"])
+            track.xy.append((row["x"], row["y"]))
+            track.flux.append(row["flux"])
+            track.meas.append((row["meas_x"], row["meas_y"], row["meas_sigma"], row["measured"] or row["gated"]))
+            track.var.append(0.5 * (row["cov_xx"] + row["cov_yy"]))
+            track.confirmed = track.confirmed or bool(row.get("confirmed", False))
+    check_messages_read(log, topic, len(times))
+    return method, model, rows, np.asarray(times, dtype=np.int64)
+
+
+def centroid_sigmas(log: LogReader, method: str, *,
+                    only: dict[int, set[tuple[float, float]]] | None = None) -> CentroidSigmas:
+    """The sigma of every centroid of ``/stars/centroids/<METHOD>`` by frame time and position (empty without
+    that channel); ``only``: those frame times, and in each only the centroids at those positions (one track's
+    measurements: memory then grows with the track, not with the stars of every frame)."""
+    topic = topics.centroid_topic(method)
+    out: CentroidSigmas = {}
+    if not log.has_topic(topic):
+        return out
+    for message in log.messages(topic):
+        wanted = None if only is None else only.get(message.log_time)
+        if only is not None and wanted is None:
+            continue
+        frame = out.setdefault(message.log_time, {})
+        for star in message.payload["stars"]:
+            key = (star["x"], star["y"])
+            if wanted is None or key in wanted:
+                frame.setdefault(key, star["sigma"])
+    return out
+
+
+@dataclass
+class StarFrames:
+    """The compensated samples of every star of one (track channel, rate, protocol, motion mode), by frame."""
+
+    topic: str
+    rate_hz: float
+    protocol: str
+    rows: dict[int, list[dict[str, Any]]] = field(default_factory=dict)
+    frames: dict[int, int] = field(default_factory=dict)
+    tracks: list[int] = field(default_factory=list)
+
+    def add(self, track: int, log_time: npt.NDArray[np.int64], frame: npt.NDArray[np.int64],
+            before: npt.NDArray[np.float64], after: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64],
+            flux: npt.NDArray[np.float64], scored: npt.NDArray[np.bool_]) -> None:
+        """One star's decimated samples before and after compensation."""
+        self.tracks.append(track)
+        for k, t in enumerate(log_time.tolist()):
+            self.frames[t] = int(frame[k])
+            self.rows.setdefault(t, []).append({
+                "track": track, "x_before": float(before[k, 0]), "y_before": float(before[k, 1]),
+                "x_after": float(after[k, 0]), "y_after": float(after[k, 1]), "sigma": float(sigma[k]),
+                "flux": float(flux[k]), "scored": bool(scored[k])})
+
+    def write(self, out: StageOutput) -> int:
+        """One ``starlog.CompensatedStars`` message per frame, in time order; returns the messages written."""
+        if not self.rows:
+            return 0
+        channel = out.add_channel(self.topic, json_message_type("starlog.CompensatedStars"))
+        for sample, t in enumerate(sorted(self.rows)):
+            record = {"sample": sample, "frame": self.frames[t], "rate_hz": self.rate_hz, "protocol": self.protocol,
+                      "stars": sorted(self.rows[t], key=lambda r: r["track"])}
+            out.writer.write(channel, log_time=t, data=encode_json(record))
+        return len(self.rows)
