@@ -12,8 +12,9 @@ The functions here decide when a tracked frame must be searched in full instead:
 
 * :func:`locate_stars` — a star is *not found* when its filtered peak falls below the detection threshold, lies
   on the edge of its search window (it moved farther than predicted) or too near the frame's edge;
-* :func:`lost_stars` — a measured star is *lost* when its fit failed, its flux left ``[1/r, r]`` times its
-  acquisition flux (a newcomer blended in, or the star faded), or another star comes within reach of its window;
+* :func:`lost_stars` — a measured star is *lost* when its fit failed, its flux changed much and significantly
+  from its acquisition's (a newcomer blended in, a blend came apart, the star faded), or another star comes
+  within its window;
 * :func:`new_light` — light appeared outside every star's window: cell means of the frame against those of
   the acquisition, a cell rising by more than ``new_light_sigma`` of its noise (a bright star entered);
 * :func:`is_image_sequence` — whether the first frames of a log are a sequence of one field (tracking pays)
@@ -64,8 +65,9 @@ class TrackingSettings:
         Half-size of the search window, px: how far a star's peak may lie from its predicted pixel.
     threshold, filter_sigma, border : float, float, int
         The detection's threshold (matched-filter SNR), matched-filter sigma and border margin.
-    max_flux_ratio : float
-        A star whose flux leaves ``[1/r, r]`` times its acquisition flux is lost.
+    flux_change, flux_sigma : float
+        A star whose flux changed from its acquisition's by more than ``flux_change`` of it and ``flux_sigma``
+        times its error is lost.
     cell : int
         Side of the cells whose means :func:`new_light` compares, px.
     new_light_sigma : float
@@ -77,19 +79,20 @@ class TrackingSettings:
     threshold: float = 5.0
     filter_sigma: float = 1.5
     border: int = 3
-    max_flux_ratio: float = 2.0
+    flux_change: float = 0.33
+    flux_sigma: float = 5.0
     cell: int = 16
     new_light_sigma: float = 8.0
 
     def __post_init__(self) -> None:
-        if not (self.acquire_every >= 1 and self.search >= 1 and self.cell >= 4 and self.max_flux_ratio > 1):
+        if not (self.acquire_every >= 1 and self.search >= 1 and self.cell >= 4 and self.flux_change > 0):
             raise InvalidParameterError(
-                f"tracking needs acquire_every >= 1, search >= 1 px, cell >= 4 px and max_flux_ratio > 1; got "
-                f"{self.acquire_every!r}, {self.search!r}, {self.cell!r}, {self.max_flux_ratio!r}.")
+                f"tracking needs acquire_every >= 1, search >= 1 px, cell >= 4 px and flux_change > 0; got "
+                f"{self.acquire_every!r}, {self.search!r}, {self.cell!r}, {self.flux_change!r}.")
 
     def to_dict(self) -> dict[str, Any]:
-        return {"acquire_every": self.acquire_every, "search_px": self.search, "max_flux_ratio": self.max_flux_ratio,
-                "new_light_cell_px": self.cell, "new_light_sigma": self.new_light_sigma}
+        return {"acquire_every": self.acquire_every, "search_px": self.search, "flux_change": self.flux_change,
+                "flux_sigma": self.flux_sigma, "new_light_cell_px": self.cell, "new_light_sigma": self.new_light_sigma}
 
 
 @dataclass(frozen=True)
@@ -211,9 +214,9 @@ def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingS
 
     Each star's peak is the highest pixel of the matched-filtered frame within ``search`` px of its predicted
     pixel; its coarse position is the detection's (:func:`starlog.detect.position.coarse_offsets`) around that
-    peak, with the background and noise of its acquisition. Not found: the peak's SNR is below the threshold,
-    the peak is on the search window's edge (the star moved farther than predicted), or within ``border`` px of
-    the frame's edge.
+    peak, with the background and noise of its acquisition; flagged ``BORDER`` within ``border`` px of the
+    frame's edge, as the detection flags it. Not found: the peak's SNR is below the threshold, the peak is on
+    the search window's edge (the star moved farther than predicted) or outside the frame.
     """
     n = state.x.size
     out = np.zeros(n, DETECTION_DTYPE)
@@ -221,11 +224,16 @@ def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingS
         return out, np.zeros(0, np.bool_)
     k1 = _gaussian_kernel(settings.filter_sigma)
     r, s = k1.size // 2, settings.search
-    px, py = np.rint(state.x + state.vx).astype(np.intp), np.rint(state.y + state.vy).astype(np.intp)
+    h, w = image.shape
+    px = np.clip(np.rint(state.x + state.vx), 0, w - 1).astype(np.intp)
+    py = np.clip(np.rint(state.y + state.vy), 0, h - 1).astype(np.intp)
     bg, noise = np.asarray(state.reference["background"], np.float64), np.asarray(state.reference["noise"], np.float64)
     raw = _search_windows(image, px, py, s + 2 + r, bg) - bg[:, None, None]
     filtered = _filtered(raw, k1)  # centred on the prediction, half-size s + 2
-    area = filtered[:, 2: 2 * s + 3, 2: 2 * s + 3].reshape(n, -1)
+    d = np.arange(-s, s + 1)
+    outside = ((py[:, None] + d < 0) | (py[:, None] + d >= h))[:, :, None] | \
+        ((px[:, None] + d < 0) | (px[:, None] + d >= w))[:, None, :]  # reflections of the frame's own light
+    area = np.where(outside, -np.inf, filtered[:, 2: 2 * s + 3, 2: 2 * s + 3]).reshape(n, -1)
     best = np.argmax(area, axis=1)
     iy, ix = np.divmod(best, 2 * s + 1)
     rows = np.arange(n)
@@ -237,9 +245,9 @@ def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingS
     box = raw[rows[:, None, None], (fy[:, None] + r + d5)[:, :, None], (fx[:, None] + r + d5)[:, None, :]]
     ox, oy = coarse_offsets(box, three)
     x_peak, y_peak = px - s + ix, py - s + iy
-    h, w = image.shape
-    inside = (x_peak >= settings.border) & (x_peak < w - settings.border) & \
-             (y_peak >= settings.border) & (y_peak < h - settings.border)
+    inside = (x_peak >= 0) & (x_peak < w) & (y_peak >= 0) & (y_peak < h)
+    border = (x_peak < settings.border) | (x_peak >= w - settings.border) | \
+             (y_peak < settings.border) | (y_peak >= h - settings.border)
     on_edge = (iy == 0) | (iy == 2 * s) | (ix == 0) | (ix == 2 * s)
     found = (snr >= settings.threshold) & ~on_edge & inside & np.isfinite(snr)
     for name in ("star", "background", "noise", "area", "elongation"):
@@ -249,24 +257,30 @@ def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingS
     out["flux"], out["peak"], out["snr"] = state.flux, box[:, 2, 2], snr
     out["x_min"], out["x_max"], out["y_min"], out["y_max"] = x_peak - 2, x_peak + 2, y_peak - 2, y_peak + 2
     out["flags"] = (state.reference["flags"] & _KEPT_FLAGS) | int(StarFlag.TRACKED)
+    out["flags"][border] |= np.uint16(StarFlag.BORDER)
     return out, found
 
 
 def lost_stars(centroids: npt.NDArray[np.void], state: TrackState, settings: TrackingSettings,
                reach: float) -> Mask:
-    """Measured stars that cannot be trusted from their window alone: the fit failed, the flux left
-    ``[1/r, r]`` times the acquisition's, or another tracked star is within ``reach`` px (its window's
-    half-size plus the search), where the two may blend."""
+    """Measured stars that cannot be trusted from their window alone: the fit failed; the flux changed from
+    the acquisition's by more than ``flux_change`` of it and ``flux_sigma`` of its error (a newcomer blended
+    in, a blend coming apart, a star fading); or another tracked star, predicted or measured, is within
+    ``reach`` px (its window's half-size), where the two blend."""
     failed = (centroids["flags"] & int(StarFlag.FIT_FAILED)) != 0
+    flux = np.asarray(centroids["flux"], np.float64)
     with np.errstate(all="ignore"):
-        ratio = np.asarray(centroids["flux"], np.float64) / np.maximum(state.flux, 1e-12)
-    faded = ~((ratio >= 1.0 / settings.max_flux_ratio) & (ratio <= settings.max_flux_ratio))
+        error = np.abs(flux) / np.asarray(centroids["snr"], np.float64)
+    change = np.abs(flux - state.flux)
+    changed = ~np.isfinite(flux) | ((change > settings.flux_change * np.abs(state.flux)) &
+                                    ~(change <= settings.flux_sigma * error))
     crowded = np.zeros(state.x.size, np.bool_)
     if state.x.size > 1:
-        d2 = (state.x[:, None] - state.x[None, :]) ** 2 + (state.y[:, None] - state.y[None, :]) ** 2
-        np.fill_diagonal(d2, np.inf)
-        crowded = d2.min(axis=1) < reach * reach
-    return failed | faded | crowded
+        for x, y in ((state.x + state.vx, state.y + state.vy), (centroids["x"], centroids["y"])):
+            d2 = (x[:, None] - x[None, :]) ** 2 + (y[:, None] - y[None, :]) ** 2
+            np.fill_diagonal(d2, np.inf)
+            crowded |= d2.min(axis=1) < reach * reach
+    return failed | changed | crowded
 
 
 def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSettings, reach: float) -> bool:
@@ -274,20 +288,21 @@ def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSett
     than ``new_light_sigma`` times its noise (the spread of the cells' changes, at least the stars' median
     pixel noise scaled to the difference of two cell means), once the frame's common change (the median
     over cells) is removed. Cells within ``reach`` px of a tracked star, or
-    of any star of the acquisition, do not count, nor do cells already lit in the acquisition frame (a star
-    the search left out, a hot pixel: their shot noise is not the sky's)."""
+    of any star of the acquisition, do not count; a cell already lit in the acquisition frame (a star the
+    search left out, a hot pixel) must rise by half its excess more, as such light also moves with the
+    platform and fluctuates with its own shot noise."""
     if state.cells is None or state.cells.size == 0:
         return False
     cells = cell_means(image, settings.cell)
     if cells.shape != state.cells.shape:
         return True
     change = cells - state.cells
-    reference = state.cells - np.median(state.cells)
-    free = reference < settings.new_light_sigma * 1.4826 * max(float(np.median(np.abs(reference))), 1e-6)
+    free = np.ones(change.shape, np.bool_)
     c = settings.cell
+    steps = np.clip(np.arange(-reach, reach + c, c), -reach, reach)  # no cell between two steps is missed
     for x, y in ((state.x + state.vx, state.y + state.vy), (state.acquired_x, state.acquired_y)):
-        for dx in (-reach, reach):
-            for dy in (-reach, reach):
+        for dx in steps:
+            for dy in steps:
                 col = np.clip(((x + dx) // c).astype(np.intp), 0, change.shape[1] - 1)
                 row = np.clip(((y + dy) // c).astype(np.intp), 0, change.shape[0] - 1)
                 free[row, col] = False
@@ -296,8 +311,9 @@ def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSett
     common = float(np.median(change))
     spread = 1.4826 * float(np.median(np.abs(change - common)))
     floor = float(np.median(state.reference["noise"])) * np.sqrt(2.0) / c if state.reference.size else 0.0
-    rise = change[free] - common
-    return bool(np.max(rise) > settings.new_light_sigma * max(spread, floor, 1e-6))
+    lit = np.maximum(state.cells - np.median(state.cells), 0.0)
+    limit = settings.new_light_sigma * max(spread, floor, 1e-6) + 0.5 * lit
+    return bool(np.any(change[free] - common > limit[free]))
 
 
 def advance(state: TrackState, centroids: npt.NDArray[np.void], keep: Mask | None = None) -> TrackState:
