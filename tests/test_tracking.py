@@ -5,7 +5,6 @@ searched again."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -15,7 +14,7 @@ from scipy.special import erf
 
 from starlog.centroid import CentroidFlag, CentroidMethod
 from starlog.centroid.tracking import TrackingSettings, is_image_sequence
-from starlog.io import LogReader, topics
+from starlog.io import LogReader
 from starlog.stages import simulate_log
 # private module: the per-frame work of the centroid stage, tested without a log
 from starlog.stages._centroid_frames import FrameExtractor
@@ -179,11 +178,6 @@ def test_every_star_is_measured_in_every_frame_under_platform_motion(vx: float, 
     for (rows, _), stars in zip(tracked, truth):
         assert rows.size == 2
         assert off_truth(rows, stars) < 0.1
-
-
-def _centroid_rows(path: Path) -> list[dict[str, Any]]:
-    with LogReader(path) as log:
-        return [m.decoded for m in log.messages(topics.centroid_topic("GAUSSFIT"))]
 
 
 def test_tracking_stage_gives_the_same_bytes_for_any_workers(tmp_path: Path) -> None:

@@ -112,7 +112,14 @@ class TrackState:
     acquired_x: F64
     acquired_y: F64
     """Where every detection of the acquisition was (the cells around them never count as new light)."""
+    quiet: Mask | None = None
+    """Stars lost in the frame right after their acquisition: still looked for, measured when found, but their
+    loss calls for no full search (a star at the detection's threshold would call for one every frame)."""
     since_acquisition: int = 0
+
+    @property
+    def quiet_stars(self) -> Mask:
+        return self.quiet if self.quiet is not None else np.zeros(self.x.size, np.bool_)
 
 
 def _gaussian_kernel(filter_sigma: float) -> F64:
@@ -174,7 +181,7 @@ def start_tracking(image: npt.NDArray[Any], detections: npt.NDArray[np.void], ce
         vx, vy = np.zeros(x.size), np.zeros(x.size)
     return TrackState(reference=detections[good].copy(), flux=np.asarray(centroids["flux"][good], np.float64),
                       x=x[good], y=y[good], vx=vx[good], vy=vy[good], cells=cell_means(image, settings.cell),
-                      acquired_x=x, acquired_y=y)
+                      acquired_x=x, acquired_y=y, quiet=np.zeros(int(good.sum()), np.bool_))
 
 
 def _reflect(index: npt.NDArray[np.intp], n: int) -> npt.NDArray[np.intp]:
@@ -254,7 +261,7 @@ def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingS
         out[name] = state.reference[name]
     out["x"], out["y"] = x_peak + ox, y_peak + oy
     out["x_peak"], out["y_peak"] = x_peak, y_peak
-    out["flux"], out["peak"], out["snr"] = state.flux, box[:, 2, 2], snr
+    out["flux"], out["peak"], out["snr"] = state.reference["flux"], box[:, 2, 2], snr
     out["x_min"], out["x_max"], out["y_min"], out["y_max"] = x_peak - 2, x_peak + 2, y_peak - 2, y_peak + 2
     out["flags"] = (state.reference["flags"] & _KEPT_FLAGS) | int(StarFlag.TRACKED)
     out["flags"][border] |= np.uint16(StarFlag.BORDER)
@@ -266,7 +273,8 @@ def lost_stars(centroids: npt.NDArray[np.void], state: TrackState, settings: Tra
     """Measured stars that cannot be trusted from their window alone: the fit failed; the flux changed from
     the acquisition's by more than ``flux_change`` of it and ``flux_sigma`` of its error (a newcomer blended
     in, a blend coming apart, a star fading); or another tracked star, predicted or measured, is within
-    ``reach`` px (its window's half-size), where the two blend."""
+    ``reach`` px (its window's half-size), where the two blend (a quiet star near any other is lost, a star
+    near only quiet ones is not)."""
     failed = (centroids["flags"] & int(StarFlag.FIT_FAILED)) != 0
     flux = np.asarray(centroids["flux"], np.float64)
     with np.errstate(all="ignore"):
@@ -275,11 +283,12 @@ def lost_stars(centroids: npt.NDArray[np.void], state: TrackState, settings: Tra
     changed = ~np.isfinite(flux) | ((change > settings.flux_change * np.abs(state.flux)) &
                                     ~(change <= settings.flux_sigma * error))
     crowded = np.zeros(state.x.size, np.bool_)
+    quiet = state.quiet_stars
     if state.x.size > 1:
         for x, y in ((state.x + state.vx, state.y + state.vy), (centroids["x"], centroids["y"])):
-            d2 = (x[:, None] - x[None, :]) ** 2 + (y[:, None] - y[None, :]) ** 2
-            np.fill_diagonal(d2, np.inf)
-            crowded |= d2.min(axis=1) < reach * reach
+            near = (x[:, None] - x[None, :]) ** 2 + (y[:, None] - y[None, :]) ** 2 < reach * reach
+            np.fill_diagonal(near, False)
+            crowded |= (near & ~quiet[None, :]).any(axis=1) | (quiet & near.any(axis=1))
     return failed | changed | crowded
 
 
@@ -316,15 +325,18 @@ def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSett
     return bool(np.any(change[free] - common > limit[free]))
 
 
-def advance(state: TrackState, centroids: npt.NDArray[np.void], keep: Mask | None = None) -> TrackState:
-    """The state after a tracked frame: each kept star at its measured position (``centroids``: the first
-    method's rows), its velocity the step it made."""
-    x, y = np.array(centroids["x"], np.float64), np.array(centroids["y"], np.float64)
-    vx, vy = x - state.x, y - state.y
-    if keep is None:
-        keep = np.ones(x.size, np.bool_)
+def advance(state: TrackState, centroids: npt.NDArray[np.void], measured: Mask, quiet: Mask,
+            shape: tuple[int, ...], margin: float) -> TrackState:
+    """The state after a tracked frame: each ``measured`` star at its position in ``centroids`` (the first method's
+    rows), its velocity the step it made; the others carried on at their velocity, and left out once their
+    next prediction is more than ``margin`` px outside the frame."""
+    x = np.where(measured, centroids["x"], state.x + state.vx)
+    y = np.where(measured, centroids["y"], state.y + state.vy)
+    vx, vy = np.where(measured, x - state.x, state.vx), np.where(measured, y - state.y, state.vy)
+    keep = measured | ((x + vx > -margin) & (x + vx < shape[1] - 1 + margin) &
+                       (y + vy > -margin) & (y + vy < shape[0] - 1 + margin))
     return replace(state, reference=state.reference[keep], flux=state.flux[keep], x=x[keep], y=y[keep],
-                   vx=vx[keep], vy=vy[keep], since_acquisition=state.since_acquisition + 1)
+                   vx=vx[keep], vy=vy[keep], quiet=quiet[keep], since_acquisition=state.since_acquisition + 1)
 
 
 def is_image_sequence(positions: Sequence[tuple[F64, F64]], search: float, *, min_matched: float = 0.5

@@ -135,8 +135,9 @@ class TrackedFrames:
 
     The block's first frame is searched in full (an acquisition), and so is every ``acquire_every``-th after
     it, a frame where a tracked star is not found or is lost, and one where light appeared outside the
-    windows. A star lost in the frame right after an acquisition is left out until the next one instead
-    (the search just done did not keep it measurable), so a flickering star cannot force a search per frame.
+    windows. A star lost in the frame right after an acquisition becomes *quiet* instead: still looked for
+    and measured whenever found, but its loss calls for no search (the search just done did not make it
+    measurable), so a star at the detection's threshold cannot force a search every frame.
     Blocks never share state: the output does not depend on how blocks are spread over workers.
     """
 
@@ -176,15 +177,16 @@ class TrackedFrames:
         if new_light(prepared, state, self.settings, reach):
             return None
         detections, found = locate_stars(prepared, state, self.settings)
-        if not found.all() and not just_acquired:
+        quiet = state.quiet_stars
+        if (~found & ~quiet).any() and not just_acquired:
             return None
         centroids = self.extract.measure(prepared, saturation, detections)
         first = centroids[self.extract.methods[0]]
         lost = ~found | lost_stars(first, state, self.settings, float(self.half_size))
-        if lost.any() and not just_acquired:
+        if (lost & ~quiet).any() and not just_acquired:
             return None
         keep = ~lost
-        self.state = advance(state, first, keep)
+        self.state = advance(state, first, keep, quiet | lost, prepared.shape, float(self.settings.search))
         return detections[keep], {m: c[keep] for m, c in centroids.items()}
 
 
