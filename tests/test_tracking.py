@@ -105,6 +105,14 @@ def test_windows_follow_a_star_drifting_across_them() -> None:
         assert off_truth(rows, stars) < 0.1
 
 
+def test_a_brighter_neighbour_in_the_search_window_is_not_taken_for_the_star() -> None:
+    """A faint star 7 px from a bright one (inside its search window): each window keeps its own star."""
+    pair = [(30.0, 30.0, 20000.0), (35.2, 34.9, 4000.0)]
+    tracked = run([render(pair, seed=k) for k in range(8)], acquire_every=100)
+    assert [acquired for _, acquired in tracked] == [True] + [False] * 7
+    assert all(rows.size == 2 and off_truth(rows, pair) < 0.1 for rows, _ in tracked)
+
+
 def test_a_sudden_jump_is_searched_again() -> None:
     truth = [[(x + (20.0 if k >= 5 else 0.0), y, f) for x, y, f in STATIC[:2]] for k in range(8)]
     tracked = run([render(t, seed=k) for k, t in enumerate(truth)], acquire_every=100)

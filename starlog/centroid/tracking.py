@@ -215,12 +215,30 @@ def _filtered(windows: F64, k1: F64) -> F64:
     return np.asarray(smooth[:, r: side - r, r: side - r], np.float64)
 
 
+def _nearest_peak(filtered: F64, outside: Mask, level: F64, dx: F64, dy: F64) -> npt.NDArray[np.intp]:
+    """Per window, the flat index (in the central search area, 2 px inside ``filtered``) of the local maximum above
+    ``level`` nearest the predicted offset ``(dx, dy)`` from the centre; the highest pixel when none is (a
+    neighbour brighter than the star, inside its search window, is not taken for it)."""
+    n, side = filtered.shape[0], filtered.shape[1] - 4
+    core = filtered[:, 2: side + 2, 2: side + 2]
+    peak = (core >= level[:, None, None]) & ~outside
+    for oy in (-1, 0, 1):
+        for ox in (-1, 0, 1):
+            if oy or ox:
+                peak &= core >= filtered[:, 2 + oy: side + 2 + oy, 2 + ox: side + 2 + ox]
+    d = np.arange(side) - side // 2
+    distance = (d[None, :, None] - dy[:, None, None]) ** 2 + (d[None, None, :] - dx[:, None, None]) ** 2
+    nearest = np.argmin(np.where(peak, distance, np.inf).reshape(n, -1), axis=1)
+    highest = np.argmax(np.where(outside, -np.inf, core).reshape(n, -1), axis=1)
+    return np.where(peak.reshape(n, -1).any(axis=1), nearest, highest)
+
+
 def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingSettings
                  ) -> tuple[npt.NDArray[np.void], Mask]:
     """Detection rows of the tracked stars in this frame, and which were found.
 
-    Each star's peak is the highest pixel of the matched-filtered frame within ``search`` px of its predicted
-    pixel; its coarse position is the detection's (:func:`starlog.detect.position.coarse_offsets`) around that
+    Each star's peak is the local maximum of the matched-filtered frame above the detection's threshold nearest
+    its predicted position, within ``search`` px of its predicted pixel; its coarse position is the detection's (:func:`starlog.detect.position.coarse_offsets`) around that
     peak, with the background and noise of its acquisition; flagged ``BORDER`` within ``border`` px of the
     frame's edge, as the detection flags it. Not found: the peak's SNR is below the threshold, the peak is on
     the search window's edge (the star moved farther than predicted) or outside the frame.
@@ -240,8 +258,9 @@ def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingS
     d = np.arange(-s, s + 1)
     outside = ((py[:, None] + d < 0) | (py[:, None] + d >= h))[:, :, None] | \
         ((px[:, None] + d < 0) | (px[:, None] + d >= w))[:, None, :]  # reflections of the frame's own light
+    level = settings.threshold * noise * float(np.sum(k1 * k1))
+    best = _nearest_peak(filtered, outside, level, state.x + state.vx - px, state.y + state.vy - py)
     area = np.where(outside, -np.inf, filtered[:, 2: 2 * s + 3, 2: 2 * s + 3]).reshape(n, -1)
-    best = np.argmax(area, axis=1)
     iy, ix = np.divmod(best, 2 * s + 1)
     rows = np.arange(n)
     peak = area[rows, best]
