@@ -325,23 +325,26 @@ def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSett
     if cells.shape != state.cells.shape:
         return True
     change = cells - state.cells
-    free = np.ones(change.shape, np.bool_)
-    c = settings.cell
+    c, (rows, cols) = settings.cell, change.shape
     steps = np.clip(np.arange(-reach, reach + c, c), -reach, reach)  # no cell between two steps is missed
-    for x, y in ((state.x + state.vx, state.y + state.vy), (state.acquired_x, state.acquired_y)):
-        for dx in steps:
-            for dy in steps:
-                col = np.clip(((x + dx) // c).astype(np.intp), 0, change.shape[1] - 1)
-                row = np.clip(((y + dy) // c).astype(np.intp), 0, change.shape[0] - 1)
-                free[row, col] = False
+    x = np.concatenate([state.x + state.vx, state.acquired_x])
+    y = np.concatenate([state.y + state.vy, state.acquired_y])
+    near_col = np.clip((x[:, None] + steps) // c, 0, cols - 1).astype(np.intp)
+    near_row = np.clip((y[:, None] + steps) // c, 0, rows - 1).astype(np.intp)
+    free = np.ones(change.shape, np.bool_)
+    free[near_row[:, :, None], near_col[:, None, :]] = False
     if not free.any():
         return False
     common = float(np.median(change))
     spread = 1.4826 * float(np.median(np.abs(change - common)))
     floor = float(np.median(state.reference["noise"])) * np.sqrt(2.0) / c if state.reference.size else 0.0
-    lit = np.maximum(state.cells - np.median(state.cells), 0.0)
-    limit = settings.new_light_sigma * max(spread, floor, 1e-6) + 0.5 * lit
+    limit = settings.new_light_sigma * max(spread, floor, 1e-6) + 0.5 * _lit(state.cells)
     return bool(np.any(change[free] - common > limit[free]))
+
+
+def _lit(cells: F64) -> F64:
+    """How far each cell's mean stands above the frame's median cell."""
+    return np.maximum(cells - np.median(cells), 0.0)
 
 
 def advance(state: TrackState, centroids: npt.NDArray[np.void], measured: Mask, quiet: Mask,
