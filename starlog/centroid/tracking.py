@@ -15,8 +15,9 @@ The functions here decide when a tracked frame must be searched in full instead:
 * :func:`lost_stars` — a measured star is *lost* when its fit failed, its flux changed much and significantly
   from its acquisition's (a newcomer blended in, a blend came apart, the star faded), or another star comes
   within its window;
-* :func:`new_light` — light appeared outside every star's window: cell means of the frame against those of
-  the acquisition, a cell rising by more than ``new_light_sigma`` of its noise (a bright star entered);
+* :func:`new_light` and :func:`lasting_light` — light appeared outside every star's window in two frames in a
+  row: cell means of the frame against those of the acquisition, a cell rising by more than
+  ``new_light_sigma`` of its noise (a bright star entered; a cosmic ray lasts one frame);
 * :func:`is_image_sequence` — whether the first frames of a log are a sequence of one field (tracking pays)
   or unrelated images (a folder of stills, a log whose frames jump).
 
@@ -39,7 +40,7 @@ from starlog.detect.position import coarse_offsets
 from starlog.errors import InvalidParameterError
 
 __all__ = ["DEFAULT_ACQUIRE_EVERY", "TrackingSettings", "TrackState", "advance", "is_image_sequence",
-           "locate_stars", "lost_stars", "new_light", "start_tracking"]
+           "lasting_light", "locate_stars", "lost_stars", "new_light", "start_tracking"]
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -311,19 +312,23 @@ def lost_stars(centroids: npt.NDArray[np.void], state: TrackState, settings: Tra
     return failed | changed | crowded
 
 
-def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSettings, reach: float) -> bool:
-    """Whether light appeared outside the windows: a cell whose mean rose above the acquisition's by more
-    than ``new_light_sigma`` times its noise (the spread of the cells' changes, at least the stars' median
-    pixel noise scaled to the difference of two cell means), once the frame's common change (the median
-    over cells) is removed. Cells within ``reach`` px of a tracked star, or
-    of any star of the acquisition, do not count; a cell already lit in the acquisition frame (a star the
-    search left out, a hot pixel) must rise by half its excess more, as such light also moves with the
-    platform and fluctuates with its own shot noise."""
-    if state.cells is None or state.cells.size == 0:
-        return False
+def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSettings, reach: float
+              ) -> Mask | None:
+    """The cells where light appeared outside the windows (None when the frame cannot be compared with the
+    acquisition's: another size): a cell whose mean rose above the acquisition's by more than
+    ``new_light_sigma`` times its noise (the spread of the cells' changes, at least the stars' median pixel
+    noise scaled to the difference of two cell means), once the frame's common change (the median over
+    cells) is removed. Cells within ``reach`` px of a tracked star, or of any star of the acquisition, do
+    not count; a cell already lit in the acquisition frame (a star the search left out, a hot pixel) must
+    rise by half its excess more, as such light also moves with the platform and fluctuates with its own
+    shot noise. :func:`lasting_light` tells a star from a cosmic ray."""
+    if state.cells is None:
+        return np.zeros((0, 0), np.bool_)
     cells = cell_means(image, settings.cell)
     if cells.shape != state.cells.shape:
-        return True
+        return None
+    if cells.size == 0:
+        return np.zeros(cells.shape, np.bool_)
     change = cells - state.cells
     c, (rows, cols) = settings.cell, change.shape
     steps = np.clip(np.arange(-reach, reach + c, c), -reach, reach)  # no cell between two steps is missed
@@ -333,13 +338,25 @@ def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSett
     near_row = np.clip((y[:, None] + steps) // c, 0, rows - 1).astype(np.intp)
     free = np.ones(change.shape, np.bool_)
     free[near_row[:, :, None], near_col[:, None, :]] = False
-    if not free.any():
-        return False
     common = float(np.median(change))
     spread = 1.4826 * float(np.median(np.abs(change - common)))
     floor = float(np.median(state.reference["noise"])) * np.sqrt(2.0) / c if state.reference.size else 0.0
     limit = settings.new_light_sigma * max(spread, floor, 1e-6) + 0.5 * _lit(state.cells)
-    return bool(np.any(change[free] - common > limit[free]))
+    return free & (change - common > limit)
+
+
+def lasting_light(risen: Mask, before: Mask | None, tracked: int) -> bool:
+    """Whether the light that appeared in this frame (:func:`new_light`'s cells) calls for a search: it was there
+    in the frame before too, in the same cell or one next to it (a star entering stays, a cosmic ray lasts one
+    frame), or it lit more than two cells at once, or no star is tracked (nothing to lose by searching)."""
+    if not risen.any():
+        return False
+    if tracked == 0 or np.count_nonzero(risen) > 2:
+        return True
+    if before is None or before.shape != risen.shape or not before.any():
+        return False
+    grown = cv2.dilate(before.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.bool_)
+    return bool(np.any(risen & grown))
 
 
 def _lit(cells: F64) -> F64:

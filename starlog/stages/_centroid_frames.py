@@ -25,8 +25,16 @@ from starlog.centroid.evidence import FrameEvidence, frame_evidence
 from starlog.centroid.extract import measure_methods, window_half_size
 from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.phase import PhaseCalibration
-from starlog.centroid.tracking import TrackingSettings, TrackState, advance, locate_stars, lost_stars, new_light, \
-    start_tracking
+from starlog.centroid.tracking import (
+    TrackingSettings,
+    TrackState,
+    advance,
+    lasting_light,
+    locate_stars,
+    lost_stars,
+    new_light,
+    start_tracking,
+)
 from starlog.io import encode_image_annotations
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader, LogSource
@@ -135,7 +143,7 @@ class TrackedFrames:
 
     The block's first frame is searched in full (an acquisition), and so is every ``acquire_every``-th after
     it, a frame where a tracked star is not found or is lost, and one where light appeared outside the
-    windows. A star lost in the frame right after an acquisition becomes *quiet* instead: still looked for
+    windows and was there in the frame before. A star lost in the frame right after an acquisition becomes *quiet* instead: still looked for
     and measured whenever found, but its loss calls for no search (the search just done did not make it
     measurable), so a star at the detection's threshold cannot force a search every frame.
     Blocks never share state: the output does not depend on how blocks are spread over workers.
@@ -147,6 +155,8 @@ class TrackedFrames:
         self.extract = extract
         self.settings: TrackingSettings = extract.tracking
         self.state: TrackState | None = None
+        self.risen: npt.NDArray[np.bool_] | None = None
+        """The cells where light appeared in the frame before (:func:`~starlog.centroid.tracking.new_light`)."""
         psf = extract.options.get("psf_sigma")
         self.half_size = window_half_size(float(psf) if psf is not None else 1.0, extract.options.get("window"))
 
@@ -164,6 +174,7 @@ class TrackedFrames:
             if tracked is not None:
                 return tracked[0], tracked[1], False
         detections, centroids = self.extract.centroids(image)
+        self.risen = None
         self.state = start_tracking(self.extract.prepared(image)[0], detections, centroids[self.extract.methods[0]], self.settings,
                                     previous=state)
         return detections, centroids, True
@@ -174,7 +185,8 @@ class TrackedFrames:
         just_acquired = state.since_acquisition == 0
         reach = self.half_size + self.settings.search + 1
         prepared, saturation = self.extract.prepared(image)
-        if new_light(prepared, state, self.settings, reach):
+        risen, self.risen = self.risen, new_light(prepared, state, self.settings, reach)
+        if self.risen is None or lasting_light(self.risen, risen, state.x.size):
             return None
         detections, found = locate_stars(prepared, state, self.settings)
         quiet = state.quiet_stars
