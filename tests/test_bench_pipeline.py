@@ -185,6 +185,7 @@ def test_the_centroid_stage_is_judged_against_the_decode_only_floor(bench, tmp_p
     assert verdict is None and "2.50x the decode-only floor" in info and "1.30x as fast" in info
     stages[1]["rate"] = 120.0
     assert not bench.decode_floor_targets({"size": 1024, "stages": stages})[0][1]
+    assert bench.decode_floor_targets({"size": 512, "stages": stages})[0][1] is None  # judged at 1024² only
 
 
 def test_run_is_judged_at_each_size_it_has_a_target_for(bench):
