@@ -147,37 +147,34 @@ def cell_means(image: npt.NDArray[Any], cell: int) -> F64:
     return np.asarray(sums.reshape(rows, cols, cell).sum(axis=2, dtype=accumulator), np.float64) / (cell * cell)
 
 
-def _matched_velocities(x: F64, y: F64, old_x: F64, old_y: F64, radius: float) -> tuple[F64, F64]:
-    """Velocity of each new star from the nearest old one within ``radius`` px; the others take the median
-    of the matched ones (the platform's motion), or zero when none matched."""
-    vx, vy = np.zeros(x.size), np.zeros(x.size)
-    if x.size == 0 or old_x.size == 0:
+def _carried_velocities(x: F64, y: F64, previous: TrackState, radius: float) -> tuple[F64, F64]:
+    """Velocity of each star of a new acquisition: its step from the star of ``previous`` whose prediction is
+    nearest, within ``radius`` px; the others take the median step of the matched ones (the platform's
+    motion), or of ``previous``'s velocities when none matched."""
+    vx, vy = np.full(x.size, np.median(previous.vx)), np.full(x.size, np.median(previous.vy))
+    if x.size == 0:
         return vx, vy
-    dx, dy = x[:, None] - old_x[None, :], y[:, None] - old_y[None, :]
-    d2 = dx * dx + dy * dy
+    d2 = (x[:, None] - (previous.x + previous.vx)) ** 2 + (y[:, None] - (previous.y + previous.vy)) ** 2
     nearest = np.argmin(d2, axis=1)
-    rows = np.arange(x.size)
-    matched = d2[rows, nearest] <= radius * radius
+    matched = d2[np.arange(x.size), nearest] <= radius * radius
     if not matched.any():
         return vx, vy
-    mx, my = dx[rows, nearest], dy[rows, nearest]
-    vx = np.where(matched, mx, np.median(mx[matched]))
-    vy = np.where(matched, my, np.median(my[matched]))
-    return vx, vy
+    step_x, step_y = x - previous.x[nearest], y - previous.y[nearest]
+    return (np.where(matched, step_x, np.median(step_x[matched])),
+            np.where(matched, step_y, np.median(step_y[matched])))
 
 
 def start_tracking(image: npt.NDArray[Any], detections: npt.NDArray[np.void], centroids: npt.NDArray[np.void],
                    settings: TrackingSettings, previous: TrackState | None = None) -> TrackState:
     """The state after a full-frame search: every detection tracked from its centroid (``centroids``: the first
-    method's rows, in the detections' order), its velocity from the nearest star of ``previous`` (within
-    twice the search window plus that state's largest speed), the frame's cell means as the reference."""
+    method's rows, in the detections' order), its velocity carried from ``previous`` (the frame before, when it
+    was tracked; matched within twice the search window plus that state's largest speed), the frame's cell
+    means as the reference."""
     good = (centroids["flags"] & int(StarFlag.FIT_FAILED)) == 0
     x, y = np.array(centroids["x"], np.float64), np.array(centroids["y"], np.float64)
     if previous is not None and previous.x.size:
         speed = float(np.max(np.hypot(previous.vx, previous.vy)))
-        vx, vy = _matched_velocities(x, y, previous.x + previous.vx, previous.y + previous.vy,
-                                     2.0 * settings.search + speed)
-        vx, vy = vx + np.median(previous.vx), vy + np.median(previous.vy)
+        vx, vy = _carried_velocities(x, y, previous, 2.0 * settings.search + speed)
     else:
         vx, vy = np.zeros(x.size), np.zeros(x.size)
     return TrackState(reference=detections[good].copy(), flux=np.asarray(centroids["flux"][good], np.float64),
