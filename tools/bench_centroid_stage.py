@@ -22,6 +22,10 @@ RMSE of each mode is taken over the (frame, star) pairs both modes measured. Tar
 one acquisition period; a star entering the field is measured by tracking within one acquisition period of
 full mode's first measurement of it.
 
+Last, the choice of ``--acquire-every``: in this process, CPU time a frame of tracking mode (search, windows,
+measurement, messages; no decode) on the first 300 frames of the --size log, for several periods, and the
+searches each made; period 1 is full mode.
+
 Run: python tools/bench_centroid_stage.py [--quick] [--frames 300] [--size 1024] [--methods MOMENT,GAUSSFIT]
 
 Run time of --quick (512x512, 40 stars, 100 / 200 frames, one repeat; tracking regimes 256x256, 600 frames)
@@ -225,6 +229,34 @@ def tracking_accuracy(args: argparse.Namespace, targets: Targets) -> None:
                       delay <= period)
 
 
+def acquisition_sweep(log: Path, periods: list[int], count: int = 300) -> None:
+    """CPU ms a frame of tracking mode in this process for each period of full searches (GAUSSFIT, frames
+    decoded beforehand, messages encoded), best of two runs, and the searches made: what the period costs."""
+    from starlog.centroid.tracking import TrackingSettings
+    from starlog.stages._centroid_frames import FrameExtractor
+
+    with LogReader(log) as reader:
+        frames = [img for _, _, img in itertools.islice(reader.frames(), count)]
+    cv2.setNumThreads(1)
+    reuse_frame_buffers()
+    print(f"\n# --acquire-every: tracking in this process on {len(frames)} frames of {log.name} (GAUSSFIT, decoded "
+          "beforehand; messages encoded), CPU ms a frame, best of 2; period 1 searches every frame")
+    print(f"{'acquire every':>14}{'ms cpu/frame':>14}{'searches':>10}")
+    for period in periods:
+        extract = FrameExtractor(methods=(CentroidMethod.GAUSSFIT,), gain=1.0, read_noise=3.0,
+                                 options={"psf_sigma": 1.2}, tracking=TrackingSettings(acquire_every=period))
+        best, searches = float("inf"), 0
+        for _ in range(2):
+            block, searches = extract.block(), 0
+            start = time.process_time()
+            for k, image in enumerate(frames):
+                detections, centroids, searched = block.measure(image)
+                extract.encode(k, k, None, detections, centroids, searched)
+                searches += searched
+            best = min(best, (time.process_time() - start) / len(frames))
+        print(f"{period:>14}{1e3 * best:>14.2f}{searches:>10}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n")[-1])
     ap.add_argument("--quick", action="store_true",
@@ -238,7 +270,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dir", default="/tmp/starlog_bench_centroid")
     ap.add_argument("--tracking-size", type=int, default=None, help="frame side of the tracking regimes [512; --quick 256]")
     ap.add_argument("--tracking-frames", type=int, default=None, help="frames of each tracking regime [1500; --quick 600]")
-    ap.add_argument("--tracking-only", action="store_true", help="only tracking against full mode")
+    ap.add_argument("--tracking-only", action="store_true",
+                    help="only tracking against full mode and the --acquire-every sweep")
     args = ap.parse_args(argv)
     for name, full, quick in (("frames", 300, 100), ("size", 1024, 512), ("stars", 50, 40), ("repeats", 2, 1),
                               ("tracking_size", 512, 256), ("tracking_frames", 1500, 600)):
@@ -250,6 +283,9 @@ def main(argv: list[str] | None = None) -> int:
     if not args.tracking_only:
         stage_speed(args, folder)
     tracking_accuracy(args, targets)
+    sweep_log = folder / f"sim{args.size}_{args.stars}_{args.frames}.mcap"
+    simulate(sweep_log, args.frames, args.size, args.stars)
+    acquisition_sweep(sweep_log, [1, 10, 25, 50, 100, 200])
     return targets.report()
 
 
