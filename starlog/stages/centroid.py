@@ -11,7 +11,9 @@ block (so no image crosses a process boundary), and the results are written in f
 the output does not depend on the number of workers. With PSFFIT (or ``psf="empirical"``) an
 empirical PSF is built once from the log's first frames before that, stored as the metadata
 record ``starlog.epsf`` (:meth:`starlog.centroid.epsf.EPSF.to_metadata`) and fitted by PSFFIT
-in every frame. The summary says how many frames were
+in every frame. In tracking mode (``mode``; :mod:`starlog.centroid.tracking`) the blocks are cut
+whatever the number of workers, each starts with a full search, and known stars are measured in
+windows around their predicted positions in between. The summary says how many frames were
 read against how many messages the channel holds; they must agree unless ``skip_bad`` names
 every frame left out.
 """
