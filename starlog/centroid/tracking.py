@@ -46,9 +46,9 @@ F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
 
 DEFAULT_ACQUIRE_EVERY = 100
-"""Frames between two full-frame searches (``tools/bench_pipeline.py`` and ``tools/bench_centroid_stage.py``
-measure the choice: at 1024² one search costs as much as ~10 tracked frames, so a search every 100 frames
-adds ~10 % to a tracked frame's cost, and a star entering the field waits at most 1/3 s at 300 Hz)."""
+"""Frames between two full-frame searches. ``tools/bench_centroid_stage.py`` measures the choice: at 1024² a
+search costs about as much as two tracked frames, so one every 100 frames adds about 1 % to a tracked frame's
+cost, and a star entering too faint for :func:`new_light` waits at most a third of a second at 300 Hz."""
 
 _KEPT_FLAGS = int(StarFlag.BLENDED | StarFlag.ELONGATED)
 """Detection flags a tracked star keeps from its acquisition (the others are measured again in every frame)."""
