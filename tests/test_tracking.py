@@ -124,7 +124,7 @@ def test_a_sudden_jump_is_searched_again() -> None:
 
 def test_a_star_entering_and_leaving_the_field() -> None:
     """A bright star entering is found one frame after full mode finds it (light outside the windows in two
-    frames in a row: not a cosmic ray); leaving, it is dropped as the search at the edge no longer finds it; the
+    frames in a row: not a cosmic ray); leaving, it is dropped when the search at the edge does not find it; the
     static star is measured in every frame."""
     truth = [[(-6.0 + 4.0 * k, 30.0, 8000.0), (20.0, 50.0, 5000.0)] for k in range(20)]
     frames = [render(t, seed=k) for k, t in enumerate(truth)]

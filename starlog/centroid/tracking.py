@@ -1,5 +1,5 @@
 """Tracking mode: known stars measured in windows around their predicted positions, the full frame searched
-only now and then.
+only at intervals.
 
 A star tracker acquires its stars by searching the whole frame (detection, :func:`starlog.detect.detect_stars`),
 then tracks them: each star's next position is predicted from its last ones (constant velocity), its peak is

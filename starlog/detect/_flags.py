@@ -34,7 +34,7 @@ class StarFlag(enum.IntFlag):
         The star's SNR is below 5: the centroid is valid but its error is large.
     MASKED : 64
         Non-finite (NaN/inf) pixels fell in the star's window; they were left out.
-    TRACKED : 128
+    TRACKED : 256
         Tracking mode: the star was found in a window around its predicted position, not by a search of
         the whole frame (:mod:`starlog.centroid.tracking`); without it, the frame was searched in full.
     """
@@ -46,4 +46,4 @@ class StarFlag(enum.IntFlag):
     ELONGATED = 16
     LOW_SNR = 32
     MASKED = 64
-    TRACKED = 128
+    TRACKED = 256
