@@ -209,7 +209,7 @@ def _tracking_settings(detect_options: dict[str, Any] | None, acquire_every: int
 
 def _choose_mode(log: LogReader, topic: str, mode: str, tracking: TrackingSettings,
                  detect_options: dict[str, Any] | None) -> dict[str, Any]:
-    """The mode the stage runs in and why (the provenance's ``mode``, ``mode_reason``, ``acquire_every``):
+    """The mode the stage runs in and why (the provenance's ``mode``, ``mode_reason`` and, tracking, ``tracking``):
     ``auto`` is tracking when the stars of the log's first :data:`MODE_FRAMES` frames are one field moving
     little from frame to frame (:func:`starlog.centroid.tracking.is_image_sequence`), else full."""
     if mode == "auto":
