@@ -14,7 +14,9 @@ from scipy.special import erf
 
 from starlog.centroid import CentroidFlag, CentroidMethod
 from starlog.centroid.tracking import TrackingSettings, is_image_sequence
+from starlog.errors import InvalidParameterError
 from starlog.io import LogReader
+from starlog.pipeline import PipelineConfig, run_pipeline
 from starlog.stages import simulate_log
 # private module: the per-frame work of the centroid stage, tested without a log
 from starlog.stages._centroid_frames import FrameExtractor
@@ -217,3 +219,16 @@ def test_tracking_stage_gives_the_same_bytes_for_any_workers(tmp_path: Path) -> 
     with LogReader(tmp_path / "full.mcap") as log:
         (record,) = [p for p in log.provenance() if p.stage == "centroid"]
         assert record.parameters["mode"] == "full" and record.parameters["acquisitions"] == 90
+
+
+def test_the_run_config_takes_the_mode(tmp_path: Path) -> None:
+    sim = tmp_path / "sim.mcap"
+    simulate_log(small_config(n_frames=12), sim)
+    config = PipelineConfig.from_dict({"centroid": {"methods": ["GAUSSFIT"], "mode": "tracking", "acquire_every": 5}})
+    run_pipeline(sim, tmp_path / "out.mcap", config)
+    with LogReader(tmp_path / "out.mcap") as log:
+        (record,) = [p for p in log.provenance() if p.stage == "centroid"]
+    assert record.parameters["mode"] == "tracking" and record.parameters["tracking"]["acquire_every"] == 5
+    assert record.parameters["acquisitions"] == 3  # frames 0, 5 and 10
+    with pytest.raises(InvalidParameterError, match="mode must be one of"):
+        run_pipeline(sim, tmp_path / "bad.mcap", PipelineConfig.from_dict({"centroid": {"mode": "fast"}}))
