@@ -11,7 +11,7 @@ full mode, on the same window whenever the coarse position rounds to the same pi
 The functions here decide when a tracked frame must be searched in full instead:
 
 * :func:`locate_stars` — a star is *not found* when its filtered peak falls below the detection threshold, lies
-  on the edge of its search window (it moved farther than predicted) or too near the frame's edge;
+  on the edge of its search window (it moved farther than predicted) or outside the frame;
 * :func:`lost_stars` — a measured star is *lost* when its fit failed, its flux changed much and significantly
   from its acquisition's (a newcomer blended in, a blend came apart, the star faded), or another star comes
   within its window;
@@ -236,9 +236,9 @@ def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingS
     """Detection rows of the tracked stars in this frame, and which were found.
 
     Each star's peak is the local maximum of the matched-filtered frame above the detection's threshold nearest
-    its predicted position, within ``search`` px of its predicted pixel; its coarse position is the detection's (:func:`starlog.detect.position.coarse_offsets`) around that
-    peak, with the background and noise of its acquisition; flagged ``BORDER`` within ``border`` px of the
-    frame's edge, as the detection flags it. Not found: the peak's SNR is below the threshold, the peak is on
+    its predicted position, within ``search`` px of its predicted pixel; its coarse position is the detection's
+    (:func:`starlog.detect.position.coarse_offsets`) around that peak, with the background and noise of its
+    acquisition; flagged ``BORDER`` within ``border`` px of the frame's edge, as the detection flags it. Not found: the peak's SNR is below the threshold, the peak is on
     the search window's edge (the star moved farther than predicted) or outside the frame.
     """
     n = state.x.size
