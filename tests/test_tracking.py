@@ -17,7 +17,7 @@ from starlog.centroid.tracking import TrackingSettings, is_image_sequence
 from starlog.errors import InvalidParameterError
 from starlog.io import LogReader
 from starlog.pipeline import PipelineConfig, run_pipeline
-from starlog.stages import simulate_log
+from starlog.stages import ingest_folder, simulate_log
 # private module: the per-frame work of the centroid stage, tested without a log
 from starlog.stages._centroid_frames import FrameExtractor
 from starlog.stages.centroid import centroid_log
@@ -232,3 +232,20 @@ def test_the_run_config_takes_the_mode(tmp_path: Path) -> None:
     assert record.parameters["acquisitions"] == 3  # frames 0, 5 and 10
     with pytest.raises(InvalidParameterError, match="mode must be one of"):
         run_pipeline(sim, tmp_path / "bad.mcap", PipelineConfig.from_dict({"centroid": {"mode": "fast"}}))
+
+
+def test_auto_mode_searches_every_frame_of_a_folder_of_unrelated_stills(tmp_path: Path) -> None:
+    import cv2
+
+    folder = tmp_path / "stills"
+    folder.mkdir()
+    rng = np.random.default_rng(5)
+    for k in range(6):
+        stars = [(float(x), float(y), 6000.0) for x, y in rng.uniform(8, SIZE - 8, (4, 2))]
+        cv2.imwrite(str(folder / f"still{k}.png"), render(stars, seed=k))
+    ingest_folder(folder, tmp_path / "stills.mcap", fps=10.0)
+    summary = centroid_log(tmp_path / "stills.mcap", tmp_path / "cen.mcap", methods="GAUSSFIT")
+    assert summary.mode == "full" and summary.acquisitions == 6
+    with LogReader(tmp_path / "cen.mcap") as log:
+        (record,) = [p for p in log.provenance() if p.stage == "centroid"]
+    assert record.parameters["mode_reason"].startswith("auto: 0 of 5 pairs")
