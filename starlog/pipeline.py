@@ -62,6 +62,8 @@ methods = ["NONE", "MOMENT", "BICUBIC", "GAUSSFIT", "GRADIENT"]
 # read_noise = 3.0      # e-; default: from the simulator's provenance, else estimated
 # image_topic = "/camera/image_raw"  # default: /camera/image, else the log's only image channel
 phase_correction = "auto"  # pixel-phase calibration from the log's own stars; "off", or a calibration file
+# mode = "auto"         # "tracking": stars measured in windows, full searches every acquire_every frames; "full"
+# acquire_every = 100   # tracking: frames between two full searches
 [centroid.options]      # keyword options of starlog.centroid.extract_stars
 
 [track]
@@ -79,7 +81,8 @@ protocols = "all"       # in a --config file, it is refused before any stage run
 """
 
 _STAGE_KEYS: dict[str, set[str]] = {
-    "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad", "psf", "phase_correction"},
+    "centroid": {"methods", "gain", "read_noise", "options", "image_topic", "skip_bad", "psf", "phase_correction",
+                 "mode", "acquire_every"},
     "track": {"methods", "models", "tracker", "motion"},
     "compensate": {"tracks", "rates", "protocols", "options", "stars"},
     "solve": {"centroids", "options", "compensated"},
@@ -180,7 +183,8 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
             i, o, methods=c.get("methods", "all"), gain=c.get("gain"), read_noise=c.get("read_noise"),
             options=c.get("options"), image_topic=c.get("image_topic"), skip_bad=bool(c.get("skip_bad", False)),
             workers=workers, show_progress=show_progress, psf=c.get("psf"),
-            phase_correction=c.get("phase_correction", "auto"), **common).to_dict()))
+            phase_correction=c.get("phase_correction", "auto"), mode=c.get("mode", "auto"),
+            acquire_every=c.get("acquire_every"), **common).to_dict()))
     if config.track is not None:
         t = config.track
         for method in _list(t.get("methods", ["GAUSSFIT"])):
@@ -374,7 +378,7 @@ def stage_line(stage: str, result: dict[str, Any]) -> str | None:
     per frame, each track stage's brightest star; None for the other stages."""
     if stage == "centroid":
         return (f"centroid: {result['frames']} frames, {result['detections_per_frame']:.1f} stars/frame, "
-                f"methods {', '.join(result['methods'])}")
+                f"methods {', '.join(result['methods'])}, {result['mode']} mode")
     if stage.startswith("track"):
         models = ", ".join(f"{m} (track {v['brightest_track']}, NIS {v['mean_nis']:.2f})"
                            for m, v in result["models"].items())

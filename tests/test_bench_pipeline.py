@@ -170,3 +170,23 @@ def test_failed_targets_are_named_in_one_line(bench):
     line = bench.failed_summary([("a", True), ("b fails", False), ("c fails", False), ("d (n/a)", None)])
     assert line == "FAILED 2/3 targets: b fails | c fails" and "\n" not in line
     assert [bench.verdict(ok) for ok in (True, False, None)] == ["PASS", "FAIL", "INFO"]
+
+
+def test_the_centroid_stage_is_judged_against_the_decode_only_floor(bench, tmp_path):
+    """The decode-only row writes nothing (no digest); the stage's default mode may take twice its time a frame;
+    full mode's ratio is informational."""
+    assert bench.outputs_digest([]) == ""
+    command = bench.decode_command(tmp_path / "sim.mcap")
+    assert command.label == bench.DECODE_LABEL and command.outputs == [] and "--decode-only" in command.argv
+    stages = [{"label": bench.DECODE_LABEL, "rate": 250.0}, {"label": "centroid GAUSSFIT", "workers": 1, "rate": 130.0},
+              {"label": bench.FULL_MODE_LABEL, "workers": 1, "rate": 100.0}]
+    (text, ok), (info, verdict) = bench.decode_floor_targets({"size": 1024, "stages": stages})
+    assert ok and "1.92x the decode-only floor 4.00 ms" in text  # 7.69 ms / 4 ms
+    assert verdict is None and "2.50x the decode-only floor" in info and "1.30x as fast" in info
+    stages[1]["rate"] = 120.0
+    assert not bench.decode_floor_targets({"size": 1024, "stages": stages})[0][1]
+    assert bench.decode_floor_targets({"size": 512, "stages": stages})[0][1] is None  # judged at 1024² only
+
+
+def test_run_is_judged_at_each_size_it_has_a_target_for(bench):
+    assert bench.RUN_TARGETS == {512: 600.0, 1024: 300.0}

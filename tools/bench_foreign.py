@@ -66,7 +66,8 @@ def bench_centroid(logs: dict[str, Path], frames: int, tmp: Path, targets: Targe
     base = None
     for name, path in logs.items():
         out = tmp / f"cen_{path.stem}.mcap"
-        dt = _best_of_two(lambda: centroid_log(path, out, methods="MOMENT", options={"psf_sigma": 1.3}, force=True))
+        dt = _best_of_two(lambda: centroid_log(path, out, methods="MOMENT", options={"psf_sigma": 1.3}, force=True,
+                                               mode="full"))
         fps = frames / dt
         base = base or fps
         change = fps / base - 1
@@ -105,7 +106,7 @@ def main() -> int:
         sim = tmp / "sim.mcap"
         simulate_log(SimulationConfig(width=size, height=size, n_stars=30, n_frames=frames, seed=2), sim)
         cen = tmp / "sim_cen.mcap"
-        centroid_log(sim, cen, methods="MOMENT", options={"psf_sigma": 1.3})
+        centroid_log(sim, cen, methods="MOMENT", options={"psf_sigma": 1.3}, mode="full")
         logs = {
             "foxglove.RawImage (native)": sim,
             "sensor_msgs/msg/Image mono16": write_ros2(sim, tmp / "ros2.mcap"),

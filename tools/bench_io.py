@@ -112,7 +112,7 @@ def bench_codec(frames: int, tmp: Path) -> list[tuple[str, int, float, float, fl
     config = SimulationConfig(width=512, height=512, n_stars=40, n_frames=frames, seed=3)
     sim, cen, trk = tmp / "codec_sim.mcap", tmp / "codec_cen.mcap", tmp / "codec_trk.mcap"
     simulate_log(config, sim, compression="lz4")
-    centroid_log(sim, cen, methods="GAUSSFIT", workers=1)
+    centroid_log(sim, cen, methods="GAUSSFIT", workers=1, mode="full")
     track_log(cen, trk, method="GAUSSFIT", models="STATIC", tracker={"sigma_floor": 0.05})
     rows = []
     with LogReader(trk) as log:

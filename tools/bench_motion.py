@@ -67,7 +67,7 @@ def _pipeline(work: Path, name: str, config: SimulationConfig, models: str) -> P
     sim, cen, trk = (work / f"{name}-{s}.mcap" for s in ("sim", "cen", "trk"))
     if not trk.exists():
         simulate_log(config, sim, force=True)
-        centroid_log(sim, cen, methods=["GAUSSFIT"], force=True)
+        centroid_log(sim, cen, methods=["GAUSSFIT"], force=True, mode="full")
         track_log(cen, trk, method="GAUSSFIT", models=models, tracker={"sigma_floor": 0.05}, force=True)
     return trk
 

@@ -79,7 +79,7 @@ def bench_single_log(tmp: Path, frames: int, targets: Targets, quick: bool) -> N
     for workers in (1, 2):
         out = tmp / f"cen{workers}.mcap"
         seconds, _ = _timed([*STARLOG, "centroid", str(log), "-o", str(out), "--method", "GAUSSFIT,MOMENT",
-                             "--workers", str(workers), "-q", "--force"])
+                             "--mode", "full", "--workers", str(workers), "-q", "--force"])
         rows.append((workers, seconds))
     same = (tmp / "cen1.mcap").read_bytes() == (tmp / "cen2.mcap").read_bytes()
     print(f"\n## centroid one log ({frames} frames 512x512, 40 stars, GAUSSFIT+MOMENT)\n")
@@ -133,7 +133,7 @@ def bench_memory(tmp: Path, frames: int, targets: Targets) -> None:
             ("simulate", [*STARLOG, "simulate", "-o", str(d / "sim.mcap"), "--frames", str(n), "--jitter", "25:0.05",
                           "--workers", "1", "-q"]),
             ("centroid", [*STARLOG, "centroid", str(d / "sim.mcap"), "-o", str(d / "cen.mcap"), "--method",
-                          "GAUSSFIT", "--workers", "1", "-q"]),
+                          "GAUSSFIT", "--mode", "full", "--workers", "1", "-q"]),
             ("track", [*STARLOG, "track", str(d / "cen.mcap"), "-o", str(d / "trk.mcap"), "--centroids",
                        "GAUSSFIT", "--model", "all", "-q"]),
             ("compensate", [*STARLOG, "compensate", str(d / "trk.mcap"), "-o", str(d / "cmp.mcap"), "--track",

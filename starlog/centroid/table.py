@@ -16,7 +16,7 @@ __all__ = ["CENTROID_DTYPE", "CentroidFlag", "CentroidMethod", "empty_centroids"
 
 CentroidFlag = StarFlag
 """Quality bit flags of a centroid (the same class as :class:`starlog.detect.DetectionFlag`):
-SATURATED, BORDER, FIT_FAILED, BLENDED, ELONGATED, LOW_SNR, MASKED, ARTEFACT."""
+SATURATED, BORDER, FIT_FAILED, BLENDED, ELONGATED, LOW_SNR, MASKED, ARTEFACT, TRACKED."""
 
 
 class CentroidMethod(enum.StrEnum):

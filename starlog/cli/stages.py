@@ -58,14 +58,23 @@ __all__ = ["centroid", "compensate", "motion", "solve", "stage_command", "track"
                    "a method with too few is left uncorrected, with a note). FILE: calibrations in JSON (the "
                    "--json output of an earlier auto run, or 'starlog info --json' of its output log). Recorded "
                    "in the provenance and shown by info.")
+@click.option("--mode", type=click.Choice(["auto", "tracking", "full"]), default="auto", show_default=True,
+              help="full: search every frame for stars. tracking: search the first frame, then measure each known "
+                   "star in a window around its predicted position, searching the whole frame again every "
+                   "--acquire-every frames, when a star is lost and when light appears outside the windows "
+                   "(centroid flag TRACKED). auto: tracking when the log's first frames show one field moving "
+                   "little, else full (a folder of unrelated stills). Recorded in the provenance with the number "
+                   "of full searches.")
+@click.option("--acquire-every", "acquire_every", type=click.IntRange(min=1), metavar="N",
+              help="Tracking: frames between two full searches. [default: 100]")
 @time_range_options("the image channel")
 @json_option
 @flatten_option
 @write_options
 def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float | None, read_noise: float | None,
              settings: tuple[str, ...], image_topic: str | None, skip_bad: bool, hot_pixels: str | None,
-             phase_correction: str, start: str | None, end: str | None, as_json: bool, flatten: bool, force: bool,
-             compression: str, workers: int, quiet: bool) -> None:
+             phase_correction: str, mode: str, acquire_every: int | None, start: str | None, end: str | None,
+             as_json: bool, flatten: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
     """Detect stars and measure sub-pixel centroids in every frame.
 
     Writes a layer on the log (the frames stay in the input) holding /stars/detections,
@@ -80,6 +89,7 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
       starlog centroid sim.mcap -o cen.mcap --method PSFFIT,GAUSSFIT --psf empirical
       starlog centroid lab.mcap -o cen.mcap --hot-pixels auto
       starlog centroid sky.mcap -o cen.mcap --method MOMENT,GAUSSFIT --phase-correction auto
+      starlog centroid sim.mcap -o cen.mcap --method GAUSSFIT --mode tracking --acquire-every 50
     """
     from starlog.stages.centroid import centroid_log
 
@@ -87,12 +97,13 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
                            options=key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
                            workers=workers, force=force, compression=compression, show_progress=not quiet,
                            hot_pixels=hot_pixels, phase_correction=phase_correction, start=start, end=end,
-                           flatten=flatten)
+                           flatten=flatten, mode=mode, acquire_every=acquire_every)
     d = summary.to_dict()
     for note in d["notes"]:
         click.echo(f"note: {note}", err=True)
     echo_status(quiet, f"wrote {output}: {d['frames']} of {d['channel_messages']} frames of {d['image_topic']} read, "
-                       f"{d['detections_per_frame']:.1f} stars/frame")
+                       f"{d['detections_per_frame']:.1f} stars/frame, {d['mode']} mode ({d['acquisitions']} frames "
+                       "searched in full)")
     for skipped in d["skipped_frames"]:
         click.echo(f"  skipped frame {skipped['index']} (log_time {skipped['log_time']}): {skipped['reason']}",
                    err=True)

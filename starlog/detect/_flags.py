@@ -41,6 +41,9 @@ class StarFlag(enum.IntFlag):
         cannot explain are masked, nothing within the reach of a star's light passes the
         detector's own threshold (:mod:`starlog.centroid.artefacts`). The centroid stage keeps
         it in the detections and leaves it out of the centroids.
+    TRACKED : 256
+        Tracking mode: the star was found in a window around its predicted position, not by a search of
+        the whole frame (:mod:`starlog.centroid.tracking`); without it, the frame was searched in full.
     """
 
     SATURATED = 1
@@ -51,3 +54,4 @@ class StarFlag(enum.IntFlag):
     LOW_SNR = 32
     MASKED = 64
     ARTEFACT = 128
+    TRACKED = 256

@@ -158,7 +158,7 @@ def simulate_and_centroid(
     config = SimulationConfig.from_dict(dataset["config"])
     simulate_log(config, sim_path, force=force)
     summary = centroid_log(sim_path, centroid_path, methods=list(methods), options=dataset.get("centroid"),
-                           force=force)
+                           force=force, mode="full")  # the paper extracts every frame
     return {"dataset": dataset["name"], "sim_path": sim_path, "centroid_path": centroid_path,
             "centroid": summary.to_dict()}
 

@@ -13,17 +13,22 @@ from starlog.io.reader import LogReader, LogSource, LogView, source_path
 __all__ = ["channel_blocks", "worker_log"]
 
 
-def channel_blocks(log: LogReader, topic: str, frames_per_block: int) -> list[tuple[int, int, int]] | None:
+def channel_blocks(log: LogReader, topic: str, frames_per_block: int, *, at_most: bool = False
+                   ) -> list[tuple[int, int, int]] | None:
     """Split ``topic`` into ``(start, end, first_message)`` time ranges of whole chunks (~``frames_per_block``
-    messages each), in time order; None when its chunks overlap in time (not written in time order),
-    which no split into time ranges of whole chunks can serve."""
+    messages each; with ``at_most``, no more than that unless one chunk holds more), in time order; None when
+    its chunks overlap in time (not written in time order), which no split into time ranges of whole chunks
+    can serve."""
     chunks = log.chunk_message_counts(topic)
     for (_, end, _), (nxt, _, _) in zip(chunks, chunks[1:]):
         if nxt <= end:
             return None
     blocks: list[tuple[int, int, int]] = []
     start, first, count = chunks[0][0] if chunks else 0, 0, 0
-    for i, (_, end, n) in enumerate(chunks):
+    for i, (chunk_start, end, n) in enumerate(chunks):
+        if at_most and count and count + n > frames_per_block:
+            blocks.append((start, chunk_start, first))
+            start, first, count = chunk_start, first + count, 0
         count += n
         if count >= frames_per_block or i == len(chunks) - 1:
             blocks.append((start, end + 1, first))

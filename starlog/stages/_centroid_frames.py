@@ -22,7 +22,19 @@ import numpy.typing as npt
 from starlog.centroid import CentroidFlag, CentroidMethod, extract_stars
 from starlog.centroid.epsf import EPSF
 from starlog.centroid.evidence import FrameEvidence, frame_evidence
+from starlog.centroid.extract import measure_methods, window_half_size
+from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.phase import PhaseCalibration
+from starlog.centroid.tracking import (
+    TrackingSettings,
+    TrackState,
+    advance,
+    lasting_light,
+    locate_stars,
+    lost_stars,
+    new_light,
+    start_tracking,
+)
 from starlog.io import encode_image_annotations
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader, LogSource
@@ -30,8 +42,8 @@ from starlog.io.records import record_encoder
 from starlog.stages._blocks import worker_log
 from starlog.stages._parallel import ordered_map, process_pool
 
-__all__ = ["FrameExtractor", "FrameMessages", "extract_parallel", "extract_serial", "opencv_threads",
-           "reuse_frame_buffers"]
+__all__ = ["FrameExtractor", "FrameMessages", "TrackedFrames", "extract_blocks_serial", "extract_parallel",
+           "extract_serial", "opencv_threads", "reuse_frame_buffers"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +61,8 @@ class FrameMessages:
     n_artefacts: int = 0
     evidence: FrameEvidence | None = None
     """Each method's differences to the other methods' median (:mod:`starlog.centroid.evidence`)."""
+    acquired: bool = True
+    """Whether the whole frame was searched (always in full mode; in tracking mode, an acquisition)."""
 
 
 @dataclass(frozen=True)
@@ -64,15 +78,47 @@ class FrameExtractor:
     hot_pixels: npt.NDArray[np.bool_] | None = None
     phase: dict[str, PhaseCalibration] | None = None
 
+    tracking: TrackingSettings | None = None
+    """Tracking mode's settings (:mod:`starlog.centroid.tracking`); None: every frame searched in full."""
+
     def centroids(self, image: npt.NDArray[Any]) -> tuple[npt.NDArray[Any], dict[CentroidMethod, npt.NDArray[Any]]]:
         """Detections and centroids per method of one frame, before any phase correction."""
         return extract_stars(image, methods=self.methods, gain=self.gain, read_noise=self.read_noise, epsf=self.epsf,
                              hot_pixels=self.hot_pixels, **self.options)
 
+    def prepared(self, image: npt.NDArray[Any]) -> tuple[npt.NDArray[Any], float | None]:
+        """The frame as :meth:`centroids` measures it (hot pixels missing) and its saturation level (None: the
+        frame's type decides)."""
+        raw = np.asarray(image)
+        saturation = self.options.get("saturation")
+        if self.hot_pixels is None:
+            return raw, saturation
+        if saturation is None:
+            saturation = float(np.iinfo(raw.dtype).max) if raw.dtype.kind in "ui" else float("inf")
+        return without_hot_pixels(raw, self.hot_pixels), saturation
+
+    def measure(self, prepared: npt.NDArray[Any], saturation: float | None, detections: npt.NDArray[Any]
+                ) -> dict[CentroidMethod, npt.NDArray[Any]]:
+        """Centroids per method of given detections in a :meth:`prepared` frame (before any phase correction),
+        measured as :meth:`centroids` measures its own detections."""
+        return measure_methods(prepared, detections, self.methods, gain=self.gain, read_noise=self.read_noise,
+                               psf_sigma=self.options.get("psf_sigma"), window=self.options.get("window"),
+                               saturation=saturation, **dict(self.options.get("centroid_options") or {}),
+                               **({"epsf": self.epsf} if self.epsf is not None else {}))
+
+    def block(self) -> FrameExtractor | TrackedFrames:
+        """What extracts one block of consecutive frames: this extractor, or in tracking mode a
+        :class:`TrackedFrames` that starts the block with a full search."""
+        return self if self.tracking is None else TrackedFrames(self)
+
     def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any], stamp: int | None = None
                  ) -> FrameMessages:
         """``stamp``: the image message's own time, given to the annotations so Foxglove pairs them with it."""
-        detections, centroids = self.centroids(image)
+        return self.encode(frame, log_time, stamp, *self.centroids(image))
+
+    def encode(self, frame: int, log_time: int, stamp: int | None, detections: npt.NDArray[Any],
+               centroids: dict[CentroidMethod, npt.NDArray[Any]], acquired: bool = True) -> FrameMessages:
+        """One frame's messages from its detections and centroids (phase-corrected here)."""
         for m, calibration in (self.phase or {}).items():
             table = centroids[CentroidMethod(m)]
             table["x"], table["y"] = calibration.apply(table["x"], table["y"])
@@ -91,7 +137,73 @@ class FrameExtractor:
             n_failed=tuple(int(np.count_nonzero(c["flags"] & CentroidFlag.FIT_FAILED)) for c in per_method),
             n_artefacts=int(np.count_nonzero(detections["flags"] & CentroidFlag.ARTEFACT)),
             evidence=frame_evidence(per_method),
+            acquired=acquired,
         )
+
+
+class TrackedFrames:
+    """Tracking mode over one block of consecutive frames (:mod:`starlog.centroid.tracking`).
+
+    The block's first frame is searched in full (an acquisition), and so is every ``acquire_every``-th after
+    it, a frame where a tracked star is not found or is lost, and one where light appeared outside the
+    windows and was there in the frame before. A star lost in the frame right after an acquisition becomes *quiet* instead: still looked for
+    and measured whenever found, but its loss calls for no search (the search just done did not make it
+    measurable), so a star at the detection's threshold cannot force a search every frame.
+    Blocks never share state: the output does not depend on how blocks are spread over workers.
+    """
+
+    def __init__(self, extract: FrameExtractor) -> None:
+        if extract.tracking is None:
+            raise ValueError("TrackedFrames needs an extractor with tracking settings.")
+        self.extract = extract
+        self.settings: TrackingSettings = extract.tracking
+        self.state: TrackState | None = None
+        self.risen: npt.NDArray[np.bool_] | None = None
+        """The cells where light appeared in the frame before (:func:`~starlog.centroid.tracking.new_light`)."""
+        psf = extract.options.get("psf_sigma")
+        self.half_size = window_half_size(float(psf) if psf is not None else 1.0, extract.options.get("window"))
+
+    def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any], stamp: int | None = None
+                 ) -> FrameMessages:
+        detections, centroids, acquired = self.measure(image)
+        return self.extract.encode(frame, log_time, stamp, detections, centroids, acquired)
+
+    def measure(self, image: npt.NDArray[Any]) -> tuple[npt.NDArray[Any], dict[CentroidMethod, npt.NDArray[Any]],
+                                                        bool]:
+        """One frame's detections and centroids (before phase correction), and whether it was searched in full."""
+        state = self.state
+        if state is not None and state.since_acquisition + 1 < self.settings.acquire_every:
+            tracked = self._tracked(image, state)
+            if tracked is not None:
+                return tracked[0], tracked[1], False
+        detections, centroids = self.extract.centroids(image)
+        self.risen = None
+        first = centroids[self.extract.methods[0]]
+        measured = detections[np.isin(detections["star"], first["star"])]  # those only an artefact made have none
+        self.state = start_tracking(self.extract.prepared(image)[0], measured, first, self.settings, previous=state)
+        return detections, centroids, True
+
+    def _tracked(self, image: npt.NDArray[Any], state: TrackState
+                 ) -> tuple[npt.NDArray[Any], dict[CentroidMethod, npt.NDArray[Any]]] | None:
+        """The tracked stars measured in their windows; None when the frame must be searched in full."""
+        just_acquired = state.since_acquisition == 0
+        reach = self.half_size + self.settings.search + 1
+        prepared, saturation = self.extract.prepared(image)
+        risen, self.risen = self.risen, new_light(prepared, state, self.settings, reach)
+        if self.risen is None or lasting_light(self.risen, risen, state.x.size):
+            return None
+        detections, found = locate_stars(prepared, state, self.settings)
+        quiet = state.quiet_stars
+        if (~found & ~quiet).any() and not just_acquired:
+            return None
+        centroids = self.extract.measure(prepared, saturation, detections)
+        first = centroids[self.extract.methods[0]]
+        lost = ~found | lost_stars(first, state, self.settings, float(self.half_size))
+        if (lost & ~quiet).any() and not just_acquired:
+            return None
+        keep = ~lost
+        self.state = advance(state, first, keep, quiet | lost, prepared.shape, float(self.settings.search))
+        return detections[keep], {m: c[keep] for m, c in centroids.items()}
 
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
@@ -138,11 +250,19 @@ def extract_serial(log: LogReader, topic: str, extract: FrameExtractor, skip_bad
     skipped: list[SkippedFrame] = []
     frames = log.frame_records(topic, start=start, end=end, first_index=first_index,
                                on_bad=skipped.append if skip_bad else None)
+    block = extract.block()
     for frame in frames:
         yield from skipped
         skipped.clear()
-        yield extract(frame.index, frame.log_time, frame.image, frame.stamp)
+        yield block(frame.index, frame.log_time, frame.image, frame.stamp)
     yield from skipped
+
+
+def extract_blocks_serial(log: LogReader, topic: str, blocks: list[tuple[int, int, int]], extract: FrameExtractor,
+                          skip_bad: bool) -> Iterator[FrameMessages | SkippedFrame]:
+    """The frames of ``blocks`` in this process, each block extracted on its own as a worker would."""
+    for start, end, first in blocks:
+        yield from extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first)
 
 
 def _extract_block(source: LogSource, topic: str, start: int, end: int, first_index: int, extract: FrameExtractor,

@@ -23,6 +23,7 @@ from starlog.centroid import CentroidMethod, artefact_detections, estimate_psf_s
 from starlog.centroid.epsf import EPSF, epsf_from_frames
 from starlog.centroid.extract import detect_options_for_psf, window_half_size
 from starlog.centroid.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
+from starlog.centroid.tracking import DEFAULT_ACQUIRE_EVERY, TrackingSettings, is_image_sequence
 from starlog.centroid.phase import (
     DISTINCT_CELL,
     PhaseCalibration,
@@ -38,8 +39,14 @@ from starlog.io.reader import LogReader, LogSource
 from starlog.stages._centroid_frames import FrameExtractor, opencv_threads
 from starlog.stages._progress import progress
 
-__all__ = ["HOT_PIXEL_FRAMES", "PHASE_MAX_FRAMES", "PHASE_MIN_FRAMES", "CentroidParameters", "PhaseCorrection",
-           "extract_options", "parse_methods", "resolve_centroid_parameters"]
+__all__ = ["HOT_PIXEL_FRAMES", "MODES", "MODE_FRAMES", "PHASE_MAX_FRAMES", "PHASE_MIN_FRAMES", "CentroidParameters",
+           "PhaseCorrection", "extract_options", "parse_methods", "resolve_centroid_parameters"]
+
+MODES = ("auto", "tracking", "full")
+"""The centroid stage's modes: ``full`` searches every frame, ``tracking`` measures known stars in windows
+(:mod:`starlog.centroid.tracking`), ``auto`` chooses tracking for a sequence of one field, else full."""
+MODE_FRAMES = 8
+"""Frames at the log's start whose stars ``mode="auto"`` compares (:func:`starlog.centroid.tracking.is_image_sequence`)."""
 
 
 def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
@@ -137,12 +144,17 @@ def resolve_centroid_parameters(
     hot_pixels: str | os.PathLike[str] | None = None,
     phase_correction: str | os.PathLike[str] | None = "auto",
     show_progress: bool = False,
+    mode: str = "auto",
+    acquire_every: int | None = None,
 ) -> CentroidParameters:
     """The parameters of :func:`starlog.stages.centroid.centroid_log` (its options, same meanings), with what
     the log gives where an option is not set; reads the first frames of the log for the PSF sigma, the ePSF,
-    the hot-pixel map and the phase calibrations."""
+    the hot-pixel map, the phase calibrations and (``mode="auto"``) whether its frames are one sequence."""
     chosen = parse_methods(methods)
     options = extract_options(options)
+    if mode not in MODES:
+        raise InvalidParameterError(f"mode must be one of {', '.join(MODES)}; got {mode!r}.")
+    tracking = _tracking_settings(options.get("detect_options"), acquire_every)
     with opencv_threads(1), LogReader(input_path) as probe:
         topic, chosen_note = choose_image_topic(input_path, probe.channels(), image_topic)
         camera = _camera_from_provenance(probe)
@@ -158,6 +170,7 @@ def resolve_centroid_parameters(
         if detect_options != (options.get("detect_options") or {}):
             options["detect_options"] = detect_options  # an undersampled PSF: recorded in the provenance
         hot_map = _hot_pixel_map(probe, topic, hot_pixels)
+        mode_record = _choose_mode(probe, topic, mode, tracking, options.get("detect_options"))
     epsf = _epsf_for(input_path, topic, chosen, psf, gain=gain, read_noise=read_noise, options=options)
     notes = [chosen_note] if chosen_note else []
     if epsf is not None and CentroidMethod.PSFFIT not in chosen:
@@ -168,6 +181,8 @@ def resolve_centroid_parameters(
     if phase is not None:
         extract = replace(extract, phase=phase.active())
         notes += phase.notes
+    if mode_record["mode"] == "tracking":
+        extract = replace(extract, tracking=tracking)
     provenance: dict[str, Any] = {"methods": [m.value for m in chosen], "options": options, "gain": gain,
                                   "read_noise": read_noise}
     if psf is not None:
@@ -180,9 +195,41 @@ def resolve_centroid_parameters(
         provenance["image_topic"] = topic
     if phase is not None:
         provenance["phase_correction"] = phase.record()
+    provenance.update(mode_record)
     return CentroidParameters(methods=chosen, image_topic=topic, gain=gain, read_noise=read_noise, options=options,
                               epsf=epsf, hot_pixels=hot_map, phase=phase, extract=extract, provenance=provenance,
                               notes=notes)
+
+
+def _tracking_settings(detect_options: dict[str, Any] | None, acquire_every: int | None) -> TrackingSettings:
+    """Tracking's settings with the detection's threshold, matched filter and border (its defaults unless set)."""
+    defaults = {name: p.default for name, p in inspect.signature(detect_stars).parameters.items()}
+    given = {**defaults, **(detect_options or {})}
+    return TrackingSettings(acquire_every=DEFAULT_ACQUIRE_EVERY if acquire_every is None else int(acquire_every),
+                            threshold=float(given["threshold"]), filter_sigma=float(given["filter_sigma"]),
+                            border=int(given["border"]))
+
+
+def _choose_mode(log: LogReader, topic: str, mode: str, tracking: TrackingSettings,
+                 detect_options: dict[str, Any] | None) -> dict[str, Any]:
+    """The mode the stage runs in and why (the provenance's ``mode``, ``mode_reason`` and, tracking, ``tracking``):
+    ``auto`` is tracking when the stars of the log's first :data:`MODE_FRAMES` frames are one field moving
+    little from frame to frame (:func:`starlog.centroid.tracking.is_image_sequence`), else full."""
+    if mode == "auto":
+        positions = []
+        for index, _, image in log.frames(topic, on_bad=lambda skipped: None):
+            if index >= MODE_FRAMES:
+                break
+            found = detect_stars(image, **(detect_options or {}))
+            positions.append((np.asarray(found["x"], np.float64), np.asarray(found["y"], np.float64)))
+        sequence, why = is_image_sequence(positions, tracking.search)
+        chosen, reason = ("tracking" if sequence else "full"), f"auto: {why}"
+    else:
+        chosen, reason = mode, "asked for"
+    record: dict[str, Any] = {"mode": chosen, "mode_reason": reason}
+    if chosen == "tracking":
+        record["tracking"] = tracking.to_dict()
+    return record
 
 
 def _camera_from_provenance(log: LogReader) -> dict[str, float]:

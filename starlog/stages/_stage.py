@@ -62,20 +62,20 @@ def extend_log(
     recorded, the layer names its base, and it is renamed into place. On any error the output is
     discarded and the input is untouched. A :class:`~starlog.io.reader.LogView` input (``--start`` /
     ``--end``) adds its range to the parameters. With ``flatten``, the output is the flattened
-    chain instead: one self-contained file.
+    chain instead: one self-contained file. ``parameters`` is read when the stage ends, so a stage may add
+    what it learns while it runs (the centroid stage's count of full-frame searches).
 
     The layer's chunks are compressed on the calling thread: what a stage derives is small beside the
     images it reads, and compression threads would hold several chunks of it in memory at once.
     """
-    if isinstance(input_path, LogView):
-        parameters = {**parameters, "range": input_path.window.to_dict()}
+    window = {"range": input_path.window.to_dict()} if isinstance(input_path, LogView) else {}
     with layer_path_for(Path(output_path), flatten=flatten, force=force) as layer_path, \
             LogReader(input_path) as reader:
         base = reader.layer_base()
         with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression) as writer:
             out = StageOutput(writer)
             yield reader, out
-            recorded = {**parameters, "results": dict(out.results)} if out.results else parameters
+            recorded = {**parameters, **window, **({"results": dict(out.results)} if out.results else {})}
             record = Provenance(stage=stage, version=__version__, parameters=recorded,
                                 input_digest=base.digest(), channels=out.channels)
             writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())

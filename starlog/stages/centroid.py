@@ -14,7 +14,9 @@ block (so no image crosses a process boundary), and the results are written in f
 the output does not depend on the number of workers. With PSFFIT (or ``psf="empirical"``) an
 empirical PSF is built once from the log's first frames before that, stored as the metadata
 record ``starlog.epsf`` (:meth:`starlog.centroid.epsf.EPSF.to_metadata`) and fitted by PSFFIT
-in every frame. The summary says how many frames were
+in every frame. In tracking mode (``mode``; :mod:`starlog.centroid.tracking`) the blocks are cut
+whatever the number of workers, each starts with a full search, and known stars are measured in
+windows around their predicted positions in between. The summary says how many frames were
 read against how many messages the channel holds; they must agree unless ``skip_bad`` names
 every frame left out.
 """
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,7 +36,14 @@ from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader, LogSource
 from starlog.io.writer import LogWriter
 from starlog.stages._blocks import channel_blocks
-from starlog.stages._centroid_frames import extract_parallel, extract_serial, opencv_threads, reuse_frame_buffers
+from starlog.stages._centroid_frames import (
+    FrameMessages,
+    extract_blocks_serial,
+    extract_parallel,
+    extract_serial,
+    opencv_threads,
+    reuse_frame_buffers,
+)
 from starlog.stages._centroid_parameters import CentroidParameters, parse_methods, resolve_centroid_parameters
 from starlog.stages._channels import check_messages_read
 from starlog.stages._progress import progress
@@ -65,6 +74,9 @@ class CentroidSummary:
     evidence: dict[str, dict[str, Any]] = field(default_factory=dict)
     recommended: str | None = None
     reason: str = ""
+    mode: str = "full"
+    acquisitions: int = 0
+    """Frames searched in full (every frame in full mode; in tracking mode, the acquisitions)."""
 
     def to_dict(self) -> dict[str, Any]:
         extra: dict[str, Any] = {"epsf": self.epsf} if self.epsf is not None else {}
@@ -85,6 +97,8 @@ class CentroidSummary:
             "gain": self.gain,
             "evidence": self.evidence,
             "recommended": {"method": self.recommended, "reason": self.reason},
+            "mode": self.mode,
+            "acquisitions": self.acquisitions,
         } | extra
 
     def lines(self) -> list[str]:
@@ -114,6 +128,8 @@ def centroid_log(
     psf: str | None = None,
     hot_pixels: str | os.PathLike[str] | None = None,
     phase_correction: str | os.PathLike[str] | None = "auto",
+    mode: str = "auto",
+    acquire_every: int | None = None,
 ) -> CentroidSummary:
     """Detect stars and measure their centroids by each method, for every frame of the log.
 
@@ -165,11 +181,23 @@ def centroid_log(
         ``starlog.phase_correction`` (shown by ``info``). Default ``"auto"``; ``"off"`` (or None): no
         correction. On a log whose stars already match starlog's model (pixel-integrated Gaussians) the
         estimated amplitudes stay below their significance and nothing changes.
+    mode : {"auto", "tracking", "full"}
+        ``"full"`` searches every frame for stars. ``"tracking"`` searches the first frame of every block of
+        about ``acquire_every`` frames, then measures each known star in a window around its predicted
+        position and searches the whole frame again every ``acquire_every`` frames, whenever a star is not
+        found or is lost, and whenever light appears outside the windows (:mod:`starlog.centroid.tracking`);
+        its centroids carry the flag ``TRACKED``. ``"auto"`` (default): tracking when the stars of the log's
+        first frames are one field moving little from frame to frame, else full. The mode, why, and the
+        number of full searches are recorded in the provenance.
+    acquire_every : int, optional
+        Tracking: frames between two full searches (default
+        :data:`~starlog.centroid.tracking.DEFAULT_ACQUIRE_EVERY`).
     """
     reuse_frame_buffers()
     parameters = resolve_centroid_parameters(input_path, methods=methods, gain=gain, read_noise=read_noise,
                                              options=options, image_topic=image_topic, psf=psf, hot_pixels=hot_pixels,
-                                             phase_correction=phase_correction, show_progress=show_progress)
+                                             phase_correction=phase_correction, show_progress=show_progress,
+                                             mode=mode, acquire_every=acquire_every)
     return write_centroids(input_path, output_path, parameters, skip_bad=skip_bad, workers=workers, force=force,
                            flatten=flatten, compression=compression, show_progress=show_progress)
 
@@ -184,20 +212,15 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
                               notes=list(p.notes), epsf=p.epsf.summary() if p.epsf is not None else None,
                               phase_correction=p.provenance.get("phase_correction"),
                               centroids={m.value: 0 for m in p.methods}, failed={m.value: 0 for m in p.methods})
-    with opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=p.provenance,
+    provenance = dict(p.provenance)  # completed with the count of full searches when the frames are done
+    with opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=provenance,
                                        force=force, flatten=flatten, compression=compression) as (log, out):
         summary.channel_messages = n_frames = log.channel(p.image_topic).message_count
         det_ch = out.add_channel(topics.DETECTIONS, json_message_type("starlog.Detections"))
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))
         cen_ch = [out.add_channel(topics.centroid_topic(m.value), json_message_type("starlog.Centroids"))
                   for m in p.methods]
-        # below 64 frames, a pool's start-up costs more than it saves
-        blocks = (channel_blocks(log, p.image_topic, 32) if workers > 1 and n_frames >= 64 and log.fully_indexed
-                  else None)
-        if blocks:
-            results = extract_parallel(log, input_path, p.image_topic, blocks, p.extract, workers, skip_bad)
-        else:
-            results = extract_serial(log, p.image_topic, p.extract, skip_bad)
+        results = _frame_results(log, input_path, p, workers, skip_bad)
         evidence = EvidenceAccumulator(summary.methods)
         for encoded in progress(results, total=n_frames, description="centroid", enabled=show_progress):
             if isinstance(encoded, SkippedFrame):
@@ -205,6 +228,7 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
                 continue
             if encoded.evidence is not None:
                 evidence.add(encoded.evidence)
+            summary.acquisitions += encoded.acquired
             t = encoded.log_time
             out.writer.write(det_ch, log_time=t, data=encoded.detections)
             out.writer.write(ann_ch, log_time=t, data=encoded.annotations)
@@ -223,7 +247,26 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
         if p.phase is not None:
             out.writer.add_metadata(topics.PHASE_METADATA, p.phase.to_metadata())
         _record_evidence(out.writer, summary, evidence, p)
+        summary.mode = provenance["mode"]
+        provenance["acquisitions"] = summary.acquisitions
     return summary
+
+
+def _frame_results(log: LogReader, source: LogSource, p: CentroidParameters, workers: int, skip_bad: bool
+                   ) -> Iterator[FrameMessages | SkippedFrame]:
+    """Every frame's messages in order. Full mode cuts the log into blocks of ~32 frames for the workers; tracking
+    mode always cuts it into blocks of at most ``acquire_every`` frames (whole chunks), each starting with a full search, whatever the
+    number of workers, so that the output does not depend on it."""
+    tracking = p.extract.tracking
+    n_frames = log.channel(p.image_topic).message_count
+    frames_per_block = 32 if tracking is None else tracking.acquire_every
+    blocks = (channel_blocks(log, p.image_topic, frames_per_block, at_most=tracking is not None)
+              if log.fully_indexed else None)
+    if blocks and workers > 1 and n_frames >= 64:  # below 64 frames, a pool's start-up costs more than it saves
+        return extract_parallel(log, source, p.image_topic, blocks, p.extract, workers, skip_bad)
+    if blocks and tracking is not None:
+        return extract_blocks_serial(log, p.image_topic, blocks, p.extract, skip_bad)
+    return extract_serial(log, p.image_topic, p.extract, skip_bad)
 
 
 def _record_evidence(writer: LogWriter, summary: CentroidSummary, evidence: EvidenceAccumulator,
