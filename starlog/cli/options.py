@@ -12,9 +12,9 @@ from typing import Any, TypeVar
 import click
 
 __all__ = ["BURN_IN_HELP", "CONTEXT", "COPY_RANGE", "burn_in_setting", "echo_status", "flatten_option",
-           "image_topic_option", "input_log", "json_option", "key_values", "output_option", "print_json",
-           "quiet_option", "report_batch", "scheduler_option", "time_range_options", "topic_selection_options",
-           "write_options"]
+           "image_topic_option", "input_log", "json_option", "key_values", "output_option", "overwrite_options",
+           "print_json", "quiet_option", "report_batch", "scheduler_option", "time_range_options",
+           "topic_selection_options", "write_options"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
@@ -77,6 +77,13 @@ def quiet_option(f: F) -> F:
     return click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)(f)
 
 
+def overwrite_options(f: F) -> F:
+    """--force, --compression (of the output log's chunks)."""
+    f = click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd",
+                     show_default=True, help="Chunk compression of the output log.")(f)
+    return click.option("--force", is_flag=True, help="Overwrite the output if it exists.")(f)
+
+
 def write_options(f: F) -> F:
     """--force, --compression, --workers, --quiet."""
     f = quiet_option(f)
@@ -84,10 +91,7 @@ def write_options(f: F) -> F:
                      show_default="all cores",
                      help="Cores for per-frame work, image decoding and chunk compression; the output "
                           "does not depend on it.")(f)
-    f = click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd",
-                     show_default=True, help="Chunk compression of the output log.")(f)
-    f = click.option("--force", is_flag=True, help="Overwrite the output if it exists.")(f)
-    return f
+    return overwrite_options(f)
 
 
 FLATTEN_HELP = ("Write one self-contained log (every file of the input's chain and this stage's channels) instead "

@@ -24,6 +24,7 @@ from starlog.cli.options import (
     print_json,
     quiet_option,
     time_range_options,
+    overwrite_options,
     write_options,
 )
 
@@ -206,9 +207,7 @@ def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings:
 @time_range_options("the (first) track channel")
 @json_option
 @flatten_option
-@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
-@click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
-              help="Chunk compression of the output log.")
+@overwrite_options
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Processes for the (track, rate, protocol) evaluations; pays off for many of them (reading "
                    "the tracks dominates otherwise). The output does not depend on it.")
@@ -279,9 +278,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
 @time_range_options("the (first) centroid channel")
 @json_option
 @flatten_option
-@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
-@click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
-              help="Chunk compression of the output log.")
+@overwrite_options
 @quiet_option
 def solve(log: Path, output: Path, methods: str | None, compensated: str | None, settings: tuple[str, ...],
           start: str | None, end: str | None, as_json: bool, flatten: bool, force: bool, compression: str,
