@@ -620,15 +620,7 @@ def extract_stars(
         saturation = _default_saturation(raw, saturation)  # of the frame's own type, before the float copy
         image = without_hot_pixels(raw, hot_pixels)
     arr = np.asarray(image)
-    if psf_sigma is not None:
-        detect_options = detect_options_for_psf(psf_sigma, detect_options)
-    det = detect_stars(image, saturation=saturation, **dict(detect_options or {}))
-    if det.size and psf_sigma is None:
-        psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
-        if detect_options_for_psf(psf_sigma, detect_options) != dict(detect_options or {}):
-            detect_options = detect_options_for_psf(psf_sigma, detect_options)
-            det = detect_stars(image, saturation=saturation, **detect_options)
-            psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation) if det.size else psf_sigma
+    det, psf_sigma, detect_options = _detect(arr, psf_sigma, gain, saturation, detect_options)
     out = measure_methods(arr, det, meths, gain=gain, read_noise=read_noise, psf_sigma=psf_sigma, window=window,
                           saturation=saturation, **dict(centroid_options or {}),
                           **({"epsf": epsf} if epsf is not None else {}))
@@ -642,6 +634,21 @@ def extract_stars(
         if drop_artefacts and artefact.any():
             out = {m: rows[~artefact] for m, rows in out.items()}
     return det, out
+
+
+def _detect(arr: npt.NDArray[Any], psf_sigma: float | None, gain: float, saturation: float | None,
+            detect_options: Mapping[str, Any] | None) -> tuple[npt.NDArray[Any], float | None, dict[str, Any]]:
+    """The frame's detections, its PSF sigma (estimated from them when not given) and the detector's options
+    used (:func:`detect_options_for_psf`: a frame found undersampled is detected again with them)."""
+    options = dict(detect_options or {}) if psf_sigma is None else detect_options_for_psf(psf_sigma, detect_options)
+    det = detect_stars(arr, saturation=saturation, **options)
+    if det.size and psf_sigma is None:
+        psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation)
+        relaxed = detect_options_for_psf(psf_sigma, options)
+        if relaxed != options:
+            options, det = relaxed, detect_stars(arr, saturation=saturation, **relaxed)
+            psf_sigma = estimate_psf_sigma(arr, det, gain=gain, saturation=saturation) if det.size else psf_sigma
+    return det, psf_sigma, options
 
 
 def artefact_candidates(detections: npt.NDArray[Any], centroids: Iterable[npt.NDArray[Any]]) -> npt.NDArray[np.bool_]:
