@@ -36,6 +36,7 @@ import numpy.typing as npt
 
 from starlog.detect import DETECTION_DTYPE
 from starlog.detect._flags import StarFlag
+from starlog.detect.detection import matched_filter_kernel
 from starlog.detect.position import coarse_offsets
 from starlog.errors import InvalidParameterError
 
@@ -121,12 +122,6 @@ class TrackState:
     @property
     def quiet_stars(self) -> Mask:
         return self.quiet if self.quiet is not None else np.zeros(self.x.size, np.bool_)
-
-
-def _gaussian_kernel(filter_sigma: float) -> F64:
-    """The detection's matched filter (:func:`starlog.detect.detection.matched_filter`): its 1-D kernel."""
-    r = max(1, int(np.ceil(2.0 * filter_sigma)))
-    return np.asarray(cv2.getGaussianKernel(2 * r + 1, filter_sigma, cv2.CV_64F).ravel())
 
 
 def cell_means(image: npt.NDArray[Any], cell: int) -> F64:
@@ -245,7 +240,7 @@ def locate_stars(image: npt.NDArray[Any], state: TrackState, settings: TrackingS
     out = np.zeros(n, DETECTION_DTYPE)
     if n == 0:
         return out, np.zeros(0, np.bool_)
-    k1 = _gaussian_kernel(settings.filter_sigma)
+    k1 = matched_filter_kernel(settings.filter_sigma)
     r, s = k1.size // 2, settings.search
     h, w = image.shape
     px = np.clip(np.rint(state.x + state.vx), 0, w - 1).astype(np.intp)
