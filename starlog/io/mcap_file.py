@@ -254,6 +254,8 @@ class McapFile:
             raise CorruptLogError(self.path, f"its data section is damaged outside every indexed record ({err}). "
                                              f"{recover_hint(self.path)}") from err
         self._loose = gaps.runs
+        self.summary.metadata_indexes += gaps.metadata_indexes
+        self.summary.attachment_indexes += gaps.attachment_indexes
         if gaps.unlisted_chunk:
             why = "its summary lists no chunk indexes" if not self.summary.chunk_indexes else \
                 "it has chunks its summary does not list"
@@ -296,7 +298,7 @@ class McapFile:
             self.add_note(self._definitions_note(opened))
 
     def _definitions_note(self, opened: int) -> str:
-        where = f"{opened} chunks opened" if opened else "no chunk opened"
+        where = f"{opened} chunk{'s' if opened != 1 else ''} opened" if opened else "no chunk opened"
         readers = (": Foxglove and the mcap library need them there; starlog filter "
                    f"{self.path} -o OUT.mcap writes a copy that has them") if len(self.summary.chunk_indexes) else ""
         return (f"its summary does not repeat every schema and channel record: they are read from the data "

@@ -152,17 +152,20 @@ def _covered(summary: Summary) -> list[tuple[int, int]]:
 @dataclass
 class Gaps:
     """What the parts of the data section that the summary's indexes do not cover hold: the messages written
-    outside chunks (as runs), whether a chunk is among them, and the schema and channel records there."""
+    outside chunks (as runs), whether a chunk is among them, the schema and channel records, and the
+    indexes of the metadata and attachment records the summary does not list."""
 
     runs: list[LooseRun] = field(default_factory=list)
     unlisted_chunk: bool = False
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
+    metadata_indexes: list[MetadataIndex] = field(default_factory=list)
+    attachment_indexes: list[AttachmentIndex] = field(default_factory=list)
 
 
 def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> Gaps:
-    """Messages outside chunks, and schema and channel records, found in the gaps the summary's indexes
-    leave in the data section.
+    """Messages outside chunks, schema and channel records, and metadata and attachment records, found in the
+    gaps the summary's indexes leave in the data section.
 
     A chunk met there (one the chunk indexes do not list) means the file must be read by
     :func:`synthesize_summary`. Raises ``ValueError`` (``struct.error``, ``EOFError``) for a damaged gap.
@@ -180,12 +183,28 @@ def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> Gaps:
                 builder.close()
                 if opcode == Opcode.CHUNK:
                     gaps.unlisted_chunk = True
+                elif opcode in (Opcode.METADATA, Opcode.ATTACHMENT):
+                    _add_index(gaps, f, opcode, offset, length)
                 elif body is not None:
                     _definition(opcode, body, gaps.schemas, gaps.channels)
         pos = max(pos, hi)
     builder.close()
     gaps.runs = builder.runs
     return gaps
+
+
+def _add_index(summary: Summary | Gaps, f: BinaryIO, opcode: int, offset: int, length: int) -> None:
+    """Add the index of the metadata or attachment record at ``offset`` (body ``length`` bytes) to ``summary``."""
+    if opcode == Opcode.METADATA:
+        record = parse_record(_body(f, offset, length), Metadata)
+        summary.metadata_indexes.append(MetadataIndex(offset=offset, length=RECORD_HEADER.size + length,
+                                                      name=record.name))
+    else:
+        record = parse_record(_body(f, offset, length), Attachment)
+        summary.attachment_indexes.append(AttachmentIndex(
+            offset=offset, length=RECORD_HEADER.size + length, log_time=record.log_time,
+            create_time=record.create_time, data_size=len(record.data), name=record.name,
+            media_type=record.media_type))
 
 
 def _definition(opcode: int, body: bytes | memoryview, schemas: dict[int, Schema], channels: dict[int, Channel]
@@ -383,16 +402,8 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
             last_chunk = tally.chunk(offset, RECORD_HEADER.size + length, contents)
         elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
             _definition(opcode, _body(f, offset, length), tally.summary.schemas, tally.summary.channels)
-        elif opcode == Opcode.METADATA:
-            record = parse_record(_body(f, offset, length), Metadata)
-            tally.summary.metadata_indexes.append(MetadataIndex(offset=offset, length=RECORD_HEADER.size + length,
-                                                                name=record.name))
-        elif opcode == Opcode.ATTACHMENT:
-            record = parse_record(_body(f, offset, length), Attachment)
-            tally.summary.attachment_indexes.append(AttachmentIndex(
-                offset=offset, length=RECORD_HEADER.size + length, log_time=record.log_time,
-                create_time=record.create_time, data_size=len(record.data), name=record.name,
-                media_type=record.media_type))
+        elif opcode in (Opcode.METADATA, Opcode.ATTACHMENT):
+            _add_index(tally.summary, f, opcode, offset, length)
     if last_chunk is not None:
         tally.summary.chunk_indexes.append(last_chunk)
     runs.close()
