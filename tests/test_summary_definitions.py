@@ -38,7 +38,6 @@ from starlog.io.copying import flatten_log
 from starlog.io.images import choose_image_topic
 from starlog.io.verify import verify_log
 from starlog.stages._blocks import channel_blocks
-from starlog.stages.filter import cat_messages
 
 JSON, PROTO, RAW, IMAGE = "/numbers", "/vectors", "/raw", "/cam"
 TOPICS = (JSON, PROTO, RAW, IMAGE)
@@ -266,6 +265,8 @@ UNREPEATED = {"use_chunking": True, "compression": CompressionType.ZSTD, "index_
 def _opened_chunks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """The offsets of the chunks :class:`McapFile` decompresses from now on, in order."""
     from starlog.io.mcap_file import McapFile
+
+    # private: every chunk McapFile reads is decompressed and checked by _chunk_contents, so its calls count them
 
     opened: list[int] = []
     contents = McapFile._chunk_contents

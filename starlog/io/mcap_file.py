@@ -299,9 +299,9 @@ class McapFile:
 
     def _definitions_note(self, opened: int) -> str:
         where = f"{opened} chunk{'s' if opened != 1 else ''} opened" if opened else "no chunk opened"
-        readers = (": Foxglove and the mcap library need them there; starlog filter "
-                   f"{self.path} -o OUT.mcap writes a copy that has them") if len(self.summary.chunk_indexes) else ""
-        return (f"its summary does not repeat every schema and channel record: they are read from the data "
+        readers = ("; Foxglove and the mcap library need them in the summary: starlog filter "
+                   f"{self.path} -o OUT.mcap writes a copy with them") if len(self.summary.chunk_indexes) else ""
+        return (f"its summary does not repeat every schema and channel record, so they are read from the data "
                 f"section ({where}){readers}")
 
     def _check_summary(self, data_end: int) -> None:
@@ -313,24 +313,26 @@ class McapFile:
         """Every channel must name a defined schema, every channel id the indexes, statistics or messages name
         a defined channel (in the summary or, where it does not repeat them, the data section)."""
         summary = self.summary
+        missing = missing_schemas(summary)
         problems = [f"channel {ch.topic!r} refers to missing schema {ch.schema_id}"
-                    for ch in summary.channels.values() if ch.schema_id in missing_schemas(summary)]
+                    for ch in summary.channels.values() if ch.schema_id in missing]
         topics = [ch.topic for ch in summary.channels.values()]
         if len(set(topics)) != len(topics):
             problems.append("two channels have the same topic")
         table: ChunkIndexTable = summary.chunk_indexes
         unknown = sorted(table.channel_ids() - summary.channels.keys())[:3]
-        offsets = table.column("chunk_start_offset")
-        problems += [f"chunk index for offset {int(offsets[row])} names unknown channel {cid}"
-                     for cid, row in sorted(table.first_rows(unknown).items())]
-        named = {"statistics count": summary.statistics.channel_message_counts if summary.statistics else {},
-                 "chunks without message indexes hold": self._extents or {},
-                 "messages outside chunks name": {c: 1 for run in self._loose for c in run.message_index_offsets}}
-        for what, ids in named.items():
+        if unknown:
+            offsets = table.column("chunk_start_offset")
+            problems += [f"chunk index for offset {int(offsets[row])} names unknown channel {cid}"
+                         for cid, row in sorted(table.first_rows(unknown).items())]
+        counted = summary.statistics.channel_message_counts if summary.statistics else {}
+        loose = {c: 1 for run in self._loose for c in run.message_index_offsets}
+        for what, ids in (("statistics count messages of", counted),
+                          ("chunks without message indexes hold messages of", self._extents or {}),
+                          ("messages outside chunks name", loose)):
             unknown = sorted(c for c, n in ids.items() if n and c not in summary.channels)
             if unknown:
-                problems.append(f"{what} messages of unknown channels {unknown}" if what.startswith("statistics")
-                                else f"{what} unknown channels {unknown}")
+                problems.append(f"{what} unknown channels {unknown}")
         if problems:
             raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
                                              f"{recover_hint(self.path)}")

@@ -21,7 +21,6 @@ counters are kept, never messages.
 from __future__ import annotations
 
 import struct
-import itertools
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,8 +56,8 @@ from starlog.io.layout import (
     walk_records,
 )
 
-__all__ = ["Gaps", "LooseRun", "ScanResult", "find_definitions", "find_loose_runs", "missing_schemas", "read_definitions",
-           "read_loose", "synthesize_summary"]
+__all__ = ["Gaps", "LooseRun", "ScanResult", "find_definitions", "find_loose_runs", "missing_schemas",
+           "read_definitions", "read_loose", "synthesize_summary"]
 
 _RUN_MESSAGES = 1024  # loose messages per segment: bounds what one read holds in memory
 _RUN_BYTES = 8 * 1024 * 1024
@@ -258,6 +257,8 @@ def find_definitions(summary: Summary, wanted: Iterable[int], open_chunk: Callab
         return bool(wanted - summary.channels.keys() or missing_schemas(summary))
 
     opened: set[int] = set()
+    if not missing():
+        return 0
     for row in _candidates(table, summary, wanted):
         if not missing():
             break
