@@ -31,6 +31,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from starlog.cli import cli
+from starlog.errors import CorruptLogError
 from starlog.export.tables import export_log
 from starlog.io import LogReader, LogWriter, encode_json, json_message_type
 from starlog.io.chunk_indexes import read_file_summary
@@ -380,3 +381,20 @@ def test_the_dask_batch_path_exports_such_logs_as_one_process_does(tmp_path: Pat
             serial = pq.read_table(tmp_path / "serial" / log.stem / table)
             assert serial.num_rows == (3 if table == "frames.parquet" else 1)
             assert serial.equals(pq.read_table(tmp_path / "dask" / log.stem / table))
+
+
+def test_a_channel_no_record_defines_is_refused_by_the_readers_and_by_verify(tmp_path: Path) -> None:
+    """The file's only /numbers channel record turned into a record of an unknown kind (which readers skip):
+    its messages name a channel nothing defines, and readers and verify both say so."""
+    path = tmp_path / "undefined.mcap"
+    options = {**UNREPEATED, "compression": CompressionType.NONE, "enable_crcs": False}
+    write_log(path, options, [0, 1, 0, 1], upfront=True, metadata=False, attachment=False)
+    data = bytearray(path.read_bytes())
+    record = data.index(b"/numbers") - 17  # opcode, length, id, schema id, topic length, then the topic
+    assert data[record] == 0x04 and data.count(b"/numbers") == 1
+    data[record] = 0x80
+    path.write_bytes(bytes(data))
+    with pytest.raises(CorruptLogError, match="names unknown channel 1.*starlog recover"):
+        LogReader(path)
+    report = verify_log(path)
+    assert not report.ok and "unknown_channel" in {p.kind for p in report.errors}

@@ -13,8 +13,8 @@ and still holds every message. This module finds what the indexes do not say:
 * :func:`find_definitions` finds the schemas and channels a summary does not repeat (the
   ``mcap`` writer's ``repeat_schemas=False`` / ``repeat_channels=False``) in the chunks' records.
 
-They read record headers (nine bytes each) and skip record bodies, except schema and channel
-records and the chunks whose channels must be learnt. Memory stays flat: only indexes and
+They read record headers (nine bytes each) and skip record bodies, except schema, channel,
+metadata and attachment records and the chunks whose channels must be learnt. Memory stays flat: only indexes and
 counters are kept, never messages.
 """
 
