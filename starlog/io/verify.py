@@ -7,8 +7,10 @@ channel references; JSON messages against their JSON Schemas; protobuf, ROS 1 an
 messages decode; images decode with one size per channel; ``log_time`` order per channel.
 
 Each problem has a ``kind`` (a stable name), a severity (``error``: the file is damaged or a
-stage would refuse it; ``note``: valid MCAP that other readers accept but that is unusual, such
-as chunks without message indexes or no summary), the file ``offset`` of the record, and the
+stage would refuse it; ``note``: a file every starlog command reads in full but that is unusual,
+such as chunks without message indexes, no summary, or a summary without the schema and channel
+records; where Foxglove or the ``mcap`` library cannot read it, the note says so and names the
+command that rewrites it), the file ``offset`` of the record, and the
 ``channel`` and ``log_time`` where they apply. The data section is read once, chunk by chunk,
 and the summary section a block at a time (once for its CRC, once for its records); memory holds
 one chunk, per-channel counters and the summary's chunk indexes by column (about 100 bytes a
@@ -611,7 +613,7 @@ class _Verifier:
     def check_definitions(self) -> None:
         """A note when the summary does not repeat the channel or schema record of a channel of the file: the
         MCAP specification asks for the copies of the channels chunk indexes or statistics name (and of the
-        schemas of those chunk indexes name), else they are optional; readers that take them from the
+        schemas of the channels chunk indexes name), else they are optional; readers that take them from the
         summary fail on files with chunk indexes."""
         if not self.summary or self.summary_damaged:
             return
