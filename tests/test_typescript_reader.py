@@ -81,3 +81,20 @@ def test_typescript_reader_refuses_chunks_without_message_indexes_until_filter_r
     filter_log(bare, tmp_path / "indexed.mcap")
     assert _read_with_node(node_reader, tmp_path / "indexed.mcap")["counts"] == {
         "/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20}
+
+
+def test_typescript_reader_cannot_read_channels_its_summary_does_not_repeat_until_filter_rewrites_them(
+        node_reader: Path, sim_log: Path, tmp_path: Path) -> None:
+    """What verify's note on such a file says: Foxglove's reader takes channels from the summary; filter writes them."""
+    unrepeated = write_plain(sim_log, tmp_path / "unrepeated.mcap", repeat_schemas=False, repeat_channels=False,
+                             chunk_size=4096)
+    refused = subprocess.run(["node", str(node_reader), str(unrepeated)], capture_output=True, text=True, timeout=120)
+    assert refused.returncode != 0 and "which the reader does not know" in refused.stderr
+    note = [p for p in verify_file(unrepeated).problems if p.kind == "definitions_not_in_summary"]
+    assert len(note) == 1 and "Foxglove" in note[0].detail and "starlog filter" in note[0].detail
+    with LogReader(unrepeated) as log:
+        assert {c.topic: c.message_count for c in log.channels()} == {
+            "/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20}
+    filter_log(unrepeated, tmp_path / "repeated.mcap")
+    assert _read_with_node(node_reader, tmp_path / "repeated.mcap")["counts"] == {
+        "/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20}
