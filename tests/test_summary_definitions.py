@@ -354,9 +354,13 @@ def test_info_report_and_filter_read_it_and_filter_writes_the_copies(tmp_path: P
     report = runner.invoke(cli, ["report", str(path), "-o", str(tmp_path / "r.html"), "-q"])
     assert report.exit_code == 0, report.output
     assert all(topic in (tmp_path / "r.html").read_text() for topic in TOPICS)
-    verified = runner.invoke(cli, ["verify", str(path)])
-    assert verified.exit_code == 0 and "definitions_not_in_summary" in verified.output
-    assert f"starlog filter {path} -o OUT.mcap" in verified.output
+    verified = runner.invoke(cli, ["verify", str(path)])  # read in full, but not what the specification asks
+    assert verified.exit_code == 3 and "warning definitions_not_in_summary" in verified.output
+    verdict = verified.output.splitlines()[-1]
+    assert verdict.startswith(f"NONCONFORMANT: starlog reads {path} in full") and verdict.endswith(
+        f"Rewrite it conforming with: starlog filter {path} -o OUT.mcap")
+    assert '"A Schema and Channel record MUST exist in the summary section for all channels referenced by chunk ' \
+           'index records"' in verdict and "Statistics record with a non-empty channel_message_counts" in verdict
     out = tmp_path / "rewritten.mcap"
     filtered = runner.invoke(cli, ["filter", str(path), "-o", str(out), "-q"])
     assert filtered.exit_code == 0, filtered.output
