@@ -98,11 +98,12 @@ class ChannelSummary:
     @classmethod
     def union(cls, parts: list[ChannelSummary]) -> ChannelSummary:
         """The summary of a topic whose channels ``parts`` summarise (ascending ids): every message counted,
-        the schema and encodings of the first channel (as Foxglove lists such a topic)."""
+        the schema and encodings of the first channel holding messages (else the first: Foxglove lists such a
+        topic under its first channel's schema)."""
         if len(parts) == 1:
             return parts[0]
         held = [p for p in parts if p.message_count]
-        return replace(parts[0], message_count=sum(p.message_count for p in parts),
+        return replace(held[0] if held else parts[0], message_count=sum(p.message_count for p in parts),
                        first_log_time=min((p.first_log_time for p in held), default=0),
                        last_log_time=max((p.last_log_time for p in held), default=0),
                        channel_ids=tuple(i for p in parts for i in p.channel_ids), per_channel=tuple(parts))

@@ -220,9 +220,14 @@ class LogReader:
 
     def topic_conflict(self, topic: str) -> str | None:
         """One line naming ``topic`` and its channels' schemas when they cannot be read as one series
-        (:func:`~starlog.io.shared_topics.topic_conflict`); None for a topic of one channel or one type."""
+        (:func:`~starlog.io.shared_topics.topic_conflict`; channels without messages in the file do not
+        count); None for a topic of one channel or one type."""
         if topic not in self._conflicts:
-            channels = [self._channels[cid] for cid in self._channel_ids(topic)]
+            ids = self._channel_ids(topic)
+            if len(ids) > 1:
+                held = {cid for file in self.files for cid, e in file.channel_extents().items() if e[0]}
+                ids = [cid for cid in ids if cid in held]
+            channels = [self._channels[cid] for cid in ids]
             self._conflicts[topic] = None if len(channels) < 2 else topic_conflict(
                 topic, [(c, self._schemas.get(c.schema_id) if c.schema_id else None) for c in channels])
         return self._conflicts[topic]

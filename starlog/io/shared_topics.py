@@ -5,8 +5,9 @@ channels' messages in ``log_time`` order, each message decoded by its own channe
 the ``mcap`` library and Foxglove read it. Whatever takes a topic as one series of one type of
 message (frames, tables, the stages' inputs) needs its channels to carry one type: their schemas
 have one name and encoding, or are all image types (:mod:`starlog.io.images`; each frame decoded
-by its own schema). :func:`topic_conflict` says, in one line, when they do not; the readers
-refuse such a topic as a series with that line, and ``starlog verify`` reports the same line.
+by its own schema). :func:`topic_conflict` says, in one line, when they do not (of the channels
+that hold messages: an empty channel has nothing to merge); the readers refuse such a topic as a
+series with that line, and ``starlog verify`` reports the same line.
 """
 
 from __future__ import annotations
@@ -35,8 +36,8 @@ def message_kind(schema: Schema | None, message_encoding: str) -> tuple[str, str
 
 
 def _describe(schema: Schema | None, message_encoding: str, ids: list[int]) -> str:
-    what = f"{schema.name!r} ({schema.encoding})" if schema is not None else f"no schema ({message_encoding})"
-    return f"{what}, channel{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))}"
+    what = f"{schema.name!r} ({schema.encoding}" if schema is not None else f"no schema ({message_encoding}"
+    return f"{what}; channel{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))})"
 
 
 def topic_conflict(topic: str, channels: Iterable[tuple[Channel, Schema | None]]) -> str | None:
@@ -51,6 +52,6 @@ def topic_conflict(topic: str, channels: Iterable[tuple[Channel, Schema | None]]
     if len(kinds) < 2:
         return None
     listed = [_describe(*found) for found in kinds.values()]
-    return (f"the channels of topic {topic!r} carry messages of schemas that cannot be read as one series: "
+    return (f"the channels of topic {topic!r} have schemas that cannot be read as one series: "
             f"{', '.join(listed[:-1])} and {listed[-1]}; starlog reads them message by message (info, cat, filter, "
             "flatten), not as one series of frames or table rows (export, the stages)")

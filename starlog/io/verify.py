@@ -701,16 +701,17 @@ class _Verifier:
                      severity="warning" if rules else "note", rule=quoted)
 
     def check_topics(self) -> None:
-        """Channels sharing a topic: an error when their schemas cannot be read as one series (the readers refuse
-        such a topic as a series, :mod:`starlog.io.shared_topics`), else a note; image channels' frames of one
-        topic must not share a log_time (the stages read them as one series of strictly increasing times)."""
+        """Channels sharing a topic: an error when the schemas of those with messages cannot be read as one series
+        (the readers refuse such a topic as a series, :mod:`starlog.io.shared_topics`), else a note; image
+        channels' frames of one topic must not share a log_time (the stages read them as one series of strictly
+        increasing times)."""
         by_topic: dict[str, list[int]] = {}
         for cid in sorted(self.channels):
             by_topic.setdefault(self.channels[cid].topic, []).append(cid)
         for topic, ids in by_topic.items():
             if len(ids) < 2:
                 continue
-            channels = [self.channels[cid] for cid in ids]
+            channels = [self.channels[cid] for cid in ids if self.counted.get(cid)]  # as the readers count them
             conflict = topic_conflict(topic, [(c, self.schemas.get(c.schema_id) if c.schema_id else None)
                                               for c in channels])
             if conflict is not None:
