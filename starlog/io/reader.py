@@ -51,8 +51,8 @@ from starlog.io.images import is_image_schema
 from starlog.io.mcap_file import ChannelSummary, McapFile, channel_summaries
 from starlog.io.json_schema import compile_json_schema
 from starlog.io.messages import decode_json
-from starlog.io.shared_topics import topic_conflict
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
+from starlog.io.shared_topics import topic_conflict
 from starlog.io.timerange import END_OF_TIME, ResolvedRange
 from starlog.io.writer import VALIDATED_METADATA_KEY
 
@@ -338,8 +338,9 @@ class LogReader:
         """Decoded messages of one topic (or several, interleaved by ``log_time``), streamed.
 
         A topic of several channels gives all their messages, each decoded by its own channel's schema
-        (:class:`MixedTopicError` when their schemas cannot be read as one series). JSON payloads are checked against their channel's schema (see ``validate_messages``).
-        With ``stride`` n, only every n-th message (the first, the n+1-th, ...) is decoded and yielded.
+        (:class:`MixedTopicError` when their schemas cannot be read as one series). JSON payloads are
+        checked against their channel's schema (see ``validate_messages``). With ``stride`` n, only every
+        n-th message (the first, the n+1-th, ...) is decoded and yielded.
         """
         if stride < 1:
             raise InvalidParameterError(f"stride must be >= 1; got {stride}.")

@@ -2,9 +2,11 @@
 
 The file is scanned record by record in file order (no summary needed). Every complete record
 is kept: schemas, channels, messages of every chunk whose bytes are whole and whose CRC checks,
-and metadata (provenance). A chunk cut off by the end of the file, or whose CRC does not match,
-is dropped and reported — with its offset, time range and, from the message-index records that
-follow it when they survived, how many messages of which channels it held.
+and metadata (provenance); a topic's channels of one type of message become one channel, those of
+another type a channel of their own on the same topic. A chunk cut off by the end of the file, or
+whose CRC does not match, is dropped and reported — with its offset, time range and, from the
+message-index records that follow it when they survived, how many messages of which channels it
+held.
 
 A layer (:mod:`starlog.io.chain`) is recovered as a layer on the same base when its base record
 survived and its base is there, unchanged; otherwise its own records are recovered into a file

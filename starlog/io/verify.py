@@ -15,10 +15,12 @@ full but that is unusual, such as chunks without message indexes, no summary, or
 topic; where Foxglove or the ``mcap`` library cannot read it, the note says so and names the command
 that rewrites it), the file ``offset`` of the record, and the ``channel`` and ``log_time`` where
 they apply. The report's :attr:`~VerifyReport.status` follows: ``damaged`` or ``refused`` (an error;
-exit status 1), ``nonconformant`` (warnings only; exit status 3), ``valid`` (notes at most; 0). The data section is read once, chunk by chunk,
-and the summary section a block at a time (once for its CRC, once for its records); memory holds
-one chunk, per-channel counters and the summary's chunk indexes by column (about 100 bytes a
-chunk: each is compared with its chunk as the walk finishes that chunk). Chunk indexes are parsed
+exit status 1), ``nonconformant`` (warnings only; exit status 3), ``valid`` (notes at most; 0).
+The data section is read once, chunk by chunk, and the summary section a block at a time (once
+for its CRC, once for its records); memory holds one chunk, per-channel counters (and 8 bytes a
+frame of each image channel, to compare the frame times of a topic's channels) and the summary's
+chunk indexes by column (about 100 bytes a chunk: each is compared with its chunk as the walk
+finishes that chunk). Chunk indexes are parsed
 as :class:`~starlog.io.reader.LogReader` parses them: one that it refuses is a ``bad_summary``.
 
 One module of over 500 lines: the checks are the methods of one walk over the file
@@ -679,7 +681,8 @@ class _Verifier:
         counted = {c for c, n in (stats.channel_message_counts.items() if stats else ()) if n}
         used = indexed | counted | set(self.counted)
         every = set(self.channels) if stats and stats.channel_message_counts else set()  # RULE_STATISTICS: all
-        lacking = {cid: (cid not in channels, cid in used and self.channels[cid].schema_id in self.schemas.keys() - schemas)
+        unrepeated = self.schemas.keys() - schemas
+        lacking = {cid: (cid not in channels, cid in used and self.channels[cid].schema_id in unrepeated)
                    for cid in sorted(used | every) if cid in self.channels}
         lacking = {cid: flags for cid, flags in lacking.items() if any(flags)}
         if not lacking:
@@ -855,7 +858,7 @@ class ChainReport:
             return f"OK: {self.path} is {what}: every file valid{checked}."
         if status == "nonconformant":
             files = ", ".join(f.path for f in self.files if f.status == "nonconformant")
-            return (f"NONCONFORMANT: {self.path} is {what}, read in full by starlog{checked}, but {files} does not "
+            return (f"NONCONFORMANT: {self.path} is {what}, read in full by starlog{checked}; {files} does not "
                     "conform to the MCAP specification (see above). Write the log as one conforming file with: "
                     f"starlog filter {self.path} -o OUT.mcap")
         parts = [f"{kind} files: {', '.join(f.path for f in self.files if f.status == kind)}{why}"
