@@ -57,7 +57,7 @@ def filter_command(log: Path, output: Path, topics: tuple[str, ...], exclude_top
     report = filter_log(log, output, topics=topics, exclude_topics=exclude_topics, start=start, end=end,
                         frame_topic=frame_topic, force=force, compression=compression)
     d = report.to_dict()
-    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} channels; "
+    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} topics; "
                        f"{d['chunks_copied']} chunks copied as they are, {d['chunks_reencoded']} re-encoded")
     if as_json:
         print_json(d)
@@ -88,7 +88,7 @@ def flatten(log: Path, output: Path, force: bool, quiet: bool, as_json: bool) ->
 
     report = flatten_log(log, output, force=force)
     d = report.to_dict()
-    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} channels, "
+    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} topics, "
                        f"{d['chunks_copied']} chunks copied as they are")
     if as_json:
         print_json(d)
