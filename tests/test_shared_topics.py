@@ -413,3 +413,28 @@ def test_recover_keeps_a_channel_of_another_schema_on_a_topic_as_its_own(tmp_pat
         assert [p.message_count for p in summary.per_channel] == [4, 2]  # one RawImage channel for both
         assert log.topic_conflict(CAM) is not None
         assert len(list(log.raw_messages([CAM], mixed=True))) == 6
+
+
+def test_the_centroid_stage_reads_the_frames_of_every_image_channel_of_a_topic(tmp_path: Path) -> None:
+    """End to end: frames of three image channels (two schema records, protobuf and JSON) are one series; a JSON
+    channel among them stops the stage with the line verify reports."""
+    path = tmp_path / "cameras.mcap"
+    write_log(path, UNREPEATED, ["raw", "raw_again", "raw_json"], [0, 1, 2, 0, 2, 1, 0])
+    runner = CliRunner()
+    result = runner.invoke(cli, ["centroid", str(path), "-o", str(tmp_path / "cen.mcap"), "--method", "MOMENT",
+                                 "--json", "-q"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout[result.stdout.index("{"):])
+    assert (summary["image_topic"], summary["frames"], summary["channel_messages"]) == (CAM, 7, 7)
+    with LogReader(tmp_path / "cen.mcap") as log:
+        assert log.channel("/stars/detections").message_count == 7
+        assert [m.log_time for m in log.messages("/stars/detections")] == [(k + 1) * 1_000_000 for k in range(7)]
+    mixed = tmp_path / "mixed.mcap"
+    write_log(mixed, UNREPEATED, ["raw", "cam_numbers"], [0, 1, 0])
+    refused = runner.invoke(cli, ["centroid", str(mixed), "-o", str(tmp_path / "no.mcap"), "--image-topic", CAM,
+                                  "--method", "MOMENT", "-q"])
+    with LogReader(mixed) as log:
+        line = log.topic_conflict(CAM)
+    assert refused.exit_code == 1 and refused.output.strip() == f"Error: {mixed}: {line}."
+    assert not (tmp_path / "no.mcap").exists()
+    assert [p.detail.startswith(line or "?") for p in verify_log(mixed).errors] == [True]
