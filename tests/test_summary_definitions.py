@@ -27,6 +27,8 @@ from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
+from mcap.records import Channel
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, IndexType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
@@ -249,6 +251,27 @@ def test_every_layout_the_mcap_writer_makes_reads_in_full_and_verify_agrees(
             (not options["repeat_schemas"] and written.topics() - {RAW})
         assert len(note) == int(bool(lacking) and _has_summary(path))
         assert bool(note and "mcap library" in note[0].detail) == (not _mcap_library_reads(path))
+        breaks = _breaks_summary_rules(path)
+        assert report.status == ("nonconformant" if breaks else "valid") and report.exit_status == (3 if breaks else 0)
+        assert bool(note and note[0].severity == "warning") == breaks
+
+
+def _breaks_summary_rules(path: Path) -> bool:
+    """Whether the file breaks the MCAP specification's rules on the summary's copies, as the ``mcap`` library
+    reads the file: a channel the chunk indexes name without its channel or schema record in the summary, or
+    per-channel statistics without every channel record of the file in the summary."""
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+        if summary is None:
+            return False
+        f.seek(0)
+        channels = {r.id: r for r in StreamReader(f).records if isinstance(r, Channel)}
+    indexed = {cid for ci in summary.chunk_indexes for cid in ci.message_index_offsets}
+    if any(cid not in summary.channels or (channels[cid].schema_id and channels[cid].schema_id not in summary.schemas)
+           for cid in indexed):
+        return True
+    stats = summary.statistics
+    return bool(stats and stats.channel_message_counts) and not channels.keys() <= summary.channels.keys()
 
 
 def _has_summary(path: Path) -> bool:
@@ -322,7 +345,11 @@ def test_layers_on_such_a_base_and_their_flattened_log_repeat_every_schema_and_c
             writer.write(channel, log_time=(n + 1) * 1_000_000, data=encode_json(
                 {"frame": n, "width": 8, "height": 6, "encoding": "mono16", "bit_depth": 16, "source": ""}))
     report = verify_log(layer)
-    assert report.ok, report.lines()
+    assert report.ok and report.status == "nonconformant" and report.exit_status == 3, report.lines()
+    assert report.verdict().startswith(f"NONCONFORMANT: {layer} is a chain of 2 files, read in full by starlog") \
+        and f"{base} does not conform" in report.verdict() and f"starlog filter {layer} -o OUT.mcap" in report.verdict()
+    described = CliRunner().invoke(cli, ["verify", str(layer), "--json"])
+    assert described.exit_code == 3 and json.loads(described.stdout)["status"] == "nonconformant"
     _check_log_reader(layer, written)  # the base's channels, read through the layer
     with LogReader(layer) as log:
         assert set(log.topics) == set(TOPICS) | {"/added"} and log.channel("/added").message_count == 3
@@ -333,6 +360,7 @@ def test_layers_on_such_a_base_and_their_flattened_log_repeat_every_schema_and_c
     assert summary is not None and {c.topic for c in summary.channels.values()} == set(TOPICS) | {"/added"}
     assert {c.schema_id for c in summary.channels.values()} - {0} <= summary.schemas.keys()
     assert not [p for p in verify_log(flat).problems if p.kind == "definitions_not_in_summary"]
+    assert verify_log(flat).status == "valid"
     with open(flat, "rb") as f:  # the mcap library, which needs the copies, reads every message
         counts: dict[str, int] = {}
         for _, channel_record, _ in make_reader(f).iter_messages():
@@ -354,9 +382,13 @@ def test_info_report_and_filter_read_it_and_filter_writes_the_copies(tmp_path: P
     report = runner.invoke(cli, ["report", str(path), "-o", str(tmp_path / "r.html"), "-q"])
     assert report.exit_code == 0, report.output
     assert all(topic in (tmp_path / "r.html").read_text() for topic in TOPICS)
-    verified = runner.invoke(cli, ["verify", str(path)])
-    assert verified.exit_code == 0 and "definitions_not_in_summary" in verified.output
-    assert f"starlog filter {path} -o OUT.mcap" in verified.output
+    verified = runner.invoke(cli, ["verify", str(path)])  # read in full, but not what the specification asks
+    assert verified.exit_code == 3 and "warning definitions_not_in_summary" in verified.output
+    verdict = verified.output.splitlines()[-1]
+    assert verdict.startswith(f"NONCONFORMANT: starlog reads {path} in full") and verdict.endswith(
+        f"Rewrite it conforming with: starlog filter {path} -o OUT.mcap")
+    assert '"A Schema and Channel record MUST exist in the summary section for all channels referenced by chunk ' \
+           'index records"' in verdict and "Statistics record with a non-empty channel_message_counts" in verdict
     out = tmp_path / "rewritten.mcap"
     filtered = runner.invoke(cli, ["filter", str(path), "-o", str(out), "-q"])
     assert filtered.exit_code == 0, filtered.output

@@ -98,3 +98,30 @@ def test_typescript_reader_cannot_read_channels_its_summary_does_not_repeat_unti
     filter_log(unrepeated, tmp_path / "repeated.mcap")
     assert _read_with_node(node_reader, tmp_path / "repeated.mcap")["counts"] == {
         "/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20}
+
+
+def test_typescript_reader_reads_every_channel_of_a_shared_topic_once_filter_repeats_them(
+        node_reader: Path, tmp_path: Path) -> None:
+    """Two image channels and a JSON channel share topics in a file whose summary does not repeat them: verify
+    calls it nonconformant (starlog reads it, Foxglove's reader does not) and filter's copy, valid, reads in the
+    TypeScript reader channel by channel as starlog reads it."""
+    from mcap.writer import IndexType
+
+    from tests.test_shared_topics import CAM, NUM, write_log
+
+    options = {"chunk_size": 300, "index_types": IndexType.ALL, "repeat_schemas": False, "repeat_channels": False}
+    shared = tmp_path / "shared.mcap"
+    write_log(shared, options, ["raw", "raw_json", "numbers", "numbers_again"], [0, 1, 2, 3, 0, 1, 2, 0, 3])
+    refused = subprocess.run(["node", str(node_reader), str(shared)], capture_output=True, text=True, timeout=120)
+    assert refused.returncode != 0 and "which the reader does not know" in refused.stderr
+    assert verify_file(shared).status == "nonconformant"
+    filtered = filter_log(shared, tmp_path / "filtered.mcap").output
+    assert verify_file(filtered).status == "valid"
+    report = _read_with_node(node_reader, filtered)
+    assert report["counts"] == {CAM: 5, NUM: 4}
+    assert report["files"][0]["channelCounts"] == {"1": 3, "2": 2, "3": 2, "4": 2}
+    with LogReader(filtered) as log:
+        assert {c.topic: c.message_count for c in log.channels()} == report["counts"]
+        assert {str(i): p.message_count for c in log.channels() for i, p in zip(c.channel_ids, c.per_channel,
+                                                                                strict=True)} == \
+            report["files"][0]["channelCounts"]

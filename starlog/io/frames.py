@@ -119,7 +119,8 @@ def reuse_frame_buffers() -> None:
 
 def iter_frames(log: MessageSource, topic: str, *, start: int | None = None, end: int | None = None,
                 first_index: int = 0, on_bad: Callable[[SkippedFrame], None] | None = None) -> Iterator[Frame]:
-    """Every frame of ``topic`` with ``start <= log_time < end``, in time order, numbered from ``first_index``.
+    """Every frame of ``topic`` with ``start <= log_time < end``, in time order, numbered from ``first_index``
+    (a topic of several image channels: all their frames, each decoded by its own channel's schema).
 
     A frame that does not decode, is not 2-D, differs in size or pixel type from the first, or
     does not come strictly after the previous one raises :class:`MessageDecodeError` /

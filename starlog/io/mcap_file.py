@@ -23,7 +23,7 @@ import itertools
 import os
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO
@@ -77,9 +77,12 @@ def recover_hint(path: Path) -> str:
 
 @dataclass(frozen=True)
 class ChannelSummary:
-    """One channel of a log, as :meth:`~starlog.io.reader.LogReader.channels` lists it.
+    """One topic of a log, as :meth:`~starlog.io.reader.LogReader.channels` lists it: its channel, or the union of
+    its channels (:meth:`union`).
 
     ``rate_hz`` is ``(count - 1) / (last - first)`` in Hz (0 for fewer than two messages).
+    ``channel_ids`` are the ids of the topic's channels; ``per_channel`` holds each one's own summary
+    when there are several (empty otherwise).
     """
 
     topic: str
@@ -89,6 +92,21 @@ class ChannelSummary:
     message_count: int
     first_log_time: int
     last_log_time: int
+    channel_ids: tuple[int, ...] = ()
+    per_channel: tuple[ChannelSummary, ...] = ()
+
+    @classmethod
+    def union(cls, parts: list[ChannelSummary]) -> ChannelSummary:
+        """The summary of a topic whose channels ``parts`` summarise (ascending ids): every message counted,
+        the schema and encodings of the first channel holding messages (else the first: Foxglove lists such a
+        topic under its first channel's schema)."""
+        if len(parts) == 1:
+            return parts[0]
+        held = [p for p in parts if p.message_count]
+        return replace(held[0] if held else parts[0], message_count=sum(p.message_count for p in parts),
+                       first_log_time=min((p.first_log_time for p in held), default=0),
+                       last_log_time=max((p.last_log_time for p in held), default=0),
+                       channel_ids=tuple(i for p in parts for i in p.channel_ids), per_channel=tuple(parts))
 
     @property
     def rate_hz(self) -> float:
@@ -106,7 +124,8 @@ class ChannelSummary:
             "first_log_time": self.first_log_time,
             "last_log_time": self.last_log_time,
             "rate_hz": self.rate_hz,
-        }
+            "channel_ids": list(self.channel_ids),
+        } | ({"per_channel": [p.to_dict() for p in self.per_channel]} if self.per_channel else {})
 
 
 def _chunk_index_problems(table: ChunkIndexTable, data_end: int) -> list[str]:
@@ -316,9 +335,6 @@ class McapFile:
         missing = missing_schemas(summary)
         problems = [f"channel {ch.topic!r} refers to missing schema {ch.schema_id}"
                     for ch in summary.channels.values() if ch.schema_id in missing]
-        topics = [ch.topic for ch in summary.channels.values()]
-        if len(set(topics)) != len(topics):
-            problems.append("two channels have the same topic")
         table: ChunkIndexTable = summary.chunk_indexes
         unknown = sorted(table.channel_ids() - summary.channels.keys())[:3]
         if unknown:
@@ -609,20 +625,23 @@ class McapFile:
             counts[cid] = array_len // MESSAGE_INDEX_ENTRY.size
         return counts
 
-    def chunk_message_counts(self, channel_id: int, lo: int = 0, hi: int = END_OF_TIME) -> list[tuple[int, int, int]]:
-        """``(message_start_time, message_end_time, count)`` of the channel's messages with ``lo <= log_time < hi``
-        in each chunk holding some, in time order (from the message index records; no chunk is decompressed
-        unless it lies across a bound)."""
+    def chunk_message_counts(self, channel_ids: set[int], lo: int = 0, hi: int = END_OF_TIME
+                             ) -> list[tuple[int, int, int]]:
+        """``(message_start_time, message_end_time, count)`` of the messages of ``channel_ids`` with
+        ``lo <= log_time < hi`` in each chunk holding some, in time order (from the message index records; no
+        chunk is decompressed unless it lies across a bound)."""
         table: ChunkIndexTable = self.summary.chunk_indexes
         rows, channels, _ = table.entries()
         out = []
-        for ci in table.indexes_at(rows[channels == channel_id]):
+        for ci in table.indexes_at(np.unique(rows[np.isin(channels, list(channel_ids))])):
             if not (ci.message_end_time >= lo and ci.message_start_time < hi):
                 continue
             if lo <= ci.message_start_time and ci.message_end_time < hi:
-                out.append((ci.message_start_time, ci.message_end_time, self.index_counts(ci)[channel_id]))
+                counts = self.index_counts(ci)
+                out.append((ci.message_start_time, ci.message_end_time, sum(counts.get(c, 0) for c in channel_ids)))
                 continue
-            times = [t for t, _ in self.message_index(ci)[channel_id] if lo <= t < hi]
+            indexes = self.message_index(ci)
+            times = [t for c in channel_ids for t, _ in indexes.get(c, ()) if lo <= t < hi]
             if times:
                 out.append((min(times), max(times), len(times)))
         return sorted(out)
@@ -697,6 +716,6 @@ def channel_summaries(file: McapFile, extents: dict[int, list[int]]) -> dict[int
         out[cid] = ChannelSummary(topic=ch.topic, schema_name=schema.name if schema else "",
                                   schema_encoding=schema.encoding if schema else "",
                                   message_encoding=ch.message_encoding, message_count=int(count),
-                                  first_log_time=int(first), last_log_time=int(last))
+                                  first_log_time=int(first), last_log_time=int(last), channel_ids=(cid,))
     return out
 
