@@ -38,7 +38,7 @@ from starlog.centroid.tracking import (
 from starlog.io import encode_image_annotations
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader, LogSource
-from starlog.io.records import record_encoder
+from starlog.io.star_tables import star_codec
 from starlog.stages._blocks import worker_log
 from starlog.stages._parallel import ordered_map, process_pool
 
@@ -68,7 +68,7 @@ class FrameMessages:
 @dataclass(frozen=True)
 class FrameExtractor:
     """Detect, centroid and encode one frame; picklable, so worker processes do the whole per-frame work
-    (the JSON messages are checked against their schemas there too, not by the writer in the main process)."""
+    (the star tables are encoded, and their columns checked, there too, not by the writer in the main process)."""
 
     methods: tuple[CentroidMethod, ...]
     gain: float
@@ -127,10 +127,10 @@ class FrameExtractor:
         per_method = [centroids[m] for m in self.methods]
         return FrameMessages(
             log_time=log_time,
-            detections=record_encoder("starlog.Detections", "stars").encode({"frame": frame}, detections),
+            detections=star_codec("starlog.Detections").encode({"frame": frame}, detections),
             annotations=encode_image_annotations(first["x"], first["y"], log_time=log_time if stamp is None else stamp,
                                                  diameter=diameter),
-            centroids=tuple(record_encoder("starlog.Centroids", "stars").encode({"frame": frame, "method": m.value}, c)
+            centroids=tuple(star_codec("starlog.Centroids").encode({"frame": frame, "method": m.value}, c)
                             for m, c in zip(self.methods, per_method)),
             n_detections=int(detections.size),
             n_centroids=tuple(int(c.size) for c in per_method),
