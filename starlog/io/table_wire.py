@@ -179,7 +179,7 @@ class TableCodec:
         self.table_key: str | None = table[0].name if table else None
         self._order = [fd.name for fd in sorted(descriptor.fields, key=lambda f: f.number)]
         self._rows = _RowLayout(table[0]) if table else None
-        self._row_encoders = {f.name: _header_writer(f) for f in self.fields}
+        self._header_writers = {f.name: _header_writer(f) for f in self.fields}
 
     # ------------------------------------------------------------------ what the rows look like
     @property
@@ -218,13 +218,13 @@ class TableCodec:
 
     def encode_header(self, header: Mapping[str, Any]) -> bytes:
         """The header fields' bytes (which come first in a message :meth:`encode` writes)."""
-        unknown = set(header) - set(self._row_encoders)
+        unknown = set(header) - set(self._header_writers)
         if unknown:
             raise InvalidInputError(f"{self.name} has no field {sorted(unknown)[0]!r}.")
         out = []
         for f in self.fields:
             if f.name in header:
-                out.append(self._row_encoders[f.name](header[f.name]))
+                out.append(self._header_writers[f.name](header[f.name]))
             elif not f.presence:
                 raise InvalidInputError(f"a {self.name} message needs its field {f.name!r}.")
         return b"".join(out)
@@ -363,6 +363,8 @@ def _header_writer(field: _Field) -> Callable[[Any], bytes]:
         fmt = _FIXED.get(field.type, (0, ""))[1]
 
         def repeated(value: Any) -> bytes:
+            if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, (Sequence, np.ndarray)):
+                raise InvalidInputError(f"field {field.name!r} takes a list of numbers, got {value!r}.")
             items = [_checked_scalar(field, v) for v in value]
             body = np.asarray(items, dtype=fmt).tobytes() if fmt else b"".join(_varint(v) for v in items)
             return tag + _varint(len(body)) + body
