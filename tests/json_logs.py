@@ -4,7 +4,8 @@
 either kind), every star table rewritten as JSON with the JSON writer starlog kept for them
 (:func:`~starlog.io.records.record_encoder` for detections, centroids and tracks, as the stages
 encoded them; :func:`~starlog.io.messages.encode_json` for the others); every other channel and
-every metadata record is copied as it is. Used by the tests of old logs.
+every metadata record is copied as it is. Used by the tests of old logs and by ``tools/bench_io.py``
+(the size of a layer written both ways).
 """
 
 from __future__ import annotations
@@ -28,15 +29,16 @@ def _as_json(name: str, schema: Schema, encoding: str, data: bytes) -> bytes:
     return encode_json(star_codec(name).as_dict(header, rows) if rows is not None else header)
 
 
-def write_json_log(source: Path, output: Path, *, base: Path | None = None) -> Path:
+def write_json_log(source: Path, output: Path, *, base: Path | None = None, compression: str = "zstd") -> Path:
     """``source`` with its star tables as JSON: with ``base``, ``source`` read alone (one layer) and written
-    as a layer on ``base``; without, the whole chain of ``source`` written as one file."""
+    as a layer on ``base``; without, the whole chain of ``source`` written as one file. ``compression`` as the
+    stages' (zstd by default)."""
     layer_base = None
     if base is not None:
         with LogReader(base) as below:
             layer_base = below.layer_base()
     with LogReader(source, chain=base is None) as log, \
-            LogWriter(output, layer=layer_base, compression="lz4", force=True) as out:
+            LogWriter(output, layer=layer_base, compression=compression, force=True) as out:
         channels = {}
         for schema, channel, message in log.raw_messages(log.topics):
             name = schema.name if schema is not None else ""

@@ -123,7 +123,7 @@ class FrameExtractor:
             table = centroids[CentroidMethod(m)]
             table["x"], table["y"] = calibration.apply(table["x"], table["y"])
         first = centroids[self.methods[0]]
-        diameter = float(max(6.0, 6.0 * np.median(first["psf_sigma"]))) if first.size else 6.0
+        diameter = float(max(6.0, 6.0 * _median(first["psf_sigma"]))) if first.size else 6.0
         per_method = [centroids[m] for m in self.methods]
         return FrameMessages(
             log_time=log_time,
@@ -139,6 +139,16 @@ class FrameExtractor:
             evidence=frame_evidence(per_method),
             acquired=acquired,
         )
+
+
+def _median(values: npt.NDArray[np.float64]) -> float:
+    """``np.median`` of a non-empty 1-D array, the same value (NaN included), without its overhead (a tenth of
+    a frame's encoding at 50 stars)."""
+    ordered = np.sort(values)
+    half = ordered.size // 2
+    if np.isnan(ordered[-1]):
+        return float("nan")
+    return float(ordered[half] if ordered.size % 2 else (ordered[half - 1] + ordered[half]) / 2)
 
 
 class TrackedFrames:
