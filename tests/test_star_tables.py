@@ -319,3 +319,30 @@ def test_nan_survives_where_json_could_not_hold_it() -> None:
     table["x"], table["y"] = math.nan, -math.inf
     rows = codec.decode(codec.encode({"frame": 0, "method": "NONE"}, table)).rows
     assert math.isnan(rows["x"][0]) and rows["y"][0] == -math.inf
+
+
+def test_a_log_written_with_another_version_of_a_schema_reads_by_its_own_schema(tmp_path: Path) -> None:
+    """A Centroids schema with one more row field (as a later version might write): messages() and tables()
+    read it by the schema in the log, the new field included."""
+    from google.protobuf.descriptor_pb2 import FieldDescriptorProto
+
+    from starlog.io import LogReader, LogWriter, MessageType
+
+    fds = FileDescriptorSet.FromString(protobuf_message_type("starlog.Centroids").schema_data)
+    row = next(m for m in fds.file[0].message_type if m.name == "Centroid")
+    row.field.add(name="fwhm", number=12, type=FieldDescriptorProto.TYPE_DOUBLE,
+                  label=FieldDescriptorProto.LABEL_OPTIONAL, json_name="fwhm")
+    pool = DescriptorPool()
+    pool.Add(fds.file[0])
+    later = TableCodec(pool.FindMessageTypeByName("starlog.Centroids"))
+    table = rfn.append_fields(np.zeros(2, dtype=later.row_dtype[[n for n in later.row_dtype.names if n != "fwhm"]]),
+                              "fwhm", np.array([2.5, 3.0]), usemask=False)
+    with LogWriter(tmp_path / "later.mcap") as writer:
+        channel = writer.add_channel("/stars/centroids/NONE", MessageType("starlog.Centroids", "protobuf",
+                                                                         fds.SerializeToString(), "protobuf"))
+        writer.write(channel, log_time=5, data=later.encode({"frame": 0, "method": "NONE"}, table))
+    with LogReader(tmp_path / "later.mcap") as log:
+        payload = next(log.messages("/stars/centroids/NONE")).payload
+        rows = next(log.tables("/stars/centroids/NONE")).rows
+    assert [star["fwhm"] for star in payload["stars"]] == [2.5, 3.0] and list(payload["stars"][0])[-1] == "fwhm"
+    assert rows["fwhm"].tolist() == [2.5, 3.0] and rows["n_masked"].tolist() == [0, 0]

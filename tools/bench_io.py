@@ -55,6 +55,7 @@ from starlog.io.records import record_encoder  # noqa: E402
 from starlog.io.star_tables import STAR_TABLES, json_table, star_codec  # noqa: E402
 from starlog.sim import SimulationConfig, Simulator  # noqa: E402
 from starlog.stages import ingest_folder, simulate_log  # noqa: E402
+from starlog.stages._centroid_frames import annotation_diameter  # noqa: E402
 from starlog.stages.centroid import centroid_log  # noqa: E402
 from starlog.stages.track import track_log  # noqa: E402
 from starlog.track.table import TRACK_DTYPE  # noqa: E402
@@ -100,15 +101,16 @@ def bench_throughput(size: int, frames: int, tmp: Path) -> list[tuple[str, float
     return rows
 
 
-def _per_call_us(function: Callable[[Any], Any], values: list[Any], repeat: int = 3) -> float:
-    """Best of ``repeat`` passes over ``values``: microseconds per call."""
-    best = float("inf")
+def _per_item_us(function: Callable[[Any], Any], values: list[Any], repeat: int = 9) -> float:
+    """Microseconds per call: each value's least time over ``repeat`` calls (a call a process switch interrupted
+    does not count), averaged over the values."""
+    best = [float("inf")] * len(values)
     for _ in range(repeat):
-        start = time.perf_counter()
-        for value in values:
+        for k, value in enumerate(values):
+            start = time.perf_counter()
             function(value)
-        best = min(best, time.perf_counter() - start)
-    return best / len(values) * 1e6
+            best[k] = min(best[k], time.perf_counter() - start)
+    return sum(best) / len(best) * 1e6
 
 
 _CODEC_CHANNELS = [("/sim/truth", "starlog.SimTruth"), ("/stars/detections", "starlog.Detections"),
@@ -183,7 +185,7 @@ def bench_codec(logs: CodecLogs) -> list[tuple[Any, ...]]:
         if name not in STAR_TABLES:  # JSON in both logs
             values = [decode_json(r) for r in json_raw]
             rows.append((topic, len(b"".join(json_raw)) // len(json_raw), None,
-                         _per_call_us(encode_json, values), None, _per_call_us(decode_json, json_raw), None,
+                         _per_item_us(encode_json, values), None, _per_item_us(decode_json, json_raw), None,
                          None, None, _log_read_us(logs.json[layer], topic, False), None))
             continue
         codec, key = star_codec(name), STAR_TABLES[name]
@@ -192,10 +194,10 @@ def bench_codec(logs: CodecLogs) -> list[tuple[Any, ...]]:
         records = record_encoder(name, key)
         rows.append((
             topic, len(b"".join(json_raw)) // len(json_raw), len(b"".join(pb_raw)) // len(pb_raw),
-            _per_call_us(lambda m: records.message(m[0], records.rows(m[1], m[2])), stage),
-            _per_call_us(lambda m: codec.encode(m[0], m[1], m[2]), stage),
-            _per_call_us(decode_json, json_raw), _per_call_us(codec.to_dict, pb_raw),
-            _per_call_us(lambda r: json_table(name, decode_json(r)), json_raw), _per_call_us(codec.decode, pb_raw),
+            _per_item_us(lambda m: records.message(m[0], records.rows(m[1], m[2])), stage),
+            _per_item_us(lambda m: codec.encode(m[0], m[1], m[2]), stage),
+            _per_item_us(decode_json, json_raw), _per_item_us(codec.to_dict, pb_raw),
+            _per_item_us(lambda r: json_table(name, decode_json(r)), json_raw), _per_item_us(codec.decode, pb_raw),
             _log_read_us(logs.json[layer], topic, True), _log_read_us(logs.protobuf[layer], topic, True)))
     return rows
 
@@ -210,15 +212,17 @@ def print_codec(rows: list[tuple[Any, ...]]) -> None:
     for topic, *values in rows:
         print(f"{topic:<27} " + "  ".join(f"{cell(values[k])} {cell(values[k + 1])}" for k in range(0, 10, 2)))
     print("\nJSON: the star tables as earlier versions wrote them (the same messages, copied as JSON); pb: protobuf,\n"
-          "as starlog writes them. write: encoding one message from the stage's structured array (JSON: columns\n"
+          "as starlog writes them. Per message, its least time over 9 calls, averaged over the messages. write:\n"
+          "encoding one message from the stage's structured array (JSON: columns\n"
           "encoded and checked against the JSON Schema); read: to the dict of the JSON form (what messages()\n"
           "gives); table: to a header and a rows array; LogReader: per message of LogReader.tables on the layer\n"
           "(chunk read, decompression, decode; /sim/truth: LogReader.messages).\n")
 
 
 def bench_frames(logs: CodecLogs) -> list[tuple[str, float, float]]:
-    """Per frame, each encoding of all of a stage's channels (best of 3 passes over the log's frames, µs):
-    the centroid stage's detections, centroids and annotations; the track stage's tracks message."""
+    """Per frame, each encoding of all of a stage's channels (µs; each frame's least time over 9 passes, averaged
+    over the frames): the centroid stage's detections, centroids and annotations; the track stage's tracks
+    message."""
     tables = {}
     for topic, name in _CODEC_CHANNELS[1:]:
         layer = "track" if topic.startswith("/track") else "centroid"
@@ -230,18 +234,17 @@ def bench_frames(logs: CodecLogs) -> list[tuple[str, float, float]]:
                                     ("starlog.Detections", "starlog.Centroids", "starlog.Tracks"))
 
     def annotations(c: np.ndarray) -> bytes:
-        diameter = float(max(6.0, 6.0 * np.median(c["psf_sigma"]))) if c.size else 6.0
-        return encode_image_annotations(c["x"], c["y"], log_time=123_456_789, diameter=diameter)
+        return encode_image_annotations(c["x"], c["y"], log_time=123_456_789, diameter=annotation_diameter(c))
 
     def centroid_frame(encode_det: Callable[..., bytes], encode_cen: Callable[..., bytes]) -> float:
-        return _per_call_us(lambda f: (encode_det(f[0][0], f[0][1]), encode_cen(f[1][0], f[1][1]),
+        return _per_item_us(lambda f: (encode_det(f[0][0], f[0][1]), encode_cen(f[1][0], f[1][1]),
                                        annotations(f[1][1])), frames)
 
     return [("centroid: detections + GAUSSFIT centroids + annotations",
              centroid_frame(det_json.encode, cen_json.encode), centroid_frame(det.encode, cen.encode)),
             ("track: one STATIC tracks message",
-             _per_call_us(lambda m: trk_json.message(m[0], trk_json.rows(m[1], m[2])), tables["starlog.Tracks"]),
-             _per_call_us(lambda m: trk.encode(*m), tables["starlog.Tracks"]))]
+             _per_item_us(lambda m: trk_json.message(m[0], trk_json.rows(m[1], m[2])), tables["starlog.Tracks"]),
+             _per_item_us(lambda m: trk.encode(*m), tables["starlog.Tracks"]))]
 
 
 def layer_sizes(logs: CodecLogs) -> list[tuple[str, int, int]]:

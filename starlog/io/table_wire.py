@@ -120,7 +120,7 @@ class TableCodec:
 
     def encode_header(self, header: Mapping[str, Any]) -> bytes:
         """The header fields' bytes (which come first in a message :meth:`encode` writes)."""
-        unknown = set(header) - set(self._header_writers)
+        unknown = header.keys() - self._header_writers.keys()
         if unknown:
             raise InvalidInputError(f"{self.name} has no field {sorted(unknown)[0]!r}.")
         out = []

@@ -42,8 +42,8 @@ from starlog.io.star_tables import star_codec
 from starlog.stages._blocks import worker_log
 from starlog.stages._parallel import ordered_map, process_pool
 
-__all__ = ["FrameExtractor", "FrameMessages", "TrackedFrames", "extract_blocks_serial", "extract_parallel",
-           "extract_serial", "opencv_threads", "reuse_frame_buffers"]
+__all__ = ["FrameExtractor", "FrameMessages", "TrackedFrames", "annotation_diameter", "extract_blocks_serial",
+           "extract_parallel", "extract_serial", "opencv_threads", "reuse_frame_buffers"]
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,7 @@ class FrameExtractor:
             table = centroids[CentroidMethod(m)]
             table["x"], table["y"] = calibration.apply(table["x"], table["y"])
         first = centroids[self.methods[0]]
-        diameter = float(max(6.0, 6.0 * _median(first["psf_sigma"]))) if first.size else 6.0
+        diameter = annotation_diameter(first)
         per_method = [centroids[m] for m in self.methods]
         return FrameMessages(
             log_time=log_time,
@@ -141,14 +141,19 @@ class FrameExtractor:
         )
 
 
-def _median(values: npt.NDArray[np.float64]) -> float:
-    """``np.median`` of a non-empty 1-D array, the same value (NaN included), without its overhead (a tenth of
-    a frame's encoding at 50 stars)."""
-    ordered = np.sort(values)
+def annotation_diameter(centroids: npt.NDArray[Any]) -> float:
+    """The diameter (px) of the circles drawn at a frame's centroids: 6 PSF sigmas (their median), at least 6.
+
+    The median is ``np.median``'s value (NaN included) without its overhead, a tenth of a frame's encoding
+    at 50 stars.
+    """
+    if not centroids.size:
+        return 6.0
+    ordered = np.sort(centroids["psf_sigma"])
     half = ordered.size // 2
-    if np.isnan(ordered[-1]):
-        return float("nan")
-    return float(ordered[half] if ordered.size % 2 else (ordered[half - 1] + ordered[half]) / 2)
+    median = float("nan") if np.isnan(ordered[-1]) else \
+        float(ordered[half] if ordered.size % 2 else (ordered[half - 1] + ordered[half]) / 2)
+    return float(max(6.0, 6.0 * median))
 
 
 class TrackedFrames:
