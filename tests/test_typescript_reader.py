@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -16,10 +17,12 @@ from starlog.io.copying import flatten_log
 from starlog.io.star_tables import star_codec
 from starlog.io.verify import verify_file
 from starlog.stages.centroid import centroid_log
+from starlog.stages import simulate_log
 from starlog.stages.filter import filter_log
 from starlog.stages.motion import motion_log
 from starlog.stages.track import track_log
 from tests.foreign_logs import write_plain
+from tests.helpers import small_config
 from tests.json_logs import write_json_log
 
 TS_DIR = Path(__file__).resolve().parent.parent / "tools" / "ts_reader"
@@ -147,3 +150,30 @@ def test_typescript_reader_keeps_the_attitude_errors_present_only_when_written(n
             writer.write(channel, log_time=k, data=codec.encode(message))
     first = _read_with_node(node_reader, tmp_path / "att.mcap")["files"][0]["first"]
     assert first == {"/attitude/A": header, "/attitude/B": {**header, **errors}}
+
+
+def test_the_readmes_foxglove_plot_paths_give_numbers_on_the_protobuf_layers(node_reader: Path,
+                                                                            tmp_path: Path) -> None:
+    """Every message path the README gives for Foxglove's Plot panel, evaluated on the messages protobufjs decodes
+    (Foxglove's subset: fields, [:], {field==value}), yields numbers: the repeated sub-messages keep the filters."""
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
+    paths = sorted(set(re.findall(r"`(/[A-Za-z0-9_/]+\.[a-z_]+(?:\[:\]\{[a-z_]+==[a-z0-9]+\}\.[a-z_]+)?)`", readme)))
+    assert len(paths) >= 5 and any("{track==9}" in p for p in paths) and any(p.startswith("/attitude/") for p in paths)
+    sim, cen, trk, mot = (tmp_path / f"{n}.mcap" for n in ("sim", "cen", "trk", "mot"))
+    simulate_log(small_config(width=160, height=120, n_stars=12, n_frames=20, margin=12.0), sim)
+    centroid_log(sim, cen, methods="GAUSSFIT", mode="full")
+    track_log(cen, trk, method="GAUSSFIT", models="STATIC", tracker={"sigma_floor": 0.05})
+    motion_log(trk, mot)
+    codec = star_codec("starlog.Attitude")
+    attitude = {f.name: ([0.0, 0.0, 0.0, 1.0] if f.repeated else 12.5 if f.type == FD.TYPE_DOUBLE else "x"
+                         if f.type == FD.TYPE_STRING else True if f.type == FD.TYPE_BOOL else 3)
+                for f in codec.fields if not f.presence}
+    with LogWriter(tmp_path / "att.mcap") as writer:
+        channel = writer.add_channel("/attitude/GAUSSFIT", protobuf_message_type("starlog.Attitude"))
+        writer.write(channel, log_time=0, data=codec.encode(attitude))
+    result = subprocess.run(["node", str(node_reader), str(sim), str(cen), str(trk), str(mot), str(tmp_path / "att.mcap"),
+                             "--paths", *paths], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    found = json.loads(result.stdout)["paths"]
+    for path in paths:
+        assert found[path]["count"] >= 1 and all(isinstance(v, float | int) for v in found[path]["values"]), path
