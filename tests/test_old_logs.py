@@ -73,10 +73,13 @@ def test_cat_prints_the_same_json_for_either_encoding(logs: dict[str, Path]) -> 
 
 
 def test_export_writes_the_same_tables(logs: dict[str, Path], tmp_path: Path) -> None:
-    old = json.loads(_invoke("export", str(logs["old"]), "-o", str(tmp_path / "old"), "--json", "-q"))
-    new = json.loads(_invoke("export", str(logs["comp"]), "-o", str(tmp_path / "new"), "--json", "-q"))
+    old = json.loads(_invoke("export", str(logs["old"]), "-o", str(tmp_path / "old"), "--topic", TRACK, "--json",
+                             "-q"))
+    new = json.loads(_invoke("export", str(logs["comp"]), "-o", str(tmp_path / "new"), "--topic", TRACK, "--json",
+                             "-q"))
     assert old["tables"] == new["tables"]
-    assert {"detections", "centroids", "tracks", "motion", "residuals", "compensation"} <= set(new["tables"])
+    assert {"detections", "centroids", "tracks", "motion", "residuals", "compensation",
+            "track.GAUSSFIT.STATIC"} <= set(new["tables"])
     for path in sorted((tmp_path / "new").glob("*.parquet")):
         assert pq.read_table(tmp_path / "old" / path.name).equals(pq.read_table(path)), path.name
 
