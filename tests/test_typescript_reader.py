@@ -177,3 +177,20 @@ def test_the_readmes_foxglove_plot_paths_give_numbers_on_the_protobuf_layers(nod
     found = json.loads(result.stdout)["paths"]
     for path in paths:
         assert found[path]["count"] >= 1 and all(isinstance(v, float | int) for v in found[path]["values"]), path
+
+
+def test_typescript_reader_cannot_read_channels_its_summary_does_not_repeat_until_filter_rewrites_them(
+        node_reader: Path, sim_log: Path, tmp_path: Path) -> None:
+    """What verify's note on such a file says: Foxglove's reader takes channels from the summary; filter writes them."""
+    unrepeated = write_plain(sim_log, tmp_path / "unrepeated.mcap", repeat_schemas=False, repeat_channels=False,
+                             chunk_size=4096)
+    refused = subprocess.run(["node", str(node_reader), str(unrepeated)], capture_output=True, text=True, timeout=120)
+    assert refused.returncode != 0 and "which the reader does not know" in refused.stderr
+    note = [p for p in verify_file(unrepeated).problems if p.kind == "definitions_not_in_summary"]
+    assert len(note) == 1 and "Foxglove" in note[0].detail and "starlog filter" in note[0].detail
+    with LogReader(unrepeated) as log:
+        assert {c.topic: c.message_count for c in log.channels()} == {
+            "/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20}
+    filter_log(unrepeated, tmp_path / "repeated.mcap")
+    assert _read_with_node(node_reader, tmp_path / "repeated.mcap")["counts"] == {
+        "/camera/image": 20, "/camera/frame": 20, "/sim/truth": 20}

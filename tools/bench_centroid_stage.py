@@ -51,8 +51,8 @@ import numpy as np
 from starlog.centroid import CentroidMethod, measure_centroids
 from starlog.detect import detect_stars
 from starlog.io.reader import LogReader
+from starlog.io.frames import reuse_frame_buffers
 from starlog.io.star_tables import star_codec
-from starlog.stages._centroid_frames import reuse_frame_buffers
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402

@@ -1,15 +1,18 @@
 """Benchmark of the foundation: simulate and ingest throughput, and memory of reading logs.
 
-Prints three tables, every ratio measured in this one run:
+Prints four tables, every ratio measured in this one run:
 
 1. frames/s and MB/s (raw mono16 pixel bytes per second) of ``simulate`` and ``ingest`` for
    512x512 and 1024x1024 frames, beside numpy ``tofile`` of the same bytes (the disk's raw
    write speed, the ceiling for any logger);
-2. the codec of starlog's star tables, per message (µs and bytes): the JSON of earlier logs beside
+2. the frames' chunk compression (zstd, lz4, none) side by side: MB a frame on disk and ms a frame
+   to read and decode every frame of the log in this process, beside a copy of each frame's bytes
+   into new memory (what a reader that does not map the file pays at least);
+3. the codec of starlog's star tables, per message (µs and bytes): the JSON of earlier logs beside
    the protobuf starlog writes, for the same messages (the centroid and track layers of one log
    written both ways); the encoding of each stage's channels per frame at 50 stars; each layer's
    size both ways;
-3. peak resident memory of ``starlog info`` and of streaming a whole image channel, for a log
+4. peak resident memory of ``starlog info`` and of streaming a whole image channel, for a log
    and one 10x longer (it must stay flat).
 
 Usage::
@@ -99,6 +102,51 @@ def bench_throughput(size: int, frames: int, tmp: Path) -> list[tuple[str, float
         dt = time.perf_counter() - start
         rows.append((f"ingest PNG {compression} workers={workers}", frames / dt, _mb(frames, size) / dt))
     return rows
+
+
+FRAME_COMPRESSIONS = ("zstd", "lz4", "none")
+
+
+def _best_seconds(function: Callable[[], Any], repeat: int) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        start = time.perf_counter()
+        function()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def bench_frame_chunks(size: int, frames: int, tmp: Path, repeat: int = 3) -> list[tuple[str, float, float, float]]:
+    """Per chunk compression of a simulated log (the same frames): MB a frame on disk, its share of the raw
+    pixels, and ms a frame to read and decode every frame (LogReader.frame_records, best of ``repeat``); the
+    first row is a copy of each frame's bytes into new memory (the floor of any reader without mmap)."""
+    config = SimulationConfig(width=size, height=size, n_stars=50, n_frames=frames, seed=1)
+    raw_mb = _mb(1, size)
+    image = Simulator(config).render(0).image.tobytes()
+    rows = [("copy (reference)", raw_mb, 1.0, 1e3 * _best_seconds(lambda: bytearray(image), 20 * repeat))]
+    for compression in FRAME_COMPRESSIONS:
+        log = tmp / f"chunks_{size}_{compression}.mcap"
+        simulate_log(config, log, compression=compression, workers=2, force=True)
+
+        def read_all(path: Path = log) -> None:
+            with LogReader(path) as reader:
+                for _ in reader.frame_records("/camera/image"):
+                    pass
+
+        seconds = _best_seconds(read_all, repeat)
+        mb = log.stat().st_size / 1e6 / frames
+        rows.append((compression, mb, mb / raw_mb, 1e3 * seconds / frames))
+        log.unlink()
+    return rows
+
+
+def print_frame_chunks(size: int, frames: int, rows: list[tuple[str, float, float, float]]) -> None:
+    print(f"# frame chunks: {size}x{size} mono16, {frames} frames, read in this process")
+    copy = rows[0][3]
+    print(f"{'compression':<17} {'MB/frame':>9} {'of raw':>7} {'read ms/frame':>14} {'x copy':>7}")
+    for name, mb, share, ms in rows:
+        print(f"{name:<17} {mb:>9.3f} {share:>7.2f} {ms:>14.3f} {ms / copy:>7.1f}")
+    print()
 
 
 def _per_item_us(function: Callable[[Any], Any], values: list[Any], repeat: int = 9) -> float:
@@ -376,6 +424,8 @@ def main() -> int:
                 if size == 512:
                     check_ingest(targets, rows, args.quick)
             print("\nTarget: ingest of 512x512 mono16 with lz4 >= 150 MB/s (a 300 Hz camera = 157 MB/s).\n")
+            for size, frames in cases:
+                print_frame_chunks(size, frames, bench_frame_chunks(size, frames, tmp))
         if not args.memory_only:
             run_codec(targets, 30 if args.quick else 200, tmp)
         if not args.codec_only:

@@ -7,8 +7,10 @@ channel references; JSON messages against their JSON Schemas; protobuf, ROS 1 an
 messages decode; images decode with one size per channel; ``log_time`` order per channel.
 
 Each problem has a ``kind`` (a stable name), a severity (``error``: the file is damaged or a
-stage would refuse it; ``note``: valid MCAP that other readers accept but that is unusual, such
-as chunks without message indexes or no summary), the file ``offset`` of the record, and the
+stage would refuse it; ``note``: a file every starlog command reads in full but that is unusual,
+such as chunks without message indexes, no summary, or a summary without the schema and channel
+records; where Foxglove or the ``mcap`` library cannot read it, the note says so and names the
+command that rewrites it), the file ``offset`` of the record, and the
 ``channel`` and ``log_time`` where they apply. The data section is read once, chunk by chunk,
 and the summary section a block at a time (once for its CRC, once for its records); memory holds
 one chunk, per-channel counters and the summary's chunk indexes by column (about 100 bytes a
@@ -241,6 +243,7 @@ class _Verifier:
         self.unknown_channels: set[int] = set()
         self.bare_chunks = 0
         self.base_records: list[dict[str, str]] = []
+        self.summary_definitions: tuple[set[int], set[int]] = (set(), set())  # schema and channel ids it repeats
 
     def problem(self, kind: str, detail: str, *, severity: str = "error", offset: int | None = None,
                 channel: str | None = None, log_time: int | None = None) -> None:
@@ -302,8 +305,10 @@ class _Verifier:
                     record = parse_record(body, cls)
                     if name == "schemas":
                         self.schemas.setdefault(record.id, record)
+                        self.summary_definitions[0].add(record.id)
                     elif name == "channels":
                         self.channels.setdefault(record.id, record)
+                        self.summary_definitions[1].add(record.id)
                     elif name == "statistics":
                         groups["statistics"] = record
                     else:
@@ -605,12 +610,42 @@ class _Verifier:
         if wrong:
             self.problem("statistics_mismatch", f"the statistics record disagrees with the file in {', '.join(wrong)}")
 
+    def check_definitions(self) -> None:
+        """A note when the summary does not repeat the channel or schema record of a channel of the file: the
+        MCAP specification asks for the copies of the channels chunk indexes or statistics name (and of the
+        schemas of the channels chunk indexes name), else they are optional; readers that take them from the
+        summary fail on files with chunk indexes."""
+        if not self.summary or self.summary_damaged:
+            return
+        table = self.indexes.table
+        stats: Statistics | None = self.summary.get("statistics")
+        indexed = table.channel_ids()
+        required = indexed | {c for c, n in (stats.channel_message_counts.items() if stats else ()) if n}
+        schemas, channels = self.summary_definitions
+        lacking = {cid: (cid not in channels, self.channels[cid].schema_id in self.schemas.keys() - schemas)
+                   for cid in sorted(required | set(self.counted)) if cid in self.channels}
+        lacking = {cid: flags for cid, flags in lacking.items() if any(flags)}
+        if not lacking:
+            return
+        what = " and ".join(kind for k, kind in enumerate(("channel", "schema")) if any(f[k] for f in lacking.values()))
+        topics = [self.channels[cid].topic for cid in lacking]
+        asked = any((channel and cid in required) or (schema and cid in indexed)
+                    for cid, (channel, schema) in lacking.items())
+        spec = ("the MCAP specification asks for them in the summary when chunk indexes or statistics name the "
+                "channels" if asked else "valid MCAP: the summary's copies are optional")
+        readers = (f"; readers that take them from the summary (the mcap library's, Foxglove's) cannot read these "
+                   f"channels: starlog filter {self.path} -o OUT.mcap rewrites the file with them") if table else ""
+        self.problem("definitions_not_in_summary", f"the summary does not repeat the {what} records of "
+                     f"{len(topics)} channels ({', '.join(topics[:5])}{', ...' if len(topics) > 5 else ''}), which "
+                     f"are read from the data section ({spec}){readers}", severity="note")
+
     def finish(self) -> None:
         for cid, channel in sorted(self.channels.items()):
             if channel.schema_id != 0 and channel.schema_id not in self.schemas and cid not in self.states:
                 self.problem("missing_schema", f"the channel refers to schema {channel.schema_id}, which is not "
                              "defined", channel=channel.topic)
         self.check_indexes()
+        self.check_definitions()
         if self.bare_chunks:
             self.problem("no_message_indexes", self.bare_chunks_detail(), severity="note")
         if self.loose:

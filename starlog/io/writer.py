@@ -79,7 +79,7 @@ if TYPE_CHECKING:
     from starlog.io.chain import LayerBase
     from starlog.io.mcap_file import McapFile
 
-__all__ = ["Compression", "LogWriter", "VALIDATED_METADATA_KEY", "temporary_folder", "temporary_output"]
+__all__ = ["FRAME_COMPRESSION", "Compression", "LogWriter", "VALIDATED_METADATA_KEY", "temporary_folder", "temporary_output"]
 
 #: Channel metadata key set by :class:`LogWriter` on the JSON channels whose every message it
 #: checked against the channel's JSON Schema while writing.
@@ -105,6 +105,12 @@ class Compression(str, Enum):
 #: the simulator's truth packs tighter at level 3 (88x against 61x), a few kB a second.
 ZSTD_LEVEL = 1
 
+#: Chunk compression of the logs that hold camera frames (``simulate``, ``ingest``): the stages that read frames pay
+#: its decompression on every frame. lz4 decodes a 1024x1024 mono16 frame about twice as fast as zstd for
+#: files about 1.6 times as large; uncompressed chunks decode fastest and are 2.6 times as large
+#: (``python tools/bench_io.py``, docs/BENCHMARKS.md). ``--compression`` keeps the choice with the user.
+FRAME_COMPRESSION = "lz4"
+
 
 def _compress(data: bytes, compression: Compression) -> tuple[bytes, int]:
     crc = crc32(data)
@@ -115,7 +121,9 @@ def _compress(data: bytes, compression: Compression) -> tuple[bytes, int]:
     if compression is Compression.LZ4:
         import lz4.frame
 
-        return lz4.frame.compress(data), crc
+        # 1 MiB blocks: python-lz4 decodes them at twice the speed of its default 64 KiB blocks (slower than
+        # zstd) or of 4 MiB ones, for the same size (``python tools/bench_io.py``'s frame table)
+        return lz4.frame.compress(data, block_size=lz4.frame.BLOCKSIZE_MAX1MB), crc
     return data, crc
 
 

@@ -8,8 +8,6 @@ the number of workers.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -43,7 +41,7 @@ from starlog.stages._blocks import worker_log
 from starlog.stages._parallel import ordered_map, process_pool
 
 __all__ = ["FrameExtractor", "FrameMessages", "TrackedFrames", "annotation_diameter", "extract_blocks_serial",
-           "extract_parallel", "extract_serial", "opencv_threads", "reuse_frame_buffers"]
+           "extract_parallel", "extract_serial", "opencv_threads"]
 
 
 @dataclass(frozen=True)
@@ -221,28 +219,6 @@ class TrackedFrames:
         return detections[keep], {m: c[keep] for m, c in centroids.items()}
 
 
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-
-
-def reuse_frame_buffers() -> None:
-    """Let the C allocator (glibc) recycle the frame-sized arrays each frame allocates and frees.
-
-    By default every block above ~128 KiB is mapped from the system on allocation and returned
-    on release, so each frame's images (decoded frame, float copy, filtered image, maps, masks)
-    arrive as fresh zero pages: thousands of page faults a frame, a third of detection's time
-    at 1024x1024. Blocks below 64 MiB now come from the heap and stay there for the next
-    frame (the working set, hence the peak memory, does not grow with the log). Elsewhere than
-    glibc nothing changes. The setting is process-wide and kept.
-    """
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(_M_MMAP_THRESHOLD, 64 << 20)
-    mallopt(_M_TRIM_THRESHOLD, 256 << 20)
-
-
 @contextmanager
 def opencv_threads(count: int) -> Iterator[None]:
     """OpenCV's own thread pool limited to ``count`` while the block runs.
@@ -283,7 +259,6 @@ def extract_blocks_serial(log: LogReader, topic: str, blocks: list[tuple[int, in
 def _extract_block(source: LogSource, topic: str, start: int, end: int, first_index: int, extract: FrameExtractor,
                    skip_bad: bool) -> list[FrameMessages | SkippedFrame]:
     """Worker: every frame with ``start <= log_time < end`` (reads the log itself; no image crosses processes)."""
-    reuse_frame_buffers()
     with opencv_threads(1):
         log = worker_log(source)
         return list(extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first_index))

@@ -42,7 +42,6 @@ from starlog.stages._centroid_frames import (
     extract_parallel,
     extract_serial,
     opencv_threads,
-    reuse_frame_buffers,
 )
 from starlog.stages._centroid_parameters import CentroidParameters, parse_methods, resolve_centroid_parameters
 from starlog.stages._channels import check_messages_read
@@ -193,7 +192,6 @@ def centroid_log(
         Tracking: frames between two full searches (default
         :data:`~starlog.centroid.tracking.DEFAULT_ACQUIRE_EVERY`).
     """
-    reuse_frame_buffers()
     parameters = resolve_centroid_parameters(input_path, methods=methods, gain=gain, read_noise=read_noise,
                                              options=options, image_topic=image_topic, psf=psf, hot_pixels=hot_pixels,
                                              phase_correction=phase_correction, show_progress=show_progress,

@@ -39,6 +39,7 @@ async function readFile(path, paths = []) {
     let last = -1n;
     for await (const message of reader.readMessages({ validateCrcs: true })) {
       const channel = reader.channelsById.get(message.channelId);
+      if (channel === undefined) throw new Error(`a message of channel ${message.channelId}, which the reader does not know`);
       const topic = channel.topic;
       counts[topic] = (counts[topic] ?? 0) + 1;
       if (message.logTime < last) throw new Error("messages out of log-time order");
