@@ -16,6 +16,11 @@ their messages in ``log_time`` order, each decoded by its own channel's schema, 
 (:mod:`starlog.io.shared_topics`) is refused as a series (:class:`~starlog.errors.MixedTopicError`);
 :meth:`LogReader.raw_messages` with ``mixed=True`` still hands out its messages one by one.
 
+Star tables (:mod:`starlog.io.star_tables`) are protobuf in the logs starlog writes and JSON in older
+ones; either way :meth:`LogReader.messages` gives them as the dict of their JSON form and
+:meth:`LogReader.tables` as a header and a structured array of rows. A protobuf message is checked
+by decoding it.
+
 A :class:`LogView` reads a log through a time window (a stage run with ``--start``/``--end``):
 every read, channel counts included, keeps only the messages inside it.
 """
@@ -53,10 +58,11 @@ from starlog.io.json_schema import compile_json_schema
 from starlog.io.messages import decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
 from starlog.io.shared_topics import topic_conflict
+from starlog.io.star_tables import STAR_TABLES, decode_table, json_table
 from starlog.io.timerange import END_OF_TIME, ResolvedRange
 from starlog.io.writer import VALIDATED_METADATA_KEY
 
-__all__ = ["ChannelSummary", "DecodedMessage", "LogReader", "LogSource", "LogView"]
+__all__ = ["ChannelSummary", "DecodedMessage", "LogReader", "LogSource", "LogView", "TableMessage"]
 
 @dataclass(frozen=True)
 class LogView:
@@ -87,6 +93,18 @@ class DecodedMessage:
     log_time: int
     sequence: int
     payload: Any
+
+
+@dataclass(frozen=True)
+class TableMessage:
+    """A star-table message (:data:`~starlog.io.star_tables.STAR_TABLES`) as its header fields and its rows
+    (a structured array; None for a header-only type), whatever its encoding."""
+
+    topic: str
+    log_time: int
+    sequence: int
+    header: dict[str, Any]
+    rows: np.ndarray | None
 
 
 def decode_payload(
@@ -124,6 +142,14 @@ def decode_payload(
     except Exception as err:  # protobuf's DecodeError is not a ValueError subclass on every backend
         raise MessageDecodeError(path, channel.topic, message.log_time, f"{type(err).__name__}: {err}") from err
     return bytes(message.data)
+
+
+def _decoded(path: Path, channel: Channel, message: Message, decode: Callable[[], Any]) -> Any:
+    """``decode()``, its InvalidInputError raised as the MessageDecodeError naming the message."""
+    try:
+        return decode()
+    except InvalidInputError as err:
+        raise MessageDecodeError(path, channel.topic, message.log_time, str(err)) from err
 
 
 class LogReader:
@@ -353,6 +379,33 @@ class LogReader:
                 channel.topic, message.log_time, message.sequence,
                 decode_payload(self._file_of[channel.id].path, schema, channel, message, check),
             )
+
+    def tables(self, topic: str | Iterable[str], *, start: int | None = None, end: int | None = None
+               ) -> Iterator[TableMessage]:
+        """Messages of star-table channels (:data:`~starlog.io.star_tables.STAR_TABLES`) as
+        :class:`TableMessage`: the rows as one structured array, no dict per star; JSON messages are
+        checked as :meth:`messages` checks them. A row field an older log lacks reads as its default.
+
+        Raises :class:`InvalidInputError` when a channel is not a star table.
+        """
+        topics = [topic] if isinstance(topic, str) else list(topic)
+        for name in topics:
+            for cid in self._series_ids(name):
+                schema = self._schemas.get(self._channels[cid].schema_id)
+                if schema is None or schema.name not in STAR_TABLES:
+                    raise InvalidInputError(f"{name} is not a star table ({schema.name if schema else 'no schema'}); "
+                                            f"they are {', '.join(STAR_TABLES)}.")
+        trusted = {cid: self._trusted(c) for cid, c in self._channels.items()}
+        for schema, channel, message, verified in self._merged_messages(topics, start=start, end=end):
+            path = self._file_of[channel.id].path
+            if channel.message_encoding == "json":
+                check = None if verified and trusted[channel.id] else self._checker(schema)
+                value = decode_payload(path, schema, channel, message, check)
+                table = _decoded(path, channel, message, lambda: json_table(schema.name, value))
+            else:
+                table = _decoded(path, channel, message,
+                                 lambda: decode_table(schema, channel.message_encoding, message.data))
+            yield TableMessage(channel.topic, message.log_time, message.sequence, table.header, table.rows)
 
     def chunk_message_counts(self, topic: str) -> list[tuple[int, int, int]]:
         """``(message_start_time, message_end_time, count)`` of ``topic`` in each chunk holding it, in time order
