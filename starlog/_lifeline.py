@@ -6,7 +6,9 @@ polling every 0.2 s elsewhere). The worker pools of :mod:`starlog.stages._parall
 
 Imported by multiprocessing's fork server (as its first preload module), this module also ties the
 fork server to the process that started it: nothing else would stop a fork server whose owner was
-killed while it still had workers or was importing its other preload modules.
+killed while it still had workers or was importing its other preload modules. It also makes the fork
+server ignore SIGINT from then on (its workers inherit that from their first instruction): a Ctrl-C at
+the terminal reaches the whole process group, and the owner alone decides how to stop.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import sys
 import threading
 import time
 
-__all__ = ["watch"]
+__all__ = ["die_of", "watch"]
 
 _POLL_SECONDS = 0.2
 
@@ -25,6 +27,20 @@ _POLL_SECONDS = 0.2
 def watch(owner_pid: int) -> None:
     """End this process (``os._exit``, no cleanup) as soon as ``owner_pid`` has exited."""
     threading.Thread(target=_exit_when_gone, args=(owner_pid,), name="starlog-lifeline", daemon=True).start()
+
+
+def die_of(signum: int) -> None:
+    """End this process of the signal ``signum``, its exit status saying so, without running exit handlers
+    (a command that unwound after SIGTERM or Ctrl-C: its outputs are cleaned up, its workers stopped)."""
+    import signal
+
+    try:
+        sys.stdout.flush()
+    except (OSError, ValueError):  # stdout is gone or closed: nothing more to print
+        pass
+    signal.signal(signum, signal.SIG_DFL)
+    os.kill(os.getpid(), signum)
+    os._exit(128 + signum)  # not reached unless this thread blocks the signal
 
 
 def _exit_when_gone(owner_pid: int) -> None:
@@ -61,4 +77,7 @@ def _imported_by_fork_server() -> bool:
 
 
 if _imported_by_fork_server():
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C reaches the whole process group: the owner decides
     watch(os.getppid())
