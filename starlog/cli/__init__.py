@@ -13,10 +13,12 @@ Here: the group, which also lists the stages installed packages register, and :f
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import os
 import signal
+import sys
 from typing import Any
 
 import click
@@ -167,4 +169,17 @@ def main() -> None:
     except SystemExit:
         if _interrupted:
             die_of(signal.SIGINT)
+        _flush_stdout()
         raise
+
+
+def _flush_stdout() -> None:
+    """Write out what the command printed (to a file on a full disk, say): a failure is one line and status 1."""
+    try:
+        sys.stdout.flush()
+    except OSError as err:
+        if err.errno != errno.EPIPE:
+            click.echo(f"Error: {FileAccessError.of(err, 'standard output', 'write')}", err=True)
+        with contextlib.suppress(OSError, ValueError):  # the interpreter's last flush must not fail again
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        sys.exit(1)

@@ -63,6 +63,7 @@ from mcap.records import (
 from starlog import __version__
 from starlog.errors import (
     CorruptLogError,
+    FileAccessError,
     InvalidInputError,
     InvalidParameterError,
     OutputChangedError,
@@ -231,13 +232,19 @@ def atomic_output(output: Path, *, force: bool = True) -> Iterator[Path]:
 @contextmanager
 def temporary_folder(beside: Path) -> Iterator[Path]:
     """A new hidden folder beside ``beside`` (e.g. for the layers of a chain that is then flattened into
-    ``beside``), removed at the end whatever happens."""
+    ``beside``), removed at the end whatever happens. A failure to write in it names ``beside``, the output
+    the user asked for."""
     OutputFolderError.check(beside)
     with file_errors(beside):
         folder = tempfile.TemporaryDirectory(prefix=f".{beside.name}.", suffix=".layers", dir=beside.parent or ".",
                                              ignore_cleanup_errors=True)
     with folder as name:
-        yield Path(name)
+        try:
+            yield Path(name)
+        except FileAccessError as err:
+            if Path(name) not in err.path.parents:
+                raise
+            raise FileAccessError(beside, err.action, err.errno, err.detail) from err
 
 
 @dataclass
