@@ -218,7 +218,7 @@ class StageFunctionError(StarlogError):
 
 
 # ---------------------------------------------------------------- the file system
-__all__ += ["FileAccessError", "file_errors"]
+__all__ += ["FileAccessError", "WRITE_ERRNOS", "file_errors"]
 
 #: What a failed read or write means and what to do, by ``errno``.
 _ADVICE = {
@@ -233,6 +233,10 @@ _ADVICE = {
     errno.EIO: ("an input/output error occurred (a failing disk or lost network mount)",
                 "check the device, then run the command again"),
 }
+
+
+#: The errors only a write can meet: whichever file an OSError without a name met them on, it was an output.
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
 
 
 class FileAccessError(StarlogError, OSError):
@@ -267,11 +271,29 @@ class FileAccessError(StarlogError, OSError):
 
 
 @contextmanager
-def file_errors(path: str | os.PathLike[str], action: str = "write") -> Iterator[None]:
-    """Turn an :class:`OSError` raised in the block into a :class:`FileAccessError` naming ``path``."""
+def file_errors(path: str | os.PathLike[str], action: str = "write", *,
+                only_writes: bool = False) -> Iterator[None]:
+    """Turn an :class:`OSError` raised in the block into a :class:`FileAccessError` naming ``path``.
+
+    With ``only_writes``, only the errors a write alone can meet (:data:`WRITE_ERRNOS`), or any on the hidden
+    files written beside ``path`` for it (``.NAME.*``: its temporary file, a stage's scratch files): a block
+    that also reads its inputs leaves the others to whoever knows the file.
+    """
     try:
         yield
     except StarlogError:
         raise
     except OSError as err:
+        if only_writes and not _met_writing(err, Path(path)):
+            raise
         raise FileAccessError.of(err, path, action) from err
+
+
+def _met_writing(err: OSError, path: Path) -> bool:
+    if err.errno in WRITE_ERRNOS:
+        return True
+    if err.filename is None:
+        return False
+    where = Path(os.fsdecode(err.filename)).absolute()
+    folder = path.absolute().parent
+    return where.is_relative_to(folder) and where.relative_to(folder).parts[0].startswith(f".{path.name}.")

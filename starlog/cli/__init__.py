@@ -31,7 +31,7 @@ from starlog.cli.maintain import filter_command, flatten, recover, verify
 from starlog.cli.options import CONTEXT
 from starlog.cli.pipeline import experiment, run
 from starlog.cli.stages import centroid, compensate, motion, solve, stage_command, track
-from starlog.errors import FileAccessError, StarlogError
+from starlog.errors import WRITE_ERRNOS, FileAccessError, StarlogError
 
 __all__ = ["cli", "main"]
 
@@ -129,7 +129,7 @@ class _LazyStageCommand(click.Command):
 def _unattributed(err: OSError) -> StarlogError:
     """An OS error that no reader or writer of starlog's named a file for: still one line."""
     if err.filename is not None:
-        return FileAccessError.of(err, os.fsdecode(err.filename), "use")
+        return FileAccessError.of(err, os.fsdecode(err.filename), "write" if err.errno in WRITE_ERRNOS else "use")
     return StarlogError(f"an operating-system error ended the command: {err.strerror or err}; check the output's "
                         "folder (space, permissions) and the inputs, then run it again.")
 

@@ -223,10 +223,20 @@ def atomic_output(output: Path, *, force: bool = True) -> Iterator[Path]:
     try:
         with file_errors(output):
             yield tmp
+            _fsync(tmp)
             commit_output(tmp, output, seen=seen)
     finally:
         with suppress(OSError):
             tmp.unlink(missing_ok=True)
+
+
+def _fsync(path: Path) -> None:
+    """Make the bytes written to ``path`` durable before it is renamed into place (as the log writer does)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 @contextmanager
