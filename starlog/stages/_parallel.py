@@ -111,6 +111,7 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
     """
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
+    _start_fork_server()
     pool = _Pool(max_workers=workers, mp_context=context, initializer=_guard_worker, initargs=(os.getpid(),))
     try:
         pool.start_workers()
@@ -121,6 +122,23 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
         raise
     pool.wait_started()
     pool.shutdown(wait=True)
+
+
+def _start_fork_server() -> None:
+    """Start the fork server (if it is not running) with SIGINT blocked, as multiprocessing starts its resource
+    tracker: a Ctrl-C to the process group while the server's interpreter starts, before it ignores SIGINT
+    (:mod:`starlog._lifeline`), would end it with a traceback. Its workers inherit the blocked signal too."""
+    from multiprocessing import forkserver, resource_tracker
+
+    if not hasattr(signal, "pthread_sigmask"):
+        forkserver.ensure_running()
+        return
+    resource_tracker.ensure_running()  # first: starting it unblocks SIGINT in this thread
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 def _stop_now(pool: ProcessPoolExecutor) -> None:
