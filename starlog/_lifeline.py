@@ -1,4 +1,5 @@
-"""Processes that end when their owner ends: a watchdog on the owner's pid.
+"""Processes that end when their owner ends: a watchdog on the owner's pid; and :func:`die_of`, how a
+command stopped by a signal ends once it has cleaned up.
 
 :func:`watch` starts a daemon thread that ends the calling process the moment the owner process
 has exited (a pidfd on Linux, which becomes readable at exit even before the owner is reaped;
@@ -7,8 +8,9 @@ polling every 0.2 s elsewhere). The worker pools of :mod:`starlog.stages._parall
 Imported by multiprocessing's fork server (as its first preload module), this module also ties the
 fork server to the process that started it: nothing else would stop a fork server whose owner was
 killed while it still had workers or was importing its other preload modules. It also makes the fork
-server ignore SIGINT from then on (its workers inherit that from their first instruction): a Ctrl-C at
-the terminal reaches the whole process group, and the owner alone decides how to stop.
+server ignore SIGINT from then on (its workers inherit that from their first instruction; the server
+starts with SIGINT blocked, see :func:`starlog.stages._parallel.process_pool`): a Ctrl-C at the terminal
+reaches the whole process group, and the owner alone decides how to stop.
 """
 
 from __future__ import annotations

@@ -55,6 +55,7 @@ COMMANDS = {
     "report": ["report", "{i}/cmp.mcap", "-o", "{o}/r.html"],
     "experiment": ["experiment", "-o", "{o}/results", "--quick", "--regime", "paper", "--workers", "1", "-q"],
     "cat": ["cat", "{i}/sim.mcap", "--topic", "/sim/truth"],
+    "solve": ["solve", "{i}/sky-cen.mcap", "-o", "{o}/a.mcap", "--centroids", "all", "-q"],
 }
 
 
@@ -108,8 +109,21 @@ def _limited(limit: int):  # noqa: ANN202 - a preexec_fn
     return apply
 
 
+def _sky_log(inputs: Path) -> None:
+    """A small sky field and its centroids, for solve (which needs cedar-solve's catalogue)."""
+    pytest.importorskip("tetra3")
+    from starlog.sim import SimulationConfig
+
+    if not (inputs / "sky-cen.mcap").exists():
+        simulate_log(SimulationConfig(width=256, height=256, sky_attitude=(120.0, -30.0, 40.0), fov_deg=10.0,
+                                      magnitude_limit=7.0, n_frames=4, seed=2), inputs / "sky.mcap")
+        centroid_log(inputs / "sky.mcap", inputs / "sky-cen.mcap", methods="MOMENT")
+
+
 @pytest.mark.parametrize("command", list(COMMANDS))
 def test_every_command_over_a_file_size_limit_says_so_in_one_line(command: str, inputs: Path, tmp_path: Path) -> None:
+    if command == "solve":
+        _sky_log(inputs)
     before = digest(inputs)
     out = tmp_path / "out"
     out.mkdir()
@@ -366,3 +380,18 @@ def test_a_file_access_error_crosses_processes_whole() -> None:
     err = FileAccessError("/data/out.mcap", "write", errno.ENOSPC, "No space left on device")
     again = pickle.loads(pickle.dumps(err))
     assert str(again) == str(err) and again.errno == errno.ENOSPC and isinstance(again, OSError)
+
+
+def test_run_never_writes_a_layer_over_a_file_of_its_own_chain(inputs: Path, tmp_path: Path) -> None:
+    """``run`` on the output of an earlier run, into the same name: its first layer's name is a file of its input's
+    chain. Refused in one line, every file of the chain as it was."""
+    shutil.copy(inputs / "sim.mcap", tmp_path / "sim.mcap")
+    args = ["run", str(tmp_path / "sim.mcap"), "-o", str(tmp_path / "r.mcap"), "--config", str(inputs / "pipeline.toml"),
+            "-q"]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    before = digest(tmp_path)
+    again = ["run", str(tmp_path / "r.mcap"), *args[2:], "--force"]
+    result = CliRunner().invoke(cli, again)
+    assert result.exit_code == 1
+    assert_one_line(result.stderr, str(tmp_path / "r.1-centroid.mcap"), "is one of the files it is written from")
+    assert digest(tmp_path) == before
