@@ -13,12 +13,15 @@ Here: the group, which also lists the stages installed packages register, and :f
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import errno
 import functools
 import os
 import signal
 import sys
+import threading
+import time
 from typing import Any
 
 import click
@@ -159,18 +162,44 @@ def main() -> None:
     SIGTERM and Ctrl-C unwind the command (partial outputs removed, worker pools stopped); the process then
     ends of that signal, as a shell expects of a stopped command.
     """
+    atexit.register(_end_of_signal)  # registered first, so it runs last: after multiprocessing's own cleanup
     signal.signal(signal.SIGTERM, _raise_terminated)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, _raise_interrupt)
     try:
         cli(prog_name="starlog")
     except _Terminated:
-        die_of(signal.SIGTERM)
+        _exit_of(signal.SIGTERM)
     except SystemExit:
         if _interrupted:
-            die_of(signal.SIGINT)
+            _exit_of(signal.SIGINT)
         _flush_stdout()
         raise
+
+
+_ending: list[int] = []
+_EXIT_GRACE_S = 3.0
+
+
+def _exit_of(signum: int) -> None:
+    """Exit, the command having unwound, then end of ``signum`` (:func:`_end_of_signal`). The usual exit runs
+    the exit handlers (multiprocessing's free the semaphores its pools made, which its resource tracker would
+    otherwise report as leaked); should they take more than a few seconds, a watchdog ends the process."""
+    for stop in (signal.SIGINT, signal.SIGTERM):  # the command is ending already
+        signal.signal(stop, signal.SIG_IGN)
+    _ending.append(signum)
+    threading.Thread(target=_exit_later, args=(signum,), name="starlog-exit-watchdog", daemon=True).start()
+    sys.exit(128 + signum)
+
+
+def _exit_later(signum: int) -> None:
+    time.sleep(_EXIT_GRACE_S)
+    os._exit(128 + signum)
+
+
+def _end_of_signal() -> None:
+    if _ending:
+        die_of(_ending[0])
 
 
 def _flush_stdout() -> None:

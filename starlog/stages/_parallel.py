@@ -13,7 +13,11 @@ Whatever ends the owning process (SIGKILL, SIGTERM, Ctrl-C, an exception), nothi
   manager thread, which the owner's exit waits for, blocked on the rest of it).
 
 Workers ignore SIGINT: a Ctrl-C at the terminal reaches the whole process group, and the owner
-alone decides how to stop.
+alone decides how to stop. In the owner, SIGINT and SIGTERM are held back while multiprocessing makes
+the pool's queues and their named semaphores, and while it stops the pool (:func:`signals_held`): an
+exception raised inside those steps would leave a semaphore registered for ever (the resource tracker
+then warns of it) or a worker unstopped. Stopping waits at most for a worker being started (the fork
+server's first start imports its modules) and a few seconds more.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from starlog import _lifeline as lifeline
 T = TypeVar("T")
 R = TypeVar("R")
 
-__all__ = ["ordered_map", "process_pool"]
+__all__ = ["ordered_map", "process_pool", "signals_held"]
 
 _PR_SET_PDEATHSIG = 1
 # Imported first by the fork server: the lifeline ties it to its owner, and workers then start with
@@ -111,17 +115,43 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
     """
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
-    _start_fork_server()
-    pool = _Pool(max_workers=workers, mp_context=context, initializer=_guard_worker, initargs=(os.getpid(),))
-    try:
+    with signals_held():  # the pool's queues and their semaphores, made whole or not at all
+        _start_fork_server()
+        pool = _Pool(max_workers=workers, mp_context=context, initializer=_guard_worker, initargs=(os.getpid(),))
         pool.start_workers()
+    try:
         yield pool
     except BaseException:
-        _stop_now(pool)
-        pool.wait_started(timeout=_START_TIMEOUT)  # the stopped pool fails the starter's task
+        with signals_held():
+            _stop_now(pool)
+            pool.wait_started(timeout=_START_TIMEOUT)  # the stopped pool fails the starter's task
         raise
-    pool.wait_started()
-    pool.shutdown(wait=True)
+    with signals_held():
+        pool.wait_started()
+        pool.shutdown(wait=True)
+
+
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held back while the block runs, then handled: the block is a step of multiprocessing's
+    own (making queues and their named semaphores, starting or stopping workers), which an exception raised
+    in its middle would leave half done (a semaphore never freed, a worker never stopped). In the main thread
+    only, where Python runs signal handlers; elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[tuple[int, Any]] = []
+    handlers = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if callable(signal.getsignal(signum)):
+            handlers[signum] = signal.signal(signum, lambda number, frame: held.append((number, frame)))
+    try:
+        yield
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+        for signum, frame in held[:1]:
+            handlers[signum](signum, frame)
 
 
 def _start_fork_server() -> None:
