@@ -78,8 +78,22 @@ def _imported_by_fork_server() -> bool:
     return False
 
 
+#: Set by the owner when it starts its fork server (:func:`starlog.stages._parallel.process_pool`): its pid.
+#: The fork server's parent pid would name init instead if the owner were killed before this module loads.
+OWNER_VARIABLE = "STARLOG_FORK_SERVER_OWNER"
+
 if _imported_by_fork_server():
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C reaches the whole process group: the owner decides
-    watch(os.getppid())
+    _owner = int(os.environ.get(OWNER_VARIABLE) or os.getppid())
+    if sys.platform.startswith("linux"):  # the kernel ends it with its owner: no thread (no GIL) needed
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+        if os.getppid() != _owner:  # the owner died before that
+            os._exit(1)
+    watch(_owner)

@@ -165,10 +165,16 @@ def _start_fork_server() -> None:
         return
     resource_tracker.ensure_running()  # first: starting it unblocks SIGINT in this thread
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = os.environ.get(lifeline.OWNER_VARIABLE)
+    os.environ[lifeline.OWNER_VARIABLE] = str(os.getpid())  # whom the server watches, even if killed meanwhile
     try:
         forkserver.ensure_running()
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        if previous is None:
+            del os.environ[lifeline.OWNER_VARIABLE]
+        else:
+            os.environ[lifeline.OWNER_VARIABLE] = previous
 
 
 def _stop_now(pool: ProcessPoolExecutor) -> None:
