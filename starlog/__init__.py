@@ -19,6 +19,13 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from starlog.errors import StarlogError
-
 __all__ = ["StarlogError", "__version__"]
+
+
+def __getattr__(name: str) -> object:
+    """``StarlogError``, imported on first use: ``import starlog`` stays instant (the command line starts with it)."""
+    if name == "StarlogError":
+        from starlog.errors import StarlogError
+
+        return StarlogError
+    raise AttributeError(f"module 'starlog' has no attribute {name!r}")

@@ -7,6 +7,10 @@ Messages are full sentences that say what went wrong, where, and how to fix it.
 
 from __future__ import annotations
 
+import errno
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = [
@@ -21,6 +25,7 @@ __all__ = [
     "ChannelNotFoundError",
     "MessageDecodeError",
     "OutputExistsError",
+    "OutputChangedError",
     "ImageFolderError",
     "FitError",
     "StageFunctionError",
@@ -152,6 +157,16 @@ class OutputExistsError(StarlogError, FileExistsError):
         super().__init__(f"{self.path} exists already; pass --force to overwrite it.")
 
 
+class OutputChangedError(OutputExistsError):
+    """Another command wrote the output path while this one wrote it: that file is kept, this output discarded."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        StarlogError.__init__(
+            self, f"{self.path} was written by another command while this one ran; that file is kept and this "
+                  "command's output discarded. Run it again (with --force to replace that file).")
+
+
 class ImageFolderError(StarlogError):
     """A folder of images cannot be ingested as given."""
 
@@ -214,3 +229,85 @@ class MixedTopicError(LogError):
     def __init__(self, path: str | Path, topic: str, detail: str) -> None:
         self.topic = topic
         super().__init__(path, f"{detail}.")
+
+
+# ---------------------------------------------------------------- the file system
+__all__ += ["FileAccessError", "WRITE_ERRNOS", "file_errors"]
+
+#: What a failed read or write means and what to do, by ``errno``.
+_ADVICE = {
+    errno.ENOSPC: ("there is no space left on the device", "free some space there, or choose another folder"),
+    errno.EDQUOT: ("the disk quota is exhausted", "free some space there, or choose another folder"),
+    errno.EROFS: ("the file system is read-only", "choose a folder on a writable file system"),
+    errno.EACCES: ("permission denied", "choose a folder you may write to, or change its permissions"),
+    errno.EPERM: ("the operation is not permitted", "choose a folder you may write to, or change its permissions"),
+    errno.EFBIG: ("the file would exceed the size limit (ulimit -f, or the file system's largest file)",
+                  "raise the limit, or write less (--start/--end, fewer frames)"),
+    errno.ENOENT: ("the file or its folder was removed meanwhile", "put it back, then run the command again"),
+    errno.EIO: ("an input/output error occurred (a failing disk or lost network mount)",
+                "check the device, then run the command again"),
+}
+
+
+#: The errors only a write can meet: whichever file an OSError without a name met them on, it was an output.
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+
+
+class FileAccessError(StarlogError, OSError):
+    """Reading or writing a file failed in the operating system (disk full, read-only file system, permission
+    denied, file-size limit, a file or folder removed meanwhile).
+
+    ``path`` is the user's file (an output's final name, not its temporary file), ``action`` what starlog was
+    doing (``"write"``, ``"read"``), ``errno`` the OS error number. The message says which file, what
+    happened and what to do; nothing partial was left under an output's name.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], action: str, code: int | None, detail: str) -> None:
+        what, todo = _ADVICE.get(code or 0, (detail, "check the file and its folder, then run the command again"))
+        self.path = Path(path)
+        self.action = action
+        self.detail = detail
+        self.message = f"cannot {action} {self.path}: {what}; {todo}."
+        super().__init__(code, self.message)
+
+    def __str__(self) -> str:
+        return self.message
+
+    def __reduce__(self) -> tuple:
+        return (type(self), (self.path, self.action, self.errno, self.detail))
+
+    @classmethod
+    def of(cls, err: OSError, path: str | os.PathLike[str], action: str) -> FileAccessError:
+        """``err`` as met while ``action``-ing ``path`` (kept as it is when it already is one)."""
+        if isinstance(err, FileAccessError):
+            return err
+        return cls(path, action, err.errno, err.strerror or str(err))
+
+
+@contextmanager
+def file_errors(path: str | os.PathLike[str], action: str = "write", *,
+                only_writes: bool = False) -> Iterator[None]:
+    """Turn an :class:`OSError` raised in the block into a :class:`FileAccessError` naming ``path``.
+
+    With ``only_writes``, only the errors a write alone can meet (:data:`WRITE_ERRNOS`), or any on the hidden
+    files written beside ``path`` for it (``.NAME.*``: its temporary file, a stage's scratch files): a block
+    that also reads its inputs leaves the others to whoever knows the file.
+    """
+    try:
+        yield
+    except StarlogError:
+        raise
+    except OSError as err:
+        if only_writes and not _met_writing(err, Path(path)):
+            raise
+        raise FileAccessError.of(err, path, action) from err
+
+
+def _met_writing(err: OSError, path: Path) -> bool:
+    if err.errno in WRITE_ERRNOS:
+        return True
+    if err.filename is None:
+        return False
+    where = Path(os.fsdecode(err.filename)).absolute()
+    folder = path.absolute().parent
+    return where.is_relative_to(folder) and where.relative_to(folder).parts[0].startswith(f".{path.name}.")

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import os
 import tomllib
+from contextlib import suppress
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -41,7 +42,7 @@ from starlog.io import topics
 from starlog.io.reader import LogReader, LogSource
 from starlog.io.copying import flatten_log
 from starlog.io.timerange import TimeRange
-from starlog.io.writer import temporary_folder
+from starlog.io.writer import output_identity, temporary_folder
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log, parse_protocols, too_short_message, track_shortfalls
 from starlog.stages.window import window_of
@@ -331,19 +332,24 @@ def _fit_to_length(source: LogSource, config: PipelineConfig, frame_topic: Any,
 def _run_steps(source: LogSource, steps: list[tuple[str, Step]], layers: list[Path], result: PipelineResult, *,
                on_stage: Callable[[str, dict[str, Any]], None] | None) -> None:
     """Each step on the layer of the one before (the first on ``source``); on failure, the layers written by
-    this run are removed."""
+    this run are removed (the one of the failed step too, when it was put in place before the failure)."""
     written: list[Path] = []
+    before = None
     try:
         for (name, step), layer in zip(steps, layers, strict=True):
-            report = step(source, layer)
+            before = output_identity(layer)
             written.append(layer)
+            report = step(source, layer)
             source = layer
             result.stages.append((name, report))
             if on_stage:
                 on_stage(name, report)
     except BaseException:
-        for path in written:
+        for path in written[:-1]:
             path.unlink(missing_ok=True)
+        with suppress(OSError):
+            if written and output_identity(written[-1]) not in (None, before):
+                written[-1].unlink()
         raise
 
 

@@ -12,6 +12,8 @@ import pytest
 from starlog.stages import simulate_log
 from tests.helpers import small_config
 
+pytest_plugins = ["tests.skip_check"]
+
 
 @pytest.fixture(scope="session")
 def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Path:

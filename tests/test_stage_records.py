@@ -43,7 +43,7 @@ def test_a_failed_write_back_fails_the_close_and_leaves_no_output(
         raise OSError(5, "Input/output error")
 
     monkeypatch.setattr(os, "fsync", fail)
-    with pytest.raises(OSError, match="Input/output"):
+    with pytest.raises(OSError, match="cannot write .*out.mcap: an input/output error"):  # a FileAccessError
         _layer(sim_log, tmp_path / "out.mcap")
     assert list(tmp_path.iterdir()) == []
 

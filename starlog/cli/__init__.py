@@ -13,20 +13,28 @@ Here: the group, which also lists the stages installed packages register, and :f
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import errno
 import functools
 import os
+import signal
+import sys
+import threading
+import time
 from typing import Any
 
 import click
 
 from starlog import __version__
+from starlog._lifeline import die_of
 from starlog.cli.inspect import cat, export, info, report_command
 from starlog.cli.logs import ingest, simulate
 from starlog.cli.maintain import filter_command, flatten, recover, verify
 from starlog.cli.options import CONTEXT
 from starlog.cli.pipeline import experiment, run
 from starlog.cli.stages import centroid, compensate, motion, solve, stage_command, track
-from starlog.errors import StarlogError
+from starlog.errors import WRITE_ERRNOS, FileAccessError, StarlogError
 
 __all__ = ["cli", "main"]
 
@@ -37,6 +45,10 @@ class _StarlogGroup(click.Group):
             return super().invoke(ctx)
         except StarlogError as err:
             raise click.ClickException(str(err)) from err
+        except OSError as err:
+            if err.errno == errno.EPIPE:  # the reader of stdout left: click ends quietly
+                raise
+            raise click.ClickException(str(_unattributed(err))) from err
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         """The built-in commands, then the stages installed packages register (not imported to list them)."""
@@ -117,6 +129,14 @@ class _LazyStageCommand(click.Command):
         return stage_command(declared, self.name or declared.name).make_context(info_name, args, parent, **extra)
 
 
+def _unattributed(err: OSError) -> StarlogError:
+    """An OS error that no reader or writer of starlog's named a file for: still one line."""
+    if err.filename is not None:
+        return FileAccessError.of(err, os.fsdecode(err.filename), "write" if err.errno in WRITE_ERRNOS else "use")
+    return StarlogError(f"an operating-system error ended the command: {err.strerror or err}; check the output's "
+                        "folder (space, permissions) and the inputs, then run it again.")
+
+
 class _Terminated(BaseException):
     """SIGTERM arrived: unwind (abort partial outputs, stop worker pools), then die of the signal."""
 
@@ -125,13 +145,70 @@ def _raise_terminated(signum: int, frame: Any) -> None:
     raise _Terminated()
 
 
-def main() -> None:
-    """Console-script entry point."""
-    import signal
+_interrupted = False
 
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    """Ctrl-C: unwind as for SIGTERM; a second Ctrl-C while the command unwinds does not cut its cleanup short."""
+    global _interrupted
+    _interrupted = True
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+def main() -> None:
+    """Console-script entry point (through :func:`starlog.__main__.main`).
+
+    SIGTERM and Ctrl-C unwind the command (partial outputs removed, worker pools stopped); the process then
+    ends of that signal, as a shell expects of a stopped command.
+    """
+    atexit.register(_end_of_signal)  # registered first, so it runs last: after multiprocessing's own cleanup
     signal.signal(signal.SIGTERM, _raise_terminated)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _raise_interrupt)
     try:
         cli(prog_name="starlog")
     except _Terminated:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        os.kill(os.getpid(), signal.SIGTERM)  # exit status says "terminated by SIGTERM", as without the handler
+        _exit_of(signal.SIGTERM)
+    except SystemExit:
+        if _interrupted:
+            _exit_of(signal.SIGINT)
+        _flush_stdout()
+        raise
+
+
+_ending: list[int] = []
+_EXIT_GRACE_S = 3.0
+
+
+def _exit_of(signum: int) -> None:
+    """Exit, the command having unwound, then end of ``signum`` (:func:`_end_of_signal`). The usual exit runs
+    the exit handlers (multiprocessing's free the semaphores its pools made, which its resource tracker would
+    otherwise report as leaked); should they take more than a few seconds, a watchdog ends the process."""
+    for stop in (signal.SIGINT, signal.SIGTERM):  # the command is ending already
+        signal.signal(stop, signal.SIG_IGN)
+    _ending.append(signum)
+    threading.Thread(target=_exit_later, args=(signum,), name="starlog-exit-watchdog", daemon=True).start()
+    sys.exit(128 + signum)
+
+
+def _exit_later(signum: int) -> None:
+    time.sleep(_EXIT_GRACE_S)
+    os._exit(128 + signum)
+
+
+def _end_of_signal() -> None:
+    if _ending:
+        die_of(_ending[0])
+
+
+def _flush_stdout() -> None:
+    """Write out what the command printed (to a file on a full disk, say): a failure is one line and status 1."""
+    try:
+        sys.stdout.flush()
+    except OSError as err:
+        if err.errno != errno.EPIPE:
+            click.echo(f"Error: {FileAccessError.of(err, 'standard output', 'write')}", err=True)
+        with contextlib.suppress(OSError, ValueError):  # the interpreter's last flush must not fail again
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        sys.exit(1)

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import click
 
+from starlog.errors import FileAccessError, file_errors
+
 from starlog.cli.options import (
     CONTEXT,
     COPY_RANGE,
@@ -79,12 +81,17 @@ def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], fra
     out = sys.stdout
     try:
         for line in lines:
-            out.write(json.dumps(line, separators=(",", ":"), allow_nan=False))
-            out.write("\n")
-        out.flush()
+            with file_errors("standard output"):
+                out.write(json.dumps(line, separators=(",", ":"), allow_nan=False))
+                out.write("\n")
+        with file_errors("standard output"):
+            out.flush()
         for note in notes:  # how the log was read
             echo_status(quiet, f"note: {note}")
-    except BrokenPipeError:  # the reader (head, jq ...) has what it wanted: stop quietly
+    except FileAccessError as err:
+        if not isinstance(err.__cause__, BrokenPipeError):
+            raise
+        # the reader (head, jq ...) has what it wanted: stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, out.fileno())  # the interpreter's final flush must not fail again
         lines.close()

@@ -41,7 +41,7 @@ def write_tables(summary: ExperimentSummary, out: Path, files: dict[str, str]) -
         tables.write_parquet(trows, out / f"{name}.parquet", description=tables.TABLE_TITLES[name])
         tables_md[name] = tables.table_markdown(name, trows, note=f"Scored samples: {summary.window_note}.",
                                                 table3_models=summary.table3_models)
-        (out / f"{name}.md").write_text(tables_md[name], encoding="utf-8")
+        write_text_atomic(out / f"{name}.md", tables_md[name])
         files[f"{name}.parquet"] = f"{name}.parquet"
         files[f"{name}.md"] = f"{name}.md"
     return tables_md
@@ -126,6 +126,6 @@ def collect_report_data(summary: ExperimentSummary, tables_md: dict[str, str]) -
 def write_reports(summary: ExperimentSummary, tables_md: dict[str, str], out: Path) -> None:
     """``summary.json``, ``report.md`` and ``report.html``, the two reports rendered from one collection."""
     data = collect_report_data(summary, tables_md)
-    (out / "summary.json").write_text(json.dumps(data.summary, indent=1), encoding="utf-8")
-    (out / "report.md").write_text(render_experiment_markdown(data), encoding="utf-8")
+    write_text_atomic(out / "summary.json", json.dumps(data.summary, indent=1))
+    write_text_atomic(out / "report.md", render_experiment_markdown(data))
     write_text_atomic(out / "report.html", render_experiment_html(data))

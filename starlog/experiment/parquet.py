@@ -10,6 +10,8 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from starlog.io.writer import atomic_output
+
 __all__ = ["write_rows"]
 
 
@@ -21,5 +23,6 @@ def write_rows(rows: Sequence[Mapping[str, Any]], fields: Mapping[str, tuple[pa.
                        metadata=dict(metadata) if metadata else None)
     table = pa.table({name: [r[name] for r in rows] for name in fields}, schema=schema)
     path = Path(path)
-    pq.write_table(table, path, compression="zstd")
+    with atomic_output(path) as tmp:
+        pq.write_table(table, tmp, compression="zstd")
     return path

@@ -35,6 +35,7 @@ from starlog.experiment.parquet import write_rows
 from starlog.experiment.runner import MODELS
 from starlog.io.reader import LogReader
 from starlog.report.experiment_figures import plot_regime_map
+from starlog.report.log_report import write_text_atomic
 from starlog.sim import Jitter, SimulationConfig, Simulator
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
@@ -242,6 +243,6 @@ def run_regime_map(output_dir: str | os.PathLike[str], *, quick: bool = False, e
     files = {"parquet": str(write_regime_parquet(rows, out / "regime_map.parquet")),
              "markdown": str(out / "regime_map.md"),
              "plot": str(plot_regime_map(rows, median_gains(rows), FIGURES, RATES, out / "regime_map.png"))}
-    (out / "regime_map.md").write_text(regime_markdown(rows) + "\n", encoding="utf-8")
+    write_text_atomic(out / "regime_map.md", regime_markdown(rows) + "\n")
     work.rmdir()
     return RegimeSummary(out, noise, len(specs), rows, files)

@@ -7,8 +7,8 @@ list of structs). Rows are written in row groups as they are read (memory flat i
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +28,23 @@ from starlog.io.frames import cached_image_decoder
 from starlog.io.images import IMAGE_SCHEMAS, is_image_schema
 from starlog.io.messages import decode_json
 from starlog.io.reader import LogReader
+from starlog.io.writer import atomic_output
 
-__all__ = ["flatten", "export_topic", "export_image_frames", "topic_file_name"]
+__all__ = ["flatten", "export_topic", "export_image_frames", "parquet_writer", "topic_file_name"]
+
+
+@contextmanager
+def parquet_writer(path: Path, schema: pa.Schema) -> Iterator[pq.ParquetWriter]:
+    """A ``ParquetWriter`` on ``path``, closed at the end; on an error in the block, closed without raising
+    again (its last bytes may not be writable either: the block's error is the one to report)."""
+    writer = pq.ParquetWriter(path, schema, compression="zstd")
+    try:
+        yield writer
+    except BaseException:
+        with suppress(Exception):
+            writer.close()
+        raise
+    writer.close()
 
 
 def flatten(plain: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -69,15 +84,14 @@ def _rows(log: LogReader, topic: str) -> Iterator[dict[str, Any]]:
         yield {"log_time": message.log_time, **flatten(value)}
 
 
-def _write_rows(rows: Iterator[dict[str, Any]], path: Path, row_group_rows: int) -> int:
+def _write_rows(rows: Iterator[dict[str, Any]], path: Path, row_group_rows: int, force: bool) -> int:
     """Stream rows into a Parquet file (columns fixed by the first row group; later new keys are an error)."""
-    tmp = path.with_name(f".{path.name}.partial")
     writer: pq.ParquetWriter | None = None
     schema: pa.Schema | None = None
     batch: list[dict[str, Any]] = []
     written = 0
 
-    def flush() -> None:
+    def flush(tmp: Path) -> None:
         nonlocal writer, schema, written
         if not batch:
             return
@@ -89,20 +103,25 @@ def _write_rows(rows: Iterator[dict[str, Any]], path: Path, row_group_rows: int)
         written += len(batch)
         batch.clear()
 
-    try:
-        for row in rows:
-            batch.append(row)
-            if len(batch) >= row_group_rows:
-                flush()
-        flush()
-    except (pa.ArrowInvalid, pa.ArrowTypeError) as err:
-        raise InvalidInputError(f"{path.name}: the messages do not fit one table ({err}).") from err
-    finally:
-        if writer is not None:
+    with atomic_output(path, force=force) as tmp:
+        try:
+            try:
+                for row in rows:
+                    batch.append(row)
+                    if len(batch) >= row_group_rows:
+                        flush(tmp)
+                flush(tmp)
+            except (pa.ArrowInvalid, pa.ArrowTypeError) as err:
+                raise InvalidInputError(f"{path.name}: the messages do not fit one table ({err}).") from err
+        except BaseException:
+            if writer is not None:
+                with suppress(Exception):  # the block's error is the one to report
+                    writer.close()
+            raise
+        if writer is None:
+            pq.write_table(pa.table({"log_time": pa.array([], pa.int64())}), tmp)
+        else:
             writer.close()
-    if writer is None:
-        pq.write_table(pa.table({"log_time": pa.array([], pa.int64())}), tmp)
-    os.replace(tmp, path)
     return written
 
 
@@ -115,7 +134,7 @@ def export_topic(log: LogReader, topic: str, output_dir: Path, *, force: bool = 
     path = output_dir / f"{name}.parquet"
     if path.exists() and not force:
         raise OutputExistsError(path)
-    return name, _write_rows(_rows(log, topic), path, row_group_rows)
+    return name, _write_rows(_rows(log, topic), path, row_group_rows, force)
 
 
 def _frame_rows(log: LogReader, topics: list[str]) -> Iterator[dict[str, Any]]:
@@ -149,4 +168,4 @@ def export_image_frames(log: LogReader, output_dir: Path, *, force: bool = False
     path = output_dir / "frames.parquet"
     if path.exists() and not force:
         raise OutputExistsError(path)
-    return _write_rows(_frame_rows(log, topics), path, row_group_rows)
+    return _write_rows(_frame_rows(log, topics), path, row_group_rows, force)

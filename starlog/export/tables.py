@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -23,10 +24,11 @@ import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.export.channels import export_image_frames, export_topic
+from starlog.errors import InvalidParameterError, OutputExistsError, file_errors
+from starlog.export.channels import export_image_frames, export_topic, parquet_writer
 from starlog.io.reader import ChannelSummary, LogReader, TableMessage
 from starlog.io.schemas import schema_dir
+from starlog.io.writer import atomic_output
 from starlog.io import topics
 
 __all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "table_columns"]
@@ -161,15 +163,14 @@ TABLES: tuple[TableSpec, ...] = (
 
 
 def _write_table(log: LogReader, spec: TableSpec, channels: list[ChannelSummary], path: Path,
-                 row_group_rows: int) -> int:
+                 row_group_rows: int, force: bool) -> int:
     """Write one table, a row group each time ``row_group_rows`` rows are gathered (after a whole message)."""
     schema = arrow_schema(spec.name)
     names = schema.names
     by_topic = {c.topic: c for c in channels}
     chunks: dict[str, list[Any]] = {n: [] for n in names}
     pending = written = 0
-    tmp = path.with_name(f".{path.name}.partial")
-    with pq.ParquetWriter(tmp, schema, compression="zstd") as writer:
+    with atomic_output(path, force=force) as tmp, parquet_writer(tmp, schema) as writer:
 
         def flush() -> None:
             nonlocal pending, written
@@ -188,7 +189,6 @@ def _write_table(log: LogReader, spec: TableSpec, channels: list[ChannelSummary]
             if pending >= row_group_rows:
                 flush()
         flush()
-    os.replace(tmp, path)
     return written
 
 
@@ -247,9 +247,8 @@ def export_log(
     if unknown:
         raise InvalidParameterError(f"unknown table(s) {unknown}; known tables: {known}.")
     out = Path(output_dir)
-    out.mkdir(parents=True, exist_ok=True)
     result: dict[str, int] = {}
-    with LogReader(log_path) as log:
+    with _removed_on_error(out, result), LogReader(log_path) as log:
         channels = log.channels()
         for spec in TABLES:
             if spec.name not in wanted:
@@ -260,9 +259,28 @@ def export_log(
             path = out / f"{spec.name}.parquet"
             if path.exists() and not force:
                 raise OutputExistsError(path)
-            result[spec.name] = _write_table(log, spec, feeding, path, row_group_rows)
+            result[spec.name] = _write_table(log, spec, feeding, path, row_group_rows, force)
         _export_foreign(log, out, result, wanted, list(topics), force, row_group_rows)
     return result
+
+
+@contextmanager
+def _removed_on_error(out: Path, written: dict[str, int]) -> Iterator[None]:
+    """Make the folder ``out`` if missing; if the block fails, remove the tables it wrote (``written``: their
+    names) and the folder when it made it: a failed export leaves nothing behind."""
+    with file_errors(out):
+        made = not out.is_dir()
+        out.mkdir(parents=True, exist_ok=True)
+    try:
+        yield
+    except BaseException:
+        for name in written:
+            with suppress(OSError):
+                (out / f"{name}.parquet").unlink()
+        if made:
+            with suppress(OSError):  # not empty: files of the user's own are kept
+                out.rmdir()
+        raise
 
 
 def _export_foreign(log: LogReader, out: Path, result: dict[str, int], wanted: list[str], topics: list[str],

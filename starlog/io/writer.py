@@ -29,11 +29,12 @@ share one open file's state (open chunks, indexes, offsets), so they are one cla
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from collections import defaultdict, deque
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import Enum
@@ -62,10 +63,13 @@ from mcap.records import (
 from starlog import __version__
 from starlog.errors import (
     CorruptLogError,
+    FileAccessError,
     InvalidInputError,
     InvalidParameterError,
+    OutputChangedError,
     OutputExistsError,
     OutputFolderError,
+    file_errors,
 )
 from starlog.io.chain import BASE_METADATA_NAME
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
@@ -79,7 +83,8 @@ if TYPE_CHECKING:
     from starlog.io.chain import LayerBase
     from starlog.io.mcap_file import McapFile
 
-__all__ = ["FRAME_COMPRESSION", "Compression", "LogWriter", "VALIDATED_METADATA_KEY", "temporary_folder", "temporary_output"]
+__all__ = ["FRAME_COMPRESSION", "Compression", "LogWriter", "VALIDATED_METADATA_KEY", "atomic_output", "commit_output",
+           "output_identity", "temporary_folder", "temporary_output"]
 
 #: Channel metadata key set by :class:`LogWriter` on the JSON channels whose every message it
 #: checked against the channel's JSON Schema while writing.
@@ -131,9 +136,11 @@ def temporary_output(output: Path) -> tuple[int, Path]:
     """A new file beside ``output`` to write it in, renamed over it when complete: its descriptor and path.
 
     Its permissions are those of a file the user creates (``mkstemp``'s 0600 would survive the rename
-    and make every log private).
+    and make every log private). An OS error (read-only or full file system, no permission) is a
+    :class:`~starlog.errors.FileAccessError` naming ``output``.
     """
-    fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent or ".")
+    with file_errors(output):
+        fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent or ".")
     try:
         umask = os.umask(0)
         os.umask(umask)
@@ -145,13 +152,117 @@ def temporary_output(output: Path) -> tuple[int, Path]:
     return fd, Path(tmp)
 
 
+Identity = tuple[int, int, int, int]
+
+
+def output_identity(path: Path) -> Identity | None:
+    """Which file is at ``path`` (device, inode, size, modification time), or None when there is none."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
+
+def commit_output(tmp: Path, output: Path, *, seen: Identity | None) -> None:
+    """Put the finished file ``tmp`` in place as ``output``, which held ``seen`` when the output was opened.
+
+    When another command has written ``output`` meanwhile (two commands writing the same path at once),
+    its file is kept and :class:`~starlog.errors.OutputChangedError` raised: the first to finish wins. The
+    check and the rename are one step for starlog commands (a lock on the folder), and an output that did
+    not exist is never written over, whoever created it (a hard link, which fails on an existing name).
+    """
+    with _folder_lock(output.parent):
+        now = output_identity(output)
+        if now is not None and now != seen:
+            raise OutputChangedError(output)
+        if seen is None and _link(tmp, output):
+            tmp.unlink()
+        else:
+            os.replace(tmp, output)
+
+
+def _link(tmp: Path, output: Path) -> bool:
+    """Hard-link ``tmp`` as ``output`` (False where the file system has no hard links)."""
+    try:
+        os.link(tmp, output)
+    except FileExistsError:
+        raise OutputChangedError(output) from None
+    except OSError as err:
+        if err.errno in _NO_HARD_LINKS:
+            return False
+        raise
+    return True
+
+
+_NO_HARD_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK}
+
+
+@contextmanager
+def _folder_lock(folder: Path) -> Iterator[None]:
+    """An exclusive lock on ``folder`` among starlog commands (``flock`` of its descriptor); none where the
+    platform or the file system has none, or the folder is gone (the rename then says so)."""
+    fd = None
+    with suppress(ImportError, OSError):
+        import fcntl
+
+        fd = os.open(folder, os.O_RDONLY)
+        with suppress(OSError):
+            fcntl.flock(fd, fcntl.LOCK_EX)
+    try:
+        yield
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
+@contextmanager
+def atomic_output(output: Path, *, force: bool = True) -> Iterator[Path]:
+    """A temporary file beside ``output`` for the block to write: put in place as ``output`` when the block
+    succeeds (:func:`commit_output`), removed whatever else happens. Refuses an existing ``output`` without
+    ``force``; an OS error is a :class:`~starlog.errors.FileAccessError` naming ``output``."""
+    output = Path(output)
+    if output.exists() and not force:
+        raise OutputExistsError(output)
+    OutputFolderError.check(output)
+    seen = output_identity(output)
+    fd, tmp = temporary_output(output)
+    os.close(fd)
+    try:
+        with file_errors(output):
+            yield tmp
+            _fsync(tmp)
+            commit_output(tmp, output, seen=seen)
+    finally:
+        with suppress(OSError):
+            tmp.unlink(missing_ok=True)
+
+
+def _fsync(path: Path) -> None:
+    """Make the bytes written to ``path`` durable before it is renamed into place (as the log writer does)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 @contextmanager
 def temporary_folder(beside: Path) -> Iterator[Path]:
     """A new hidden folder beside ``beside`` (e.g. for the layers of a chain that is then flattened into
-    ``beside``), removed at the end whatever happens."""
+    ``beside``), removed at the end whatever happens. A failure to write in it names ``beside``, the output
+    the user asked for."""
     OutputFolderError.check(beside)
-    with tempfile.TemporaryDirectory(prefix=f".{beside.name}.", suffix=".layers", dir=beside.parent or ".") as name:
-        yield Path(name)
+    with file_errors(beside):
+        folder = tempfile.TemporaryDirectory(prefix=f".{beside.name}.", suffix=".layers", dir=beside.parent or ".",
+                                             ignore_cleanup_errors=True)
+    with folder as name:
+        try:
+            yield Path(name)
+        except FileAccessError as err:
+            if Path(name) not in err.path.parents:
+                raise
+            raise FileAccessError(beside, err.action, err.errno, err.detail) from err
 
 
 @dataclass
@@ -244,8 +355,17 @@ class LogWriter:
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
-        fd, self._tmp_path = temporary_output(self.path)
-        self._file = _DataSectionFile(os.fdopen(fd, "w+b", buffering=1024 * 1024))
+        try:
+            self._seen = output_identity(self.path)
+            fd, self._tmp_path = temporary_output(self.path)
+        except BaseException:
+            self._closed = True
+            if self._executor is not None:
+                self._executor.shutdown(wait=False)
+            if layer is not None:
+                layer.cancel()
+            raise
+        self._file = _DataSectionFile(os.fdopen(fd, "w+b", buffering=1024 * 1024), self.path)
         try:
             self._file.write(MAGIC)
             Header(profile=profile, library=LIBRARY).write(self._records)
@@ -426,10 +546,11 @@ class LogWriter:
             self._close_chunk()
             self._drain(all_of_them=True)
             self._write_summary()
-            self._file.flush()
-            os.fsync(self._file.fileno())
-            self._file.close()
-            os.replace(self._tmp_path, self.path)
+            with file_errors(self.path):
+                self._file.flush()
+                os.fsync(self._file.fileno())
+                self._file.close()
+                commit_output(self._tmp_path, self.path, seen=self._seen)
         except BaseException:
             self.abort()
             raise
@@ -450,8 +571,11 @@ class LogWriter:
             self.layer.cancel()
         try:
             self._file.close()
+        except OSError:  # its buffered bytes cannot be written (disk full): the file is discarded anyway
+            pass
         finally:
-            self._tmp_path.unlink(missing_ok=True)
+            with suppress(OSError):  # its folder is gone, say: nothing is left to remove
+                self._tmp_path.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ copying records of other files
     def copy_schema(self, schema: Schema) -> None:
@@ -652,21 +776,25 @@ class LogWriter:
 
 class _DataSectionFile:
     """The output file, keeping the CRC-32 of every byte written to it (until the summary, that of the data
-    section, which the DataEnd record stores: the reference MCAP writers do the same)."""
+    section, which the DataEnd record stores: the reference MCAP writers do the same). A failed write is a
+    :class:`~starlog.errors.FileAccessError` naming the output (``path``), not its temporary file."""
 
-    def __init__(self, file: BinaryIO) -> None:
+    def __init__(self, file: BinaryIO, path: Path) -> None:
         self._file = file
+        self._path = path
         self.crc = 0
 
     def write(self, data: bytes | memoryview) -> int:
         self.crc = crc32(data, self.crc)
-        return self._file.write(data)
+        with file_errors(self._path):
+            return self._file.write(data)
 
     def tell(self) -> int:
         return self._file.tell()
 
     def flush(self) -> None:
-        self._file.flush()
+        with file_errors(self._path):
+            self._file.flush()
 
     def fileno(self) -> int:
         return self._file.fileno()

@@ -86,8 +86,11 @@ def new_figure(width_in: float, height_in: float) -> Figure:
 
 def save_png(figure: Figure, path: str | Path, *, dpi: int = PNG_DPI) -> Path:
     """Write ``figure`` as a PNG file; returns its path."""
+    from starlog.io.writer import atomic_output
+
     path = Path(path)
-    figure.savefig(path, dpi=dpi)
+    with atomic_output(path) as tmp:
+        figure.savefig(tmp, dpi=dpi, format="png")
     return path
 
 

@@ -8,10 +8,16 @@ Whatever ends the owning process (SIGKILL, SIGTERM, Ctrl-C, an exception), nothi
   (``prctl(PR_SET_PDEATHSIG, SIGKILL)``, which needs no Python thread to run);
 - multiprocessing's resource tracker exits by itself once they are all gone;
 - if the owner leaves the pool by an exception (``KeyboardInterrupt`` included), queued tasks are
-  cancelled and the workers terminated instead of waited for.
+  cancelled and the workers terminated instead of waited for, within a bounded time whatever they
+  were doing (see :func:`_stop_now`: a worker ended while it sent a result must not leave the pool's
+  manager thread, which the owner's exit waits for, blocked on the rest of it).
 
 Workers ignore SIGINT: a Ctrl-C at the terminal reaches the whole process group, and the owner
-alone decides how to stop.
+alone decides how to stop. In the owner, SIGINT and SIGTERM are held back while multiprocessing makes
+the pool's queues and their named semaphores, and while it stops the pool (:func:`signals_held`): an
+exception raised inside those steps would leave a semaphore registered for ever (the resource tracker
+then warns of it) or a worker unstopped. Stopping waits at most for a worker being started (the fork
+server's first start imports its modules) and a few seconds more.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -34,13 +41,14 @@ from starlog import _lifeline as lifeline
 T = TypeVar("T")
 R = TypeVar("R")
 
-__all__ = ["ordered_map", "process_pool"]
+__all__ = ["ordered_map", "process_pool", "signals_held"]
 
 _PR_SET_PDEATHSIG = 1
 # Imported first by the fork server: the lifeline ties it to its owner, and workers then start with
 # this module (their initializer) loaded, so they are guarded from their first milliseconds.
 _FORK_SERVER_PRELOAD = ["starlog._lifeline", "starlog.stages._parallel"]
 _START_TIMEOUT = 5.0  # seconds an owner that is stopping waits for its pool's start-up thread
+_STOP_TIMEOUT = 2.0  # seconds for terminated workers to exit before they are killed
 
 
 def ordered_map(executor: Executor, func: Callable[..., R], items: Iterable[tuple[Any, ...]], *,
@@ -107,28 +115,102 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
     """
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
-    pool = _Pool(max_workers=workers, mp_context=context, initializer=_guard_worker, initargs=(os.getpid(),))
-    try:
+    with signals_held():  # the pool's queues and their semaphores, made whole or not at all
+        _start_fork_server()
+        pool = _Pool(max_workers=workers, mp_context=context, initializer=_guard_worker, initargs=(os.getpid(),))
         pool.start_workers()
+    try:
         yield pool
     except BaseException:
-        _stop_now(pool)
-        pool.wait_started(timeout=_START_TIMEOUT)  # the stopped pool fails the starter's task
-        _stop_now(pool)  # any worker started meanwhile
+        with signals_held():
+            _stop_now(pool)
+            pool.wait_started(timeout=_START_TIMEOUT)  # the stopped pool fails the starter's task
         raise
-    pool.wait_started()
-    pool.shutdown(wait=True)
+    with signals_held():
+        pool.wait_started()
+        pool.shutdown(wait=True)
+
+
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held back while the block runs, then handled: the block is a step of multiprocessing's
+    own (making queues and their named semaphores, starting or stopping workers), which an exception raised
+    in its middle would leave half done (a semaphore never freed, a worker never stopped). In the main thread
+    only, where Python runs signal handlers; elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[tuple[int, Any]] = []
+    handlers = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if callable(signal.getsignal(signum)):
+            handlers[signum] = signal.signal(signum, lambda number, frame: held.append((number, frame)))
+    try:
+        yield
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+        for signum, frame in held[:1]:
+            handlers[signum](signum, frame)
+
+
+def _start_fork_server() -> None:
+    """Start the fork server (if it is not running) with SIGINT blocked, as multiprocessing starts its resource
+    tracker: a Ctrl-C to the process group while the server's interpreter starts, before it ignores SIGINT
+    (:mod:`starlog._lifeline`), would end it with a traceback. Its workers inherit the blocked signal too."""
+    from multiprocessing import forkserver, resource_tracker
+
+    if not hasattr(signal, "pthread_sigmask"):
+        forkserver.ensure_running()
+        return
+    resource_tracker.ensure_running()  # first: starting it unblocks SIGINT in this thread
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = os.environ.get(lifeline.OWNER_VARIABLE)
+    os.environ[lifeline.OWNER_VARIABLE] = str(os.getpid())  # whom the server watches, even if killed meanwhile
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        if previous is None:
+            del os.environ[lifeline.OWNER_VARIABLE]
+        else:
+            os.environ[lifeline.OWNER_VARIABLE] = previous
 
 
 def _stop_now(pool: ProcessPoolExecutor) -> None:
-    """Cancel queued tasks and terminate the workers (the owner is stopping; their results are not wanted)."""
-    workers = list((getattr(pool, "_processes", None) or {}).values())  # private, but there is no public way
-    pool.shutdown(wait=False, cancel_futures=True)
+    """Cancel queued tasks, end the workers and free the pool's manager thread (the owner is stopping; the
+    results are not wanted). Bounded in time whatever the workers were doing.
+
+    A worker ended while it was sending a result leaves the manager thread reading the rest of it; the owner's
+    exit waits for that thread, and the rest never comes while this process holds its own copy of the result
+    pipe's write end. Closing that copy once every worker is gone ends the read (end of file): the manager
+    thread then marks the pool broken and exits. The pool's internals are private, but there is no public way.
+    """
+    processes = getattr(pool, "_processes", None) or {}  # the dict the manager thread shares: workers added late
+    call_queue, results = getattr(pool, "_call_queue", None), getattr(pool, "_result_queue", None)
+    pool.shutdown(wait=False, cancel_futures=True)  # waits for a worker being started: none is started after
+    workers = {*processes.values(), *_unlisted_workers(call_queue)}
     for process in workers:
         if process.is_alive():
             process.terminate()
+    deadline = time.monotonic() + _STOP_TIMEOUT
     for process in workers:
-        process.join(timeout=2.0)
+        process.join(timeout=max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.kill()
+            process.join(timeout=_STOP_TIMEOUT)
+    writer = getattr(results, "_writer", None)
+    if writer is not None:
+        writer.close()
+
+
+def _unlisted_workers(call_queue: Any) -> list[multiprocessing.process.BaseProcess]:
+    """Workers of this pool that are not in its list: a Ctrl-C between a worker's start and its listing
+    (``ProcessPoolExecutor._spawn_process``) leaves one, which the owner's exit would wait for forever."""
+    if call_queue is None:
+        return []
+    return [p for p in multiprocessing.active_children()
+            if getattr(p, "_args", None) and p._args[0] is call_queue]  # type: ignore[attr-defined]
 
 
 def _guard_worker(owner_pid: int) -> None:

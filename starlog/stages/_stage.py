@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from starlog import __version__
-from starlog.errors import OutputExistsError
+from starlog.errors import OutputExistsError, file_errors
 from starlog.io import LogReader, LogWriter, Provenance
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.io.reader import LogSource, LogView
@@ -60,7 +60,8 @@ def extend_log(
     stage's ``results`` when it gave any, the input file's SHA-256, hashed on a thread while the
     stage works, and the channels it added) is
     recorded, the layer names its base, and it is renamed into place. On any error the output is
-    discarded and the input is untouched. A :class:`~starlog.io.reader.LogView` input (``--start`` /
+    discarded and the input is untouched; an OS error only a write meets (a full disk, say, in a stage's
+    scratch files beside the output) names the output. A :class:`~starlog.io.reader.LogView` input (``--start`` /
     ``--end``) adds its range to the parameters. With ``flatten``, the output is the flattened
     chain instead: one self-contained file. ``parameters`` is read when the stage ends, so a stage may add
     what it learns while it runs (the centroid stage's count of full-frame searches).
@@ -69,7 +70,8 @@ def extend_log(
     images it reads, and compression threads would hold several chunks of it in memory at once.
     """
     window = {"range": input_path.window.to_dict()} if isinstance(input_path, LogView) else {}
-    with layer_path_for(Path(output_path), flatten=flatten, force=force) as layer_path, \
+    with file_errors(output_path, only_writes=True), \
+            layer_path_for(Path(output_path), flatten=flatten, force=force) as layer_path, \
             LogReader(input_path) as reader:
         base = reader.layer_base()
         with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression) as writer:
