@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from starlog.errors import InvalidParameterError, OutputExistsError, file_errors
 from starlog.export.channels import export_image_frames, export_topic, parquet_writer
