@@ -40,7 +40,7 @@ from starlog.stages._centroid_frames import FrameExtractor, opencv_threads
 from starlog.stages._progress import progress
 
 __all__ = ["HOT_PIXEL_FRAMES", "MODES", "MODE_FRAMES", "PHASE_MAX_FRAMES", "PHASE_MIN_FRAMES", "CentroidParameters",
-           "PhaseCorrection", "extract_options", "parse_methods", "resolve_centroid_parameters"]
+           "PhaseCorrection", "extract_options", "parse_methods", "resolve_centroid_parameters", "ALL_METHODS"]
 
 MODES = ("auto", "tracking", "full")
 """The centroid stage's modes: ``full`` searches every frame, ``tracking`` measures known stars in windows
@@ -49,12 +49,19 @@ MODE_FRAMES = 8
 """Frames at the log's start whose stars ``mode="auto"`` compares (:func:`starlog.centroid.tracking.is_image_sequence`)."""
 
 
+ALL_METHODS = (CentroidMethod.NONE, CentroidMethod.MOMENT, CentroidMethod.BICUBIC, CentroidMethod.GAUSSFIT,
+               CentroidMethod.GRADIENT, CentroidMethod.PSFFIT, CentroidMethod.WINPOS)
+"""The methods ``"all"`` names: every method that is the most accurate on some camera of the benchmarks (real sky,
+its degraded copies, the simulator's PSFs; docs/BENCHMARKS.md), and GRADIENT, which ``"all"`` named before.
+MOMENT_SQUARED is the most accurate on none (on faint stars its squared weights are the least accurate)."""
+
+
 def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
-    """``"all"``, ``"GAUSSFIT,MOMENT"`` or a list of names → centroid methods (order kept, no repeats)."""
+    """``"all"`` (:data:`ALL_METHODS`), ``"GAUSSFIT,MOMENT"`` or a list of names → centroid methods (order kept,
+    no repeats)."""
     names = spec.split(",") if isinstance(spec, str) else list(spec)
     if [n.strip().lower() for n in names] == ["all"]:
-        return [CentroidMethod.NONE, CentroidMethod.MOMENT, CentroidMethod.BICUBIC, CentroidMethod.GAUSSFIT,
-                CentroidMethod.GRADIENT]
+        return list(ALL_METHODS)
     out = []
     for name in names:
         key = name.strip().upper().replace("-", "_")
