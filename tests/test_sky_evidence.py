@@ -75,7 +75,7 @@ def test_each_method_s_catalogue_residual_is_its_noise_on_the_stars_all_identifi
     vectors = _sky(rng)
     truth = _cameras(6)
     evidence = sky_evidence(_identified(truth, vectors, rng, {"A": 0.05, "B": 0.10}, drop=0.2), vectors,
-                            isolation_px=0.0)
+                            np.zeros(vectors.shape[0]), isolation_px=0.0)
     a, b = evidence["A"], evidence["B"]
     assert a["stars"] == b["stars"] > 100 and a["frames"] == 6
     # the per-frame attitudes and the shared camera absorb a few of the degrees of freedom
@@ -84,6 +84,24 @@ def test_each_method_s_catalogue_residual_is_its_noise_on_the_stars_all_identifi
     assert a["p_best"] == 1.0 and b["p_best"] == 0.0
     assert b["ratio_to_best"] == pytest.approx(2.0, rel=0.1) and b["ratio_interval"][0] > 1.5
     assert a["focal_px"] == pytest.approx(2000.0, rel=1e-3)
+
+
+def test_the_sky_judges_on_the_brighter_half_of_the_common_stars():
+    """Method B is exact on the catalogue's brighter stars and far off on the fainter ones, A a little off on all:
+    the faint ones, noise-limited for every method, are not what the sky judges."""
+    rng = np.random.default_rng(6)
+    vectors = _sky(rng)
+    frames = _identified(_cameras(6), vectors, rng, {"A": 0.05, "B": 0.0})
+    limit = np.median(np.concatenate([f.catalogue for f in frames["A"]]))  # half the field's stars bright
+    magnitudes = np.where(np.arange(vectors.shape[0]) <= limit, 3.0, 7.0)
+    for b in frames["B"]:
+        faint = magnitudes[b.catalogue] > 5.0
+        b.x[faint] += rng.normal(0, 0.3, faint.sum())
+    judged = sky_evidence(frames, vectors, magnitudes, isolation_px=0.0)
+    every = sky_evidence(frames, vectors, magnitudes, isolation_px=0.0, brighter=1.0)
+    assert judged["B"]["residual_px"] < 0.2 * judged["A"]["residual_px"]
+    assert every["A"]["residual_px"] < 0.7 * every["B"]["residual_px"]
+    assert judged["A"]["matches"] == pytest.approx(every["A"]["matches"] / 2, rel=0.1)
 
 
 def test_a_catalogue_star_with_a_close_neighbour_is_left_out():
@@ -95,8 +113,9 @@ def test_a_catalogue_star_with_a_close_neighbour_is_left_out():
     twin = vectors[rows[0]] + 2.0 / 2000.0 * np.cross(vectors[rows[0]], [0.0, 0.0, 1.0])
     vectors = np.vstack([vectors, twin / np.linalg.norm(twin)])
     frames = _identified(truth, vectors, rng, {"A": 0.05, "B": 0.05})
-    with_pair = sky_evidence(frames, vectors, isolation_px=0.0)["A"]["stars"]
-    isolated = sky_evidence(frames, vectors, isolation_px=6.0)["A"]["stars"]
+    flat = np.zeros(vectors.shape[0])
+    with_pair = sky_evidence(frames, vectors, flat, isolation_px=0.0)["A"]["stars"]
+    isolated = sky_evidence(frames, vectors, flat, isolation_px=6.0)["A"]["stars"]
     assert isolated == with_pair - 2
 
 
@@ -105,7 +124,7 @@ def test_no_common_star_gives_no_figure():
     vectors = _sky(rng)
     frames = _identified(_cameras(1), vectors, rng, {"A": 0.05})
     frames["B"] = []
-    evidence = sky_evidence(frames, vectors)
+    evidence = sky_evidence(frames, vectors, np.zeros(vectors.shape[0]))
     assert evidence["A"]["residual_px"] is None and evidence["B"]["stars"] == 0
 
 

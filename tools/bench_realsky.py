@@ -814,17 +814,17 @@ def score_cameras(args, solver, original: BenchRun) -> list:
 
     import loco
 
-    vectors = solver.star_table[:, 2:5]
+    catalogue = solver.star_table
     setting = args.json.stem if args.json else "this run"
     name = args.images.name or "frames"
-    scores = [loco.score_camera(name, setting, original, vectors)]
+    scores = [loco.score_camera(name, setting, original, catalogue)]
     print("\ncameras (pooled RMSE / best SEP on each camera's common stars; the method starlog trusts there)")
     print_camera_line(scores[0])
     for camera, write in camera_folders(args):
         with tempfile.TemporaryDirectory(prefix="realsky-") as tmp:
             write(Path(tmp))
             run = run_folder(Path(tmp), solver, args)
-        scores.append(loco.score_camera(camera, setting, run, vectors))
+        scores.append(loco.score_camera(camera, setting, run, catalogue))
         print_camera_line(scores[-1])
         sys.stdout.flush()
     if args.loco:

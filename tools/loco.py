@@ -76,12 +76,12 @@ def identified_frames(results: list[Any], names: list[str]) -> dict[str, list[Id
     return out
 
 
-def trust_check(results: list[Any], names: list[str], vectors: np.ndarray, pooled: dict[str, float],
+def trust_check(results: list[Any], names: list[str], catalogue: np.ndarray, pooled: dict[str, float],
                 draws: int = 2000, seed: int = 1) -> tuple[str | None, bool, tuple[float, float], str]:
     """The method starlog's rule trusts on these frames, whether the benchmark agrees (the best on the common
     stars, or the 95 % bootstrap interval of its ratio to the best reaches 1), that interval, and the rule's
     reason."""
-    decision = trust(None, sky_evidence(identified_frames(results, names), vectors),
+    decision = trust(None, sky_evidence(identified_frames(results, names), catalogue[:, 2:5], catalogue[:, 5]),
                      sky_missing="no frame solved")
     method = decision["method"]
     if method is None:
@@ -95,12 +95,13 @@ def trust_check(results: list[Any], names: list[str], vectors: np.ndarray, poole
     return method, bool(method == best or lo <= 1.0), (float(lo), float(hi)), decision["reason"]
 
 
-def score_camera(camera: str, setting: str, run: Any, vectors: np.ndarray) -> CameraScore:
-    """A benchmark run's (``bench_realsky.BenchRun``) figures as one camera's :class:`CameraScore`."""
+def score_camera(camera: str, setting: str, run: Any, catalogue: np.ndarray) -> CameraScore:
+    """A benchmark run's (``bench_realsky.BenchRun``) figures as one camera's :class:`CameraScore`; ``catalogue``:
+    the solver's star table (columns 2:5 unit vectors, 5 magnitude)."""
     ours = [n for n in run.names if not n.startswith("SEP")]
     sep = run.pooled[run.best_sep]
     common = sum(r.comparison.common.size for r in run.results if r.comparison is not None)
-    trusted, ok, interval, reason = trust_check(run.results, ours, vectors, run.pooled)
+    trusted, ok, interval, reason = trust_check(run.results, ours, catalogue, run.pooled)
     return CameraScore(camera, setting, {n: run.pooled[n] / sep for n in ours}, run.best_sep, int(common), trusted,
                        ok, interval, reason)
 

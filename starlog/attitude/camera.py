@@ -173,23 +173,26 @@ def fit_cameras_shared(cameras: list[Camera], vectors: list[npt.NDArray[np.float
     cams = [replace(c, focal=base.focal, k=base.k, cx=base.cx, cy=base.cy, half_width=base.half_width,
                     parity=base.parity) for c in cameras]
     obs = [np.concatenate([a, b]) for a, b in zip(x, y)]
-    models = [_projection_jacobian(c, v) for c, v in zip(cams, vectors)]
-    cost = sum(float(np.sum((o - m) ** 2)) for o, (m, _) in zip(obs, models))
+
+    def models(cs: list[Camera]) -> tuple[list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]], float]:
+        out = [_projection_jacobian(c, v) for c, v in zip(cs, vectors)]
+        return out, sum(float(np.sum((o - m) ** 2)) for o, (m, _) in zip(obs, out))
+
+    current, cost = models(cams)
     for _ in range(iterations):
-        rotations, step = _shared_step(models, obs, shared)
+        rotations, step = _shared_step(current, obs, shared)
         for _ in range(30):
             trial = [replace(c, rotation=small_rotation(r) @ c.rotation, focal=c.focal * math.exp(step[0]),
                              k=c.k + (float(step[1]) if fit_distortion else 0.0)) for c, r in zip(cams, rotations)]
-            trial_models = [_projection_jacobian(c, v) for c, v in zip(trial, vectors)]
-            trial_cost = sum(float(np.sum((o - m) ** 2)) for o, (m, _) in zip(obs, trial_models))
+            trial_models, trial_cost = models(trial)
             if trial_cost <= cost:
                 break
             rotations, step = [r / 2.0 for r in rotations], step / 2.0
         else:
             return cams
-        change = max((float(np.max(np.abs(t[0] - m[0]))) for t, m in zip(trial_models, models) if m[0].size),
+        change = max((float(np.max(np.abs(t[0] - m[0]))) for t, m in zip(trial_models, current) if m[0].size),
                      default=0.0)
-        cams, models, cost = trial, trial_models, trial_cost
+        cams, current, cost = trial, trial_models, trial_cost
         if change < 1e-7:
             break
     return cams

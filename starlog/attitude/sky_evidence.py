@@ -6,7 +6,10 @@ model, so:
 
 1. **Common stars**: the (frame, catalogue star) pairs that every method identified, less the catalogue
    stars with another within ``isolation`` px (:data:`ISOLATION_PX`): where two catalogue stars blend, the
-   catalogue does not say where their light's centre is.
+   catalogue does not say where their light's centre is; then the brighter half of them by catalogue
+   magnitude (:data:`BRIGHTER`), which no method and no camera setting changes. The fainter stars of a
+   field are the many; noise-limited for every method alike, their residuals would hide the differences the
+   methods make.
 2. **One camera per log and method**: an attitude per frame and one focal length and radial distortion
    for the whole log (:func:`starlog.attitude.camera.fit_cameras_shared`), fitted to the method's own
    positions of the common stars, from the cameras its frames were solved with. A per-frame camera would
@@ -35,11 +38,13 @@ import numpy.typing as npt
 from starlog.attitude.camera import Camera, fit_cameras_shared
 from starlog.centroid.evidence import DRAWS, MIN_SKY_STARS, add_confidence, bootstrap_rms
 
-__all__ = ["ISOLATION_PX", "MAX_SKY_FRAMES", "MIN_SKY_STARS", "IdentifiedFrame", "sky_evidence"]
+__all__ = ["BRIGHTER", "ISOLATION_PX", "MAX_SKY_FRAMES", "MIN_SKY_STARS", "IdentifiedFrame", "sky_evidence"]
 
 ISOLATION_PX = 6.0
 """A catalogue star with another this close (px, at the fitted focal length) is left out: twice the solve
 stage's match radius."""
+BRIGHTER = 0.5
+"""The share of the common stars the sky judges on: the brightest by catalogue magnitude."""
 MAX_SKY_FRAMES = 500
 """Solved frames a log's evidence uses at most (evenly spaced through a longer log)."""
 
@@ -79,6 +84,21 @@ def _common(frames: Mapping[str, Sequence[IdentifiedFrame]], usable: npt.NDArray
     return out
 
 
+def _brighter(common: list[tuple[int, npt.NDArray[np.int64], dict[str, tuple[IdentifiedFrame, npt.NDArray[np.intp]]]]],
+              magnitudes: npt.NDArray[np.float64], share: float
+              ) -> list[tuple[int, npt.NDArray[np.int64], dict[str, tuple[IdentifiedFrame, npt.NDArray[np.intp]]]]]:
+    """The ``share`` of the common (frame, star) pairs of the brightest catalogue magnitude (ties kept)."""
+    if not common or share >= 1.0:
+        return common
+    limit = float(np.quantile(np.concatenate([magnitudes[shared] for _, shared, _ in common]), share))
+    out = []
+    for number, shared, picks in common:
+        keep = magnitudes[shared] <= limit
+        if keep.any():
+            out.append((number, shared[keep], {n: (f, rows[keep]) for n, (f, rows) in picks.items()}))
+    return out
+
+
 def _isolated(frames: Mapping[str, Sequence[IdentifiedFrame]], vectors: npt.NDArray[np.float64],
               isolation_px: float) -> npt.NDArray[np.bool_]:
     """Catalogue rows with no other catalogue star within ``isolation_px`` (an angle at the frames' median focal
@@ -94,16 +114,18 @@ def _isolated(frames: Mapping[str, Sequence[IdentifiedFrame]], vectors: npt.NDAr
     return keep
 
 
-def sky_evidence(frames: Mapping[str, Sequence[IdentifiedFrame]], vectors: npt.NDArray[np.float64], *,
-                 fit_distortion: bool = True, isolation_px: float = ISOLATION_PX, draws: int = DRAWS,
+def sky_evidence(frames: Mapping[str, Sequence[IdentifiedFrame]], vectors: npt.NDArray[np.float64],
+                 magnitudes: npt.NDArray[np.float64], *, fit_distortion: bool = True,
+                 isolation_px: float = ISOLATION_PX, brighter: float = BRIGHTER, draws: int = DRAWS,
                  seed: int = 1) -> dict[str, dict[str, Any]]:
     """Per method (module docstring): ``residual_px`` (per axis), ``interval_px`` (95 %), ``p_best``,
     ``ratio_to_best`` with ``ratio_interval``, ``stars`` (distinct common catalogue stars), ``matches``
     (common frame-star pairs), ``frames``, and the camera fitted (``focal_px``, ``distortion``). ``frames``:
-    each method's solved frames; ``vectors``: the catalogue's unit vectors, indexed by the frames' rows. With
-    no common star every figure is None."""
+    each method's solved frames; ``vectors``, ``magnitudes``: the catalogue's unit vectors and magnitudes,
+    indexed by the frames' rows. With no common star every figure is None."""
     names = list(frames)
     common = _common(frames, _isolated(frames, vectors, isolation_px)) if all(frames.values()) else []
+    common = _brighter(common, magnitudes, brighter)
     if not common:
         return {m: {"stars": 0, "matches": 0, "frames": 0, "residual_px": None, "interval_px": None,
                     "p_best": None, "ratio_to_best": None, "ratio_interval": None} for m in names}

@@ -15,7 +15,8 @@ from starlog.io.mcap_file import McapFile
 from starlog.io.reader import LogReader
 from starlog.io import topics
 
-__all__ = ["describe_log", "evidence_summaries", "format_description", "trust_lines", "trust_summary"]
+__all__ = ["describe_log", "evidence_summaries", "format_description", "solve_summaries", "trust_lines",
+           "trust_summary"]
 
 
 def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -42,7 +43,7 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "channels": channels,
             "provenance": [p.to_dict() for p in log.provenance()],
             "notes": list(log.notes),
-        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log) | _solve_summaries(log) | \
+        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log) | solve_summaries(log) | \
             trust_summary(log)
 
 
@@ -100,7 +101,7 @@ def evidence_summaries(log: LogReader) -> dict[str, Any]:
     return {"centroid_evidence": out} if out else {}
 
 
-def _solve_summaries(log: LogReader) -> dict[str, Any]:
+def solve_summaries(log: LogReader) -> dict[str, Any]:
     """``{"solve": [...]}``: each ``starlog solve`` run's figures per centroid method
     (:data:`starlog.io.topics.SOLVE_METADATA`); none: {}."""
     out = []
@@ -119,7 +120,7 @@ def trust_summary(log: LogReader) -> dict[str, Any]:
     from starlog.centroid.evidence import trust
 
     noise = [r for r in evidence_summaries(log).get("centroid_evidence", []) if "error" not in r]
-    solved = [r for r in _solve_summaries(log).get("solve", []) if "error" not in r]
+    solved = [r for r in solve_summaries(log).get("solve", []) if "error" not in r]
     if not noise and not solved:
         return {}
     sky = solved[-1].get("sky_evidence") if solved else None

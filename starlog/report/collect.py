@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from starlog.errors import StarlogError
 from starlog.io.images import choose_image_topic
-from starlog.io.info import evidence_summaries
+from starlog.io.info import evidence_summaries, solve_summaries, trust_summary
 from starlog.io.provenance import Provenance
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.io.topics import FRAME_INFO
@@ -92,6 +92,10 @@ class ReportData:
     notes: list[str] = field(default_factory=list)
     #: the centroid stage's records of which method to trust (``starlog info``'s ``centroid_evidence``)
     evidence: list[dict[str, Any]] = field(default_factory=list)
+    #: the method to trust from whichever evidence the log holds (``starlog info``'s ``trust``), None without centroids
+    trust: dict[str, Any] | None = None
+    #: the last ``starlog solve`` record's catalogue residual per centroid method (empty: none)
+    sky: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: ``starlog solve``'s attitude channels, by centroid method
     attitude: dict[str, AttitudeSeries] = field(default_factory=dict)
 
@@ -261,5 +265,8 @@ def collect_report_data(path: str | os.PathLike[str]) -> ReportData:
                                          "`starlog compensate` makes them from a track channel.")
         data.notes.extend(log.notes)
         data.evidence = evidence_summaries(log).get("centroid_evidence", [])
+        data.trust = trust_summary(log).get("trust")
+        solved = [r for r in solve_summaries(log).get("solve", []) if "error" not in r]
+        data.sky = solved[-1].get("sky_evidence") or {} if solved else {}
         data.attitude = read_attitude(log, channels, data.time_range[0])
     return data

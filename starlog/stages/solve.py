@@ -500,7 +500,7 @@ def solve_log(
             if which is None and figures.identified:
                 identified[name] = figures.identified
         if len(identified) >= 2:
-            summary.sky_evidence = sky_evidence(identified, tracker.catalogue.vectors,
+            summary.sky_evidence = sky_evidence(identified, tracker.catalogue.vectors, tracker.catalogue.magnitude,
                                                 fit_distortion=settings.fit_distortion)
         out.writer.add_metadata(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods),
                                                         "sky_evidence": json.dumps(summary.sky_evidence)})
@@ -543,4 +543,5 @@ def probe_sky(log: LogReader, centroid_topics: Sequence[str], *, frames: int = P
         if not found:
             return None, f"no frame probed of {topic} plate-solved"
         identified[topic.rsplit("/", 1)[-1]] = found
-    return sky_evidence(identified, tracker.catalogue.vectors, fit_distortion=settings.fit_distortion), ""
+    return sky_evidence(identified, tracker.catalogue.vectors, tracker.catalogue.magnitude,
+                        fit_distortion=settings.fit_distortion), ""
