@@ -80,3 +80,11 @@ def test_trusted_standing_for_a_method_already_tracked_is_tracked_once(tmp_path:
         method = trusted_method(log)["method"]
     track, _ = resolve_trusted({"methods": [method, "trusted"]}, tmp_path / "cen.mcap")
     assert track["methods"] == [method]
+
+
+def test_all_on_a_log_without_a_star_to_learn_a_psf_from_fits_the_gaussian_and_says_so(tmp_path: Path):
+    faint = tmp_path / "faint.mcap"
+    simulate_log(SimulationConfig(width=64, height=64, n_stars=0, n_frames=3, seed=6), faint)  # an empty sky
+    summary = centroid_log(faint, tmp_path / "cen.mcap", methods="all")
+    assert "PSFFIT" in summary.methods and summary.epsf is None
+    assert any(n.startswith("PSFFIT fits the Gaussian of the log's PSF width") for n in summary.notes)
