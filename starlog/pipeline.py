@@ -43,22 +43,23 @@ from starlog.io.reader import LogReader, LogSource
 from starlog.io.copying import flatten_log
 from starlog.io.timerange import TimeRange
 from starlog.io.writer import output_identity, temporary_folder
-from starlog.stages.centroid import centroid_log
+from starlog.stages.centroid import centroid_log, parse_methods
 from starlog.stages.compensate import compensate_log, parse_protocols, too_short_message, track_shortfalls
 from starlog.stages.window import window_of
 from starlog.stages.custom import run_stage
 from starlog.stages.track import track_log
+from starlog.trusted import resolve_trusted, tracks_trusted, with_trusted
 
 if TYPE_CHECKING:
     from starlog.stage_api import Stage
 
-__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "layer_paths", "load_config",
-           "report_path", "run_pipeline", "run_pipeline_batch", "run_pipeline_task", "stage_line"]
+__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "layer_paths", "load_config", "report_path",
+           "run_pipeline", "run_pipeline_batch", "run_pipeline_task", "stage_line"]
 
 #: The built-in config, a starting point for your own (``starlog run --print-config``).
 DEFAULT_CONFIG_TOML = """\
 [centroid]
-methods = ["NONE", "MOMENT", "BICUBIC", "GAUSSFIT", "GRADIENT"]
+methods = "all"         # every method that can win (starlog centroid --method all)
 # gain = 1.0            # e-/DN; default: from the simulator's provenance, else 1
 # read_noise = 3.0      # e-; default: from the simulator's provenance, else estimated
 # image_topic = "/camera/image_raw"  # default: /camera/image, else the log's only image channel
@@ -68,7 +69,8 @@ phase_correction = "auto"  # pixel-phase calibration from the log's own stars; "
 [centroid.options]      # keyword options of starlog.centroid.extract_stars
 
 [track]
-methods = ["NONE", "GAUSSFIT"]   # centroid channels to track, one stage run each
+methods = ["NONE", "trusted"]   # centroid channels to track, one stage run each; "trusted": the method the log's
+                                # evidence names once its centroids are written (GAUSSFIT when it names none)
 models = "all"
 [track.tracker]         # starlog.track.TrackerConfig fields
 sigma_floor = 0.05      # px: the platform jitter a STATIC model must absorb
@@ -163,10 +165,13 @@ class PipelineResult:
     stages: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
     layers: list[Path] = field(default_factory=list)
     skipped: list[Shortfall] = field(default_factory=list)
+    trusted: dict[str, Any] | None = None
+    """What ``"trusted"`` in ``[track]`` stood for and why (:func:`trusted_method`); None without it."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"output": str(self.output), "layers": [str(p) for p in self.layers],
-                "stages": [{"stage": s, **r} for s, r in self.stages], "skipped": [s.to_dict() for s in self.skipped]}
+                "stages": [{"stage": s, **r} for s, r in self.stages], "skipped": [s.to_dict() for s in self.skipped],
+                "trusted": self.trusted}
 
 
 Step = Callable[[LogSource, Path], dict[str, Any]]
@@ -189,9 +194,11 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
     if config.track is not None:
         t = config.track
         for method in _list(t.get("methods", ["GAUSSFIT"])):
-            steps.append((f"track {method}", lambda i, o, m=method: track_log(
+            chosen = t.get("selected_by") if t.get("selected_by", {}).get("method") == method else None
+            steps.append((f"track {method}", lambda i, o, m=method, why=chosen: track_log(
                 i, o, method=m, models=t.get("models", "all"), tracker=t.get("tracker"), motion=t.get("motion"),
-                workers=workers, show_progress=show_progress, **common).to_dict()))
+                workers=workers, show_progress=show_progress, selected_by=why, **common).to_dict()
+                | ({"selected_by": why} if why else {})))
     if config.compensate is not None:
         k = config.compensate
         steps.append(("compensate", lambda i, o: compensate_log(
@@ -261,28 +268,67 @@ def run_pipeline(
     stage), any other config is refused with :class:`InvalidParameterError`.
     """
     output = Path(output_path)
-    if not _steps(config, workers=workers, compression=compression, show_progress=show_progress):
+    keywords = {"workers": workers, "compression": compression, "show_progress": show_progress}
+    if not _steps(config, **keywords):
         raise InvalidParameterError(f"{config.source}: the config runs no stage.")
+    trusted = None
+    if tracks_trusted(config.track) and config.centroid is None:  # the input's own centroids hold the evidence
+        track, trusted = resolve_trusted(config.track or {}, input_path)
+        config = replace(config, track=track)
     frame_topic, options = _frame_channel(config)
     source = window_of(input_path, TimeRange.parse(start, end), lambda log: frame_topic(log, options))
     config, skipped = _fit_to_length(source, config, frame_topic, options)
     if on_skip:
         for shortfall in skipped:
             on_skip(shortfall)
-    steps = _steps(config, workers=workers, compression=compression, show_progress=show_progress)
-    names = [name for name, _ in steps]
+    result = PipelineResult(output=output, skipped=skipped, trusted=trusted)
     if not flatten:
-        result = PipelineResult(output=output, layers=layer_paths(output, names), skipped=skipped)
-        _refuse_existing(result.layers, force=force)
-        _run_steps(source, steps, result.layers, result, on_stage=on_stage)
+        _refuse_existing(_possible_layers(output, config, keywords), force=force)
+        result.layers = _run_plan(source, config, output, result, keywords, on_stage=on_stage)
         return result
     _refuse_existing([output], force=force)
-    result = PipelineResult(output=output, skipped=skipped)
     with temporary_folder(output) as folder:
-        layers = layer_paths(folder / output.name, names)
-        _run_steps(source, steps, layers, result, on_stage=on_stage)
+        layers = _run_plan(source, config, folder / output.name, result, keywords, on_stage=on_stage)
         flatten_log(layers[-1], output, force=True)
     return result
+
+
+def _possible_layers(output: Path, config: PipelineConfig, keywords: dict[str, Any]) -> list[Path]:
+    """Every layer file the run may write: with ``"trusted"`` standing for each centroid method in turn."""
+    if config.centroid is None or config.track is None or not tracks_trusted(config.track):
+        return layer_paths(output, [name for name, _ in _steps(config, **keywords)])
+    paths: list[Path] = []
+    for method in parse_methods(config.centroid.get("methods", "all")):
+        trial = replace(config, track={**config.track, "methods": with_trusted(config.track, method.value)})
+        paths += [p for p in layer_paths(output, [n for n, _ in _steps(trial, **keywords)]) if p not in paths]
+    return paths
+
+
+def _run_plan(source: LogSource, config: PipelineConfig, output: Path, result: PipelineResult,
+              keywords: dict[str, Any], *, on_stage: Callable[[str, dict[str, Any]], None] | None) -> list[Path]:
+    """Run every stage of ``config`` into the layers of ``output`` (:func:`layer_paths`) and return them. With
+    ``"trusted"`` in ``[track]``, the centroid layer is written first and the method decided on it
+    (:func:`resolve_trusted`). If a stage fails, the layers this run wrote are removed."""
+    written: list[Path] = []
+    try:
+        if tracks_trusted(config.track) and config.centroid is not None:
+            alone = replace(config, track=None, compensate=None, solve=None, stages=())
+            first = layer_paths(output, ["centroid", "track"])[0]
+            _run_steps(source, _steps(alone, **keywords), [first], result, on_stage=on_stage, written=written)
+            track, result.trusted = resolve_trusted(config.track or {}, first)
+            config = replace(config, track=track)
+            steps = _steps(config, **keywords)
+            layers = layer_paths(output, [name for name, _ in steps])
+            _run_steps(first, steps[1:], layers[1:], result, on_stage=on_stage, written=written)
+            return layers
+        steps = _steps(config, **keywords)
+        layers = layer_paths(output, [name for name, _ in steps])
+        _run_steps(source, steps, layers, result, on_stage=on_stage, written=written)
+        return layers
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
 
 
 def layer_paths(output: Path, stages: list[str]) -> list[Path]:
@@ -330,27 +376,23 @@ def _fit_to_length(source: LogSource, config: PipelineConfig, frame_topic: Any,
 
 
 def _run_steps(source: LogSource, steps: list[tuple[str, Step]], layers: list[Path], result: PipelineResult, *,
-               on_stage: Callable[[str, dict[str, Any]], None] | None) -> None:
-    """Each step on the layer of the one before (the first on ``source``); on failure, the layers written by
-    this run are removed (the one of the failed step too, when it was put in place before the failure)."""
-    written: list[Path] = []
-    before = None
-    try:
-        for (name, step), layer in zip(steps, layers, strict=True):
-            before = output_identity(layer)
-            written.append(layer)
+               on_stage: Callable[[str, dict[str, Any]], None] | None, written: list[Path]) -> None:
+    """Each step on the layer of the one before (the first on ``source``), each layer added to ``written`` once
+    it is; a layer the failing step had already put in place is removed."""
+    for (name, step), layer in zip(steps, layers, strict=True):
+        before = output_identity(layer)
+        try:
             report = step(source, layer)
-            source = layer
-            result.stages.append((name, report))
-            if on_stage:
-                on_stage(name, report)
-    except BaseException:
-        for path in written[:-1]:
-            path.unlink(missing_ok=True)
-        with suppress(OSError):
-            if written and output_identity(written[-1]) not in (None, before):
-                written[-1].unlink()
-        raise
+        except BaseException:
+            with suppress(OSError):
+                if output_identity(layer) not in (None, before):
+                    layer.unlink()
+            raise
+        written.append(layer)
+        source = layer
+        result.stages.append((name, report))
+        if on_stage:
+            on_stage(name, report)
 
 
 def run_pipeline_task(input_path: str, output_path: str, config: PipelineConfig, *, force: bool = False,
@@ -388,7 +430,10 @@ def stage_line(stage: str, result: dict[str, Any]) -> str | None:
     if stage.startswith("track"):
         models = ", ".join(f"{m} (track {v['brightest_track']}, NIS {v['mean_nis']:.2f})"
                            for m, v in result["models"].items())
-        return f"track {result['method']}: brightest star under {models}"
+        why = result.get("selected_by")
+        chosen = "" if not why else (f" (the trusted method, by {why['evidence']} evidence)" if why["evidence"]
+                                     else " (the default: no evidence names a method)")
+        return f"track {result['method']}{chosen}: brightest star under {models}"
     if stage == "solve":
         methods = ", ".join(f"{m} {v['solved']}/{v['frames']} solved, residual {v['residual_px']:.4f} px"
                             for m, v in result["methods"].items())

@@ -265,3 +265,32 @@ def test_the_demosaiced_copy_is_the_frame_through_a_bayer_mosaic(bench):
     assert colour.shape == (16, 16, 3)
     np.testing.assert_allclose(colour[4:-4, 4:-4].reshape(-1, 3).mean(axis=0),
                                1000 * np.array(bench.CHANNEL_RESPONSE), atol=1)
+
+
+def test_leave_one_camera_out_picks_the_default_on_the_other_cameras():
+    with tool_module("loco") as loco:
+        def score(camera, setting, a, b):
+            return loco.CameraScore(camera, setting, {"A": a, "B": b}, "SEP", 100, "A", True, (0.9, 1.1), "")
+
+        scores = [score("one", "now", 0.80, 0.90), score("two", "now", 0.70, 0.95), score("three", "now", 1.00, 0.60),
+                  score("one", "before", 0.85, 0.99), score("two", "before", 0.99, 0.99),
+                  score("three", "before", 0.99, 0.99)]
+        rows = {r["camera"]: r for r in loco.held_out_rows(scores, "now")}
+    # camera three's own best (B) is not what the other two pick (A): its held-out score is A's there
+    assert rows["three"]["picked"] == "now/A" and rows["three"]["held_out"] == 1.00
+    assert rows["three"]["best"] == "B" and rows["three"]["best_ratio"] == 0.60
+    # on camera one, the others' mean log-ratio: A (0.70, 1.00) -0.18, B (0.95, 0.60) -0.28; the earlier setting's
+    # are worse: B, scored on camera one
+    assert rows["one"]["picked"] == "now/B" and rows["one"]["held_out"] == 0.90
+    assert all(r["trusted"] == "A" and r["trusted_ok"] for r in rows.values())
+
+
+def test_a_simulated_camera_is_the_catalogue_sky_rendered_as_eight_frames(bench, tmp_path):
+    pytest.importorskip("tetra3")
+    with tool_module("sim_cameras") as sim_cameras:
+        sim_cameras.write_camera("sim-gauss-1.2-saturated", tmp_path, bench.write_degraded)
+    frames = bench.list_images(tmp_path)
+    assert len(frames) == len(sim_cameras.POINTINGS) == 8
+    image, saturation = bench.load_grey(frames[0])
+    assert image.shape == (768, 1024) and image.dtype == np.uint16
+    assert image.max() < saturation and image.max() > 100 + 30000 - 1  # cores clipped at the full well (30000 e-)

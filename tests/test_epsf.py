@@ -21,6 +21,7 @@ from starlog.centroid.epsf import (
     build_epsf,
     epsf_from_frames,
     gaussian_epsf,
+    symmetric_below,
 )
 from starlog.cli import cli
 from starlog.detect import detect_stars
@@ -271,3 +272,19 @@ def test_psffit_with_gaussian_psf_needs_no_epsf(sim_log: Path, tmp_path: Path) -
         assert log.metadata(topics.EPSF_METADATA) == []
     with pytest.raises(ValueError):
         centroid_log(sim_log, tmp_path / "x.mcap", methods="PSFFIT", psf="moffat")
+
+
+def test_an_epsf_from_fewer_stars_than_its_phase_cells_stays_the_gaussian_and_from_few_is_symmetric() -> None:
+    moffat = MoffatPSF(fwhm=2.8, beta=2.5)
+    frames = _frames(lambda s, x, y, f: render_profile_stars(s, x, y, f, moffat), 1, seed=5)
+    img, det = frames[0]
+    few = epsf_from_frames([(img, det[:10])], psf_sigma=1.2, half_size=6)  # 10 stars < 4 x 4 phase cells
+    assert few.n_stars == 0 and np.array_equal(few.data, gaussian_epsf(1.2, 7, 4).data)
+    some = epsf_from_frames([(img, det[:24])], psf_sigma=1.2, half_size=6)  # 16 <= 24 < 2 x 16: point-symmetric
+    assert 16 <= some.n_stars < symmetric_below(4)
+    assert_allclose(some.data, some.data[::-1, ::-1], rtol=0, atol=1e-12)
+    # it keeps the Moffat's wings, which the Gaussian of the same core does not have
+    wing = some.data[some.data.shape[0] // 2, -8]
+    assert wing > 3 * gaussian_epsf(1.2, 7, 4).data[some.data.shape[0] // 2, -8]
+    full = epsf_from_frames(frames, psf_sigma=1.2, half_size=6)
+    assert full.n_stars >= symmetric_below(4) and not np.allclose(full.data, full.data[::-1, ::-1], atol=1e-9)

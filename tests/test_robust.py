@@ -168,3 +168,45 @@ def test_a_centroid_drawn_onto_a_cosmic_ray_is_masked_and_measured_again() -> No
     robust = measure_centroids(img, det, method="MOMENT", psf_sigma=2.0, robust=True)[0]
     assert np.hypot(plain["x"] - tx, plain["y"] - ty) > 5.0
     assert np.hypot(robust["x"] - tx, robust["y"] - ty) < 0.5 and robust["n_masked"] >= 3
+
+
+@pytest.mark.parametrize("method", [CentroidMethod.MOMENT, CentroidMethod.GAUSSFIT, CentroidMethod.WINPOS])
+def test_saturated_cores_in_a_jpeg_keep_their_light_and_their_centre(method):
+    """A consumer camera's frame: 8 bits, stars saturated to a plateau, JPEG's ringing around it. The plateau's
+    shoulders (just under 255) are clipped too, and the star's own light around its core, which its Gaussian model
+    fitted to the wings cannot explain, is mirrored about the star: nothing is masked."""
+    import cv2
+
+    rng = np.random.default_rng(11)
+    expected, x, y = _star_grid(rng, 4, 2.5e6, 1.5)  # a plateau 4 px in radius
+    grey = np.clip(rng.normal(20.0 + expected / 20.0, 2.0), 0, 255)  # the stars' cores saturate at 255
+    ok, jpeg = cv2.imencode(".jpg", np.rint(grey).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    image = cv2.imdecode(jpeg, cv2.IMREAD_UNCHANGED)
+    det = detect_stars(image)
+    c = measure_centroids(image, det, method=method, psf_sigma=1.5)
+    dx, dy, _ = _matched(c, x, y)
+    assert c.size == x.size and np.all(c["flags"] & CentroidFlag.SATURATED)
+    assert not np.any(c["flags"] & CentroidFlag.MASKED)
+    assert np.sqrt(np.mean(dx**2 + dy**2) / 2) < 0.05
+
+
+def test_a_saturated_star_s_own_light_is_judged_by_symmetry_and_an_artefact_beside_it_is_not_its_light():
+    """The model of a saturated star is fitted to what is left of it, its wings: where it falls short of the star
+    (here its flux 30 % low), the excess is mirrored about the star and is kept; a cosmic ray beside the core is not
+    mirrored and is masked."""
+    from starlog.centroid.robust import outlier_pixels
+
+    rng = np.random.default_rng(12)
+    expected = SKY + render_stars((41, 41), np.array([20.3]), np.array([19.8]), np.array([4e6]), 1.5)
+    image = np.minimum(CAMERA.expose(expected, rng), 60000)
+    hit = image.copy()
+    hit[20, 26:28] = 60000 - 1  # a track just under the saturation, 6 px right of the star
+    for frame, masked in ((image, False), (hit, True)):
+        st = gather_stamps(frame, np.array([20.0]), np.array([20.0]), 8, np.array([BIAS + SKY]),
+                           np.array([np.sqrt(SKY + 9.0)]), 1.0, 60000.0)
+        assert st.saturated[0]
+        mu = 0.7 * 4e6 * model(st, np.array([0.3]), np.array([-0.2]), np.array([1.5]))
+        found = outlier_pixels(st, mu)
+        assert found.any() == masked
+        if masked:
+            assert found[0, 8, 14:16].all() and found[0, :, :12].sum() == 0

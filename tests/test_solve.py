@@ -3,6 +3,7 @@ frames that cannot be solved, the CLI, export and the run config. Skipped withou
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import jsonschema
@@ -15,6 +16,7 @@ from starlog.cli import cli
 from starlog.export import export_log
 from starlog.io import file_digest, load_json_schema, topics
 from starlog.io.chain import base_reference
+from starlog.io.info import describe_log, format_description
 from starlog.io.reader import LogReader
 from starlog.sim import Jitter, SimulationConfig, Simulator
 from starlog.stages import simulate_log
@@ -22,7 +24,7 @@ from starlog.stages.centroid import centroid_log
 
 pytest.importorskip("tetra3")
 
-from starlog.stages.solve import solve_log  # noqa: E402
+from starlog.stages.solve import probe_sky, solve_log  # noqa: E402
 
 SKY = dict(width=384, height=384, sky_attitude=(120.0, -30.0, 40.0), fov_deg=10.0, magnitude_limit=7.0, n_frames=24,
            jitter=(Jitter(5.0, 0.5),), roll_amplitude_rad=0.002, roll_frequency_hz=2.0, seed=2)
@@ -211,3 +213,51 @@ def test_solve_on_json_centroids_writes_what_it_writes_on_protobuf_ones(logs, tm
         for topic in topics_:  # solver_ms: the solver's own time, not a result
             assert [{**m.payload, "solver_ms": 0} for m in log.messages(topic)] == [
                 {**m.payload, "solver_ms": 0} for m in new.messages(topic)]
+
+
+@pytest.fixture(scope="module")
+def deep(tmp_path_factory) -> dict[str, object]:
+    """A field to magnitude 8: enough stars for the sky to judge on the brighter half."""
+    folder = tmp_path_factory.mktemp("deep")
+    simulate_log(SimulationConfig(**{**SKY, "magnitude_limit": 8.0, "n_frames": 6}), folder / "sky.mcap")
+    centroid_log(folder / "sky.mcap", folder / "cen.mcap", methods="GAUSSFIT,MOMENT")
+    return {"cen": folder / "cen.mcap", "att": folder / "att.mcap",
+            "summary": solve_log(folder / "cen.mcap", folder / "att.mcap", centroids="all")}
+
+
+def test_the_sky_judges_the_centroid_methods_on_the_stars_both_identified(deep):
+    sky = deep["summary"].sky_evidence
+    assert set(sky) == {"GAUSSFIT", "MOMENT"}
+    g, m = sky["GAUSSFIT"], sky["MOMENT"]
+    assert g["stars"] == m["stars"] >= 20 and g["frames"] == m["frames"] == 6
+    # a simulated sky: the catalogue is the truth and the camera known, the residual is the centroid error alone
+    for e in (g, m):
+        assert 0.0 < e["residual_px"] < 0.1 and e["interval_px"][0] <= e["residual_px"] <= e["interval_px"][1]
+        assert e["focal_px"] == pytest.approx(384 / 2 / np.tan(np.radians(5.0)), rel=1e-3)
+    assert g["p_best"] + m["p_best"] == pytest.approx(1.0)
+    info = describe_log(deep["att"])
+    assert info["solve"][-1]["sky_evidence"] == json.loads(json.dumps(sky))
+    text = format_description(info)
+    assert "sky        per centroid method: catalogue residual" in text
+    decision = info["trust"]
+    assert decision["evidence"] == "sky" and decision["method"] == min(sky, key=lambda k: sky[k]["residual_px"])
+    assert text.splitlines()[-2] == f"trust      {decision['method']} (by sky evidence)"
+
+
+def test_too_few_stars_for_the_sky_leave_the_frame_to_frame_noise_to_name_the_method(logs):
+    sky = logs["summary"].sky_evidence
+    assert 0 < sky["GAUSSFIT"]["stars"] < 20
+    decision = describe_log(logs["att"])["trust"]
+    assert decision["evidence"] == "frame-to-frame" and "the sky needs 20" in decision["reason"]
+
+
+def test_the_sky_is_probed_in_memory_and_not_on_a_field_without_a_sky(deep, tmp_path):
+    with LogReader(deep["cen"]) as log:
+        sky, why = probe_sky(log, ["/stars/centroids/GAUSSFIT", "/stars/centroids/MOMENT"], frames=3)
+    assert why == "" and sky["GAUSSFIT"]["frames"] == 3 and sky["GAUSSFIT"]["stars"] >= 20
+    flat = tmp_path / "flat.mcap"
+    simulate_log(SimulationConfig(width=128, height=128, n_stars=8, n_frames=3), flat)
+    centroid_log(flat, tmp_path / "flat-cen.mcap", methods="GAUSSFIT,MOMENT")
+    with LogReader(tmp_path / "flat-cen.mcap") as log:
+        sky, why = probe_sky(log, ["/stars/centroids/GAUSSFIT", "/stars/centroids/MOMENT"])
+    assert sky is None and why.startswith("a simulated star field without a sky")

@@ -50,7 +50,13 @@ catalogue magnitude), ``--only NAME ...`` (compare fewer centroiders: a larger c
 ``--phase-correction off``), ``--phase-harmonics K`` (S-curve harmonics calibrated),
 ``--gain`` / ``--starlog-option KEY=VALUE`` (other settings of starlog).
 
-Run: python tools/bench_realsky.py [--images DIR] [--json OUT] [--by-mag]
+Cameras and leave-one-camera-out (``--degraded``, ``--simulated``, ``--camera NAME=DIR``, ``--loco``): every
+camera (a folder of frames) goes through the same protocol; ``tools/loco.py`` picks the default method on all
+cameras but one and scores it on that one, and checks the method starlog trusts on each camera (the sky's
+evidence, :mod:`starlog.attitude.sky_evidence`) against the benchmark's figure. To score your own cameras the
+same way: ``--camera NAME=DIR`` once per camera, with ``--loco``.
+
+Run: python tools/bench_realsky.py [--images DIR] [--json OUT] [--by-mag] [--degraded] [--simulated] [--loco]
 (default images: ../shared/data/real-sky/ relative to the repository's root, read in place)
 """
 
@@ -63,12 +69,16 @@ import os
 import sys
 import time
 from dataclasses import dataclass, replace
+from typing import Any
+from dataclasses import field as dataclass_field
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/loco.py, tools/sim_cameras.py
 
 # the camera model, matching and plate solving live in starlog.attitude; the names below are also this
 # module's (the benchmark's tests and tools/bench_attitude.py use them from here)
@@ -299,6 +309,8 @@ class FrameComparison:
     rmse: dict[str, float]
     residuals: dict[str, np.ndarray]  # (n_common, 2)
     matched: dict[str, int]
+    identified: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = dataclass_field(default_factory=dict)
+    """Per centroider: the field's catalogue stars it matched (indices into the field) and its x, y of them."""
 
 
 def compare_centroiders(cam: Camera, vectors: np.ndarray, positions: dict[str, Positions], *,
@@ -327,7 +339,9 @@ def compare_centroiders(cam: Camera, vectors: np.ndarray, positions: dict[str, P
             res[name] = without_plate_terms(res[name], plate_basis(x, y, cam, plate_order))
         rmse[name] = float(np.sqrt(np.mean(res[name] ** 2))) if common.size else float("nan")
     xy = np.column_stack([cat_x[common], cat_y[common]])
-    return FrameComparison(common, xy, rmse, res, {n: int((i >= 0).sum()) for n, i in idx.items()})
+    identified = {n: (np.flatnonzero(i >= 0), positions[n].x[i[i >= 0]], positions[n].y[i[i >= 0]])
+                  for n, i in idx.items()}
+    return FrameComparison(common, xy, rmse, res, {n: int((i >= 0).sum()) for n, i in idx.items()}, identified)
 
 
 def field_stars(cam: Camera, catalogue: np.ndarray, shape: tuple[int, int], *, margin: float,
@@ -389,6 +403,7 @@ class FrameResult:
     magnitudes: np.ndarray  # of the common stars
     note: str = ""
     gain: float = float("nan")  # e-/DN used for starlog
+    camera: Camera | None = None  # the refined camera of a solved frame
 
 
 def frame_gain(image: np.ndarray, choice: str) -> float:
@@ -522,8 +537,10 @@ def compare_frame(frame: MeasuredFrame, solver, args) -> FrameResult:
     field = field_stars(cam, catalogue, frame.shape, margin=args.margin, isolation=2.0 * args.match_radius)
     comparison = compare_centroiders(cam, catalogue[field, 2:5], positions, radius=args.match_radius,
                                      fit_distortion=not args.no_distortion, plate_order=args.plate_order)
+    comparison = replace(comparison, identified={n: (field[rows], x, y) for n, (rows, x, y)
+                                                 in comparison.identified.items()})
     return FrameResult(frame.name, detections, int(field.size), comparison, catalogue[field[comparison.common], 5],
-                       gain=frame.gain)
+                       gain=frame.gain, camera=cam)
 
 
 def pooled_rmse(results: list[FrameResult], name: str) -> float:
@@ -668,6 +685,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="also run on degraded copies of the frames, built in a temporary folder: 8-bit, JPEG at "
                          "qualities 95/85/70, colour JPEG, Bayer-demosaiced colour, 2x2 binned, defocused (Gaussian "
                          "blur of 1 px); about 2 minutes for the eight on a 2-core machine")
+    ap.add_argument("--simulated", action="store_true",
+                    help="also run on the simulator's cameras (tools/sim_cameras.py: the catalogue's sky rendered with "
+                         "other PSFs and sensors, in a temporary folder); about 4 minutes for the eight")
+    ap.add_argument("--camera", action="append", default=[], metavar="NAME=DIR",
+                    help="another camera: a folder of its frames, scored like the others (repeatable)")
+    ap.add_argument("--loco", action="store_true",
+                    help="leave-one-camera-out over every camera of the run (tools/loco.py): per camera, the default "
+                         "method picked on the others and its held-out ratio, and the method starlog trusts on the "
+                         "camera's own frames, checked against the benchmark's figure")
+    ap.add_argument("--loco-with", action="append", default=[], type=Path, metavar="RUN.json",
+                    help="with --loco: the cameras of an earlier run (its --json) as another setting to pick from")
     args = ap.parse_args(argv)
     args.starlog_options = parse_options(args.starlog_option)
     args.images = args.images or default_images()
@@ -742,7 +770,10 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     run = run_folder(args.images, solver, args)
     print_run(run, args)
-    if args.degraded:
+    cameras = []
+    if args.loco or args.simulated or args.camera:
+        cameras = score_cameras(args, solver, run)
+    elif args.degraded:
         print_degraded(args, solver, run)
     print(f"# {time.perf_counter() - t0:.1f} s; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     if args.json:
@@ -750,9 +781,61 @@ def main(argv: list[str] | None = None) -> int:
         payload = {"frames": [frame_record(r) for r in run.results], "pooled": run.pooled, "best_starlog": run.best,
                    "best_sep": run.best_sep, "ratio": run.ratio, "ratio_95": [lo, hi],
                    "phase_calibrations": {k: v if isinstance(v, str) else v.to_dict()
-                                          for k, v in run.calibrations.items()}}
+                                          for k, v in run.calibrations.items()},
+                   "cameras": [c.to_dict() for c in cameras]}
         args.json.write_text(json.dumps(payload, indent=2))
     return 0
+
+
+# ----------------------------------------------------------------------------- cameras, leave-one-camera-out
+
+def camera_folders(args) -> list[tuple[str, Any]]:
+    """Every camera of the run after the real frames, as (name, writer of its frames into a folder): the
+    degraded copies (``--degraded``), the simulator's cameras (``--simulated``), the folders of ``--camera``."""
+    import shutil
+
+    import sim_cameras
+
+    out: list[tuple[str, Any]] = []
+    if args.degraded:
+        out += [(kind, lambda folder, k=kind: write_degraded(args.images, k, folder)) for kind in DEGRADED]
+    if args.simulated:
+        out += [(name, lambda folder, n=name: sim_cameras.write_camera(n, folder, write_degraded))
+                for name in sim_cameras.SIM_CAMERAS]
+    for spec in args.camera:
+        name, _, folder = spec.partition("=")
+        out.append((name, lambda dest, src=Path(folder): [shutil.copy2(p, dest) for p in list_images(src)]))
+    return out
+
+
+def score_cameras(args, solver, original: BenchRun) -> list:
+    """Every camera of the run scored (``loco.score_camera``), one line each; with ``--loco`` the held-out table."""
+    import tempfile
+
+    import loco
+
+    catalogue = solver.star_table
+    setting = args.json.stem if args.json else "this run"
+    name = args.images.name or "frames"
+    scores = [loco.score_camera(name, setting, original, catalogue)]
+    print("\ncameras (pooled RMSE / best SEP on each camera's common stars; the method starlog trusts there)")
+    print_camera_line(scores[0])
+    for camera, write in camera_folders(args):
+        with tempfile.TemporaryDirectory(prefix="realsky-") as tmp:
+            write(Path(tmp))
+            run = run_folder(Path(tmp), solver, args)
+        scores.append(loco.score_camera(camera, setting, run, catalogue))
+        print_camera_line(scores[-1])
+        sys.stdout.flush()
+    if args.loco:
+        loco.print_loco(scores + loco.load_scores(args.loco_with), setting)
+    return scores
+
+
+def print_camera_line(score) -> None:
+    ratios = "  ".join(f"{m} {v:.3f}" for m, v in score.ratios.items())
+    print(f"{score.camera:<26}{score.common:>6}  trusted {score.trusted} ({'ok' if score.trusted_ok else 'NOT the best'}"
+          f")  {ratios}  [{score.best_sep}]")
 
 
 # ----------------------------------------------------------------------------- degraded copies

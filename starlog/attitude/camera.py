@@ -18,8 +18,8 @@ import numpy.typing as npt
 
 from starlog.attitude.rotation import small_rotation
 
-__all__ = ["Camera", "camera_for_image", "camera_from_pairs", "fit_camera", "initial_rotation", "residual_rmse",
-           "focal_from_fov", "fov_from_focal"]
+__all__ = ["Camera", "camera_for_image", "camera_from_pairs", "fit_camera", "fit_cameras_shared", "initial_rotation",
+           "residual_rmse", "focal_from_fov", "fov_from_focal"]
 
 
 @dataclass(frozen=True)
@@ -157,6 +157,69 @@ def fit_camera(cam: Camera, vectors: npt.NDArray[np.float64], x: npt.NDArray[np.
         if change < 1e-7:
             break
     return cam
+
+
+def fit_cameras_shared(cameras: list[Camera], vectors: list[npt.NDArray[np.float64]], x: list[npt.NDArray[np.float64]],
+                       y: list[npt.NDArray[np.float64]], *, fit_distortion: bool = True,
+                       iterations: int = 20) -> list[Camera]:
+    """Least-squares fit of one camera to many frames: an attitude per frame, one focal length and distortion
+    shared by all (the principal point and parity of ``cameras[0]``). Gauss–Newton on the stacked residuals
+    of :func:`fit_camera`'s model, the frames' attitudes eliminated from each step's normal equations (a
+    Schur complement: the shared terms are solved first, then each frame's rotation), each step halved until
+    the sum of squares decreases; stops when a step changes no pixel by more than 1e-7 px. Frames with fewer
+    than 2 stars keep their attitude."""
+    shared = 2 if fit_distortion else 1
+    base = cameras[0]
+    cams = [replace(c, focal=base.focal, k=base.k, cx=base.cx, cy=base.cy, half_width=base.half_width,
+                    parity=base.parity) for c in cameras]
+    obs = [np.concatenate([a, b]) for a, b in zip(x, y)]
+
+    def models(cs: list[Camera]) -> tuple[list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]], float]:
+        out = [_projection_jacobian(c, v) for c, v in zip(cs, vectors)]
+        return out, sum(float(np.sum((o - m) ** 2)) for o, (m, _) in zip(obs, out))
+
+    current, cost = models(cams)
+    for _ in range(iterations):
+        rotations, step = _shared_step(current, obs, shared)
+        for _ in range(30):
+            trial = [replace(c, rotation=small_rotation(r) @ c.rotation, focal=c.focal * math.exp(step[0]),
+                             k=c.k + (float(step[1]) if fit_distortion else 0.0)) for c, r in zip(cams, rotations)]
+            trial_models, trial_cost = models(trial)
+            if trial_cost <= cost:
+                break
+            rotations, step = [r / 2.0 for r in rotations], step / 2.0
+        else:
+            return cams
+        change = max((float(np.max(np.abs(t[0] - m[0]))) for t, m in zip(trial_models, current) if m[0].size),
+                     default=0.0)
+        cams, current, cost = trial, trial_models, trial_cost
+        if change < 1e-7:
+            break
+    return cams
+
+
+def _shared_step(models: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]],
+                 observed: list[npt.NDArray[np.float64]], shared: int
+                 ) -> tuple[list[npt.NDArray[np.float64]], npt.NDArray[np.float64]]:
+    """One Gauss–Newton step of :func:`fit_cameras_shared`: each frame's rotation (3) and the shared
+    ``(log f, k)`` step, by block elimination of the frames' rotations."""
+    s_mat, s_vec = np.zeros((shared, shared)), np.zeros(shared)
+    blocks = []
+    for (model, jac), obs in zip(models, observed):
+        r = obs - model
+        jr, jg = jac[:, :3], jac[:, 3:3 + shared]
+        a = jr.T @ jr
+        if obs.size < 4 or np.linalg.cond(a) > 1e12:  # fewer than 2 stars: the frame's rotation is not fitted
+            blocks.append(None)
+            continue
+        a_inv = np.linalg.inv(a)
+        b_mat, rr = jr.T @ jg, jr.T @ r
+        s_mat += jg.T @ jg - b_mat.T @ a_inv @ b_mat
+        s_vec += jg.T @ r - b_mat.T @ a_inv @ rr
+        blocks.append((a_inv, b_mat, rr))
+    g = np.linalg.lstsq(s_mat, s_vec, rcond=None)[0] if np.any(s_mat) else np.zeros(shared)
+    rotations = [np.zeros(3) if blk is None else blk[0] @ (blk[2] - blk[1] @ g) for blk in blocks]
+    return rotations, np.append(g, 0.0) if shared == 1 else g
 
 
 def camera_from_pairs(shape: tuple[int, int], focal: float, vectors: npt.NDArray[np.float64],

@@ -19,6 +19,7 @@ __all__ = [
     "Stamps",
     "gather_stamps",
     "with_saturated",
+    "grown_saturation",
     "profile_1d",
     "model",
     "linear_flux",
@@ -96,9 +97,10 @@ def gather_stamps(
     if not image.dtype.isnative:  # compiled code reads native byte order only
         image = image.astype(image.dtype.newbyteorder("="))
     gather_windows(image, xc, yc, h, bg, float(saturation), data, valid, satpix, flags)
-    return Stamps(data=data, valid=valid, xc=xc, yc=yc, h=h, background=np.asarray(background, np.float64),
-                  noise=np.asarray(noise, np.float64), gain=float(gain), saturated=flags[:, 0], cut=flags[:, 1],
-                  masked=flags[:, 2], satpix=satpix, clip=float(saturation) - np.asarray(background, np.float64))
+    return grown_saturation(Stamps(data=data, valid=valid, xc=xc, yc=yc, h=h,
+                                   background=np.asarray(background, np.float64), noise=np.asarray(noise, np.float64),
+                                   gain=float(gain), saturated=flags[:, 0], cut=flags[:, 1], masked=flags[:, 2],
+                                   satpix=satpix, clip=float(saturation) - np.asarray(background, np.float64)))
 
 
 def gather_stamps_vectorised(
@@ -127,7 +129,7 @@ def gather_stamps_vectorised(
     sat = raw >= saturation
     valid = inside & fin & ~sat
     data = np.where(valid, raw - background[:, None, None], 0.0)
-    return Stamps(
+    return grown_saturation(Stamps(
         data=data,
         valid=valid,
         xc=xc,
@@ -141,7 +143,42 @@ def gather_stamps_vectorised(
         masked=(~fin & inside).any(axis=(1, 2)),
         satpix=sat & inside,
         clip=float(saturation) - np.asarray(background, np.float64),
-    )
+    ))
+
+
+SHOULDER = 0.9
+"""A pixel touching a saturated one (8-neighbours, repeatedly) and at least this fraction of the saturation level
+above the background is saturated too (:func:`grown_saturation`)."""
+
+
+def grown_saturation(st: Stamps) -> Stamps:
+    """The stamps with the shoulders of each saturated core counted as saturated: the valid pixels within
+    :data:`SHOULDER` of the saturation level, connected to a saturated pixel. Such a pixel is clipped too:
+    a lossy codec's ringing spreads a clipped plateau's level over its neighbours (values just under the top),
+    and a sensor's response bends before its full well; kept as data, they give a fit a flat top."""
+    if not st.saturated.any():
+        return st
+    rows = np.flatnonzero(st.saturated)
+    sat, valid = st.satpix[rows].copy(), st.valid[rows]
+    high = valid & (st.data[rows] >= SHOULDER * st.clip[rows][:, None, None])
+    for _ in range(2 * st.h + 1):
+        grown = sat.copy()
+        grown[:, 1:, :] |= sat[:, :-1, :]
+        grown[:, :-1, :] |= sat[:, 1:, :]
+        grown[:, :, 1:] |= grown[:, :, :-1].copy()
+        grown[:, :, :-1] |= grown[:, :, 1:].copy()
+        grown = sat | (grown & high)
+        if np.array_equal(grown, sat):
+            break
+        sat = grown
+    added = sat & ~st.satpix[rows]
+    if not added.any():
+        return st
+    satpix, valid_all, data = st.satpix.copy(), st.valid.copy(), st.data.copy()
+    satpix[rows] = sat
+    valid_all[rows] &= ~added
+    data[rows] = np.where(added, 0.0, data[rows])
+    return replace(st, satpix=satpix, valid=valid_all, data=data)
 
 
 def with_saturated(st: Stamps) -> Stamps:

@@ -41,8 +41,8 @@ from starlog.centroid.psffit import fit_psf
 from starlog.detect._flags import StarFlag
 from starlog.errors import InvalidInputError, InvalidParameterError
 
-__all__ = ["EPSF", "GaussianPSF", "build_epsf", "epsf_from_frames", "gaussian_epsf",
-           "select_epsf_stars"]
+__all__ = ["EPSF", "GaussianPSF", "build_epsf", "epsf_from_frames", "gaussian_epsf", "select_epsf_stars",
+           "symmetric_below"]
 
 F64 = npt.NDArray[np.float64]
 _FORMAT = "starlog.epsf/1"
@@ -312,8 +312,9 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
         empty nodes take their neighbours' correction).
     max_centre_error : float
         Only stars whose fitted centre is this precise (1-sigma, px) shape the ePSF: a less
-        precise centre places the star's pixels at wrong offsets and blurs the ePSF. Without
-        any such star the ePSF stays the starting Gaussian (``n_stars`` = 0).
+        precise centre places the star's pixels at wrong offsets and blurs the ePSF. With fewer
+        such stars than ``oversampling^2`` the ePSF stays the starting Gaussian (``n_stars`` = 0);
+        with fewer than :func:`symmetric_below` it is made point-symmetric.
     """
     n = st.data.shape[0]
     if n == 0:
@@ -322,9 +323,24 @@ def build_epsf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, *, psf_sigma: float, 
         raise InvalidParameterError(f"oversampling and iterations must be >= 1, got {oversampling}, {iterations}.")
     ov = int(oversampling)
     cx, cy, f = dx0.astype(np.float64), dy0.astype(np.float64), np.asarray(flux0, np.float64)
-    epsf, used, _, _, _ = _build_round(st, float(psf_sigma), cx, cy, f, ov, iterations, clip, smoothing, tol,
-                                       max_centre_error)
-    return EPSF(epsf.data, ov, int(used.sum()))
+    epsf, used, cx, cy, f = _build_round(st, float(psf_sigma), cx, cy, f, ov, iterations, clip, smoothing, tol,
+                                         max_centre_error)
+    data, n_used = epsf.data, int(used.sum())
+    if n_used < ov * ov:
+        return EPSF(gaussian_epsf(float(psf_sigma), st.h + 1, ov).data, ov, 0)
+    if n_used < symmetric_below(ov):
+        data = _normalised(0.5 * (data + data[::-1, ::-1]), ov)
+    return EPSF(data, ov, n_used)
+
+
+def symmetric_below(oversampling: int) -> int:
+    """Stars below which an ePSF oversampled ``oversampling`` times is made point-symmetric: two per sub-pixel
+    phase cell it resolves (``2 oversampling^2``); below one per cell (``oversampling^2``) it stays the starting
+    Gaussian. Fewer stars leave phases learnt from one star or none, where what those stars carry besides the
+    PSF (a JPEG's blocks, a demosaicing pattern, noise) is learnt as an asymmetry of the PSF, which moves every
+    centre fitted with it by an amount that depends on the star's pixel phase. A point-symmetric ePSF keeps the
+    radial shape they do show (a Moffat's wings, an Airy ring) and cannot move a symmetric star's centre."""
+    return 2 * int(oversampling) ** 2
 
 
 def _build_round(st: Stamps, sigma: float, cx: F64, cy: F64, f: F64, ov: int, iterations: int,

@@ -242,7 +242,10 @@ def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, error: Mod
     a star's own light is symmetric even where the model is not (a trailed or elongated PSF, a
     halo), an artefact is not; a pixel whose mirror is outside the window is judged on the
     model alone. ``symmetric`` default: only when the model misses the frame's stars
-    (:attr:`ModelError.significant`); where the model fits, it alone is the best judge.
+    (:attr:`ModelError.significant`); where the model fits, it alone is the best judge. A star with
+    saturated pixels is always judged by symmetry: its model, fitted to what is left of it (its wings),
+    cannot describe the light next to its clipped core (bloom, a JPEG's ringing), which is mirrored
+    about the star like the rest of it.
     ``k`` default: :func:`clip_level` of each window's number of valid pixels, moved to the
     shot-noise tail (:func:`skew_corrected`); ``error``: the model's own error
     (:func:`model_error`).
@@ -256,18 +259,24 @@ def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, error: Mod
     z = excess / np.sqrt(var)
     level = skew_corrected(kk, sd, st.gain)
     core = z > level
-    if not core.any():
-        return core
-    if not (error.significant if symmetric is None else symmetric):
-        return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA)))
+    by_symmetry = (error.significant if symmetric is None else symmetric) | st.saturated
+    if not core.any() or not by_symmetry.any():
+        return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA))) if core.any() else core
     # the star's own light is mirrored about its centre: a pixel no brighter (beyond noise) than
     # the brightest pixel around its mirror is that light, not an artefact
-    mirror_max, inside = _mirrored(_max3x3(np.where(st.valid, st.data, -np.inf)), _symmetry_shifts(st))
+    mirror_max, inside = _mirrored(_max3x3(np.where(st.valid | st.satpix, _with_clipped(st), -np.inf)),
+                                   _symmetry_shifts(st))
     mirror_max = np.where(inside, mirror_max, -np.inf)
-    core &= (st.data - mirror_max) > level * np.sqrt(2.0 * var)
+    core &= ~by_symmetry[:, None, None] | ((st.data - mirror_max) > level * np.sqrt(2.0 * var))
     if not core.any():
         return core
     return st.valid & (core | (_dilate(core) & (z > GROW_SIGMA)))
+
+
+def _with_clipped(st: Stamps) -> F64:
+    """The windows' pixels with the saturated ones at their clipped level (a saturated mirror pixel is at
+    least that bright)."""
+    return np.where(st.satpix, st.clip[:, None, None], st.data) if st.saturated.any() else st.data
 
 
 def suspect_pixels(st: Stamps, mu: F64) -> tuple[Mask, ModelError]:

@@ -139,7 +139,8 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
         for stage, summary in result.stages:
             if stage == "compensate":
                 click.echo(decision_table(summary["records"]))
-    click.echo("\n".join(run_summary_lines(output, result.stages, html, [s.to_dict() for s in result.skipped])))
+    click.echo("\n".join(run_summary_lines(output, result.stages, html, [s.to_dict() for s in result.skipped],
+                                          result.trusted)))
 
 
 @click.command(context_settings=CONTEXT)

@@ -15,7 +15,8 @@ from starlog.io.mcap_file import McapFile
 from starlog.io.reader import LogReader
 from starlog.io import topics
 
-__all__ = ["describe_log", "format_description"]
+__all__ = ["describe_log", "evidence_summaries", "format_description", "solve_summaries", "trust_lines",
+           "trust_summary"]
 
 
 def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -45,7 +46,8 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
             "channels": channels,
             "provenance": [p.to_dict() for p in log.provenance()],
             "notes": list(log.notes),
-        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log) | _solve_summaries(log)
+        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log) | solve_summaries(log) | \
+            trust_summary(log)
 
 
 def _file_description(file: McapFile) -> dict[str, Any]:
@@ -102,16 +104,39 @@ def evidence_summaries(log: LogReader) -> dict[str, Any]:
     return {"centroid_evidence": out} if out else {}
 
 
-def _solve_summaries(log: LogReader) -> dict[str, Any]:
+def solve_summaries(log: LogReader) -> dict[str, Any]:
     """``{"solve": [...]}``: each ``starlog solve`` run's figures per centroid method
     (:data:`starlog.io.topics.SOLVE_METADATA`); none: {}."""
     out = []
     for _, meta in log.metadata(topics.SOLVE_METADATA):
         try:
-            out.append({"methods": json.loads(meta["methods"])})
+            out.append({"methods": json.loads(meta["methods"]), "sky_evidence": json.loads(meta.get("sky_evidence", "{}"))})
         except (KeyError, ValueError) as err:
             out.append({"error": f"unreadable solve record: {err!r}"})
     return {"solve": out} if out else {}
+
+
+def trust_summary(log: LogReader) -> dict[str, Any]:
+    """``{"trust": {...}}``: the centroid method to trust from the evidence the log holds
+    (:func:`starlog.centroid.evidence.trust`: the last ``solve`` record's catalogue residuals, else the last
+    centroid record's frame-to-frame noise, else none, saying why); {} for a log without centroids."""
+    from starlog.centroid.evidence import trust
+
+    noise = [r for r in evidence_summaries(log).get("centroid_evidence", []) if "error" not in r]
+    solved = [r for r in solve_summaries(log).get("solve", []) if "error" not in r]
+    if not noise and not solved:
+        return {}
+    sky = solved[-1].get("sky_evidence") if solved else None
+    missing = ("the log was not plate-solved (starlog solve --centroids all; it needs starlog[solve])" if not solved
+               else "its solve record compares no two centroid methods (starlog solve --centroids all)")
+    return {"trust": trust(noise[-1]["methods"] if noise else None, sky or None, sky_missing=missing)}
+
+
+def trust_lines(decision: dict[str, Any], indent: str = "           ") -> list[str]:
+    """``trust      METHOD (evidence)`` and the reason; or that none is named and why."""
+    if decision.get("method") is None:
+        return ["trust      no method named", f"{indent}{decision['reason']}"]
+    return [f"trust      {decision['method']} (by {decision['evidence']} evidence)", f"{indent}{decision['reason']}"]
 
 
 def _solve_lines(records: list[dict[str, Any]]) -> list[str]:
@@ -135,6 +160,25 @@ def _solve_lines(records: list[dict[str, Any]]) -> list[str]:
                 lines.append(f"           {'':<10} attitude error RMS arcsec x {a['x']:.3f}, y {a['y']:.3f}, roll "
                              f"{a['roll']:.2f}; / q-method sigma: cross-boresight {e['ratio']['cross_boresight']:.2f}, "
                              f"roll {e['ratio']['roll']:.2f}")
+        lines += _sky_lines(r.get("sky_evidence") or {})
+    return lines
+
+
+def _sky_lines(sky: dict[str, Any]) -> list[str]:
+    """Per centroid method its catalogue residual on the stars every method identified (one camera per log), its
+    95 % interval and the share of bootstrap draws in which it is the least."""
+    if not sky:
+        return []
+    first = next(iter(sky.values()))
+    lines = [f"sky        per centroid method: catalogue residual px per axis on the {first.get('stars', 0)} stars every "
+             f"method identified in {first.get('frames', 0)} frames (one camera model per log), 95 % bootstrap over "
+             "stars, least in % of draws"]
+    for method, e in sky.items():
+        if e.get("residual_px") is None:
+            lines.append(f"           {method:<15} -")
+            continue
+        lo, hi = e["interval_px"]
+        lines.append(f"           {method:<15}{e['residual_px']:>9.4f}  ({lo:.4f}-{hi:.4f})  {100 * e['p_best']:>3.0f} %")
     return lines
 
 
@@ -150,12 +194,14 @@ def evidence_lines(records: list[dict[str, Any]], indent: str = "           ") -
         if "error" in r:
             lines.append(f"trust      {r['error']}")
             continue
-        lines.append("trust      which centroid method (per axis, px): frame-to-frame noise, median own sigma, "
-                     "RMS apart from the others' median, S-curve applied x/y +- error")
+        lines.append("evidence   which centroid method (per axis, px): frame-to-frame noise (95 % bootstrap over stars), "
+                     "median own sigma, RMS apart from the others' median, S-curve applied x/y +- error")
         for method, e in r["methods"].items():
             amp, err = e.get("phase_amplitude_px"), e.get("phase_error_px")
             phase = (f"{amp[0]:+.4f}/{amp[1]:+.4f} +- {max(err):.4f}" if amp and err else "no calibration")
-            lines.append(f"{indent}{method:<15}{_px(e.get('noise_px'))}{_px(e.get('median_sigma_px'))}"
+            span = e.get("interval_px")
+            span_text = f" ({span[0]:.4f}-{span[1]:.4f})" if span else f"{'':>16}"
+            lines.append(f"{indent}{method:<15}{_px(e.get('noise_px'))}{span_text}{_px(e.get('median_sigma_px'))}"
                          f"{_px(e.get('apart_px'))}   {phase}")
         lines.append(f"{indent}recommended: {r['reason']}")
     return lines
@@ -247,4 +293,6 @@ def format_description(info: dict[str, Any]) -> str:
     lines += _phase_lines(info.get("phase_correction", []))
     lines += evidence_lines(info.get("centroid_evidence", []))
     lines += _solve_lines(info.get("solve", []))
+    if info.get("trust"):
+        lines += trust_lines(info["trust"])
     return "\n".join(lines)

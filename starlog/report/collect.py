@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from starlog.errors import StarlogError
 from starlog.io.images import choose_image_topic
-from starlog.io.info import evidence_summaries
+from starlog.io.info import evidence_summaries, solve_summaries, trust_summary
 from starlog.io.provenance import Provenance
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.io.topics import FRAME_INFO
@@ -92,6 +92,10 @@ class ReportData:
     notes: list[str] = field(default_factory=list)
     #: the centroid stage's records of which method to trust (``starlog info``'s ``centroid_evidence``)
     evidence: list[dict[str, Any]] = field(default_factory=list)
+    #: the method to trust from whichever evidence the log holds (``starlog info``'s ``trust``), None without centroids
+    trust: dict[str, Any] | None = None
+    #: the last ``starlog solve`` record's catalogue residual per centroid method (empty: none)
+    sky: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: ``starlog solve``'s attitude channels, by centroid method
     attitude: dict[str, AttitudeSeries] = field(default_factory=dict)
 
@@ -101,10 +105,11 @@ class ReportData:
         return [r for r in self.records if r["_topic"] == self.primary_decisions]
 
 
-def _pick(topics: list[str], prefix: str) -> str | None:
-    """The topic under ``prefix`` naming GAUSSFIT and STATIC if any, else GAUSSFIT, else the first."""
+def _pick(topics: list[str], prefix: str, method: str = _PREFERRED[0]) -> str | None:
+    """The topic under ``prefix`` naming ``method`` (the trusted one, else GAUSSFIT) and STATIC if any, else
+    ``method``, else the first."""
     found = sorted(t for t in topics if t.startswith(prefix))
-    for wanted in (_PREFERRED, _PREFERRED[:1]):
+    for wanted in ((method, _PREFERRED[1]), (method,)):
         for t in found:
             if set(wanted) <= set(t.split("/")):
                 return t
@@ -218,12 +223,12 @@ def _read_compensated(log: LogReader, data: ReportData, shown: dict[str, Any]) -
                                                 np.asarray(after, float).reshape(-1, 2))
 
 
-def _read_records(log: LogReader, data: ReportData) -> None:
+def _read_records(log: LogReader, data: ReportData, method: str) -> None:
     decision_topics = _schema_topics(data.channels, "starlog.CompensationRecord")
     for topic in sorted(decision_topics):
         for message in log.messages(topic):
             data.records.append({**message.payload, "_topic": topic})
-    data.primary_decisions = _pick(decision_topics, "/compensated/")
+    data.primary_decisions = _pick(decision_topics, "/compensated/", method)
 
 
 def _primary_record(records: list[dict[str, Any]]) -> dict[str, Any] | None:
@@ -238,11 +243,13 @@ def collect_report_data(path: str | os.PathLike[str]) -> ReportData:
     with LogReader(path) as log:
         channels = log.channels()
         data = ReportData(Path(path), channels, log.time_range(), log.provenance())
-        _read_records(log, data)
+        data.trust = trust_summary(log).get("trust")
+        method = (data.trust or {}).get("method") or _PREFERRED[0]
+        _read_records(log, data, method)
         record = _primary_record(data.primary_records)
         track_topics = _schema_topics(channels, "starlog.Tracks")
         track_topic = record["track_topic"] if record and record.get("track_topic") in track_topics \
-            else _pick(track_topics, "/track/")
+            else _pick(track_topics, "/track/", method)
         _read_frame(log, data, track_topic)
         if track_topic is None:
             data.missing["tracks"] = ("This log has no track channel (/track/<METHOD>/<MODEL>): "
@@ -262,5 +269,7 @@ def collect_report_data(path: str | os.PathLike[str]) -> ReportData:
                                          "`starlog compensate` makes them from a track channel.")
         data.notes.extend(log.notes)
         data.evidence = evidence_summaries(log).get("centroid_evidence", [])
+        solved = [r for r in solve_summaries(log).get("solve", []) if "error" not in r]
+        data.sky = solved[-1].get("sky_evidence") or {} if solved else {}
         data.attitude = read_attitude(log, channels, data.time_range[0])
     return data

@@ -186,12 +186,30 @@ def _decisions_section(data: ReportData) -> str:
             + table(["run", "samples", "f_d (Hz)", *_words(STRATEGIES), "passes (eq. 13)", "kept"], rows))
 
 
+def _rounded(value: Any) -> Any:
+    return round(value, 5) if isinstance(value, (int, float)) else "—"
+
+
 def _trust_section(data: ReportData) -> str:
-    """Which centroid method to trust: the evidence per method and the method recommended
-    (:mod:`starlog.centroid.evidence`)."""
-    if not data.evidence:
+    """Which centroid method to trust (:func:`starlog.centroid.evidence.trust`): the method named and why, then the
+    evidence per method: the catalogue residual on the stars every method identified (``starlog solve``) and the
+    frame-to-frame noise (:mod:`starlog.centroid.evidence`)."""
+    if not data.evidence and not data.sky:
         return missing("This log holds no centroid evidence: `starlog centroid` records it.")
     out = ""
+    if data.trust is not None:
+        named = data.trust["method"] or "no method named"
+        out += f'<p class="stat">Trust: {escape(named)}. {escape(data.trust["reason"])}</p>'
+    if data.sky:
+        rows = [[method, _rounded(e.get("residual_px")),
+                 f"{e['interval_px'][0]:.4f} – {e['interval_px'][1]:.4f}" if e.get("interval_px") else "—",
+                 f"{100 * e['p_best']:.0f} %" if e.get("p_best") is not None else "—", e.get("stars", 0)]
+                for method, e in data.sky.items()]
+        out += ("<p>The sky as the judge: each method's residual against the catalogue on the stars every method "
+                "identified, one camera model per log; 95 % bootstrap interval over the stars, and how often each "
+                "is the least in the draws.</p>"
+                + table(["method", "catalogue residual (px per axis)", "95 % interval (px)", "least in",
+                         "stars"], rows))
     for r in data.evidence:
         if "error" in r:
             out += missing(r["error"])
@@ -199,13 +217,14 @@ def _trust_section(data: ReportData) -> str:
         rows = []
         for method, e in r["methods"].items():
             amp, err = e.get("phase_amplitude_px"), e.get("phase_error_px")
-            rows.append([method, *(round(e[k], 5) if isinstance(e.get(k), (int, float)) else "—"
-                                   for k in ("noise_px", "median_sigma_px", "apart_px")),
+            span = e.get("interval_px")
+            rows.append([method, _rounded(e.get("noise_px")), f"{span[0]:.4f} – {span[1]:.4f}" if span else "—",
+                         _rounded(e.get("median_sigma_px")), _rounded(e.get("apart_px")),
                          f"{amp[0]:+.4f} / {amp[1]:+.4f} ± {max(err):.4f}" if amp and err else "—"])
-        out += (f'<p class="stat">{escape(r["reason"])}</p><p>The rule: the method of least frame-to-frame noise '
+        out += (f'<p>{escape(r["reason"])}</p><p>The frame-to-frame rule: the method of least frame-to-frame noise '
                 "(a star's displacement between consecutive frames minus the median displacement of all stars, "
                 "divided by √2), from the log alone; the other columns are evidence beside it.</p>"
-                + table(["method", "frame-to-frame noise (px)", "median own sigma (px)",
+                + table(["method", "frame-to-frame noise (px)", "95 % interval (px)", "median own sigma (px)",
                          "RMS apart from the others' median (px)", "S-curve applied x / y ± error (px)"], rows))
     return out
 

@@ -40,7 +40,7 @@ from starlog.stages._centroid_frames import FrameExtractor, opencv_threads
 from starlog.stages._progress import progress
 
 __all__ = ["HOT_PIXEL_FRAMES", "MODES", "MODE_FRAMES", "PHASE_MAX_FRAMES", "PHASE_MIN_FRAMES", "CentroidParameters",
-           "PhaseCorrection", "extract_options", "parse_methods", "resolve_centroid_parameters"]
+           "PhaseCorrection", "extract_options", "parse_methods", "resolve_centroid_parameters", "ALL_METHODS"]
 
 MODES = ("auto", "tracking", "full")
 """The centroid stage's modes: ``full`` searches every frame, ``tracking`` measures known stars in windows
@@ -49,12 +49,19 @@ MODE_FRAMES = 8
 """Frames at the log's start whose stars ``mode="auto"`` compares (:func:`starlog.centroid.tracking.is_image_sequence`)."""
 
 
+ALL_METHODS = (CentroidMethod.NONE, CentroidMethod.MOMENT, CentroidMethod.BICUBIC, CentroidMethod.GAUSSFIT,
+               CentroidMethod.GRADIENT, CentroidMethod.PSFFIT, CentroidMethod.WINPOS)
+"""The methods ``"all"`` names: every method that is the most accurate on some camera of the benchmarks (real sky,
+its degraded copies, the simulator's PSFs; docs/BENCHMARKS.md), and GRADIENT, which ``"all"`` named before.
+MOMENT_SQUARED is the most accurate on none (on faint stars its squared weights are the least accurate)."""
+
+
 def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
-    """``"all"``, ``"GAUSSFIT,MOMENT"`` or a list of names → centroid methods (order kept, no repeats)."""
+    """``"all"`` (:data:`ALL_METHODS`), ``"GAUSSFIT,MOMENT"`` or a list of names → centroid methods (order kept,
+    no repeats)."""
     names = spec.split(",") if isinstance(spec, str) else list(spec)
     if [n.strip().lower() for n in names] == ["all"]:
-        return [CentroidMethod.NONE, CentroidMethod.MOMENT, CentroidMethod.BICUBIC, CentroidMethod.GAUSSFIT,
-                CentroidMethod.GRADIENT]
+        return list(ALL_METHODS)
     out = []
     for name in names:
         key = name.strip().upper().replace("-", "_")
@@ -171,8 +178,9 @@ def resolve_centroid_parameters(
             options["detect_options"] = detect_options  # an undersampled PSF: recorded in the provenance
         hot_map = _hot_pixel_map(probe, topic, hot_pixels)
         mode_record = _choose_mode(probe, topic, mode, tracking, options.get("detect_options"))
-    epsf = _epsf_for(input_path, topic, chosen, psf, gain=gain, read_noise=read_noise, options=options)
+    epsf, epsf_note = _epsf_for(input_path, topic, chosen, psf, gain=gain, read_noise=read_noise, options=options)
     notes = [chosen_note] if chosen_note else []
+    notes += [epsf_note] if epsf_note else []
     if epsf is not None and CentroidMethod.PSFFIT not in chosen:
         notes.append("the empirical PSF is stored, but only PSFFIT fits it and it is not among the methods.")
     extract = FrameExtractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options, epsf=epsf,
@@ -242,17 +250,23 @@ def _camera_from_provenance(log: LogReader) -> dict[str, float]:
 
 
 def _epsf_for(path: LogSource, topic: str, chosen: list[CentroidMethod], psf: str | None, *,
-              gain: float, read_noise: float | None, options: dict[str, Any]) -> EPSF | None:
+              gain: float, read_noise: float | None, options: dict[str, Any]) -> tuple[EPSF | None, str]:
     """The log's ePSF when ``psf`` asks for it, or by default when PSFFIT is chosen
-    (see :func:`starlog.stages.centroid.centroid_log`)."""
+    (see :func:`starlog.stages.centroid.centroid_log`), and a note. By default, a log without a star to build
+    one from gets none (PSFFIT fits the Gaussian, said in the note); asked for, that is an error."""
     if psf not in (None, "gaussian", "empirical"):
         raise InvalidParameterError(f"psf must be 'gaussian' or 'empirical', got {psf!r}.")
     if psf == "gaussian" or (psf is None and CentroidMethod.PSFFIT not in chosen):
-        return None
-    with opencv_threads(1), LogReader(path) as log:
-        return _log_epsf(log, topic, gain=gain, read_noise=read_noise, psf_sigma=float(options["psf_sigma"]),
-                         window=options.get("window"), saturation=options.get("saturation"),
-                         detect_options=options.get("detect_options"))
+        return None, ""
+    try:
+        with opencv_threads(1), LogReader(path) as log:
+            return _log_epsf(log, topic, gain=gain, read_noise=read_noise, psf_sigma=float(options["psf_sigma"]),
+                             window=options.get("window"), saturation=options.get("saturation"),
+                             detect_options=options.get("detect_options")), ""
+    except InvalidInputError as err:
+        if psf == "empirical":
+            raise
+        return None, f"PSFFIT fits the Gaussian of the log's PSF width: {err}"
 
 
 def _log_epsf(log: LogReader, topic: str, *, gain: float, read_noise: float | None, psf_sigma: float,

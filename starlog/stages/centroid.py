@@ -135,7 +135,8 @@ def centroid_log(
     Parameters
     ----------
     methods : str or sequence of str
-        ``"all"`` (NONE, MOMENT, BICUBIC, GAUSSFIT, GRADIENT) or names.
+        ``"all"`` (every method but MOMENT_SQUARED:
+        :data:`~starlog.stages._centroid_parameters.ALL_METHODS`) or names.
     gain, read_noise : float, optional
         Camera gain (e-/DN) and read noise (e-), used for the shot-noise part of each
         centroid's ``sigma``. Default: the values recorded by ``simulate`` in the log's

@@ -19,20 +19,29 @@ twice, from the positions before and after compensation, under the names
 ``compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>[/separate]/before`` and ``.../after``: the attitude before
 and after compensation at the compensated rate's frames, each with its error against the truth when simulated.
 
+With two or more centroid channels, the summary and the ``starlog.solve`` record also hold the sky's evidence
+on which method to trust: each method's catalogue residual on the stars every method identified, one camera
+model per log (:mod:`starlog.attitude.sky_evidence`). :func:`probe_sky` computes the same on a few frames in
+memory, without writing a layer (``starlog run`` deciding which method to track).
+
 A frame that cannot be solved (too few stars, no solution) is written with ``solved: false`` and the
 reason; nothing stops the log. The image size comes from ``/camera/frame``; on a simulated sky field the
 camera (field of view, no distortion) comes from the simulator's provenance unless ``camera = "fit"``.
+
+One module of over 500 lines: the stage's three records, its summary and the probe share the reading of
+centroid payloads and the tracker's settings.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
 import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -42,6 +51,7 @@ from starlog.attitude.camera import focal_from_fov
 from starlog.attitude.catalogue import Catalogue, load_catalogue, solver_data_file
 from starlog.attitude.identify import ARCSEC_PER_RAD, AttitudeTracker, FrameAttitude, TrackerSettings
 from starlog.attitude.rotation import attitude_error, matrix_from_quaternion, radec_roll
+from starlog.attitude.sky_evidence import MAX_SKY_FRAMES, IdentifiedFrame, sky_evidence
 from starlog.centroid.table import CentroidFlag
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import protobuf_message_type, topics
@@ -52,11 +62,15 @@ from starlog.stages._progress import progress
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.window import windowed
 
-__all__ = ["SolveSummary", "compensated_name", "select_centroid_channels", "select_compensated_channels", "solve_log",
-           "tracker_settings"]
+__all__ = ["PROBE_FRAMES", "SolveSummary", "compensated_name", "probe_sky", "select_centroid_channels",
+           "select_compensated_channels", "solve_log", "tracker_settings"]
 
 #: The schema of the all-star channels ``compensate --stars all`` writes.
 COMPENSATED_STARS = "starlog.CompensatedStars"
+#: Frames :func:`probe_sky` solves at most, evenly spaced through the log.
+PROBE_FRAMES = 16
+#: Of them, the first ones that must solve (the first method's) for the probe to go on.
+_PROBE_TRIES = 3
 
 
 def select_centroid_channels(log: LogReader, centroids: str | Sequence[str] | None) -> list[str]:
@@ -264,12 +278,18 @@ class _MethodFigures:
     errors: list[npt.NDArray[np.float64]] = field(default_factory=list)
     sigmas: list[npt.NDArray[np.float64]] = field(default_factory=list)
     seconds: float = 0.0
+    keep_every: int = 1  # every this many frames, the identified stars are kept for the sky's evidence
+    identified: list[IdentifiedFrame] = field(default_factory=list)
 
     def add(self, result: FrameAttitude, stars: _Centroids, record: dict[str, Any]) -> None:
         self.frames += 1
         if not result.solved or result.camera is None:
             self.reasons[record["reason"].split(" (")[0]] += 1
             return
+        if (self.frames - 1) % self.keep_every == 0:
+            rows = result.centroid_rows
+            self.identified.append(IdentifiedFrame(int(record["frame"]), result.camera, result.catalogue_rows,
+                                                   stars.x[rows], stars.y[rows]))
         self.modes[result.mode] += 1
         self.matched.append(result.n_matched)
         self.residuals.append(result.residuals(stars.x, stars.y))
@@ -313,9 +333,12 @@ class SolveSummary:
     width: int
     methods: dict[str, dict[str, Any]] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)  # time spent solving each method's frames (not a result)
+    sky_evidence: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Per centroid method, its catalogue residual on the stars every method identified
+    (:func:`starlog.attitude.sky_evidence.sky_evidence`); empty with fewer than two centroid channels."""
 
     def to_dict(self) -> dict[str, Any]:
-        return {"methods": self.methods}
+        return {"methods": self.methods, "sky_evidence": self.sky_evidence}
 
     def lines(self) -> list[str]:
         """One table: per method the frames solved, stars identified, catalogue residuals and camera model;
@@ -339,7 +362,23 @@ class SolveSummary:
                 lines.append(f"{method:<{w - 1}} x {r['x']:.3f} ({s['x']:.3f})  y {r['y']:.3f} ({s['y']:.3f})  roll "
                              f"{r['roll']:.2f} ({s['roll']:.2f});  cross-boresight {e['ratio']['cross_boresight']:.2f}, "
                              f"roll {e['ratio']['roll']:.2f}  ({e['frames']} frames)")
-        return lines + self.compensation_lines()
+        return lines + self.compensation_lines() + self.sky_lines()
+
+    def sky_lines(self) -> list[str]:
+        """Per centroid method its catalogue residual on the common stars (one camera per log), 95 % interval,
+        the fraction of bootstrap draws in which it is the least."""
+        if not self.sky_evidence:
+            return []
+        lines = ["catalogue residual on the stars every method identified, one camera model per log (px per axis, "
+                 "95 % bootstrap over stars, least in % of draws)"]
+        for method, e in self.sky_evidence.items():
+            if e.get("residual_px") is None:
+                lines.append(f"  {method:<15} no star identified by every method")
+                continue
+            lo, hi = e["interval_px"]
+            lines.append(f"  {method:<15} {e['residual_px']:.4f} ({lo:.4f}-{hi:.4f})  {100 * e['p_best']:>3.0f} %  "
+                         f"{e['stars']} stars, {e['frames']} frames")
+        return lines
 
     def compensation_lines(self) -> list[str]:
         """Per all-star compensated channel solved before and after compensation: the attitude error's RMS
@@ -385,8 +424,8 @@ def _solve_channel(log: LogReader, out: StageOutput, topic: str, tracker: Attitu
     identified_ch = out.add_channel(topics.identified_topic(method), protobuf_message_type("starlog.IdentifiedStars"))
     annotations_ch = out.add_channel(topics.identified_annotations_topic(method),
                                      protobuf_message_type("foxglove.ImageAnnotations"))
-    figures = _MethodFigures()
     count = log.channel(topic).message_count
+    figures = _MethodFigures(keep_every=max(1, -(-count // MAX_SKY_FRAMES)))
     for t, frame, stars in progress(_frames(log, topic, which), total=count, description=f"solve {method}",
                                     enabled=show_progress):
         start = time.perf_counter()
@@ -462,11 +501,58 @@ def solve_log(
                     compression=compression) as (log, out):
         truth = _true_attitudes(log)
         runs = [(t, w) for t in chosen for w in ((None,) if kinds[t] != COMPENSATED_STARS else ("before", "after"))]
+        identified: dict[str, list[IdentifiedFrame]] = {}
         for topic, which in runs:
             tracker = AttitudeTracker(catalogue, (rows, cols), settings)
             figures = _solve_channel(log, out, topic, tracker, truth, show_progress=show_progress, which=which)
             name = topic.rsplit("/", 1)[-1] if which is None else compensated_name(topic, which)
             summary.methods[name] = figures.to_dict(cols)
             summary.seconds[name] = figures.seconds
-        out.writer.add_metadata(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods)})
+            if which is None and figures.identified:
+                identified[name] = figures.identified
+        if len(identified) >= 2:
+            summary.sky_evidence = sky_evidence(identified, tracker.catalogue.vectors, tracker.catalogue.magnitude,
+                                                fit_distortion=settings.fit_distortion)
+        out.writer.add_metadata(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods),
+                                                        "sky_evidence": json.dumps(summary.sky_evidence)})
     return summary
+
+
+def probe_sky(log: LogReader, centroid_topics: Sequence[str], *, frames: int = PROBE_FRAMES
+              ) -> tuple[dict[str, dict[str, Any]] | None, str]:
+    """The sky's evidence on a log's centroid methods without writing a layer: up to ``frames`` frames, evenly
+    spaced, of each centroid channel solved in memory as :func:`solve_log` solves them, and the methods'
+    catalogue residuals on the stars all identified (:func:`starlog.attitude.sky_evidence.sky_evidence`).
+    ``(None, why)`` when there is none: cedar-solve is not installed, the log is a simulated field without a
+    sky, or the first method's first frames do not solve."""
+    if len(centroid_topics) < 2:
+        return None, "one centroid method: the sky compares two or more"
+    try:
+        solver_data_file()
+    except InvalidParameterError:
+        return None, "cedar-solve is not installed (pip install 'starlog[solve]')"
+    if any(r.stage == "simulate" and r.parameters.get("sky_attitude") is None for r in log.provenance()):
+        return None, "a simulated star field without a sky (simulate --sky-attitude makes one)"
+    rows, cols = _image_shape(log)
+    settings = tracker_settings(log, {}, cols)
+    catalogue = load_catalogue()
+    stride = max(1, -(-log.channel(centroid_topics[0]).message_count // frames))
+    identified: dict[str, list[IdentifiedFrame]] = {}
+    for k, topic in enumerate(centroid_topics):
+        tracker = AttitudeTracker(catalogue, (rows, cols), replace(settings, tracking=False))
+        found, tried = [], 0
+        for message in itertools.islice(log.tables(topic), 0, None, stride):
+            stars = _Centroids.from_rows(message.rows)
+            result = tracker.solve(stars.x, stars.y, stars.flux, stars.sigma)
+            tried += 1
+            if result.solved and result.camera is not None:
+                rows_ = result.centroid_rows
+                found.append(IdentifiedFrame(int(message.header["frame"]), result.camera, result.catalogue_rows,
+                                             stars.x[rows_], stars.y[rows_]))
+            elif k == 0 and not found and tried >= _PROBE_TRIES:
+                return None, f"the first {tried} frames probed did not plate-solve ({result.reason})"
+        if not found:
+            return None, f"no frame probed of {topic} plate-solved"
+        identified[topic.rsplit("/", 1)[-1]] = found
+    return sky_evidence(identified, tracker.catalogue.vectors, tracker.catalogue.magnitude,
+                        fit_distortion=settings.fit_distortion), ""

@@ -466,6 +466,7 @@ def track_log(
     compression: str = "zstd",
     workers: int = 1,
     show_progress: bool = False,
+    selected_by: dict[str, Any] | None = None,
 ) -> TrackSummary:
     """Track every star of ``/stars/centroids/<method>`` under each motion model.
 
@@ -489,13 +490,16 @@ def track_log(
         channel; :mod:`starlog.io.timerange`): the layer holds its channels for that range.
     flatten : bool
         Write the whole chain as one self-contained file instead of a layer on the input.
+    selected_by : dict, optional
+        Why ``method`` was chosen (``starlog run``'s ``"trusted"``: the evidence that named it), recorded in the
+        provenance as it is.
     """
     chosen = parse_models(models)
     configs = _configs(chosen, tracker, motion)
     method = method.upper()
     source = topics.centroid_topic(method)
     parameters = {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
-                  "motion": dict(motion or {})}
+                  "motion": dict(motion or {})} | ({"selected_by": selected_by} if selected_by is not None else {})
     summary = TrackSummary(method=method)
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force, flatten=flatten,
                     compression=compression) as (log, out):
