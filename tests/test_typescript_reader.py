@@ -159,11 +159,12 @@ def test_the_readmes_foxglove_plot_paths_give_numbers_on_the_protobuf_layers(nod
     readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
     paths = sorted(set(re.findall(r"`(/[A-Za-z0-9_/]+\.[a-z_]+(?:\[:\]\{[a-z_]+==[a-z0-9]+\}\.[a-z_]+)?)`", readme)))
     assert len(paths) >= 5 and any("{track==9}" in p for p in paths) and any(p.startswith("/attitude/") for p in paths)
-    sim, cen, trk, mot = (tmp_path / f"{n}.mcap" for n in ("sim", "cen", "trk", "mot"))
+    sim, cen, trk, mot, trk2 = (tmp_path / f"{n}.mcap" for n in ("sim", "cen", "trk", "mot", "trk2"))
     simulate_log(small_config(width=160, height=120, n_stars=12, n_frames=20, margin=12.0), sim)
-    centroid_log(sim, cen, methods="GAUSSFIT", mode="full")
+    centroid_log(sim, cen, methods="GAUSSFIT,MOMENT", mode="full")
     track_log(cen, trk, method="GAUSSFIT", models="STATIC", tracker={"sigma_floor": 0.05})
     motion_log(trk, mot)
+    track_log(mot, trk2, method="MOMENT", models="STATIC", tracker={"sigma_floor": 0.05})  # the demo's trusted method
     codec = star_codec("starlog.Attitude")
     attitude = {f.name: ([0.0, 0.0, 0.0, 1.0] if f.repeated else 12.5 if f.type == FD.TYPE_DOUBLE else "x"
                          if f.type == FD.TYPE_STRING else True if f.type == FD.TYPE_BOOL else 3)
@@ -171,7 +172,8 @@ def test_the_readmes_foxglove_plot_paths_give_numbers_on_the_protobuf_layers(nod
     with LogWriter(tmp_path / "att.mcap") as writer:
         channel = writer.add_channel("/attitude/GAUSSFIT", protobuf_message_type("starlog.Attitude"))
         writer.write(channel, log_time=0, data=codec.encode(attitude))
-    result = subprocess.run(["node", str(node_reader), str(sim), str(cen), str(trk), str(mot), str(tmp_path / "att.mcap"),
+    result = subprocess.run(["node", str(node_reader), str(sim), str(cen), str(trk), str(mot), str(trk2),
+                             str(tmp_path / "att.mcap"),
                              "--paths", *paths], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     found = json.loads(result.stdout)["paths"]
