@@ -112,36 +112,29 @@ def _factor_all(fs, tracks, count, d, scale, lows):  # type: ignore[no-untyped-d
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _predict_track(fs, k, d, low, ft, q, wm0, wc0, wi, sig, dev):  # type: ignore[no-untyped-def]
-    """Prior of track ``k`` in place: sigma points ``x ± L[:, i]`` through ``F``, their weighted mean and
-    covariance plus ``Q``, made exactly symmetric."""
-    s = 2 * d + 1
-    for i in range(s):
-        for r in range(d):
+def _predict_track(fs, k, d, low, ft, q, wi, fl, fx):  # type: ignore[no-untyped-def]
+    """Prior of track ``k`` in place: the unscented transform of the sigma points ``x ± L[:, i]`` through the
+    linear ``F``, from their offsets ``± F L[:, i]`` from ``F x`` (their weighted mean: the weights sum to 1):
+    mean ``F x``, covariance ``Σ 2 Wi (F L[:, i]) (F L[:, i])ᵀ + Q`` (exactly symmetric). ``fl``, ``fx``:
+    scratch (d, d) and (d,)."""
+    for r in range(d):
+        acc = 0.0
+        for c in range(d):
+            acc += fs[k, c] * ft[c, r]
+        fx[r] = acc
+        for i in range(d):
             acc = 0.0
             for c in range(d):
-                chi = fs[k, c]
-                if 1 <= i <= d:
-                    chi = chi + low[c, i - 1]
-                elif i > d:
-                    chi = chi - low[c, i - 1 - d]
-                acc += chi * ft[c, r]
-            sig[i, r] = acc
-    for r in range(d):
-        mean = wm0 * sig[0, r]
-        for i in range(1, s):
-            mean += wi * sig[i, r]
-        for i in range(s):
-            dev[i, r] = sig[i, r] - mean
-        fs[k, r] = mean
+                acc += low[c, i] * ft[c, r]
+            fl[r, i] = acc
+    w2 = 2.0 * wi
     for a in range(d):
+        fs[k, a] = fx[a]
         for b in range(a + 1):
-            ab = dev[0, a] * wc0 * dev[0, b]
-            ba = dev[0, b] * wc0 * dev[0, a]
-            for i in range(1, s):
-                ab += dev[i, a] * wi * dev[i, b]
-                ba += dev[i, b] * wi * dev[i, a]
-            value = ((ab + q[a, b]) + (ba + q[b, a])) * 0.5
+            acc = 0.0
+            for i in range(d):
+                acc += fl[a, i] * fl[b, i]
+            value = w2 * acc + q[a, b]
             fs[k, d + a * d + b] = value
             fs[k, d + b * d + a] = value
 
@@ -153,10 +146,10 @@ def _predict(fs, n, d, ft, q, fpar):  # type: ignore[no-untyped-def]
     lows = np.empty((n, d, d))
     if not _factor_all(fs, tracks, n, d, fpar[F_SCALE], lows):
         return False
-    sig = np.empty((2 * d + 1, d))
-    dev = np.empty((2 * d + 1, d))
+    fl = np.empty((d, d))
+    fx = np.empty(d)
     for k in range(n):
-        _predict_track(fs, k, d, lows[k], ft, q, fpar[F_WM0], fpar[F_WC0], fpar[F_WI], sig, dev)
+        _predict_track(fs, k, d, lows[k], ft, q, fpar[F_WI], fl, fx)
     return True
 
 
@@ -173,43 +166,66 @@ def _check(cx, cy, cs, cf):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _pairs(fs, n, d, cx, cy, var, fpar, ti, mj):  # type: ignore[no-untyped-def]
-    """The admissible pairs when each is the only one of its track and of its centroid: their number, the
-    tracks in ``ti`` (ascending) and centroids in ``mj``; -1 when the assignment has a choice to make.
+def _mahalanobis2(fs, k, d, j, cx, cy, var):  # type: ignore[no-untyped-def]
+    """``d² = νᵀ (P_pos + R)⁻¹ ν`` of track ``k`` and centroid ``j``, the numpy step's very expression."""
+    nx = cx[j] - fs[k, 0]
+    ny = cy[j] - fs[k, 1]
+    a = fs[k, d] + var[j]
+    b = fs[k, d + 1]
+    cc = fs[k, 2 * d + 1] + var[j]
+    return (cc * nx * nx - 2.0 * b * nx * ny + a * ny * ny) / (a * cc - b * b)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _admissible(fs, k, d, cx, cy, var, fpar, per_centroid):  # type: ignore[no-untyped-def]
+    """Centroids admissible for track ``k`` (counted into ``per_centroid``): how many, and the last one.
 
     Admissible as in the numpy step: within the association radius or inside the gate of the predicted
-    position, or, with ``max_distance``, within it of the anchor."""
-    m = cx.size
-    per_centroid = np.zeros(m, dtype=np.int64)
-    anchor = d + d * d + 3
+    position, or, with ``max_distance``, within it of the anchor. One pass without branches, which the
+    compiler vectorises."""
+    px, py, p00, p01, p11 = fs[k, 0], fs[k, 1], fs[k, d], fs[k, d + 1], fs[k, 2 * d + 1]
+    ax, ay = fs[k, d + d * d + 3], fs[k, d + d * d + 4]
+    radius2, gate, limit2 = fpar[F_RADIUS2], fpar[F_GATE], fpar[F_MAXDIST2]
+    found = 0
+    last = -1
+    for j in range(cx.size):
+        nx = cx[j] - px
+        ny = cy[j] - py
+        a = p00 + var[j]
+        cc = p11 + var[j]
+        d2 = (cc * nx * nx - 2.0 * p01 * nx * ny + a * ny * ny) / (a * cc - p01 * p01)
+        ex = cx[j] - ax
+        ey = cy[j] - ay
+        near = ((nx * nx + ny * ny) <= radius2) | (d2 <= gate)
+        ok = np.int64(((ex * ex + ey * ey) <= limit2) if limit2 >= 0.0 else near)
+        per_centroid[j] += ok
+        found += ok
+        last = max(last, ok * (j + 1) - 1)
+    return found, last
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _pairs(fs, n, d, cx, cy, var, fpar, ti, mj):  # type: ignore[no-untyped-def]
+    """The admissible pairs when each is the only one of its track and of its centroid: their number, the
+    tracks in ``ti`` (ascending) and centroids in ``mj``; -1 when the assignment has a choice to make."""
+    per_centroid = np.zeros(cx.size, dtype=np.int64)
     count = 0
-    largest = -math.inf
     for k in range(n):
-        px, py, p00, p01, p11 = fs[k, 0], fs[k, 1], fs[k, d], fs[k, d + 1], fs[k, 2 * d + 1]
-        ax, ay = fs[k, anchor], fs[k, anchor + 1]
-        found = 0
-        for j in range(m):
-            nx = cx[j] - px
-            ny = cy[j] - py
-            a = p00 + var[j]
-            b = p01
-            cc = p11 + var[j]
-            d2 = (cc * nx * nx - 2.0 * b * nx * ny + a * ny * ny) / (a * cc - b * b)
-            if fpar[F_MAXDIST2] < 0.0:
-                ok = ((nx * nx + ny * ny) <= fpar[F_RADIUS2]) or (d2 <= fpar[F_GATE])
-            else:
-                ex = cx[j] - ax
-                ey = cy[j] - ay
-                ok = (ex * ex + ey * ey) <= fpar[F_MAXDIST2]
-            if ok:
-                if found or per_centroid[j] or math.isnan(d2):
-                    return -1
-                found = 1
-                per_centroid[j] = 1
-                largest = max(largest, d2)
-                ti[count] = k
-                mj[count] = j
-                count += 1
+        found, last = _admissible(fs, k, d, cx, cy, var, fpar, per_centroid)
+        if found > 1:
+            return -1
+        if found:
+            ti[count] = k
+            mj[count] = last
+            count += 1
+    largest = -math.inf
+    for p in range(count):
+        if per_centroid[mj[p]] > 1:
+            return -1
+        d2 = _mahalanobis2(fs, ti[p], d, mj[p], cx, cy, var)
+        if math.isnan(d2):
+            return -1
+        largest = max(largest, d2)
     if count and not largest < 1e3 * (largest + 1.0):  # the numpy step's inadmissible cost
         return -1
     return count
@@ -219,42 +235,41 @@ def _pairs(fs, n, d, cx, cy, var, fpar, ti, mj):  # type: ignore[no-untyped-def]
 def _update_track(fs, k, d, low, zx, zy, var, gate, w, work, out):  # type: ignore[no-untyped-def]
     """Gated UKF update of track ``k`` with ``z = (zx, zy)``, ``R = var I`` and weights ``w`` = (Wm0, Wc0, Wi):
     writes ``out`` = (innovation x, y, NIS) and returns whether the measurement was applied (where it was not,
-    the prior is kept). ``work`` = (dz, dzw, Pxz, K, new P) scratch arrays."""
-    s = 2 * d + 1
-    dz, dzw, pxz, gain, pnew = work
-    mh0, mh1 = _mean_offset(low, d, w[2])
-    for i in range(s):
-        h0 = 0.0 if i == 0 else (low[0, i - 1] if i <= d else -low[0, i - 1 - d])
-        h1 = 0.0 if i == 0 else (low[1, i - 1] if i <= d else -low[1, i - 1 - d])
-        dz[i, 0] = h0 - mh0
-        dz[i, 1] = h1 - mh1
-        dzw[i, 0] = dz[i, 0] * (w[1] if i == 0 else w[2])
-        dzw[i, 1] = dz[i, 1] * (w[1] if i == 0 else w[2])
-    s00, s01, s10, s11 = 0.0, 0.0, 0.0, 0.0
-    for i in range(s):
-        s00 += dzw[i, 0] * dz[i, 0]
-        s01 += dzw[i, 0] * dz[i, 1]
-        s10 += dzw[i, 1] * dz[i, 0]
-        s11 += dzw[i, 1] * dz[i, 1]
+    the prior is kept). ``work`` = (Pxz, K, new P) scratch arrays.
+
+    The sigma points' offsets from ``x`` are ``0`` and ``± L[:, i]``; their positions' offsets from the
+    predicted measurement ``ẑ`` are those minus ``ẑ − h(x)``, as in :func:`~starlog.track.ukf.ukf_update`."""
+    pxz, gain, pnew = work
+    wc0, wi = w[1], w[2]
+    mh0, mh1 = _mean_offset(low, d, wi)
+    s00 = wc0 * mh0 * mh0
+    s01 = wc0 * mh0 * mh1
+    s11 = wc0 * mh1 * mh1
+    for r in range(d):
+        pxz[r, 0] = 0.0
+        pxz[r, 1] = 0.0
+    for i in range(d):
+        u0, u1 = low[0, i] - mh0, low[1, i] - mh1  # the +L[:, i] point
+        v0, v1 = -low[0, i] - mh0, -low[1, i] - mh1  # the -L[:, i] point
+        s00 += wi * u0 * u0 + wi * v0 * v0
+        s01 += wi * u0 * u1 + wi * v0 * v1
+        s11 += wi * u1 * u1 + wi * v1 * v1
+        for r in range(d):
+            pxz[r, 0] += low[r, i] * (wi * u0) - low[r, i] * (wi * v0)
+            pxz[r, 1] += low[r, i] * (wi * u1) - low[r, i] * (wi * v1)
     s00 += var
     s11 += var
-    for r in range(d):
-        for a in range(2):
-            acc = 0.0
-            for q in range(d):
-                acc += low[r, q] * dzw[1 + q, a] + -low[r, q] * dzw[1 + d + q, a]
-            pxz[r, a] = acc
-    det = s00 * s11 - s01 * s10
-    i00, i01, i10, i11 = s11 / det, -s01 / det, -s10 / det, s00 / det
+    det = s00 * s11 - s01 * s01
+    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
     nu0 = (zx - fs[k, 0]) - mh0
     nu1 = (zy - fs[k, 1]) - mh1
     sn0 = i00 * nu0 + i01 * nu1
-    sn1 = i10 * nu0 + i11 * nu1
+    sn1 = i01 * nu0 + i11 * nu1
     out[0], out[1], out[2] = nu0, nu1, nu0 * sn0 + nu1 * sn1
     if not out[2] <= gate:
         return False
     for r in range(d):
-        gain[r, 0] = pxz[r, 0] * i00 + pxz[r, 1] * i10
+        gain[r, 0] = pxz[r, 0] * i00 + pxz[r, 1] * i01
         gain[r, 1] = pxz[r, 0] * i01 + pxz[r, 1] * i11
     for r in range(d):
         for c in range(d):
@@ -288,8 +303,7 @@ def _apply(fs, ints, d, cx, cy, sf, cf, var, ti, mj, count, t, fpar, ipar, fr, f
     lows = np.empty((count, d, d))
     if not _factor_all(fs, ti, count, d, fpar[F_SCALE], lows):
         return False
-    s = 2 * d + 1
-    work = (np.empty((s, 2)), np.empty((s, 2)), np.empty((d, 2)), np.empty((d, 2)), np.empty((d, d)))
+    work = (np.empty((d, 2)), np.empty((d, 2)), np.empty((d, d)))
     w = (fpar[F_WM0], fpar[F_WC0], fpar[F_WI])
     sums = d + d * d
     for p in range(count):

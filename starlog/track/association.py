@@ -669,39 +669,53 @@ class _CompiledStep:
     def frame(self, t: int, cents: Array, out: npt.NDArray[np.void]) -> int:
         """The frame at ``t`` with the centroids ``cents`` ((m, 4) x, y, sigma, flux), its rows written to
         ``out`` (room for ``n_live + m``); returns their number."""
-        tr, status_of = self.tracker, self.status
+        tr, lost = self.tracker, self.lost
         tracks = tr._tracks
-        n = len(tracks)
-        tracks.reserve(n + cents.shape[0])
-        self.lost.reserve(n)
+        n = tracks.n
+        if tracks.floats.shape[0] < n + cents.shape[0] or lost.floats.shape[0] < n:  # room for births, losses
+            tracks.reserve(n + cents.shape[0])
+            lost.reserve(tracks.floats.shape[0])
         ft, q = tr._transition(t - tr._last_time) if n else self.still
-        tables = (tracks.floats, tracks.ints, n)
-        status, rows, lost, born = self.track_frame(*tables, cents, t, tr._next_id, ft, q, self.fpar, self.ipar,
-                                                    out, self.lost.floats, self.lost.ints)
-        if status == status_of.BAD_VALUES:
-            raise InvalidInputError(_NON_FINITE)
-        if status == status_of.BAD_SIGMA:
-            raise InvalidInputError(_BAD_SIGMA)
-        if status == status_of.REPAIR_PREDICT:
-            return _copied(tr._frame_steps(t, tr._centroids(*cents.T)), out)
+        status, rows, n_lost, born = self.track_frame(tracks.floats, tracks.ints, n, cents, t, tr._next_id, ft, q,
+                                                      self.fpar, self.ipar, out, lost.floats, lost.ints)
+        if status:
+            return self._handed_back(status, t, cents, out)
         tr._last_time = t
         tr.frames += 1
-        if status != status_of.DONE:  # an assignment to solve, or an update to repair
-            c = tr._centroids(*cents.T)
-            ti, mj = tr._associate(c)
-            if status == status_of.ASSIGN:
-                status, rows, lost, born = self.finish_frame(*tables, tr._d, cents, t, tr._next_id, ti, mj,
-                                                             self.fpar, self.ipar, out, self.lost.floats,
-                                                             self.lost.ints)
-            if status == status_of.REPAIR_UPDATE:
-                return _copied(tr._finish_steps(t, c, ti, mj), out)
-        tracks.n = rows
+        return self._done(rows, n_lost, born)
+
+    def _done(self, rows: int, n_lost: int, born: int) -> int:
+        """The call's bookkeeping after a frame: the live tracks, the next id, the lost tracks' statistics."""
+        tr = self.tracker
+        tr._tracks.n = rows
         tr._next_id += born
-        if lost:
-            self.lost.n = lost
+        if n_lost:
+            self.lost.n = n_lost
             tr._lost.append(tr._stats(self.lost, alive=False))
             self.lost.n = 0
         return int(rows)
+
+    def _handed_back(self, status: int, t: int, cents: Array, out: npt.NDArray[np.void]) -> int:
+        """The frame after the call handed it back (``status``): an error, or the numpy steps' turn."""
+        tr, code = self.tracker, self.status
+        if status == code.BAD_VALUES:
+            raise InvalidInputError(_NON_FINITE)
+        if status == code.BAD_SIGMA:
+            raise InvalidInputError(_BAD_SIGMA)
+        c = tr._centroids(*cents.T)
+        if status == code.REPAIR_PREDICT:
+            return _copied(tr._frame_steps(t, c), out)
+        tr._last_time = t  # the tracks are predicted
+        tr.frames += 1
+        ti, mj = tr._associate(c)
+        if status == code.ASSIGN:
+            tracks, lost = tr._tracks, self.lost
+            status, rows, n_lost, born = self.finish_frame(
+                tracks.floats, tracks.ints, tracks.n, tr._d, cents, t, tr._next_id, ti, mj, self.fpar, self.ipar,
+                out, lost.floats, lost.ints)
+            if status == code.DONE:
+                return self._done(rows, n_lost, born)
+        return _copied(tr._finish_steps(t, c, ti, mj), out)  # REPAIR_UPDATE
 
     def block(self, frames: list[tuple[int, int, int]],
               cents: Array) -> tuple[npt.NDArray[np.void], npt.NDArray[np.int64]]:
