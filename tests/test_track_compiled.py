@@ -4,8 +4,13 @@ Scenarios are random (hypothesis draws a seed and the scenario's knobs, numpy dr
 crowded and moving fields, missed detections, outliers, spurious detections, empty frames, irregular
 frame intervals, every motion model and the tracker's options. The compiled step must give the same
 tracks (ids, association, gating, confirmation, losses, brightest track) and the same numbers to
-rounding: each float within ``RTOL`` of its own scale (positions: the coordinates; covariances:
-``sqrt(cov_xx cov_yy)``; velocities: their largest value in the run; NIS: ``1 + nis``).
+rounding: positions, velocities and innovations within ``RTOL`` of their scale (the coordinates; the
+largest velocity of the run), covariances within ``RTOL_COV`` of ``sqrt(cov_xx cov_yy)`` and the NIS
+(``νᵀ S⁻¹ ν``, S from them) within ``RTOL_COV`` of ``1 + nis``. A posterior covariance is the prior's
+minus the gain's share: where the measurement is far more precise than the prediction (a new
+POLYNOMIAL_TREND track, its acceleration unknown, measured to 1e-3 px) the subtraction cancels up to 8
+digits, and each form keeps its own rounding of the prior in what is left (1500 random scenarios:
+positions within 1e-11, covariances and NIS within 6e-8).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from starlog.track._kernels import INT_COLUMNS
 from starlog.track.state import INT_FIELDS, TrackState
 
 RTOL = 1e-9
+RTOL_COV = 1e-6
 PERIOD_NS = 3_333_333
 FLOATS = [n for n in TRACK_DTYPE.names if TRACK_DTYPE[n].kind == "f"]
 EXACT = [n for n in TRACK_DTYPE.names if TRACK_DTYPE[n].kind != "f"]
@@ -82,7 +88,7 @@ def scales(rows: np.ndarray, velocity: float) -> dict[str, np.ndarray]:
     measured = np.maximum(np.maximum(np.abs(rows["meas_x"]), np.abs(rows["meas_y"])), position)
     cov = np.sqrt(rows["cov_xx"] * rows["cov_yy"])
     return {"x": position, "y": position, "vx": np.full(rows.size, velocity), "vy": np.full(rows.size, velocity),
-            "cov_xx": rows["cov_xx"], "cov_xy": cov, "cov_yy": rows["cov_yy"], "innovation_x": measured,
+            "cov_xx": cov, "cov_xy": cov, "cov_yy": cov, "innovation_x": measured,
             "innovation_y": measured, "nis": 1.0 + rows["nis"], "meas_x": measured, "meas_y": measured,
             "meas_sigma": rows["meas_sigma"], "flux": np.abs(rows["flux"])}
 
@@ -96,7 +102,8 @@ def assert_same_tracks(compiled: list[np.ndarray], reference: list[np.ndarray]) 
         for name in EXACT:
             assert_array_equal(a[name], b[name], err_msg=f"frame {k}: {name}")
         for name, scale in scales(b, velocity).items():
-            assert np.all(np.abs(a[name] - b[name]) <= RTOL * scale), f"frame {k}: {name}"
+            rtol = RTOL_COV if name.startswith("cov") or name == "nis" else RTOL
+            assert np.all(np.abs(a[name] - b[name]) <= rtol * scale), f"frame {k}: {name}"
 
 
 def assert_same_summary(compiled: StarTracker, reference: StarTracker) -> None:

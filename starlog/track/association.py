@@ -43,11 +43,18 @@ live track. Each frame:
 
 "The brightest star's track" (the paper's sequence, §2.1): :meth:`StarTracker.brightest_track`.
 
+Each frame runs as one compiled call (:func:`starlog.track._kernels.track_frame`) on the live
+tracks' tables (:class:`~starlog.track.state.TrackState`); the numpy steps below
+(``StarTracker(vectorised=True)``) are its reference, and take a frame over where the call hands it
+back: an assignment with a choice to make (solved with scipy here) or a covariance to repair.
+:meth:`StarTracker.update_block` runs the frames of a block into one row table.
+
 Coordinates: x = column, y = row, px, (0, 0) at the centre of the top-left pixel; times are
 int ns ``log_time``.
 
 One module of over 500 lines: :class:`StarTracker`'s steps (predict, associate, update, start,
-life cycle) act on one set of live tracks, so they are one class.
+life cycle) act on one set of live tracks, so they are one class, beside the compiled call that
+does them all and hands frames back to them.
 """
 
 from __future__ import annotations
