@@ -8,7 +8,6 @@ import pickle
 from pathlib import Path
 from types import SimpleNamespace
 
-import numpy as np
 import pytest
 
 from starlog.io import LogReader, LogView, topics

@@ -5,10 +5,11 @@ of dozens of small array operations a frame, not in arithmetic: a frame holds te
 state variables. :func:`track_frame` does the whole frame in one call on the tables of
 :class:`~starlog.track.state.TrackState` (floats: ``x``, ``P`` row by row, ``sums``, ``anchor``;
 integers: the columns named below, in the order of :data:`~starlog.track.state.INT_FIELDS`):
-validate the centroids; predict every track (Merwe sigma points from a Cholesky factor, the
-unscented transform, as :func:`~starlog.track.ukf.ukf_predict`); associate; update the associated
-tracks behind the innovation gate (as :func:`~starlog.track.ukf.ukf_update`); count; retire the lost
-tracks; start new ones; write the :data:`~starlog.track.TRACK_DTYPE` rows. The numpy steps are the
+validate the centroids; predict every track (Merwe sigma points from a Cholesky factor through the
+motion model and the unscented transform, as :func:`~starlog.track.ukf.ukf_predict`, computed from
+the points' offsets from their mean); associate; update the associated tracks behind the innovation
+gate (as :func:`~starlog.track.ukf.ukf_update`); count; retire the lost tracks; start new ones; write
+the :data:`~starlog.track.TRACK_DTYPE` rows. The numpy steps are the
 reference the tests compare it with, and it hands over to them where they do what is not compiled:
 
 * an association with a choice to make. When every admissible (track, centroid) pair is the only
@@ -20,8 +21,10 @@ reference the tests compare it with, and it hands over to them where they do wha
   the step stops before that step changes anything (:data:`REPAIR_PREDICT`,
   :data:`REPAIR_UPDATE`) and the caller takes the numpy steps.
 
-The numbers agree with the numpy steps to rounding, not bit for bit (numpy's matrix products sum in
-another order). Association tests compute the very expressions of the numpy step. One module, as
+The numbers agree with the numpy steps to rounding, not bit for bit: numpy's matrix products sum in
+another order, and its prediction forms the sigma points ``x ± L[:, i]`` before subtracting their
+mean, which rounds the offsets to the precision of ``x`` (a few 1e-14 px at 500 px). The association's
+tests are the numpy step's very expressions. One module, as
 numba's cache is refreshed when a function's own file changes, not when a function it calls in
 another file does. Compiled on first use and cached beside this file (``__pycache__``), or in numba's
 user cache when the package folder is read-only. Divisions follow numpy (``error_model="numpy"``).
@@ -57,21 +60,22 @@ class Status(enum.IntEnum):
     REPAIR_UPDATE = REPAIR_UPDATE
 
 
-#: Float parameters (``fpar``): sigma-point scale ``d + lambda``; weights Wm0, Wc0 and Wi (i > 0); gate
-#: threshold; association radius²; max_distance² (< 0: none); sigma floor; initial velocity and acceleration
-#: variances.
-F_SCALE, F_WM0, F_WC0, F_WI, F_GATE, F_RADIUS2, F_MAXDIST2, F_FLOOR, F_VEL_VAR, F_ACC_VAR = range(10)
+#: Float parameters (``fpar``): sigma-point scale ``d + lambda``; covariance weights Wc0 (the centre point) and
+#: Wi (the others, also their mean weight: the centre point's offset from ``x`` is 0, so its mean weight does
+#: not enter); gate threshold; association radius²; max_distance² (< 0: none); sigma floor; initial velocity
+#: and acceleration variances.
+F_SCALE, F_WC0, F_WI, F_GATE, F_RADIUS2, F_MAXDIST2, F_FLOOR, F_VEL_VAR, F_ACC_VAR = range(9)
 #: Integer parameters (``ipar``): confirm_hits, max_missed, max_gated.
 I_CONFIRM, I_MAX_MISSED, I_MAX_GATED = range(3)
 
 
-def parameters(*, scale: float, wm0: float, wc0: float, wi: float, gate: float, radius2: float,
+def parameters(*, scale: float, wc0: float, wi: float, gate: float, radius2: float,
                max_distance2: float, floor: float, velocity_var: float, acceleration_var: float,
                confirm_hits: int, max_missed: int, max_gated: int
                ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
     """``(fpar, ipar)`` of :func:`track_frame` from the tracker's options (``max_distance2 < 0``: none)."""
-    fpar = np.empty(10)
-    fpar[F_SCALE], fpar[F_WM0], fpar[F_WC0], fpar[F_WI] = scale, wm0, wc0, wi
+    fpar = np.empty(9)
+    fpar[F_SCALE], fpar[F_WC0], fpar[F_WI] = scale, wc0, wi
     fpar[F_GATE], fpar[F_RADIUS2], fpar[F_MAXDIST2], fpar[F_FLOOR] = gate, radius2, max_distance2, floor
     fpar[F_VEL_VAR], fpar[F_ACC_VAR] = velocity_var, acceleration_var
     ipar = np.empty(3, dtype=np.int64)
@@ -233,14 +237,14 @@ def _pairs(fs, n, d, cx, cy, var, fpar, ti, mj):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _update_track(fs, k, d, low, zx, zy, var, gate, w, work, out):  # type: ignore[no-untyped-def]
-    """Gated UKF update of track ``k`` with ``z = (zx, zy)``, ``R = var I`` and weights ``w`` = (Wm0, Wc0, Wi):
+    """Gated UKF update of track ``k`` with ``z = (zx, zy)``, ``R = var I`` and weights ``w`` = (Wc0, Wi):
     writes ``out`` = (innovation x, y, NIS) and returns whether the measurement was applied (where it was not,
     the prior is kept). ``work`` = (Pxz, K, new P) scratch arrays.
 
     The sigma points' offsets from ``x`` are ``0`` and ``± L[:, i]``; their positions' offsets from the
     predicted measurement ``ẑ`` are those minus ``ẑ − h(x)``, as in :func:`~starlog.track.ukf.ukf_update`."""
     pxz, gain, pnew = work
-    wc0, wi = w[1], w[2]
+    wc0, wi = w
     mh0, mh1 = _mean_offset(low, d, wi)
     s00 = wc0 * mh0 * mh0
     s01 = wc0 * mh0 * mh1
@@ -304,7 +308,7 @@ def _apply(fs, ints, d, cx, cy, sf, cf, var, ti, mj, count, t, fpar, ipar, fr, f
     if not _factor_all(fs, ti, count, d, fpar[F_SCALE], lows):
         return False
     work = (np.empty((d, 2)), np.empty((d, 2)), np.empty((d, d)))
-    w = (fpar[F_WM0], fpar[F_WC0], fpar[F_WI])
+    w = (fpar[F_WC0], fpar[F_WI])
     sums = d + d * d
     for p in range(count):
         k, j = ti[p], mj[p]

@@ -660,11 +660,11 @@ class _CompiledStep:
 
         cfg = tracker.config
         d = tracker._d
-        wm, wc = cfg.points.weights(d)
+        _, wc = cfg.points.weights(d)
         self.tracker = tracker
         self.status, self.track_frame, self.finish_frame = Status, track_frame, finish_frame
         self.fpar, self.ipar = parameters(
-            scale=cfg.points.scale(d), wm0=wm[0], wc0=wc[0], wi=wm[1], gate=tracker._threshold,
+            scale=cfg.points.scale(d), wc0=wc[0], wi=wc[1], gate=tracker._threshold,
             radius2=cfg.association_radius**2,
             max_distance2=-1.0 if cfg.max_distance is None else cfg.max_distance**2,
             floor=cfg.sigma_floor, velocity_var=cfg.motion.init_velocity_sigma**2,
