@@ -200,3 +200,17 @@ class InvalidMessageError(LogError):
 
 class StageFunctionError(StarlogError):
     """A declared stage's own function failed, or returned what its channels cannot take."""
+
+
+# ---------------------------------------------------------------- topics of several channels
+__all__ += ["MixedTopicError"]
+
+
+class MixedTopicError(LogError):
+    """The channels of one topic carry messages of schemas that cannot be read as one series (an image
+    channel and a JSON channel, say); the message names the topic and the schemas
+    (:func:`starlog.io.shared_topics.topic_conflict`)."""
+
+    def __init__(self, path: str | Path, topic: str, detail: str) -> None:
+        self.topic = topic
+        super().__init__(path, f"{detail}.")

@@ -50,10 +50,11 @@ class Message:
         An image channel: the frame as a 2-D array (read-only; copy it to write into it).
         ``starlog.Centroids`` / ``Detections`` / ``Tracks``: the per-star table as the structured
         array the built-in stages use (``CENTROID_DTYPE``, ``DETECTION_DTYPE``, ``TRACK_DTYPE``
-        plus ``brightest``). Any other JSON channel: the decoded dict; protobuf and ROS
-        channels: the decoded object.
+        plus ``brightest``), protobuf or (logs of earlier versions) JSON alike. starlog's other
+        star tables: the dict of their JSON form. Any other JSON channel: the decoded dict; other
+        protobuf and ROS channels: the decoded object.
     fields : dict
-        A per-star table's other JSON fields (e.g. ``{"frame": 12, "method": "GAUSSFIT"}``); for
+        A per-star table's other fields (e.g. ``{"frame": 12, "method": "GAUSSFIT"}``); for
         any other JSON channel the whole decoded dict, as in ``data``.
     """
 

@@ -133,20 +133,23 @@ def write_numbers(dst: Path, count: int, *, padding: int = 0, chunk_size: int = 
 
 def write_plain(src: Path, dst: Path, *, use_chunking: bool = True, message_indexes: bool = True,
                 summary: bool = True, shuffle: bool = False, chunk_size: int = 1024 * 1024,
-                topic: str = topics.IMAGE) -> Path:
+                topic: str = topics.IMAGE, repeat_schemas: bool = True, repeat_channels: bool = True,
+                statistics: bool = True) -> Path:
     """Every channel of a starlog log rewritten with the plain ``mcap`` writer in an unusual layout.
 
     ``use_chunking=False``: messages outside chunks; ``message_indexes=False``: chunks without
-    message index records; ``summary=False``: no summary section; ``shuffle``: messages written
-    out of ``log_time`` order (in reversed blocks). The image channel is renamed ``topic``.
+    message index records; ``summary=False``: no summary section; ``repeat_schemas=False`` /
+    ``repeat_channels=False``: a summary without the schema / channel records (they stay in the data
+    section); ``statistics=False``: no statistics record; ``shuffle``: messages written out of
+    ``log_time`` order (in reversed blocks). The image channel is renamed ``topic``.
     """
     from mcap.writer import IndexType, Writer
 
     index_types = IndexType.ALL if message_indexes else IndexType.ALL & ~IndexType.MESSAGE
     with LogReader(src) as log, open(dst, "wb") as f:
         writer = Writer(f, chunk_size=chunk_size, use_chunking=use_chunking, index_types=index_types,
-                        use_statistics=summary, use_summary_offsets=summary, repeat_channels=summary,
-                        repeat_schemas=summary)
+                        use_statistics=summary and statistics, use_summary_offsets=summary,
+                        repeat_channels=summary and repeat_channels, repeat_schemas=summary and repeat_schemas)
         writer.start(profile="", library="plain-mcap-test")
         ids: dict[str, int] = {}
         schema_ids: dict[int, int] = {}

@@ -30,3 +30,14 @@ def test_a_slow_ingest_is_an_informational_miss_and_not_judged_at_quick_size(ben
     bench.check_ingest(quick, slow, quick=True)
     assert full.items[0].verdict == "MISS" and full.report() == 0
     assert quick.items[0].verdict == "n/a"
+
+
+def test_the_star_table_targets_judge_the_frame_times_and_the_uncompressed_sizes(bench):
+    frames = [("centroid: detections + centroids + annotations", 160.0, 31.0), ("track: one message", 100.0, 55.0)]
+    sizes = [("centroid (uncompressed)", 1000, 460), ("track (uncompressed)", 1000, 510),
+             ("centroid (zstd)", 1000, 800)]
+    targets = bench.Targets()
+    bench.check_codec(targets, frames, sizes, 50.0)
+    assert [t.verdict for t in targets.items] == ["PASS", "FAIL", "PASS", "FAIL", "MISS"]
+    assert "centroid stage (50 stars): 31.0 us <= 50" in targets.items[0].text
+    assert targets.report() == 1

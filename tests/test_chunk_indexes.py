@@ -262,9 +262,9 @@ nearby_chunk_indexes = st.builds(
 # private _chunk_index_problems, _covered: their blocks need 65,536+ chunks in a real log; tested directly on tables
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.one_of(chunk_indexes, nearby_chunk_indexes), max_size=9), st.integers(1, 4),
-       st.one_of(st.integers(0, 2**64 - 1), SMALL), st.sets(st.integers(0, 3), max_size=3))
+       st.one_of(st.integers(0, 2**64 - 1), SMALL))
 def test_checks_and_gaps_made_block_by_block_are_those_of_the_whole_table(
-        indexes: list[ChunkIndex], block: int, data_end: int, channels: set[int]) -> None:
+        indexes: list[ChunkIndex], block: int, data_end: int) -> None:
     """A union of unions is the union, and the first three problems of each kind come in file order,
     so blocks of any size give what one block of the whole table gives."""
     from mcap.summary import Summary
@@ -276,7 +276,7 @@ def test_checks_and_gaps_made_block_by_block_are_those_of_the_whole_table(
     def both() -> tuple[list[str], list[tuple[int, int]]]:
         summary = Summary()
         summary.chunk_indexes = ChunkIndexTable(indexes)  # type: ignore[assignment]
-        return (_chunk_index_problems(summary.chunk_indexes, channels, data_end),  # type: ignore[arg-type]
+        return (_chunk_index_problems(summary.chunk_indexes, data_end),  # type: ignore[arg-type]
                 _covered(summary))
 
     whole = both()
@@ -284,6 +284,20 @@ def test_checks_and_gaps_made_block_by_block_are_those_of_the_whole_table(
         patch.setattr(chunk_module, "ROW_BLOCK", block)
         assert len(list(ChunkIndexTable(indexes).row_blocks())) == -(-len(indexes) // block)
         assert both() == whole
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(chunk_indexes, nearby_chunk_indexes), max_size=9), st.sets(st.integers(0, 5), max_size=4))
+def test_the_channels_listed_and_the_first_chunk_listing_each_are_those_of_the_chunk_indexes(
+        indexes: list[ChunkIndex], asked: set[int]) -> None:
+    table = ChunkIndexTable(indexes)
+    listed = {cid for ci in indexes for cid in ci.message_index_offsets}
+    assert table.channel_ids() == listed
+    firsts = table.first_rows(asked)
+    assert set(firsts) == asked & listed
+    for cid, row in firsts.items():  # the lowest offset listing it; of two at one offset, the first in the table
+        naming = [k for k, ci in enumerate(indexes) if cid in ci.message_index_offsets]
+        assert row == min(naming, key=lambda k: indexes[k].chunk_start_offset)
 
 
 def test_blocks_and_row_ranges_out_of_bounds_are_refused() -> None:

@@ -87,6 +87,12 @@ FOREIGN = {
     "no summary, no chunks": lambda src, dst: write_plain(src, dst, summary=False, use_chunking=False),
     "out of order, overlapping chunks": lambda src, dst: write_plain(src, dst, shuffle=True, chunk_size=4096),
     "out of order, no message indexes": lambda src, dst: write_plain(src, dst, shuffle=True, message_indexes=False),
+    "summary without schemas and channels": lambda src, dst: write_plain(
+        src, dst, repeat_schemas=False, repeat_channels=False, chunk_size=8192),
+    "summary without channels, no message indexes, no statistics": lambda src, dst: write_plain(
+        src, dst, repeat_channels=False, message_indexes=False, statistics=False, chunk_size=8192),
+    "no chunks, summary without schemas": lambda src, dst: write_plain(
+        src, dst, use_chunking=False, repeat_schemas=False),
 }
 
 

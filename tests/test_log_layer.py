@@ -18,6 +18,7 @@ from starlog.io.json_schema import compile_json_schema
 from starlog.io.messages import decode_json
 from starlog.io.schemas import load_json_schema, schema_dir
 from starlog.io.writer import VALIDATED_METADATA_KEY
+from tests.json_logs import write_json_log
 
 SCHEMAS = sorted(p.stem for p in schema_dir().glob("starlog.*.json"))
 
@@ -73,7 +74,7 @@ def pipeline_log(tmp_path_factory: pytest.TempPathFactory, sim_log: Path) -> Pat
     centroid_log(sim_log, folder / "cen.mcap", methods="GAUSSFIT", workers=1)
     track_log(folder / "cen.mcap", folder / "trk.mcap", method="GAUSSFIT", models="STATIC",
               tracker={"sigma_floor": 0.05})
-    return folder / "trk.mcap"
+    return write_json_log(folder / "trk.mcap", folder / "old.mcap")  # the star tables as JSON, as logs of old
 
 
 def test_compiled_checker_agrees_with_jsonschema(pipeline_log: Path) -> None:

@@ -196,3 +196,18 @@ def test_the_readme_solve_block_runs_as_written(tmp_path, monkeypatch):
         assert result.exit_code == 0, f"{command}: {result.output}"
         output = result.stdout
     assert "GAUSSFIT" in output and "MOMENT" in output and "attitude error against the true attitude" in output
+
+
+def test_solve_on_json_centroids_writes_what_it_writes_on_protobuf_ones(logs, tmp_path):
+    """A log of an earlier version (centroids as JSON) solves to the same attitude and identified stars."""
+    from tests.json_logs import write_json_log
+
+    old = write_json_log(logs["cen"], tmp_path / "old-cen.mcap")
+    solve_log(old, tmp_path / "att.mcap", centroids="GAUSSFIT")
+    topics_ = ["/attitude/GAUSSFIT", "/stars/identified/GAUSSFIT"]
+    with LogReader(tmp_path / "att.mcap") as log, LogReader(logs["att"]) as new:
+        assert {c.topic: c.message_encoding for c in log.channels() if c.topic in topics_} == dict.fromkeys(
+            topics_, "protobuf")
+        for topic in topics_:  # solver_ms: the solver's own time, not a result
+            assert [{**m.payload, "solver_ms": 0} for m in log.messages(topic)] == [
+                {**m.payload, "solver_ms": 0} for m in new.messages(topic)]

@@ -21,6 +21,7 @@ from starlog.detect import DETECTION_DTYPE
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.export import TABLES, arrow_schema, export_log, table_columns
 from starlog.io import LogReader, file_digest, json_message_type, load_json_schema, topics
+from starlog.io.star_tables import STAR_TABLES, star_codec
 from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.sim import Jitter
 from starlog.stages import simulate_log
@@ -67,19 +68,24 @@ def test_each_stage_adds_its_channels_and_provenance(pipeline_logs: dict[str, Pa
 
 
 def test_every_json_message_validates_against_its_embedded_schema(pipeline_logs: dict[str, Path]) -> None:
+    """JSON messages against the schema in the log; protobuf star tables, as the dicts readers get, against the
+    JSON Schema of the same table (what earlier versions wrote)."""
     with LogReader(pipeline_logs["comp"]) as log:
         schemas = {s.id: s for f in log.files for s in f.summary.schemas.values()}
-        validators = {}
+        validators, tables = {}, set()
         for schema, channel, message in log.raw_messages(log.topics):
+            assert schema is not None
+            if channel.message_encoding == "protobuf" and schema.name in STAR_TABLES:
+                tables.add(schema.name)
+                jsonschema.validate(star_codec(schema.name).to_dict(message.data), load_json_schema(schema.name))
             if channel.message_encoding != "json":
                 continue
-            assert schema is not None
             if schema.id not in validators:
                 embedded = json.loads(schemas[schema.id].data)
                 assert embedded == load_json_schema(schema.name)
                 validators[schema.id] = jsonschema.Draft202012Validator(embedded)
             validators[schema.id].validate(json.loads(message.data))
-    assert len(validators) == 7
+    assert len(validators) == 4 and tables == {"starlog.Detections", "starlog.Centroids", "starlog.Tracks"}
 
 
 @pytest.mark.parametrize(

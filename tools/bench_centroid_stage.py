@@ -51,8 +51,8 @@ import numpy as np
 from starlog.centroid import CentroidMethod, measure_centroids
 from starlog.detect import detect_stars
 from starlog.io.reader import LogReader
-from starlog.io.records import record_encoder
-from starlog.stages._centroid_frames import reuse_frame_buffers
+from starlog.io.frames import reuse_frame_buffers
+from starlog.io.star_tables import star_codec
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
@@ -122,7 +122,7 @@ def in_process_parts(log: Path, methods: list[str], count: int) -> dict[str, flo
 
         measure(pairs[0])  # its kernels loaded first, as for detection
         out[m] = per_frame_cpu(measure, pairs)
-    encoder = record_encoder("starlog.Detections", "stars")  # as the stage encodes them, schema check included
+    encoder = star_codec("starlog.Detections")  # as the stage encodes them, columns checked
     out["encode (detections)"] = per_frame_cpu(lambda d: encoder.encode({"frame": 0}, d), dets)
     return out
 

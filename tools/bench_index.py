@@ -10,7 +10,10 @@ this prints, each figure measured in this run:
    writes a log with a summary of its own) and of ``starlog verify`` (reads every record and
    compares each chunk index with its chunk);
 2. beside it, the summary parse alone in this process: ``mcap``'s ``get_summary`` against
-   starlog's ``read_file_summary`` (seconds, and the memory each keeps, from tracemalloc).
+   starlog's ``read_file_summary`` (seconds, and the memory each keeps, from tracemalloc);
+3. what a summary that does not repeat the schemas and channels costs (the same log written with
+   ``repeat_schemas=False, repeat_channels=False``; starlog then reads them from the data section):
+   ``starlog info`` and opening the file in this process (``McapFile``), with and without the copies.
 
 Usage::
 
@@ -38,15 +41,18 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from starlog.io.chunk_indexes import read_file_summary
+from starlog.io.mcap_file import McapFile
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_scale import _timed as timed  # noqa: E402  # wall seconds and peak RSS (MiB) of a command
 
 
-def write_log(path: Path, chunks: int) -> None:
-    """``chunks`` messages on two channels, one a chunk (the ``mcap`` library's writer, no compression)."""
+def write_log(path: Path, chunks: int, *, repeat: bool = True) -> None:
+    """``chunks`` messages on two channels, one a chunk (the ``mcap`` library's writer, no compression); with
+    ``repeat=False``, a summary without the schema and channel records."""
     with open(path, "wb") as f:
-        writer = Writer(f, chunk_size=1, compression=CompressionType.NONE)
+        writer = Writer(f, chunk_size=1, compression=CompressionType.NONE, repeat_schemas=repeat,
+                        repeat_channels=repeat)
         writer.start()
         schema = writer.register_schema(name="starlog.FrameInfo", encoding="jsonschema", data=b'{"type":"object"}')
         frame = writer.register_channel(topic="/camera/frame", message_encoding="json", schema_id=schema)
@@ -78,6 +84,27 @@ def parse_alone(path: Path) -> list[tuple[str, float, float]]:
     return rows
 
 
+def open_seconds(path: Path, repeat: int = 5) -> float:
+    """The best of ``repeat`` opens of ``path`` (summary read and checked, definitions found), in this process."""
+    best = float("inf")
+    for _ in range(repeat):
+        start = time.perf_counter()
+        McapFile(path).close()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def unrepeated_rows(folder: Path, chunks: int, starlog: list[str]) -> tuple[float, ...]:
+    """``info`` seconds and open seconds of the log of ``chunks`` chunks with the summary's copies, then without."""
+    figures = []
+    for repeat in (True, False):
+        log = folder / f"repeat_{repeat}_{chunks}.mcap"
+        write_log(log, chunks, repeat=repeat)
+        figures += [timed([*starlog, "info", str(log)])[0], open_seconds(log)]
+        log.unlink()
+    return tuple(figures)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="2k and 20k chunks (about 5 s)")
@@ -90,7 +117,7 @@ def main() -> None:
     print("| chunks | file MB | `info` s | `info` peak MiB | `filter` s | `filter` peak MiB | `verify` s "
           "| `verify` peak MiB |")
     print("|---|---|---|---|---|---|---|---|")
-    parses = []
+    parses, unrepeated = [], []
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as tmp:
         for n in sizes:
             log = Path(tmp) / f"chunks_{n}.mcap"
@@ -104,11 +131,17 @@ def main() -> None:
                   f"| {filtered[1]:.0f} | {verified[0]:.2f} | {verified[1]:.0f} |", flush=True)
             parses += [(n, *row) for row in parse_alone(log)]
             log.unlink()
+            unrepeated.append((n, *unrepeated_rows(Path(tmp), n, starlog)))
     print("\nThe summary parse alone, in this process:\n")
     print("| chunks | parser | seconds | MB kept |")
     print("|---|---|---|---|")
     for n, name, seconds, kept in parses:
         print(f"| {n:,} | {name} | {seconds:.2f} | {kept:.1f} |")
+    print("\nA summary without the schema and channel records (read from the data section instead):\n")
+    print("| chunks | `info` s, with copies | `info` s, without | open s, with copies | open s, without |")
+    print("|---|---|---|---|---|")
+    for n, info_with, open_with, info_without, open_without in unrepeated:
+        print(f"| {n:,} | {info_with:.2f} | {info_without:.2f} | {open_with:.4f} | {open_without:.4f} |")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,12 @@ length (300 and 3000 frames at 300 Hz by default) a log is simulated once, then
 * ``motion`` (the platform motion) of that track, on the track layer;
 * ``compensate`` of that track at one rate (50 Hz, paper protocol), on the track layer;
 * ``run`` of GAUSSFIT -> STATIC -> compensate 50 Hz, paper protocol (the same options), all cores:
-  one layer per stage; and ``run --flatten``, the same written as one self-contained file.
+  one layer per stage; and ``run --flatten``, the same written as one self-contained file;
+* ``user pipeline``: what a user writes instead of starlog (``tools/user_pipeline.py``: the ``mcap`` reader, SEP's
+  extraction and windowed positions, a filterpy UKF per star), one core, on the same log;
+* with ``--baseline REF``: ``run`` of the code at the git ref REF (its files from ``git archive``, run on this
+  interpreter) on logs its own ``simulate`` writes, and today's ``run`` on those logs (zstd, as simulate wrote
+  them before it wrote lz4): the speed-up of a change, both sides in this one run.
 
 Each stage writes a layer: only what it adds, on the log it read. The outputs of the stages run one
 by one are named as ``run``'s layers (``run.1-centroid.mcap``, ``run.2-track-GAUSSFIT.mcap``,
@@ -62,6 +67,7 @@ Usage::
     python tools/bench_pipeline.py                  # full run (tens of minutes on 2 cores)
     python tools/bench_pipeline.py --quick          # smoke run: 256x256, 120 and 480 frames
     python tools/bench_pipeline.py --sizes 512 --frames 300,1200 --repeat 2 --keep /tmp/bp --json bp.json
+    python tools/bench_pipeline.py --baseline d99c6e0   # also against run of the code at that commit
 """
 
 from __future__ import annotations
@@ -116,15 +122,19 @@ CHAIN_OPEN_LIMIT_S = 0.050
 #: The frame size at which the centroid stage's speed against SEP is a target (smaller frames cost starlog
 #: a larger share of per-call work than SEP).
 SEP_TARGET_SIZE = 1024
-#: The ``track`` stage's marginal time a frame (ms) at the frame size it is set for (50 stars a frame).
-TRACK_TARGET_MS, TRACK_TARGET_SIZE = 0.15, 1024
-#: The frame size the target of ``run`` (300 frames/s: the camera keeps up) is set for.
-RUN_TARGET_SIZE = 512
 #: ``run``'s marginal frames/s target per frame size (both cores).
-RUN_TARGETS = {512: 600.0, 1024: 300.0}
+RUN_TARGETS = {512: 1200.0, 1024: 600.0}
+#: ``run`` at least this many times the pipeline a user writes instead (tools/user_pipeline.py, one core).
+USER_PIPELINE_FACTOR = 15.0
+#: ``run`` at least this many times ``run`` of the code at ``--baseline`` (each on the logs its own simulate writes).
+BASELINE_FACTOR = 2.0
+#: ``track``'s marginal time a frame at most this, at the frame size this is set for (50 stars).
+TRACK_LIMIT_S, TRACK_LIMIT_SIZE = 0.15e-3, 1024
 #: The centroid stage (default mode, one core) may take at most this many times the decode-only floor a frame, at
 #: the frame size this is set for (on smaller frames the stars' own work, not the frame's pixels, dominates).
-DECODE_FLOOR_FACTOR, DECODE_FLOOR_SIZE = 2.0, 1024
+DECODE_FLOOR_FACTOR, DECODE_FLOOR_SIZE = 1.5, 1024
+USER_LABEL = "user pipeline (mcap + SEP + filterpy UKF)"
+ZSTD_RUN_LABEL = f"{RUN_LABEL} on a zstd log"
 DECODE_LABEL, FULL_MODE_LABEL = "decode only", f"centroid {PIPELINE_METHOD} --mode full"
 #: Why the motion stage's memory is not a target: its estimate is joint over the whole log.
 MOTION_MEMORY = "the motion estimate is joint over the log and holds every measurement, by design"
@@ -152,7 +162,7 @@ class Timing:
     peak_mib: float
 
 
-def run_command(argv: Sequence[str]) -> Timing:
+def run_command(argv: Sequence[str], env: dict[str, str] | None = None) -> Timing:
     """Run ``argv`` (user's environment, output discarded) and measure it; raise with its stderr on failure.
 
     The peak comes from GNU time, not from ``wait4`` on a child of this process where it can be
@@ -162,7 +172,7 @@ def run_command(argv: Sequence[str]) -> Timing:
     prefix = [gnu_time, "-f", "BENCH_PIPELINE %U %S %M"] if gnu_time else []
     with tempfile.TemporaryFile("w+") as err:
         start = time.perf_counter()
-        proc = subprocess.Popen([*prefix, *argv], stdout=subprocess.DEVNULL, stderr=err, env=_USER_ENV)
+        proc = subprocess.Popen([*prefix, *argv], stdout=subprocess.DEVNULL, stderr=err, env={**_USER_ENV, **(env or {})})
         _, status, usage = os.wait4(proc.pid, 0)
         seconds = time.perf_counter() - start
         proc.returncode = os.waitstatus_to_exitcode(status)
@@ -320,13 +330,14 @@ def sep_reference(log: Path, max_frames: int) -> dict[str, float]:
 
 
 # ---------------------------------------------------------------- the stages
-def simulate(size: int, frames: int, path: Path, workers: int) -> None:
-    """The input log (kept and reused when it exists, e.g. under ``--keep``)."""
+def simulate(size: int, frames: int, path: Path, workers: int, env: dict[str, str] | None = None) -> None:
+    """The input log (kept and reused when it exists, e.g. under ``--keep``), in the simulator's default
+    compression (``env``: of the ``--baseline`` code)."""
     if path.exists():
         return
     run_command([*STARLOG, "simulate", "-o", str(path), "--size", f"{size}x{size}", "--stars", str(stars_for(size)),
                  "--fps", str(CAMERA_HZ), "--frames", str(frames), "--jitter", "25:0.05", "--seed", "1",
-                 "--workers", str(workers), "-q"])
+                 "--workers", str(workers), "-q"], env)
 
 
 def decode_only(log: str) -> int:
@@ -350,13 +361,13 @@ def full_mode_command(log: Path, folder: Path) -> Command:
                                      "--mode", "full", "--workers", "1", "-q", "--force"], [out])
 
 
-def warm_up(log: Path, folder: Path, methods: list[str]) -> None:
+def warm_up(log: Path, folder: Path, methods: list[str], env: dict[str, str] | None = None) -> None:
     """Run the centroid stage once, untimed, on the first frames with every timed method: the compiled
     kernels are compiled then and cached on disk (on a fresh clone, or after a change of the code), so a
     compilation never lands in a timed run (it added seconds to one run and moved its peak memory)."""
     out = folder / ".warm-up.mcap"
     run_command([*STARLOG, "centroid", str(log), "-o", str(out), "--method", ",".join(methods), "--end", "frame:3",
-                 "--workers", "1", "-q", "--force"])
+                 "--workers", "1", "-q", "--force"], env)
     out.unlink(missing_ok=True)
 
 
@@ -367,6 +378,8 @@ class Command:
     label: str
     argv: list[str]
     outputs: list[Path]
+    env: dict[str, str] | None = None
+    """Variables added to the user's environment (the ``--baseline`` code's ``PYTHONPATH``)."""
 
 
 def pipeline_layers(folder: Path) -> list[Path]:
@@ -424,6 +437,38 @@ def pipeline_commands(log: Path, folder: Path, workers: int) -> list[Command]:
         run_pipeline_command(log, sibling(folder, "run"), workers, flatten=False),
         run_pipeline_command(log, sibling(folder, "flat"), workers, flatten=True),
     ]
+
+
+# ---------------------------------------------------------------- what run is compared with
+def user_pipeline_command(log: Path, folder: Path) -> Command:
+    """The pipeline a user writes instead (``tools/user_pipeline.py``: mcap + SEP + a filterpy UKF per star)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = folder / "user_pipeline.npz"
+    return Command(USER_LABEL, [sys.executable, str(Path(__file__).resolve().parent / "user_pipeline.py"), str(log),
+                                str(out)], [out])
+
+
+def baseline_source(ref: str, folder: Path) -> dict[str, str]:
+    """The repository's files at the git ``ref`` (``git archive``) in ``folder``; the environment that runs that code
+    on this interpreter (its ``PYTHONPATH``)."""
+    if not (folder / "starlog").is_dir():
+        repo = Path(__file__).resolve().parent.parent
+        archive = subprocess.run(["git", "-C", str(repo), "archive", ref], check=True, capture_output=True).stdout
+        folder.mkdir(parents=True, exist_ok=True)
+        subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
+    return {"PYTHONPATH": str(folder)}
+
+
+def baseline_label(ref: str) -> str:
+    return f"{RUN_LABEL}, code at {ref}"
+
+
+def baseline_commands(log: Path, folder: Path, workers: int, ref: str, env: dict[str, str]) -> list[Command]:
+    """``run`` of the code at ``ref`` on the log its own simulate wrote (zstd), and today's ``run`` on that log."""
+    before = run_pipeline_command(log, folder / "baseline-run", workers, flatten=False)
+    today = run_pipeline_command(log, folder / "zstd-run", workers, flatten=False)
+    return [Command(baseline_label(ref), before.argv, before.outputs, env),
+            Command(ZSTD_RUN_LABEL, today.argv, today.outputs)]
 
 
 @dataclass
@@ -489,18 +534,26 @@ def outputs_digest(paths: Sequence[Path]) -> str:
 
 
 def timed(label: str, command: Command) -> tuple[Timing, str]:
-    timing = run_command(command.argv)
+    timing = run_command(command.argv, command.env)
     print(f"  {label}: {timing.seconds:.1f} s", file=sys.stderr, flush=True)
     return timing, outputs_digest(command.outputs)
 
 
-def stage_plans(logs: dict[int, Path], root: Path, args: argparse.Namespace) -> dict[int, list[tuple[int, Command]]]:
+def stage_plans(logs: dict[int, Path], root: Path, args: argparse.Namespace,
+                baseline_logs: dict[int, Path] | None = None) -> dict[int, list[tuple[int, Command]]]:
     """Per log length, the timed stages as (workers, command), in an order where a stage's input exists."""
     plans = {}
     for n, log in logs.items():
         plan = [(1, decode_command(log)), (1, full_mode_command(log, root / f"{n}/full"))]
         plan += [(1, centroid_command(log, root / f"{n}/workers1", m, 1)) for m in args.methods]
-        plans[n] = plan + [(args.workers_all, c) for c in pipeline_commands(log, root / f"{n}/all", args.workers_all)]
+        plan += [(args.workers_all, c) for c in pipeline_commands(log, root / f"{n}/all", args.workers_all)]
+        if not args.no_user_pipeline:
+            plan.append((1, user_pipeline_command(log, root / f"{n}/user")))
+        if baseline_logs:
+            plan += [(args.workers_all, c) for c in baseline_commands(baseline_logs[n], root / f"{n}/baseline",
+                                                                       args.workers_all, args.baseline,
+                                                                       args.baseline_env)]
+        plans[n] = plan
     return plans
 
 
@@ -536,11 +589,16 @@ def bench_size(size: int, lengths: list[int], root: Path, args: argparse.Namespa
     between repeats does not enter a marginal rate (the slope of one repeat's pair of lengths).
     """
     logs = {n: root / f"sim_{size}_{n}.mcap" for n in lengths}
+    baseline_logs = {n: root / f"sim_{size}_{n}_baseline.mcap" for n in lengths} if args.baseline else None
     for n, log in logs.items():
         print(f"# {size}x{size}, {n} frames: simulate", file=sys.stderr, flush=True)
         simulate(size, n, log, args.workers_all)
-    plans = stage_plans(logs, root, args)
+        if baseline_logs:
+            simulate(size, n, baseline_logs[n], args.workers_all, args.baseline_env)
+    plans = stage_plans(logs, root, args, baseline_logs)
     warm_up(logs[lengths[0]], root, args.methods)  # args.methods holds the pipeline's method too
+    if baseline_logs:
+        warm_up(baseline_logs[lengths[0]], root, [PIPELINE_METHOD], args.baseline_env)
     results, tracker_times = time_stages(size, plans, root, args)
     track_runs = next(r for r in results if r.label == TRACK_LABEL).paired
     track_ratio = float(np.median([_seconds_per_frame(marginal_fit(lengths, run)[0]) / t
@@ -849,6 +907,7 @@ def targets(sizes: list[dict[str, Any]], workers_all: int) -> list[tuple[str, bo
     out = []
     for s in sizes:
         out += speed_targets(s, workers_all)
+        out += comparison_targets(s)
         out += output_size_targets(s)
         out.append(chain_open_target(s))
         tag = f"{s['size']}²"
@@ -884,10 +943,11 @@ def speed_targets(s: dict[str, Any], workers_all: int) -> list[tuple[str, bool |
     out.append((f"{tag}: centroid {PIPELINE_METHOD} --workers {workers_all} / --workers 1 = "
                 f"{_f(all_['rate'] / one['rate'], 2)} >= 1.8", all_["rate"] >= 1.8 * one["rate"]))
     track = _stage(s, TRACK_LABEL)
-    ms, judged = 1e3 * _seconds_per_frame(track["rate"]), s["size"] == TRACK_TARGET_SIZE
-    text = f"{tag}: track marginal time {_f(ms, 3)} ms a frame <= {TRACK_TARGET_MS:g} ms"
-    out.append((text if judged else f"{text} (n/a: set for {TRACK_TARGET_SIZE}² frames)",
-                ms <= TRACK_TARGET_MS if judged else None))
+    seconds = _seconds_per_frame(track["rate"])
+    text = f"{tag}: track marginal {_f(1e3 * seconds, 3)} ms a frame <= {_f(1e3 * TRACK_LIMIT_S, 2)} ms"
+    judged = s["size"] == TRACK_LIMIT_SIZE
+    out.append((text if judged else f"{text} (n/a: set for {TRACK_LIMIT_SIZE}² frames, 50 stars)",
+                seconds <= TRACK_LIMIT_S if judged else None))
     out.append((f"{tag}: track marginal time / tracker's own time {_f(1e3 * s['tracker_s_per_frame'], 3)} ms = "
                 f"{_f(s['track_ratio'], 2)} (median of the repeats' ratios; informational: what the stage's reading "
                 "and writing add to the tracker)", None))
@@ -895,6 +955,31 @@ def speed_targets(s: dict[str, Any], workers_all: int) -> list[tuple[str, bool |
     extra = 1200 * _seconds_per_frame(comp["rate"])
     out.append((f"{tag}: compensate of 1200 frames = {_f(extra, 2)} s + start-up {_f(comp['start_up'], 2)} s; "
                 "<= 1 s + start-up", extra <= 1.0))
+    return out
+
+
+def comparison_targets(s: dict[str, Any]) -> list[tuple[str, bool | None]]:
+    """``run`` against the pipeline a user writes instead and against the code at ``--baseline``, rates of this run."""
+    tag, run = f"{s['size']}²", _stage(s, RUN_LABEL)
+    out: list[tuple[str, bool | None]] = []
+    user = _stage(s, USER_LABEL)
+    if user is not None:
+        ratio = run["rate"] / user["rate"] if user["rate"] > 0 else math.nan
+        out.append((f"{tag}: run {_f(run['rate'])} frames/s = {_x(ratio)} the {USER_LABEL} {_f(user['rate'])} "
+                    f"frames/s (one core) >= {USER_PIPELINE_FACTOR:g}x", ratio >= USER_PIPELINE_FACTOR))
+    before = next((r for r in s["stages"] if r["label"].startswith(f"{RUN_LABEL}, code at ")), None)
+    if before is None:
+        out.append((f"{tag}: run against the code before a change (n/a: no --baseline REF given)", None))
+        return out
+    ratio = run["rate"] / before["rate"] if before["rate"] > 0 else math.nan
+    out.append((f"{tag}: run {_f(run['rate'])} frames/s = {_x(ratio)} {before['label'].removeprefix(RUN_LABEL + ', ')}"
+                f" {_f(before['rate'])} frames/s, each on its own simulate's log, >= {BASELINE_FACTOR:g}x",
+                ratio >= BASELINE_FACTOR))
+    zstd = _stage(s, ZSTD_RUN_LABEL)
+    if zstd is not None:
+        out.append((f"{tag}: run on that code's zstd log {_f(zstd['rate'])} frames/s = "
+                    f"{_x(zstd['rate'] / before['rate'] if before['rate'] > 0 else math.nan)} it (informational: the "
+                    "same log for both)", None))
     return out
 
 
@@ -1002,6 +1087,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--json", metavar="FILE", help="also write every figure as JSON to FILE")
     ap.add_argument("--methods", default="MOMENT,GAUSSFIT", help="centroid methods timed on one core")
     ap.add_argument("--sep-frames", type=int, default=300, help="frames SEP is timed on")
+    ap.add_argument("--baseline", metavar="REF", help="also time run of the code at this git ref (e.g. the commit before "
+                                                      "a change) on the logs its own simulate writes: the target is a "
+                                                      f"speed-up of at least {BASELINE_FACTOR:g}x")
+    ap.add_argument("--no-user-pipeline", action="store_true",
+                    help="leave out the user pipeline row (mcap + SEP + filterpy: slow on long logs)")
     ap.add_argument("--profile-stage", metavar="JSON", help=argparse.SUPPRESS)
     ap.add_argument("--decode-only", metavar="LOG", help=argparse.SUPPRESS)
     ap.add_argument("command", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
@@ -1027,6 +1117,7 @@ def main(argv: list[str] | None = None) -> int:
     args.load_before = os.getloadavg()  # other jobs on the machine make every wall time slower
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as tmp:
         root = Path(args.keep) if args.keep else Path(tmp)
+        args.baseline_env = baseline_source(args.baseline, root / f"baseline-{args.baseline}") if args.baseline else None
         sizes = []
         for size in args.sizes:
             (root / str(size)).mkdir(parents=True, exist_ok=True)

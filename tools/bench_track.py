@@ -49,7 +49,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
-from starlog.io import LogReader, LogWriter, encode_json, file_digest, json_message_type, topics
+from starlog.io import LogReader, LogWriter, file_digest, protobuf_message_type, topics  # noqa: E402
+from starlog.io.star_tables import star_codec  # noqa: E402
 from starlog.track import (  # noqa: E402
     BatchUKF,
     MotionModel,
@@ -136,15 +137,16 @@ def write_centroid_log(path: Path, n_frames: int, method: str = "GAUSSFIT", seed
     flux = rng.uniform(5e3, 5e4, STAGE_STARS)
     sigma = 0.01 + 3.0 / np.sqrt(flux)
     with LogWriter(path, force=True) as log:
-        channel = log.add_channel(topics.centroid_topic(method), json_message_type("starlog.Centroids"))
+        channel = log.add_channel(topics.centroid_topic(method), protobuf_message_type("starlog.Centroids"))
+        codec = star_codec("starlog.Centroids")  # as the centroid stage writes them
         for k in range(n_frames):
             t = k * PERIOD_NS
             shake = 0.05 * np.sin(2 * np.pi * 25.0 * t * 1e-9)
             p = pos + shake + rng.normal(size=pos.shape) * sigma[:, None]
             stars = [{"star": i, "x": float(p[i, 0]), "y": float(p[i, 1]), "flux": float(flux[i]),
                       "snr": 100.0, "sigma": float(sigma[i]), "peak": 1000.0, "background": 100.0,
-                      "psf_sigma": 1.2, "flags": 0} for i in range(STAGE_STARS)]
-            log.write(channel, log_time=t, data=encode_json({"frame": k, "method": method, "stars": stars}))
+                      "psf_sigma": 1.2, "flags": 0, "n_masked": 0} for i in range(STAGE_STARS)]
+            log.write(channel, log_time=t, data=codec.encode_dict({"frame": k, "method": method, "stars": stars}))
 
 
 def _cpu_of(command: list[str]) -> tuple[float, str]:

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from starlog.cli.options import CONTEXT, echo_status, json_option, output_option, print_json, write_options
+from starlog.cli.options import CONTEXT, echo_status, frame_write_options, json_option, output_option, print_json
 
 __all__ = ["ingest", "simulate"]
 
@@ -106,7 +106,7 @@ def _psf_shape(psf_model: str, psf_fwhm: float, moffat_beta: float, airy_lambda_
               help="With --sky-attitude: signal of a magnitude-6 star, e-/frame.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--start-ns", type=click.IntRange(0), default=0, show_default=True, help="log_time of frame 0.")
-@write_options
+@frame_write_options
 def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: str, fps: float | None,
              n_frames: int | None, duration: float | None, psf_sigma: float, psf_model: str, psf_fwhm: float,
              moffat_beta: float, airy_lambda_d: float, airy_zero: float, sky: float, read_noise: float,
@@ -171,7 +171,7 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
 @click.option("--skip-bad", is_flag=True,
               help="Skip unreadable or mismatched files or frames (each named in the summary) instead of stopping.")
 @json_option
-@write_options
+@frame_write_options
 def ingest(source: Path, output: Path, fps: float | None, start_ns: int, time_pattern: str | None, time_unit: str,
            skip_bad: bool, as_json: bool, force: bool, compression: str, workers: int, quiet: bool) -> None:
     """Convert camera output into a log: a folder of star images, a SER file or a video.

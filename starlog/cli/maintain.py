@@ -57,7 +57,7 @@ def filter_command(log: Path, output: Path, topics: tuple[str, ...], exclude_top
     report = filter_log(log, output, topics=topics, exclude_topics=exclude_topics, start=start, end=end,
                         frame_topic=frame_topic, force=force, compression=compression)
     d = report.to_dict()
-    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} channels; "
+    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} topics; "
                        f"{d['chunks_copied']} chunks copied as they are, {d['chunks_reencoded']} re-encoded")
     if as_json:
         print_json(d)
@@ -88,7 +88,7 @@ def flatten(log: Path, output: Path, force: bool, quiet: bool, as_json: bool) ->
 
     report = flatten_log(log, output, force=force)
     d = report.to_dict()
-    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} channels, "
+    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} topics, "
                        f"{d['chunks_copied']} chunks copied as they are")
     if as_json:
         print_json(d)
@@ -136,10 +136,18 @@ def verify(log: Path, file_only: bool, as_json: bool, quiet: bool) -> None:
     Checks magic, header, footer, the summary and its CRC, every chunk (CRC, decompression),
     message and chunk indexes against the contents, statistics, schema/channel references,
     JSON messages against their schemas, protobuf/ROS decoding, image decoding and size, and
-    log_time order per channel. Valid but unusual layouts (no message indexes, no summary) are
-    notes. A layer is checked with every file of its chain: each base must be where the layer
-    says, with the size, summary CRC and SHA-256 it recorded, and ids and topics must be unique
-    across the chain (--file-only: the one file). Exit status 0 only when no error was found.
+    log_time order per channel, channels sharing a topic. Valid but unusual layouts (no message
+    indexes, no summary, channels of one schema sharing a topic) are notes; channels of schemas
+    starlog cannot read as one series on one topic are an error; a file starlog reads in full but
+    that breaks a rule of the MCAP specification (a summary without the schema and channel
+    records its chunk indexes name) is a warning, and `starlog filter LOG -o OUT` rewrites it.
+    A layer is checked with every file of its chain: each base must be where the layer says,
+    with the size, summary CRC and SHA-256 it recorded, and ids and topics must be unique across
+    the chain (--file-only: the one file).
+
+    \b
+    Exit status: 0 valid (notes at most); 3 starlog reads it in full, but it does not conform to
+    the MCAP specification (warnings); 1 damaged, or a part starlog refuses (errors).
 
     \b
     Example:
@@ -163,5 +171,5 @@ def verify(log: Path, file_only: bool, as_json: bool, quiet: bool) -> None:
     else:
         for line in report.lines():
             click.echo(line)
-    if not report.ok:
-        sys.exit(1)
+    if report.exit_status:
+        sys.exit(report.exit_status)

@@ -14,10 +14,13 @@ import click
 __all__ = ["BURN_IN_HELP", "CONTEXT", "COPY_RANGE", "burn_in_setting", "echo_status", "flatten_option",
            "image_topic_option", "input_log", "json_option", "key_values", "output_option", "overwrite_options",
            "print_json", "quiet_option", "report_batch", "scheduler_option", "time_range_options",
-           "topic_selection_options", "write_options"]
+           "topic_selection_options", "write_options", "frame_write_options"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
+#: ``starlog.io.writer.FRAME_COMPRESSION``, named here so that ``--help`` does not import the log layer (a test
+#: keeps the two equal).
+FRAME_COMPRESSION_DEFAULT = "lz4"
 QUIET_HELP = "No progress bar and no status lines on stderr; results (stdout, --json) still print."
 
 
@@ -77,21 +80,35 @@ def quiet_option(f: F) -> F:
     return click.option("--quiet", "-q", is_flag=True, help=QUIET_HELP)(f)
 
 
+def _overwrite_options(f: F, compression: str, compression_help: str) -> F:
+    f = click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default=compression,
+                     show_default=True, help=compression_help)(f)
+    return click.option("--force", is_flag=True, help="Overwrite the output if it exists.")(f)
+
+
 def overwrite_options(f: F) -> F:
     """--force, --compression (of the output log's chunks)."""
-    f = click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd",
-                     show_default=True, help="Chunk compression of the output log.")(f)
-    return click.option("--force", is_flag=True, help="Overwrite the output if it exists.")(f)
+    return _overwrite_options(f, "zstd", "Chunk compression of the output log.")
+
+
+def _workers_option(f: F) -> F:
+    return click.option("--workers", type=click.IntRange(1, 256), default=os.cpu_count() or 1,
+                        show_default="all cores",
+                        help="Cores for per-frame work, image decoding and chunk compression; the output "
+                             "does not depend on it.")(f)
 
 
 def write_options(f: F) -> F:
     """--force, --compression, --workers, --quiet."""
-    f = quiet_option(f)
-    f = click.option("--workers", type=click.IntRange(1, 256), default=os.cpu_count() or 1,
-                     show_default="all cores",
-                     help="Cores for per-frame work, image decoding and chunk compression; the output "
-                          "does not depend on it.")(f)
-    return overwrite_options(f)
+    return overwrite_options(_workers_option(quiet_option(f)))
+
+
+def frame_write_options(f: F) -> F:
+    """:func:`write_options` of a command that writes camera frames: their chunks in lz4 by default, which the
+    stages reading every frame decode fastest for their size."""
+    return _overwrite_options(_workers_option(quiet_option(f)), FRAME_COMPRESSION_DEFAULT,
+                              "Chunk compression of the output log: lz4 decodes fastest for its size (zstd: smaller "
+                              "files, slower to read; none: the largest, fastest to read).")
 
 
 FLATTEN_HELP = ("Write one self-contained log (every file of the input's chain and this stage's channels) instead "

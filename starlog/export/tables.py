@@ -3,7 +3,9 @@
 Every table is declared here, in :data:`TABLES` (which channels feed it and how a message
 becomes rows), and its columns once, in ``schemas/tables.json``, which this module turns into
 Arrow schemas (with each column's description and unit as field metadata) and which the README
-documents. A family is written only when the log has its channels.
+documents. A family is written only when the log has its channels. The per-star tables are read
+as tables (:meth:`~starlog.io.reader.LogReader.tables`): each message's rows become columns whole,
+with no dict per star.
 """
 
 from __future__ import annotations
@@ -16,12 +18,14 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.export.channels import export_image_frames, export_topic
-from starlog.io.reader import ChannelSummary, LogReader
+from starlog.io.reader import ChannelSummary, LogReader, TableMessage
 from starlog.io.schemas import schema_dir
 from starlog.io import topics
 
@@ -37,6 +41,8 @@ _ARROW_TYPES: dict[str, pa.DataType] = {
 
 Row = dict[str, Any]
 RowMaker = Callable[[ChannelSummary, int, Any], Iterable[Row]]
+#: A star-table message → its columns (name → one value per row), for tables fed by star tables.
+ColumnMaker = Callable[[TableMessage], dict[str, npt.ArrayLike]]
 
 
 @cache
@@ -59,11 +65,13 @@ def arrow_schema(table: str) -> pa.Schema:
 
 @dataclass(frozen=True)
 class TableSpec:
-    """A Parquet table: which channels feed it and how a message becomes rows."""
+    """A Parquet table: which channels feed it and how a message becomes rows (a dict per row, from the
+    message's dict; or ``columns`` from its rows as a structured array, for a per-star table)."""
 
     name: str
     matches: Callable[[ChannelSummary], bool]
-    rows: RowMaker
+    rows: RowMaker | None = None
+    columns: ColumnMaker | None = None
 
 
 def _frame_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
@@ -71,31 +79,28 @@ def _frame_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
 
 
 def _per_star_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
-    """Truth and detections: one row per star of the frame."""
+    """Truth: one row per star of the frame."""
     for star in msg["stars"]:
         yield {"log_time": log_time, "frame": msg["frame"], **star}
 
 
-def _centroid_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
-    """One row per star; logs written before ``n_masked`` existed read as 0 masked pixels."""
-    for star in msg["stars"]:
-        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], "n_masked": 0, **star}
+def _star_columns(*header: str) -> ColumnMaker:
+    """A per-star table's columns: ``log_time``, the ``header`` fields repeated on every row, then the rows'
+    fields (a row field that an older log lacks reads as its default: ``n_masked`` 0)."""
 
+    def columns(message: TableMessage) -> dict[str, npt.ArrayLike]:
+        rows = message.rows if message.rows is not None else np.zeros(0)
+        n = rows.size
+        out: dict[str, npt.ArrayLike] = {"log_time": np.full(n, message.log_time, dtype=np.int64)}
+        out.update({key: [message.header[key]] * n for key in header})
+        out.update({name: rows[name] for name in rows.dtype.names or ()})
+        return out
 
-def _track_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
-    for row in msg["tracks"]:
-        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], "model": msg["model"], **row}
+    return columns
 
 
 def _motion_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
     yield {"log_time": log_time, **msg}
-
-
-def _residual_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
-    head = {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], "model": msg["model"],
-            "fit": msg["fit"]}
-    for star in msg["stars"]:
-        yield {**head, **star}
 
 
 def _series_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
@@ -128,11 +133,6 @@ def _attitude_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]
            **{k: msg.get(k, nan) for k in ("error_x_arcsec", "error_y_arcsec", "error_roll_arcsec")}}
 
 
-def _identified_rows(ch: ChannelSummary, log_time: int, msg: Any) -> Iterator[Row]:
-    for star in msg["stars"]:
-        yield {"log_time": log_time, "frame": msg["frame"], "method": msg["method"], **star}
-
-
 def _topic_is(topic: str) -> Callable[[ChannelSummary], bool]:
     return lambda ch: ch.topic == topic
 
@@ -145,47 +145,71 @@ def _schema_is(schema_name: str) -> Callable[[ChannelSummary], bool]:
 TABLES: tuple[TableSpec, ...] = (
     TableSpec("frames", _topic_is(topics.FRAME_INFO), _frame_rows),
     TableSpec("truth", _topic_is(topics.TRUTH), _per_star_rows),
-    TableSpec("detections", _topic_is(topics.DETECTIONS), _per_star_rows),
-    TableSpec("centroids", _schema_is("starlog.Centroids"), _centroid_rows),
-    TableSpec("tracks", _schema_is("starlog.Tracks"), _track_rows),
+    TableSpec("detections", _topic_is(topics.DETECTIONS), columns=_star_columns("frame")),
+    TableSpec("centroids", _schema_is("starlog.Centroids"), columns=_star_columns("frame", "method")),
+    TableSpec("tracks", _schema_is("starlog.Tracks"), columns=_star_columns("frame", "method", "model")),
     TableSpec("motion", _schema_is("starlog.PlatformMotion"), _motion_rows),
-    TableSpec("residuals", _schema_is("starlog.StarResiduals"), _residual_rows),
+    TableSpec("residuals", _schema_is("starlog.StarResiduals"),
+              columns=_star_columns("frame", "method", "model", "fit")),
     TableSpec("compensation", _schema_is("starlog.CompensatedSample"), _series_rows),
     # the brightest track's records; the per-star records of ``compensate --stars all`` stay in the log
     TableSpec("decisions", lambda ch: ch.schema_name == "starlog.CompensationRecord"
               and not ch.topic.endswith("/stars/decisions"), _decision_rows),
     TableSpec("attitude", _schema_is("starlog.Attitude"), _attitude_rows),
-    TableSpec("identified", _schema_is("starlog.IdentifiedStars"), _identified_rows),
+    TableSpec("identified", _schema_is("starlog.IdentifiedStars"), columns=_star_columns("frame", "method")),
 )
 
 
 def _write_table(log: LogReader, spec: TableSpec, channels: list[ChannelSummary], path: Path,
                  row_group_rows: int) -> int:
+    """Write one table, a row group each time ``row_group_rows`` rows are gathered (after a whole message)."""
     schema = arrow_schema(spec.name)
     names = schema.names
     by_topic = {c.topic: c for c in channels}
-    columns: dict[str, list[Any]] = {n: [] for n in names}
-    written = 0
+    chunks: dict[str, list[Any]] = {n: [] for n in names}
+    pending = written = 0
     tmp = path.with_name(f".{path.name}.partial")
     with pq.ParquetWriter(tmp, schema, compression="zstd") as writer:
 
         def flush() -> None:
-            nonlocal written
-            if columns[names[0]]:
-                writer.write_table(pa.table({n: columns[n] for n in names}, schema=schema))
-                written += len(columns[names[0]])
+            nonlocal pending, written
+            if pending:
+                writer.write_table(pa.table({n: _joined(chunks[n], schema.field(n).type) for n in names},
+                                            schema=schema))
+                written += pending
+                pending = 0
                 for n in names:
-                    columns[n].clear()
+                    chunks[n].clear()
 
-        for message in log.messages(list(by_topic)):
-            for row in spec.rows(by_topic[message.topic], message.log_time, message.payload):
-                for n in names:
-                    columns[n].append(row[n])
-            if len(columns[names[0]]) >= row_group_rows:
+        for columns in _columns(log, spec, by_topic, names):
+            for n in names:
+                chunks[n].append(columns[n])
+            pending += len(columns[names[0]])
+            if pending >= row_group_rows:
                 flush()
         flush()
     os.replace(tmp, path)
     return written
+
+
+def _joined(pieces: list[Any], kind: pa.DataType) -> pa.Array:
+    """One column of a row group from its pieces, one per message: numpy arrays, or lists of Python values."""
+    if pieces and isinstance(pieces[0], np.ndarray):
+        return pa.array(np.concatenate(pieces), type=kind)
+    return pa.array([value for piece in pieces for value in piece], type=kind)
+
+
+def _columns(log: LogReader, spec: TableSpec, by_topic: dict[str, ChannelSummary],
+             names: list[str]) -> Iterator[dict[str, Any]]:
+    """Each message's rows as columns (one list or array per column)."""
+    if spec.columns is not None:
+        for table in log.tables(list(by_topic)):
+            yield spec.columns(table)
+        return
+    assert spec.rows is not None
+    for message in log.messages(list(by_topic)):
+        rows = list(spec.rows(by_topic[message.topic], message.log_time, message.payload))
+        yield {n: [row[n] for row in rows] for n in names}
 
 
 def export_log(

@@ -5,8 +5,9 @@ a *layer* — a complete MCAP file holding only the channels, metadata and prove
 and a record naming the log it extends (:mod:`starlog.io.chain`). :class:`LogReader` reads a
 chain as one log; ``starlog flatten`` writes it as one file (:mod:`starlog.io.copying`). Images
 use the Foxglove well-known protobuf schemas (``foxglove.RawImage``,
-``foxglove.ImageAnnotations``); starlog's own messages are JSON with JSON Schemas from
-``schemas/``. Every output appears only once complete (temp file + rename).
+``foxglove.ImageAnnotations``); starlog's star tables are protobuf too, from ``schemas/starlog/``
+(:mod:`starlog.io.star_tables`; JSON in logs of earlier versions), and its other messages JSON with
+JSON Schemas from ``schemas/``. Every output appears only once complete (temp file + rename).
 """
 
 from __future__ import annotations

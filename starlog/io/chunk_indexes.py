@@ -269,6 +269,25 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
             out[int(cid)] = (int(start[mine].min()), int(end[mine].max()))
         return out
 
+    def channel_ids(self) -> set[int]:
+        """Every channel id the chunks' message indexes list."""
+        channel = self._entry_arrays()[1]
+        listed = self._array("channel_ids", lambda: np.flatnonzero(np.bincount(channel, minlength=1)))
+        return set(listed.tolist())
+
+    def first_rows(self, channel_ids: Iterable[int]) -> dict[int, int]:
+        """Per channel id of ``channel_ids`` that the message indexes list, the row of the first chunk in the
+        file (lowest ``chunk_start_offset``; of two at one offset, the first row) that lists it."""
+        row, channel, _ = self.entries()
+        wanted = np.isin(channel, np.fromiter(channel_ids, dtype=np.int64))
+        row, channel = row[wanted], channel[wanted]
+        offsets = self.column("chunk_start_offset")[row]
+        lowest = np.full(1 << 16, np.iinfo(np.uint64).max, dtype=np.uint64)
+        np.minimum.at(lowest, channel, offsets)
+        at_lowest = offsets == lowest[channel]
+        found, first = np.unique(channel[at_lowest], return_index=True)  # rows ascend: the first is the lowest
+        return dict(zip(found.tolist(), row[at_lowest][first].tolist(), strict=True))
+
     def _entry_arrays(self) -> tuple[npt.NDArray[np.uint64], npt.NDArray[np.uint16], npt.NDArray[np.uint64]]:
         return (self._array("entry_start", lambda: np.frombuffer(self._entry_start, dtype=np.uint64)),
                 self._array("entry_channel", lambda: np.frombuffer(self._entry_channel, dtype=np.uint16)),

@@ -6,7 +6,7 @@ self-contained, fully indexed log holding the chain's files one after the other,
 record order:
 
 * the header (with the first file's profile, e.g. ``ros2``), then the schemas and channels kept
-  (their ids kept: a chain's are unique across it);
+  (their ids kept: a chain's are unique across it; a topic's channels are all kept, or none);
 * every chunk whose messages are all kept (its channels all selected, its time range inside the
   range) is **copied byte for byte** with its message index records (never decompressed, never
   re-compressed); a chunk without message indexes is read once and gets them;
@@ -98,12 +98,13 @@ def frame_time_lookup(log: LogReader, topic: str) -> Callable[[int], int | None]
             return None
         if not ordered:
             if not every:
-                every.extend(m.log_time for _, _, m in log.raw_messages([topic], views=True))
+                every.extend(m.log_time for _, _, m in log.raw_messages([topic], views=True, mixed=True))
             return every[index] if index < len(every) else None
         before = 0
         for start, end, count in chunks:
             if index < before + count:
-                times = [m.log_time for _, _, m in log.raw_messages([topic], start=start, end=end + 1, views=True)]
+                times = [m.log_time for _, _, m in log.raw_messages([topic], start=start, end=end + 1, views=True,
+                                                                     mixed=True)]
                 return times[index - before]
             before += count
         return None
@@ -234,7 +235,8 @@ def copy_log(
         kept = {c.id for c in channels}
         with LogWriter(output_path, force=force, compression=compression, validate=False,
                        profile=log.files[0].profile(), inputs=[f.path for f in log.files]) as writer:
-            _copy_definitions(log, channels, writer, every_schema=len(channels) == len(log.topics))
+            every = len(channels) == sum(len(f.summary.channels) for f in log.files)
+            _copy_definitions(log, channels, writer, every_schema=every)
             for file in log.files:
                 slicer = _Slicer(file, writer, kept, time_range, report)
                 for _, kind, index in file.records_in_file_order():
@@ -242,7 +244,8 @@ def copy_log(
             if provenance is not None:
                 writer.add_metadata(PROVENANCE_METADATA_NAME, provenance().to_metadata())
             counts = writer.message_counts()
-        report.messages = {ch.topic: int(counts.get(ch.id, 0)) for ch in channels}
+        for ch in channels:  # a topic of several channels counts them all
+            report.messages[ch.topic] = report.messages.get(ch.topic, 0) + int(counts.get(ch.id, 0))
     return report
 
 

@@ -1,10 +1,12 @@
-"""Decoding messages that other tools wrote: protobuf, ROS 2 (``cdr``) and ROS 1 (``ros1msg``).
+"""Decoding protobuf, ROS 2 (``cdr``) and ROS 1 (``ros1msg``) messages, starlog's own and other tools'.
 
 The decoders come from the mcap support libraries (``mcap-protobuf-support``,
 ``mcap-ros2-support``, ``mcap-ros1-support``), built once per schema and cached process-wide
 (keyed by the schema's name, encoding and bytes, so two logs with different schemas under one
 id never share a decoder). Foxglove's own protobuf types use the compiled classes of
 ``foxglove-schemas-protobuf``, which parse faster than classes built from a descriptor set.
+starlog's protobuf star tables decode to the dict of their JSON form (:mod:`starlog.io.star_tables`),
+so every reader sees them as it sees the JSON tables of earlier logs.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from typing import Any
 
 import numpy as np
 from mcap.records import Schema
+
+from starlog.io.star_tables import schema_codec
 
 __all__ = ["message_decoder", "schema_key", "to_plain"]
 
@@ -62,7 +66,8 @@ def _build(schema: Schema | None, message_encoding: str) -> Callable[[bytes], An
     if schema is None:
         return None
     if message_encoding == "protobuf" and schema.encoding == "protobuf":
-        return _protobuf_decoder(schema)
+        codec = schema_codec(schema)
+        return codec.to_dict if codec is not None else _protobuf_decoder(schema)
     if message_encoding == "cdr" and schema.encoding == "ros2msg":
         from mcap_ros2.decoder import DecoderFactory as Ros2Factory
 

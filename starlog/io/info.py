@@ -24,7 +24,10 @@ def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
         channels = [c.to_dict() for c in log.channels()]
         start, end = log.time_range()
         for channel in log.channels():
-            if is_image_schema(channel.schema_name):
+            conflict = log.topic_conflict(channel.topic)
+            if conflict is not None:
+                log.add_note(conflict)
+            elif is_image_schema(channel.schema_name):
                 note = stamp_disagreement(log, channel.topic)
                 if note:
                     log.add_note(note)
@@ -49,7 +52,7 @@ def _file_description(file: McapFile) -> dict[str, Any]:
     """One file of a chain: its path, size, what it holds and (for a layer) what it records of its base."""
     reference = base_reference(file)
     return {"path": str(file.path), "size_bytes": file.size,
-            "topics": [c.topic for _, c in sorted(file.summary.channels.items())],
+            "topics": list(dict.fromkeys(c.topic for _, c in sorted(file.summary.channels.items()))),
             "message_count": sum(e[0] for e in file.channel_extents().values()),
             "chunk_count": len(file.summary.chunk_indexes),
             "compression": sorted({n or "none" for n in file.summary.chunk_indexes.compressions()}),
@@ -216,6 +219,9 @@ def format_description(info: dict[str, Any]) -> str:
             f"{ch['topic']:<40} {ch['schema']:<28} {ch['message_encoding']:<9} {ch['message_count']:>8} "
             f"{ch['rate_hz']:>9.2f}"
         )
+        for part in ch.get("per_channel", []):  # a topic of several channels: each one under it
+            lines.append(f"{'  channel ' + str(part['channel_ids'][0]):<40} {part['schema']:<28} "
+                         f"{part['message_encoding']:<9} {part['message_count']:>8} {part['rate_hz']:>9.2f}")
     lines.append("")
     lines.append("provenance")
     if not info["provenance"]:

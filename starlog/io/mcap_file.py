@@ -6,7 +6,8 @@ checked against each other. A problem raises :class:`~starlog.errors.TruncatedLo
 cut off or never finished), :class:`~starlog.errors.CorruptChunkError` (naming the chunk's offset,
 channels and time range) or :class:`~starlog.errors.CorruptLogError`, each pointing to
 ``starlog recover``. Valid files that lack some indexes (no summary, chunks without message
-indexes, messages outside chunks) are read in full by scanning (:mod:`starlog.io.scan`).
+indexes, messages outside chunks) are read in full by scanning (:mod:`starlog.io.scan`); the
+schemas and channels a summary does not repeat are read from the data section.
 
 :class:`~starlog.io.reader.LogReader` reads a log, which is one file or a chain of them, through
 this class; the log layer's other tools (copying, verifying) use its public methods.
@@ -22,7 +23,7 @@ import itertools
 import os
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO
@@ -51,7 +52,16 @@ from starlog.io.layout import (
     read_footer,
     summary_crc,
 )
-from starlog.io.scan import LooseRun, find_loose_runs, read_loose, synthesize_summary
+from starlog.io.scan import (
+    Gaps,
+    LooseRun,
+    find_definitions,
+    find_loose_runs,
+    missing_schemas,
+    read_definitions,
+    read_loose,
+    synthesize_summary,
+)
 from starlog.io.timerange import END_OF_TIME
 
 __all__ = ["ChannelSummary", "McapFile", "channel_summaries", "recover_hint"]
@@ -67,9 +77,12 @@ def recover_hint(path: Path) -> str:
 
 @dataclass(frozen=True)
 class ChannelSummary:
-    """One channel of a log, as :meth:`~starlog.io.reader.LogReader.channels` lists it.
+    """One topic of a log, as :meth:`~starlog.io.reader.LogReader.channels` lists it: its channel, or the union of
+    its channels (:meth:`union`).
 
     ``rate_hz`` is ``(count - 1) / (last - first)`` in Hz (0 for fewer than two messages).
+    ``channel_ids`` are the ids of the topic's channels; ``per_channel`` holds each one's own summary
+    when there are several (empty otherwise).
     """
 
     topic: str
@@ -79,6 +92,21 @@ class ChannelSummary:
     message_count: int
     first_log_time: int
     last_log_time: int
+    channel_ids: tuple[int, ...] = ()
+    per_channel: tuple[ChannelSummary, ...] = ()
+
+    @classmethod
+    def union(cls, parts: list[ChannelSummary]) -> ChannelSummary:
+        """The summary of a topic whose channels ``parts`` summarise (ascending ids): every message counted,
+        the schema and encodings of the first channel holding messages (else the first: Foxglove lists such a
+        topic under its first channel's schema)."""
+        if len(parts) == 1:
+            return parts[0]
+        held = [p for p in parts if p.message_count]
+        return replace(held[0] if held else parts[0], message_count=sum(p.message_count for p in parts),
+                       first_log_time=min((p.first_log_time for p in held), default=0),
+                       last_log_time=max((p.last_log_time for p in held), default=0),
+                       channel_ids=tuple(i for p in parts for i in p.channel_ids), per_channel=tuple(parts))
 
     @property
     def rate_hz(self) -> float:
@@ -96,27 +124,27 @@ class ChannelSummary:
             "first_log_time": self.first_log_time,
             "last_log_time": self.last_log_time,
             "rate_hz": self.rate_hz,
-        }
+            "channel_ids": list(self.channel_ids),
+        } | ({"per_channel": [p.to_dict() for p in self.per_channel]} if self.per_channel else {})
 
 
-def _chunk_index_problems(table: ChunkIndexTable, channels: set[int], data_end: int) -> list[str]:
+def _chunk_index_problems(table: ChunkIndexTable, data_end: int) -> list[str]:
     """What is wrong with the chunk indexes (at most three of each kind): ranges outside the data
-    section, reversed time ranges, unknown channels, message indexes outside the data section.
+    section, reversed time ranges, message indexes outside the data section.
 
     Checked a block of chunks at a time, so the temporary arrays stay the size of a block.
     """
-    kinds: list[list[str]] = [[], [], [], []]
-    known = np.fromiter(channels, dtype=np.int64, count=len(channels))
+    kinds: list[list[str]] = [[], [], []]
     for block in table.row_blocks():
-        for kind, found in zip(kinds, _block_problems(table, block, known, data_end), strict=True):
+        for kind, found in zip(kinds, _block_problems(table, block, data_end), strict=True):
             kind.extend(found[:3 - len(kind)])
         if all(len(kind) == 3 for kind in kinds):
             break
     return [problem for kind in kinds for problem in kind]
 
 
-def _block_problems(table: ChunkIndexTable, block: tuple[int, int, int, int], known: np.ndarray,
-                    data_end: int) -> tuple[list[str], list[str], list[str], list[str]]:
+def _block_problems(table: ChunkIndexTable, block: tuple[int, int, int, int], data_end: int
+                    ) -> tuple[list[str], list[str], list[str]]:
     """:func:`_chunk_index_problems` of each kind among the chunks of one of ``table.row_blocks()``."""
     a, b, e0, e1 = block
     start = table.column("chunk_start_offset")[a:b]
@@ -125,8 +153,8 @@ def _block_problems(table: ChunkIndexTable, block: tuple[int, int, int, int], kn
     def chunks_where(bad: np.ndarray, what: str) -> list[str]:
         return [f"chunk index for offset {int(start[k])} {what}" for k in np.flatnonzero(bad)[:3]]
 
-    rows, channel, offset = table.entries()
-    rows, channel, offset = rows[e0:e1] - a, channel[e0:e1], offset[e0:e1]
+    rows, _, offset = table.entries()
+    rows, offset = rows[e0:e1] - a, offset[e0:e1]
     first = table.first_index_offsets()[a:b]
     index_end = first + table.column("message_index_length")[a:b]
     outside = (table.entry_counts(a, b) > 0) & (
@@ -136,8 +164,6 @@ def _block_problems(table: ChunkIndexTable, block: tuple[int, int, int, int], kn
         chunks_where((start < len(MAGIC)) | (end <= start) | (end > data_end), "points outside the data section"),
         chunks_where(table.column("message_start_time")[a:b] > table.column("message_end_time")[a:b],
                      "has its time range reversed"),
-        [f"chunk index for offset {int(start[rows[k]])} names unknown channel {int(channel[k])}"
-         for k in np.flatnonzero(~np.isin(channel, known))[:3]],
         chunks_where(outside, "has a message index outside the data section"),
     )
 
@@ -219,7 +245,7 @@ class McapFile:
         except (McapError, ValueError, EOFError, OSError, struct.error, KeyError, MemoryError) as err:
             raise CorruptLogError(self.path, f"its summary cannot be read ({type(err).__name__}: {err}). "
                                              f"{recover_hint(self.path)}") from err
-        self._check_summary(data_end)
+        self._check_layout(data_end)
         self._find_unindexed(data_end)
         return data_end
 
@@ -239,13 +265,17 @@ class McapFile:
                       f"starlog recover {self.path} -o INDEXED.mcap")
 
     def _find_unindexed(self, data_end: int) -> None:
-        """Messages outside chunks, chunks the summary does not list, chunks without message indexes."""
+        """Messages outside chunks, chunks the summary does not list, chunks without message indexes, and the
+        schemas and channels the summary does not repeat."""
         try:
-            self._loose, unlisted_chunk = find_loose_runs(self._file, self.summary, data_end)
-        except (ValueError, struct.error) as err:
+            gaps = find_loose_runs(self._file, self.summary, data_end)
+        except (ValueError, struct.error, EOFError, UnicodeDecodeError, McapError) as err:
             raise CorruptLogError(self.path, f"its data section is damaged outside every indexed record ({err}). "
                                              f"{recover_hint(self.path)}") from err
-        if unlisted_chunk:
+        self._loose = gaps.runs
+        self.summary.metadata_indexes += gaps.metadata_indexes
+        self.summary.attachment_indexes += gaps.attachment_indexes
+        if gaps.unlisted_chunk:
             why = "its summary lists no chunk indexes" if not self.summary.chunk_indexes else \
                 "it has chunks its summary does not list"
             self._scan_everything(data_end, why, known=self.summary)
@@ -258,28 +288,81 @@ class McapFile:
             self.add_note("some messages lie outside chunks (no index lists them): they are found by walking the "
                           "data section and read in log_time order with the rest.")
         self._indexed = not bare and not self._loose
+        self._complete_definitions(gaps)
+        self._check_references()
+
+    def _complete_definitions(self, gaps: Gaps) -> None:
+        """Add to the summary the schemas and channels it does not repeat (valid MCAP: they are in the data
+        section), found between the indexed records, then in the chunks (:func:`find_definitions`). Without
+        per-channel statistics, chunks without message indexes may hold any channel: they are read whole
+        once, their extents kept for :meth:`channel_extents`."""
+        summary = self.summary
+        known = len(summary.schemas) + len(summary.channels)
+        for schema in gaps.schemas.values():
+            summary.schemas.setdefault(schema.id, schema)
+        for channel in gaps.channels.values():
+            summary.channels.setdefault(channel.id, channel)
+        table: ChunkIndexTable = summary.chunk_indexes
+        opened = 0
+        if not self._counted and np.any(table.entry_counts() == 0):
+            opened = self._read_unindexed(learn=True)
+        wanted = table.channel_ids() | {c for run in self._loose for c in run.message_index_offsets}
+        if summary.statistics is not None:
+            wanted |= {c for c, n in summary.statistics.channel_message_counts.items() if n}
+        try:
+            opened += find_definitions(summary, wanted, self._chunk_contents)
+        except (ValueError, struct.error, EOFError, UnicodeDecodeError, McapError) as err:
+            raise CorruptLogError(self.path, f"{err}. {recover_hint(self.path)}") from err
+        if len(summary.schemas) + len(summary.channels) > known:
+            self.add_note(self._definitions_note(opened))
+
+    def _definitions_note(self, opened: int) -> str:
+        where = f"{opened} chunk{'s' if opened != 1 else ''} opened" if opened else "no chunk opened"
+        readers = ("; Foxglove and the mcap library need them in the summary: starlog filter "
+                   f"{self.path} -o OUT.mcap writes a copy with them") if len(self.summary.chunk_indexes) else ""
+        return (f"its summary does not repeat every schema and channel record, so they are read from the data "
+                f"section ({where}){readers}")
 
     def _check_summary(self, data_end: int) -> None:
         """The indexes must point inside the data section and name known channels and schemas."""
+        self._check_layout(data_end)
+        self._check_references()
+
+    def _check_references(self) -> None:
+        """Every channel must name a defined schema, every channel id the indexes, statistics or messages name
+        a defined channel (in the summary or, where it does not repeat them, the data section)."""
         summary = self.summary
-        problems: list[str] = []
-        for ch in summary.channels.values():
-            if ch.schema_id != 0 and ch.schema_id not in summary.schemas:
-                problems.append(f"channel {ch.topic!r} refers to missing schema {ch.schema_id}")
-        topics = [ch.topic for ch in summary.channels.values()]
-        if len(set(topics)) != len(topics):
-            problems.append("two channels have the same topic")
-        problems += _chunk_index_problems(summary.chunk_indexes, set(summary.channels), data_end)
+        missing = missing_schemas(summary)
+        problems = [f"channel {ch.topic!r} refers to missing schema {ch.schema_id}"
+                    for ch in summary.channels.values() if ch.schema_id in missing]
+        table: ChunkIndexTable = summary.chunk_indexes
+        unknown = sorted(table.channel_ids() - summary.channels.keys())[:3]
+        if unknown:
+            offsets = table.column("chunk_start_offset")
+            problems += [f"chunk index for offset {int(offsets[row])} names unknown channel {cid}"
+                         for cid, row in sorted(table.first_rows(unknown).items())]
+        counted = summary.statistics.channel_message_counts if summary.statistics else {}
+        loose = {c: 1 for run in self._loose for c in run.message_index_offsets}
+        for what, ids in (("statistics count messages of", counted),
+                          ("chunks without message indexes hold messages of", self._extents or {}),
+                          ("messages outside chunks name", loose)):
+            unknown = sorted(c for c, n in ids.items() if n and c not in summary.channels)
+            if unknown:
+                problems.append(f"{what} unknown channels {unknown}")
+        if problems:
+            raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
+                                             f"{recover_hint(self.path)}")
+
+    def _check_layout(self, data_end: int) -> None:
+        """The indexes must point inside the data section."""
+        summary = self.summary
+        problems = _chunk_index_problems(summary.chunk_indexes, data_end)
         for mi in summary.metadata_indexes:
             if not len(MAGIC) <= mi.offset < mi.offset + mi.length <= data_end:
                 problems.append(f"metadata index {mi.name!r} points outside the data section")
         for ai in summary.attachment_indexes:
             if not len(MAGIC) <= ai.offset < ai.offset + ai.length <= data_end:
                 problems.append(f"attachment index {ai.name!r} points outside the data section")
-        if summary.statistics is not None:
-            unknown = set(summary.statistics.channel_message_counts) - set(summary.channels)
-            if unknown:
-                problems.append(f"statistics count messages of unknown channels {sorted(unknown)}")
         if problems:
             raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
                                              f"{recover_hint(self.path)}")
@@ -347,34 +430,57 @@ class McapFile:
 
     def _whole_extents(self) -> dict[int, list[int]]:
         summary = self.summary
-        counts = summary.statistics.channel_message_counts if summary.statistics else {}
+        counts = summary.statistics.channel_message_counts if self._counted else {}
         out = {cid: [int(counts.get(cid, 0)), lo, hi]
                for cid, (lo, hi) in summary.chunk_indexes.channel_time_ranges().items()}
-        if not self._indexed or summary.statistics is None:
+        if not self._indexed or not self._counted:
             for cid, (count, lo, hi) in self._unindexed_extents().items():
                 e = out.setdefault(cid, [int(counts.get(cid, 0)), lo, hi])
                 e[1], e[2] = min(e[1], lo), max(e[2], hi)
-                if summary.statistics is None:
+                if not self._counted:
                     e[0] = count
         for cid in summary.channels:
             out.setdefault(cid, [int(counts.get(cid, 0)), 0, 0])
         return out
 
+    @property
+    def _counted(self) -> bool:
+        """Whether the statistics count each channel's messages (an empty count map means they do not)."""
+        stats = self.summary.statistics
+        return stats is not None and bool(stats.channel_message_counts or stats.message_count == 0)
+
     def _unindexed_extents(self) -> dict[int, list[int]]:
         """``[count, first, last]`` per channel over what the indexes do not describe (scanned once, lazily).
 
-        Covers every segment when the summary has no statistics.
+        Covers every segment when the statistics do not count each channel's messages.
         """
         if self._extents is None:
-            table = self.summary.chunk_indexes
-            every = self.summary.statistics is None
-            segments = table if every else table.indexes_at(np.flatnonzero(table.entry_counts() == 0))
-            extents: dict[int, list[int]] = {}
-            for ci in itertools.chain(segments, self._loose):
-                for log_time, _, cid, _ in self.read_chunk(ci)[0]:
-                    _extend(extents, cid, 1, log_time, log_time)
-            self._extents = extents
+            self._read_unindexed(learn=False)
+        assert self._extents is not None
         return self._extents
+
+    def _read_unindexed(self, *, learn: bool) -> int:
+        """Read the segments :meth:`_unindexed_extents` covers, in file order, and keep their extents; with
+        ``learn``, add their schema and channel records to the summary. Returns the chunks read."""
+        table: ChunkIndexTable = self.summary.chunk_indexes
+        rows = np.arange(len(table)) if not self._counted else np.flatnonzero(table.entry_counts() == 0)
+        rows = rows[np.argsort(table.column("chunk_start_offset")[rows], kind="stable")]
+        extents: dict[int, list[int]] = {}
+
+        def count(cid: int, log_time: int) -> None:
+            _extend(extents, cid, 1, log_time, log_time)
+
+        schemas, channels = (self.summary.schemas, self.summary.channels) if learn else (None, None)
+        for ci in table.indexes_at(rows):
+            try:
+                read_definitions(self._chunk_contents(ci).data, schemas, channels, count)
+            except (ValueError, struct.error, EOFError, UnicodeDecodeError, McapError) as err:
+                raise self.chunk_error(ci, f"its records are damaged ({err})") from err
+        for run in self._loose:
+            for log_time, _, cid, _ in self.read_chunk(run)[0]:
+                count(cid, log_time)
+        self._extents = extents
+        return len(rows)
 
     def _message_times(self, ci: ChunkIndex) -> dict[int, list[int]]:
         """The ``log_time`` of each message of the chunk ``ci``, per channel (from its message indexes when it
@@ -519,20 +625,23 @@ class McapFile:
             counts[cid] = array_len // MESSAGE_INDEX_ENTRY.size
         return counts
 
-    def chunk_message_counts(self, channel_id: int, lo: int = 0, hi: int = END_OF_TIME) -> list[tuple[int, int, int]]:
-        """``(message_start_time, message_end_time, count)`` of the channel's messages with ``lo <= log_time < hi``
-        in each chunk holding some, in time order (from the message index records; no chunk is decompressed
-        unless it lies across a bound)."""
+    def chunk_message_counts(self, channel_ids: set[int], lo: int = 0, hi: int = END_OF_TIME
+                             ) -> list[tuple[int, int, int]]:
+        """``(message_start_time, message_end_time, count)`` of the messages of ``channel_ids`` with
+        ``lo <= log_time < hi`` in each chunk holding some, in time order (from the message index records; no
+        chunk is decompressed unless it lies across a bound)."""
         table: ChunkIndexTable = self.summary.chunk_indexes
         rows, channels, _ = table.entries()
         out = []
-        for ci in table.indexes_at(rows[channels == channel_id]):
+        for ci in table.indexes_at(np.unique(rows[np.isin(channels, list(channel_ids))])):
             if not (ci.message_end_time >= lo and ci.message_start_time < hi):
                 continue
             if lo <= ci.message_start_time and ci.message_end_time < hi:
-                out.append((ci.message_start_time, ci.message_end_time, self.index_counts(ci)[channel_id]))
+                counts = self.index_counts(ci)
+                out.append((ci.message_start_time, ci.message_end_time, sum(counts.get(c, 0) for c in channel_ids)))
                 continue
-            times = [t for t, _ in self.message_index(ci)[channel_id] if lo <= t < hi]
+            indexes = self.message_index(ci)
+            times = [t for c in channel_ids for t, _ in indexes.get(c, ()) if lo <= t < hi]
             if times:
                 out.append((min(times), max(times), len(times)))
         return sorted(out)
@@ -607,6 +716,6 @@ def channel_summaries(file: McapFile, extents: dict[int, list[int]]) -> dict[int
         out[cid] = ChannelSummary(topic=ch.topic, schema_name=schema.name if schema else "",
                                   schema_encoding=schema.encoding if schema else "",
                                   message_encoding=ch.message_encoding, message_count=int(count),
-                                  first_log_time=int(first), last_log_time=int(last))
+                                  first_log_time=int(first), last_log_time=int(last), channel_ids=(cid,))
     return out
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import struct
@@ -192,13 +193,14 @@ def encode_image_annotations(
     seconds, nanos = _timestamp(log_time)
     stamp = _wire_message(0x0A, (b"\x08" + _wire_varint(seconds) if seconds else b"")
                           + (b"\x10" + _wire_varint(nanos) if nanos else b""))
-    colour = b"".join(_wire_double(tag, float(c)) for tag, c in zip((0x09, 0x11, 0x19, 0x21), rgba, strict=True))
-    shared = _wire_double(0x19, float(diameter)) + _wire_double(0x21, float(thickness)) + _wire_message(0x32, colour)
+    shared = _circle_look(struct.pack("<6d", diameter, thickness, *rgba))
     xs, ys = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     if xs.ndim == 1 and xs.shape == ys.shape:
         keep = np.isfinite(xs) & np.isfinite(ys)
-        xs, ys = xs[keep] + 0.5, ys[keep] + 0.5
-        if np.all(xs != 0.0) and np.all(ys != 0.0):  # every circle then has the same layout
+        if not keep.all():
+            xs, ys = xs[keep], ys[keep]
+        xs, ys = xs + 0.5, ys + 0.5
+        if xs.all() and ys.all():  # no position is 0: every circle then has the same layout
             return _same_layout_circles(stamp, shared, xs, ys)
     circles = []
     for xi, yi in zip(x, y):
@@ -209,17 +211,32 @@ def encode_image_annotations(
     return b"".join(circles)
 
 
+@functools.lru_cache(maxsize=64)
+def _circle_look(packed: bytes) -> bytes:
+    """The fields every circle of a frame shares: diameter, thickness and outline colour (``packed`` as six
+    doubles: the bytes tell -0.0 from 0.0, which protobuf writes differently)."""
+    diameter, thickness, *rgba = struct.unpack("<6d", packed)
+    colour = b"".join(_wire_double(tag, c) for tag, c in zip((0x09, 0x11, 0x19, 0x21), rgba, strict=True))
+    return _wire_double(0x19, diameter) + _wire_double(0x21, thickness) + _wire_message(0x32, colour)
+
+
 def _same_layout_circles(stamp: bytes, shared: bytes, xs: npt.NDArray[np.float64],
                          ys: npt.NDArray[np.float64]) -> bytes:
-    """Circles whose positions are all non-zero: one template row, the positions written in by numpy."""
+    """Circles whose positions are all non-zero: one template row repeated, the positions written in by numpy."""
     head = stamp + b"\x12\x12\x09"
     body_length = len(head) + 8 + 1 + 8 + len(shared)
     template = b"\x0a" + _wire_varint(body_length) + head + bytes(8) + b"\x11" + bytes(8) + shared
-    at_x = len(template) - len(shared) - 17
-    rows = np.tile(np.frombuffer(template, dtype=np.uint8), (xs.size, 1))
-    rows[:, at_x: at_x + 8] = xs.astype("<f8").view(np.uint8).reshape(-1, 8)
-    rows[:, at_x + 9: at_x + 17] = ys.astype("<f8").view(np.uint8).reshape(-1, 8)
-    return rows.tobytes()
+    rows = bytearray(template * xs.size)
+    positions = np.frombuffer(rows, dtype=_position_layout(len(template), len(template) - len(shared) - 17))
+    positions["x"] = xs
+    positions["y"] = ys
+    return bytes(rows)
+
+
+@functools.lru_cache(maxsize=64)
+def _position_layout(size: int, at_x: int) -> np.dtype[Any]:
+    """A circle's x and y (little-endian doubles, 9 bytes apart) in a row of ``size`` bytes."""
+    return np.dtype({"names": ["x", "y"], "formats": ["<f8", "<f8"], "offsets": [at_x, at_x + 9], "itemsize": size})
 
 
 _WIRE_DOUBLE = struct.Struct("<d")

@@ -10,6 +10,17 @@ not checked again when their chunk's CRC and the summary's CRC were verified: th
 that passed the check. Every other JSON message (foreign logs, logs of older versions,
 ``validate_crcs=False``) is checked as it is decoded.
 
+A topic may have several channels (two recorders, a restarted publisher): it reads as the union of
+their messages in ``log_time`` order, each decoded by its own channel's schema, and its
+:class:`ChannelSummary` counts them all. A topic whose channels carry messages of different types
+(:mod:`starlog.io.shared_topics`) is refused as a series (:class:`~starlog.errors.MixedTopicError`);
+:meth:`LogReader.raw_messages` with ``mixed=True`` still hands out its messages one by one.
+
+Star tables (:mod:`starlog.io.star_tables`) are protobuf in the logs starlog writes and JSON in older
+ones; either way :meth:`LogReader.messages` gives them as the dict of their JSON form and
+:meth:`LogReader.tables` as a header and a structured array of rows. A protobuf message is checked
+by decoding it.
+
 A :class:`LogView` reads a log through a time window (a stage run with ``--start``/``--end``):
 every read, channel counts included, keeps only the messages inside it.
 """
@@ -36,6 +47,7 @@ from starlog.errors import (
     InvalidMessageError,
     InvalidParameterError,
     MessageDecodeError,
+    MixedTopicError,
 )
 from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference, open_chain
 from starlog.io.foreign import message_decoder
@@ -45,10 +57,12 @@ from starlog.io.mcap_file import ChannelSummary, McapFile, channel_summaries
 from starlog.io.json_schema import compile_json_schema
 from starlog.io.messages import decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
+from starlog.io.shared_topics import topic_conflict
+from starlog.io.star_tables import STAR_TABLES, decode_table, json_table
 from starlog.io.timerange import END_OF_TIME, ResolvedRange
 from starlog.io.writer import VALIDATED_METADATA_KEY
 
-__all__ = ["ChannelSummary", "DecodedMessage", "LogReader", "LogSource", "LogView"]
+__all__ = ["ChannelSummary", "DecodedMessage", "LogReader", "LogSource", "LogView", "TableMessage"]
 
 @dataclass(frozen=True)
 class LogView:
@@ -79,6 +93,18 @@ class DecodedMessage:
     log_time: int
     sequence: int
     payload: Any
+
+
+@dataclass(frozen=True)
+class TableMessage:
+    """A star-table message (:data:`~starlog.io.star_tables.STAR_TABLES`) as its header fields and its rows
+    (a structured array; None for a header-only type), whatever its encoding."""
+
+    topic: str
+    log_time: int
+    sequence: int
+    header: dict[str, Any]
+    rows: np.ndarray | None
 
 
 def decode_payload(
@@ -116,6 +142,14 @@ def decode_payload(
     except Exception as err:  # protobuf's DecodeError is not a ValueError subclass on every backend
         raise MessageDecodeError(path, channel.topic, message.log_time, f"{type(err).__name__}: {err}") from err
     return bytes(message.data)
+
+
+def _decoded(path: Path, channel: Channel, message: Message, decode: Callable[[], Any]) -> Any:
+    """``decode()``, its InvalidInputError raised as the MessageDecodeError naming the message."""
+    try:
+        return decode()
+    except InvalidInputError as err:
+        raise MessageDecodeError(path, channel.topic, message.log_time, str(err)) from err
 
 
 class LogReader:
@@ -165,6 +199,10 @@ class LogReader:
             self._schemas.update(file.summary.schemas)
             self._channels.update(file.summary.channels)
             self._file_of.update(dict.fromkeys(file.summary.channels, file))
+        self._by_topic: dict[str, list[int]] = {}  # topic -> its channels' ids, ascending
+        for cid in sorted(self._channels):
+            self._by_topic.setdefault(self._channels[cid].topic, []).append(cid)
+        self._conflicts: dict[str, str | None] = {}
         self.notes: list[str] = []
         for file in self.files:
             for note in file.notes:
@@ -199,12 +237,33 @@ class LogReader:
 
     @property
     def topics(self) -> list[str]:
-        """Topics of every channel, in channel-id order."""
-        return [self._channels[k].topic for k in sorted(self._channels)]
+        """Every topic once, in the order of their first channels' ids."""
+        return list(self._by_topic)
 
     def has_topic(self, topic: str) -> bool:
         """Whether the log has a channel named ``topic``."""
-        return topic in self.topics
+        return topic in self._by_topic
+
+    def topic_conflict(self, topic: str) -> str | None:
+        """One line naming ``topic`` and its channels' schemas when they cannot be read as one series
+        (:func:`~starlog.io.shared_topics.topic_conflict`; channels without messages in the file do not
+        count); None for a topic of one channel or one type."""
+        if topic not in self._conflicts:
+            ids = self._channel_ids(topic)
+            if len(ids) > 1:
+                held = {cid for file in self.files for cid, e in file.channel_extents().items() if e[0]}
+                ids = [cid for cid in ids if cid in held]
+            channels = [self._channels[cid] for cid in ids]
+            self._conflicts[topic] = None if len(channels) < 2 else topic_conflict(
+                topic, [(c, self._schemas.get(c.schema_id) if c.schema_id else None) for c in channels])
+        return self._conflicts[topic]
+
+    def _series_ids(self, topic: str) -> list[int]:
+        """The channel ids of ``topic`` read as one series; :class:`MixedTopicError` when their schemas differ."""
+        conflict = self.topic_conflict(topic)
+        if conflict is not None:
+            raise MixedTopicError(self.path, topic, conflict)
+        return self._by_topic[topic]
 
     def _channel_extents(self) -> dict[int, list[int]]:
         if self._extents is None:
@@ -214,19 +273,18 @@ class LogReader:
         return self._extents
 
     def channels(self) -> list[ChannelSummary]:
-        """Every channel with its schema, message count and time range (in the window, for a view)."""
+        """Every topic with its schema, message count and time range (in the window, for a view), in the order of
+        :attr:`topics`; a topic of several channels counts all of them (:meth:`ChannelSummary.union`)."""
         extents = self._channel_extents()
         summaries: dict[int, ChannelSummary] = {}
         for file in self.files:
             summaries.update(channel_summaries(file, extents))
-        return [summaries[cid] for cid in sorted(summaries)]
+        return [ChannelSummary.union([summaries[cid] for cid in ids]) for ids in self._by_topic.values()]
 
     def channel(self, topic: str) -> ChannelSummary:
         """The :class:`ChannelSummary` of ``topic``; :class:`ChannelNotFoundError` if absent."""
-        for ch in self.channels():
-            if ch.topic == topic:
-                return ch
-        raise ChannelNotFoundError(self.path, topic, self.topics)
+        self._channel_ids(topic)
+        return next(ch for ch in self.channels() if ch.topic == topic)
 
     def time_range(self) -> tuple[int, int]:
         """First and last ``log_time`` of the whole log (0, 0 when empty)."""
@@ -237,35 +295,37 @@ class LogReader:
         """Messages of every channel (in the window, for a view)."""
         return sum(e[0] for e in self._channel_extents().values())
 
-    def _channel_id(self, topic: str) -> int:
-        for cid, channel in self._channels.items():
-            if channel.topic == topic:
-                return cid
-        raise ChannelNotFoundError(self.path, topic, self.topics)
+    def _channel_ids(self, topic: str) -> list[int]:
+        if topic not in self._by_topic:
+            raise ChannelNotFoundError(self.path, topic, self.topics)
+        return self._by_topic[topic]
 
     # ------------------------------------------------------------------ messages
     def raw_messages(
         self, topics: Iterable[str], *, start: int | None = None, end: int | None = None, views: bool = False,
+        mixed: bool = False,
     ) -> Iterator[tuple[Schema | None, Channel, Message]]:
-        """Undecoded messages of ``topics`` in ``log_time`` order (ties: file order, the chain's first file
-        first), streamed chunk by chunk.
+        """Undecoded messages of ``topics`` (every channel of each) in ``log_time`` order (ties: file order, the
+        chain's first file first), streamed chunk by chunk, each with its own channel and schema.
 
         ``start`` is inclusive, ``end`` exclusive. Only the chunks holding these topics are read,
         and only those whose time ranges overlap are held in memory at once. A damaged chunk
         raises :class:`CorruptChunkError` naming it. Each ``message.data`` is ``bytes``; with
         ``views``, a read-only ``memoryview`` into the decompressed chunk instead (no copy; it
-        keeps the chunk's bytes alive as long as it lives).
+        keeps the chunk's bytes alive as long as it lives). A topic whose channels' schemas cannot be
+        read as one series raises :class:`MixedTopicError`, unless ``mixed`` (the caller handles each
+        message by its own schema).
         """
-        for schema, channel, message, _ in self._merged_messages(topics, start=start, end=end):
+        for schema, channel, message, _ in self._merged_messages(topics, start=start, end=end, mixed=mixed):
             if not views and not isinstance(message.data, bytes):
                 message.data = bytes(message.data)
             yield schema, channel, message
 
     def _merged_messages(
-        self, topics: Iterable[str], *, start: int | None, end: int | None
+        self, topics: Iterable[str], *, start: int | None, end: int | None, mixed: bool = False,
     ) -> Iterator[tuple[Schema | None, Channel, Message, bool]]:
         """:meth:`raw_messages`, each with whether its chunk's CRC was verified."""
-        ids = {self._channel_id(topic) for topic in topics}
+        ids = {cid for topic in topics for cid in (self._channel_ids(topic) if mixed else self._series_ids(topic))}
         lo = max(self._lo, 0 if start is None else start)
         hi = min(self._hi, END_OF_TIME if end is None else end)
         streams = [file.messages(mine, lo, hi) for file in self.files
@@ -303,8 +363,10 @@ class LogReader:
     ) -> Iterator[DecodedMessage]:
         """Decoded messages of one topic (or several, interleaved by ``log_time``), streamed.
 
-        JSON payloads are checked against their channel's schema (see ``validate_messages``).
-        With ``stride`` n, only every n-th message (the first, the n+1-th, ...) is decoded and yielded.
+        A topic of several channels gives all their messages, each decoded by its own channel's schema
+        (:class:`MixedTopicError` when their schemas cannot be read as one series). JSON payloads are
+        checked against their channel's schema (see ``validate_messages``). With ``stride`` n, only every
+        n-th message (the first, the n+1-th, ...) is decoded and yielded.
         """
         if stride < 1:
             raise InvalidParameterError(f"stride must be >= 1; got {stride}.")
@@ -318,15 +380,43 @@ class LogReader:
                 decode_payload(self._file_of[channel.id].path, schema, channel, message, check),
             )
 
+    def tables(self, topic: str | Iterable[str], *, start: int | None = None, end: int | None = None
+               ) -> Iterator[TableMessage]:
+        """Messages of star-table channels (:data:`~starlog.io.star_tables.STAR_TABLES`) as
+        :class:`TableMessage`: the rows as one structured array, no dict per star; JSON messages are
+        checked as :meth:`messages` checks them. A row field an older log lacks reads as its default.
+
+        Raises :class:`InvalidInputError` when a channel is not a star table.
+        """
+        topics = [topic] if isinstance(topic, str) else list(topic)
+        for name in topics:
+            for cid in self._series_ids(name):
+                schema = self._schemas.get(self._channels[cid].schema_id)
+                if schema is None or schema.name not in STAR_TABLES:
+                    raise InvalidInputError(f"{name} is not a star table ({schema.name if schema else 'no schema'}); "
+                                            f"they are {', '.join(STAR_TABLES)}.")
+        trusted = {cid: self._trusted(c) for cid, c in self._channels.items()}
+        for schema, channel, message, verified in self._merged_messages(topics, start=start, end=end):
+            path = self._file_of[channel.id].path
+            if channel.message_encoding == "json":
+                check = None if verified and trusted[channel.id] else self._checker(schema)
+                value = decode_payload(path, schema, channel, message, check)
+                table = _decoded(path, channel, message, lambda: json_table(schema.name, value))
+            else:
+                table = _decoded(path, channel, message,
+                                 lambda: decode_table(schema, channel.message_encoding, message.data))
+            yield TableMessage(channel.topic, message.log_time, message.sequence, table.header, table.rows)
+
     def chunk_message_counts(self, topic: str) -> list[tuple[int, int, int]]:
         """``(message_start_time, message_end_time, count)`` of ``topic`` in each chunk holding it, in time order
         (in the window, for a view).
 
         Read from the message index records (a few bytes per chunk; no chunk is decompressed but those
-        across a bound of the window).
+        across a bound of the window). A topic of several channels counts them together per chunk.
         """
-        cid = self._channel_id(topic)
-        return self._file_of[cid].chunk_message_counts(cid, self._lo, self._hi)
+        ids = self._channel_ids(topic)
+        return sorted(count for file in self.files if (mine := {c for c in ids if self._file_of[c] is file})
+                      for count in file.chunk_message_counts(mine, self._lo, self._hi))
 
     def frames(self, topic: str = "/camera/image", *, start: int | None = None, end: int | None = None,
                first_index: int = 0, on_bad: Callable[[SkippedFrame], None] | None = None,

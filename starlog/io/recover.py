@@ -2,9 +2,11 @@
 
 The file is scanned record by record in file order (no summary needed). Every complete record
 is kept: schemas, channels, messages of every chunk whose bytes are whole and whose CRC checks,
-and metadata (provenance). A chunk cut off by the end of the file, or whose CRC does not match,
-is dropped and reported — with its offset, time range and, from the message-index records that
-follow it when they survived, how many messages of which channels it held.
+and metadata (provenance); a topic's channels of one type of message become one channel, those of
+another type a channel of their own on the same topic. A chunk cut off by the end of the file, or
+whose CRC does not match, is dropped and reported — with its offset, time range and, from the
+message-index records that follow it when they survived, how many messages of which channels it
+held.
 
 A layer (:mod:`starlog.io.chain`) is recovered as a layer on the same base when its base record
 survived and its base is there, unchanged; otherwise its own records are recovered into a file
@@ -140,7 +142,7 @@ class _Rebuilder:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.out_ids: dict[int, int] = {}
-        self.by_topic: dict[str, tuple[MessageType, int]] = {}
+        self.by_topic: dict[str, list[tuple[MessageType, int]]] = {}  # the output channels of each topic
         self.pending_lost: LostChunk | None = None  # the chunk just lost: its message indexes say what it held
         self.last_whole: int | None = None  # the last record trusted by its length alone (see _read_records)
         self.base_record: dict[str, str] | None = None  # a layer's record naming its base, when met
@@ -222,15 +224,12 @@ class _Rebuilder:
                 schema.data if schema else b"",
                 channel.message_encoding,
             )
-            known = self.by_topic.get(channel.topic)
-            if known is None:
-                out_id = self.writer.add_channel(channel.topic, mtype, metadata=dict(channel.metadata))
-                self.by_topic[channel.topic] = (mtype, out_id)
-            elif known[0] == mtype:
-                out_id = known[1]
-            else:
-                self.skip("message of a second, different channel with the same topic")
-                return
+            known = self.by_topic.setdefault(channel.topic, [])
+            out_id = next((out for kind, out in known if kind == mtype), None)
+            if out_id is None:  # a topic's channels of one type become one channel; of another type, their own
+                out_id = self.writer.add_channel(channel.topic, mtype, metadata=dict(channel.metadata),
+                                                 shared_topic=True)
+                known.append((mtype, out_id))
             self.out_ids[message.channel_id] = out_id
         topic = self.channels[message.channel_id].topic
         self.writer.write(out_id, log_time=message.log_time, data=message.data, publish_time=message.publish_time)

@@ -9,22 +9,26 @@ and still holds every message. This module finds what the indexes do not say:
   chunks as :class:`LooseRun` segments, read like chunks and merged in ``log_time`` order;
 * :func:`synthesize_summary` walks a file with no summary (or no chunk indexes) from start to
   end once and builds the summary it should have had (schemas, channels, chunk indexes,
-  statistics, metadata indexes), every chunk CRC-checked on the way.
+  statistics, metadata indexes), every chunk CRC-checked on the way;
+* :func:`find_definitions` finds the schemas and channels a summary does not repeat (the
+  ``mcap`` writer's ``repeat_schemas=False`` / ``repeat_channels=False``) in the chunks' records.
 
-Both read record headers (nine bytes each) and skip record bodies, except chunks in a file
-with no summary, which must be decompressed to learn their channels. Memory stays flat: only
-indexes and counters are kept, never messages.
+They read record headers (nine bytes each) and skip record bodies, except schema, channel,
+metadata and attachment records and the chunks whose channels must be learnt. Memory stays flat: only indexes and
+counters are kept, never messages.
 """
 
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
+from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import (
     Attachment,
@@ -52,7 +56,8 @@ from starlog.io.layout import (
     walk_records,
 )
 
-__all__ = ["LooseRun", "ScanResult", "find_loose_runs", "read_loose", "synthesize_summary"]
+__all__ = ["Gaps", "LooseRun", "ScanResult", "find_definitions", "find_loose_runs", "missing_schemas",
+           "read_definitions", "read_loose", "synthesize_summary"]
 
 _RUN_MESSAGES = 1024  # loose messages per segment: bounds what one read holds in memory
 _RUN_BYTES = 8 * 1024 * 1024
@@ -143,28 +148,142 @@ def _covered(summary: Summary) -> list[tuple[int, int]]:
     return list(zip(lo.tolist(), hi.tolist(), strict=True))
 
 
-def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> tuple[list[LooseRun], bool]:
-    """Messages outside chunks, found in the gaps the summary's indexes leave in the data section.
+@dataclass
+class Gaps:
+    """What the parts of the data section that the summary's indexes do not cover hold: the messages written
+    outside chunks (as runs), whether a chunk is among them, the schema and channel records, and the
+    indexes of the metadata and attachment records the summary does not list."""
 
-    Returns the runs and whether a chunk the chunk indexes do not list was met (then the file
-    must be read by :func:`synthesize_summary`). Raises ``ValueError`` for a damaged gap.
+    runs: list[LooseRun] = field(default_factory=list)
+    unlisted_chunk: bool = False
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    metadata_indexes: list[MetadataIndex] = field(default_factory=list)
+    attachment_indexes: list[AttachmentIndex] = field(default_factory=list)
+
+
+def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> Gaps:
+    """Messages outside chunks, schema and channel records, and metadata and attachment records, found in the
+    gaps the summary's indexes leave in the data section.
+
+    A chunk met there (one the chunk indexes do not list) means the file must be read by
+    :func:`synthesize_summary`. Raises ``ValueError`` (``struct.error``, ``EOFError``) for a damaged gap.
     """
     builder = _RunBuilder()
+    gaps = Gaps()
     pos = len(MAGIC)
-    unindexed_chunk = False
     for lo, hi in _covered(summary) + [(data_end, data_end)]:
         if lo > pos:
-            for offset, opcode, length, _ in walk_records(f, pos, lo, bodies=()):
+            for offset, opcode, length, body in walk_records(f, pos, lo, bodies=(Opcode.SCHEMA, Opcode.CHANNEL)):
                 if opcode == Opcode.MESSAGE:
                     channel_id, log_time = _message_head(f, offset)
                     builder.add(offset, RECORD_HEADER.size + length, channel_id, log_time)
-                elif opcode == Opcode.CHUNK:
-                    unindexed_chunk = True
-                else:
-                    builder.close()
+                    continue
+                builder.close()
+                if opcode == Opcode.CHUNK:
+                    gaps.unlisted_chunk = True
+                elif opcode in (Opcode.METADATA, Opcode.ATTACHMENT):
+                    _add_index(gaps, f, opcode, offset, length)
+                elif body is not None:
+                    _definition(opcode, body, gaps.schemas, gaps.channels)
         pos = max(pos, hi)
     builder.close()
-    return builder.runs, unindexed_chunk
+    gaps.runs = builder.runs
+    return gaps
+
+
+def _add_index(summary: Summary | Gaps, f: BinaryIO, opcode: int, offset: int, length: int) -> None:
+    """Add the index of the metadata or attachment record at ``offset`` (body ``length`` bytes) to ``summary``."""
+    if opcode == Opcode.METADATA:
+        record = parse_record(_body(f, offset, length), Metadata)
+        summary.metadata_indexes.append(MetadataIndex(offset=offset, length=RECORD_HEADER.size + length,
+                                                      name=record.name))
+    else:
+        record = parse_record(_body(f, offset, length), Attachment)
+        summary.attachment_indexes.append(AttachmentIndex(
+            offset=offset, length=RECORD_HEADER.size + length, log_time=record.log_time,
+            create_time=record.create_time, data_size=len(record.data), name=record.name,
+            media_type=record.media_type))
+
+
+def _definition(opcode: int, body: bytes | memoryview, schemas: dict[int, Schema], channels: dict[int, Channel]
+                ) -> None:
+    """A Schema or Channel record's body into ``schemas`` / ``channels`` (the first of an id kept; a schema
+    of id 0 is ignored, as the format says)."""
+    if opcode == Opcode.SCHEMA:
+        schema = parse_record(body, Schema)
+        if schema.id != 0:
+            schemas.setdefault(schema.id, schema)
+    else:
+        channel = parse_record(body, Channel)
+        channels.setdefault(channel.id, channel)
+
+
+def read_definitions(data: bytes | memoryview, schemas: dict[int, Schema] | None, channels: dict[int, Channel] | None,
+                     on_message: Callable[[int, int], object] | None = None) -> None:
+    """The Schema and Channel records among a chunk's records (``data``, decompressed) into ``schemas`` and
+    ``channels`` (when given; the first of an id kept), and ``on_message(channel_id, log_time)`` for each message.
+    Raises ``ValueError`` / ``struct.error`` (or the record parser's errors) for damaged records."""
+    for _, opcode, body, size in iter_records(data):
+        if opcode == Opcode.MESSAGE:
+            if on_message is not None:
+                cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(data, body)
+                on_message(cid, log_time)
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL) and schemas is not None and channels is not None:
+            _definition(opcode, data[body: body + size], schemas, channels)
+
+
+def missing_schemas(summary: Summary) -> set[int]:
+    """The schema ids the summary's channels name that its schemas do not hold."""
+    return {ch.schema_id for ch in summary.channels.values() if ch.schema_id} - summary.schemas.keys()
+
+
+def find_definitions(summary: Summary, wanted: Iterable[int], open_chunk: Callable[[ChunkIndex], ChunkContents]
+                     ) -> int:
+    """Add to ``summary`` the channels of ``wanted`` (ids) it lacks and the schemas its channels name that it
+    lacks, from the records in its chunks (``open_chunk``: a chunk's checked, decompressed contents); return
+    how many chunks were opened.
+
+    A channel's record comes before its first message, a schema's before its first channel (MCAP
+    specification), and writers put them in the chunk being filled at the time: the chunks opened are
+    the first that lists each missing channel, then the one before it, then every chunk in file order,
+    until nothing is missing; each at most once. What is still missing then is not in any chunk. Raises
+    ``ValueError`` naming a chunk whose records are damaged (and what ``open_chunk`` raises).
+    """
+    table: ChunkIndexTable = summary.chunk_indexes  # type: ignore[assignment]  # as read_summary makes it
+    wanted = set(wanted)
+
+    def missing() -> bool:
+        return bool(wanted - summary.channels.keys() or missing_schemas(summary))
+
+    opened: set[int] = set()
+    if not missing():
+        return 0
+    for row in _candidates(table, summary, wanted):
+        if not missing():
+            break
+        if row in opened:
+            continue
+        opened.add(row)
+        ci = table[row]
+        try:
+            read_definitions(open_chunk(ci).data, summary.schemas, summary.channels)
+        except (ValueError, struct.error, EOFError, UnicodeDecodeError, McapError) as err:
+            raise ValueError(f"the records of the chunk at offset {ci.chunk_start_offset} are damaged "
+                             f"({type(err).__name__}: {err})") from err
+    return len(opened)
+
+
+def _candidates(table: ChunkIndexTable, summary: Summary, wanted: set[int]) -> Iterator[int]:
+    """The rows :func:`find_definitions` opens, in its order (each computed when it is reached)."""
+    offsets = table.column("chunk_start_offset")
+    firsts = table.first_rows(wanted - summary.channels.keys())
+    yield from sorted(firsts.values(), key=lambda row: int(offsets[row]))
+    for cid, row in sorted(firsts.items()):
+        earlier = np.flatnonzero(offsets < offsets[row])
+        if cid not in summary.channels and earlier.size:
+            yield int(earlier[np.argmax(offsets[earlier])])
+    yield from np.argsort(offsets, kind="stable").tolist()
 
 
 def read_loose(f: BinaryIO, run: LooseRun) -> list[tuple[int, int, int, Message]]:
@@ -222,15 +341,7 @@ class _Tally:
             extent[1], extent[2] = min(extent[1], log_time), max(extent[2], log_time)
 
     def chunk(self, offset: int, length: int, contents: ChunkContents) -> ChunkIndex:
-        for _, opcode, body, size in iter_records(contents.data):
-            record = contents.data[body: body + size]
-            if opcode == Opcode.SCHEMA:
-                self.schema(parse_record(record, Schema))
-            elif opcode == Opcode.CHANNEL:
-                self.channel(parse_record(record, Channel))
-            elif opcode == Opcode.MESSAGE:
-                cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(record, 0)
-                self.message(cid, log_time)
+        read_definitions(contents.data, self.summary.schemas, self.summary.channels, self.message)
         return ChunkIndex(
             chunk_length=length, chunk_start_offset=offset, compression=contents.compression,
             compressed_size=contents.compressed_size, message_end_time=contents.end, message_index_length=0,
@@ -290,20 +401,10 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
             except Exception as err:  # zstd / lz4 errors
                 raise ValueError(f"the chunk at offset {offset} is damaged: {type(err).__name__}: {err}") from err
             last_chunk = tally.chunk(offset, RECORD_HEADER.size + length, contents)
-        elif opcode == Opcode.SCHEMA:
-            tally.schema(parse_record(_body(f, offset, length), Schema))
-        elif opcode == Opcode.CHANNEL:
-            tally.channel(parse_record(_body(f, offset, length), Channel))
-        elif opcode == Opcode.METADATA:
-            record = parse_record(_body(f, offset, length), Metadata)
-            tally.summary.metadata_indexes.append(MetadataIndex(offset=offset, length=RECORD_HEADER.size + length,
-                                                                name=record.name))
-        elif opcode == Opcode.ATTACHMENT:
-            record = parse_record(_body(f, offset, length), Attachment)
-            tally.summary.attachment_indexes.append(AttachmentIndex(
-                offset=offset, length=RECORD_HEADER.size + length, log_time=record.log_time,
-                create_time=record.create_time, data_size=len(record.data), name=record.name,
-                media_type=record.media_type))
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+            _definition(opcode, _body(f, offset, length), tally.summary.schemas, tally.summary.channels)
+        elif opcode in (Opcode.METADATA, Opcode.ATTACHMENT):
+            _add_index(tally.summary, f, opcode, offset, length)
     if last_chunk is not None:
         tally.summary.chunk_indexes.append(last_chunk)
     runs.close()

@@ -1,7 +1,11 @@
 """Message types: the schema and encoding of every channel starlog writes.
 
-starlog's own messages are JSON, described by JSON Schemas kept in the repository's
-``schemas/`` folder (installed as ``starlog/_schemas``) and embedded in every log. Images and
+starlog's star tables (detections, centroids, tracks, platform motion, residuals, attitude,
+identified stars) are protobuf: their ``.proto`` sources are in the repository's ``schemas/starlog/``
+folder and compiled into ``schemas/starlog.desc`` (``tools/build_descriptors.py``); each channel's
+schema is the ``FileDescriptorSet`` of the file defining its message. starlog's other messages are
+JSON, described by JSON Schemas in ``schemas/`` (so are the star tables of earlier logs). The folder
+is installed as ``starlog/_schemas``; every log embeds the schemas of its channels. Images and
 overlays use the Foxglove well-known protobuf schemas, embedded as a ``FileDescriptorSet``.
 """
 
@@ -14,11 +18,15 @@ from pathlib import Path
 from typing import Any
 
 from google.protobuf.descriptor import FileDescriptor
-from google.protobuf.descriptor_pb2 import FileDescriptorSet
+from google.protobuf.descriptor_pb2 import FileDescriptorProto, FileDescriptorSet
 
 from starlog.errors import InvalidParameterError
 
-__all__ = ["MessageType", "schema_dir", "load_json_schema", "json_message_type", "protobuf_message_type"]
+__all__ = ["MessageType", "schema_dir", "load_json_schema", "json_message_type", "protobuf_message_type",
+           "starlog_descriptor_set", "STARLOG_DESCRIPTORS"]
+
+#: The compiled ``.proto`` sources of starlog's protobuf messages, in :func:`schema_dir`.
+STARLOG_DESCRIPTORS = "starlog.desc"
 
 
 @dataclass(frozen=True)
@@ -87,16 +95,44 @@ def _file_descriptor_set(descriptor: Any) -> bytes:
 
 
 @cache
-def protobuf_message_type(full_name: str) -> MessageType:
-    """The :class:`MessageType` of a Foxglove well-known protobuf message.
+def starlog_descriptor_set() -> FileDescriptorSet:
+    """The FileDescriptorSet of starlog's protobuf messages (``schemas/starlog.desc``)."""
+    return FileDescriptorSet.FromString((schema_dir() / STARLOG_DESCRIPTORS).read_bytes())
 
-    ``full_name`` is ``"foxglove.RawImage"`` or ``"foxglove.ImageAnnotations"``.
-    """
+
+def _starlog_file_set(full_name: str) -> bytes | None:
+    """The FileDescriptorSet of the starlog ``.proto`` file defining ``full_name`` (its imports first), or None."""
+    files = {f.name: f for f in starlog_descriptor_set().file}
+    defining = [f for f in files.values() if any(f"{f.package}.{m.name}" == full_name for m in f.message_type)]
+    if not defining:
+        return None
+    fds = FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fd: FileDescriptorProto) -> None:
+        for dep in fd.dependency:
+            if dep not in seen and dep in files:
+                add(files[dep])
+        seen.add(fd.name)
+        fds.file.add().CopyFrom(fd)
+
+    add(defining[0])
+    return fds.SerializeToString(deterministic=True)
+
+
+@cache
+def protobuf_message_type(full_name: str) -> MessageType:
+    """The :class:`MessageType` of a protobuf message: a Foxglove well-known one (``"foxglove.RawImage"``,
+    ``"foxglove.ImageAnnotations"``) or one of starlog's (``"starlog.Centroids"``, ...: ``schemas/starlog/``)."""
     from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
     classes = {"foxglove.RawImage": RawImage, "foxglove.ImageAnnotations": ImageAnnotations}
-    if full_name not in classes:
-        raise InvalidParameterError(f"unsupported protobuf message {full_name!r}; known: {sorted(classes)}.")
-    descriptor = classes[full_name].DESCRIPTOR
-    return MessageType(full_name, "protobuf", _file_descriptor_set(descriptor), "protobuf")
+    if full_name in classes:
+        return MessageType(full_name, "protobuf", _file_descriptor_set(classes[full_name].DESCRIPTOR), "protobuf")
+    own = _starlog_file_set(full_name)
+    if own is None:
+        known = sorted(classes) + sorted(f"{f.package}.{m.name}" for f in starlog_descriptor_set().file
+                                         for m in f.message_type)
+        raise InvalidParameterError(f"unsupported protobuf message {full_name!r}; known: {known}.")
+    return MessageType(full_name, "protobuf", own, "protobuf")

@@ -6,13 +6,21 @@ chunk indexes against the chunks; the statistics against the messages counted; s
 channel references; JSON messages against their JSON Schemas; protobuf, ROS 1 and ROS 2
 messages decode; images decode with one size per channel; ``log_time`` order per channel.
 
-Each problem has a ``kind`` (a stable name), a severity (``error``: the file is damaged or a
-stage would refuse it; ``note``: valid MCAP that other readers accept but that is unusual, such
-as chunks without message indexes or no summary), the file ``offset`` of the record, and the
-``channel`` and ``log_time`` where they apply. The data section is read once, chunk by chunk,
-and the summary section a block at a time (once for its CRC, once for its records); memory holds
-one chunk, per-channel counters and the summary's chunk indexes by column (about 100 bytes a
-chunk: each is compared with its chunk as the walk finishes that chunk). Chunk indexes are parsed
+Each problem has a ``kind`` (a stable name), a severity (``error``: the file is damaged, or starlog
+refuses part of it, such as a topic whose channels' schemas cannot be read as one series;
+``warning``: starlog reads the file in full, but it breaks a rule of the MCAP specification, quoted
+in :attr:`Problem.rule`, such as a summary without the Channel records its chunk indexes name, and
+``starlog filter LOG -o OUT`` rewrites it conforming; ``note``: a file every starlog command reads in
+full but that is unusual, such as chunks without message indexes, no summary, or channels sharing a
+topic; where Foxglove or the ``mcap`` library cannot read it, the note says so and names the command
+that rewrites it), the file ``offset`` of the record, and the ``channel`` and ``log_time`` where
+they apply. The report's :attr:`~VerifyReport.status` follows: ``damaged`` or ``refused`` (an error;
+exit status 1), ``nonconformant`` (warnings only; exit status 3), ``valid`` (notes at most; 0).
+The data section is read once, chunk by chunk, and the summary section a block at a time (once
+for its CRC, once for its records); memory holds one chunk, per-channel counters (and 8 bytes a
+frame of each image channel, to compare the frame times of a topic's channels) and the summary's
+chunk indexes by column (about 100 bytes a chunk: each is compared with its chunk as the walk
+finishes that chunk). Chunk indexes are parsed
 as :class:`~starlog.io.reader.LogReader` parses them: one that it refuses is a ``bad_summary``.
 
 One module of over 500 lines: the checks are the methods of one walk over the file
@@ -61,8 +69,19 @@ from starlog.io.layout import (
 from starlog.io.json_schema import compile_json_schema
 from starlog.io.messages import decode_json
 from starlog.io.provenance import BackgroundDigest
+from starlog.io.shared_topics import OTHER_READERS, topic_conflict
 
-__all__ = ["ChainReport", "Problem", "VerifyReport", "verify_file", "verify_log"]
+__all__ = ["EXIT_STATUS", "ChainReport", "Problem", "VerifyReport", "verify_file", "verify_log"]
+
+#: ``starlog verify``'s exit status for each :attr:`VerifyReport.status`.
+EXIT_STATUS = {"valid": 0, "nonconformant": 3, "refused": 1, "damaged": 1}
+#: Errors of valid MCAP files that starlog refuses (its frames, tables, stages), as opposed to damage.
+REFUSALS = frozenset({"topic_schemas_differ", "image_size", "image_size_changed", "duplicate_frame_time"})
+#: The rules of the MCAP specification on the summary's copies of schema and channel records.
+RULE_CHUNK_INDEXES = ("A Schema and Channel record MUST exist in the summary section for all channels referenced by "
+                      "chunk index records")
+RULE_STATISTICS = ("When using a Statistics record with a non-empty channel_message_counts, the Summary Data section "
+                   "MUST contain a copy of all Channel records")
 
 MAGIC_LENGTH = len(MAGIC)
 _FOOTER = FOOTER
@@ -72,7 +91,8 @@ _PROGRESS_STEP = 8 << 20  # bytes of the data section between two progress repor
 
 @dataclass(frozen=True)
 class Problem:
-    """One problem: ``kind`` (stable name), ``severity`` (error / note), where, and what."""
+    """One problem: ``kind`` (stable name), ``severity`` (error / warning / note), where, and what; a warning's
+    ``rule`` quotes the rules of the MCAP specification the file breaks (each in double quotes)."""
 
     kind: str
     severity: str
@@ -80,10 +100,11 @@ class Problem:
     offset: int | None = None
     channel: str | None = None
     log_time: int | None = None
+    rule: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return {"kind": self.kind, "severity": self.severity, "offset": self.offset, "channel": self.channel,
-                "log_time": self.log_time, "detail": self.detail}
+                "log_time": self.log_time, "detail": self.detail, "rule": self.rule or None}
 
     def line(self) -> str:
         where = [f"offset {self.offset}" if self.offset is not None else "",
@@ -109,23 +130,57 @@ class VerifyReport:
         return [p for p in self.problems if p.severity == "error"]
 
     @property
+    def warnings(self) -> list[Problem]:
+        return [p for p in self.problems if p.severity == "warning"]
+
+    @property
     def ok(self) -> bool:
+        """No error: every starlog command reads the file in full (it may still break the specification)."""
         return not self.errors
 
+    @property
+    def status(self) -> str:
+        """:func:`_status` of the file's problems."""
+        return _status(self.problems)
+
+    @property
+    def exit_status(self) -> int:
+        """``starlog verify``'s exit status: 0 valid, 3 nonconformant, 1 refused or damaged."""
+        return EXIT_STATUS[self.status]
+
     def verdict(self) -> str:
-        """One line: clean or damaged, with counts."""
-        notes = len(self.problems) - len(self.errors)
+        """One line: valid, nonconformant, refused or damaged, with counts."""
+        notes = len(self.problems) - len(self.errors) - len(self.warnings)
         what = f"{self.messages} messages, {self.channels} channels, {self.chunks} chunks"
-        if self.ok:
-            return f"OK: {self.path} is a valid MCAP file ({what}){f', {notes} notes' if notes else ''}."
-        kinds = sorted({p.kind for p in self.errors})
-        return (f"DAMAGED: {self.path} has {len(self.errors)} errors ({', '.join(kinds)}){f', {notes} notes' if notes else ''}"
+        also = f", {notes} notes" if notes else ""
+        status = self.status
+        if status == "valid":
+            return f"OK: {self.path} is a valid MCAP file ({what}{also})."
+        if status == "nonconformant":
+            rules = "; ".join(dict.fromkeys(p.rule for p in self.warnings))
+            return (f"NONCONFORMANT: starlog reads {self.path} in full ({what}{also}), but it does not conform to the "
+                    f"MCAP specification: {rules}. Rewrite it conforming with: starlog filter {self.path} -o OUT.mcap")
+        kinds = ", ".join(sorted({p.kind for p in self.errors}))
+        if status == "refused":
+            return (f"REFUSED: {self.path} is valid MCAP ({what}{also}), but starlog refuses part of it: "
+                    f"{len(self.errors)} errors ({kinds}; see above).")
+        return (f"DAMAGED: {self.path} has {len(self.errors)} errors ({kinds}){also}"
                 f"; read {what}. Keep what is intact with: starlog recover {self.path} -o RECOVERED.mcap")
 
     def to_dict(self) -> dict[str, Any]:
-        return {"path": self.path, "ok": self.ok, "size_bytes": self.size, "messages": self.messages,
-                "chunks": self.chunks, "channels": self.channels, "verdict": self.verdict(),
-                "problems": [p.to_dict() for p in self.problems]}
+        return {"path": self.path, "ok": self.ok, "status": self.status, "size_bytes": self.size,
+                "messages": self.messages, "chunks": self.chunks, "channels": self.channels,
+                "verdict": self.verdict(), "problems": [p.to_dict() for p in self.problems]}
+
+
+def _status(problems: list[Problem]) -> str:
+    """``damaged`` (an error other than a refusal), ``refused`` (valid MCAP, part of which starlog refuses:
+    :data:`REFUSALS`), ``nonconformant`` (read in full, but it breaks a rule of the MCAP specification) or
+    ``valid``."""
+    errors = {p.kind for p in problems if p.severity == "error"}
+    if errors:
+        return "refused" if errors <= REFUSALS else "damaged"
+    return "nonconformant" if any(p.severity == "warning" for p in problems) else "valid"
 
 
 @dataclass
@@ -216,7 +271,7 @@ class _ChannelState:
     count: int = 0
     last: int = -1
     out_of_order: int = 0
-    image: tuple[Any, ...] | None = None
+    frame_times: array | None = None  # an image channel's log_times, to compare with its topic's other channels
     checker: Callable[[Any], str | None] | None = None
     decode: Callable[[bytes], Any] | None = None
     kind: str = "bytes"
@@ -241,10 +296,12 @@ class _Verifier:
         self.unknown_channels: set[int] = set()
         self.bare_chunks = 0
         self.base_records: list[dict[str, str]] = []
+        self.summary_definitions: tuple[set[int], set[int]] = (set(), set())  # schema and channel ids it repeats
+        self.frame_shapes: dict[str, tuple[Any, ...]] = {}  # per image topic: its first frame's shape and dtype
 
     def problem(self, kind: str, detail: str, *, severity: str = "error", offset: int | None = None,
-                channel: str | None = None, log_time: int | None = None) -> None:
-        self.report.problems.append(Problem(kind, severity, detail, offset, channel, log_time))
+                channel: str | None = None, log_time: int | None = None, rule: str = "") -> None:
+        self.report.problems.append(Problem(kind, severity, detail, offset, channel, log_time, rule))
 
     # ------------------------------------------------------------------ frame of the file
     def envelope(self, size: int) -> tuple[int, int, int, int] | None:
@@ -302,8 +359,10 @@ class _Verifier:
                     record = parse_record(body, cls)
                     if name == "schemas":
                         self.schemas.setdefault(record.id, record)
+                        self.summary_definitions[0].add(record.id)
                     elif name == "channels":
                         self.channels.setdefault(record.id, record)
+                        self.summary_definitions[1].add(record.id)
                     elif name == "statistics":
                         groups["statistics"] = record
                     else:
@@ -496,6 +555,7 @@ class _Verifier:
         if schema is not None and is_image_schema(schema.name):
             state.decode, state.kind = cached_image_decoder(schema, encoding), "image"
             if state.decode is not None:
+                state.frame_times = array("q")
                 return
         if encoding == "json":
             state.kind = "json"
@@ -527,6 +587,8 @@ class _Verifier:
             self.problem("duplicate_frame_time", "two frames at one log_time (stages need strictly increasing "
                          "frame times)", offset=offset, channel=state.topic, log_time=log_time)
         state.last = max(state.last, log_time)
+        if state.frame_times is not None:
+            state.frame_times.append(log_time)
         try:
             self.content(state, data, offset, log_time)
         except Exception as err:  # protobuf DecodeError, ROS deserialisation errors, InvalidInputError ...
@@ -537,14 +599,13 @@ class _Verifier:
         if state.kind == "image" and state.decode is not None:
             image = state.decode(data).image
             shape = (image.shape, image.dtype)
+            first = self.frame_shapes.setdefault(state.topic, shape)  # a topic's channels are one series of frames
             if image.ndim != 2:
                 self.problem("image_size", "the frame is not a 2-D image", offset=offset, channel=state.topic,
                              log_time=log_time)
-            elif state.image is None:
-                state.image = shape
-            elif shape != state.image:
+            elif shape != first:
                 self.problem("image_size_changed", f"a {image.shape[1]}x{image.shape[0]} {image.dtype} frame in a "
-                             f"channel of {state.image[0][1]}x{state.image[0][0]} {state.image[1]} frames",
+                             f"channel of {first[0][1]}x{first[0][0]} {first[1]} frames",
                              offset=offset, channel=state.topic, log_time=log_time)
         elif state.kind == "json":
             value = decode_json(data)
@@ -605,12 +666,85 @@ class _Verifier:
         if wrong:
             self.problem("statistics_mismatch", f"the statistics record disagrees with the file in {', '.join(wrong)}")
 
+    def check_definitions(self) -> None:
+        """The summary's copies of the schema and channel records. The MCAP specification asks for them where
+        chunk indexes name the channels (:data:`RULE_CHUNK_INDEXES`) and, for the channels, where the statistics
+        count messages per channel (:data:`RULE_STATISTICS`): a warning when they lack (starlog reads the file in
+        full; readers that take them from the summary, the mcap library's and Foxglove's, fail on files with
+        chunk indexes). Elsewhere the copies are optional: a note."""
+        if not self.summary or self.summary_damaged:
+            return
+        table = self.indexes.table
+        stats: Statistics | None = self.summary.get("statistics")
+        schemas, channels = self.summary_definitions
+        indexed = table.channel_ids()
+        counted = {c for c, n in (stats.channel_message_counts.items() if stats else ()) if n}
+        used = indexed | counted | set(self.counted)
+        every = set(self.channels) if stats and stats.channel_message_counts else set()  # RULE_STATISTICS: all
+        unrepeated = self.schemas.keys() - schemas
+        lacking = {cid: (cid not in channels, cid in used and self.channels[cid].schema_id in unrepeated)
+                   for cid in sorted(used | every) if cid in self.channels}
+        lacking = {cid: flags for cid, flags in lacking.items() if any(flags)}
+        if not lacking:
+            return
+        rules = [rule for rule, broken in (
+            (RULE_CHUNK_INDEXES, any(cid in indexed for cid in lacking)),
+            (RULE_STATISTICS, bool(stats and stats.channel_message_counts) and any(f[0] for f in lacking.values())),
+        ) if broken]
+        what = " and ".join(kind for k, kind in enumerate(("channel", "schema")) if any(f[k] for f in lacking.values()))
+        topics = list(dict.fromkeys(self.channels[cid].topic for cid in lacking))
+        readers = (f"; readers that take them from the summary (the mcap library's, Foxglove's) cannot read these "
+                   f"channels: starlog filter {self.path} -o OUT.mcap rewrites the file with them") if table else ""
+        quoted = "; ".join(f'"{rule}"' for rule in rules)
+        spec = f"the MCAP specification requires them there: {quoted}" if rules else \
+            "valid MCAP: the summary's copies are optional"
+        self.problem("definitions_not_in_summary", f"the summary does not repeat the {what} records of "
+                     f"{len(lacking)} channels ({', '.join(topics[:5])}{', ...' if len(topics) > 5 else ''}), which "
+                     f"starlog reads from the data section ({spec}){readers}",
+                     severity="warning" if rules else "note", rule=quoted)
+
+    def check_topics(self) -> None:
+        """Channels sharing a topic: an error when the schemas of those with messages cannot be read as one series
+        (the readers refuse such a topic as a series, :mod:`starlog.io.shared_topics`), else a note; image
+        channels' frames of one topic must not share a log_time (the stages read them as one series of strictly
+        increasing times)."""
+        by_topic: dict[str, list[int]] = {}
+        for cid in sorted(self.channels):
+            by_topic.setdefault(self.channels[cid].topic, []).append(cid)
+        for topic, ids in by_topic.items():
+            if len(ids) < 2:
+                continue
+            channels = [self.channels[cid] for cid in ids if self.counted.get(cid)]  # as the readers count them
+            conflict = topic_conflict(topic, [(c, self.schemas.get(c.schema_id) if c.schema_id else None)
+                                              for c in channels])
+            if conflict is not None:
+                self.problem("topic_schemas_differ", f"{conflict}; {OTHER_READERS}", channel=topic)
+                continue
+            self.problem("shared_topic", f"channels {', '.join(map(str, ids))} share the topic (valid; read as one "
+                         "series in log_time order, each message by its own channel's schema, as the mcap library "
+                         "and Foxglove read it)", severity="note", channel=topic)
+            self.check_frame_times(topic, [self.states[c] for c in ids if c in self.states])
+
+    def check_frame_times(self, topic: str, states: list[_ChannelState]) -> None:
+        """Frames of two channels of one image topic at one log_time (each channel's own are checked as read)."""
+        times = [np.unique(np.frombuffer(s.frame_times, dtype=np.int64)) for s in states if s.frame_times]
+        if len(times) < 2:
+            return
+        values, counts = np.unique(np.concatenate(times), return_counts=True)
+        shared = counts > 1
+        if np.any(shared):
+            self.problem("duplicate_frame_time", f"{int(np.sum(counts[shared] - 1))} frames share a log_time with a "
+                         "frame of another channel of the topic (stages read its channels' frames as one series, "
+                         "whose times must increase strictly)", channel=topic, log_time=int(values[shared][0]))
+
     def finish(self) -> None:
         for cid, channel in sorted(self.channels.items()):
             if channel.schema_id != 0 and channel.schema_id not in self.schemas and cid not in self.states:
                 self.problem("missing_schema", f"the channel refers to schema {channel.schema_id}, which is not "
                              "defined", channel=channel.topic)
         self.check_indexes()
+        self.check_definitions()
+        self.check_topics()
         if self.bare_chunks:
             self.problem("no_message_indexes", self.bare_chunks_detail(), severity="note")
         if self.loose:
@@ -681,7 +815,18 @@ class ChainReport:
 
     @property
     def ok(self) -> bool:
+        """No error: every starlog command reads the log in full."""
         return not self.errors
+
+    @property
+    def status(self) -> str:
+        """The log's status, as :attr:`VerifyReport.status` says it of a file (a chain's own errors are damage)."""
+        return _status(self.problems)
+
+    @property
+    def exit_status(self) -> int:
+        """``starlog verify``'s exit status (:data:`EXIT_STATUS`)."""
+        return EXIT_STATUS[self.status]
 
     @property
     def size(self) -> int:
@@ -707,19 +852,28 @@ class ChainReport:
                 if not self.base_checked else
                 f"a chain of {len(self.files)} files whose base {self.missing_base} could not be checked"
                 if self.missing_base else f"a chain of {len(self.files)} files")
-        bad = [f.path for f in self.files if not f.ok]
-        errors = sorted({p.kind for p in self.chain_problems if p.severity == "error"})
-        if not bad and not errors:
-            checked = "" if not self.base_checked else ", every base the file its layer was written on"
+        status = self.status
+        checked = "" if not self.base_checked else ", every base the file its layer was written on"
+        if status == "valid":
             return f"OK: {self.path} is {what}: every file valid{checked}."
-        parts = [f"damaged files: {', '.join(bad)} (keep what is intact with starlog recover)"] if bad else []
+        if status == "nonconformant":
+            files = ", ".join(f.path for f in self.files if f.status == "nonconformant")
+            return (f"NONCONFORMANT: {self.path} is {what}, read in full by starlog{checked}; {files} does not "
+                    "conform to the MCAP specification (see above). Write the log as one conforming file with: "
+                    f"starlog filter {self.path} -o OUT.mcap")
+        parts = [f"{kind} files: {', '.join(f.path for f in self.files if f.status == kind)}{why}"
+                 for kind, why in (("damaged", " (keep what is intact with starlog recover)"),
+                                   ("refused", " (valid MCAP, part of which starlog refuses: see above)"))
+                 if any(f.status == kind for f in self.files)]
+        errors = sorted({p.kind for p in self.chain_problems if p.severity == "error"})
         parts += [f"chain errors: {', '.join(errors)} (see above)"] if errors else []
-        return f"DAMAGED: {self.path} is {what}; {'; '.join(parts)}."
+        return f"{status.upper()}: {self.path} is {what}; {'; '.join(parts)}."
 
     def to_dict(self) -> dict[str, Any]:
         problems = [{**p.to_dict(), "file": f.path} for f in self.files for p in f.problems]
         problems += [{**p.to_dict(), "file": self.path} for p in self.chain_problems]
-        return {"path": self.path, "ok": self.ok, "verdict": self.verdict(), "size_bytes": self.size,
+        return {"path": self.path, "ok": self.ok, "status": self.status, "verdict": self.verdict(),
+                "size_bytes": self.size,
                 "messages": self.messages, "chunks": self.chunks, "channels": self.channels,
                 "problems": problems, "files": [f.to_dict() for f in self.files]}
 

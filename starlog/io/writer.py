@@ -79,7 +79,7 @@ if TYPE_CHECKING:
     from starlog.io.chain import LayerBase
     from starlog.io.mcap_file import McapFile
 
-__all__ = ["Compression", "LogWriter", "VALIDATED_METADATA_KEY", "temporary_folder", "temporary_output"]
+__all__ = ["FRAME_COMPRESSION", "Compression", "LogWriter", "VALIDATED_METADATA_KEY", "temporary_folder", "temporary_output"]
 
 #: Channel metadata key set by :class:`LogWriter` on the JSON channels whose every message it
 #: checked against the channel's JSON Schema while writing.
@@ -105,6 +105,12 @@ class Compression(str, Enum):
 #: the simulator's truth packs tighter at level 3 (88x against 61x), a few kB a second.
 ZSTD_LEVEL = 1
 
+#: Chunk compression of the logs that hold camera frames (``simulate``, ``ingest``): the stages that read frames pay
+#: its decompression on every frame. lz4 decodes a 1024x1024 mono16 frame about twice as fast as zstd for
+#: files about 1.6 times as large; uncompressed chunks decode fastest and are 2.6 times as large
+#: (``python tools/bench_io.py``, docs/BENCHMARKS.md). ``--compression`` keeps the choice with the user.
+FRAME_COMPRESSION = "lz4"
+
 
 def _compress(data: bytes, compression: Compression) -> tuple[bytes, int]:
     crc = crc32(data)
@@ -115,7 +121,9 @@ def _compress(data: bytes, compression: Compression) -> tuple[bytes, int]:
     if compression is Compression.LZ4:
         import lz4.frame
 
-        return lz4.frame.compress(data), crc
+        # 1 MiB blocks: python-lz4 decodes them at twice the speed of its default 64 KiB blocks (slower than
+        # zstd) or of 4 MiB ones, for the same size (``python tools/bench_io.py``'s frame table)
+        return lz4.frame.compress(data, block_size=lz4.frame.BLOCKSIZE_MAX1MB), crc
     return data, crc
 
 
@@ -279,11 +287,11 @@ class LogWriter:
     # ------------------------------------------------------------------ registration
     @property
     def topics(self) -> dict[str, int]:
-        """Channel id of every topic this file holds."""
+        """Channel id of every topic this file holds (of its first channel, for a topic of several)."""
         return dict(self._topics)
 
     def add_channel(self, topic: str, message_type: MessageType, *, metadata: dict[str, str] | None = None,
-                    monotonic: bool = False) -> int:
+                    monotonic: bool = False, shared_topic: bool = False) -> int:
         """Register a channel and return its id.
 
         With ``monotonic=True``, :meth:`write` refuses a ``log_time`` that is not after the
@@ -292,9 +300,10 @@ class LogWriter:
 
         Raises :class:`InvalidInputError` if the log (the chain, for a layer) already has ``topic``
         (a stage run twice on the same log): run the stage on the log before it, or use another
-        channel name.
+        channel name. ``shared_topic``: this file may hold ``topic`` already (a second channel on it, as
+        ``recover`` keeps one of another schema); the chain below a layer still may not.
         """
-        if topic in self._topics or (self.layer is not None and topic in self.layer.topics):
+        if (topic in self._topics and not shared_topic) or (self.layer is not None and topic in self.layer.topics):
             raise InvalidInputError(
                 f"the log already has a channel {topic!r}; run this stage on a log without it "
                 "(for example the stage's own input) or choose another name."
@@ -319,7 +328,7 @@ class LogWriter:
 
     def _register_channel(self, channel: Channel) -> None:
         self._channels[channel.id] = channel
-        self._topics[channel.topic] = channel.id
+        self._topics.setdefault(channel.topic, channel.id)
         self._next_channel_id = max(self._next_channel_id, channel.id + 1)
         self._stats.channel_count += 1
 
@@ -452,9 +461,8 @@ class LogWriter:
         self._register_schema(schema)
 
     def copy_channel(self, channel: Channel) -> None:
-        """Write ``channel`` as it is (its id, topic and metadata kept), for the copied records that name it."""
-        if channel.topic in self._topics:
-            raise InvalidInputError(f"two channels named {channel.topic!r} cannot go into one log.")
+        """Write ``channel`` as it is (its id, topic and metadata kept), for the copied records that name it; its
+        topic may be another copied channel's (valid MCAP: one channel per publisher)."""
         channel.write(self._records)
         self._flush_records()
         self._register_channel(channel)

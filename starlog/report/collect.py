@@ -182,15 +182,16 @@ def _error_from_record(log: LogReader, record: dict[str, Any]) -> ErrorSeries:
 def _error_from_track(log: LogReader, topic: str) -> ErrorSeries | None:
     t, xy = [], []
     truncated = False
-    for message in log.messages(topic):
-        row = next((r for r in message.payload["tracks"] if r["brightest"]), None)
-        if row is None:
+    for message in log.tables(topic):  # rows as arrays: no dict per star of every frame
+        rows = message.rows
+        brightest = np.flatnonzero(rows["brightest"]) if rows is not None else ()
+        if not len(brightest):
             continue
         if len(t) == MAX_SERIES_SAMPLES:
             truncated = True
             break
         t.append(message.log_time)
-        xy.append((row["x"], row["y"]))
+        xy.append((float(rows["x"][brightest[0]]), float(rows["y"][brightest[0]])))
     if len(t) < 4:
         return None
     times = (np.asarray(t, np.int64) - t[0]) * 1e-9

@@ -8,8 +8,6 @@ the number of workers.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -38,12 +36,12 @@ from starlog.centroid.tracking import (
 from starlog.io import encode_image_annotations
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader, LogSource
-from starlog.io.records import record_encoder
+from starlog.io.star_tables import star_codec
 from starlog.stages._blocks import worker_log
 from starlog.stages._parallel import ordered_map, process_pool
 
-__all__ = ["FrameExtractor", "FrameMessages", "TrackedFrames", "extract_blocks_serial", "extract_parallel",
-           "extract_serial", "opencv_threads", "reuse_frame_buffers"]
+__all__ = ["FrameExtractor", "FrameMessages", "TrackedFrames", "annotation_diameter", "extract_blocks_serial",
+           "extract_parallel", "extract_serial", "opencv_threads"]
 
 
 @dataclass(frozen=True)
@@ -68,7 +66,7 @@ class FrameMessages:
 @dataclass(frozen=True)
 class FrameExtractor:
     """Detect, centroid and encode one frame; picklable, so worker processes do the whole per-frame work
-    (the JSON messages are checked against their schemas there too, not by the writer in the main process)."""
+    (the star tables are encoded, and their columns checked, there too, not by the writer in the main process)."""
 
     methods: tuple[CentroidMethod, ...]
     gain: float
@@ -123,14 +121,14 @@ class FrameExtractor:
             table = centroids[CentroidMethod(m)]
             table["x"], table["y"] = calibration.apply(table["x"], table["y"])
         first = centroids[self.methods[0]]
-        diameter = float(max(6.0, 6.0 * np.median(first["psf_sigma"]))) if first.size else 6.0
+        diameter = annotation_diameter(first)
         per_method = [centroids[m] for m in self.methods]
         return FrameMessages(
             log_time=log_time,
-            detections=record_encoder("starlog.Detections", "stars").encode({"frame": frame}, detections),
+            detections=star_codec("starlog.Detections").encode({"frame": frame}, detections),
             annotations=encode_image_annotations(first["x"], first["y"], log_time=log_time if stamp is None else stamp,
                                                  diameter=diameter),
-            centroids=tuple(record_encoder("starlog.Centroids", "stars").encode({"frame": frame, "method": m.value}, c)
+            centroids=tuple(star_codec("starlog.Centroids").encode({"frame": frame, "method": m.value}, c)
                             for m, c in zip(self.methods, per_method)),
             n_detections=int(detections.size),
             n_centroids=tuple(int(c.size) for c in per_method),
@@ -139,6 +137,21 @@ class FrameExtractor:
             evidence=frame_evidence(per_method),
             acquired=acquired,
         )
+
+
+def annotation_diameter(centroids: npt.NDArray[Any]) -> float:
+    """The diameter (px) of the circles drawn at a frame's centroids: 6 PSF sigmas (their median), at least 6.
+
+    The median is ``np.median``'s value (NaN included) without its overhead, a tenth of a frame's encoding
+    at 50 stars.
+    """
+    if not centroids.size:
+        return 6.0
+    ordered = np.sort(centroids["psf_sigma"])
+    half = ordered.size // 2
+    median = float("nan") if np.isnan(ordered[-1]) else \
+        float(ordered[half] if ordered.size % 2 else (ordered[half - 1] + ordered[half]) / 2)
+    return float(max(6.0, 6.0 * median))
 
 
 class TrackedFrames:
@@ -206,28 +219,6 @@ class TrackedFrames:
         return detections[keep], {m: c[keep] for m, c in centroids.items()}
 
 
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-
-
-def reuse_frame_buffers() -> None:
-    """Let the C allocator (glibc) recycle the frame-sized arrays each frame allocates and frees.
-
-    By default every block above ~128 KiB is mapped from the system on allocation and returned
-    on release, so each frame's images (decoded frame, float copy, filtered image, maps, masks)
-    arrive as fresh zero pages: thousands of page faults a frame, a third of detection's time
-    at 1024x1024. Blocks below 64 MiB now come from the heap and stay there for the next
-    frame (the working set, hence the peak memory, does not grow with the log). Elsewhere than
-    glibc nothing changes. The setting is process-wide and kept.
-    """
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(_M_MMAP_THRESHOLD, 64 << 20)
-    mallopt(_M_TRIM_THRESHOLD, 256 << 20)
-
-
 @contextmanager
 def opencv_threads(count: int) -> Iterator[None]:
     """OpenCV's own thread pool limited to ``count`` while the block runs.
@@ -268,7 +259,6 @@ def extract_blocks_serial(log: LogReader, topic: str, blocks: list[tuple[int, in
 def _extract_block(source: LogSource, topic: str, start: int, end: int, first_index: int, extract: FrameExtractor,
                    skip_bad: bool) -> list[FrameMessages | SkippedFrame]:
     """Worker: every frame with ``start <= log_time < end`` (reads the log itself; no image crosses processes)."""
-    reuse_frame_buffers()
     with opencv_threads(1):
         log = worker_log(source)
         return list(extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first_index))

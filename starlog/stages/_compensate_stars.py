@@ -1,7 +1,8 @@
-"""Reading tracks row by row and writing the all-star series of ``compensate --stars all``.
+"""Reading tracks track by track and writing the all-star series of ``compensate --stars all``.
 
 :func:`collect_track_rows` reads the rows of a track channel per track (the brightest track alone, or every
-track), :func:`centroid_sigmas` the centroid channel's sigmas once for many tracks. The ``compensate``
+track), :func:`centroid_sigmas` the centroid channel's sigmas once for many tracks; both read the channels as
+tables (:meth:`~starlog.io.reader.LogReader.tables`: a structured array per frame, no dict per star). The ``compensate``
 stage compensates each confirmed track with the brightest track's pipeline; :class:`StarFrames` gathers the
 results of one (rate, protocol, motion mode) and writes them as one ``starlog.CompensatedStars`` message
 per frame: the rows :mod:`starlog.stages.solve` reads to solve the attitude before and after compensation.
@@ -42,30 +43,40 @@ class TrackRows:
 
 
 def collect_track_rows(log: LogReader, topic: str,
-                       keep: Callable[[dict[str, Any]], bool]
+                       keep: Callable[[npt.NDArray[np.void]], npt.NDArray[np.bool_]]
                        ) -> tuple[str, str, dict[int, TrackRows], npt.NDArray[np.int64]]:
-    """The method, the motion model, the rows ``keep`` accepts of every track of ``topic`` and the times of
-    the channel's messages (one pass)."""
+    """The method, the motion model, the rows ``keep`` accepts (a mask of a frame's rows) of every track of
+    ``topic`` and the times of the channel's messages (one pass)."""
     method = model = ""
-    rows: dict[int, TrackRows] = {}
+    kept: list[npt.NDArray[np.void]] = []
+    when: list[npt.NDArray[np.int64]] = []
     times: list[int] = []
-    for message in log.messages(topic):
+    for message in log.tables(topic):
         times.append(message.log_time)
-        msg = message.payload
-        method, model = msg["method"], msg["model"]
-        for row in msg["tracks"]:
-            if not keep(row):
-                continue
-            track = rows.setdefault(int(row["track"]), TrackRows())
-            track.times.append(message.log_time)
-            track.frames.append(msg["frame"])
-            track.xy.append((row["x"], row["y"]))
-            track.flux.append(row["flux"])
-            track.meas.append((row["meas_x"], row["meas_y"], row["meas_sigma"], row["measured"] or row["gated"]))
-            track.var.append(0.5 * (row["cov_xx"] + row["cov_yy"]))
-            track.confirmed = track.confirmed or bool(row.get("confirmed", False))
+        method, model = message.header["method"], message.header["model"]
+        if message.rows is None or not message.rows.size:
+            continue
+        rows = message.rows[keep(message.rows)]
+        kept.append(rows)
+        when.append(np.repeat(np.array([[message.log_time, message.header["frame"]]], dtype=np.int64), rows.size, 0))
     check_messages_read(log, topic, len(times))
-    return method, model, rows, np.asarray(times, dtype=np.int64)
+    tracks: dict[int, TrackRows] = {}
+    if kept:
+        rows, at = np.concatenate(kept), np.concatenate(when)
+        order = np.argsort(rows["track"], kind="stable")
+        ids, starts = np.unique(rows["track"][order], return_index=True)
+        for track, chunk in zip(ids.tolist(), np.split(order, starts[1:])):
+            tracks[track] = _track_rows(rows[chunk], at[chunk])
+    return method, model, tracks, np.asarray(times, dtype=np.int64)
+
+
+def _track_rows(rows: npt.NDArray[np.void], at: npt.NDArray[np.int64]) -> TrackRows:
+    """One track's rows (in frame order) and their ``(log_time, frame)``."""
+    return TrackRows(times=at[:, 0].tolist(), frames=at[:, 1].tolist(),
+                     xy=list(zip(rows["x"].tolist(), rows["y"].tolist())), flux=rows["flux"].tolist(),
+                     meas=list(zip(rows["meas_x"].tolist(), rows["meas_y"].tolist(), rows["meas_sigma"].tolist(),
+                                   (rows["measured"] | rows["gated"]).tolist())),
+                     var=(0.5 * (rows["cov_xx"] + rows["cov_yy"])).tolist(), confirmed=bool(rows["confirmed"].any()))
 
 
 def centroid_sigmas(log: LogReader, method: str, *,
@@ -77,15 +88,16 @@ def centroid_sigmas(log: LogReader, method: str, *,
     out: CentroidSigmas = {}
     if not log.has_topic(topic):
         return out
-    for message in log.messages(topic):
+    for message in log.tables(topic):
         wanted = None if only is None else only.get(message.log_time)
         if only is not None and wanted is None:
             continue
         frame = out.setdefault(message.log_time, {})
-        for star in message.payload["stars"]:
-            key = (star["x"], star["y"])
-            if wanted is None or key in wanted:
-                frame.setdefault(key, star["sigma"])
+        rows = message.rows if message.rows is not None else np.zeros(0, dtype=[("x", "f8"), ("y", "f8"),
+                                                                               ("sigma", "f8")])
+        for x, y, sigma in zip(rows["x"].tolist(), rows["y"].tolist(), rows["sigma"].tolist()):
+            if wanted is None or (x, y) in wanted:
+                frame.setdefault((x, y), sigma)
     return out
 
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from starlog.centroid.evidence import EvidenceAccumulator, recommend
-from starlog.io import json_message_type, protobuf_message_type, topics
+from starlog.io import protobuf_message_type, topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader, LogSource
@@ -42,7 +42,6 @@ from starlog.stages._centroid_frames import (
     extract_parallel,
     extract_serial,
     opencv_threads,
-    reuse_frame_buffers,
 )
 from starlog.stages._centroid_parameters import CentroidParameters, parse_methods, resolve_centroid_parameters
 from starlog.stages._channels import check_messages_read
@@ -193,7 +192,6 @@ def centroid_log(
         Tracking: frames between two full searches (default
         :data:`~starlog.centroid.tracking.DEFAULT_ACQUIRE_EVERY`).
     """
-    reuse_frame_buffers()
     parameters = resolve_centroid_parameters(input_path, methods=methods, gain=gain, read_noise=read_noise,
                                              options=options, image_topic=image_topic, psf=psf, hot_pixels=hot_pixels,
                                              phase_correction=phase_correction, show_progress=show_progress,
@@ -216,9 +214,9 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
     with opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=provenance,
                                        force=force, flatten=flatten, compression=compression) as (log, out):
         summary.channel_messages = n_frames = log.channel(p.image_topic).message_count
-        det_ch = out.add_channel(topics.DETECTIONS, json_message_type("starlog.Detections"))
+        det_ch = out.add_channel(topics.DETECTIONS, protobuf_message_type("starlog.Detections"))
         ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))
-        cen_ch = [out.add_channel(topics.centroid_topic(m.value), json_message_type("starlog.Centroids"))
+        cen_ch = [out.add_channel(topics.centroid_topic(m.value), protobuf_message_type("starlog.Centroids"))
                   for m in p.methods]
         results = _frame_results(log, input_path, p, workers, skip_bad)
         evidence = EvidenceAccumulator(summary.methods)

@@ -151,7 +151,7 @@ def read_brightest_series(log: LogReader, topic: str, *, truth_cache: dict[int, 
     star is then read from the log once, not once per channel. ``with_truth=False`` leaves the
     truth unread (only the ``paper`` protocol runs: it never sees the truth).
     """
-    method, model, rows, _ = collect_track_rows(log, topic, lambda row: bool(row["brightest"]))
+    method, model, rows, _ = collect_track_rows(log, topic, lambda rows: rows["brightest"])
     if not rows:
         raise InvalidInputError(f"{topic} has no row of a brightest track; nothing to compensate.")
     track_id, kept = next(iter(rows.items()))
@@ -183,7 +183,7 @@ def read_track_series(log: LogReader, topic: str, *, truth_cache: dict[int, Star
     """Every confirmed track of ``topic`` as a series (in track id order), read as
     :func:`read_brightest_series` reads the brightest one, and the times of the channel's frames; the frame
     rate is the image channel's, else the track channel's."""
-    method, model, rows, frame_times = collect_track_rows(log, topic, lambda row: True)
+    method, model, rows, frame_times = collect_track_rows(log, topic, lambda rows: np.ones(rows.size, dtype=bool))
     confirmed = {k: r for k, r in rows.items() if r.confirmed}
     image_rate = log.channel(topics.IMAGE).rate_hz if log.has_topic(topics.IMAGE) else 0.0
     native = image_rate if image_rate > 0 else log.channel(topic).rate_hz

@@ -27,6 +27,7 @@ from starlog.errors import (
     ChannelNotFoundError,
     InvalidInputError,
     InvalidParameterError,
+    MessageDecodeError,
     StageFunctionError,
     StarlogError,
 )
@@ -34,6 +35,7 @@ from starlog.io.frames import iter_frames
 from starlog.io.images import choose_image_topic, is_image_schema
 from starlog.io.messages import encode_json
 from starlog.io.reader import ChannelSummary, LogReader, decode_payload, source_path
+from starlog.io.star_tables import decode_table
 from starlog.io.writer import LogWriter
 from starlog.stage_declaration import KINDS, Message, Output, Stage
 from starlog.stages._channels import check_messages_read
@@ -221,11 +223,9 @@ def _run_parallel(batch: _Batch, batches: Iterable[tuple[int, list[Raw]]], worke
 
 
 # ---------------------------------------------------------------- one batch (here or in a worker process)
-_TABLES: dict[str, tuple[str, str]] = {
-    "starlog.Centroids": ("stars", "centroids"),
-    "starlog.Detections": ("stars", "detections"),
-    "starlog.Tracks": ("tracks", "tracks"),
-}
+#: The star tables a stage gets as the structured arrays of the built-in stages: schema name → kind.
+_TABLES: dict[str, str] = {"starlog.Centroids": "centroids", "starlog.Detections": "detections",
+                           "starlog.Tracks": "tracks"}
 
 
 @dataclass(frozen=True)
@@ -256,14 +256,15 @@ class _Batch:
                 yield Message(self.topic, frame.log_time, frame.index, frame.image)
             return
         for index, (schema, channel, message) in enumerate(raws, first):
-            payload = decode_payload(Path(self.log_name), schema, channel, message)
-            table = _TABLES.get(schema.name if schema else "")
-            if table is not None and isinstance(payload, dict):
-                key, kind = table
-                rows = payload.get(key, [])
-                fields = {k: v for k, v in payload.items() if k != key}
-                yield Message(self.topic, message.log_time, index, _structured(rows, kind), fields)
+            kind = _TABLES.get(schema.name if schema else "")
+            if kind is not None:
+                try:
+                    table = decode_table(schema, channel.message_encoding, message.data)
+                except InvalidInputError as err:
+                    raise MessageDecodeError(Path(self.log_name), channel.topic, message.log_time, str(err)) from err
+                yield Message(self.topic, message.log_time, index, _structured(table.rows, kind), table.header)
             else:
+                payload = decode_payload(Path(self.log_name), schema, channel, message)
                 fields = payload if isinstance(payload, dict) else {}
                 yield Message(self.topic, message.log_time, index, payload, fields)
 
@@ -315,14 +316,14 @@ def _encode(record: Any, output: Output, topic: str, where: str) -> bytes | None
         raise StageFunctionError(f"{where}: its record for {topic} cannot be written as JSON ({err}).") from err
 
 
-def _structured(rows: list[dict[str, Any]], kind: str) -> np.ndarray:
-    """Per-star JSON rows → the structured array of the built-in stages."""
+def _structured(rows: np.ndarray | None, kind: str) -> np.ndarray:
+    """A star table's decoded rows → the structured array of the built-in stages (fields copied by name)."""
     dtype = _dtype(kind)
-    names = dtype.names or ()
-    try:
-        return np.array([tuple(row[n] for n in names) for row in rows], dtype=dtype)
-    except KeyError as err:
-        raise InvalidInputError(f"a {kind} row lacks the field {err}.") from err
+    out = np.zeros(0 if rows is None else rows.size, dtype=dtype)
+    for name in dtype.names or ():
+        if rows is not None and rows.size:
+            out[name] = rows[name]
+    return out
 
 
 @functools.cache

@@ -122,7 +122,8 @@ def cat_messages(
         chosen = _selected(log, selection)
         resolved = _resolve(log, TimeRange.parse(start, end), chosen, frame_topic)
         lo, hi = (None, None) if resolved is None else (resolved.start_ns, resolved.end_ns)
-        for count, (schema, channel, message) in enumerate(log.raw_messages(chosen, start=lo, end=hi, views=True)):
+        messages = log.raw_messages(chosen, start=lo, end=hi, views=True, mixed=True)  # each line by its own schema
+        for count, (schema, channel, message) in enumerate(messages):
             if limit is not None and count >= limit:
                 break
             yield {"topic": channel.topic, "log_time": message.log_time, "publish_time": message.publish_time,

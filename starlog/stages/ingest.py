@@ -30,6 +30,7 @@ from starlog import __version__
 from starlog.errors import ImageFolderError, InvalidParameterError
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
+from starlog.io.writer import FRAME_COMPRESSION
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.stages._progress import progress
 from starlog.stages.ingest_sources import (
@@ -163,7 +164,7 @@ def ingest_source(
     time_pattern: str | None = None,
     time_unit: str = "ns",
     skip_bad: bool = False,
-    compression: str = "zstd",
+    compression: str = FRAME_COMPRESSION,
     workers: int = 1,
     force: bool = False,
     show_progress: bool = False,

@@ -28,8 +28,9 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.io import encode_json, json_message_type, topics
+from starlog.io import protobuf_message_type, topics
 from starlog.io.reader import LogReader
+from starlog.io.star_tables import star_codec
 from starlog.motion import Observations, PlatformEstimate, PlatformModel, estimate_platform
 from starlog.stages._channels import check_messages_read, select_track_channels
 from starlog.stages.window import windowed
@@ -55,32 +56,33 @@ class TrackObservations:
 def read_track_observations(log: LogReader, topic: str) -> TrackObservations:
     """The measured positions (``meas_x``, ``meas_y``, ``meas_sigma`` > 0) of every track in ``topic``.
 
-    Only the fields used are read (``log`` may skip the schema check: a message without them is
+    The channel is read as tables (:meth:`~starlog.io.reader.LogReader.tables`), the measured rows of each
+    frame kept as arrays (``log`` may skip the JSON schema check: a message without the fields used is
     reported as not a track message).
     """
-    times, frames, index, track = array("q"), array("q"), array("q"), array("q")
-    values = array("d")  # meas_x, meas_y, meas_sigma of each measurement
+    times, frames = array("q"), array("q")
+    kept: list[npt.NDArray[np.void]] = []
+    index: list[npt.NDArray[np.int64]] = []
     method = model = ""
-    for k, message in enumerate(log.messages(topic)):
-        msg = message.payload
+    for k, message in enumerate(log.tables(topic)):
         try:
-            method, model = msg["method"], msg["model"]
-            frames.append(int(msg["frame"]))
-            for row in msg["tracks"]:
-                if row["meas_sigma"] > 0:
-                    index.append(k)
-                    track.append(row["track"])
-                    values.extend((row["meas_x"], row["meas_y"], row["meas_sigma"]))
+            method, model = message.header["method"], message.header["model"]
+            frames.append(int(message.header["frame"]))
         except (KeyError, TypeError, ValueError) as err:
             raise InvalidInputError(f"{topic} at log_time {message.log_time}: not a starlog.Tracks message ({err!r}); "
                                     "`starlog verify` lists every problem of the log.") from err
+        rows = message.rows
+        if rows is not None and rows.size:
+            measured = rows[rows["meas_sigma"] > 0]
+            kept.append(measured)
+            index.append(np.full(measured.size, k, dtype=np.int64))
         times.append(message.log_time)
     check_messages_read(log, topic, len(times))
-    if not track:
+    rows = np.concatenate(kept) if kept else np.zeros(0)
+    if not rows.size:
         raise InvalidInputError(f"{topic} has no associated measurement; nothing to fit.")
-    table = np.frombuffer(values, dtype=np.float64).reshape(-1, 3)
-    tracks = np.frombuffer(track, dtype=np.int64)
-    obs = Observations.build(np.frombuffer(index, dtype=np.int64), tracks, table[:, 0], table[:, 1], table[:, 2],
+    tracks = rows["track"].astype(np.int64)
+    obs = Observations.build(np.concatenate(index), tracks, rows["meas_x"], rows["meas_y"], rows["meas_sigma"],
                              n_frames=len(times))
     return TrackObservations(method, model, np.frombuffer(times, dtype=np.int64), np.frombuffer(frames, dtype=np.int64),
                              np.unique(tracks), obs)
@@ -204,9 +206,11 @@ def motion_log(
 
 
 def _write_motion(out: StageOutput, data: TrackObservations, est: PlatformEstimate) -> None:
-    platform = out.add_channel(topics.platform_topic(data.method, data.model), json_message_type("starlog.PlatformMotion"))
+    platform = out.add_channel(topics.platform_topic(data.method, data.model),
+                               protobuf_message_type("starlog.PlatformMotion"))
     residuals = out.add_channel(topics.residuals_topic(data.method, data.model),
-                                json_message_type("starlog.StarResiduals"))
+                                protobuf_message_type("starlog.StarResiduals"))
+    platform_codec, residuals_codec = star_codec("starlog.PlatformMotion"), star_codec("starlog.StarResiduals")
     obs = data.obs
     head = {"method": data.method, "model": data.model, "fit": est.model.value}
     n_par = est.model.n_parameters
@@ -222,10 +226,11 @@ def _write_motion(out: StageOutput, data: TrackObservations, est: PlatformEstima
                    "sigma_dy": float(sd[k, 1]), "sigma_roll": float(sd[k, 2]) if n_par > 2 else 0.0,
                    "sigma_scale": float(sd[k, 3]) if n_par > 3 else 0.0, "n_stars": int(est.n_used[k]),
                    "n_rejected": int(rejected[k]), "residual_rms": float(est.residual_rms[k])}
-        out.writer.write(platform, log_time=t, data=encode_json(message))
+        out.writer.write(platform, log_time=t, data=platform_codec.encode(message))
         rows = order[bounds[k]:bounds[k + 1]]
         stars = [_residual_row(data, est, i) for i in rows]
-        out.writer.write(residuals, log_time=t, data=encode_json({"frame": int(data.frame[k]), **head, "stars": stars}))
+        out.writer.write(residuals, log_time=t,
+                         data=residuals_codec.encode_dict({"frame": int(data.frame[k]), **head, "stars": stars}))
 
 
 def _residual_row(data: TrackObservations, est: PlatformEstimate, i: int) -> dict[str, Any]:

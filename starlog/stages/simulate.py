@@ -10,6 +10,7 @@ from typing import Any
 from starlog import __version__
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
+from starlog.io.writer import FRAME_COMPRESSION
 from starlog.attitude.rotation import quaternion_from_matrix, radec_roll
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.sim import SimulatedFrame, SimulationConfig, Simulator
@@ -23,7 +24,7 @@ def simulate_log(
     config: SimulationConfig,
     output: str | os.PathLike[str],
     *,
-    compression: str = "zstd",
+    compression: str = FRAME_COMPRESSION,
     workers: int = 1,
     force: bool = False,
     show_progress: bool = False,

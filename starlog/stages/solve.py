@@ -31,7 +31,7 @@ import math
 import os
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -44,8 +44,9 @@ from starlog.attitude.identify import ARCSEC_PER_RAD, AttitudeTracker, FrameAtti
 from starlog.attitude.rotation import attitude_error, matrix_from_quaternion, radec_roll
 from starlog.centroid.table import CentroidFlag
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.io import encode_json, json_message_type, protobuf_message_type, topics
+from starlog.io import protobuf_message_type, topics
 from starlog.io.reader import LogReader
+from starlog.io.star_tables import star_codec
 from starlog.stages._channels import check_messages_read
 from starlog.stages._progress import progress
 from starlog.stages._stage import StageOutput, extend_log
@@ -167,14 +168,12 @@ class _Centroids:
     sigma: npt.NDArray[np.float64]
 
     @classmethod
-    def from_payload(cls, payload: dict[str, Any]) -> _Centroids:
-        rows = payload["stars"]
-        table = np.array([(r["x"], r["y"], r["flux"], r["sigma"], r["flags"], r["star"]) for r in rows],
-                         dtype=np.float64).reshape(-1, 6)
-        ok = (np.isfinite(table[:, :4]).all(axis=1) & (table[:, 3] > 0)
-              & ((table[:, 4].astype(np.int64) & int(CentroidFlag.FIT_FAILED)) == 0))
-        t = table[ok]
-        return cls(t[:, 5].astype(np.int64), t[:, 0], t[:, 1], t[:, 2], t[:, 3])
+    def from_rows(cls, rows: npt.NDArray[np.void]) -> _Centroids:
+        """The usable rows of a frame's centroid table (:meth:`~starlog.io.reader.LogReader.tables`)."""
+        x, y, flux, sigma = (rows[name].astype(np.float64) for name in ("x", "y", "flux", "sigma"))
+        ok = (np.isfinite(x) & np.isfinite(y) & np.isfinite(flux) & np.isfinite(sigma) & (sigma > 0)
+              & ((rows["flags"].astype(np.int64) & int(CentroidFlag.FIT_FAILED)) == 0))
+        return cls(rows["star"][ok].astype(np.int64), x[ok], y[ok], flux[ok], sigma[ok])
 
     @classmethod
     def from_compensated(cls, payload: dict[str, Any], which: str) -> _Centroids:
@@ -357,35 +356,46 @@ class SolveSummary:
         return lines
 
 
+def _frames(log: LogReader, topic: str, which: str | None) -> Iterator[tuple[int, int, _Centroids]]:
+    """``(log_time, frame, usable stars)`` of every message of a centroid channel, or with ``which`` of an
+    all-star compensated channel."""
+    kind = "starlog.Centroids" if which is None else COMPENSATED_STARS
+    messages: Iterator[Any] = log.tables(topic) if which is None else log.messages(topic)
+    for message in messages:
+        try:
+            if which is None:
+                stars = _Centroids.from_rows(message.rows)
+                frame = int(message.header["frame"])
+            else:
+                stars = _Centroids.from_compensated(message.payload, which)
+                frame = int(message.payload["frame"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise InvalidInputError(f"{topic} at log_time {message.log_time}: not a {kind} message "
+                                    f"({err!r}).") from err
+        yield message.log_time, frame, stars
+
+
 def _solve_channel(log: LogReader, out: StageOutput, topic: str, tracker: AttitudeTracker,
                    truth: dict[int, npt.NDArray[np.float64]], *, show_progress: bool,
                    which: str | None = None) -> _MethodFigures:
     """Solve every frame of one centroid channel, or with ``which`` (``before``, ``after``) of an all-star
     compensated channel, and write its three channels."""
     method = topic.rsplit("/", 1)[-1] if which is None else compensated_name(topic, which)
-    attitude_ch = out.add_channel(topics.attitude_topic(method), json_message_type("starlog.Attitude"))
-    identified_ch = out.add_channel(topics.identified_topic(method), json_message_type("starlog.IdentifiedStars"))
+    attitude_ch = out.add_channel(topics.attitude_topic(method), protobuf_message_type("starlog.Attitude"))
+    identified_ch = out.add_channel(topics.identified_topic(method), protobuf_message_type("starlog.IdentifiedStars"))
     annotations_ch = out.add_channel(topics.identified_annotations_topic(method),
                                      protobuf_message_type("foxglove.ImageAnnotations"))
     figures = _MethodFigures()
     count = log.channel(topic).message_count
-    for message in progress(log.messages(topic), total=count, description=f"solve {method}", enabled=show_progress):
-        try:
-            stars = (_Centroids.from_payload(message.payload) if which is None
-                     else _Centroids.from_compensated(message.payload, which))
-            frame = int(message.payload["frame"])
-        except (KeyError, TypeError, ValueError) as err:
-            kind = "starlog.Centroids" if which is None else COMPENSATED_STARS
-            raise InvalidInputError(f"{topic} at log_time {message.log_time}: not a {kind} message "
-                                    f"({err!r}).") from err
+    for t, frame, stars in progress(_frames(log, topic, which), total=count, description=f"solve {method}",
+                                    enabled=show_progress):
         start = time.perf_counter()
         result = tracker.solve(stars.x, stars.y, stars.flux, stars.sigma)
         figures.seconds += time.perf_counter() - start
-        record = _attitude_record(frame, method, result, stars, truth.get(message.log_time))
+        record = _attitude_record(frame, method, result, stars, truth.get(t))
         identified = _identified_record(frame, method, result, stars, tracker.catalogue)
-        t = message.log_time
-        out.writer.write(attitude_ch, log_time=t, data=encode_json(record))
-        out.writer.write(identified_ch, log_time=t, data=encode_json(identified))
+        out.writer.write(attitude_ch, log_time=t, data=star_codec("starlog.Attitude").encode(record))
+        out.writer.write(identified_ch, log_time=t, data=star_codec("starlog.IdentifiedStars").encode_dict(identified))
         out.writer.write(annotations_ch, log_time=t, data=_annotations(identified, t))
         figures.add(result, stars, record)
     check_messages_read(log, topic, figures.frames)

@@ -17,7 +17,11 @@ streaming block by block so that memory does not grow with the log's length:
 One model on several workers goes another way, with the tracker alone on this process's critical
 path: worker processes decode the centroid blocks ahead of it and encode each tracked block while
 it tracks the next — every row as not the brightest, to a file; once the brightest track is known,
-its rows are marked in the encoded messages as they are written (:func:`_track_pipelined`).
+its rows are marked in the encoded messages as they are written (:func:`_track_pipelined`): every row
+of a ``starlog.Tracks`` message has the same length, so its ``brightest`` byte is at a known place.
+
+The centroids are read as tables (:meth:`~starlog.io.reader.LogReader.tables`, no dict per star), and
+the rows of a whole block are encoded at once (:func:`~starlog.io.star_tables.star_codec`).
 
 The bytes written do not depend on ``workers``.
 
@@ -27,8 +31,6 @@ same bytes and share the spool and encoding helpers, so they stay together.
 
 from __future__ import annotations
 
-import itertools
-import operator
 import os
 import tempfile
 from collections.abc import Iterator, Sequence
@@ -42,10 +44,9 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import InvalidParameterError
-from starlog.io import json_message_type, topics
-from starlog.io.reader import LogReader, LogSource
-from starlog.io.checked import CheckedJson, schema_digest
-from starlog.io.records import record_encoder
+from starlog.io import protobuf_message_type, topics
+from starlog.io.reader import LogReader, LogSource, TableMessage
+from starlog.io.star_tables import star_codec
 from starlog.stages._blocks import channel_blocks, worker_log
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
@@ -65,7 +66,8 @@ __all__ = ["TrackSummary", "track_log", "parse_models"]
 
 #: Frames per spooled block: bounds the memory of every pass.
 BLOCK_FRAMES = 64
-_STAR_FIELDS = operator.itemgetter("x", "y", "sigma", "flux")
+#: The centroid columns the tracker takes, in order.
+_STAR_FIELDS = ("x", "y", "sigma", "flux")
 
 
 def parse_models(spec: str | Sequence[str]) -> list[MotionModel]:
@@ -120,25 +122,28 @@ class TrackSummary:
 
 # ---------------------------------------------------------------- pass 1: read
 class _CentroidBlock:
-    """Centroid messages gathered into arrays, each message's star dicts dropped once converted."""
+    """Centroid messages gathered into arrays."""
 
     def __init__(self) -> None:
         self.frames: list[int] = []
         self.times: list[int] = []
         self.counts: list[int] = []
-        self.values: list[tuple[float, float, float, float]] = []
+        self.tables: list[npt.NDArray[np.void]] = []
 
-    def add(self, log_time: int, payload: dict[str, Any]) -> None:
-        stars = payload["stars"]
-        self.frames.append(payload["frame"])
-        self.times.append(log_time)
-        self.counts.append(len(stars))
-        self.values.extend(map(_STAR_FIELDS, stars))
+    def add(self, message: TableMessage) -> None:
+        rows = message.rows if message.rows is not None else np.zeros(0, star_codec("starlog.Centroids").row_dtype)
+        self.frames.append(message.header["frame"])
+        self.times.append(message.log_time)
+        self.counts.append(rows.size)
+        self.tables.append(rows)
 
     def table(self) -> npt.NDArray[np.float64]:
         """The ``(k, 4)`` x/y/sigma/flux of every star of the block."""
-        return np.fromiter(itertools.chain.from_iterable(self.values), dtype=np.float64,
-                           count=4 * len(self.values)).reshape(len(self.values), 4)
+        rows = np.concatenate(self.tables) if self.tables else np.zeros(0, star_codec("starlog.Centroids").row_dtype)
+        out = np.empty((rows.size, len(_STAR_FIELDS)), dtype=np.float64)
+        for k, name in enumerate(_STAR_FIELDS):
+            out[:, k] = rows[name]
+        return out
 
     def write(self, file: BinaryIO) -> None:
         """Spool ``(frame, log_time, stars per frame, (k, 4) x/y/sigma/flux)``."""
@@ -159,8 +164,8 @@ class _DecodedBlock(NamedTuple):
 def _decode_centroid_block(source: LogSource, topic: str, start: int, end: int) -> _DecodedBlock:
     """Worker: the centroid messages with ``start <= log_time < end`` as arrays (the worker reads them itself)."""
     block = _CentroidBlock()
-    for message in worker_log(source).messages(topic, start=start, end=end):
-        block.add(message.log_time, message.payload)
+    for message in worker_log(source).tables(topic, start=start, end=end):
+        block.add(message)
     return _DecodedBlock(np.array(block.frames, dtype=np.int64), np.array(block.times, dtype=np.int64),
                          np.array(block.counts, dtype=np.int64), block.table())
 
@@ -168,12 +173,12 @@ def _decode_centroid_block(source: LogSource, topic: str, start: int, end: int) 
 def _spool_centroids(log: LogReader, topic: str, spool: Spool, *, show_progress: bool) -> int:
     """Pass 1: the centroid channel → blocks of arrays in ``spool``; the number of frames."""
     n_frames = 0
-    messages = progress(log.messages(topic), total=log.channel(topic).message_count,
+    messages = progress(log.tables(topic), total=log.channel(topic).message_count,
                         description="track (read)", enabled=show_progress)
     block = _CentroidBlock()
     with opened(spool, "wb") as file:
         for message in messages:
-            block.add(message.log_time, message.payload)
+            block.add(message)
             n_frames += 1
             if len(block.frames) == BLOCK_FRAMES:
                 block.write(file)
@@ -275,58 +280,37 @@ def _track_block(tracker: StarTracker, times: npt.NDArray[np.int64], counts: npt
     return rows, row_counts
 
 
-_UNMARKED, _MARKED = b'"brightest":false}', b'"brightest":true}'
-
-
 def _encode_unmarked(spool: Path, method: str, model: str, out: Path) -> None:
     """Worker: one spooled block of rows encoded as :func:`_encode_block` does, no row marked the brightest, to
-    ``out``: each message's ``log_time`` and bytes, and each row's track and where its bytes end."""
+    ``out``: each message's ``log_time``, length and header length, and each row's track."""
     frames, times, counts, rows = read_block(spool, 0, 4)
-    encoder = record_encoder("starlog.Tracks", "tracks")
-    records = encoder.rows(rows, {"brightest": np.zeros(rows.size, dtype=bool)})
-    ends = np.cumsum(counts).tolist()
-    messages, row_ends = [], []
-    for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True):
-        message = encoder.message({"frame": frame, "method": method, "model": model}, records[a:b])
-        joined = sum(map(len, records[a:b])) + max(b - a - 1, 0)  # the records and the commas between them
-        row_ends += _row_ends(len(message) - joined - len(b"]}"), records[a:b])
-        messages.append(message)
+    times, messages = _encoded_messages(frames, times, counts, rows, method, model, np.zeros(rows.size, dtype=bool))
+    heads = [len(m) - n * star_codec("starlog.Tracks").row_size for m, n in zip(messages, counts.tolist())]
     with open(out, "wb") as file:
-        write_block(file, times, np.array([len(m) for m in messages], dtype=np.int64), counts, rows["track"],
-                    np.array(row_ends, dtype=np.int64), np.frombuffer(b"".join(messages), dtype=np.uint8))
+        write_block(file, np.array(times, dtype=np.int64), np.array([len(m) for m in messages], dtype=np.int64),
+                    np.array(heads, dtype=np.int64), counts, rows["track"],
+                    np.frombuffer(b"".join(messages), dtype=np.uint8))
     spool.unlink()
-
-
-def _row_ends(head: int, records: Sequence[bytes]) -> list[int]:
-    """Where each record's bytes end (exclusive) in a message whose records start at ``head``, one comma
-    between two."""
-    ends, position = [], head
-    for record in records:
-        position += len(record)
-        ends.append(position)
-        position += 1
-    return ends
 
 
 def _write_patched(out: StageOutput, channel: int, files: list[Path], brightest: int, n_frames: int, *,
                    show_progress: bool) -> None:
-    """Pass 3 of :func:`_track_pipelined`: each encoded message, the brightest track's row marked, written (a
-    message checked against its schema where it was encoded stays valid with a row marked)."""
-    digest = schema_digest(json_message_type("starlog.Tracks").schema_data)
+    """Pass 3 of :func:`_track_pipelined`: each encoded message, the brightest track's rows marked, written."""
+    codec = star_codec("starlog.Tracks")
+    size, at = codec.row_size, codec.value_offset("brightest")
 
     def messages() -> Iterator[tuple[int, bytes]]:
         for path in files:
-            times, lengths, counts, tracks, row_ends, data = read_block(path, 0, 6)
+            times, lengths, heads, counts, tracks, data = read_block(path, 0, 6)
             starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
             row_starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-            for t, start, length, r0, n in zip(times.tolist(), starts.tolist(), lengths.tolist(),
-                                               row_starts.tolist(), counts.tolist()):
-                message = data[start:start + length].tobytes()
+            for t, start, length, head, r0, n in zip(times.tolist(), starts.tolist(), lengths.tolist(),
+                                                     heads.tolist(), row_starts.tolist(), counts.tolist()):
+                message = bytearray(data[start:start + length])
                 for k in np.flatnonzero(tracks[r0:r0 + n] == brightest).tolist():
-                    end = int(row_ends[r0 + k])
-                    assert message[end - len(_UNMARKED):end] == _UNMARKED
-                    message = message[:end - len(_UNMARKED)] + _MARKED + message[end:]
-                yield t, CheckedJson(message, digest)
+                    assert message[head + k * size + at] == 0
+                    message[head + k * size + at] = 1
+                yield t, bytes(message)
             path.unlink()
 
     for t, message in progress(messages(), total=n_frames, description="track (write)", enabled=show_progress):
@@ -336,19 +320,23 @@ def _write_patched(out: StageOutput, channel: int, files: list[Path], brightest:
 # ---------------------------------------------------------------- pass 3: write
 def _encode_block(spool: Spool, offset: int, method: str, model: str,
                   brightest: int) -> tuple[list[int], list[bytes]]:
-    """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame.
-
-    The block's rows are encoded, and checked against their schema, column by column
-    (:class:`~starlog.io.records.RecordEncoder`; in a worker process when there is a pool), not by the writer.
-    """
+    """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame (in a worker process
+    when there is a pool)."""
     frames, times, counts, rows = read_block(spool, offset, 4)
-    encoder = record_encoder("starlog.Tracks", "tracks")
-    records = encoder.rows(rows, {"brightest": rows["track"] == brightest})
+    return _encoded_messages(frames, times, counts, rows, method, model, rows["track"] == brightest)
+
+
+def _encoded_messages(frames: npt.NDArray[np.int64], times: npt.NDArray[np.int64], counts: npt.NDArray[np.int64],
+                      rows: npt.NDArray[np.void], method: str, model: str,
+                      brightest: npt.NDArray[np.bool_]) -> tuple[list[int], list[bytes]]:
+    """``(log_time, starlog.Tracks message)`` of each frame of a block: the block's rows encoded at once (their
+    columns checked), then cut per frame behind each frame's header."""
+    codec = star_codec("starlog.Tracks")
+    encoded = codec.encode_rows(rows, {"brightest": brightest})
+    size = codec.row_size
     ends = np.cumsum(counts).tolist()
-    messages: list[bytes] = [
-        encoder.message({"frame": frame, "method": method, "model": model}, records[a:b])
-        for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)
-    ]
+    messages = [codec.encode_header({"frame": frame, "method": method, "model": model}) + encoded[a * size:b * size]
+                for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)]
     return times.tolist(), messages
 
 
@@ -381,7 +369,7 @@ def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: 
              for block in range(n_blocks) for m, run in runs.items()]
     encoded = (ordered_map(pool, _encode_block, items, window=2 * len(runs)) if pool
                else (_encode_block(*item) for item in items))
-    channels = [out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
+    channels = [out.add_channel(topics.track_topic(method, m.value), protobuf_message_type("starlog.Tracks"))
                 for m in runs]
     frames = _frames_out(encoded, len(runs), n_blocks)
     for t, messages in progress(frames, total=n_frames, description="track (write)", enabled=show_progress):
@@ -408,7 +396,8 @@ def _track_one_model(log: LogReader, input_path: LogSource, out: StageOutput, co
                      summary: TrackSummary, blocks: list[tuple[int, int, int]], workers: int, *,
                      show_progress: bool) -> dict[MotionModel, _ModelRun]:
     """One model on several cores (:func:`_track_pipelined`), written as :func:`_track_every_model` writes it."""
-    channel = out.add_channel(topics.track_topic(method, config.model.value), json_message_type("starlog.Tracks"))
+    channel = out.add_channel(topics.track_topic(method, config.model.value),
+                              protobuf_message_type("starlog.Tracks"))
     with tempfile.TemporaryDirectory(prefix=f".{out.writer.path.name}.track-", dir=out.writer.path.parent) as tmp, \
             process_pool(workers, preload=["starlog.stages.track"]) as pool:
         summary.frames, run, files = _track_pipelined(log, input_path, config, method, Path(tmp), blocks, pool,
