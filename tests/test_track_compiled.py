@@ -35,7 +35,7 @@ from starlog.track import (
     make_filterpy_ukf,
     state_dim,
 )
-from starlog.track._kernels import INT_COLUMNS
+from starlog.track._kernels import INT_COLUMNS, Status
 from starlog.track.state import INT_FIELDS, TrackState
 
 RTOL = 1e-9
@@ -220,6 +220,22 @@ def test_a_covariance_to_repair_goes_to_the_numpy_steps() -> None:
     b = reference.update(PERIOD_NS, [10.0, 50.0], [20.0, 60.0], [0.1, 0.1], [1e4, 1e4])
     assert_same_tracks([a], [b])
     assert np.isfinite(a["cov_xx"]).all()
+
+
+def test_an_update_to_repair_goes_to_the_numpy_steps() -> None:
+    """A frame the call hands back after its prediction (an updated covariance to repair: rounding makes it
+    too rare to provoke) is finished by the numpy steps as they would have alone."""
+    sc = scenario(8, 6, 2, 400.0, 1.0, 0.0, 0.0, 0.0)
+    compiled = StarTracker(model="CONSTANT_VELOCITY")
+    reference = StarTracker(model="CONSTANT_VELOCITY", vectorised=True)
+    (t0, *first), (t, *second) = sc.frames
+    compiled.update(t0, *first)
+    reference.update(t0, *first)
+    compiled._predict(t)  # what the call does before it hands the frame back
+    out = np.empty(compiled.n_live + second[0].size, dtype=TRACK_DTYPE)
+    rows = compiled._step._handed_back(Status.REPAIR_UPDATE, t, np.stack(second, axis=1), out)
+    assert_same_tracks([out[:rows]], [reference.update(t, *second)])
+    assert_same_summary(compiled, reference)
 
 
 def test_track_state_views_share_the_tables() -> None:
