@@ -406,7 +406,7 @@ def test_track_state_take_and_concat_keep_every_array_in_step() -> None:
     assert kept.first_time.tolist() == [5, 5, 9]
     assert_array_equal(kept.x[1], np.arange(8.0, 12.0))
     assert_array_equal(kept.P[1], np.eye(d) * 3.0)
-    sizes = {name: len(getattr(kept, name)) for name in vars(kept)}
+    sizes = {name: len(getattr(kept, name)) for name in TrackState.ARRAYS}
     assert set(sizes.values()) == {3}, sizes
     new.missed[0] += 1  # a counter of a new track shares memory with no other counter
     assert [new.coast[0], new.gated_streak[0], new.age[0], new.gated[0]] == [0, 0, 0, 0]

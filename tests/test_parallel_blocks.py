@@ -8,7 +8,6 @@ import pickle
 from pathlib import Path
 from types import SimpleNamespace
 
-import numpy as np
 import pytest
 
 from starlog.io import LogReader, LogView, topics
@@ -19,9 +18,6 @@ from starlog.stages._blocks import channel_blocks
 # private module _parallel: the stages' pool; only a _Pool never started (process_pool starts it) runs all items here
 from starlog.stages._parallel import _Pool, ordered_map, process_pool
 from starlog.stages.centroid import centroid_log
-# private _concatenated: track's join of a block's row tables, checked against numpy (an empty table included)
-from starlog.stages.track import _concatenated
-from starlog.track import TRACK_DTYPE
 from tests.foreign_logs import write_plain
 from tests.helpers import small_config
 
@@ -93,8 +89,3 @@ def test_a_log_view_pickles_for_a_worker_to_read_the_same_window(tmp_path: Path)
         assert a.channel("/camera/image").message_count == 3
 
 
-def test_track_joins_a_block_of_row_tables_as_numpy_does() -> None:
-    tables = [np.zeros(n, TRACK_DTYPE) for n in (3, 0, 5)]
-    for i, table in enumerate(tables):
-        table["track"] = np.arange(table.size) + 10 * i
-    assert _concatenated(tables).tobytes() == np.concatenate(tables).tobytes()

@@ -47,11 +47,11 @@ Printed as Markdown tables, every ratio from this one run:
    ``.pipeline``, ``.cli``: per-message conversion, orchestration), import, other (outside starlog);
 4. checks: output SHA-256 identical for ``--workers 1`` and all cores, and on a rerun; each of
    ``run``'s layers identical to the stage run alone; a chain of five layers with no topic twice;
-5. the tracker's own time, the denominator of the ``track`` target: ``StarTracker.update`` with the
-   stage's options on every frame of the longest log's centroids (decoded beforehand), in this
-   process, the best of two runs, timed right after each repeat of the ``track`` stage; the target
-   is the median over the repeats of each repeat's ratio, so both sides of a ratio see the machine
-   at the same speed;
+5. the tracker's own time beside the ``track`` stage's (whose target is its marginal time a frame at
+   1024²): ``StarTracker.update`` with the stage's options on every frame of the longest log's
+   centroids (decoded beforehand), in this process, the best of two runs, timed right after each
+   repeat of the ``track`` stage; the ratio shown is the median over the repeats of each repeat's
+   ratio, so both sides of a ratio see the machine at the same speed;
 6. the cost of opening a chain, on the longest log: five layers, each on the one before (centroid
    GAUSSFIT, track STATIC, motion, compensate, track CONSTANT_VELOCITY); ``python -m starlog info``
    of the fifth layer and of the simulated base, run alternately in pairs (the target: the median
@@ -943,15 +943,14 @@ def speed_targets(s: dict[str, Any], workers_all: int) -> list[tuple[str, bool |
     out.append((f"{tag}: centroid {PIPELINE_METHOD} --workers {workers_all} / --workers 1 = "
                 f"{_f(all_['rate'] / one['rate'], 2)} >= 1.8", all_["rate"] >= 1.8 * one["rate"]))
     track = _stage(s, TRACK_LABEL)
-    ratio = s["track_ratio"]
-    out.append((f"{tag}: track marginal time {_f(1e3 * _seconds_per_frame(track['rate']), 3)} ms / tracker's own time "
-                f"{_f(1e3 * s['tracker_s_per_frame'], 3)} ms = {_f(ratio, 2)} <= 1.5 (median of the repeats' "
-                "ratios)", ratio <= 1.5))
     seconds = _seconds_per_frame(track["rate"])
     text = f"{tag}: track marginal {_f(1e3 * seconds, 3)} ms a frame <= {_f(1e3 * TRACK_LIMIT_S, 2)} ms"
     judged = s["size"] == TRACK_LIMIT_SIZE
     out.append((text if judged else f"{text} (n/a: set for {TRACK_LIMIT_SIZE}² frames, 50 stars)",
                 seconds <= TRACK_LIMIT_S if judged else None))
+    out.append((f"{tag}: track marginal time / tracker's own time {_f(1e3 * s['tracker_s_per_frame'], 3)} ms = "
+                f"{_f(s['track_ratio'], 2)} (median of the repeats' ratios; informational: what the stage's reading "
+                "and writing add to the tracker)", None))
     comp = _stage(s, COMPENSATE_LABEL)
     extra = 1200 * _seconds_per_frame(comp["rate"])
     out.append((f"{tag}: compensate of 1200 frames = {_f(extra, 2)} s + start-up {_f(comp['start_up'], 2)} s; "

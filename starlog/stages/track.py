@@ -215,9 +215,8 @@ def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Sp
     offsets = []
     with opened(spool, "wb") as file:
         for frames, times, counts, table in read_blocks(centroids, 4):
-            out = _track_block(tracker, times.tolist(), counts.tolist(), table, nis)
-            row_counts = np.array([r.size for r in out], dtype=np.int64)
-            offsets.append(write_block(file, frames, times, row_counts, _concatenated(out)))
+            rows, row_counts = _track_block(tracker, times, counts, table, nis)
+            offsets.append(write_block(file, frames, times, row_counts, rows))
     return _model_run(tracker, source, nis, spool, offsets)
 
 
@@ -231,14 +230,6 @@ def _model_run(tracker: StarTracker, source: str, nis: _NisSum, spool: Spool, of
     return _ModelRun(brightest=brightest, spool=spool, offsets=offsets, tracks=int(stats.size),
                      confirmed=int(stats["confirmed"].sum()), gated=int(stats["gated"].sum()),
                      mean_nis=nis.total / nis.count if nis.count else 0.0)
-
-
-def _concatenated(tables: list[npt.NDArray[np.void]]) -> npt.NDArray[np.void]:
-    """The row tables of one block, all of one record dtype, joined (without ``out``, ``np.concatenate``
-    promotes the record dtypes of every pair of tables: a cost per frame)."""
-    out = np.empty(sum(t.size for t in tables), dtype=tables[0].dtype)
-    np.concatenate(tables, out=out)
-    return out
 
 
 # ---------------------------------------------------------------- one model on several cores
@@ -258,11 +249,10 @@ def _track_pipelined(log: LogReader, source: LogSource, config: TrackerConfig, m
     n_frames = 0
     for k, block in enumerate(progress(decoded, total=len(blocks), description="track", enabled=show_progress,
                                        unit="block")):
-        rows = _track_block(tracker, block.times.tolist(), block.counts.tolist(), block.table, stats)
+        rows, row_counts = _track_block(tracker, block.times, block.counts, block.table, stats)
         spool = folder / f"rows-{k}"
         with open(spool, "wb") as file:
-            write_block(file, block.frames, block.times, np.array([r.size for r in rows], dtype=np.int64),
-                        _concatenated(rows))
+            write_block(file, block.frames, block.times, row_counts, rows)
         files.append(folder / f"encoded-{k}")
         encoded.append(pool.submit(_encode_unmarked, spool, method, config.model.value, files[-1]))
         n_frames += block.frames.size
@@ -279,18 +269,15 @@ class _NisSum:
     count: int = 0
 
 
-def _track_block(tracker: StarTracker, times: Sequence[int], counts: Sequence[int], table: npt.NDArray[np.float64],
-                 nis: _NisSum) -> list[npt.NDArray[np.void]]:
-    """Each frame of a block through the tracker: its rows."""
-    ends = np.cumsum(counts).tolist()
-    out = []
-    for t, a, b in zip(times, [0, *ends[:-1]], ends, strict=True):
-        rows = tracker.update(t, table[a:b, 0], table[a:b, 1], table[a:b, 2], table[a:b, 3])
-        applied = rows["measured"] & (rows["age"] > 0)
-        nis.total += float(rows["nis"][applied].sum())
-        nis.count += int(applied.sum())
-        out.append(rows)
-    return out
+def _track_block(tracker: StarTracker, times: npt.NDArray[np.int64], counts: npt.NDArray[np.int64],
+                 table: npt.NDArray[np.float64], nis: _NisSum) -> tuple[npt.NDArray[np.void], npt.NDArray[np.int64]]:
+    """Each frame of a block through the tracker (:meth:`~starlog.track.StarTracker.update_block`): the block's
+    rows, one table, and each frame's number of rows."""
+    rows, row_counts = tracker.update_block(times, counts, table)
+    applied = rows["measured"] & (rows["age"] > 0)
+    nis.total += float(rows["nis"][applied].sum())
+    nis.count += int(applied.sum())
+    return rows, row_counts
 
 
 def _encode_unmarked(spool: Path, method: str, model: str, out: Path) -> None:

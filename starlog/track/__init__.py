@@ -1,6 +1,7 @@
 """Temporal filtering of star centroids: motion models, a batched UKF, multi-star tracking.
 
-Pure numpy (+ scipy's assignment solver; filterpy as the reference filter), no I/O.
+numpy (+ scipy's assignment solver; filterpy as the reference filter), no I/O; the tracker's
+frame is one compiled (numba) call, the numpy steps kept as its reference.
 
 * :mod:`starlog.track.models` — :class:`MotionModel` (STATIC, RANDOM_WALK, BROWNIAN_MOTION,
   POLYNOMIAL_TREND, CONSTANT_VELOCITY), :class:`MotionModelConfig`, exact discretisation.
@@ -8,6 +9,8 @@ Pure numpy (+ scipy's assignment solver; filterpy as the reference filter), no I
   unscented transform, gated update), vectorised across stars.
 * :mod:`starlog.track.association` — :class:`StarTracker`: frame-by-frame association, track
   life cycle, per-track statistics, :meth:`StarTracker.brightest_track`.
+* :mod:`starlog.track._kernels` — the tracker's frame compiled: prediction, association, gated
+  update, life cycle and output rows of every track in one call.
 * :mod:`starlog.track.table` — :data:`TRACK_DTYPE` and :data:`TRACK_STATS_DTYPE` row layouts.
 * :mod:`starlog.track.state` — the live tracks' arrays, held in one structure (take/concat).
 

@@ -43,11 +43,18 @@ live track. Each frame:
 
 "The brightest star's track" (the paper's sequence, §2.1): :meth:`StarTracker.brightest_track`.
 
+Each frame runs as one compiled call (:func:`starlog.track._kernels.track_frame`) on the live
+tracks' tables (:class:`~starlog.track.state.TrackState`); the numpy steps below
+(``StarTracker(vectorised=True)``) are its reference, and take a frame over where the call hands it
+back: an assignment with a choice to make (solved with scipy here) or a covariance to repair.
+:meth:`StarTracker.update_block` runs the frames of a block into one row table.
+
 Coordinates: x = column, y = row, px, (0, 0) at the centre of the top-left pixel; times are
 int ns ``log_time``.
 
 One module of over 500 lines: :class:`StarTracker`'s steps (predict, associate, update, start,
-life cycle) act on one set of live tracks, so they are one class.
+life cycle) act on one set of live tracks, so they are one class, beside the compiled call that
+does them all and hands frames back to them.
 """
 
 from __future__ import annotations
@@ -186,9 +193,10 @@ class _Centroids(NamedTuple):
     var: Array  # sigma², the diagonal of R
 
 
-def _frame_arrays(
+def _frame_columns(
     x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.ArrayLike, flux: npt.ArrayLike
 ) -> tuple[Array, Array, Array, Array]:
+    """The centroid columns as float64 arrays of one length (values not checked)."""
     xs = np.asarray(x, dtype=np.float64)
     ys = np.asarray(y, dtype=np.float64)
     sigmas = np.asarray(sigma, dtype=np.float64)
@@ -199,12 +207,24 @@ def _frame_arrays(
             "x, y, sigma and flux must be 1-D arrays of one length (one entry per centroid), "
             f"got shapes {xs.shape}, {ys.shape}, {sigmas.shape}, {fluxes.shape}."
         )
+    return xs, ys, sigmas, fluxes
+
+
+_NON_FINITE = "centroid x, y and flux must be finite (no NaN or inf)."
+_BAD_SIGMA = "centroid sigma must be finite and >= 0 px."
+
+
+def _frame_arrays(
+    x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.ArrayLike, flux: npt.ArrayLike
+) -> tuple[Array, Array, Array, Array]:
+    """The centroid columns (:func:`_frame_columns`), their values checked."""
+    xs, ys, sigmas, fluxes = _frame_columns(x, y, sigma, flux)
     if xs.size and not (
         np.isfinite(xs).all() and np.isfinite(ys).all() and np.isfinite(fluxes).all()
     ):
-        raise InvalidInputError("centroid x, y and flux must be finite (no NaN or inf).")
+        raise InvalidInputError(_NON_FINITE)
     if xs.size and not ((sigmas >= 0) & (sigmas < np.inf)).all():
-        raise InvalidInputError("centroid sigma must be finite and >= 0 px.")
+        raise InvalidInputError(_BAD_SIGMA)
     return xs, ys, sigmas, fluxes
 
 
@@ -219,6 +239,11 @@ class StarTracker:
     config : TrackerConfig, optional
         All options; keyword arguments override its fields, e.g.
         ``StarTracker(model="CONSTANT_VELOCITY", max_missed=5)``.
+    vectorised : bool
+        Run each frame as numpy steps over all tracks (the reference of the tests) instead of
+        one compiled call (:mod:`starlog.track._kernels`, the default: the same tracks, the
+        same numbers to rounding). The compiled call hands a frame to the numpy steps where
+        they do what it does not: an assignment with a choice to make, a covariance to repair.
     **options
         Fields of :class:`TrackerConfig`.
 
@@ -232,7 +257,8 @@ class StarTracker:
     ([0], [True])
     """
 
-    def __init__(self, config: TrackerConfig | None = None, **options: Any) -> None:
+    def __init__(self, config: TrackerConfig | None = None, *, vectorised: bool = False,
+                 **options: Any) -> None:
         base = TrackerConfig() if config is None else config
         try:
             self.config = replace(base, **options) if options else base
@@ -248,6 +274,8 @@ class StarTracker:
         self.frames = 0
         self._tracks = TrackState.empty(self._d)  # live tracks, sorted by id
         self._lost: list[npt.NDArray[np.void]] = []
+        self.vectorised = bool(vectorised)
+        self._step = None if self.vectorised else _CompiledStep(self)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -489,13 +517,78 @@ class StarTracker:
             ``log_time`` that does not increase.
         """
         t = self._frame_time(log_time)
-        xs, ys, sigmas, fluxes = _frame_arrays(x, y, sigma, flux)
-        sigmas = np.maximum(sigmas, self.config.sigma_floor)
-        c = _Centroids(xs, ys, sigmas, fluxes, sigmas * sigmas)
+        if self._step is None:
+            return self._frame_steps(t, self._centroids(*_frame_arrays(x, y, sigma, flux)))
+        columns = _frame_columns(x, y, sigma, flux)
+        cents = np.empty((columns[0].size, 4))
+        for k, column in enumerate(columns):
+            cents[:, k] = column
+        out = np.empty(len(self._tracks) + cents.shape[0], dtype=TRACK_DTYPE)
+        return out[: self._step.frame(t, cents, out)]
+
+    def update_block(
+        self, log_time: npt.ArrayLike, counts: npt.ArrayLike, table: npt.ArrayLike
+    ) -> tuple[npt.NDArray[np.void], npt.NDArray[np.int64]]:
+        """Process the frames of a block in turn, each as :meth:`update` does.
+
+        Parameters
+        ----------
+        log_time : (f,) array_like of int
+            Each frame's time, int ns; strictly increasing.
+        counts : (f,) array_like of int
+            Each frame's number of centroids.
+        table : (k, 4) array_like
+            The centroids of the frames in turn, ``k = sum(counts)``: x, y, sigma, flux (as
+            :meth:`update`'s arrays).
+
+        Returns
+        -------
+        rows : (r,) ndarray of TRACK_DTYPE
+            The rows :meth:`update` returns for each frame, the frames in turn.
+        row_counts : (f,) ndarray of int64
+            Each frame's number of rows.
+
+        Raises
+        ------
+        InvalidInputError
+            As :meth:`update`, at the frame concerned (the frames before it are processed); on a
+            table of another shape than ``(sum(counts), 4)``.
+        """
+        times = np.asarray(log_time, dtype=np.int64)
+        sizes = np.asarray(counts, dtype=np.int64)
+        cents = np.ascontiguousarray(table, dtype=np.float64)
+        if (times.ndim != 1 or sizes.shape != times.shape or (sizes < 0).any()
+                or cents.shape != (int(sizes.sum()), 4)):
+            raise InvalidInputError(
+                "log_time and counts must be 1-D arrays of one length (one entry per frame) and table "
+                f"(sum(counts), 4), got shapes {times.shape}, {sizes.shape}, {cents.shape}."
+            )
+        ends = np.cumsum(sizes).tolist()
+        frames = list(zip(times.tolist(), [0, *ends][:-1], ends, strict=True))
+        if self._step is not None:
+            return self._step.block(frames, cents)
+        out = [self.update(t, cents[a:b, 0], cents[a:b, 1], cents[a:b, 2], cents[a:b, 3])
+               for t, a, b in frames]
+        rows = np.empty(sum(r.size for r in out), dtype=TRACK_DTYPE)
+        if out:
+            np.concatenate(out, out=rows)  # with ``out``, no promotion of the record dtypes of each pair
+        return rows, np.array([r.size for r in out], dtype=np.int64)
+
+    def _centroids(self, x: Array, y: Array, sigma: Array, flux: Array) -> _Centroids:
+        sigmas = np.maximum(sigma, self.config.sigma_floor)
+        return _Centroids(x, y, sigmas, flux, sigmas * sigmas)
+
+    def _frame_steps(self, t: int, c: _Centroids) -> npt.NDArray[np.void]:
+        """One frame as numpy steps over all tracks."""
         self._predict(t)
         self._last_time = t
         self.frames += 1
         ti, mj = self._associate(c)
+        return self._finish_steps(t, c, ti, mj)
+
+    def _finish_steps(self, t: int, c: _Centroids, ti: npt.NDArray[np.intp],
+                      mj: npt.NDArray[np.intp]) -> npt.NDArray[np.void]:
+        """The numpy steps of a frame after its association."""
         rows, associated = self._apply(t, c, ti, mj)
         self._count(rows, associated)
         rows = self._retire_lost(rows)
@@ -555,6 +648,105 @@ class StarTracker:
         cand = stats[seen >= need - 1e-9]
         best = np.lexsort((cand["track"], -cand["mean_flux"]))[0]
         return int(cand["track"][best])
+
+
+class _CompiledStep:
+    """The frames of a :class:`StarTracker` as one compiled call each (:func:`starlog.track._kernels.track_frame`)
+    on its track tables, the numpy steps taking over where the call hands back."""
+
+    def __init__(self, tracker: StarTracker) -> None:
+        # numba: imported, and compiled, on first use
+        from starlog.track._kernels import Status, finish_frame, parameters, track_frame
+
+        cfg = tracker.config
+        d = tracker._d
+        _, wc = cfg.points.weights(d)
+        self.tracker = tracker
+        self.status, self.track_frame, self.finish_frame = Status, track_frame, finish_frame
+        self.fpar, self.ipar = parameters(
+            scale=cfg.points.scale(d), wc0=wc[0], wi=wc[1], gate=tracker._threshold,
+            radius2=cfg.association_radius**2,
+            max_distance2=-1.0 if cfg.max_distance is None else cfg.max_distance**2,
+            floor=cfg.sigma_floor, velocity_var=cfg.motion.init_velocity_sigma**2,
+            acceleration_var=cfg.motion.init_acceleration_sigma**2, confirm_hits=cfg.confirm_hits,
+            max_missed=cfg.max_missed, max_gated=cfg.max_gated)
+        self.still = (np.eye(d), np.zeros((d, d)))  # Fᵀ and Q when there is no track (not used)
+        self.lost = TrackState.empty(d)  # where the call copies the tracks it drops
+
+    def frame(self, t: int, cents: Array, out: npt.NDArray[np.void]) -> int:
+        """The frame at ``t`` with the centroids ``cents`` ((m, 4) x, y, sigma, flux), its rows written to
+        ``out`` (room for ``n_live + m``); returns their number."""
+        tr, lost = self.tracker, self.lost
+        tracks = tr._tracks
+        n = tracks.n
+        if tracks.floats.shape[0] < n + cents.shape[0] or lost.floats.shape[0] < n:  # room for births, losses
+            tracks.reserve(n + cents.shape[0])
+            lost.reserve(tracks.floats.shape[0])
+        ft, q = tr._transition(t - tr._last_time) if n else self.still
+        status, rows, n_lost, born = self.track_frame(tracks.floats, tracks.ints, n, cents, t, tr._next_id, ft, q,
+                                                      self.fpar, self.ipar, out, lost.floats, lost.ints)
+        if status:
+            return self._handed_back(status, t, cents, out)
+        tr._last_time = t
+        tr.frames += 1
+        return self._done(rows, n_lost, born)
+
+    def _done(self, rows: int, n_lost: int, born: int) -> int:
+        """The call's bookkeeping after a frame: the live tracks, the next id, the lost tracks' statistics."""
+        tr = self.tracker
+        tr._tracks.n = rows
+        tr._next_id += born
+        if n_lost:
+            self.lost.n = n_lost
+            tr._lost.append(tr._stats(self.lost, alive=False))
+            self.lost.n = 0
+        return int(rows)
+
+    def _handed_back(self, status: int, t: int, cents: Array, out: npt.NDArray[np.void]) -> int:
+        """The frame after the call handed it back (``status``): an error, or the numpy steps' turn."""
+        tr, code = self.tracker, self.status
+        if status == code.BAD_VALUES:
+            raise InvalidInputError(_NON_FINITE)
+        if status == code.BAD_SIGMA:
+            raise InvalidInputError(_BAD_SIGMA)
+        c = tr._centroids(*cents.T)
+        if status == code.REPAIR_PREDICT:
+            return _copied(tr._frame_steps(t, c), out)
+        tr._last_time = t  # the tracks are predicted
+        tr.frames += 1
+        ti, mj = tr._associate(c)
+        if status == code.ASSIGN:
+            tracks, lost = tr._tracks, self.lost
+            status, rows, n_lost, born = self.finish_frame(
+                tracks.floats, tracks.ints, tracks.n, tr._d, cents, t, tr._next_id, ti, mj, self.fpar, self.ipar,
+                out, lost.floats, lost.ints)
+            if status == code.DONE:
+                return self._done(rows, n_lost, born)
+        return _copied(tr._finish_steps(t, c, ti, mj), out)  # REPAIR_UPDATE
+
+    def block(self, frames: list[tuple[int, int, int]],
+              cents: Array) -> tuple[npt.NDArray[np.void], npt.NDArray[np.int64]]:
+        """:meth:`StarTracker.update_block` of the frames ``(log_time, first, end)`` of ``cents``, their rows
+        written to one table (grown when births need more room)."""
+        tr = self.tracker
+        out = np.empty(len(frames) * len(tr._tracks) + cents.shape[0], dtype=TRACK_DTYPE)
+        row_counts = []
+        pos = 0
+        for t, a, b in frames:
+            end = pos + len(tr._tracks) + b - a
+            if end > out.size:
+                grown = np.empty(max(end, 2 * out.size), dtype=TRACK_DTYPE)
+                grown[:pos] = out[:pos]
+                out = grown
+            row_counts.append(self.frame(tr._frame_time(t), cents[a:b], out[pos:end]))
+            pos += row_counts[-1]
+        return out[:pos], np.array(row_counts, dtype=np.int64)
+
+
+def _copied(rows: npt.NDArray[np.void], out: npt.NDArray[np.void]) -> int:
+    """``rows`` copied to the start of ``out``; their number."""
+    out[: rows.size] = rows
+    return int(rows.size)
 
 
 def track_centroids(
