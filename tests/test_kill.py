@@ -2,7 +2,7 @@
 half-written file under the output name, and a rerun gives the bytes of an uninterrupted run.
 
 Nothing is left behind: after SIGKILL or SIGTERM of a stage, every process it started (fork server,
-workers, resource tracker) is gone within 2 s; SIGTERM also removes the partial output. Ctrl-C at 50
+workers, resource tracker) is gone within 2 s; SIGTERM also removes the partial output. Ctrl-C at 30
 random moments of simulate, centroid and run with two workers (to the command, or to its process group as
 a terminal sends it): every process gone within 5 s each time, nothing partial, no traceback.
 
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -245,12 +246,12 @@ def test_stopped_stage_leaves_no_process_and_no_partial_output(workdir: Path, st
 
 
 STRESS_CONFIG = '[centroid]\nmethods = ["MOMENT"]\n[track]\nmethods = ["MOMENT"]\nmodels = ["STATIC"]\n'
-#: Commands with two workers, stopped by Ctrl-C at random moments, and how many times each (50 in all).
+#: Commands with two workers, stopped by Ctrl-C at random moments, and how many times each (30 in all).
 STRESS = {
-    "simulate": (20, ["simulate", "-o", "OUT", "--frames", "300", "--size", "48x48", "--stars", "4", "--workers", "2",
+    "simulate": (12, ["simulate", "-o", "OUT", "--frames", "300", "--size", "48x48", "--stars", "4", "--workers", "2",
                       "-q"]),
-    "centroid": (15, ["centroid", "in.mcap", "-o", "OUT", "--method", "MOMENT", "--workers", "2", "-q"]),
-    "run": (15, ["run", "in.mcap", "-o", "OUT", "--config", "stress.toml", "--workers", "2", "-q"]),
+    "centroid": (10, ["centroid", "in.mcap", "-o", "OUT", "--method", "MOMENT", "--workers", "2", "-q"]),
+    "run": (8, ["run", "in.mcap", "-o", "OUT", "--config", "stress.toml", "--workers", "2", "-q"]),
 }
 STRESS_GRACE_S = 5.0
 
@@ -267,9 +268,12 @@ PACKAGE = Path(starlog.__file__).resolve().parent
 
 
 def _before_starlog(stderr: bytes) -> bool:
-    """A Ctrl-C while the interpreter itself was starting (its site module, runpy): it says so itself, in a
-    traceback with no frame of starlog's, since no starlog code had run yet."""
-    return stderr.rstrip().endswith(b"KeyboardInterrupt") and str(PACKAGE).encode() not in stderr
+    """A Ctrl-C while the interpreter itself was starting (its site module, runpy loading the package on its way
+    to ``starlog.__main__``): it says so itself, in a traceback whose only frame of starlog's, if any, is the
+    package's ``__init__`` being loaded (constants only: no starlog code had run yet)."""
+    text = stderr.decode(errors="replace")
+    ours = {name for name in re.findall(r'File "([^"]+)"', text) if name.startswith(str(PACKAGE))}
+    return text.rstrip().endswith("KeyboardInterrupt") and ours <= {str(PACKAGE / "__init__.py")}
 
 
 def _outputs_of(folder: Path, stem: str) -> list[Path]:
@@ -289,7 +293,10 @@ def test_ctrl_c_at_random_moments_leaves_no_process_and_nothing_partial(workdir:
     folder = tmp_path
     shutil.copy(workdir / "in.mcap", folder / "in.mcap")
     (folder / "stress.toml").write_text(STRESS_CONFIG, encoding="utf-8")
-    duration = run([a if a != "OUT" else "reference.mcap" for a in template], folder)
+    reference = [a if a != "OUT" else "reference.mcap" for a in template]
+    run(reference, folder)  # the first run may compile numba's kernels: the moments are drawn over a warm one
+    (folder / "reference.mcap").unlink()
+    duration = run(reference, folder)
     rng = np.random.default_rng(7 + list(STRESS).index(command))
     outcomes: dict[str, int] = {}
     for n, delay in enumerate(rng.uniform(0.0, 1.0, kills) * duration):
@@ -324,6 +331,39 @@ def test_ctrl_c_at_random_moments_leaves_no_process_and_nothing_partial(workdir:
         for path in left:
             path.unlink()
     print(f"\n{command}: {kills} Ctrl-C over {duration:.2f} s runs: {outcomes}")
+
+
+CALLBACK_FROM_C = """
+import ctypes, os, signal, sys, time
+from starlog import cli
+
+cli._handle_stops()
+
+
+@ctypes.CFUNCTYPE(None)
+def called_back():
+    os.kill(os.getpid(), signal.SIGINT)
+    sum(range(100_000))  # Python runs the Ctrl-C handler here, inside the callback
+
+
+try:
+    called_back()
+    time.sleep(5)
+except KeyboardInterrupt:
+    print("stopped")
+else:
+    print("lost")
+"""
+
+
+def test_a_ctrl_c_landing_in_a_callback_from_c_still_stops_the_command_quietly() -> None:
+    """numba's compiler calls back into Python (its cache); an exception raised there is only reported by Python,
+    so a Ctrl-C landing there would print a traceback and be lost. The command delivers it again once the
+    callback has returned: it stops, with nothing on stderr."""
+    done = subprocess.run([sys.executable, "-c", CALLBACK_FROM_C], capture_output=True, timeout=60,
+                          preexec_fn=_default_sigint)
+    assert done.stdout.decode().strip() == "stopped"
+    assert done.stderr == b""
 
 
 def test_every_command_is_reproducible(workdir: Path, tmp_path: Path) -> None:

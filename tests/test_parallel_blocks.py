@@ -3,9 +3,12 @@ starts its workers on a thread (the caller computing meanwhile), and a stacked l
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing.util
 import operator
 import pickle
 from pathlib import Path
+from multiprocessing.synchronize import SemLock
 from types import SimpleNamespace
 
 import pytest
@@ -76,6 +79,30 @@ def test_an_error_while_the_workers_start_stops_them() -> None:
     # private _processes (concurrent.futures'): no public way lists a pool's processes, as _parallel says too
     processes = list((pool._processes or {}).values())
     assert all(not p.is_alive() for p in processes)
+
+
+def _semaphores_to_free() -> set[str]:
+    """Named semaphores multiprocessing still has to unlink and tell its resource tracker of (its finalizers)."""
+    # private _finalizer_registry (multiprocessing's): no public way lists what the process still has to free
+    return {f._args[0] for f in multiprocessing.util._finalizer_registry.values()
+            if getattr(f, "_callback", None) is SemLock._cleanup}
+
+
+@pytest.mark.parametrize("stopped", [False, True])
+def test_a_pool_frees_its_semaphores_as_it_ends_not_whenever_they_are_collected(stopped: bool) -> None:
+    """Freed by the thread that ends the pool, with signals held, even while something still holds its queues (here
+    the test; in a command, a thread or a reference cycle): left to the garbage collector, a semaphore can be freed
+    in another thread while Ctrl-C ends the process, and the resource tracker then warns of a leak."""
+    before = _semaphores_to_free()
+    with contextlib.suppress(KeyboardInterrupt), process_pool(2) as pool:
+        made = _semaphores_to_free() - before
+        # private queues (concurrent.futures'): held here as a lingering reference would hold them
+        held = (pool._call_queue, pool._result_queue)
+        assert pool.submit(int).result() == 0
+        if stopped:
+            raise KeyboardInterrupt
+    assert len(made) >= 3 and not made & _semaphores_to_free()
+    del held
 
 
 def test_a_log_view_pickles_for_a_worker_to_read_the_same_window(tmp_path: Path) -> None:

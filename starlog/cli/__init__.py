@@ -13,6 +13,7 @@ Here: the group, which also lists the stages installed packages register, and :f
 
 from __future__ import annotations
 
+import _thread
 import atexit
 import contextlib
 import errno
@@ -156,16 +157,41 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+def _redeliver_stop(unraisable: Any) -> None:
+    """Python only reports an exception raised in code called back from C (numba's compiler cache, a finalizer);
+    a Ctrl-C or SIGTERM landing there would be printed and lost. It is delivered again instead, a moment later,
+    once that callback has returned. Every other report goes to Python's own hook."""
+    stop = unraisable.exc_value
+    if not isinstance(stop, KeyboardInterrupt | _Terminated) or threading.current_thread() is not threading.main_thread():
+        sys.__unraisablehook__(unraisable)
+        return
+    signum = signal.SIGINT if isinstance(stop, KeyboardInterrupt) else signal.SIGTERM
+    if signum == signal.SIGINT:
+        signal.signal(signal.SIGINT, _raise_interrupt)  # it had turned itself off for the second Ctrl-C
+    redelivery = threading.Timer(_REDELIVERY_DELAY_S, _thread.interrupt_main, args=(signum,))
+    redelivery.daemon = True
+    redelivery.start()
+
+
+_REDELIVERY_DELAY_S = 0.01
+
+
+def _handle_stops() -> None:
+    """SIGTERM and Ctrl-C unwind the command, and end it of the signal once it has unwound."""
+    atexit.register(_end_of_signal)  # registered first, so it runs last: after multiprocessing's own cleanup
+    sys.unraisablehook = _redeliver_stop
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _raise_interrupt)
+
+
 def main() -> None:
     """Console-script entry point (through :func:`starlog.__main__.main`).
 
     SIGTERM and Ctrl-C unwind the command (partial outputs removed, worker pools stopped); the process then
     ends of that signal, as a shell expects of a stopped command.
     """
-    atexit.register(_end_of_signal)  # registered first, so it runs last: after multiprocessing's own cleanup
-    signal.signal(signal.SIGTERM, _raise_terminated)
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, _raise_interrupt)
+    _handle_stops()
     try:
         cli(prog_name="starlog")
     except _Terminated:

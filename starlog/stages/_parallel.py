@@ -14,7 +14,7 @@ Whatever ends the owning process (SIGKILL, SIGTERM, Ctrl-C, an exception), nothi
 
 Workers ignore SIGINT: a Ctrl-C at the terminal reaches the whole process group, and the owner
 alone decides how to stop. In the owner, SIGINT and SIGTERM are held back while multiprocessing makes
-the pool's queues and their named semaphores, and while it stops the pool (:func:`signals_held`): an
+the pool's queues and their named semaphores, and while it stops the pool and frees them (:func:`signals_held`): an
 exception raised inside those steps would leave a semaphore registered for ever (the resource tracker
 then warns of it) or a worker unstopped. Stopping waits at most for a worker being started (the fork
 server's first start imports its modules) and a few seconds more.
@@ -25,6 +25,7 @@ from __future__ import annotations
 import ctypes
 import itertools
 import multiprocessing
+import multiprocessing.util
 import os
 import signal
 import sys
@@ -34,6 +35,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
+from multiprocessing.synchronize import SemLock
 from typing import Any, TypeVar
 
 from starlog import _lifeline as lifeline
@@ -118,6 +120,7 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
     with signals_held():  # the pool's queues and their semaphores, made whole or not at all
         _start_fork_server()
         pool = _Pool(max_workers=workers, mp_context=context, initializer=_guard_worker, initargs=(os.getpid(),))
+        semaphores = _named_semaphores(pool)
         pool.start_workers()
     try:
         yield pool
@@ -125,10 +128,12 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
         with signals_held():
             _stop_now(pool)
             pool.wait_started(timeout=_START_TIMEOUT)  # the stopped pool fails the starter's task
+            _free_now(semaphores)
         raise
     with signals_held():
         pool.wait_started()
         pool.shutdown(wait=True)
+        _free_now(semaphores)
 
 
 @contextmanager
@@ -175,6 +180,24 @@ def _start_fork_server() -> None:
             del os.environ[lifeline.OWNER_VARIABLE]
         else:
             os.environ[lifeline.OWNER_VARIABLE] = previous
+
+
+def _named_semaphores(pool: ProcessPoolExecutor) -> set[str]:
+    """The names of the named semaphores behind the pool's queues (their locks and bounded semaphore)."""
+    queues = (getattr(pool, "_call_queue", None), getattr(pool, "_result_queue", None))
+    locks = [value for queue in queues if queue is not None for value in vars(queue).values()]
+    return {lock._semlock.name for lock in locks if isinstance(lock, SemLock) and lock._semlock.name}
+
+
+def _free_now(names: set[str]) -> None:
+    """Free the pool's named semaphores now, in this thread and with signals held, rather than whenever the
+    garbage collector reaches them, in whichever thread. multiprocessing frees one in two steps (unlink it, then
+    tell its resource tracker); a process that ends between the two, as it does of Ctrl-C while another thread
+    is in them, leaves the tracker warning of a leak. Each is freed once: its finalizer then leaves the registry."""
+    for finalizer in list(multiprocessing.util._finalizer_registry.values()):
+        args = getattr(finalizer, "_args", None) or ()
+        if getattr(finalizer, "_callback", None) is SemLock._cleanup and args and args[0] in names:
+            finalizer()
 
 
 def _stop_now(pool: ProcessPoolExecutor) -> None:
