@@ -293,10 +293,8 @@ def test_ctrl_c_at_random_moments_leaves_no_process_and_nothing_partial(workdir:
     folder = tmp_path
     shutil.copy(workdir / "in.mcap", folder / "in.mcap")
     (folder / "stress.toml").write_text(STRESS_CONFIG, encoding="utf-8")
-    reference = [a if a != "OUT" else "reference.mcap" for a in template]
-    run(reference, folder)  # the first run may compile numba's kernels: the moments are drawn over a warm one
-    (folder / "reference.mcap").unlink()
-    duration = run(reference, folder)
+    run([a if a != "OUT" else "warm-up.mcap" for a in template], folder)  # the first run may compile numba's
+    duration = run([a if a != "OUT" else "reference.mcap" for a in template], folder)  # kernels: drawn over a warm one
     rng = np.random.default_rng(7 + list(STRESS).index(command))
     outcomes: dict[str, int] = {}
     for n, delay in enumerate(rng.uniform(0.0, 1.0, kills) * duration):
