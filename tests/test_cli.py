@@ -262,3 +262,17 @@ def test_burn_in_switch_rejects_a_bad_value(quiet_logs: Path) -> None:
     result = CliRunner().invoke(cli, ["compensate", str(quiet_logs / "trk.mcap"), "-o", str(quiet_logs / "x.mcap"),
                                       "--rate", "50", "--burn-in", "later", "-q"])
     assert result.exit_code == 2 and "--burn-in" in result.output
+
+
+def test_info_loads_neither_the_fitting_code_nor_scipy(quiet_logs: Path, tmp_path: Path) -> None:
+    """info prints the centroid evidence's verdict (which method to trust) without loading what measures it:
+    the command starts in a fraction of a second and keeps a small footprint on logs of millions of chunks."""
+    two = tmp_path / "two.mcap"
+    result = CliRunner().invoke(cli, ["centroid", str(quiet_logs / "sim.mcap"), "-o", str(two), "--method",
+                                      "NONE,MOMENT", "--workers", "1", "-q"])
+    assert result.exit_code == 0, result.output
+    code = (f"import sys; from starlog.cli import cli; cli(['info', {str(two)!r}], standalone_mode=False); "
+            "print('LOADED', sorted(m for m in ('scipy', 'numba', 'starlog.centroid.extract') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "trust" in done.stdout and done.stdout.rstrip().endswith("LOADED []"), done.stdout
