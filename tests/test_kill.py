@@ -2,7 +2,7 @@
 half-written file under the output name, and a rerun gives the bytes of an uninterrupted run.
 
 Nothing is left behind: after SIGKILL or SIGTERM of a stage, every process it started (fork server,
-workers, resource tracker) is gone within 2 s; SIGTERM also removes the partial output. Ctrl-C at 30
+workers, resource tracker) is gone within 2 s; SIGTERM also removes the partial output. Ctrl-C at 50
 random moments of simulate, centroid and run with two workers (to the command, or to its process group as
 a terminal sends it): every process gone within 5 s each time, nothing partial, no traceback.
 
@@ -245,13 +245,14 @@ def test_stopped_stage_leaves_no_process_and_no_partial_output(workdir: Path, st
     assert not (workdir / out_name).exists()
 
 
-STRESS_CONFIG = '[centroid]\nmethods = ["MOMENT"]\n[track]\nmethods = ["MOMENT"]\nmodels = ["STATIC"]\n'
-#: Commands with two workers, stopped by Ctrl-C at random moments, and how many times each (30 in all).
+STRESS_CONFIG = ('[centroid]\nmethods = ["MOMENT"]\n[track]\nmethods = ["MOMENT"]\nmodels = ["STATIC"]\n'
+                 '[compensate]\nrates = [50]\nprotocols = "paper"\n')
+#: Commands with two workers, stopped by Ctrl-C at random moments, and how many times each (50 in all).
 STRESS = {
-    "simulate": (12, ["simulate", "-o", "OUT", "--frames", "300", "--size", "48x48", "--stars", "4", "--workers", "2",
+    "simulate": (24, ["simulate", "-o", "OUT", "--frames", "300", "--size", "48x48", "--stars", "4", "--workers", "2",
                       "-q"]),
-    "centroid": (10, ["centroid", "in.mcap", "-o", "OUT", "--method", "MOMENT", "--workers", "2", "-q"]),
-    "run": (8, ["run", "in.mcap", "-o", "OUT", "--config", "stress.toml", "--workers", "2", "-q"]),
+    "centroid": (16, ["centroid", "in.mcap", "-o", "OUT", "--method", "MOMENT", "--workers", "2", "-q"]),
+    "run": (10, ["run", "in.mcap", "-o", "OUT", "--config", "stress.toml", "--workers", "2", "-q"]),
 }
 STRESS_GRACE_S = 5.0
 
