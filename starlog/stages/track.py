@@ -46,6 +46,7 @@ from starlog.io import json_message_type, topics
 from starlog.io.reader import LogReader, LogSource
 from starlog.io.checked import CheckedJson, schema_digest
 from starlog.io.records import record_encoder
+from starlog.io.schemas import MessageType
 from starlog.stages._blocks import channel_blocks, worker_log
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool
@@ -61,11 +62,17 @@ from starlog.track import (
     TrackerConfig,
 )
 
-__all__ = ["TrackSummary", "track_log", "parse_models"]
+__all__ = ["NisSum", "TrackSummary", "encode_tracks", "model_statistics", "parse_models", "track_frame", "track_log",
+           "track_parameters", "tracker_configs", "tracks_message_type"]
 
 #: Frames per spooled block: bounds the memory of every pass.
 BLOCK_FRAMES = 64
 _STAR_FIELDS = operator.itemgetter("x", "y", "sigma", "flux")
+
+
+def tracks_message_type() -> MessageType:
+    """The message type of a ``/track/<METHOD>/<MODEL>`` channel."""
+    return json_message_type("starlog.Tracks")
 
 
 def parse_models(spec: str | Sequence[str]) -> list[MotionModel]:
@@ -206,7 +213,7 @@ def _no_track_hint(model: MotionModel, source: str, err: NoTrackError) -> NoTrac
 
 def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Spool) -> _ModelRun:
     """Pass 2 for one model: track every spooled frame, spool the rows, find the brightest track."""
-    tracker, nis = StarTracker(config), _NisSum()
+    tracker, nis = StarTracker(config), NisSum()
     offsets = []
     with opened(spool, "wb") as file:
         for frames, times, counts, table in read_blocks(centroids, 4):
@@ -216,16 +223,21 @@ def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Sp
     return _model_run(tracker, source, nis, spool, offsets)
 
 
-def _model_run(tracker: StarTracker, source: str, nis: _NisSum, spool: Spool, offsets: list[int]) -> _ModelRun:
+def _model_run(tracker: StarTracker, source: str, nis: NisSum, spool: Spool, offsets: list[int]) -> _ModelRun:
     """What one model's tracking found: the brightest track and the statistics."""
+    return _ModelRun(spool=spool, offsets=offsets, **model_statistics(tracker, source, nis))
+
+
+def model_statistics(tracker: StarTracker, source: str, nis: NisSum) -> dict[str, Any]:
+    """What one model's tracker found over the log (``brightest``, ``tracks``, ``confirmed``, ``gated``,
+    ``mean_nis``); :class:`NoTrackError`, saying what to change, when no track was confirmed."""
     try:
         brightest = tracker.brightest_track()
     except NoTrackError as err:
         raise _no_track_hint(tracker.model, source, err) from err
     stats = tracker.track_stats()
-    return _ModelRun(brightest=brightest, spool=spool, offsets=offsets, tracks=int(stats.size),
-                     confirmed=int(stats["confirmed"].sum()), gated=int(stats["gated"].sum()),
-                     mean_nis=nis.total / nis.count if nis.count else 0.0)
+    return {"brightest": brightest, "tracks": int(stats.size), "confirmed": int(stats["confirmed"].sum()),
+            "gated": int(stats["gated"].sum()), "mean_nis": nis.total / nis.count if nis.count else 0.0}
 
 
 def _concatenated(tables: list[npt.NDArray[np.void]]) -> npt.NDArray[np.void]:
@@ -247,7 +259,7 @@ def _track_pipelined(log: LogReader, source: LogSource, config: TrackerConfig, m
     topic = topics.centroid_topic(method)
     decoded = ordered_map(pool, _decode_centroid_block, ((source, topic, start, end) for start, end, _ in blocks),
                           window=2 * workers)
-    tracker, stats = StarTracker(config), _NisSum()
+    tracker, stats = StarTracker(config), NisSum()
     encoded: list[Future[None]] = []
     files: list[Path] = []
     n_frames = 0
@@ -267,25 +279,29 @@ def _track_pipelined(log: LogReader, source: LogSource, config: TrackerConfig, m
 
 
 @dataclass
-class _NisSum:
-    """The NIS of every applied measurement, summed, for the model's mean NIS."""
+class NisSum:
+    """The NIS of every applied measurement, summed, for the model's mean NIS (:func:`track_frame` adds to it)."""
 
     total: float = 0.0
     count: int = 0
 
 
 def _track_block(tracker: StarTracker, times: Sequence[int], counts: Sequence[int], table: npt.NDArray[np.float64],
-                 nis: _NisSum) -> list[npt.NDArray[np.void]]:
+                 nis: NisSum) -> list[npt.NDArray[np.void]]:
     """Each frame of a block through the tracker: its rows."""
     ends = np.cumsum(counts).tolist()
-    out = []
-    for t, a, b in zip(times, [0, *ends[:-1]], ends, strict=True):
-        rows = tracker.update(t, table[a:b, 0], table[a:b, 1], table[a:b, 2], table[a:b, 3])
-        applied = rows["measured"] & (rows["age"] > 0)
-        nis.total += float(rows["nis"][applied].sum())
-        nis.count += int(applied.sum())
-        out.append(rows)
-    return out
+    return [track_frame(tracker, t, table[a:b], nis) for t, a, b in zip(times, [0, *ends[:-1]], ends, strict=True)]
+
+
+def track_frame(tracker: StarTracker, log_time: int, stars: npt.NDArray[np.float64], nis: NisSum
+                ) -> npt.NDArray[np.void]:
+    """One frame through the tracker: ``stars`` is its ``(k, 4)`` x/y/sigma/flux; its rows (``TRACK_DTYPE``),
+    the NIS of each applied measurement added to ``nis``."""
+    rows = tracker.update(log_time, stars[:, 0], stars[:, 1], stars[:, 2], stars[:, 3])
+    applied = rows["measured"] & (rows["age"] > 0)
+    nis.total += float(rows["nis"][applied].sum())
+    nis.count += int(applied.sum())
+    return rows
 
 
 _UNMARKED, _MARKED = b'"brightest":false}', b'"brightest":true}'
@@ -325,7 +341,7 @@ def _write_patched(out: StageOutput, channel: int, files: list[Path], brightest:
                    show_progress: bool) -> None:
     """Pass 3 of :func:`_track_pipelined`: each encoded message, the brightest track's row marked, written (a
     message checked against its schema where it was encoded stays valid with a row marked)."""
-    digest = schema_digest(json_message_type("starlog.Tracks").schema_data)
+    digest = schema_digest(tracks_message_type().schema_data)
 
     def messages() -> Iterator[tuple[int, bytes]]:
         for path in files:
@@ -355,14 +371,18 @@ def _encode_block(spool: Spool, offset: int, method: str, model: str,
     (:class:`~starlog.io.records.RecordEncoder`; in a worker process when there is a pool), not by the writer.
     """
     frames, times, counts, rows = read_block(spool, offset, 4)
+    return times.tolist(), encode_tracks(frames, counts, rows, method, model, rows["track"] == brightest)
+
+
+def encode_tracks(frames: npt.NDArray[np.int64], counts: npt.NDArray[np.int64], rows: npt.NDArray[np.void],
+                  method: str, model: str, brightest: npt.NDArray[np.bool_]) -> list[bytes]:
+    """The ``starlog.Tracks`` message of each frame of a block: ``counts`` rows each, in order (``brightest``:
+    which rows are the brightest track's), encoded and checked column by column."""
     encoder = record_encoder("starlog.Tracks", "tracks")
-    records = encoder.rows(rows, {"brightest": rows["track"] == brightest})
+    records = encoder.rows(rows, {"brightest": brightest})
     ends = np.cumsum(counts).tolist()
-    messages: list[bytes] = [
-        encoder.message({"frame": frame, "method": method, "model": model}, records[a:b])
-        for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)
-    ]
-    return times.tolist(), messages
+    return [encoder.message({"frame": frame, "method": method, "model": model}, records[a:b])
+            for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)]
 
 
 def _frames_out(encoded: Iterator[tuple[list[int], list[bytes]]], n_models: int,
@@ -394,8 +414,7 @@ def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: 
              for block in range(n_blocks) for m, run in runs.items()]
     encoded = (ordered_map(pool, _encode_block, items, window=2 * len(runs)) if pool
                else (_encode_block(*item) for item in items))
-    channels = [out.add_channel(topics.track_topic(method, m.value), json_message_type("starlog.Tracks"))
-                for m in runs]
+    channels = [out.add_channel(topics.track_topic(method, m.value), tracks_message_type()) for m in runs]
     frames = _frames_out(encoded, len(runs), n_blocks)
     for t, messages in progress(frames, total=n_frames, description="track (write)", enabled=show_progress):
         for channel, message in zip(channels, messages, strict=True):
@@ -421,7 +440,7 @@ def _track_one_model(log: LogReader, input_path: LogSource, out: StageOutput, co
                      summary: TrackSummary, blocks: list[tuple[int, int, int]], workers: int, *,
                      show_progress: bool) -> dict[MotionModel, _ModelRun]:
     """One model on several cores (:func:`_track_pipelined`), written as :func:`_track_every_model` writes it."""
-    channel = out.add_channel(topics.track_topic(method, config.model.value), json_message_type("starlog.Tracks"))
+    channel = out.add_channel(topics.track_topic(method, config.model.value), tracks_message_type())
     with tempfile.TemporaryDirectory(prefix=f".{out.writer.path.name}.track-", dir=out.writer.path.parent) as tmp, \
             process_pool(workers, preload=["starlog.stages.track"]) as pool:
         summary.frames, run, files = _track_pipelined(log, input_path, config, method, Path(tmp), blocks, pool,
@@ -454,13 +473,21 @@ def _spools(models: list[MotionModel], output_path: Path, *, shared: bool) -> It
         yield _Spools(Path(tmp) / "centroids", {m: Path(tmp) / f"rows-{m.value}" for m in models})
 
 
-def _configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
-             motion: dict[str, Any] | None) -> dict[MotionModel, TrackerConfig]:
+def tracker_configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
+                    motion: dict[str, Any] | None) -> dict[MotionModel, TrackerConfig]:
+    """Each model's :class:`TrackerConfig` from the stage's ``tracker`` and ``motion`` options."""
     try:
         motion_config = MotionModelConfig(**(motion or {}))
         return {m: TrackerConfig(model=m, motion=motion_config, **(tracker or {})) for m in chosen}
     except TypeError as err:
         raise InvalidParameterError(f"unknown tracker option: {err}.") from err
+
+
+def track_parameters(method: str, chosen: list[MotionModel], tracker: dict[str, Any] | None,
+                     motion: dict[str, Any] | None) -> dict[str, Any]:
+    """The parameters the track stage records in its provenance."""
+    return {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
+            "motion": dict(motion or {})}
 
 
 @windowed(lambda log, options: topics.centroid_topic(str(options["method"]).upper()))
@@ -502,11 +529,10 @@ def track_log(
         Write the whole chain as one self-contained file instead of a layer on the input.
     """
     chosen = parse_models(models)
-    configs = _configs(chosen, tracker, motion)
+    configs = tracker_configs(chosen, tracker, motion)
     method = method.upper()
     source = topics.centroid_topic(method)
-    parameters = {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
-                  "motion": dict(motion or {})}
+    parameters = track_parameters(method, chosen, tracker, motion)
     summary = TrackSummary(method=method)
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force, flatten=flatten,
                     compression=compression) as (log, out):
