@@ -29,13 +29,16 @@ __all__ = ["live"]
                    "waits for Ctrl-C].")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True),
               help="Folder: time frame n at n / FPS (from 0) instead of its file's modification time.")
+@click.option("--workers", type=click.IntRange(0, 64), default=1, show_default=True,
+              help="Processes measuring frames, beside this one (which reads, tracks, writes and publishes); 0: "
+                   "all in this process. Tracking mode gives each worker whole blocks of frames.")
 @click.option("--force", is_flag=True, help="Overwrite the outputs if they exist.")
 @click.option("--compression", type=click.Choice(["zstd", "lz4", "none"]), default="zstd", show_default=True,
               help="Chunk compression of the logs written.")
 @json_option
 @quiet_option
 def live(source: Path | None, output: Path, camera: str | None, config_path: Path | None, port: int, host: str,
-         no_server: bool, idle_timeout: float | None, fps: float | None, force: bool, compression: str,
+         no_server: bool, idle_timeout: float | None, fps: float | None, workers: int, force: bool, compression: str,
          as_json: bool, quiet: bool) -> None:
     """Run `run`'s stages on frames as they are recorded, and show them in Foxglove as they are computed.
 
@@ -67,7 +70,7 @@ def live(source: Path | None, output: Path, camera: str | None, config_path: Pat
 
     result = run_live(None if source is None else str(source), output, load_config(config_path), camera=camera,
                       host=host, port=None if no_server else port, idle_timeout=idle_timeout, fps=fps, force=force,
-                      compression=compression, say=lambda line: echo_status(quiet, line))
+                      compression=compression, workers=workers, say=lambda line: echo_status(quiet, line))
     for stage, report in result.stages:
         line = stage_line(stage, report)
         if line is not None:

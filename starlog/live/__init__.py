@@ -70,7 +70,8 @@ def live(source: str | os.PathLike[str] | None, output: str | os.PathLike[str], 
          idle_timeout: float | None = None, fps: float | None = None, force: bool = False,
          compression: str = "zstd", workers: int = 1, say: Callable[[str], None] = lambda line: None,
          on_session: Callable[[LiveSession], None] | None = None) -> LiveResult:
-    """Run ``config``'s stages on ``source`` as it records (module docstring); ``port`` None: no server.
+    """Run ``config``'s stages on ``source`` as it records (module docstring); ``port`` None: no server;
+    ``workers``: processes measuring frames (0: this one; the stages run at the end use every core).
 
     ``on_session`` is handed the session before it starts (its ``stop()`` ends the run as Ctrl-C does).
     """
@@ -85,7 +86,7 @@ def live(source: str | os.PathLike[str] | None, output: str | os.PathLike[str], 
             server = LiveServer(host=host, port=port)
             say(f"serving Foxglove at {server.url} (Foxglove: Open connection, Foxglove WebSocket)")
         session = LiveSession(opened, output, config, server=server, force=force,  # type: ignore[arg-type]
-                              compression=compression, workers=workers, say=say)
+                              compression=compression, workers=os.cpu_count() or 1, frame_workers=workers, say=say)
         if on_session is not None:
             on_session(session)
         return session.run()

@@ -25,7 +25,8 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from concurrent.futures import Future, wait
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,12 +82,13 @@ class LiveResult:
 class LiveSession:
     """A live run of ``config`` on ``source`` into the layers of ``output`` (module docstring).
 
-    ``server``: a :class:`~starlog.live.server.LiveServer` or None; ``say``: where status lines go.
+    ``server``: a :class:`~starlog.live.server.LiveServer` or None; ``say``: where status lines go;
+    ``frame_workers``: processes measuring frames (0: this one); ``workers``: cores of the stages run at the end.
     """
 
     def __init__(self, source: Source, output: Path, config: PipelineConfig, *, server: Any, force: bool,
-                 compression: str = "zstd", workers: int = 1, say: Callable[[str], None] = lambda line: None,
-                 show_progress: bool = False) -> None:
+                 compression: str = "zstd", workers: int = 1, frame_workers: int = 1,
+                 say: Callable[[str], None] = lambda line: None, show_progress: bool = False) -> None:
         if config.centroid is None:
             raise InvalidParameterError(f"{config.source}: starlog live runs the centroid stage first; the config "
                                         "has no [centroid] table.")
@@ -99,7 +101,10 @@ class LiveSession:
                 raise OutputExistsError(path)
         self.board = StatusBoard()
         self.result = LiveResult(output=output, url=server.url if server is not None else "")
+        self.frame_workers = frame_workers
         self._queue: deque[SourceMessage | SourceProblem] = deque()
+        self._inflight: deque[tuple[SourceMessage, Future[Any]]] = deque()
+        self._limit = 2 * frame_workers + 1
         self._outlets: dict[str, Callable[[bytes, int], None]] = {}
         self._stop = threading.Event()
         self._stop_now = threading.Event()
@@ -115,9 +120,9 @@ class LiveSession:
         """Learn, process frames as they arrive, close the layers; the result."""
         reuse_frame_buffers()
         with tempfile.TemporaryDirectory(prefix=f".{self.output.name}.live-", dir=self.output.parent or ".") as tmp, \
-                opencv_threads(1), _stop_signals(self._stop, self._stop_now):
+                opencv_threads(1), _stop_signals(self._stop, self._stop_now), ExitStack() as workers:
             try:
-                self._learn(Path(tmp))
+                self._learn(Path(tmp), workers)
                 self._follow()
                 self._close()
             except BaseException:
@@ -132,7 +137,7 @@ class LiveSession:
         """End the run as Ctrl-C does (the frames read are processed, the layers closed)."""
         self._stop.set()
 
-    def _learn(self, folder: Path) -> None:
+    def _learn(self, folder: Path, workers: ExitStack) -> None:
         """Read the first frames, learn the centroid parameters from them, open the live layers."""
         table = dict(self.config.centroid or {})
         prefix = PrefixLog(folder / "first-frames.mcap", frames_to_learn(table))
@@ -151,14 +156,14 @@ class LiveSession:
             options=table.get("options"), image_topic=table.get("image_topic"), psf=table.get("psf"),
             phase_correction=table.get("phase_correction", "auto"), mode=table.get("mode", "auto"),
             acquire_every=table.get("acquire_every"))
-        self._open_layers(parameters, probe, folder)
+        self._open_layers(parameters, probe, folder, workers)
         self.say(f"live: {parameters.provenance['mode']} mode, methods {', '.join(m.value for m in parameters.methods)}"
                  + (f"; Foxglove: {self.server.url}" if self.server is not None else ""))
 
-    def _open_layers(self, parameters: Any, probe: Path, folder: Path) -> None:
+    def _open_layers(self, parameters: Any, probe: Path, folder: Path, workers: ExitStack) -> None:
         first_ids = self.source.next_ids()
         writer = self._writer(self.paths[0], first_ids)
-        self.centroid = LiveCentroid(parameters, StageOutput(writer))
+        self.centroid = LiveCentroid(parameters, StageOutput(writer), workers=self.frame_workers, stack=workers)
         methods = [m.value for m in parameters.methods]
         track = self.config.track
         for k, method in enumerate(_names(track.get("methods", ["GAUSSFIT"])) if track is not None else []):
@@ -193,8 +198,9 @@ class LiveSession:
                 continue
             if event.frame is not None:
                 self.board.seen += 1
-            elif event.channel.topic == topics.TRUTH:
+            elif event.channel.topic == topics.TRUTH and self.config.solve is not None:
                 self._truth_seen = max(self._truth_seen, event.log_time)
+                self._truth[event.log_time] = _true_attitude(event)
             outlet = self._source_outlet(event)
             if outlet is not None:
                 outlet(bytes(event.data), event.log_time)
@@ -219,17 +225,20 @@ class LiveSession:
         """Process frames as they arrive until the source ends or the run is stopped."""
         next_status = time.monotonic() + 1.0
         while True:
-            if self._stop_now.is_set():
+            if self._stop_now.is_set() and self._queue:
                 self._drop_waiting("the run was stopped before it was processed")
-                break
             stopping = self._stop.is_set() or self.source.ended
             if not stopping and self._waiting() < _READ_AHEAD:
                 self._read()
-            elif stopping and isinstance(self.source, Camera):
+            elif stopping and isinstance(self.source, Camera) and not self.source.ended:
                 self.source.stop()
                 self._read()
-            if not self._process_one() and stopping and (self.source.ended or not isinstance(self.source, Camera)):
+            busy = self._dispatch() | self._collect()
+            if not busy and not self._queue and not self._inflight and stopping and \
+                    (self.source.ended or not isinstance(self.source, Camera)):
                 break
+            if not busy and self._inflight:
+                wait([self._inflight[0][1]], timeout=0.001)
             now = time.monotonic()
             for writer in self._writers:
                 writer.tick(now)
@@ -242,33 +251,44 @@ class LiveSession:
     def _waiting(self) -> int:
         return sum(1 for e in self._queue if isinstance(e, SourceMessage) and e.frame is not None)
 
-    def _process_one(self) -> bool:
-        """Process the next event in the queue, if it is ready; whether one was."""
-        if not self._queue:
-            return False
-        event = self._queue[0]
-        if isinstance(event, SourceMessage) and event.frame is not None and not self._ready(event):
-            return False
-        self._queue.popleft()
-        if isinstance(event, SourceProblem):
-            self.say(f"source: {event.what}")
-            self.board.problems.append(event.what)
-            for frame in event.frames:
-                self._skip(frame, event.log_time, event.what)
-        elif event.frame is not None:
-            self._frame(event)
-        elif event.channel.topic == topics.TRUTH and self.solve is not None:
-            self._truth[event.log_time] = _true_attitude(event)
-        return True
+    def _dispatch(self) -> bool:
+        """Hand the frames at the head of the queue to the centroid stage (up to the frames in flight allowed);
+        whether any event was taken."""
+        assert self.centroid is not None
+        took = False
+        while self._queue and len(self._inflight) < self._limit:
+            event = self._queue[0]
+            if isinstance(event, SourceMessage) and event.frame is not None and not self._ready(event):
+                break
+            self._queue.popleft()
+            took = True
+            if isinstance(event, SourceProblem):
+                self.say(f"source: {event.what}")
+                self.board.problems.append(event.what)
+                for frame in event.frames:
+                    self._skip(frame, event.log_time, event.what)
+            elif event.frame is not None:
+                self._inflight.append((event, self.centroid.submit(event)))
+        return took
+
+    def _collect(self) -> bool:
+        """Complete the frames measured, in order; whether any was."""
+        done = False
+        while self._inflight and self._inflight[0][1].done():
+            message, future = self._inflight.popleft()
+            self._frame(message, future.result())
+            done = True
+        return done
 
     def _ready(self, frame: SourceMessage) -> bool:
         """Whether a frame can be processed: the solve stage needs its true attitude when the source has one."""
         return (self.solve is None or self._truth_seen < 0 or self._truth_seen >= frame.log_time
                 or self.source.ended or self._stop.is_set())
 
-    def _frame(self, message: SourceMessage) -> None:
+    def _frame(self, message: SourceMessage, result: Any) -> None:
+        """A measured frame: its centroid messages written, tracked, solved."""
         assert self.centroid is not None and message.frame is not None
-        encoded = self.centroid.frame(message)
+        encoded = self.centroid.write(message.frame, result)
         if isinstance(encoded, SkippedFrame):
             self.board.skip(message.frame, message.log_time, encoded.reason)
             self.say(f"frame {message.frame} skipped: {encoded.reason}")
@@ -293,11 +313,13 @@ class LiveSession:
 
     def _drop_waiting(self, reason: str) -> None:
         """Every frame still waiting, listed as skipped (the second Ctrl-C)."""
+        dropped = 0
         while self._queue:
             event = self._queue.popleft()
             if isinstance(event, SourceMessage) and event.frame is not None:
                 self._skip(event.frame, event.log_time, reason)
-        self.say(f"{len(self.board.skipped)} frames listed as skipped")
+                dropped += 1
+        self.say(f"stopped at once: {dropped} frames waiting listed as skipped")
 
     def _status(self, state: str) -> None:
         waiting = [e for e in self._queue if isinstance(e, SourceMessage) and e.frame is not None]

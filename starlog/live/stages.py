@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import tempfile
 import time
+from concurrent.futures import Future
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -26,11 +28,12 @@ import numpy.typing as npt
 
 from starlog.errors import InvalidInputError
 from starlog.io import topics
-from starlog.io.frames import SkippedFrame, decode_image_message
+from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader
+from starlog.live.extraction import CentroidWorkers, FrameResult, extract_frame
 from starlog.live.layers import PublishingWriter, close_on_base, relayer
 from starlog.live.sources import SourceMessage
-from starlog.stages._centroid_frames import FrameExtractor, FrameMessages, TrackedFrames
+from starlog.stages._centroid_frames import FrameMessages
 from starlog.stages._spool import read_blocks, write_block
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.centroid import CentroidLayer, CentroidParameters, CentroidSummary
@@ -60,56 +63,52 @@ def star_columns(payload: dict[str, Any]) -> npt.NDArray[np.float64]:
 
 
 class LiveCentroid:
-    """The centroid stage on frames as they arrive (module docstring)."""
+    """The centroid stage on frames as they arrive (module docstring): :meth:`submit` a frame (measured here, or by
+    a worker process: :mod:`starlog.live.extraction`), then :meth:`write` its result, frames in order."""
 
-    def __init__(self, parameters: CentroidParameters, out: StageOutput) -> None:
+    def __init__(self, parameters: CentroidParameters, out: StageOutput, *, workers: int = 0,
+                 stack: ExitStack | None = None) -> None:
         self.parameters = parameters
         self.provenance = dict(parameters.provenance)
         self.summary = CentroidSummary.of(parameters)
         self.out = out
         self.layer = CentroidLayer.start(out, parameters, self.summary)
-        self._block: FrameExtractor | TrackedFrames | None = None
-        self._first: tuple[tuple[int, ...], Any, int] | None = None
+        self.workers = CentroidWorkers(parameters.extract, workers, stack) if workers and stack is not None else None
+        self._state: dict[str, Any] = {"extract": parameters.extract}
+        self._first: tuple[tuple[int, ...], str, int] | None = None
         self._last = -1
 
-    def frame(self, message: SourceMessage) -> FrameMessages | SkippedFrame:
-        """One frame's messages, written (a frame that cannot be read is skipped, and listed)."""
+    def submit(self, message: SourceMessage) -> Future[FrameResult]:
+        """Start measuring one frame (frames in order)."""
         assert message.frame is not None
-        if message.block_start or self._block is None:
-            self._block = self.parameters.extract.block()
-        image, stamp, problem = self._image(message)
-        if problem is not None:
-            skipped = SkippedFrame(message.frame, message.log_time, problem)
-            self.layer.write(skipped)
-            return skipped
-        encoded = self._block(message.frame, message.log_time, image, stamp)
+        if message.log_time <= self._last:
+            return _done((SkippedFrame(message.frame, message.log_time, (
+                f"frame {message.frame} does not come after the previous frame (log_time {self._last}); frame "
+                "timestamps must increase strictly.")), (), ""))
+        self._last = message.log_time
+        args = (message.block_start, message.frame, message.log_time, message.schema,
+                message.channel.message_encoding, message.data)
+        if self.workers is not None:
+            return self.workers.submit(*args)
+        return _done(extract_frame(self._state, None, *args))
+
+    def write(self, index: int, result: FrameResult) -> FrameMessages | SkippedFrame:
+        """Frame ``index``'s messages, written (a frame that cannot be used is skipped, and listed)."""
+        encoded, shape, dtype = result
+        if isinstance(encoded, FrameMessages):
+            if self._first is None:
+                self._first = (shape, dtype, index)
+            elif (shape, dtype) != self._first[:2]:
+                first = self._first
+                encoded = SkippedFrame(index, encoded.log_time, (
+                    f"frame {index} is {shape[1]}x{shape[0]} {dtype}, but frame {first[2]} is {first[0][1]}x"
+                    f"{first[0][0]} {first[1]}; every frame of a log must match."))
         self.layer.write(encoded)
         return encoded
 
     def skip(self, frame: int, log_time: int, reason: str) -> None:
         """A frame of the source that was not processed, listed as skipped with why."""
         self.layer.write(SkippedFrame(frame, log_time, reason))
-
-    def _image(self, message: SourceMessage) -> tuple[Any, int | None, str | None]:
-        """The frame's image and stamp, or why it cannot be used (the checks of :func:`~starlog.io.frames.iter_frames`)."""
-        try:
-            decoded = decode_image_message(message.schema, message.channel.message_encoding, message.data)
-        except InvalidInputError as err:
-            return None, None, str(err)
-        if decoded is None or decoded.image.ndim != 2:
-            return None, None, "it is not a 2-D image."
-        image, index = decoded.image, message.frame
-        if self._first is None:
-            self._first = (image.shape, image.dtype, index)
-        elif (image.shape, image.dtype) != self._first[:2]:
-            first = self._first
-            return None, None, (f"frame {index} is {image.shape[1]}x{image.shape[0]} {image.dtype}, but frame {first[2]} "
-                                f"is {first[0][1]}x{first[0][0]} {first[1]}; every frame of a log must match.")
-        if message.log_time <= self._last:
-            return None, None, (f"frame {index} does not come after the previous frame (log_time {self._last}); "
-                                "frame timestamps must increase strictly.")
-        self._last = message.log_time
-        return image, decoded.stamp, None
 
     def finish(self, writer: PublishingWriter, base: Path, notes: list[str], metadata: list[tuple[str, dict[str, str]]]
                ) -> None:
@@ -118,6 +117,11 @@ class LiveCentroid:
         with LogReader(base) as log:
             close_on_base(writer, self.out, log, stage="centroid", parameters=self.provenance, metadata=metadata)
 
+
+def _done(result: FrameResult) -> Future[FrameResult]:
+    future: Future[FrameResult] = Future()
+    future.set_result(result)
+    return future
 
 
 class LiveTrack:
