@@ -52,13 +52,14 @@ def simulate_realtime(config: SimulationConfig, output: str | os.PathLike[str], 
 
 def write_at_camera_rate(source: str | os.PathLike[str], output: str | os.PathLike[str], *, force: bool = False,
                          speed: float = 1.0, on_frame: Callable[[int, int], None] | None = None,
-                         stop: threading.Event | None = None) -> int:
+                         stop: threading.Event | None = None, max_frames: int | None = None) -> int:
     """Copy the finished log ``source`` into ``output`` at the pace of its frames (module docstring).
 
     Chunks are copied byte for byte, grouped by their first ``log_time`` (a frame's chunks of every
     channel), each group flushed when its time has come. ``speed`` divides every wait (2: twice the
     camera's rate). ``on_frame(log_time, monotonic_ns)`` is called once a group is flushed. Setting
-    ``stop`` (or Ctrl-C) ends the output after the groups written so far. Returns the groups written.
+    ``stop`` (or Ctrl-C), or ``max_frames`` groups written, ends the output after the groups written so far.
+    Returns the groups written.
     """
     written = 0
     with McapFile(source) as log, LogWriter(output, force=force, in_place=True, profile=log.profile()) as out:
@@ -76,7 +77,7 @@ def write_at_camera_rate(source: str | os.PathLike[str], output: str | os.PathLi
         first = chunks[0].message_start_time if chunks else 0
         begin = time.monotonic_ns()
         try:
-            for group in groups:
+            for group in groups[:max_frames]:
                 if stop is not None and stop.is_set():
                     break
                 start = group[0].message_start_time

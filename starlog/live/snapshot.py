@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import BinaryIO
 
 from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, Metadata, Schema
@@ -46,7 +47,7 @@ def snapshot_log(source: str | os.PathLike[str], end: int, output: str | os.Path
                 pending[2][channel_id] = entries
                 continue
             if pending is not None:
-                _copy_chunk(f, out, *pending)
+                _copy_chunk(f, out, *pending, known=(schemas, channels))
                 pending = None
             if opcode == Opcode.CHUNK and offset not in damaged:
                 pending = (offset, RECORD_HEADER.size + length, {})
@@ -67,26 +68,36 @@ def snapshot_log(source: str | os.PathLike[str], end: int, output: str | os.Path
                 record = parse_record(body, Metadata)
                 out.add_metadata(record.name, dict(record.metadata))
         if pending is not None:
-            _copy_chunk(f, out, *pending)
+            _copy_chunk(f, out, *pending, known=(schemas, channels))
     return Path(output)
 
 
 _BODIES = {Opcode.SCHEMA, Opcode.CHANNEL, Opcode.METADATA, Opcode.MESSAGE_INDEX, Opcode.MESSAGE}
 
 
-def _copy_chunk(f: object, out: LogWriter, offset: int, length: int, indices: dict[int, list[tuple[int, int]]]
-                ) -> None:
-    """One chunk record copied as it is, with its message index records (rebuilt when it had none)."""
-    f.seek(offset)  # type: ignore[attr-defined]
-    raw = f.read(length)  # type: ignore[attr-defined]
+def _copy_chunk(f: BinaryIO, out: LogWriter, offset: int, length: int, indices: dict[int, list[tuple[int, int]]], *,
+                known: tuple[set[int], set[int]]) -> None:
+    """One chunk record copied as it is, with its message index records (rebuilt when it had none); the schemas
+    and channels it defines that are new, copied before it (a log's first chunk of a channel may define it)."""
+    f.seek(offset)
+    raw = f.read(length)
     body = memoryview(raw)[RECORD_HEADER.size:]
     start, end, size, _, compression, data_len, _ = chunk_header(body)
-    if not indices:
+    schemas, channels = known
+    rebuild = not indices
+    if rebuild or not set(indices) <= channels:
         contents = decode_chunk(body)
-        for at, opcode, position, _ in iter_records(contents.data):
-            if opcode == Opcode.MESSAGE:
-                channel_id, _, log_time, _ = MESSAGE_HEADER.unpack_from(contents.data, position)
+        for at, opcode, position, record_length in iter_records(contents.data):
+            record = contents.data[position: position + record_length]
+            if opcode == Opcode.MESSAGE and rebuild:
+                channel_id, _, log_time, _ = MESSAGE_HEADER.unpack_from(record, 0)
                 indices.setdefault(channel_id, []).append((log_time, at))
+            elif opcode == Opcode.SCHEMA and (schema := parse_record(record, Schema)).id not in schemas:
+                schemas.add(schema.id)
+                out.copy_schema(schema)
+            elif opcode == Opcode.CHANNEL and (channel := parse_record(record, Channel)).id not in channels:
+                channels.add(channel.id)
+                out.copy_channel(channel)
     ci = ChunkIndex(message_start_time=start, message_end_time=end, chunk_start_offset=0, chunk_length=length,
                     message_index_offsets={}, message_index_length=0, compression=compression,
                     compressed_size=data_len, uncompressed_size=size)
