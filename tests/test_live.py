@@ -27,7 +27,7 @@ import pytest
 from starlog.io import LogReader
 from starlog.io.mcap_file import McapFile
 from starlog.io.verify import verify_log
-from starlog.live import LIVE_METADATA, base_path
+from starlog.live import LIVE_METADATA, base_path, write_at_camera_rate
 from starlog.pipeline import layer_paths, load_config, stage_steps
 from starlog.stages import simulate_log
 from tests.helpers import small_config
@@ -156,10 +156,18 @@ class FoxgloveClient:
             raise self.error
 
 
-def _messages(path: Path) -> dict[str, list[tuple[int, bytes]]]:
+def _messages(path: Path) -> dict[str, list[tuple[int, Any]]]:
+    """Every message of the file, per topic; an attitude without its ``solver_ms`` (the solver's own wall time,
+    which differs between any two runs)."""
     with LogReader(path, chain=False) as log:
-        return {c.topic: [(m.log_time, bytes(m.data)) for _, _, m in log.raw_messages([c.topic])]
-                for c in log.channels()}
+        out: dict[str, list[tuple[int, Any]]] = {}
+        for c in log.channels():
+            if c.topic.startswith("/attitude/"):
+                out[c.topic] = [(m.log_time, {k: v for k, v in m.payload.items() if k != "solver_ms"})
+                                for m in log.messages(c.topic)]
+            else:
+                out[c.topic] = [(m.log_time, bytes(m.data)) for _, _, m in log.raw_messages([c.topic])]
+        return out
 
 
 def _layers(output: Path, config: Path) -> list[Path]:
@@ -279,7 +287,7 @@ def test_live_stopped_mid_run_closes_valid_layers_and_leaves_nothing_running(tmp
     live = Process(["live", str(source), "-o", "out.mcap", "--config", str(config), "--port", "0"], tmp_path,
                    f"live-stop-{stop.name}")
     live.wait_for("live: tracking mode")
-    time.sleep(2.0)
+    time.sleep(4.0)
     tracked = descendants(live.popen.pid)
     live.popen.send_signal(stop)
     live.finish()
@@ -288,7 +296,7 @@ def test_live_stopped_mid_run_closes_valid_layers_and_leaves_nothing_running(tmp
     writer.finish()
     output = tmp_path / "out.mcap"
     base = base_path(output)  # the part of the log read: the log itself was still being written
-    assert 256 < _frames(base) < 3000
+    assert 256 <= _frames(base) < 3000
     with LogReader(tmp_path / "out.1-centroid.mcap") as log:
         record = dict(log.metadata(LIVE_METADATA)[0][1])
     assert record["end"] == "stopped" and int(record["frames_done"]) == _frames(base)
@@ -311,3 +319,30 @@ def test_live_on_a_log_cut_off_mid_chunk_ends_with_the_frames_before_the_cut(tmp
     output = tmp_path / "out.mcap"
     assert _frames(base_path(output)) == 300
     assert_live_is_replay(tmp_path, base_path(output), output, config)
+
+
+def test_live_solves_the_attitude_of_each_frame_as_run_does(tmp_path: Path) -> None:
+    pytest.importorskip("tetra3")
+    from starlog.sim import Jitter, SimulationConfig
+
+    whole = tmp_path / "sky.mcap"
+    simulate_log(SimulationConfig(width=384, height=384, sky_attitude=(120.0, -30.0, 40.0), fov_deg=10.0,
+                                  magnitude_limit=7.0, n_frames=60, fps=50.0, jitter=(Jitter(5.0, 0.5),), seed=2),
+                 whole, chunk_per_frame=True)
+    config = tmp_path / "solve.toml"
+    config.write_text('[centroid]\nmethods = ["GAUSSFIT"]\nphase_correction = "off"\nmode = "tracking"\n'
+                      '[solve]\ncentroids = ["GAUSSFIT"]\n[solve.options]\ntimeout_ms = 200\n')
+    source = tmp_path / "camera.mcap"
+    writer = threading.Thread(target=write_at_camera_rate, args=(whole, source))
+    writer.start()
+    live = Process(["live", str(source), "-o", "out.mcap", "--config", str(config), "--no-server"], tmp_path,
+                   "live-solve")
+    live.finish()
+    writer.join()
+    output = tmp_path / "out.mcap"
+    messages = _messages(output)
+    assert len(messages["/attitude/GAUSSFIT"]) == 60
+    with LogReader(output) as log:
+        solved = [m.payload for m in log.messages("/attitude/GAUSSFIT")]
+    assert sum(a["solved"] for a in solved) >= 55 and all("error_x_arcsec" in a for a in solved if a["solved"])
+    assert_live_is_replay(tmp_path, source, output, config)

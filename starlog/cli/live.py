@@ -75,12 +75,16 @@ def live(source: Path | None, output: Path, camera: str | None, config_path: Pat
         line = stage_line(stage, report)
         if line is not None:
             echo_status(quiet, line)
+    latency = result.status.get("latency", {})
+    echo_status(quiet, f"latency from a frame's arrival to its last message: median "
+                       f"{latency.get('median_ms', float('nan')):.1f} ms, p99 {latency.get('p99_ms', float('nan')):.1f} "
+                       f"ms, largest {latency.get('max_ms', float('nan')):.1f} ms")
     echo_status(quiet, f"wrote {len(result.layers)} layers on {result.base}: {', '.join(map(str, result.layers))}")
+    echo_status(quiet, f"wrote {output}; replay it with: starlog run {result.base} -o OTHER.mcap"
+                       + (f" --config {config_path}" if config_path else ""))
     if as_json:
         print_json(result.to_dict())
         return
-    latency = result.status.get("latency", {})
     click.echo(f"{output}: {result.status.get('frames_done', 0)} frames processed live of "
                f"{result.status.get('frames_seen', 0)} seen, {len(result.status.get('skipped', []))} skipped; "
-               f"latency median {latency.get('median_ms', float('nan')):.1f} ms, p99 "
-               f"{latency.get('p99_ms', float('nan')):.1f} ms; {result.end_reason}")
+               f"{result.end_reason}")
