@@ -84,7 +84,9 @@ class Process:
         raise AssertionError(f"never said {text!r}:\n" + "\n".join(self.lines))
 
     def finish(self, timeout: float = 300) -> str:
-        out, _ = self.popen.communicate(timeout=timeout)
+        assert self.popen.stdout is not None
+        out = self.popen.stdout.read()  # stderr is the reader thread's
+        self.popen.wait(timeout=timeout)
         self._reader.join(timeout=5)
         assert self.popen.returncode == 0, "\n".join(self.lines)
         return out

@@ -155,7 +155,11 @@ def run_case(work: Path, log: Path, *, rate: float, fps: float, frames: int, set
                              str(config), "--port", "0", "--idle-timeout", "20", "--force", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert live.stderr is not None
-    line = live.stderr.readline()
+    line = ""
+    while "serving Foxglove at" not in line:
+        line = live.stderr.readline()
+        if not line:
+            raise SystemExit(f"starlog live failed: {live.communicate()[1]}")
     url = line.split()[3]
     lines: list[str] = []
     threading.Thread(target=lambda: lines.extend(live.stderr), daemon=True).start()  # type: ignore[arg-type]

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from starlog.errors import InvalidParameterError
 from starlog.live.pace import simulate_realtime, write_at_camera_rate
@@ -78,20 +79,22 @@ def live(source: str | os.PathLike[str] | None, output: str | os.PathLike[str], 
     from starlog.live.server import LiveServer
 
     output = Path(output)
-    opened = open_source(None if source is None else str(source), output, config, camera=camera,
-                         idle_timeout=idle_timeout, fps=fps, force=force, compression=compression)
     server = None
+    opened: Any = None
     try:
         if port is not None:
             server = LiveServer(host=host, port=port)
             say(f"serving Foxglove at {server.url} (Foxglove: Open connection, Foxglove WebSocket)")
-        session = LiveSession(opened, output, config, server=server, force=force,  # type: ignore[arg-type]
-                              compression=compression, workers=os.cpu_count() or 1, frame_workers=workers, say=say)
+        opened = open_source(None if source is None else str(source), output, config, camera=camera,
+                             idle_timeout=idle_timeout, fps=fps, force=force, compression=compression)
+        session = LiveSession(opened, output, config, server=server, force=force, compression=compression,
+                              workers=os.cpu_count() or 1, frame_workers=workers, say=say)
         if on_session is not None:
             on_session(session)
         return session.run()
     except BaseException:
-        opened.close()  # type: ignore[attr-defined]
+        if opened is not None:
+            opened.close()
         raise
     finally:
         if server is not None:

@@ -4,31 +4,30 @@
 :class:`~starlog.stages._centroid_frames.FrameExtractor` — a new block's extractor when the frame starts
 a block (tracking mode's :class:`~starlog.stages._centroid_frames.TrackedFrames` keeps its state within a
 block). :class:`CentroidWorkers` runs it in worker processes that never outlive this one
-(:func:`~starlog.stages._parallel.process_pool`), each block on one worker (its state stays there), so
+(:func:`~starlog.stages._parallel.guarded_process`), each block on one worker (its state stays there), so
 a worker measures a frame while this process tracks, writes and publishes the frame before it; with
-several workers, blocks go round-robin. The messages are those of the stage either way: the same
-function, the same extractor, the same blocks.
+several workers, blocks go round-robin. A worker is fed through a pipe of its own, the frame's bytes as
+they are (no executor threads in this process to compete with its own work). The messages are those of
+the stage either way: the same function, the same extractor, the same blocks.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import Future
-from contextlib import ExitStack
+import multiprocessing
+from multiprocessing.connection import Connection
 from typing import Any
 
 from mcap.records import Schema
 
-from starlog.errors import InvalidInputError
+from starlog.errors import InvalidInputError, StarlogError
 from starlog.io.frames import SkippedFrame, decode_image_message
 from starlog.stages._centroid_frames import FrameExtractor, FrameMessages, opencv_threads, reuse_frame_buffers
-from starlog.stages._parallel import process_pool
+from starlog.stages._parallel import guarded_process
 
-__all__ = ["CentroidWorkers", "FrameResult", "extract_frame"]
+__all__ = ["CentroidWorkers", "Done", "FrameResult", "Handle", "extract_frame"]
 
 #: ``(messages or the frame skipped, the image's shape and pixel type)``.
 FrameResult = tuple[FrameMessages | SkippedFrame, tuple[int, ...], str]
-
-_WORKER: dict[str, Any] = {}  # in a worker: the extractor and the block being measured
 
 
 def extract_frame(state: dict[str, Any], extract: FrameExtractor | None, block_start: bool, frame: int,
@@ -48,34 +47,113 @@ def extract_frame(state: dict[str, Any], extract: FrameExtractor | None, block_s
     return state["block"](frame, log_time, image, decoded.stamp), image.shape, str(image.dtype)
 
 
-def _in_worker(extract: FrameExtractor | None, block_start: bool, frame: int, log_time: int, schema: Schema | None,
-               encoding: str, data: bytes) -> FrameResult:
-    if "ready" not in _WORKER:
-        reuse_frame_buffers()
-        opencv_threads(1).__enter__()  # for the worker's life: one core per worker
-        _WORKER["ready"] = True
-    return extract_frame(_WORKER, extract, block_start, frame, log_time, schema, encoding, data)
+class Done:
+    """A result at hand (what a worker's pending result is once read)."""
+
+    def __init__(self, result: FrameResult) -> None:
+        self._result = result
+
+    def done(self) -> bool:
+        return True
+
+    def wait(self, timeout: float) -> bool:
+        return True
+
+    def result(self) -> FrameResult:
+        return self._result
+
+
+class _Pending:
+    """A frame sent to a worker: its result is the worker's next answer (a worker answers in the order it is sent)."""
+
+    def __init__(self, connection: Connection, process: Any) -> None:
+        self._connection = connection
+        self._process = process
+
+    def done(self) -> bool:
+        return self._connection.poll(0)
+
+    def wait(self, timeout: float) -> bool:
+        return self._connection.poll(timeout)
+
+    def result(self) -> FrameResult:
+        try:
+            answer = self._connection.recv()
+        except (EOFError, OSError) as err:
+            raise StarlogError(f"the worker process measuring frames ended unexpectedly (exit status "
+                               f"{self._process.exitcode}).") from err
+        if isinstance(answer, BaseException):
+            raise answer
+        return answer  # type: ignore[no-any-return]
+
+
+def _serve(connection: Connection) -> None:
+    """A worker: frames from ``connection`` measured, each answered in order, until told to stop (None)."""
+    reuse_frame_buffers()
+    state: dict[str, Any] = {}
+    with opencv_threads(1):
+        while True:
+            header = connection.recv()
+            if header is None:
+                return
+            data = connection.recv_bytes()
+            try:
+                connection.send(extract_frame(state, *header[:6], data))
+            except Exception as err:  # noqa: BLE001 - handed to the owner, which raises it
+                connection.send(err)
+
+
+Handle = Done | _Pending
 
 
 class CentroidWorkers:
-    """Worker processes measuring frames (module docstring); ``stack`` ends them."""
+    """Worker processes measuring frames (module docstring); :meth:`close` ends them (and so does this process
+    ending, however it ends)."""
 
-    def __init__(self, extract: FrameExtractor, workers: int, stack: ExitStack) -> None:
+    def __init__(self, extract: FrameExtractor, workers: int) -> None:
         self.extract = extract
-        self.pools = [stack.enter_context(process_pool(1, preload=["starlog.stages.centroid"])) for _ in range(workers)]
+        self._connections: list[Connection] = []
+        self._processes: list[Any] = []
+        try:
+            for _ in range(workers):
+                mine, theirs = multiprocessing.Pipe()
+                self._processes.append(guarded_process(_serve, (theirs,), preload=["starlog.stages.centroid"]))
+                theirs.close()
+                self._connections.append(mine)
+        except BaseException:
+            self.close(wait=False)
+            raise
         self._given = [False] * workers
         self._block = -1
         self._frames = 0
 
     def submit(self, block_start: bool, frame: int, log_time: int, schema: Schema | None, encoding: str,
-               data: bytes) -> Future[FrameResult]:
-        """Measure one frame on the worker of its block (tracking) or the next worker (full mode)."""
+               data: bytes) -> _Pending:
+        """Send one frame to the worker of its block (tracking) or to the next worker (full mode)."""
         if block_start or self._block < 0:
             self._block += 1
         tracking = self.extract.tracking is not None
-        k = (self._block if tracking else self._frames) % len(self.pools)
+        k = (self._block if tracking else self._frames) % len(self._connections)
         self._frames += 1
         extract = None if self._given[k] else self.extract
         self._given[k] = True
-        return self.pools[k].submit(_in_worker, extract, block_start or not tracking, frame, log_time, schema,
-                                    encoding, data)
+        connection = self._connections[k]
+        connection.send((extract, block_start or not tracking, frame, log_time, schema, encoding))
+        connection.send_bytes(data)
+        return _Pending(connection, self._processes[k])
+
+    def close(self, *, wait: bool = True) -> None:
+        """Stop the workers: after the frames sent (``wait``), or at once."""
+        for connection in self._connections:
+            try:
+                if wait:
+                    connection.send(None)
+                connection.close()
+            except OSError:
+                pass
+        for process in self._processes:
+            process.join(timeout=5 if wait else 0.1)
+            if process.is_alive():
+                process.terminate()
+                process.join(timeout=2)
+

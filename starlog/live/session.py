@@ -25,7 +25,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, wait
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +34,7 @@ from starlog.errors import InvalidInputError, InvalidParameterError, OutputExist
 from starlog.io import topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader
+from starlog.live.extraction import Handle
 from starlog.live.layers import PrefixLog, PublishingWriter, decode_message, relayer
 from starlog.live.sources import Camera, Source, SourceMessage, SourceProblem
 from starlog.live.stages import LiveCentroid, LiveSolve, LiveTrack
@@ -103,7 +103,8 @@ class LiveSession:
         self.result = LiveResult(output=output, url=server.url if server is not None else "")
         self.frame_workers = frame_workers
         self._queue: deque[SourceMessage | SourceProblem] = deque()
-        self._inflight: deque[tuple[SourceMessage, Future[Any]]] = deque()
+        self._inflight: deque[tuple[SourceMessage, Handle]] = deque()
+        self._frames_waiting = 0
         self._limit = 2 * frame_workers + 1
         self._outlets: dict[str, Callable[[bytes, int], None]] = {}
         self._stop = threading.Event()
@@ -198,6 +199,7 @@ class LiveSession:
                 continue
             if event.frame is not None:
                 self.board.seen += 1
+                self._frames_waiting += 1
             elif event.channel.topic == topics.TRUTH and self.config.solve is not None:
                 self._truth_seen = max(self._truth_seen, event.log_time)
                 self._truth[event.log_time] = _true_attitude(event)
@@ -238,7 +240,7 @@ class LiveSession:
                     (self.source.ended or not isinstance(self.source, Camera)):
                 break
             if not busy and self._inflight:
-                wait([self._inflight[0][1]], timeout=0.001)
+                self._inflight[0][1].wait(0.001)
             now = time.monotonic()
             for writer in self._writers:
                 writer.tick(now)
@@ -249,7 +251,7 @@ class LiveSession:
         self.say(f"source ended: {self.result.end_reason}; closing the layers")
 
     def _waiting(self) -> int:
-        return sum(1 for e in self._queue if isinstance(e, SourceMessage) and e.frame is not None)
+        return self._frames_waiting
 
     def _dispatch(self) -> bool:
         """Hand the frames at the head of the queue to the centroid stage (up to the frames in flight allowed);
@@ -268,6 +270,7 @@ class LiveSession:
                 for frame in event.frames:
                     self._skip(frame, event.log_time, event.what)
             elif event.frame is not None:
+                self._frames_waiting -= 1
                 self._inflight.append((event, self.centroid.submit(event)))
         return took
 
@@ -318,6 +321,7 @@ class LiveSession:
             event = self._queue.popleft()
             if isinstance(event, SourceMessage) and event.frame is not None:
                 self._skip(event.frame, event.log_time, reason)
+                self._frames_waiting -= 1
                 dropped += 1
         self.say(f"stopped at once: {dropped} frames waiting listed as skipped")
 
@@ -331,7 +335,7 @@ class LiveSession:
             warning = (f"behind the source: {record['frames_waiting']} frames waiting, the oldest for "
                        f"{(now - waiting[0].seen_ns) * 1e-9:.1f} s; latency {record['latency_ms_median']:.1f} ms")
             self.say(warning)
-        elif was_behind:
+        elif was_behind and state == "live":
             self.say("caught up with the source")
         if self.server is not None:
             self.server.status(record, time.time_ns(), warning)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import tempfile
 import time
-from concurrent.futures import Future
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -30,7 +29,7 @@ from starlog.errors import InvalidInputError
 from starlog.io import topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader
-from starlog.live.extraction import CentroidWorkers, FrameResult, extract_frame
+from starlog.live.extraction import CentroidWorkers, Done, FrameResult, Handle, extract_frame
 from starlog.live.layers import PublishingWriter, close_on_base, relayer
 from starlog.live.sources import SourceMessage
 from starlog.stages._centroid_frames import FrameMessages
@@ -73,16 +72,19 @@ class LiveCentroid:
         self.summary = CentroidSummary.of(parameters)
         self.out = out
         self.layer = CentroidLayer.start(out, parameters, self.summary)
-        self.workers = CentroidWorkers(parameters.extract, workers, stack) if workers and stack is not None else None
+        self.workers = None
+        if workers and stack is not None:
+            self.workers = CentroidWorkers(parameters.extract, workers)
+            stack.callback(self.workers.close)
         self._state: dict[str, Any] = {"extract": parameters.extract}
         self._first: tuple[tuple[int, ...], str, int] | None = None
         self._last = -1
 
-    def submit(self, message: SourceMessage) -> Future[FrameResult]:
+    def submit(self, message: SourceMessage) -> Handle:
         """Start measuring one frame (frames in order)."""
         assert message.frame is not None
         if message.log_time <= self._last:
-            return _done((SkippedFrame(message.frame, message.log_time, (
+            return Done((SkippedFrame(message.frame, message.log_time, (
                 f"frame {message.frame} does not come after the previous frame (log_time {self._last}); frame "
                 "timestamps must increase strictly.")), (), ""))
         self._last = message.log_time
@@ -90,7 +92,7 @@ class LiveCentroid:
                 message.channel.message_encoding, message.data)
         if self.workers is not None:
             return self.workers.submit(*args)
-        return _done(extract_frame(self._state, None, *args))
+        return Done(extract_frame(self._state, None, *args))
 
     def write(self, index: int, result: FrameResult) -> FrameMessages | SkippedFrame:
         """Frame ``index``'s messages, written (a frame that cannot be used is skipped, and listed)."""
@@ -116,12 +118,6 @@ class LiveCentroid:
         self.layer.finish(notes, self.provenance)
         with LogReader(base) as log:
             close_on_base(writer, self.out, log, stage="centroid", parameters=self.provenance, metadata=metadata)
-
-
-def _done(result: FrameResult) -> Future[FrameResult]:
-    future: Future[FrameResult] = Future()
-    future.set_result(result)
-    return future
 
 
 class LiveTrack:

@@ -34,7 +34,7 @@ from starlog import _lifeline as lifeline
 T = TypeVar("T")
 R = TypeVar("R")
 
-__all__ = ["ordered_map", "process_pool"]
+__all__ = ["guarded_process", "ordered_map", "process_pool"]
 
 _PR_SET_PDEATHSIG = 1
 # Imported first by the fork server: the lifeline ties it to its owner, and workers then start with
@@ -118,6 +118,22 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
         raise
     pool.wait_started()
     pool.shutdown(wait=True)
+
+
+def guarded_process(target: Callable[..., object], args: tuple[Any, ...], *,
+                    preload: Sequence[str] = ()) -> multiprocessing.process.BaseProcess:
+    """A started process of the fork server running ``target(*args)``, guarded as the pools' workers are (it ends
+    when the calling process ends, however that ends)."""
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
+    process = context.Process(target=_run_guarded, args=(os.getpid(), target, args), daemon=True)
+    process.start()
+    return process
+
+
+def _run_guarded(owner_pid: int, target: Callable[..., object], args: tuple[Any, ...]) -> None:
+    _guard_worker(owner_pid)
+    target(*args)
 
 
 def _stop_now(pool: ProcessPoolExecutor) -> None:
