@@ -88,6 +88,9 @@ class Process:
         out = self.popen.stdout.read()  # stderr is the reader thread's
         self.popen.wait(timeout=timeout)
         self._reader.join(timeout=5)
+        self.popen.stdout.close()
+        if self.popen.stderr is not None:
+            self.popen.stderr.close()
         assert self.popen.returncode == 0, "\n".join(self.lines)
         return out
 
@@ -305,7 +308,9 @@ def test_live_stopped_mid_run_closes_valid_layers_and_leaves_nothing_running(tmp
     assert_live_is_replay(tmp_path, base, output, config)
 
 
-def test_live_on_a_log_cut_off_mid_chunk_ends_with_the_frames_before_the_cut(tmp_path: Path, config: Path) -> None:
+@pytest.mark.parametrize("removed", [False, True], ids=["cut", "cut and removed"])
+def test_live_on_a_log_cut_off_mid_chunk_ends_with_the_frames_before_the_cut(tmp_path: Path, config: Path,
+                                                                             removed: bool) -> None:
     whole = tmp_path / "whole.mcap"
     simulate_log(small_config(n_frames=320, seed=6), whole, chunk_per_frame=True)
     with McapFile(whole) as file:
@@ -315,9 +320,12 @@ def test_live_on_a_log_cut_off_mid_chunk_ends_with_the_frames_before_the_cut(tmp
     source.write_bytes(whole.read_bytes()[:cut])
     live = Process(["live", str(source), "-o", "out.mcap", "--config", str(config), "--no-server",
                     "--idle-timeout", "1"], tmp_path, "live-cut")
+    if removed:  # the source vanishes: what live read is still there to close the layers on
+        live.wait_for("learning the centroid parameters")
+        source.unlink()
     live.finish()
     assert any("stopped growing 1 s ago without its footer" in line and "unfinished record" in line
-               for line in live.lines), live.lines
+               and ("its file was removed" in line) == removed for line in live.lines), live.lines
     output = tmp_path / "out.mcap"
     assert _frames(base_path(output)) == 300
     assert_live_is_replay(tmp_path, base_path(output), output, config)

@@ -143,7 +143,8 @@ def test_the_snapshot_of_a_prefix_holds_its_chunks_as_they_were(tmp_path: Path) 
     with McapFile(log) as file:
         chunks = sorted(file.summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
     end = chunks[12].chunk_start_offset  # after the 4 first frames' chunks (image, frame info, truth each)
-    snapshot = snapshot_log(log, end, tmp_path / "snap.mcap")
+    with open(log, "rb") as source:
+        snapshot = snapshot_log(source, end, tmp_path / "snap.mcap")
     assert verify_log(snapshot).ok
     with LogReader(snapshot) as copy, LogReader(log) as original:
         assert copy.chunk_message_counts("/camera/image") == original.chunk_message_counts("/camera/image")[:4]

@@ -93,7 +93,8 @@ class McapFollower:
 
     def __init__(self, path: str | os.PathLike[str], *, clock: Callable[[], float] = time.monotonic) -> None:
         self.path = Path(path)
-        self._file = open(self.path, "rb")  # noqa: SIM115 - closed by close()
+        self.file = open(self.path, "rb")  # noqa: SIM115 - closed by close()
+        """The file as it was opened (still readable if its name is removed)."""
         self._clock = clock
         self.position = 0
         """Offset of the first byte not yet handed over (the next record's start)."""
@@ -108,7 +109,7 @@ class McapFollower:
         self._size = 0
 
     def close(self) -> None:
-        self._file.close()
+        self.file.close()
 
     def __enter__(self) -> McapFollower:
         return self
@@ -129,7 +130,7 @@ class McapFollower:
     def poll(self, *, max_events: int = 64) -> list[Event]:
         """The records completed since the last call (at most about ``max_events`` chunks and messages); an
         empty list when nothing new is whole yet."""
-        size = os.fstat(self._file.fileno()).st_size
+        size = os.fstat(self.file.fileno()).st_size
         if size != self._size:
             if size < self._size:
                 raise CorruptLogError(self.path, f"it shrank from {self._size} to {size} bytes while being "
@@ -149,8 +150,8 @@ class McapFollower:
     def _magic(self) -> bool:
         if self._size < len(MAGIC):
             return False
-        self._file.seek(0)
-        head = self._file.read(len(MAGIC))
+        self.file.seek(0)
+        head = self.file.read(len(MAGIC))
         if head != MAGIC:
             raise NotMcapError(self.path)
         self.position = len(MAGIC)
@@ -160,8 +161,8 @@ class McapFollower:
         """The next whole record ``(offset, opcode, body)``, or None while it is not all written."""
         if self._size - self.position < RECORD_HEADER.size:
             return None
-        self._file.seek(self.position)
-        opcode, length = RECORD_HEADER.unpack(self._file.read(RECORD_HEADER.size))
+        self.file.seek(self.position)
+        opcode, length = RECORD_HEADER.unpack(self.file.read(RECORD_HEADER.size))
         if opcode not in _KNOWN or length > _MAX_RECORD:
             raise CorruptLogError(self.path, f"the record at offset {self.position} has opcode {opcode:#04x} and "
                                              f"length {length}, which no MCAP writer makes; the file cannot be "
@@ -171,7 +172,7 @@ class McapFollower:
             end += len(MAGIC)  # the closing magic ends the file
         if self._size < end:
             return None
-        body = self._file.read(length)
+        body = self.file.read(length)
         offset, self.position = self.position, self.position + RECORD_HEADER.size + length
         if opcode == Opcode.FOOTER:
             self.finished = True

@@ -33,11 +33,12 @@ from starlog.io.writer import LogWriter
 __all__ = ["snapshot_log"]
 
 
-def snapshot_log(source: str | os.PathLike[str], end: int, output: str | os.PathLike[str], *,
+def snapshot_log(source: BinaryIO, end: int, output: str | os.PathLike[str], *,
                  damaged: frozenset[int] = frozenset()) -> Path:
-    """Copy the records of ``source`` before offset ``end`` (a record boundary) into a complete log at
-    ``output`` (module docstring), but the chunks at the offsets ``damaged``; returns ``output``."""
-    with open(source, "rb") as f, LogWriter(output, force=True) as out:
+    """Copy the records of the open file ``source`` before offset ``end`` (a record boundary) into a complete log
+    at ``output`` (module docstring), but the chunks at the offsets ``damaged``; returns ``output``."""
+    f = source
+    with LogWriter(output, force=True) as out:
         pending: tuple[int, int, dict[int, list[tuple[int, int]]]] | None = None
         schemas: set[int] = set()
         channels: set[int] = set()

@@ -169,7 +169,8 @@ class FollowedLog(Source):
             self.ended = True
             cut = self.follower.pending()
             self.end_reason = (f"the log stopped growing {self.idle_timeout:g} s ago without its footer"
-                               + (f", {cut} bytes of an unfinished record at its end" if cut else ""))
+                               + (f", {cut} bytes of an unfinished record at its end" if cut else "")
+                               + ("" if self.path.exists() else "; its file was removed"))
         return out
 
     def _events(self, event: Any) -> list[Event]:
@@ -218,7 +219,8 @@ class FollowedLog(Source):
     def finish(self, *, stopped: bool) -> Path:
         if self.follower.finished:
             return self.path
-        return snapshot_log(self.path, self.follower.position, self.snapshot, damaged=frozenset(self._damaged))
+        return snapshot_log(self.follower.file, self.follower.position, self.snapshot,
+                            damaged=frozenset(self._damaged))
 
     def close(self) -> None:
         self.follower.close()
