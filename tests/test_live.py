@@ -9,6 +9,7 @@ messages as the layer ``run`` writes of the same name. Processes: after the run,
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import re
 import signal
@@ -26,6 +27,7 @@ import pytest
 
 from starlog.io import LogReader
 from starlog.io.mcap_file import McapFile
+from starlog.io.recover import recover_log
 from starlog.io.verify import verify_log
 from starlog.live import LIVE_METADATA, base_path, write_at_camera_rate
 from starlog.pipeline import layer_paths, load_config, stage_steps
@@ -84,6 +86,7 @@ class Process:
         raise AssertionError(f"never said {text!r}:\n" + "\n".join(self.lines))
 
     def finish(self, timeout: float = 300) -> str:
+        """The command's stdout once it has ended (with status 0, unless it was killed)."""
         assert self.popen.stdout is not None
         out = self.popen.stdout.read()  # stderr is the reader thread's
         self.popen.wait(timeout=timeout)
@@ -91,7 +94,7 @@ class Process:
         self.popen.stdout.close()
         if self.popen.stderr is not None:
             self.popen.stderr.close()
-        assert self.popen.returncode == 0, "\n".join(self.lines)
+        assert self.popen.returncode in (0, -signal.SIGKILL), "\n".join(self.lines)
         return out
 
 
@@ -249,12 +252,13 @@ def test_live_processes_each_new_file_of_a_folder_once_whole(tmp_path: Path, con
         images = [np.array(image) for _, _, image in log.frames()]
     folder = tmp_path / "frames"
     folder.mkdir()
-    writer = threading.Thread(target=_write_frames, args=(folder, images, 200.0))
+    writer = multiprocessing.get_context("spawn").Process(target=_write_frames, args=(folder, images, 200.0))
     writer.start()
     live = Process(["live", str(folder), "-o", "out.mcap", "--config", str(config), "--no-server", "--fps", "100",
                     "--idle-timeout", "3"], tmp_path, "live-folder")
     live.finish()
     writer.join()
+    assert writer.exitcode == 0
     output = tmp_path / "out.mcap"
     base = base_path(output)
     assert _frames(base) == 300
@@ -283,6 +287,17 @@ def test_live_records_a_camera_stream_and_processes_it(tmp_path: Path, config: P
     assert_live_is_replay(tmp_path, base_path(output), output, config)
 
 
+def _wait_for_flushed_frames(folder: Path, size: int = 20_000, timeout: float = 300) -> None:
+    """Wait until the centroid layer being written has flushed ``size`` bytes (frames processed, however slow the
+    machine)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if any(p.stat().st_size >= size for p in folder.glob(".out.1-centroid.mcap.*.partial")):
+            return
+        time.sleep(0.1)
+    raise AssertionError("the centroid layer never grew")
+
+
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
 def test_live_stopped_mid_run_closes_valid_layers_and_leaves_nothing_running(tmp_path: Path, config: Path,
                                                                           stop: signal.Signals) -> None:
@@ -291,8 +306,7 @@ def test_live_stopped_mid_run_closes_valid_layers_and_leaves_nothing_running(tmp
                      tmp_path, "live-writer-long")
     live = Process(["live", str(source), "-o", "out.mcap", "--config", str(config), "--port", "0"], tmp_path,
                    f"live-stop-{stop.name}")
-    live.wait_for("live: tracking mode")
-    time.sleep(4.0)
+    _wait_for_flushed_frames(tmp_path)
     tracked = descendants(live.popen.pid)
     live.popen.send_signal(stop)
     live.finish()
@@ -304,8 +318,27 @@ def test_live_stopped_mid_run_closes_valid_layers_and_leaves_nothing_running(tmp
     assert 256 <= _frames(base) < 3000
     with LogReader(tmp_path / "out.1-centroid.mcap") as log:
         record = dict(log.metadata(LIVE_METADATA)[0][1])
-    assert record["end"] == "stopped" and int(record["frames_done"]) == _frames(base)
+    assert record["end"] == "stopped" and int(record["frames_done"]) == _frames(base), (record, live.lines)
     assert_live_is_replay(tmp_path, base, output, config)
+
+
+def test_live_killed_leaves_its_layers_as_far_as_flushed_and_nothing_running(tmp_path: Path, config: Path) -> None:
+    source = tmp_path / "camera.mcap"
+    writer = Process(["simulate", "-o", str(source), "--frames", "3000", "--fps", "100", "--realtime", *SIM],
+                     tmp_path, "live-writer-killed")
+    live = Process(["live", str(source), "-o", "out.mcap", "--config", str(config), "--no-server"], tmp_path,
+                   "live-killed")
+    _wait_for_flushed_frames(tmp_path)
+    tracked = descendants(live.popen.pid)
+    live.popen.kill()
+    live.popen.wait(timeout=30)
+    live.finish()
+    assert_nothing_left("live-killed", tracked)
+    writer.popen.send_signal(signal.SIGINT)
+    writer.finish()
+    partial = next(tmp_path.glob(".out.1-centroid.mcap.*.partial"))  # flushed at least every half second
+    report = recover_log(partial, tmp_path / "recovered.mcap")
+    assert verify_log(tmp_path / "recovered.mcap").ok and report.kept_by_topic["/stars/centroids/GAUSSFIT"] > 0
 
 
 @pytest.mark.parametrize("removed", [False, True], ids=["cut", "cut and removed"])
