@@ -53,8 +53,9 @@ from starlog.trusted import resolve_trusted, tracks_trusted, with_trusted
 if TYPE_CHECKING:
     from starlog.stage_api import Stage
 
-__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "layer_paths", "load_config", "report_path",
-           "run_pipeline", "run_pipeline_batch", "run_pipeline_task", "stage_line"]
+__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "PipelineResult", "fit_to_log", "layer_paths",
+           "load_config", "report_path", "run_pipeline", "run_pipeline_batch", "run_pipeline_task", "stage_line",
+           "stage_steps"]
 
 #: The built-in config, a starting point for your own (``starlog run --print-config``).
 DEFAULT_CONFIG_TOML = """\
@@ -213,6 +214,20 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
             c.load(), i, o, options=c.options, input_topic=c.input, workers=workers, show_progress=show_progress,
             **common).to_dict()))
     return steps
+
+
+def stage_steps(config: PipelineConfig, *, workers: int = 1, compression: str = "zstd",
+                show_progress: bool = False) -> list[tuple[str, Step]]:
+    """Every stage run of ``config``, in order, as ``(name, step(input, layer) -> report)``, as :func:`run_pipeline`
+    runs them (``starlog live`` runs those that need the whole log when its source ends)."""
+    return _steps(config, workers=workers, compression=compression, show_progress=show_progress)
+
+
+def fit_to_log(source: LogSource, config: PipelineConfig) -> tuple[PipelineConfig, list[Shortfall]]:
+    """``config`` as :func:`run_pipeline` runs it on ``source``: the ``[compensate]`` rates and protocols the log
+    is too short for left out (the built-in config) or refused (any other), and those left out."""
+    frame_topic, options = _frame_channel(config)
+    return _fit_to_length(source, config, frame_topic, options)
 
 
 def _solve_step(source: LogSource, layer: Path, table: dict[str, Any], **keywords: Any) -> dict[str, Any]:
