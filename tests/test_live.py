@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import pytest
 
-from starlog.io import LogReader
+from starlog.io import LogReader, topics
 from starlog.io.mcap_file import McapFile
 from starlog.io.recover import recover_log
 from starlog.io.verify import verify_log
@@ -376,8 +376,8 @@ def test_live_solves_the_attitude_of_each_frame_as_run_does(tmp_path: Path) -> N
                                   magnitude_limit=7.0, n_frames=60, fps=50.0, jitter=(Jitter(5.0, 0.5),), seed=2),
                  whole, chunk_per_frame=True)
     config = tmp_path / "solve.toml"
-    config.write_text('[centroid]\nmethods = ["GAUSSFIT"]\nphase_correction = "off"\nmode = "tracking"\n'
-                      '[solve]\ncentroids = ["GAUSSFIT"]\n[solve.options]\ntimeout_ms = 200\n')
+    config.write_text('[centroid]\nmethods = ["GAUSSFIT", "MOMENT"]\nphase_correction = "off"\nmode = "tracking"\n'
+                      '[solve]\ncentroids = "all"\n[solve.options]\ntimeout_ms = 200\n')
     source = tmp_path / "camera.mcap"
     writer = threading.Thread(target=write_at_camera_rate, args=(whole, source))
     writer.start()
@@ -392,3 +392,8 @@ def test_live_solves_the_attitude_of_each_frame_as_run_does(tmp_path: Path) -> N
         solved = [m.payload for m in log.messages("/attitude/GAUSSFIT")]
     assert sum(a["solved"] for a in solved) >= 55 and all("error_x_arcsec" in a for a in solved if a["solved"])
     assert_live_is_replay(tmp_path, source, output, config)
+    records = []
+    for path in (output, tmp_path / "replay.mcap"):  # the stage's record: each method's figures, the sky's evidence
+        with LogReader(path, chain=False) as log:
+            records.append({k: json.loads(v) for k, v in log.metadata(topics.SOLVE_METADATA)[0][1].items()})
+    assert records[0] == records[1] and set(records[0]["sky_evidence"]) == {"GAUSSFIT", "MOMENT"}

@@ -132,6 +132,8 @@ class LiveSession:
             finally:
                 for track in self.tracks:
                     track.close()
+                if self.solve is not None:
+                    self.solve.close()
         return self.result
 
     def stop(self) -> None:
@@ -178,7 +180,7 @@ class LiveSession:
             path = self.paths[self.names.index("solve")]
             with LogReader(probe) as log:
                 shape = next(log.frames(parameters.image_topic))[2].shape
-                self.solve = LiveSolve(solve, methods, log, shape, StageOutput(self._writer(path, (1, 1))))
+                self.solve = LiveSolve(solve, methods, log, shape, StageOutput(self._writer(path, (1, 1))), folder)
 
     def _writer(self, path: Path, first_ids: tuple[int, int]) -> PublishingWriter:
         writer = PublishingWriter(path, publish=self._outlet, force=True, compression=self.compression,

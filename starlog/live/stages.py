@@ -9,7 +9,9 @@
   brightest *so far* (looked again every second) and spools every frame's rows; when the source ends, the
   layer is written from the spool with the log's brightest track marked, as the track stage marks it
   (:func:`~starlog.stages.track.encode_tracks`);
-* :class:`LiveSolve` — the solve stage's :func:`~starlog.stages.solve.solve_frame` on each centroid channel.
+* :class:`LiveSolve` — the solve stage's :func:`~starlog.stages.solve.solve_frame` on each centroid channel;
+  the identified stars the sky's evidence may use are spooled, and that evidence computed at the end on the
+  frames the stage keeps (:func:`~starlog.stages.solve.sky_frames_kept`).
 
 Each writes its messages as frames arrive (a provisional file, published on the Foxglove server as written)
 and closes its layer on the finished log below it when the source ends (:meth:`finish`).
@@ -17,6 +19,7 @@ and closes its layer on the finished log below it when the source ends (:meth:`f
 
 from __future__ import annotations
 
+import pickle
 import tempfile
 import time
 from contextlib import ExitStack
@@ -232,21 +235,22 @@ class LiveSolve:
     """The solve stage on each frame's centroid messages as they arrive (module docstring)."""
 
     def __init__(self, table: dict[str, Any], methods: list[str], probe: LogReader, shape: tuple[int, int],
-                 out: StageOutput) -> None:
+                 out: StageOutput, spool_folder: Path) -> None:
         from starlog.attitude.catalogue import load_catalogue, solver_data_file
         from starlog.attitude.identify import AttitudeTracker
         from starlog.stages.solve import MethodFigures, add_solve_channels, tracker_settings
 
         solver_data_file()
         self.options = dict(table.get("options") or {})
-        settings = tracker_settings(probe, self.options, shape[1])
+        self.settings = tracker_settings(probe, self.options, shape[1])
         self.catalogue = load_catalogue()
         self.topics = _solved_topics(table.get("centroids", "all"), methods)
         self.width = shape[1]
-        self.trackers = {t: AttitudeTracker(self.catalogue, shape, settings) for t in self.topics}
+        self.trackers = {t: AttitudeTracker(self.catalogue, shape, self.settings) for t in self.topics}
         self.figures = {t: MethodFigures() for t in self.topics}
         self.channels = {t: add_solve_channels(out, t.rsplit("/", 1)[-1]) for t in self.topics}
         self.out = out
+        self.spool: BinaryIO = tempfile.TemporaryFile(dir=spool_folder)
 
     def frame(self, frame: int, log_time: int, centroids: dict[str, npt.NDArray[np.void]],
               truth: npt.NDArray[np.float64] | None) -> None:
@@ -254,23 +258,56 @@ class LiveSolve:
         from starlog.stages.solve import solve_frame, usable_centroids
 
         for topic in self.topics:
-            method = topic.rsplit("/", 1)[-1]
+            method, figures = topic.rsplit("/", 1)[-1], self.figures[topic]
             stars = usable_centroids(centroids[topic])
-            messages = solve_frame(self.trackers[topic], method, frame, log_time, stars, truth, self.figures[topic])
+            messages = solve_frame(self.trackers[topic], method, frame, log_time, stars, truth, figures)
             for channel, data in zip(self.channels[topic], messages, strict=True):
                 self.out.writer.write(channel, log_time=log_time, data=data)
+            for identified in figures.identified:  # every solved frame's (keep_every 1): spooled, chosen at the end
+                pickle.dump((topic, figures.frames - 1, identified), self.spool)
+            figures.identified.clear()
+
+    def _identified(self) -> dict[str, list[Any]]:
+        """Per method, the identified stars of the frames the stage keeps for the sky's evidence (every
+        :func:`~starlog.stages.solve.sky_frames_kept` frames of its channel), from the spool."""
+        from starlog.stages.solve import sky_frames_kept
+
+        every = {t: sky_frames_kept(f.frames) for t, f in self.figures.items()}
+        kept: dict[str, list[Any]] = {t.rsplit("/", 1)[-1]: [] for t in self.topics}
+        self.spool.seek(0)
+        while True:
+            try:
+                topic, index, identified = pickle.load(self.spool)
+            except EOFError:
+                break
+            if index % every[topic] == 0:
+                kept[topic.rsplit("/", 1)[-1]].append(identified)
+        return {name: frames for name, frames in kept.items() if frames}
 
     def finish(self, provisional: Path, base: Path, output: Path, compression: str) -> dict[str, Any]:
-        """The solve layer on the finished ``base``, from the messages written live (``provisional``, closed)."""
+        """The solve layer on the finished ``base``, from the messages written live (``provisional``, closed), with
+        the stage's record (each method's figures and the sky's evidence) as the stage writes it."""
         import json
 
-        from starlog.stages.solve import solve_parameters
+        from starlog.attitude.sky_evidence import sky_evidence
+        from starlog.stages.solve import SolveSummary, solve_parameters
 
-        methods = {t.rsplit("/", 1)[-1]: f.to_dict(self.width) for t, f in self.figures.items()}
+        summary = SolveSummary(width=self.width)
+        summary.methods = {t.rsplit("/", 1)[-1]: f.to_dict(self.width) for t, f in self.figures.items()}
+        summary.seconds = {t.rsplit("/", 1)[-1]: f.seconds for t, f in self.figures.items()}
+        identified = self._identified()
+        if len(identified) >= 2:
+            summary.sky_evidence = sky_evidence(identified, self.catalogue.vectors, self.catalogue.magnitude,
+                                                fit_distortion=self.settings.fit_distortion)
         relayer(provisional, base, output, stage="solve",
                 parameters=solve_parameters(self.topics, self.options, self.catalogue),
-                metadata=[(topics.SOLVE_METADATA, {"methods": json.dumps(methods)})], compression=compression)
-        return {"methods": methods}
+                metadata=[(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods),
+                                                   "sky_evidence": json.dumps(summary.sky_evidence)})],
+                compression=compression)
+        return summary.to_dict()
+
+    def close(self) -> None:
+        self.spool.close()
 
 
 def _solved_topics(centroids: Any, methods: list[str]) -> list[str]:

@@ -63,7 +63,7 @@ from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.window import windowed
 
 __all__ = ["PROBE_FRAMES", "MethodFigures", "SolveSummary", "add_solve_channels", "compensated_name", "probe_sky",
-           "select_centroid_channels", "select_compensated_channels", "solve_frame", "solve_log",
+           "select_centroid_channels", "select_compensated_channels", "sky_frames_kept", "solve_frame", "solve_log",
            "solve_parameters", "tracker_settings", "true_attitude", "usable_centroids"]
 
 #: The schema of the all-star channels ``compensate --stars all`` writes.
@@ -429,7 +429,7 @@ def _solve_channel(log: LogReader, out: StageOutput, topic: str, tracker: Attitu
     method = topic.rsplit("/", 1)[-1] if which is None else compensated_name(topic, which)
     channels = add_solve_channels(out, method)
     count = log.channel(topic).message_count
-    figures = MethodFigures(keep_every=max(1, -(-count // MAX_SKY_FRAMES)))
+    figures = MethodFigures(keep_every=sky_frames_kept(count))
     for t, frame, stars in progress(_frames(log, topic, which), total=count, description=f"solve {method}",
                                     enabled=show_progress):
         for channel, data in zip(channels, solve_frame(tracker, method, frame, t, stars, truth.get(t), figures),
@@ -451,6 +451,12 @@ def usable_centroids(rows: npt.NDArray[np.void]) -> _Centroids:
     """The centroids a frame is solved from (finite, sigma > 0, fitted), of the rows of its ``starlog.Centroids``
     message (:func:`~starlog.io.star_tables.decode_table`, :meth:`~starlog.io.reader.LogReader.tables`)."""
     return _Centroids.from_rows(rows)
+
+
+def sky_frames_kept(frames: int) -> int:
+    """Every how many frames of a method's ``frames`` the identified stars are kept for the sky's evidence
+    (:attr:`MethodFigures.keep_every`: at most :data:`~starlog.attitude.sky_evidence.MAX_SKY_FRAMES` frames)."""
+    return max(1, -(-frames // MAX_SKY_FRAMES))
 
 
 def solve_frame(tracker: AttitudeTracker, method: str, frame: int, log_time: int, stars: _Centroids,
