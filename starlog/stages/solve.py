@@ -469,8 +469,8 @@ def solve_frame(tracker: AttitudeTracker, method: str, frame: int, log_time: int
     record = _attitude_record(frame, method, result, stars, truth)
     identified = _identified_record(frame, method, result, stars, tracker.catalogue)
     figures.add(result, stars, record)
-    return (star_codec("starlog.Attitude").encode(record), star_codec("starlog.IdentifiedStars").encode_dict(identified),
-            _annotations(identified, log_time))
+    return (star_codec("starlog.Attitude").encode(record),
+            star_codec("starlog.IdentifiedStars").encode_dict(identified), _annotations(identified, log_time))
 
 
 def _chosen_channels(log: LogReader, centroids: str | Sequence[str] | None,
