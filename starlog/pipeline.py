@@ -54,8 +54,8 @@ if TYPE_CHECKING:
     from starlog.stage_api import Stage
 
 __all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "PipelineResult", "fit_to_log", "layer_paths",
-           "load_config", "report_path", "run_pipeline", "run_pipeline_batch", "run_pipeline_task", "stage_line",
-           "stage_steps"]
+           "load_config", "possible_layers", "report_path", "run_pipeline", "run_pipeline_batch", "run_pipeline_task",
+           "stage_line", "stage_steps"]
 
 #: The built-in config, a starting point for your own (``starlog run --print-config``).
 DEFAULT_CONFIG_TOML = """\
@@ -298,7 +298,7 @@ def run_pipeline(
             on_skip(shortfall)
     result = PipelineResult(output=output, skipped=skipped, trusted=trusted)
     if not flatten:
-        _refuse_existing(_possible_layers(output, config, keywords), force=force)
+        _refuse_existing(possible_layers(output, config), force=force)
         result.layers = _run_plan(source, config, output, result, keywords, on_stage=on_stage)
         return result
     _refuse_existing([output], force=force)
@@ -308,14 +308,15 @@ def run_pipeline(
     return result
 
 
-def _possible_layers(output: Path, config: PipelineConfig, keywords: dict[str, Any]) -> list[Path]:
-    """Every layer file the run may write: with ``"trusted"`` standing for each centroid method in turn."""
+def possible_layers(output: Path, config: PipelineConfig) -> list[Path]:
+    """Every layer file a run of ``config`` into ``output`` may write: with ``"trusted"`` standing for each centroid
+    method in turn (:func:`run_pipeline` and ``starlog live`` refuse them all before writing any)."""
     if config.centroid is None or config.track is None or not tracks_trusted(config.track):
-        return layer_paths(output, [name for name, _ in _steps(config, **keywords)])
+        return layer_paths(output, [name for name, _ in stage_steps(config)])
     paths: list[Path] = []
     for method in parse_methods(config.centroid.get("methods", "all")):
         trial = replace(config, track={**config.track, "methods": with_trusted(config.track, method.value)})
-        paths += [p for p in layer_paths(output, [n for n, _ in _steps(trial, **keywords)]) if p not in paths]
+        paths += [p for p in layer_paths(output, [n for n, _ in stage_steps(trial)]) if p not in paths]
     return paths
 
 

@@ -397,3 +397,52 @@ def test_live_solves_the_attitude_of_each_frame_as_run_does(tmp_path: Path) -> N
         with LogReader(path, chain=False) as log:
             records.append({k: json.loads(v) for k, v in log.metadata(topics.SOLVE_METADATA)[0][1].items()})
     assert records[0] == records[1] and set(records[0]["sky_evidence"]) == {"GAUSSFIT", "MOMENT"}
+
+
+def assert_same_plan(tmp_path: Path, source: Path, options: list[str]) -> tuple[dict[str, Any], list[str]]:
+    """``live`` and ``run`` of ``source`` with ``options`` (--config): the same stages, trusted method and layers,
+    each holding the same messages and provenance; live's result and its status lines."""
+    live = Process(["live", str(source), "-o", "out.mcap", "--no-server", "--json", *options], tmp_path,
+                   "live-plan")
+    lived = json.loads(live.finish())
+    ran = json.loads(subprocess.run(PY + ["run", str(source), "-o", "replay.mcap", "--workers", "1", "-q", "--json",
+                                          *options], cwd=tmp_path, check=True, capture_output=True, text=True,
+                                    timeout=600).stdout)
+    assert lived["trusted"] == ran["trusted"] and ran["trusted"] is not None
+    assert [s["stage"] for s in lived["stages"]] == [s["stage"] for s in ran["stages"]]
+    assert f"track {ran['trusted']['method']}" in [s["stage"] for s in lived["stages"]]
+    assert [Path(p).name.replace("out", "replay", 1) for p in lived["layers"]] == [Path(p).name for p in ran["layers"]]
+    for live_layer, run_layer in zip(lived["layers"], ran["layers"], strict=True):
+        assert _messages(tmp_path / live_layer) == _messages(tmp_path / run_layer), live_layer
+        with LogReader(tmp_path / live_layer, chain=False) as a, LogReader(tmp_path / run_layer, chain=False) as b:
+            assert a.provenance()[-1].parameters == b.provenance()[-1].parameters, live_layer
+    assert verify_log(tmp_path / "out.mcap").ok
+    return lived, live.lines
+
+
+def _camera_log(tmp_path: Path, **simulation: Any) -> Path:
+    """A finished log as a camera's recorder writes it (its metadata first, a chunk per frame)."""
+    whole, source = tmp_path / "sim.mcap", tmp_path / "camera.mcap"
+    simulate_log(small_config(**simulation), whole, chunk_per_frame=True)
+    write_at_camera_rate(whole, source, speed=1000.0)
+    return source
+
+
+def test_live_runs_the_plan_of_run_with_the_built_in_config(tmp_path: Path) -> None:
+    """Without --config: every method measured, NONE and the trusted method tracked (decided on the centroid
+    layer when the source ends, as run decides it), compensate as far as the log is long; the same layers."""
+    lived, lines = assert_same_plan(tmp_path, _camera_log(tmp_path, n_frames=300, seed=7), [])
+    assert lived["trusted"]["method"] == "GAUSSFIT"  # no evidence in 3 stars: the method tracked live meanwhile
+    assert not any(line.startswith("running track") for line in lines), lines
+
+
+def test_live_tracks_the_method_the_evidence_names_when_the_source_ends(tmp_path: Path) -> None:
+    """Tracked live as BICUBIC (the first method but NONE), "trusted" is MOMENT by the frame-to-frame evidence:
+    MOMENT's track layer is the track stage's on the finished centroid layer, as run writes it."""
+    config = tmp_path / "trusted.toml"
+    config.write_text('[centroid]\nmethods = ["NONE", "BICUBIC", "MOMENT"]\nphase_correction = "off"\n'
+                      '[track]\nmethods = ["trusted"]\nmodels = ["STATIC"]\n[track.tracker]\nsigma_floor = 0.05\n')
+    source = _camera_log(tmp_path, width=128, height=96, n_stars=25, n_frames=120, seed=7)
+    lived, lines = assert_same_plan(tmp_path, source, ["--config", str(config)])
+    assert lived["trusted"]["method"] == "MOMENT" and lived["trusted"]["evidence"] == "frame-to-frame"
+    assert "running track MOMENT on the finished log" in lines, lines

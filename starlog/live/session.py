@@ -13,6 +13,9 @@
    frames still waiting, each listed): the base becomes complete (:meth:`~starlog.live.sources.Source.finish`),
    the live layers are closed on it as the layers ``run`` writes (same file names, same messages), and
    the stages that need the whole series (compensate, your own stages) run on them as ``run`` runs them.
+   ``"trusted"`` in ``[track]`` is decided on the closed centroid layer, as ``run`` decides it
+   (:func:`~starlog.trusted.resolve_trusted`); live tracks meanwhile the method it stands for without
+   evidence, and when the evidence names another, that one's layer is the track stage's on the finished log.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,11 +42,12 @@ from starlog.live.layers import PrefixLog, PublishingWriter, relayer
 from starlog.live.sources import Camera, Source, SourceMessage, SourceProblem
 from starlog.live.stages import LiveCentroid, LiveSolve, LiveTrack, centroid_rows
 from starlog.live.status import StatusBoard
-from starlog.pipeline import PipelineConfig, fit_to_log, layer_paths, stage_steps
+from starlog.pipeline import PipelineConfig, fit_to_log, layer_paths, possible_layers, stage_steps
 from starlog.stages._centroid_frames import opencv_threads
 from starlog.stages._centroid_parameters import PHASE_MAX_FRAMES
 from starlog.stages._stage import StageOutput
 from starlog.stages.centroid import resolve_centroid_parameters
+from starlog.trusted import TRUSTED, default_tracked, resolve_trusted, tracks_trusted
 
 __all__ = ["LIVE_METADATA", "LiveResult", "LiveSession", "frames_to_learn"]
 
@@ -72,11 +76,13 @@ class LiveResult:
     status: dict[str, Any] = field(default_factory=dict)
     end_reason: str = ""
     url: str = ""
+    trusted: dict[str, Any] | None = None
+    """What ``"trusted"`` in ``[track]`` stood for and why, as ``run`` decides it; None without it."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"output": str(self.output), "base": None if self.base is None else str(self.base),
                 "layers": [str(p) for p in self.layers], "stages": [{"stage": s, **r} for s, r in self.stages],
-                "end": self.end_reason, "server": self.url, **self.status}
+                "end": self.end_reason, "server": self.url, "trusted": self.trusted, **self.status}
 
 
 class LiveSession:
@@ -96,7 +102,7 @@ class LiveSession:
         self.compression, self.workers, self.say, self.show_progress = compression, workers, say, show_progress
         self.names = [name for name, _ in stage_steps(config)]
         self.paths = layer_paths(output, self.names)
-        for path in self.paths:
+        for path in possible_layers(output, config):
             if path.exists() and not force:
                 raise OutputExistsError(path)
         self.board = StatusBoard()
@@ -168,19 +174,27 @@ class LiveSession:
         writer = self._writer(self.paths[0], first_ids)
         self.centroid = LiveCentroid(parameters, StageOutput(writer), workers=self.frame_workers, stack=workers)
         methods = [m.value for m in parameters.methods]
-        track = self.config.track
-        for k, method in enumerate(_names(track.get("methods", ["GAUSSFIT"])) if track is not None else []):
-            if method.upper() not in methods:
-                raise InvalidParameterError(f"{self.config.source}: [track] methods names {method}, which [centroid] "
-                                            f"does not measure ({', '.join(methods)}).")
-            out = StageOutput(self._writer(self.paths[1 + k], (1, 1)))
-            self.tracks.append(LiveTrack(method, track, out, folder))
+        self._open_tracks(methods, folder)
         solve = self.config.solve
         if solve is not None and solve.get("compensated") is None:
             path = self.paths[self.names.index("solve")]
             with LogReader(probe) as log:
                 shape = next(log.frames(parameters.image_topic))[2].shape
                 self.solve = LiveSolve(solve, methods, log, shape, StageOutput(self._writer(path, (1, 1))), folder)
+
+    def _open_tracks(self, methods: list[str], folder: Path) -> None:
+        """A live track stage per ``[track]`` method; ``"trusted"``, decided only when the source ends, is tracked
+        meanwhile as the method it stands for without evidence (:func:`~starlog.trusted.default_tracked`)."""
+        track = self.config.track
+        for k, method in enumerate(_names(track.get("methods", ["GAUSSFIT"])) if track is not None else []):
+            name = default_tracked(methods) if method.lower() == TRUSTED else method.upper()
+            if name not in methods:
+                raise InvalidParameterError(f"{self.config.source}: [track] methods names {method}, which [centroid] "
+                                            f"does not measure ({', '.join(methods)}).")
+            if any(t.method == name for t in self.tracks):
+                continue
+            out = StageOutput(self._writer(self.paths[1 + k], (1, 1)))
+            self.tracks.append(LiveTrack(name, track or {}, out, folder))
 
     def _writer(self, path: Path, first_ids: tuple[int, int]) -> PublishingWriter:
         writer = PublishingWriter(path, publish=self._outlet, force=True, compression=self.compression,
@@ -351,17 +365,28 @@ class LiveSession:
         config, skipped = fit_to_log(base, self.config)
         for shortfall in skipped:
             self.say(f"skipped, log too short: compensate {shortfall.describe()}")
-        steps = stage_steps(config, workers=self.workers, compression=self.compression,
-                            show_progress=self.show_progress)
-        names = [name for name, _ in steps]
-        paths = layer_paths(self.output, names)
-        below = base
-        for (name, step), path in zip(steps, paths, strict=True):
-            report = self._close_stage(name, step, below, path)
-            self.result.layers.append(path)
-            self.result.stages.append((name, report))
+        keywords = {"workers": self.workers, "compression": self.compression, "show_progress": self.show_progress}
+        steps = stage_steps(config, **keywords)
+        below = layer_paths(self.output, [name for name, _ in steps])[0]
+        self._closed(*steps[0], base, below)
+        if tracks_trusted(config.track):  # decided on the centroid layer, as run decides it
+            track, self.result.trusted = resolve_trusted(config.track or {}, below)
+            self.say(f"trusted: {self.result.trusted['method']} ({self.result.trusted['reason']})")
+            config = replace(config, track=track)
+            steps = stage_steps(config, **keywords)
+        for (name, step), path in zip(steps[1:], layer_paths(self.output, [name for name, _ in steps])[1:],
+                                      strict=True):
+            self._closed(name, step, below, path)
             below = path
+        for track in self.tracks:  # a method tracked as "trusted" that the evidence did not name
+            self._abandon(track.out.writer)
         self.result.status = self.board.to_dict()
+
+    def _closed(self, name: str, step: Any, below: Path, path: Path) -> None:
+        """One stage's layer written (:meth:`_close_stage`) and added to the result."""
+        report = self._close_stage(name, step, below, path)
+        self.result.layers.append(path)
+        self.result.stages.append((name, report))
 
     def _close_stage(self, name: str, step: Any, below: Path, path: Path) -> dict[str, Any]:
         """One stage's layer: a live one closed on ``below``, or the stage run on it as ``run`` runs it."""
@@ -382,7 +407,10 @@ class LiveSession:
         track = next((t for t in self.tracks if name == f"track {t.method}"), None)
         if track is not None:
             self._abandon(track.out.writer)
-            return track.finish(below, path, self.compression).to_dict()
+            why = (self.result.trusted or {}).get("method") == track.method
+            track.selected_by = self.result.trusted if why else None
+            return track.finish(below, path, self.compression).to_dict() | (
+                {"selected_by": self.result.trusted} if why else {})
         if name == "solve" and self.solve is not None:
             writer = self.solve.out.writer
             provisional = writer.close()

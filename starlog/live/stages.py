@@ -139,6 +139,7 @@ class LiveTrack:
 
     def __init__(self, method: str, table: dict[str, Any], out: StageOutput, spool_folder: Path) -> None:
         self.method = method.upper()
+        self.selected_by: dict[str, Any] | None = None  # why the method was tracked, when "trusted" named it
         self.models = parse_models(table.get("models", "all"))
         self.options = (table.get("tracker"), table.get("motion"))
         configs = tracker_configs(self.models, *self.options)
@@ -205,8 +206,9 @@ class LiveTrack:
                                 ("confirmed", summary.confirmed), ("gated", summary.gated),
                                 ("mean_nis", summary.mean_nis)):
                 target[model.value] = figures[key]
-        with extend_log(base, output, stage="track", parameters=track_parameters(self.method, self.models, *self.options),
-                        force=True, compression=compression) as (_, out):
+        parameters = track_parameters(self.method, self.models, *self.options, self.selected_by)
+        with extend_log(base, output, stage="track", parameters=parameters, force=True,
+                        compression=compression) as (_, out):
             channels = [out.add_channel(topics.track_topic(self.method, m.value), tracks_message_type())
                         for m in self.models]
             blocks = [read_blocks(self.spools[m], 4) for m in self.models]
