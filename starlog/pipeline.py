@@ -53,8 +53,9 @@ from starlog.trusted import resolve_trusted, tracks_trusted, with_trusted
 if TYPE_CHECKING:
     from starlog.stage_api import Stage
 
-__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "layer_paths", "load_config", "report_path",
-           "run_pipeline", "run_pipeline_batch", "run_pipeline_task", "stage_line"]
+__all__ = ["DEFAULT_CONFIG_TOML", "CustomStageConfig", "PipelineConfig", "PipelineResult", "fit_to_log", "layer_paths",
+           "load_config", "possible_layers", "report_path", "run_pipeline", "run_pipeline_batch", "run_pipeline_task",
+           "stage_line", "stage_steps"]
 
 #: The built-in config, a starting point for your own (``starlog run --print-config``).
 DEFAULT_CONFIG_TOML = """\
@@ -215,6 +216,20 @@ def _steps(config: PipelineConfig, *, workers: int, compression: str, show_progr
     return steps
 
 
+def stage_steps(config: PipelineConfig, *, workers: int = 1, compression: str = "zstd",
+                show_progress: bool = False) -> list[tuple[str, Step]]:
+    """Every stage run of ``config``, in order, as ``(name, step(input, layer) -> report)``, as :func:`run_pipeline`
+    runs them (``starlog live`` runs those that need the whole log when its source ends)."""
+    return _steps(config, workers=workers, compression=compression, show_progress=show_progress)
+
+
+def fit_to_log(source: LogSource, config: PipelineConfig) -> tuple[PipelineConfig, list[Shortfall]]:
+    """``config`` as :func:`run_pipeline` runs it on ``source``: the ``[compensate]`` rates and protocols the log
+    is too short for left out (the built-in config) or refused (any other), and those left out."""
+    frame_topic, options = _frame_channel(config)
+    return _fit_to_length(source, config, frame_topic, options)
+
+
 def _solve_step(source: LogSource, layer: Path, table: dict[str, Any], **keywords: Any) -> dict[str, Any]:
     """The ``[solve]`` step (imported when it runs: the stage needs the optional cedar-solve)."""
     from starlog.stages.solve import solve_log
@@ -283,7 +298,7 @@ def run_pipeline(
             on_skip(shortfall)
     result = PipelineResult(output=output, skipped=skipped, trusted=trusted)
     if not flatten:
-        _refuse_existing(_possible_layers(output, config, keywords), force=force)
+        _refuse_existing(possible_layers(output, config), force=force)
         result.layers = _run_plan(source, config, output, result, keywords, on_stage=on_stage)
         return result
     _refuse_existing([output], force=force)
@@ -293,14 +308,15 @@ def run_pipeline(
     return result
 
 
-def _possible_layers(output: Path, config: PipelineConfig, keywords: dict[str, Any]) -> list[Path]:
-    """Every layer file the run may write: with ``"trusted"`` standing for each centroid method in turn."""
+def possible_layers(output: Path, config: PipelineConfig) -> list[Path]:
+    """Every layer file a run of ``config`` into ``output`` may write: with ``"trusted"`` standing for each centroid
+    method in turn (:func:`run_pipeline` and ``starlog live`` refuse them all before writing any)."""
     if config.centroid is None or config.track is None or not tracks_trusted(config.track):
-        return layer_paths(output, [name for name, _ in _steps(config, **keywords)])
+        return layer_paths(output, [name for name, _ in stage_steps(config)])
     paths: list[Path] = []
     for method in parse_methods(config.centroid.get("methods", "all")):
         trial = replace(config, track={**config.track, "methods": with_trusted(config.track, method.value)})
-        paths += [p for p in layer_paths(output, [n for n, _ in _steps(trial, **keywords)]) if p not in paths]
+        paths += [p for p in layer_paths(output, [n for n, _ in stage_steps(trial)]) if p not in paths]
     return paths
 
 

@@ -14,7 +14,8 @@ from typing import Any
 
 from starlog.io.reader import LogReader, LogSource
 
-__all__ = ["DEFAULT_TRACKED", "TRUSTED", "resolve_trusted", "tracks_trusted", "trusted_method", "with_trusted"]
+__all__ = ["DEFAULT_TRACKED", "TRUSTED", "default_tracked", "resolve_trusted", "tracks_trusted", "trusted_method",
+           "with_trusted"]
 
 #: The word ``[track] methods`` uses for the method the log's evidence names (:func:`trusted_method`).
 TRUSTED = "trusted"
@@ -50,10 +51,17 @@ def trusted_method(log: LogReader) -> dict[str, Any]:
         decision = trust(records[-1]["methods"] if records else None, sky, sky_missing=why)
     if decision["method"] is not None:
         return decision
-    channels = [c.topic.rsplit("/", 1)[-1] for c in log.channels() if c.schema_name == "starlog.Centroids"]
-    fallback = DEFAULT_TRACKED if DEFAULT_TRACKED in channels or not channels else next(
-        (m for m in channels if m != "NONE"), channels[0])
+    fallback = default_tracked([c.topic.rsplit("/", 1)[-1] for c in log.channels()
+                                if c.schema_name == "starlog.Centroids"])
     return decision | {"method": fallback, "reason": f"kept the default {fallback}: {decision['reason']}"}
+
+
+def default_tracked(methods: list[str]) -> str:
+    """The method ``"trusted"`` stands for when the evidence names none, of the centroid ``methods`` measured:
+    :data:`DEFAULT_TRACKED` when it is one of them (or there are none), else the first other than NONE."""
+    if DEFAULT_TRACKED in methods or not methods:
+        return DEFAULT_TRACKED
+    return next((m for m in methods if m != "NONE"), methods[0])
 
 
 def resolve_trusted(track: dict[str, Any], log_path: LogSource) -> tuple[dict[str, Any], dict[str, Any]]:

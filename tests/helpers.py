@@ -18,10 +18,7 @@ def small_config(**overrides: object) -> SimulationConfig:
 def killed_writer_bytes(writer: LogWriter) -> bytes:
     """What a writer killed now leaves: the header, every chunk and its message indexes flushed, no summary
     and no footer. The writer is then aborted (its temporary file removed)."""
-    # LogWriter has no public way to flush without finishing: its private steps leave what a kill leaves
-    writer._close_chunk()
-    writer._drain(all_of_them=True)
-    writer._file.flush()
+    writer.flush()
     data = writer._tmp_path.read_bytes()
     writer.abort()
     return data

@@ -163,6 +163,8 @@ QUIET_COMMANDS = {  # name: (arguments, writes a log, shows progress or status w
                     "--workers", "1"], True, True),
     "motion": (["motion", "trk.mcap", "-o", "OUT.mcap", "--workers", "1"], True, True),
     "run": (["run", "sim.mcap", "-o", "OUT.mcap", "--config", "p.toml", "--workers", "1"], True, True),
+    "live": (["live", "frames", "-o", "OUT.mcap", "--config", "p.toml", "--no-server", "--fps", "100",
+              "--idle-timeout", "0.5", "--workers", "0"], True, True),
     "export": (["export", "sim.mcap", "cen.mcap", "-o", "OUT", "--workers", "1"], False, True),
     "filter": (["filter", "sim.mcap", "-o", "OUT.mcap", "--topic", "/camera/*", "--end", "frame:10"], True, True),
     "verify": (["verify", "sim.mcap"], False, True),

@@ -28,6 +28,9 @@ NOT_RUN = {
     "starlog flux_fwhm demo.mcap": "tests/test_custom_stages.py runs it, with the stage installed",
     "starlog experiment -o results/": "minutes of work; tests/test_experiment.py runs the --quick experiment",
     "dask scheduler": "it needs a Dask cluster on a network; tests/test_batch.py runs a local one",
+    "starlog simulate -o camera.mcap --size 512x512": "a minute of frames at 300 Hz; tests/test_live.py runs live on "
+                                                     "a smaller log written at its camera's rate",
+    "starlog run camera.mcap -o replay.mcap": "it needs the live run above; tests/test_live.py compares run with live",
     "starlog simulate -o sky.mcap --size 384x384 --sky-attitude": "tests/test_solve.py runs it as written",
     "starlog simulate -o sky.mcap --size 256x256 --sky-attitude": "tests/test_compensated_attitude.py runs it "
                                                                   "(smaller)",

@@ -5,7 +5,7 @@ Errors starlog raises on purpose are printed as one sentence with exit status 1.
 
 One module per group of commands, each command a call of the library: :mod:`~starlog.cli.logs`
 (simulate, ingest), :mod:`~starlog.cli.stages` (centroid, track, motion, compensate, solve, and the
-command of each installed stage), :mod:`~starlog.cli.pipeline` (run, experiment),
+command of each installed stage), :mod:`~starlog.cli.pipeline` (run, experiment), :mod:`~starlog.cli.live` (live),
 :mod:`~starlog.cli.inspect` (info, cat, export, report) and :mod:`~starlog.cli.maintain`
 (filter, flatten, recover, verify); the options they share are in :mod:`~starlog.cli.options`.
 Here: the group, which also lists the stages installed packages register, and :func:`main`.
@@ -30,6 +30,7 @@ import click
 from starlog import __version__
 from starlog._lifeline import die_of
 from starlog.cli.inspect import cat, export, info, report_command
+from starlog.cli.live import live
 from starlog.cli.logs import ingest, simulate
 from starlog.cli.maintain import filter_command, flatten, recover, verify
 from starlog.cli.options import CONTEXT
@@ -96,7 +97,7 @@ def cli() -> None:
     """
 
 
-for _command in (simulate, ingest, info, export, centroid, track, motion, compensate, solve, run, experiment,
+for _command in (simulate, ingest, info, export, centroid, track, motion, compensate, solve, run, live, experiment,
                  filter_command, cat, report_command, recover, verify, flatten):
     cli.add_command(_command)
 

@@ -106,13 +106,17 @@ def _psf_shape(psf_model: str, psf_fwhm: float, moffat_beta: float, airy_lambda_
               help="With --sky-attitude: signal of a magnitude-6 star, e-/frame.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--start-ns", type=click.IntRange(0), default=0, show_default=True, help="log_time of frame 0.")
+@click.option("--realtime", is_flag=True,
+              help="Write the frames at the camera's rate, each flushed when its time comes, as a camera's recorder "
+                   "writes them (for `starlog live`): the frames are rendered first (beside OUTPUT, removed after), "
+                   "then OUTPUT is written under its own name, readable while it grows.")
 @frame_write_options
 def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: str, fps: float | None,
              n_frames: int | None, duration: float | None, psf_sigma: float, psf_model: str, psf_fwhm: float,
              moffat_beta: float, airy_lambda_d: float, airy_zero: float, sky: float, read_noise: float,
              gain: float, bias: float, adc_bits: int, hot_pixels: int, cosmic_rays: float, jitter: tuple[str, ...],
              drift: str, random_walk: float, roll: str | None, sky_attitude: str | None, fov_deg: float,
-             mag_limit: float, flux_mag6: float, seed: int, start_ns: int, force: bool,
+             mag_limit: float, flux_mag6: float, seed: int, start_ns: int, realtime: bool, force: bool,
              compression: str, workers: int, quiet: bool) -> None:
     """Write a simulated star-camera log.
 
@@ -126,6 +130,7 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
       starlog simulate -o sim.mcap --frames 600 --jitter 25:0.05 --seed 7
       starlog simulate -o paper300.mcap --preset paper300 --size 128x128
       starlog simulate -o sky.mcap --size 512x512 --sky-attitude 80,20,30 --fov 10 --jitter 5:0.5
+      starlog simulate -o camera.mcap --size 512x512 --stars 40 --duration 60 --realtime
     """
     from starlog.sim import CameraModel, SimulationConfig, Simulator
     from starlog.stages import simulate_log
@@ -150,7 +155,14 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
                               cosmic_rays_per_frame=cosmic_rays, jitter=_parse_jitter(jitter),
                               drift_px_per_s=(drift_x, drift_y), random_walk_px_per_sqrt_s=random_walk,
                               roll_amplitude_rad=roll_rad, roll_frequency_hz=roll_hz, seed=seed, start_time_ns=start_ns, **params)
-    simulate_log(config, output, compression=compression, workers=workers, force=force, show_progress=not quiet)
+    if realtime:
+        from starlog.live import simulate_realtime
+
+        simulate_realtime(config, output, compression=compression, workers=workers, force=force,
+                          show_progress=not quiet, on_rendered=lambda: echo_status(
+                              quiet, f"rendered; writing {output} at {config.fps:g} Hz ({config.duration_s:.1f} s)"))
+    else:
+        simulate_log(config, output, compression=compression, workers=workers, force=force, show_progress=not quiet)
     stars = n_stars if attitude is None else f"{Simulator(config).field.x.size} catalogue"
     echo_status(quiet, f"wrote {output}: {config.n_frames} frames of {width}x{height} at {config.fps:g} Hz, "
                        f"{stars} stars")

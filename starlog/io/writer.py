@@ -9,7 +9,12 @@ Why not :class:`mcap.writer.Writer` directly? Three things it does not do:
 * **compress on several cores** — chunks are compressed on a thread pool (zstd and lz4
   release the GIL) and written in order, so the bytes do not depend on the number of workers;
 * **copy records of other files** as they are (chunks, message indexes, metadata), for
-  ``filter`` and ``flatten`` (:mod:`starlog.io.copying`).
+  ``filter`` and ``flatten`` (:mod:`starlog.io.copying`);
+* **be read while it is written** — :meth:`LogWriter.flush` closes the open chunks and hands them
+  to the system, so a reader following the file (``starlog live``) sees every message written so
+  far; ``in_place`` writes under the final name from the start (a camera's log), and a layer may
+  learn its base only when it is closed (:meth:`LogWriter.attach_base`: ``starlog live`` writes its
+  layers while the log below them is still being recorded).
 
 Each channel gets chunks of its own, so a reader of small channels (centroids, truth) never
 decompresses image chunks; the open chunks of all channels are closed together. Every JSON
@@ -21,7 +26,7 @@ CRC vouches for the bytes.
 
 The output goes to a temporary file beside the destination and is renamed over it only
 when :meth:`LogWriter.close` completes, so a killed stage leaves either no output or the
-previous file, never a half-written one under the final name.
+previous file, never a half-written one under the final name (``in_place`` aside).
 
 One module of over 500 lines: :class:`LogWriter`'s chunking, indexing, summary and atomic rename
 share one open file's state (open chunks, indexes, offsets), so they are one class.
@@ -152,6 +157,13 @@ def temporary_output(output: Path) -> tuple[int, Path]:
     return fd, Path(tmp)
 
 
+def _open_in_place(output: Path) -> tuple[int, Path]:
+    """``output`` itself, created or emptied (the caller refused an existing one without ``force``); an OS error
+    is a :class:`~starlog.errors.FileAccessError` naming it."""
+    with file_errors(output):
+        return os.open(output, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666), output
+
+
 Identity = tuple[int, int, int, int]
 
 
@@ -280,7 +292,7 @@ class LogWriter:
     Parameters
     ----------
     path : path-like
-        Destination. Written via a temporary file in the same folder and renamed on close.
+        Destination. Written via a temporary file in the same folder and renamed on close (``in_place`` aside).
     compression : Compression or str
         Chunk compression, ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
     chunk_size : int
@@ -299,6 +311,14 @@ class LogWriter:
         for tools that must copy messages as they are (``recover``).
     profile : str
         The header's profile (e.g. ``ros2`` for a copy of a ROS 2 log).
+    first_ids : (int, int), optional
+        The first schema and channel ids to use, for a layer whose base is attached when it is closed
+        (:meth:`attach_base`); default 1 (or those following ``layer``'s).
+    in_place : bool
+        Write under ``path`` itself from the start instead of a temporary file renamed at the end: the one
+        output written where it will stay, for a log read while it is written (a camera's recording that
+        ``starlog live`` follows). A kill or :meth:`abort` leaves what was flushed under ``path`` (``starlog
+        recover`` completes it), and there is no first-writer-wins check: the file is its writer's alone.
 
     Examples
     --------
@@ -320,6 +340,8 @@ class LogWriter:
         validate: bool = True,
         profile: str = "",
         inputs: Iterable[str | os.PathLike[str]] = (),
+        first_ids: tuple[int, int] | None = None,
+        in_place: bool = False,
     ) -> None:
         self.path = Path(path)
         try:
@@ -334,8 +356,8 @@ class LogWriter:
         self.workers = workers
         self.validate = validate
         self.layer = layer
-        self._next_schema_id = layer.next_schema_id if layer else 1
-        self._next_channel_id = layer.next_channel_id if layer else 1
+        self._next_schema_id, self._next_channel_id = (
+            first_ids if first_ids is not None else (layer.next_schema_id, layer.next_channel_id) if layer else (1, 1))
         self._checkers: dict[int, Callable[[Any], str | None]] = {}
         self._schema_digests: dict[int, bytes] = {}  # of the checked channels' schemas (see CheckedJson)
         self._schemas: dict[int, Schema] = {}
@@ -355,9 +377,10 @@ class LogWriter:
         self._pending: deque[_PendingChunk] = deque()
         self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
+        self.in_place = in_place
         try:
             self._seen = output_identity(self.path)
-            fd, self._tmp_path = temporary_output(self.path)
+            fd, self._tmp_path = _open_in_place(self.path) if in_place else temporary_output(self.path)
         except BaseException:
             self._closed = True
             if self._executor is not None:
@@ -525,6 +548,29 @@ class LogWriter:
         if self._open_bytes >= self.chunk_size:
             self._close_chunk()
 
+    def flush(self) -> None:
+        """Close the open chunk of every channel and hand what is written to the system: a reader of the
+        growing file sees every message written so far (each flush ends the chunks, so flush at the pace a
+        reader needs, not per message)."""
+        self._close_chunk()
+        self._drain(all_of_them=True)
+        self._file.flush()
+
+    def attach_base(self, layer: LayerBase) -> None:
+        """Make this output, written without knowing its base, a layer on ``layer`` (the record naming it is
+        written at :meth:`close`): its ids must follow the chain's and its topics be new to it.
+
+        Raises :class:`InvalidInputError` when they do not (the caller then writes its messages into a new
+        layer), leaving this output as it was.
+        """
+        clash = sorted(set(self._topics) & layer.topics)
+        low = (min(self._schemas, default=layer.next_schema_id), min(self._channels, default=layer.next_channel_id))
+        if clash or low[0] < layer.next_schema_id or low[1] < layer.next_channel_id:
+            raise InvalidInputError(f"{self.path} cannot be a layer on {layer.path}: "
+                                    + (f"both have the channel(s) {clash}." if clash else
+                                       "its schema or channel ids do not follow those of the log below it."))
+        self.layer = layer
+
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Add an MCAP Metadata record (indexed)."""
         self._close_chunk()
@@ -550,7 +596,8 @@ class LogWriter:
                 self._file.flush()
                 os.fsync(self._file.fileno())
                 self._file.close()
-                commit_output(self._tmp_path, self.path, seen=self._seen)
+                if not self.in_place:
+                    commit_output(self._tmp_path, self.path, seen=self._seen)
         except BaseException:
             self.abort()
             raise
@@ -561,7 +608,7 @@ class LogWriter:
         return self.path
 
     def abort(self) -> None:
-        """Discard the output: nothing is left under the destination name."""
+        """Discard the output: nothing is left under the destination name (``in_place``: what was flushed is)."""
         if self._closed:
             return
         self._closed = True
@@ -574,8 +621,9 @@ class LogWriter:
         except OSError:  # its buffered bytes cannot be written (disk full): the file is discarded anyway
             pass
         finally:
-            with suppress(OSError):  # its folder is gone, say: nothing is left to remove
-                self._tmp_path.unlink(missing_ok=True)
+            if not self.in_place:
+                with suppress(OSError):  # its folder is gone, say: nothing is left to remove
+                    self._tmp_path.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ copying records of other files
     def copy_schema(self, schema: Schema) -> None:

@@ -12,6 +12,8 @@ Whatever ends the owning process (SIGKILL, SIGTERM, Ctrl-C, an exception), nothi
   were doing (see :func:`_stop_now`: a worker ended while it sent a result must not leave the pool's
   manager thread, which the owner's exit waits for, blocked on the rest of it).
 
+:func:`guarded_process` starts one such worker running a function of the caller's, with the same guards.
+
 Workers ignore SIGINT: a Ctrl-C at the terminal reaches the whole process group, and the owner
 alone decides how to stop. In the owner, SIGINT and SIGTERM are held back while multiprocessing makes
 the pool's queues and their named semaphores, and while it stops the pool and frees them (:func:`signals_held`): an
@@ -43,7 +45,7 @@ from starlog import _lifeline as lifeline
 T = TypeVar("T")
 R = TypeVar("R")
 
-__all__ = ["ordered_map", "process_pool", "signals_held"]
+__all__ = ["guarded_process", "ordered_map", "process_pool", "signals_held"]
 
 _PR_SET_PDEATHSIG = 1
 # Imported first by the fork server: the lifeline ties it to its owner, and workers then start with
@@ -180,6 +182,25 @@ def _start_fork_server() -> None:
             del os.environ[lifeline.OWNER_VARIABLE]
         else:
             os.environ[lifeline.OWNER_VARIABLE] = previous
+
+
+def guarded_process(target: Callable[..., object], args: tuple[Any, ...], *,
+                    preload: Sequence[str] = ()) -> multiprocessing.process.BaseProcess:
+    """A started process of the fork server running ``target(*args)``, guarded as the pools' workers are (it ends
+    when the calling process ends, however that ends; the fork server is started and the process made with
+    SIGINT and SIGTERM held back, as a pool's workers are)."""
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
+    process = context.Process(target=_run_guarded, args=(os.getpid(), target, args), daemon=True)
+    with signals_held():
+        _start_fork_server()
+        process.start()
+    return process
+
+
+def _run_guarded(owner_pid: int, target: Callable[..., object], args: tuple[Any, ...]) -> None:
+    _guard_worker(owner_pid)
+    target(*args)
 
 
 def _named_semaphores(pool: ProcessPoolExecutor) -> set[str]:

@@ -18,7 +18,7 @@ from starlog.io.schemas import MessageType
 from starlog.io.copying import flatten_log
 from starlog.io.writer import temporary_folder
 
-__all__ = ["StageOutput", "extend_log", "layer_path_for"]
+__all__ = ["StageOutput", "extend_log", "layer_path_for", "record_provenance"]
 
 
 @dataclass
@@ -77,10 +77,16 @@ def extend_log(
         with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression) as writer:
             out = StageOutput(writer)
             yield reader, out
-            recorded = {**parameters, **window, **({"results": dict(out.results)} if out.results else {})}
-            record = Provenance(stage=stage, version=__version__, parameters=recorded,
-                                input_digest=base.digest(), channels=out.channels)
-            writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
+            record_provenance(out, stage, {**parameters, **window}, base.digest())
+
+
+def record_provenance(out: StageOutput, stage: str, parameters: dict[str, Any], input_digest: str) -> None:
+    """Write the stage's provenance record into its layer: its name, version, ``parameters`` with the stage's
+    ``results`` when it gave any, the SHA-256 of its input and the channels it added."""
+    recorded = {**parameters, **({"results": dict(out.results)} if out.results else {})}
+    record = Provenance(stage=stage, version=__version__, parameters=recorded, input_digest=input_digest,
+                        channels=out.channels)
+    out.writer.add_metadata(PROVENANCE_METADATA_NAME, record.to_metadata())
 
 
 @contextmanager

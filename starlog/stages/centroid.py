@@ -47,10 +47,10 @@ from starlog.stages._centroid_parameters import CentroidParameters, parse_method
 from starlog.stages._channels import check_messages_read
 from starlog.stages._progress import progress
 from starlog.stages.window import windowed
-from starlog.stages._stage import extend_log
+from starlog.stages._stage import StageOutput, extend_log
 
-__all__ = ["CentroidParameters", "CentroidSummary", "centroid_log", "parse_methods", "resolve_centroid_parameters",
-           "write_centroids"]
+__all__ = ["CentroidLayer", "CentroidParameters", "CentroidSummary", "centroid_log", "parse_methods",
+           "resolve_centroid_parameters", "write_centroids"]
 
 
 @dataclass
@@ -76,6 +76,14 @@ class CentroidSummary:
     mode: str = "full"
     acquisitions: int = 0
     """Frames searched in full (every frame in full mode; in tracking mode, the acquisitions)."""
+
+    @classmethod
+    def of(cls, p: CentroidParameters) -> CentroidSummary:
+        """An empty summary of a run with the resolved parameters ``p``."""
+        return cls(methods=[m.value for m in p.methods], gain=p.gain, image_topic=p.image_topic, notes=list(p.notes),
+                   epsf=p.epsf.summary() if p.epsf is not None else None,
+                   phase_correction=p.provenance.get("phase_correction"),
+                   centroids={m.value: 0 for m in p.methods}, failed={m.value: 0 for m in p.methods})
 
     def to_dict(self) -> dict[str, Any]:
         extra: dict[str, Any] = {"epsf": self.epsf} if self.epsf is not None else {}
@@ -207,48 +215,76 @@ def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], 
     """Write the layer of :func:`centroid_log` with resolved ``parameters``: every frame's detections, annotations
     and centroids, and the ePSF and phase calibrations as metadata."""
     p = parameters
-    summary = CentroidSummary(methods=[m.value for m in p.methods], gain=p.gain, image_topic=p.image_topic,
-                              notes=list(p.notes), epsf=p.epsf.summary() if p.epsf is not None else None,
-                              phase_correction=p.provenance.get("phase_correction"),
-                              centroids={m.value: 0 for m in p.methods}, failed={m.value: 0 for m in p.methods})
+    summary = CentroidSummary.of(p)
     provenance = dict(p.provenance)  # completed with the count of full searches when the frames are done
     with opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=provenance,
                                        force=force, flatten=flatten, compression=compression) as (log, out):
         summary.channel_messages = n_frames = log.channel(p.image_topic).message_count
-        det_ch = out.add_channel(topics.DETECTIONS, protobuf_message_type("starlog.Detections"))
-        ann_ch = out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations"))
-        cen_ch = [out.add_channel(topics.centroid_topic(m.value), protobuf_message_type("starlog.Centroids"))
-                  for m in p.methods]
+        layer = CentroidLayer.start(out, p, summary)
         results = _frame_results(log, input_path, p, workers, skip_bad)
-        evidence = EvidenceAccumulator(summary.methods)
         for encoded in progress(results, total=n_frames, description="centroid", enabled=show_progress):
-            if isinstance(encoded, SkippedFrame):
-                summary.skipped.append(encoded)
-                continue
-            if encoded.evidence is not None:
-                evidence.add(encoded.evidence)
-            summary.acquisitions += encoded.acquired
-            t = encoded.log_time
-            out.writer.write(det_ch, log_time=t, data=encoded.detections)
-            out.writer.write(ann_ch, log_time=t, data=encoded.annotations)
-            for k, m in enumerate(p.methods):
-                out.writer.write(cen_ch[k], log_time=t, data=encoded.centroids[k])
-                summary.centroids[m.value] += encoded.n_centroids[k]
-                summary.failed[m.value] += encoded.n_failed[k]
-            summary.frames += 1
-            summary.detections += encoded.n_detections
-            summary.artefacts += encoded.n_artefacts
+            layer.write(encoded)
         _check_frame_count(log, p.image_topic, summary)
-        out.results["artefacts"] = summary.artefacts
-        summary.notes += [n for n in log.notes if n not in summary.notes]
+        layer.finish(log.notes, provenance)
+    return summary
+
+
+@dataclass
+class CentroidLayer:
+    """The centroid layer being written, frame by frame: its channels, the summary's counts and the evidence on
+    which method to trust. :func:`write_centroids` and ``starlog live`` write it through this class alone."""
+
+    out: StageOutput
+    parameters: CentroidParameters
+    summary: CentroidSummary
+    detections: int
+    annotations: int
+    centroids: list[int]
+    evidence: EvidenceAccumulator
+
+    @classmethod
+    def start(cls, out: StageOutput, parameters: CentroidParameters, summary: CentroidSummary) -> CentroidLayer:
+        """Add the layer's channels to ``out``."""
+        methods = parameters.methods
+        return cls(out, parameters, summary,
+                   out.add_channel(topics.DETECTIONS, protobuf_message_type("starlog.Detections")),
+                   out.add_channel(topics.ANNOTATIONS, protobuf_message_type("foxglove.ImageAnnotations")),
+                   [out.add_channel(topics.centroid_topic(m.value), protobuf_message_type("starlog.Centroids"))
+                    for m in methods], EvidenceAccumulator(summary.methods))
+
+    def write(self, encoded: FrameMessages | SkippedFrame) -> None:
+        """One frame's messages (a skipped frame is listed in the summary)."""
+        summary, writer = self.summary, self.out.writer
+        if isinstance(encoded, SkippedFrame):
+            summary.skipped.append(encoded)
+            return
+        if encoded.evidence is not None:
+            self.evidence.add(encoded.evidence)
+        summary.acquisitions += encoded.acquired
+        t = encoded.log_time
+        writer.write(self.detections, log_time=t, data=encoded.detections)
+        writer.write(self.annotations, log_time=t, data=encoded.annotations)
+        for k, m in enumerate(self.parameters.methods):
+            writer.write(self.centroids[k], log_time=t, data=encoded.centroids[k])
+            summary.centroids[m.value] += encoded.n_centroids[k]
+            summary.failed[m.value] += encoded.n_failed[k]
+        summary.frames += 1
+        summary.detections += encoded.n_detections
+        summary.artefacts += encoded.n_artefacts
+
+    def finish(self, notes: list[str], provenance: dict[str, Any]) -> None:
+        """The layer's closing records: the ePSF, the phase calibrations, the evidence; the count of full
+        searches into ``provenance`` (read when the layer's provenance is written)."""
+        p, summary, writer = self.parameters, self.summary, self.out.writer
+        self.out.results["artefacts"] = summary.artefacts
+        summary.notes += [n for n in notes if n not in summary.notes]
         if p.epsf is not None:
-            out.writer.add_metadata(topics.EPSF_METADATA, p.epsf.to_metadata())
+            writer.add_metadata(topics.EPSF_METADATA, p.epsf.to_metadata())
         if p.phase is not None:
-            out.writer.add_metadata(topics.PHASE_METADATA, p.phase.to_metadata())
-        _record_evidence(out.writer, summary, evidence, p)
+            writer.add_metadata(topics.PHASE_METADATA, p.phase.to_metadata())
+        _record_evidence(writer, summary, self.evidence, p)
         summary.mode = provenance["mode"]
         provenance["acquisitions"] = summary.acquisitions
-    return summary
 
 
 def _frame_results(log: LogReader, source: LogSource, p: CentroidParameters, workers: int, skip_bad: bool

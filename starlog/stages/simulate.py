@@ -28,6 +28,7 @@ def simulate_log(
     workers: int = 1,
     force: bool = False,
     show_progress: bool = False,
+    chunk_per_frame: bool = False,
 ) -> Path:
     """Render ``config`` into a new log at ``output``.
 
@@ -36,6 +37,8 @@ def simulate_log(
     in the pixel-centre convention). The configuration is recorded as provenance. Same
     configuration → identical bytes, whatever ``workers`` is: frames are rendered in worker
     processes (each frame's noise depends only on the seed and its index) and written in order.
+    With ``chunk_per_frame`` every frame's messages close their chunks (each channel's chunk holds one
+    frame's message), as a camera's log that is read while it is written (``simulate --realtime``).
     """
     simulator = Simulator(config)
     with LogWriter(output, compression=compression, workers=workers, force=force) as log:
@@ -50,6 +53,8 @@ def simulate_log(
                     "bit_depth": config.camera.adc_bits, "source": ""}
             log.write(info_ch, log_time=t, data=encode_json(info))
             log.write(truth_ch, log_time=t, data=encode_json(_truth(config, simulator, frame)))
+            if chunk_per_frame:
+                log.flush()
         provenance = Provenance(stage="simulate", version=__version__, parameters=config.to_dict(),
                                 channels=[topics.IMAGE, topics.FRAME_INFO, topics.TRUTH])
         log.add_metadata(PROVENANCE_METADATA_NAME, provenance.to_metadata())

@@ -62,8 +62,9 @@ from starlog.stages._progress import progress
 from starlog.stages._stage import StageOutput, extend_log
 from starlog.stages.window import windowed
 
-__all__ = ["PROBE_FRAMES", "SolveSummary", "compensated_name", "probe_sky", "select_centroid_channels",
-           "select_compensated_channels", "solve_log", "tracker_settings"]
+__all__ = ["PROBE_FRAMES", "MethodFigures", "SolveSummary", "add_solve_channels", "compensated_name", "probe_sky",
+           "select_centroid_channels", "select_compensated_channels", "sky_frames_kept", "solve_frame", "solve_log",
+           "solve_parameters", "tracker_settings", "true_attitude", "usable_centroids"]
 
 #: The schema of the all-star channels ``compensate --stars all`` writes.
 COMPENSATED_STARS = "starlog.CompensatedStars"
@@ -164,11 +165,17 @@ def _true_attitudes(log: LogReader) -> dict[int, npt.NDArray[np.float64]]:
         return {}
     out = {}
     for message in log.messages(topics.TRUTH):
-        attitude = message.payload.get("attitude")
+        attitude = true_attitude(message.payload)
         if attitude is None:
             return {}
-        out[message.log_time] = matrix_from_quaternion(attitude["quaternion"])
+        out[message.log_time] = attitude
     return out
+
+
+def true_attitude(truth: dict[str, Any]) -> npt.NDArray[np.float64] | None:
+    """The true attitude matrix in a ``/sim/truth`` message (None: not a simulated sky field)."""
+    attitude = truth.get("attitude")
+    return None if attitude is None else matrix_from_quaternion(attitude["quaternion"])
 
 
 @dataclass(frozen=True)
@@ -265,8 +272,8 @@ def _annotations(record: dict[str, Any], log_time: int) -> bytes:
 
 
 @dataclass
-class _MethodFigures:
-    """Running figures of one method's frames, for the summary."""
+class MethodFigures:
+    """Running figures of one method's frames, for the summary (:meth:`add` each solved frame)."""
 
     frames: int = 0
     modes: Counter[str] = field(default_factory=Counter)
@@ -416,29 +423,54 @@ def _frames(log: LogReader, topic: str, which: str | None) -> Iterator[tuple[int
 
 def _solve_channel(log: LogReader, out: StageOutput, topic: str, tracker: AttitudeTracker,
                    truth: dict[int, npt.NDArray[np.float64]], *, show_progress: bool,
-                   which: str | None = None) -> _MethodFigures:
+                   which: str | None = None) -> MethodFigures:
     """Solve every frame of one centroid channel, or with ``which`` (``before``, ``after``) of an all-star
     compensated channel, and write its three channels."""
     method = topic.rsplit("/", 1)[-1] if which is None else compensated_name(topic, which)
-    attitude_ch = out.add_channel(topics.attitude_topic(method), protobuf_message_type("starlog.Attitude"))
-    identified_ch = out.add_channel(topics.identified_topic(method), protobuf_message_type("starlog.IdentifiedStars"))
-    annotations_ch = out.add_channel(topics.identified_annotations_topic(method),
-                                     protobuf_message_type("foxglove.ImageAnnotations"))
+    channels = add_solve_channels(out, method)
     count = log.channel(topic).message_count
-    figures = _MethodFigures(keep_every=max(1, -(-count // MAX_SKY_FRAMES)))
+    figures = MethodFigures(keep_every=sky_frames_kept(count))
     for t, frame, stars in progress(_frames(log, topic, which), total=count, description=f"solve {method}",
                                     enabled=show_progress):
-        start = time.perf_counter()
-        result = tracker.solve(stars.x, stars.y, stars.flux, stars.sigma)
-        figures.seconds += time.perf_counter() - start
-        record = _attitude_record(frame, method, result, stars, truth.get(t))
-        identified = _identified_record(frame, method, result, stars, tracker.catalogue)
-        out.writer.write(attitude_ch, log_time=t, data=star_codec("starlog.Attitude").encode(record))
-        out.writer.write(identified_ch, log_time=t, data=star_codec("starlog.IdentifiedStars").encode_dict(identified))
-        out.writer.write(annotations_ch, log_time=t, data=_annotations(identified, t))
-        figures.add(result, stars, record)
+        for channel, data in zip(channels, solve_frame(tracker, method, frame, t, stars, truth.get(t), figures),
+                                 strict=True):
+            out.writer.write(channel, log_time=t, data=data)
     check_messages_read(log, topic, figures.frames)
     return figures
+
+
+def add_solve_channels(out: StageOutput, method: str) -> tuple[int, int, int]:
+    """The attitude, identified-stars and annotation channels of one solved method, added to ``out``."""
+    return (out.add_channel(topics.attitude_topic(method), protobuf_message_type("starlog.Attitude")),
+            out.add_channel(topics.identified_topic(method), protobuf_message_type("starlog.IdentifiedStars")),
+            out.add_channel(topics.identified_annotations_topic(method),
+                            protobuf_message_type("foxglove.ImageAnnotations")))
+
+
+def usable_centroids(rows: npt.NDArray[np.void]) -> _Centroids:
+    """The centroids a frame is solved from (finite, sigma > 0, fitted), of the rows of its ``starlog.Centroids``
+    message (:func:`~starlog.io.star_tables.decode_table`, :meth:`~starlog.io.reader.LogReader.tables`)."""
+    return _Centroids.from_rows(rows)
+
+
+def sky_frames_kept(frames: int) -> int:
+    """Every how many frames of a method's ``frames`` the identified stars are kept for the sky's evidence
+    (:attr:`MethodFigures.keep_every`: at most :data:`~starlog.attitude.sky_evidence.MAX_SKY_FRAMES` frames)."""
+    return max(1, -(-frames // MAX_SKY_FRAMES))
+
+
+def solve_frame(tracker: AttitudeTracker, method: str, frame: int, log_time: int, stars: _Centroids,
+                truth: npt.NDArray[np.float64] | None, figures: MethodFigures) -> tuple[bytes, bytes, bytes]:
+    """One frame solved (:func:`usable_centroids` of its centroid message): its attitude, identified-stars and
+    annotation messages, the frame added to ``figures``."""
+    start = time.perf_counter()
+    result = tracker.solve(stars.x, stars.y, stars.flux, stars.sigma)
+    figures.seconds += time.perf_counter() - start
+    record = _attitude_record(frame, method, result, stars, truth)
+    identified = _identified_record(frame, method, result, stars, tracker.catalogue)
+    figures.add(result, stars, record)
+    return (star_codec("starlog.Attitude").encode(record),
+            star_codec("starlog.IdentifiedStars").encode_dict(identified), _annotations(identified, log_time))
 
 
 def _chosen_channels(log: LogReader, centroids: str | Sequence[str] | None,
@@ -448,6 +480,15 @@ def _chosen_channels(log: LogReader, centroids: str | Sequence[str] | None,
     if compensated is not None and centroids is None:
         return select_compensated_channels(log, compensated)
     return select_centroid_channels(log, centroids) + select_compensated_channels(log, compensated)
+
+
+def solve_parameters(centroids: list[str], options: dict[str, Any], catalogue: Catalogue,
+                     compensated: list[str] | None = None) -> dict[str, Any]:
+    """The parameters the solve stage records in its provenance."""
+    parameters = {"centroids": centroids, "options": options, "catalogue": catalogue.name}
+    if compensated is not None:
+        parameters["compensated"] = compensated
+    return parameters
 
 
 @windowed(lambda log, options: _chosen_channels(log, options.get("centroids"), options.get("compensated"))[0])
@@ -493,10 +534,8 @@ def solve_log(
         settings = tracker_settings(probe, options, cols)
     catalogue = load_catalogue()
     summary = SolveSummary(width=cols)
-    parameters = {"centroids": [t for t in chosen if kinds[t] != COMPENSATED_STARS], "options": options,
-                  "catalogue": catalogue.name}
-    if compensated is not None:
-        parameters["compensated"] = [t for t in chosen if kinds[t] == COMPENSATED_STARS]
+    parameters = solve_parameters([t for t in chosen if kinds[t] != COMPENSATED_STARS], options, catalogue,
+                                  None if compensated is None else [t for t in chosen if kinds[t] == COMPENSATED_STARS])
     with extend_log(input_path, output_path, stage="solve", parameters=parameters, force=force, flatten=flatten,
                     compression=compression) as (log, out):
         truth = _true_attitudes(log)

@@ -46,6 +46,7 @@ import numpy.typing as npt
 from starlog.errors import InvalidParameterError
 from starlog.io import protobuf_message_type, topics
 from starlog.io.reader import LogReader, LogSource, TableMessage
+from starlog.io.schemas import MessageType
 from starlog.io.star_tables import star_codec
 from starlog.stages._blocks import channel_blocks, worker_log
 from starlog.stages._channels import check_messages_read
@@ -62,12 +63,18 @@ from starlog.track import (
     TrackerConfig,
 )
 
-__all__ = ["TrackSummary", "track_log", "parse_models"]
+__all__ = ["NisSum", "TrackSummary", "encode_tracks", "model_statistics", "parse_models", "track_frame", "track_log",
+           "track_parameters", "tracker_configs", "tracks_message_type"]
 
 #: Frames per spooled block: bounds the memory of every pass.
 BLOCK_FRAMES = 64
 #: The centroid columns the tracker takes, in order.
 _STAR_FIELDS = ("x", "y", "sigma", "flux")
+
+
+def tracks_message_type() -> MessageType:
+    """The message type of a ``/track/<METHOD>/<MODEL>`` channel."""
+    return protobuf_message_type("starlog.Tracks")
 
 
 def parse_models(spec: str | Sequence[str]) -> list[MotionModel]:
@@ -211,7 +218,7 @@ def _no_track_hint(model: MotionModel, source: str, err: NoTrackError) -> NoTrac
 
 def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Spool) -> _ModelRun:
     """Pass 2 for one model: track every spooled frame, spool the rows, find the brightest track."""
-    tracker, nis = StarTracker(config), _NisSum()
+    tracker, nis = StarTracker(config), NisSum()
     offsets = []
     with opened(spool, "wb") as file:
         for frames, times, counts, table in read_blocks(centroids, 4):
@@ -220,16 +227,21 @@ def _track_model(config: TrackerConfig, source: str, centroids: Spool, spool: Sp
     return _model_run(tracker, source, nis, spool, offsets)
 
 
-def _model_run(tracker: StarTracker, source: str, nis: _NisSum, spool: Spool, offsets: list[int]) -> _ModelRun:
+def _model_run(tracker: StarTracker, source: str, nis: NisSum, spool: Spool, offsets: list[int]) -> _ModelRun:
     """What one model's tracking found: the brightest track and the statistics."""
+    return _ModelRun(spool=spool, offsets=offsets, **model_statistics(tracker, source, nis))
+
+
+def model_statistics(tracker: StarTracker, source: str, nis: NisSum) -> dict[str, Any]:
+    """What one model's tracker found over the log (``brightest``, ``tracks``, ``confirmed``, ``gated``,
+    ``mean_nis``); :class:`NoTrackError`, saying what to change, when no track was confirmed."""
     try:
         brightest = tracker.brightest_track()
     except NoTrackError as err:
         raise _no_track_hint(tracker.model, source, err) from err
     stats = tracker.track_stats()
-    return _ModelRun(brightest=brightest, spool=spool, offsets=offsets, tracks=int(stats.size),
-                     confirmed=int(stats["confirmed"].sum()), gated=int(stats["gated"].sum()),
-                     mean_nis=nis.total / nis.count if nis.count else 0.0)
+    return {"brightest": brightest, "tracks": int(stats.size), "confirmed": int(stats["confirmed"].sum()),
+            "gated": int(stats["gated"].sum()), "mean_nis": nis.total / nis.count if nis.count else 0.0}
 
 
 # ---------------------------------------------------------------- one model on several cores
@@ -243,7 +255,7 @@ def _track_pipelined(log: LogReader, source: LogSource, config: TrackerConfig, m
     topic = topics.centroid_topic(method)
     decoded = ordered_map(pool, _decode_centroid_block, ((source, topic, start, end) for start, end, _ in blocks),
                           window=2 * workers)
-    tracker, stats = StarTracker(config), _NisSum()
+    tracker, stats = StarTracker(config), NisSum()
     encoded: list[Future[None]] = []
     files: list[Path] = []
     n_frames = 0
@@ -262,29 +274,42 @@ def _track_pipelined(log: LogReader, source: LogSource, config: TrackerConfig, m
 
 
 @dataclass
-class _NisSum:
-    """The NIS of every applied measurement, summed, for the model's mean NIS."""
+class NisSum:
+    """The NIS of every applied measurement, summed, for the model's mean NIS (:func:`track_frame` adds to it)."""
 
     total: float = 0.0
     count: int = 0
 
+    def add(self, rows: npt.NDArray[np.void]) -> None:
+        """The NIS of the measurements applied in tracker rows (``TRACK_DTYPE``)."""
+        applied = rows["measured"] & (rows["age"] > 0)
+        self.total += float(rows["nis"][applied].sum())
+        self.count += int(applied.sum())
+
 
 def _track_block(tracker: StarTracker, times: npt.NDArray[np.int64], counts: npt.NDArray[np.int64],
-                 table: npt.NDArray[np.float64], nis: _NisSum) -> tuple[npt.NDArray[np.void], npt.NDArray[np.int64]]:
+                 table: npt.NDArray[np.float64], nis: NisSum) -> tuple[npt.NDArray[np.void], npt.NDArray[np.int64]]:
     """Each frame of a block through the tracker (:meth:`~starlog.track.StarTracker.update_block`): the block's
     rows, one table, and each frame's number of rows."""
     rows, row_counts = tracker.update_block(times, counts, table)
-    applied = rows["measured"] & (rows["age"] > 0)
-    nis.total += float(rows["nis"][applied].sum())
-    nis.count += int(applied.sum())
+    nis.add(rows)
     return rows, row_counts
+
+
+def track_frame(tracker: StarTracker, log_time: int, stars: npt.NDArray[np.float64], nis: NisSum
+                ) -> npt.NDArray[np.void]:
+    """One frame through the tracker, a block of one frame for :func:`_track_block`: ``stars`` is its ``(k, 4)``
+    x/y/sigma/flux; its rows (``TRACK_DTYPE``), the NIS of each applied measurement added to ``nis``."""
+    rows, _ = _track_block(tracker, np.array([log_time], dtype=np.int64), np.array([stars.shape[0]], dtype=np.int64),
+                           stars, nis)
+    return rows
 
 
 def _encode_unmarked(spool: Path, method: str, model: str, out: Path) -> None:
     """Worker: one spooled block of rows encoded as :func:`_encode_block` does, no row marked the brightest, to
     ``out``: each message's ``log_time``, length and header length, and each row's track."""
     frames, times, counts, rows = read_block(spool, 0, 4)
-    times, messages = _encoded_messages(frames, times, counts, rows, method, model, np.zeros(rows.size, dtype=bool))
+    messages = encode_tracks(frames, counts, rows, method, model, np.zeros(rows.size, dtype=bool))
     heads = [len(m) - n * star_codec("starlog.Tracks").row_size for m, n in zip(messages, counts.tolist())]
     with open(out, "wb") as file:
         write_block(file, np.array(times, dtype=np.int64), np.array([len(m) for m in messages], dtype=np.int64),
@@ -323,21 +348,20 @@ def _encode_block(spool: Spool, offset: int, method: str, model: str,
     """One spooled block of rows → ``(log_time, starlog.Tracks message)`` of each frame (in a worker process
     when there is a pool)."""
     frames, times, counts, rows = read_block(spool, offset, 4)
-    return _encoded_messages(frames, times, counts, rows, method, model, rows["track"] == brightest)
+    return times.tolist(), encode_tracks(frames, counts, rows, method, model, rows["track"] == brightest)
 
 
-def _encoded_messages(frames: npt.NDArray[np.int64], times: npt.NDArray[np.int64], counts: npt.NDArray[np.int64],
-                      rows: npt.NDArray[np.void], method: str, model: str,
-                      brightest: npt.NDArray[np.bool_]) -> tuple[list[int], list[bytes]]:
-    """``(log_time, starlog.Tracks message)`` of each frame of a block: the block's rows encoded at once (their
-    columns checked), then cut per frame behind each frame's header."""
+def encode_tracks(frames: npt.NDArray[np.int64], counts: npt.NDArray[np.int64], rows: npt.NDArray[np.void],
+                  method: str, model: str, brightest: npt.NDArray[np.bool_]) -> list[bytes]:
+    """The ``starlog.Tracks`` message of each frame of a block, ``counts`` rows each, in order (``brightest``:
+    which rows are the brightest track's): the block's rows encoded at once (their columns checked), then cut
+    per frame behind each frame's header."""
     codec = star_codec("starlog.Tracks")
     encoded = codec.encode_rows(rows, {"brightest": brightest})
     size = codec.row_size
     ends = np.cumsum(counts).tolist()
-    messages = [codec.encode_header({"frame": frame, "method": method, "model": model}) + encoded[a * size:b * size]
-                for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)]
-    return times.tolist(), messages
+    return [codec.encode_header({"frame": frame, "method": method, "model": model}) + encoded[a * size:b * size]
+            for frame, a, b in zip(frames.tolist(), [0, *ends[:-1]], ends, strict=True)]
 
 
 def _frames_out(encoded: Iterator[tuple[list[int], list[bytes]]], n_models: int,
@@ -369,8 +393,7 @@ def _write_tracks(out: StageOutput, runs: dict[MotionModel, _ModelRun], method: 
              for block in range(n_blocks) for m, run in runs.items()]
     encoded = (ordered_map(pool, _encode_block, items, window=2 * len(runs)) if pool
                else (_encode_block(*item) for item in items))
-    channels = [out.add_channel(topics.track_topic(method, m.value), protobuf_message_type("starlog.Tracks"))
-                for m in runs]
+    channels = [out.add_channel(topics.track_topic(method, m.value), tracks_message_type()) for m in runs]
     frames = _frames_out(encoded, len(runs), n_blocks)
     for t, messages in progress(frames, total=n_frames, description="track (write)", enabled=show_progress):
         for channel, message in zip(channels, messages, strict=True):
@@ -396,8 +419,7 @@ def _track_one_model(log: LogReader, input_path: LogSource, out: StageOutput, co
                      summary: TrackSummary, blocks: list[tuple[int, int, int]], workers: int, *,
                      show_progress: bool) -> dict[MotionModel, _ModelRun]:
     """One model on several cores (:func:`_track_pipelined`), written as :func:`_track_every_model` writes it."""
-    channel = out.add_channel(topics.track_topic(method, config.model.value),
-                              protobuf_message_type("starlog.Tracks"))
+    channel = out.add_channel(topics.track_topic(method, config.model.value), tracks_message_type())
     with tempfile.TemporaryDirectory(prefix=f".{out.writer.path.name}.track-", dir=out.writer.path.parent) as tmp, \
             process_pool(workers, preload=["starlog.stages.track"]) as pool:
         summary.frames, run, files = _track_pipelined(log, input_path, config, method, Path(tmp), blocks, pool,
@@ -430,13 +452,21 @@ def _spools(models: list[MotionModel], output_path: Path, *, shared: bool) -> It
         yield _Spools(Path(tmp) / "centroids", {m: Path(tmp) / f"rows-{m.value}" for m in models})
 
 
-def _configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
-             motion: dict[str, Any] | None) -> dict[MotionModel, TrackerConfig]:
+def tracker_configs(chosen: list[MotionModel], tracker: dict[str, Any] | None,
+                    motion: dict[str, Any] | None) -> dict[MotionModel, TrackerConfig]:
+    """Each model's :class:`TrackerConfig` from the stage's ``tracker`` and ``motion`` options."""
     try:
         motion_config = MotionModelConfig(**(motion or {}))
         return {m: TrackerConfig(model=m, motion=motion_config, **(tracker or {})) for m in chosen}
     except TypeError as err:
         raise InvalidParameterError(f"unknown tracker option: {err}.") from err
+
+
+def track_parameters(method: str, chosen: list[MotionModel], tracker: dict[str, Any] | None,
+                     motion: dict[str, Any] | None, selected_by: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The parameters the track stage records in its provenance (``selected_by``: why ``method`` was chosen)."""
+    return {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
+            "motion": dict(motion or {})} | ({"selected_by": selected_by} if selected_by is not None else {})
 
 
 @windowed(lambda log, options: topics.centroid_topic(str(options["method"]).upper()))
@@ -482,11 +512,10 @@ def track_log(
         provenance as it is.
     """
     chosen = parse_models(models)
-    configs = _configs(chosen, tracker, motion)
+    configs = tracker_configs(chosen, tracker, motion)
     method = method.upper()
     source = topics.centroid_topic(method)
-    parameters = {"method": method, "models": [m.value for m in chosen], "tracker": dict(tracker or {}),
-                  "motion": dict(motion or {})} | ({"selected_by": selected_by} if selected_by is not None else {})
+    parameters = track_parameters(method, chosen, tracker, motion, selected_by)
     summary = TrackSummary(method=method)
     with extend_log(input_path, output_path, stage="track", parameters=parameters, force=force, flatten=flatten,
                     compression=compression) as (log, out):
