@@ -29,7 +29,10 @@ import numpy.typing as npt
 
 from starlog.centroid.table import CentroidFlag
 
-__all__ = ["MIN_STARS", "EvidenceAccumulator", "FrameEvidence", "frame_evidence", "recommend"]
+__all__ = ["MIN_STARS", "EvidenceAccumulator", "FrameEvidence", "evidence_sums", "evidence_sums_vectorised",
+           "frame_evidence", "recommend"]
+
+F64 = npt.NDArray[np.float64]
 
 MIN_STARS = 20
 """Fewest star pairs (a star in two consecutive frames) the rule needs to name a method."""
@@ -78,6 +81,45 @@ def _matched_pairs(before: FrameEvidence, after: FrameEvidence) -> tuple[npt.NDA
     return i, ab[i]
 
 
+def evidence_sums(previous: FrameEvidence | None, frame: FrameEvidence) -> tuple[F64, F64, int]:
+    """One frame's sums for :class:`EvidenceAccumulator`, compiled (:func:`starlog.centroid._kernels.evidence_sums`;
+    the same numbers as :func:`evidence_sums_vectorised`, but where two stars are at exactly the same distance)."""
+    from starlog.centroid._kernels import evidence_sums as compiled  # numba: imported, and compiled, on first use
+
+    methods = frame.x.shape[0]
+    apart, steps = np.zeros(methods), np.zeros(methods)
+    before = previous if previous is not None else FrameEvidence(*(np.zeros((methods, 0)),) * 3)
+    pairs = compiled(np.ascontiguousarray(before.x, np.float64), np.ascontiguousarray(before.y, np.float64),
+                     np.ascontiguousarray(frame.x, np.float64), np.ascontiguousarray(frame.y, np.float64),
+                     MATCH_RADIUS, apart, steps)
+    return apart, steps, int(pairs)
+
+
+def evidence_sums_vectorised(previous: FrameEvidence | None, frame: FrameEvidence) -> tuple[F64, F64, int]:
+    """Per method, the sum of squared differences of its positions to the other methods' median (0 with one
+    method), the sum of squared platform-free displacements of the stars matched to ``previous``, and the pairs
+    matched (0, and no displacements, when under three): the numpy form of :func:`evidence_sums`."""
+    methods, n = frame.x.shape
+    apart, steps = np.zeros(methods), np.zeros(methods)
+    if methods >= 2 and n:
+        for k in range(methods):
+            others = [j for j in range(methods) if j != k]
+            dx = frame.x[k] - np.median(frame.x[others], axis=0)
+            dy = frame.y[k] - np.median(frame.y[others], axis=0)
+            apart[k] = float(np.sum(dx * dx) + np.sum(dy * dy))
+    if previous is None:
+        return apart, steps, 0
+    i, j = _matched_pairs(previous, frame)
+    if i.size < 3:
+        return apart, steps, 0
+    for k in range(methods):
+        sx = frame.x[k, j] - previous.x[k, i]
+        sy = frame.y[k, j] - previous.y[k, i]
+        sx, sy = sx - np.median(sx), sy - np.median(sy)
+        steps[k] = float(np.sum(sx * sx) + np.sum(sy * sy))
+    return apart, steps, int(i.size)
+
+
 @dataclass
 class EvidenceAccumulator:
     """The evidence of a log's frames, pooled per method (:meth:`add` in frame order, :meth:`result`)."""
@@ -100,21 +142,12 @@ class EvidenceAccumulator:
             for k in range(len(self.methods)):
                 self.sigmas[k].append(frame.sigma[k, : MAX_SIGMAS - self.stars])
         self.stars += n
+        apart, steps, pairs = evidence_sums(self.previous, frame)
         if len(self.methods) >= 2 and n:
-            for k in range(len(self.methods)):
-                others = [j for j in range(len(self.methods)) if j != k]
-                dx = frame.x[k] - np.median(frame.x[others], axis=0)
-                dy = frame.y[k] - np.median(frame.y[others], axis=0)
-                self.apart[k] += float(np.sum(dx * dx) + np.sum(dy * dy))
-        if self.previous is not None:
-            i, j = _matched_pairs(self.previous, frame)
-            if i.size >= 3:
-                self.pairs += int(i.size)
-                for k in range(len(self.methods)):
-                    sx = frame.x[k, j] - self.previous.x[k, i]
-                    sy = frame.y[k, j] - self.previous.y[k, i]
-                    sx, sy = sx - np.median(sx), sy - np.median(sy)
-                    self.steps[k] += float(np.sum(sx * sx) + np.sum(sy * sy))
+            self.apart = [total + float(a) for total, a in zip(self.apart, apart)]
+        if pairs:
+            self.pairs += pairs
+            self.steps = [total + float(d) for total, d in zip(self.steps, steps)]
         self.previous = frame
 
     def result(self) -> dict[str, dict[str, Any]]:

@@ -185,9 +185,20 @@ def _light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSetting
     excess = state.excess if state.excess is not None else np.zeros(cells.shape)
     before = before if before is not None else np.zeros((0, 0), np.bool_)
     exact = image.dtype.kind in "ui" and image.dtype.itemsize <= 2 and c <= 256
-    steps = np.clip(np.arange(-reach, reach + c, c), -reach, reach).astype(np.float64)
-    return _Light(cells, excess, before, steps, c, float(settings.new_light_sigma), exact,
+    return _Light(cells, excess, before, _steps(reach, c), c, float(settings.new_light_sigma), exact,
                   np.zeros(cells.shape, np.bool_))
+
+
+@functools.lru_cache(maxsize=16)
+def _steps(reach: int, cell: int) -> F64:
+    """Offsets from a star whose cells are near it (:func:`~starlog.centroid.tracking.new_light`'s)."""
+    return np.clip(np.arange(-reach, reach + cell, cell), -reach, reach).astype(np.float64)
+
+
+@functools.lru_cache(maxsize=16)
+def _default_saturation(dtype: np.dtype[Any]) -> float:
+    """The saturation level of a frame of ``dtype`` without one given: the type's maximum for integers."""
+    return float(np.iinfo(dtype).max) if dtype.kind in "ui" else np.inf
 
 
 def track_frame(image: npt.NDArray[Any], state: TrackState, settings: TrackingSettings, before: Mask | None,
@@ -208,9 +219,8 @@ def track_frame(image: npt.NDArray[Any], state: TrackState, settings: TrackingSe
     search = _Search(k1, power, settings.search, float(settings.threshold), settings.border, just_acquired)
     stars = _Stars(state.reference, state.flux, state.x, state.y, state.vx, state.vy, state.quiet_stars,
                    state.acquired_x, state.acquired_y)
-    if saturation is None:
-        saturation = float(np.iinfo(image.dtype).max) if image.dtype.kind in "ui" else np.inf
-    kernel_fit = _fit_settings(fit if fit is not None else _NO_FIT, float(saturation))
+    level = _default_saturation(image.dtype) if saturation is None else float(saturation)
+    kernel_fit = _fit_settings(fit if fit is not None else _NO_FIT, level)
     windows = _windows(n if fit is not None else 0, 2 * kernel_fit.half + 1)  # no rows: no windows cut
     detections, found = np.zeros(n, DETECTION_DTYPE), np.zeros(n, np.bool_)
     risen = light.risen if state.cells is not None else np.zeros((0, 0), np.bool_)
