@@ -5,8 +5,12 @@ A star tracker acquires its stars by searching the whole frame (detection, :func
 then tracks them: each star's next position is predicted from its last ones (constant velocity), its peak is
 found in a small window of the matched-filtered frame around the prediction, and its coarse position, with
 the background and noise its acquisition measured, makes the detection row that the ordinary measurement
-(:func:`starlog.centroid.extract.measure_methods`) takes. So a tracked star is measured by the very code of
-full mode, on the same window whenever the coarse position rounds to the same pixel.
+(:func:`starlog.centroid.extract.measure_methods`) takes. So a tracked star is measured as full mode measures
+it, on the same window whenever the coarse position rounds to the same pixel.
+
+The functions here are the numpy form of a tracked frame (:func:`track_frame_vectorised`, completed by
+:func:`finish_tracked` once measured); :mod:`starlog.centroid.tracked_frame` does the same in compiled code,
+the same numbers given the same state, and the tests compare the two.
 
 The functions here decide when a tracked frame must be searched in full instead:
 

@@ -142,6 +142,9 @@ class TrackedFrames:
     windows and was there in the frame before. A star lost in the frame right after an acquisition becomes *quiet* instead: still looked for
     and measured whenever found, but its loss calls for no search (the search just done did not make it
     measurable), so a star at the detection's threshold cannot force a search every frame.
+    A tracked frame is compiled (:func:`~starlog.centroid.tracked_frame.track_frame`): GAUSSFIT as the first
+    method with the PSF width given is measured there; other methods, and a frame where a window needs the robust
+    re-measurement, are measured by numpy from the located rows.
     Blocks never share state: the output does not depend on how blocks are spread over workers.
     """
 
