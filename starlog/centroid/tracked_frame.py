@@ -243,4 +243,5 @@ def track_frame(image: npt.NDArray[Any], state: TrackState, settings: TrackingSe
     state = replace(state, reference=state.reference[stay], flux=state.flux[stay], x=after.x[stay], y=after.y[stay],
                     vx=after.vx[stay], vy=after.vy[stay], quiet=(stars.quiet | after.lost)[stay],
                     since_acquisition=state.since_acquisition + 1)
-    return replace(located, centroids=centroids, lost=after.lost, state=state)
+    return TrackedFrame(search=False, risen=risen, detections=detections, found=found, centroids=centroids,
+                        lost=after.lost, state=state)
