@@ -418,9 +418,9 @@ def gather_windows(image, xc, yc, h, background, saturation, data, valid, satpix
 # references. Their inputs come in the named tuples built there (_Light, _Search, _Stars, _Fit, _Windows, _Rule,
 # _Next).
 
-SEARCH, LOCATED, MEASURED, ROBUST = 0, 1, 2, 3
-"""Statuses: the frame must be searched in full; stars located (windows cut); measured and advanced; a star's
-window needs the robust re-measurement (numpy measures the frame)."""
+SEARCH, LOCATED, MEASURED, FINISH = 0, 1, 2, 3
+"""Statuses: the frame must be searched in full; stars located (windows cut); measured and advanced; fitted, numpy
+to finish the rows (a window needs the robust re-measurement)."""
 
 _FIT_FAILED, _LOW_SNR, _SATURATED, _BORDER, _MASKED = 4, 32, 1, 2, 64
 _TRACKED, _KEPT = 256, 8 | 16
@@ -769,6 +769,7 @@ def _cut_windows(image, detections, fit, windows):  # type: ignore[no-untyped-de
         noise = _maximum(det.noise, fit.noise_floor)
         windows.noise[k] = noise if math.isfinite(noise) and noise > 0 else 1.0
         windows.background[k] = det.background if math.isfinite(det.background) else 0.0
+        windows.flux0[k] = det.flux
         windows.xc[k], windows.yc[k] = int(np.rint(det.x)), int(np.rint(det.y))
         windows.dx0[k], windows.dy0[k] = det.x - windows.xc[k], det.y - windows.yc[k]
         for j in range(w + 1):
@@ -905,60 +906,69 @@ def _peak_near(windows, fit, k, dx, dy):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _fit_windows(windows, fit, cx, cy, flux, background, width, sigma, flux_err, ok):  # type: ignore[no-untyped-def]
-    """GAUSSFIT of every window from its coarse position and first flux, as ``fit_gaussians`` runs it; ``ok``
-    as it judges the fit."""
-    n = cx.size
+def _fit_windows(windows, fit, fitted):  # type: ignore[no-untyped-def]
+    """The first flux of every window at its coarse position (``_prepare``), then GAUSSFIT from there as
+    ``fit_gaussians`` runs it, into ``fitted``; ``ok`` as it judges the fit."""
+    n, w = fitted.dx.size, windows.data.shape[1]
+    unit, terms = np.empty((w, w)), np.empty(2 * w * w)
     for k in range(n):
-        cx[k], cy[k] = windows.dx0[k], windows.dy0[k]
-        flux[k] = _maximum(flux[k], 1.0 * windows.noise[k])
-        background[k], width[k] = 0.0, fit.psf
+        _coarse_model(windows.cdf, k, w, unit)
+        fitted.f0[k], _ = _linear_flux(windows.data[k], windows.valid_f[k], windows.noise[k], fit.gain, unit,
+                                       windows.flux0[k], 1, terms)
+        fitted.dx[k], fitted.dy[k] = windows.dx0[k], windows.dy0[k]
+        fitted.flux[k] = _maximum(fitted.f0[k], 1.0 * windows.noise[k])
+        fitted.background[k], fitted.width[k] = 0.0, fit.psf
     good_var, active = np.empty(n, np.bool_), np.empty(n, np.bool_)
-    fit_stars(windows.data, windows.valid_f, windows.noise, fit.gain, fit.edges, cx, cy, flux, background, width,
-              fit.fit_background, fit.fit_sigma, fit.iterations, fit.tol, sigma, flux_err, good_var, active)
+    fit_stars(windows.data, windows.valid_f, windows.noise, fit.gain, fit.edges, fitted.dx, fitted.dy, fitted.flux,
+              fitted.background, fitted.width, fit.fit_background, fit.fit_sigma, fit.iterations, fit.tol,
+              fitted.sigma, fitted.flux_err, good_var, active)
     limit = fit.half - 0.5
     for k in range(n):
-        ok[k] = (active[k] and math.isfinite(cx[k]) and math.isfinite(cy[k]) and abs(cx[k]) < limit
-                 and abs(cy[k]) < limit and flux[k] > 0 and good_var[k])
+        fitted.ok[k] = (active[k] and math.isfinite(fitted.dx[k]) and math.isfinite(fitted.dy[k])
+                        and abs(fitted.dx[k]) < limit and abs(fitted.dy[k]) < limit and fitted.flux[k] > 0
+                        and good_var[k])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _measure_windows(detections, fit, windows, centroids):  # type: ignore[no-untyped-def]
-    """``measure_methods``' GAUSSFIT rows of the located stars into ``centroids``; False when a window needs the
-    robust re-measurement, or a failed fit's fallback the PSF width it fitted (numpy measures the frame)."""
-    n, w = detections.size, windows.data.shape[1]
-    unit, mu, terms = np.empty((w, w)), np.empty((w, w)), np.empty(2 * w * w)
-    ex, ey = np.empty(w), np.empty(w)
-    f0, first = np.empty(n), np.empty(n)
-    for k in range(n):
-        _coarse_model(windows.cdf, k, w, unit)
-        first[k], _ = _linear_flux(windows.data[k], windows.valid_f[k], windows.noise[k], fit.gain, unit,
-                                   detections[k].flux, 1, terms)
-    f0[:] = first
-    cx, cy, bg, width = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    sigma, flux_err, ok = np.empty(n), np.empty(n), np.empty(n, np.bool_)
-    _fit_windows(windows, fit, cx, cy, first, bg, width, sigma, flux_err, ok)
-    flux = first
-    one = np.empty(1)
-    for k in range(n):
-        background = bg[k] if ok[k] else 0.0
-        dx, dy = (cx[k], cy[k]) if ok[k] else (windows.dx0[k], windows.dy0[k])
-        start = flux[k] if ok[k] and math.isfinite(flux[k]) else f0[k]
-        if fit.robust and _needs_robust(windows, fit, k, dx, dy, start, background, width[k], ex, ey, mu):
-            return False
-        if not ok[k]:
-            if fit.fit_sigma:
-                return False
+def _needs_numpy(windows, fit, fitted):  # type: ignore[no-untyped-def]
+    """Whether a window needs the robust re-measurement (``_remeasure_robust``'s test), or a failed fit's fallback
+    the PSF width it fitted: then numpy finishes the rows from the fit (``extract.gaussfit_rows``)."""
+    w = windows.data.shape[1]
+    mu, ex, ey = np.empty((w, w)), np.empty(w), np.empty(w)
+    for k in range(fitted.dx.size):
+        ok = fitted.ok[k]
+        if not ok and fit.fit_sigma:
+            return True
+        if not fit.robust:
+            continue
+        dx, dy = (fitted.dx[k], fitted.dy[k]) if ok else (windows.dx0[k], windows.dy0[k])
+        flux = fitted.flux[k] if ok and math.isfinite(fitted.flux[k]) else fitted.f0[k]
+        if _needs_robust(windows, fit, k, dx, dy, flux, fitted.background[k] if ok else 0.0, fitted.width[k],
+                         ex, ey, mu):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _measured_rows(detections, fit, windows, fitted, centroids):  # type: ignore[no-untyped-def]
+    """``_with_fallback`` and ``_centroid_table``: the centroid rows of the fitted windows (none needing the
+    robust re-measurement), a failed fit at its coarse position with a flux fitted there and twice the bound."""
+    w = windows.data.shape[1]
+    unit, terms, one = np.empty((w, w)), np.empty(2 * w * w), np.empty(1)
+    for k in range(detections.size):
+        ok = fitted.ok[k]
+        dx, dy = (fitted.dx[k], fitted.dy[k]) if ok else (windows.dx0[k], windows.dy0[k])
+        flux, flux_err, sigma = fitted.flux[k], fitted.flux_err[k], fitted.sigma[k]
+        if not ok:
             _coarse_model(windows.cdf, k, w, unit)
-            flux[k], flux_err[k] = _linear_flux(windows.data[k], windows.valid_f[k], windows.noise[k], fit.gain,
-                                                unit, _maximum(f0[k], 0.0), 2, terms)
+            flux, flux_err = _linear_flux(windows.data[k], windows.valid_f[k], windows.noise[k], fit.gain, unit,
+                                          _maximum(fitted.f0[k], 0.0), 2, terms)
             fisher_sigmas(windows.valid_f[k:k + 1], windows.noise[k:k + 1], fit.gain, fit.edges,
-                          windows.dx0[k:k + 1], windows.dy0[k:k + 1], np.array([_maximum(flux[k], 0.0)]),
-                          width[k:k + 1], one)
-            sigma[k] = one[0] * 2.0
-        _centroid_row(detections[k], windows, fit, k, dx, dy, ok[k], flux[k], flux_err[k], sigma[k], background,
-                      width[k], centroids[k])
-    return True
+                          windows.dx0[k:k + 1], windows.dy0[k:k + 1], np.array([_maximum(flux, 0.0)]),
+                          fitted.width[k:k + 1], one)
+            sigma = one[0] * 2.0
+        _centroid_row(detections[k], windows, fit, k, dx, dy, ok, flux, flux_err, sigma,
+                      fitted.background[k] if ok else 0.0, fitted.width[k], centroids[k])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1030,11 +1040,14 @@ def _advance(centroids, stars, rule, rows, cols, nxt):  # type: ignore[no-untype
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def track_measure(shape, detections, found, stars, fit, windows, rule, centroids, nxt):  # type: ignore[no-untyped-def]
+def track_measure(shape, detections, found, stars, fit, windows, rule, fitted, centroids, nxt):  # type: ignore[no-untyped-def]
     """The measurement, the lost-star tests and the state's advance of a frame :func:`track_search` located:
-    ROBUST when numpy must measure it, SEARCH when a star is lost, else MEASURED."""
-    if not _measure_windows(detections, fit, windows, centroids):
-        return ROBUST
+    FINISH when numpy must finish its rows from ``fitted`` (:func:`_needs_numpy`), SEARCH when a star is lost,
+    else MEASURED."""
+    _fit_windows(windows, fit, fitted)
+    if _needs_numpy(windows, fit, fitted):
+        return FINISH
+    _measured_rows(detections, fit, windows, fitted, centroids)
     _lost(centroids, found, stars, rule, nxt.lost)
     if not rule.just_acquired:
         for k in range(stars.x.size):

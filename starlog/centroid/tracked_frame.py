@@ -8,11 +8,13 @@ centroid rows and the state after the frame. Between its two calls (:func:`starl
 position, the one number of the measurement the compiled loops do not take from the full mode's code, so a star
 measured here gets full mode's bytes for the same detection row (:func:`starlog.centroid.extract.measure_methods`).
 
-What it leaves to numpy (``centroids`` None in the result): a frame whose first method is not GAUSSFIT or whose PSF
-width is not given (:class:`WindowFit`), and a frame where a star's window holds a pixel its model cannot explain or
-its centroid strayed (the robust re-measurement, which judges every window of the frame together), or a failed fit
-when the PSF width is fitted. The located rows come back, and the caller measures them in numpy and ends the frame
-with :func:`~starlog.centroid.tracking.finish_tracked`.
+What it leaves to numpy: a frame whose first method is not GAUSSFIT or whose PSF width is not given
+(:class:`WindowFit`) is only located (``centroids`` None: the caller measures the located rows and ends the frame
+with :func:`~starlog.centroid.tracking.finish_tracked`); a frame where a star's window holds a pixel its model
+cannot explain or its centroid strayed (the robust re-measurement, which judges every window of the frame
+together), or a fit failed while the PSF width is fitted, has its rows finished by numpy from the compiled windows
+and fit (:func:`~starlog.centroid.extract.gaussfit_rows`: the robust pass, the fallback and the table, frame-wide
+numpy calls, a star's own only for the windows re-measured; ``remeasured`` in the result).
 
 Same numbers as the numpy form: the light check's cells, medians and thresholds and the window search's filter,
 peak and flags bit for bit; the coarse positions to the last bit of a logarithm (the C library's here, numpy's
@@ -33,9 +35,12 @@ import numpy as np
 import numpy.typing as npt
 from scipy.special import erf
 
+from starlog.centroid._stamps import Stamps
+from starlog.centroid.extract import gaussfit_rows
+from starlog.centroid.gaussfit import GaussFitResult
 from starlog.centroid.robust import clip_level
 from starlog.centroid.table import CENTROID_DTYPE
-from starlog.centroid.tracking import TrackedFrame, TrackingSettings, TrackState
+from starlog.centroid.tracking import TrackedFrame, TrackingSettings, TrackState, finish_tracked
 from starlog.detect import DETECTION_DTYPE
 from starlog.detect.detection import matched_filter_kernel
 
@@ -122,8 +127,21 @@ class _Windows(NamedTuple):
     background: F64
     dx0: F64
     dy0: F64
+    flux0: F64  # the detections' flux
     arguments: F64  # (n, 2, w + 1) of erf at the pixel edges, x then y
     cdf: F64
+
+
+class _Fitted(NamedTuple):  # gaussfit.GaussFitResult's columns, and the first flux
+    f0: F64
+    dx: F64
+    dy: F64
+    flux: F64
+    flux_err: F64
+    background: F64
+    width: F64
+    sigma: F64
+    ok: Mask
 
 
 class _Rule(NamedTuple):
@@ -147,7 +165,7 @@ def _windows(n: int, w: int) -> _Windows:
     return _Windows(np.empty((n, w, w)), np.empty((n, w, w), np.bool_), np.empty((n, w, w)),
                     np.empty((n, w, w), np.bool_), np.empty((n, 3), np.bool_), np.empty(n, np.int32),
                     np.empty(n, np.intp), np.empty(n, np.intp), np.empty(n), np.empty(n), np.empty(n), np.empty(n),
-                    np.empty((n, 2, w + 1)), np.empty((n, 2, w + 1)))
+                    np.empty(n), np.empty((n, 2, w + 1)), np.empty((n, 2, w + 1)))
 
 
 @functools.lru_cache(maxsize=16)
@@ -231,17 +249,33 @@ def track_frame(image: npt.NDArray[Any], state: TrackState, settings: TrackingSe
         return located
     erf(windows.arguments, out=windows.cdf)
     centroids = np.zeros(n, CENTROID_DTYPE)
+    fitted = _Fitted(*(np.empty(n) for _ in range(8)), np.empty(n, np.bool_))
     after = _Next(np.zeros(n, np.bool_), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.bool_))
     rule = _Rule(float(settings.flux_change), float(settings.flux_sigma), float(half_size), float(settings.search),
                  just_acquired)
-    status = track_measure(image.shape, detections, found, stars, kernel_fit, windows, rule, centroids, after)
+    status = track_measure(image.shape, detections, found, stars, kernel_fit, windows, rule, fitted, centroids, after)
     if status == SEARCH:
         return TrackedFrame(search=True, risen=risen)
-    if status != MEASURED:  # the robust re-measurement: numpy measures the located rows
-        return located
+    if status != MEASURED:  # a window needs the robust re-measurement: numpy finishes the rows
+        rows = _finished_in_numpy(detections, kernel_fit, windows, fitted, fit)
+        return replace(finish_tracked(located, rows, state, settings, half_size, image.shape), remeasured=True)
     stay = after.stay
     state = replace(state, reference=state.reference[stay], flux=state.flux[stay], x=after.x[stay], y=after.y[stay],
                     vx=after.vx[stay], vy=after.vy[stay], quiet=(stars.quiet | after.lost)[stay],
                     since_acquisition=state.since_acquisition + 1)
     return TrackedFrame(search=False, risen=risen, detections=detections, found=found, centroids=centroids,
                         lost=after.lost, state=state)
+
+
+def _finished_in_numpy(detections: npt.NDArray[np.void], kernel_fit: _Fit, windows: _Windows, fitted: _Fitted,
+                       fit: WindowFit) -> npt.NDArray[np.void]:
+    """The first method's rows from the compiled windows and fit, finished as full mode finishes them
+    (:func:`~starlog.centroid.extract.gaussfit_rows`: the robust re-measurement, a failed fit's fallback)."""
+    stamps = Stamps(data=windows.data, valid=windows.valid, xc=windows.xc, yc=windows.yc, h=kernel_fit.half,
+                    background=windows.background, noise=windows.noise, gain=kernel_fit.gain,
+                    saturated=windows.flags[:, 0], cut=windows.flags[:, 1], masked=windows.flags[:, 2],
+                    satpix=windows.satpix, clip=kernel_fit.saturation - windows.background)
+    result = GaussFitResult(dx=fitted.dx, dy=fitted.dy, flux=fitted.flux, flux_err=fitted.flux_err,
+                            background=fitted.background, psf_sigma=fitted.width, sigma=fitted.sigma, ok=fitted.ok)
+    return gaussfit_rows(detections, stamps, windows.dx0, windows.dy0, fitted.f0, result, windows.left_out,
+                         psf_sigma=fit.psf_sigma, gain=fit.gain, fit_psf_sigma=fit.fit_psf_sigma, robust=fit.robust)

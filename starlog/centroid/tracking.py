@@ -400,6 +400,8 @@ class TrackedFrame:
     """Stars not found or lost (:func:`lost_stars`): left out of the frame's tables."""
     state: TrackState | None = None
     """The state after the frame (:func:`advance`)."""
+    remeasured: bool = False
+    """The compiled frame left the end of the measurement to numpy: a window needed the robust re-measurement."""
 
 
 def finish_tracked(frame: TrackedFrame, centroids: npt.NDArray[np.void], state: TrackState,
