@@ -15,6 +15,9 @@ has converged, so a star's result no longer depends on the other stars of its fr
   secant method from winpos' doubled first step (:mod:`starlog.centroid.moment`);
 - :func:`fisher_sigmas` — the Cramer-Rao sigma of a star of known flux and PSF;
 - :func:`gather_windows` — the star windows;
+- :func:`symmetry_shifts` — the robust windows' centre of symmetry (:mod:`starlog.centroid.robust`), the 25
+  reflections of each window tried in turn;
+- :func:`evidence_sums` — the centroid stage's evidence of one frame (:mod:`starlog.centroid.evidence`);
 - :func:`track_search` and :func:`track_measure` — a tracked frame
   (:mod:`starlog.centroid.tracked_frame`): one pass over the frame for the light check's cell means
   that copies each star's search window while its rows are in the cache, the window search, then the
@@ -1139,3 +1142,34 @@ def evidence_sums(px, py, x, y, radius, apart, steps):  # type: ignore[no-untype
             centre[: before.size] = np.median(moves)
             steps[k] = steps[k] + _squares_about(moves, centre[: before.size], terms)
     return before.size
+
+
+# ---------------------------------------------------------------- the robust windows' centre of symmetry
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def symmetry_shifts(data, valid, reach, shift_x, shift_y):  # type: ignore[no-untyped-def]
+    """:func:`starlog.centroid.robust.symmetry_shifts` of every window into ``shift_x``, ``shift_y`` (the numpy
+    form's costs bit for bit: each pixel's absolute difference to its mirror where both are valid and the mirror
+    inside the window, summed in numpy's pairwise order, over the pairs; the first least of the shifts in turn)."""
+    n, w, _ = data.shape
+    h = (w - 1) // 2
+    terms = np.empty(w * w)
+    for k in range(n):
+        best, bx, by = np.inf, 0, 0
+        for sy in range(-reach, reach + 1):
+            for sx in range(-reach, reach + 1):
+                count = 0
+                for i in range(w):
+                    mi = 2 * h + sy - i
+                    ci = min(max(mi, 0), w - 1)
+                    for j in range(w):
+                        mj = 2 * h + sx - j
+                        cj = min(max(mj, 0), w - 1)
+                        pair = valid[k, i, j] and valid[k, ci, cj] and 0 <= mi < w and 0 <= mj < w
+                        terms[i * w + j] = abs(data[k, i, j] - data[k, ci, cj]) * (1.0 if pair else 0.0)
+                        count += pair
+                cost = (0.0 + _pairwise_sum(terms, 0, w * w)) / max(count, 1)
+                if cost < best:
+                    best, bx, by = cost, sx, sy
+        shift_x[k], shift_y[k] = bx, by
