@@ -53,8 +53,9 @@ Mask = npt.NDArray[np.bool_]
 
 DEFAULT_ACQUIRE_EVERY = 100
 """Frames between two full-frame searches. ``tools/bench_centroid_stage.py`` measures the choice: at 1024² a
-search costs about as much as two tracked frames, so one every 100 frames adds about 1 % to a tracked frame's
-cost, and a star entering too faint for :func:`new_light` waits at most a third of a second at 300 Hz."""
+search costs about five compiled tracked frames, so one every 100 frames adds about 4 % to a tracked frame's cost
+(every 200 frames is no cheaper within the machine's noise), and a star entering too faint for :func:`new_light`
+waits at most a third of a second at 300 Hz."""
 
 _KEPT_FLAGS = int(StarFlag.BLENDED | StarFlag.ELONGATED)
 """Detection flags a tracked star keeps from its acquisition (the others are measured again in every frame)."""
