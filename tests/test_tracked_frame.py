@@ -10,9 +10,12 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from scipy.ndimage import binary_dilation
 from scipy.special import erf
 
 from starlog.centroid import CentroidFlag, CentroidMethod
+# private module: the fraction of the saturation level full mode clips beside a saturated core
+from starlog.centroid._stamps import SHOULDER
 from starlog.centroid.extract import measure_methods, window_half_size
 from starlog.centroid.tracked_frame import WindowFit, track_frame
 from starlog.centroid.tracking import TrackedFrame, TrackingSettings, TrackState, cell_means, track_frame_vectorised
@@ -159,6 +162,25 @@ def test_a_saturated_star() -> None:
     frame = assert_same_frame(render(bright, seed=1), state)
     assert frame.centroids is not None
     assert np.count_nonzero(frame.centroids["flags"] & CentroidFlag.SATURATED) == 1
+
+
+@pytest.mark.parametrize("seed", [2, 3, 13])
+def test_a_saturated_core_s_shoulders_are_clipped_as_full_mode_clips_them(seed: int) -> None:
+    """Pixels just under the saturation level beside a saturated core count as saturated in full mode's windows
+    (``SHOULDER`` of the level above the background, joined to the core): the compiled windows clip them alike, and
+    the star is measured as full mode measures it."""
+    rng = np.random.default_rng(seed)
+    bright = [(30 + rng.uniform(-0.5, 0.5), 28 + rng.uniform(-0.5, 0.5), rng.uniform(3e5, 2e6)), (52.1, 12.9, 4000.0)]
+    state = acquired(render(bright, seed=100 + seed))
+    image = render(bright, seed=200 + seed)
+    frame = assert_same_frame(image, state)
+    assert frame.centroids is not None and frame.detections is not None
+    star = frame.detections[np.flatnonzero(frame.centroids["flags"] & CentroidFlag.SATURATED)[0]]
+    xc, yc = int(np.rint(star["x"])), int(np.rint(star["y"]))
+    window = image[yc - HALF:yc + HALF + 1, xc - HALF:xc + HALF + 1].astype(np.float64)
+    core = window >= 65535
+    level = star["background"] + SHOULDER * (65535 - star["background"])
+    assert np.any(binary_dilation(core, np.ones((3, 3), bool)) & ~core & (window >= level))  # a shoulder to clip
 
 
 def test_a_blank_window_right_after_the_acquisition() -> None:

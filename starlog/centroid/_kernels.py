@@ -761,9 +761,36 @@ def _locate(shape, k, px, py, search, stars, raw, tmp, filt, terms, row):  # typ
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _grow_saturation(data, valid, satpix, h, level):  # type: ignore[no-untyped-def]
+    """:func:`starlog.centroid._stamps.grown_saturation` of one saturated window: the valid pixels at least
+    ``level`` joined to its saturated ones (8-neighbours, as many rings as it grows, ``2 h + 1`` at most) turn
+    saturated, invalid and 0."""
+    w = data.shape[0]
+    sat, grown = satpix.copy(), np.empty_like(satpix)
+    for _ in range(2 * h + 1):
+        changed = False
+        for i in range(w):
+            for j in range(w):
+                near = sat[i, j]
+                for a in range(max(i - 1, 0), min(i + 2, w)):
+                    for b in range(max(j - 1, 0), min(j + 2, w)):
+                        near |= sat[a, b]
+                grown[i, j] = sat[i, j] or (near and valid[i, j] and data[i, j] >= level)
+                changed |= grown[i, j] != sat[i, j]
+        if not changed:
+            break
+        sat[:, :] = grown
+    for i in range(w):
+        for j in range(w):
+            if sat[i, j] and not satpix[i, j]:
+                satpix[i, j], valid[i, j], data[i, j] = True, False, 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _cut_windows(image, detections, fit, windows):  # type: ignore[no-untyped-def]
-    """The measurement windows of the located stars as ``measure_methods`` cuts them (``_star_stamps``), the
-    pixels each leaves out, and the error function's arguments of each star's model at its coarse position."""
+    """The measurement windows of the located stars as ``measure_methods`` cuts them (``_star_stamps``, a saturated
+    core's shoulders saturated too), the pixels each leaves out, and the error function's arguments of each star's
+    model at its coarse position."""
     n, w = detections.size, windows.data.shape[1]
     rows, cols = image.shape
     h = fit.half
@@ -780,6 +807,10 @@ def _cut_windows(image, detections, fit, windows):  # type: ignore[no-untyped-de
             windows.arguments[k, 1, j] = (fit.edges[j] - windows.dy0[k]) / fit.psf * _INV_SQ2
     gather_windows(image, windows.xc, windows.yc, h, windows.background, fit.saturation, windows.data, windows.valid,
                    windows.satpix, windows.flags)
+    for k in range(n):
+        if windows.flags[k, 0]:
+            _grow_saturation(windows.data[k], windows.valid[k], windows.satpix[k], h,
+                             fit.shoulder * (fit.saturation - windows.background[k]))
     for k in range(n):
         inside_rows = inside_cols = invalid = 0
         for d in range(-h, h + 1):

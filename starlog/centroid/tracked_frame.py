@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.special import erf
 
-from starlog.centroid._stamps import Stamps
+from starlog.centroid._stamps import SHOULDER, Stamps
 from starlog.centroid.extract import gaussfit_rows
 from starlog.centroid.gaussfit import GaussFitResult
 from starlog.centroid.robust import clip_level
@@ -105,6 +105,7 @@ class _Fit(NamedTuple):
     gain: float
     noise_floor: float  # read noise in DN (-inf: none)
     saturation: float
+    shoulder: float  # _stamps.SHOULDER: a saturated core's shoulders are saturated too
     fit_background: bool
     fit_sigma: bool
     robust: bool
@@ -174,8 +175,8 @@ def _fit_settings(fit: WindowFit, saturation: float) -> _Fit:
     h, w = fit.half_size, 2 * fit.half_size + 1
     edges = (-h - 0.5) + np.arange(w + 1, dtype=np.float64)  # as _stamps._edges
     floor = fit.read_noise / fit.gain if fit.read_noise is not None else -np.inf
-    return _Fit(h, float(fit.psf_sigma), float(fit.gain), float(floor), float(saturation), True, fit.fit_psf_sigma,
-                fit.robust, 12, 1e-4, edges, clip_level(np.arange(w * w + 1)))
+    return _Fit(h, float(fit.psf_sigma), float(fit.gain), float(floor), float(saturation), SHOULDER, True,
+                fit.fit_psf_sigma, fit.robust, 12, 1e-4, edges, clip_level(np.arange(w * w + 1)))
 
 
 @functools.lru_cache(maxsize=16)
