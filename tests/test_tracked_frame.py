@@ -256,6 +256,15 @@ def test_random_fields_and_motions(seed: int, n: int, vx: float, vy: float, rows
         state, before = (got.state, got.risen) if got.state is not None else (acquired(image), None)
 
 
+def test_a_frame_narrower_than_a_cell_is_tracked_without_the_light_check() -> None:
+    """No whole cell in the frame: the acquisition keeps no cells, and the tracked frames go on without them."""
+    stars, shape = [(7.3, 12.7, 6000.0), (6.6, 30.2, 8000.0)], (44, SETTINGS.cell - 2)
+    state = acquired(render(stars, seed=0, shape=shape))
+    assert state.cells is not None and state.cells.size == 0 and state.x.size == 2
+    frame = assert_same_frame(render(stars, seed=1, shape=shape), state)
+    assert not frame.search and frame.centroids is not None and frame.centroids.size == 2
+
+
 def test_the_cell_means_of_a_float_frame_with_missing_pixels() -> None:
     """The light check's cells of a float frame: missing pixels at the median of the others, as numpy's."""
     state = acquired(render(STARS, seed=0))

@@ -199,7 +199,8 @@ def _light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSetting
     """The light check's inputs; None when the frame's cells are not the acquisition's (another size)."""
     c = settings.cell
     cells = state.cells if state.cells is not None else np.zeros((0, 0))
-    if state.cells is not None and cells.shape != (image.shape[0] // c, image.shape[1] // c):
+    rows, cols = image.shape[0] // c, image.shape[1] // c
+    if state.cells is not None and cells.shape != ((rows, cols) if rows and cols else (0, 0)):  # as cell_means
         return None
     excess = state.excess if state.excess is not None else np.zeros(cells.shape)
     before = before if before is not None else np.zeros((0, 0), np.bool_)

@@ -365,8 +365,8 @@ def lasting_light(risen: Mask, before: Mask | None, tracked: int) -> bool:
 
 
 def _lit(cells: F64) -> F64:
-    """How far each cell's mean stands above the frame's median cell."""
-    return np.maximum(cells - np.median(cells), 0.0)
+    """How far each cell's mean stands above the frame's median cell (none: a frame smaller than a cell)."""
+    return np.maximum(cells - np.median(cells), 0.0) if cells.size else np.zeros(cells.shape)
 
 
 def advance(state: TrackState, centroids: npt.NDArray[np.void], measured: Mask, quiet: Mask,
