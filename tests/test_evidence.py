@@ -5,9 +5,18 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from starlog.centroid import CentroidMethod, extract_stars
-from starlog.centroid.evidence import EvidenceAccumulator, frame_evidence, recommend
+from starlog.centroid.evidence import (
+    EvidenceAccumulator,
+    FrameEvidence,
+    evidence_sums,
+    evidence_sums_vectorised,
+    frame_evidence,
+    recommend,
+)
 from starlog.io.info import describe_log, format_description
 from starlog.sim.psf import render_stars
 from starlog.stages.centroid import centroid_log
@@ -58,3 +67,52 @@ def test_the_stage_records_the_evidence_and_info_names_the_method(tmp_path: Path
     info = describe_log(out)
     assert info["centroid_evidence"][0]["recommended"] == summary["recommended"]["method"]
     assert "recommended: " + summary["recommended"]["reason"] in format_description(info)
+
+
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**32 - 1), methods=st.integers(1, 5), before=st.integers(0, 40), after=st.integers(0, 40),
+       spread=st.sampled_from([3.0, 30.0, 300.0]))
+def test_the_compiled_sums_are_numpys(seed: int, methods: int, before: int, after: int, spread: float) -> None:
+    """Random frames, stars near each other and near the matching radius included: the compiled sums are
+    the numpy form's, bit for bit."""
+    rng = np.random.default_rng(seed)
+
+    def frame(n: int, shift: tuple[float, float]) -> FrameEvidence:
+        x = rng.uniform(0, spread, n) + shift[0] + rng.normal(0, 0.02, (methods, n))
+        y = rng.uniform(0, spread, n) + shift[1] + rng.normal(0, 0.02, (methods, n))
+        return FrameEvidence(x, y, np.ones((methods, n)))
+
+    first = frame(before, (0.0, 0.0))
+    second = FrameEvidence(first.x[:, : after] + rng.uniform(-1.2, 1.2), first.y[:, : after] + rng.normal(0, 0.5),
+                           first.sigma[:, : after]) if after <= before and seed % 2 else frame(after, (0.3, -0.2))
+    for previous in (None, first):
+        got, want = evidence_sums(previous, second), evidence_sums_vectorised(previous, second)
+        for name in ("apart", "steps", "before", "after", "squares"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**32 - 1), methods=st.integers(1, 4), frames=st.integers(1, 8))
+def test_the_accumulator_gives_the_same_evidence_with_the_compiled_sums(seed: int, methods: int, frames: int) -> None:
+    """A field drifting with the platform, stars leaving and new ones coming in, each method with its own noise:
+    the pooled evidence, its per-star sums and their bootstrap are the numpy form's, bit for bit; the per-star sums
+    hold every pair's displacement once."""
+    rng = np.random.default_rng(seed)
+    names = [f"M{k}" for k in range(methods)]
+    fast, reference = EvidenceAccumulator(names), EvidenceAccumulator(names, vectorised=True)
+    x0, y0 = rng.uniform(0, 400, 60), rng.uniform(0, 400, 60)
+    shift = np.zeros(2)
+    for _ in range(frames):
+        shift += rng.normal(0, 0.3, 2)
+        seen = rng.permutation(np.flatnonzero(rng.random(x0.size) < 0.8))  # in no fixed order
+        noise = rng.uniform(0.01, 0.1, (methods, 1))
+        x = x0[seen] + shift[0] + rng.normal(0, 1, (methods, seen.size)) * noise
+        y = y0[seen] + shift[1] + rng.normal(0, 1, (methods, seen.size)) * noise
+        frame = FrameEvidence(x, y, np.broadcast_to(noise, x.shape).copy())
+        fast.add(frame)
+        reference.add(frame)
+    assert fast.result() == reference.result()
+    np.testing.assert_array_equal(fast.star_sums, reference.star_sums)
+    np.testing.assert_array_equal(fast.star_pairs, reference.star_pairs)
+    np.testing.assert_allclose(fast.star_sums.sum(axis=1), fast.steps, rtol=1e-12, atol=0)
+    assert fast.star_pairs.sum() == fast.pairs

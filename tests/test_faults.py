@@ -331,8 +331,8 @@ def test_an_input_removed_or_truncated_while_a_stage_reads_it_is_one_line(how: s
     done = _when_writing(["centroid", str(source), "-o", str(out / "c.mcap"), "--method", "MOMENT", "--workers", "2",
                           "-q"], out, fault)
     assert "Traceback" not in done.stderr
-    if done.returncode == 0:  # read through before the fault: a complete output
-        with LogReader(out / "c.mcap") as log:
+    if done.returncode == 0:  # read through before the fault: a complete layer (its base is gone or cut since)
+        with LogReader(out / "c.mcap", chain=False) as log:
             assert log.topics
     else:
         assert done.returncode == 1

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from starlog.centroid import CentroidFlag, CentroidMethod, measure_centroids
 # private module _stamps: the robust functions take stamps, which only it cuts; its model is the true star
@@ -15,6 +17,8 @@ from starlog.centroid.robust import (
     mask_outliers,
     model_error,
     symmetry_centre,
+    symmetry_shifts,
+    symmetry_shifts_vectorised,
 )
 from starlog.detect import detect_stars
 from starlog.sim.camera import CameraModel
@@ -210,3 +214,22 @@ def test_a_saturated_star_s_own_light_is_judged_by_symmetry_and_an_artefact_besi
         assert found.any() == masked
         if masked:
             assert found[0, 8, 14:16].all() and found[0, :, :12].sum() == 0
+
+
+@settings(max_examples=100, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(0, 12), h=st.integers(1, 9), reach=st.integers(0, 3),
+       holes=st.booleans(), saturation=st.sampled_from([np.inf, 140.0]))
+def test_the_compiled_centre_of_symmetry_is_numpys(seed: int, n: int, h: int, reach: int, holes: bool,
+                                                    saturation: float) -> None:
+    """Windows cut by the frame's edge, with missing and saturated pixels, stars and artefacts off centre: the
+    compiled shifts are the numpy form's, bit for bit."""
+    rng = np.random.default_rng(seed)
+    image = 100.0 + rng.normal(0, 4.0, (48, 48)) + render_stars((48, 48), rng.uniform(0, 48, 6), rng.uniform(0, 48, 6),
+                                                                 rng.uniform(200, 4000, 6), 1.2)
+    if holes:
+        image[rng.random(image.shape) < 0.05] = np.nan
+    x, y = rng.uniform(-3, 51, n), rng.uniform(-3, 51, n)
+    stamps = gather_stamps(image, x, y, h, np.full(n, 100.0), np.full(n, 4.0), 1.0, saturation)
+    got, want = symmetry_shifts(stamps, reach), symmetry_shifts_vectorised(stamps, reach)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])

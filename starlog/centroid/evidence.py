@@ -38,8 +38,10 @@ import numpy.typing as npt
 
 from starlog.centroid.table import CentroidFlag
 
-__all__ = ["DRAWS", "MIN_STARS", "EvidenceAccumulator", "FrameEvidence", "add_confidence", "bootstrap_rms",
-           "frame_evidence", "recommend", "trust"]
+__all__ = ["DRAWS", "MIN_STARS", "EvidenceAccumulator", "FrameEvidence", "FrameSums", "add_confidence",
+           "bootstrap_rms", "evidence_sums", "evidence_sums_vectorised", "frame_evidence", "recommend", "trust"]
+
+F64 = npt.NDArray[np.float64]
 
 MIN_STARS = 20
 """Fewest star pairs (a star in two consecutive frames) the rule needs to name a method."""
@@ -95,11 +97,67 @@ def _matched_pairs(before: FrameEvidence, after: FrameEvidence) -> tuple[npt.NDA
     return i, ab[i]
 
 
+@dataclass(frozen=True)
+class FrameSums:
+    """One frame's sums for :class:`EvidenceAccumulator`: per method, the sum of squared differences of its
+    positions to the other methods' median (0 with one method) and of the squared platform-free displacements of
+    the stars matched to the frame before; the matched stars' columns in that frame and in this one (none when
+    under three pairs), and each pair's squared displacement over both axes, ``(methods, pairs)``."""
+
+    apart: F64
+    steps: F64
+    before: npt.NDArray[np.intp]
+    after: npt.NDArray[np.intp]
+    squares: F64
+
+
+def evidence_sums(previous: FrameEvidence | None, frame: FrameEvidence) -> FrameSums:
+    """:class:`FrameSums` of a frame, compiled (:func:`starlog.centroid._kernels.evidence_sums`; the same numbers
+    as :func:`evidence_sums_vectorised`, but where two stars are at exactly the same distance)."""
+    from starlog.centroid._kernels import evidence_sums as compiled  # numba: imported, and compiled, on first use
+
+    methods = frame.x.shape[0]
+    apart, steps = np.zeros(methods), np.zeros(methods)
+    before = previous if previous is not None else FrameEvidence(*(np.zeros((methods, 0)),) * 3)
+    i, j, squares = compiled(np.ascontiguousarray(before.x, np.float64), np.ascontiguousarray(before.y, np.float64),
+                             np.ascontiguousarray(frame.x, np.float64), np.ascontiguousarray(frame.y, np.float64),
+                             MATCH_RADIUS, apart, steps)
+    return FrameSums(apart, steps, i.astype(np.intp, copy=False), j.astype(np.intp, copy=False), squares)
+
+
+def evidence_sums_vectorised(previous: FrameEvidence | None, frame: FrameEvidence) -> FrameSums:
+    """:func:`evidence_sums` in numpy: the reference the tests compare the compiled loop with."""
+    methods, n = frame.x.shape
+    apart, steps = np.zeros(methods), np.zeros(methods)
+    if methods >= 2 and n:
+        for k in range(methods):
+            others = [j for j in range(methods) if j != k]
+            dx = frame.x[k] - np.median(frame.x[others], axis=0)
+            dy = frame.y[k] - np.median(frame.y[others], axis=0)
+            apart[k] = float(np.sum(dx * dx) + np.sum(dy * dy))
+    none = np.zeros(0, np.intp)
+    if previous is None:
+        return FrameSums(apart, steps, none, none, np.zeros((methods, 0)))
+    i, j = _matched_pairs(previous, frame)
+    if i.size < 3:
+        return FrameSums(apart, steps, none, none, np.zeros((methods, 0)))
+    squares = np.empty((methods, i.size))
+    for k in range(methods):
+        sx = frame.x[k, j] - previous.x[k, i]
+        sy = frame.y[k, j] - previous.y[k, i]
+        sx, sy = sx - np.median(sx), sy - np.median(sy)
+        steps[k] = float(np.sum(sx * sx) + np.sum(sy * sy))
+        squares[k] = sx * sx + sy * sy
+    return FrameSums(apart, steps, i, j, squares)
+
+
 @dataclass
 class EvidenceAccumulator:
-    """The evidence of a log's frames, pooled per method (:meth:`add` in frame order, :meth:`result`)."""
+    """The evidence of a log's frames, pooled per method (:meth:`add` in frame order, :meth:`result`); each
+    frame's sums by :func:`evidence_sums`, or its numpy form with ``vectorised``."""
 
     methods: list[str]
+    vectorised: bool = False
     steps: list[float] = field(init=False)  # per method: sum of squared platform-free displacements, both axes
     apart: list[float] = field(init=False)  # per method: sum of squared differences to the others' median
     sigmas: list[list[npt.NDArray[np.float64]]] = field(init=False)
@@ -123,25 +181,17 @@ class EvidenceAccumulator:
             for k in range(len(self.methods)):
                 self.sigmas[k].append(frame.sigma[k, : MAX_SIGMAS - self.stars])
         self.stars += n
+        sums = (evidence_sums_vectorised if self.vectorised else evidence_sums)(self.previous, frame)
         if len(self.methods) >= 2 and n:
-            for k in range(len(self.methods)):
-                others = [j for j in range(len(self.methods)) if j != k]
-                dx = frame.x[k] - np.median(frame.x[others], axis=0)
-                dy = frame.y[k] - np.median(frame.y[others], axis=0)
-                self.apart[k] += float(np.sum(dx * dx) + np.sum(dy * dy))
+            self.apart = [total + float(a) for total, a in zip(self.apart, sums.apart)]
         followed = np.full(n, -1, np.int64)
-        if self.previous is not None:
-            i, j = _matched_pairs(self.previous, frame)
-            if i.size >= 3:
-                self.pairs += int(i.size)
-                followed[j] = self._star_numbers(i)
-                for k in range(len(self.methods)):
-                    sx = frame.x[k, j] - self.previous.x[k, i]
-                    sy = frame.y[k, j] - self.previous.y[k, i]
-                    sx, sy = sx - np.median(sx), sy - np.median(sy)
-                    self.steps[k] += float(np.sum(sx * sx) + np.sum(sy * sy))
-                    np.add.at(self.star_sums[k], followed[j], sx * sx + sy * sy)
-                np.add.at(self.star_pairs, followed[j], 1.0)
+        if sums.before.size:
+            self.pairs += int(sums.before.size)
+            self.steps = [total + float(d) for total, d in zip(self.steps, sums.steps)]
+            followed[sums.after] = self._star_numbers(sums.before)
+            for k in range(len(self.methods)):
+                np.add.at(self.star_sums[k], followed[sums.after], sums.squares[k])
+            np.add.at(self.star_pairs, followed[sums.after], 1.0)
         self.previous, self.followed = frame, followed
 
     def _star_numbers(self, i: npt.NDArray[np.intp]) -> npt.NDArray[np.int64]:

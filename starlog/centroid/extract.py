@@ -34,7 +34,7 @@ from starlog.centroid._stamps import (
 from starlog.centroid.bicubic import bicubic_peak
 from starlog.centroid.coarse import log_parabola_peak
 from starlog.centroid.epsf import EPSF, GaussianPSF
-from starlog.centroid.gaussfit import fit_gaussians
+from starlog.centroid.gaussfit import GaussFitResult, fit_gaussians
 from starlog.centroid.gradient import radial_symmetry_centre
 from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.moment import squared_centroid, weighted_centroid
@@ -46,7 +46,7 @@ from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = ["EFFICIENCY", "HOT_PIXEL_SHARPNESS", "UNDERSAMPLED_PSF_SIGMA", "artefact_candidates", "artefact_detections",
-           "detect_options_for_psf", "estimate_psf_sigma", "extract_stars",
+           "detect_options_for_psf", "estimate_psf_sigma", "extract_stars", "gaussfit_rows",
            "measure_centroids", "measure_methods", "window_half_size"]
 
 F64 = npt.NDArray[np.float64]
@@ -450,15 +450,32 @@ def _prepare(arr: npt.NDArray[Any], det: npt.NDArray[Any], h: int, psf: float, g
     return _Frame(det, st, dx0, dy0, f0, psf_arr, _left_out(st, arr.shape))
 
 
-def _centroids_of(meth: CentroidMethod, frame: _Frame, *, robust: bool, **options: Any) -> npt.NDArray[np.void]:
-    """One method's CENTROID_DTYPE rows from a prepared frame (robust re-measurement included)."""
+def _centroids_of(meth: CentroidMethod, frame: _Frame, *, robust: bool, measured: _Measured | None = None,
+                  **options: Any) -> npt.NDArray[np.void]:
+    """One method's CENTROID_DTYPE rows from a prepared frame (robust re-measurement included); ``measured``:
+    the method's result on the frame's windows, when already at hand."""
     st, dx0, dy0, f0, psf = frame.st, frame.dx0, frame.dy0, frame.f0, frame.psf
-    measured = _measure(meth, st, dx0, dy0, f0, psf, **options)
+    if measured is None:
+        measured = _measure(meth, st, dx0, dy0, f0, psf, **options)
     n_masked = frame.left_out.copy()
     if robust:
         measured, st, n_outliers = _remeasure_robust(meth, st, measured, dx0, dy0, f0, psf, **options)
         n_masked += n_outliers
     return _centroid_table(frame.det, st, _with_fallback(measured, st, dx0, dy0, f0), n_masked)
+
+
+def gaussfit_rows(detections: npt.NDArray[Any], stamps: Stamps, dx0: F64, dy0: F64, f0: F64, fit: GaussFitResult,
+                  left_out: npt.NDArray[np.int32], *, psf_sigma: float, gain: float, fit_psf_sigma: bool = False,
+                  robust: bool = True) -> npt.NDArray[np.void]:
+    """GAUSSFIT's rows of :func:`measure_methods` from its first steps done elsewhere (the tracked frame's compiled
+    loops): the detections' windows as it cuts them, the coarse offsets, the first flux, the fit from there
+    (:func:`~starlog.centroid.gaussfit.fit_gaussians` with ``psf_sigma``) and the window pixels left out. The rest,
+    the robust re-measurement, a failed fit's fallback and the table, is done here: the same bytes."""
+    measured = _Measured(fit.dx, fit.dy, fit.ok, fit.flux, fit.flux_err, fit.sigma, fit.psf_sigma,
+                         np.where(fit.ok, fit.background, 0.0))
+    frame = _Frame(detections, stamps, dx0, dy0, f0, np.full(dx0.size, float(psf_sigma)), left_out)
+    return _centroids_of(CentroidMethod.GAUSSFIT, frame, robust=robust, measured=measured, gain=gain,
+                         weighting="optimal", debias=True, fit_psf_sigma=fit_psf_sigma)
 
 
 def _measure(meth: CentroidMethod, st: Stamps, dx0: F64, dy0: F64, f0: F64, psf: F64, *, gain: float,

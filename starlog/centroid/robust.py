@@ -54,6 +54,8 @@ __all__ = [
     "skew_corrected",
     "suspect_pixels",
     "symmetry_centre",
+    "symmetry_shifts",
+    "symmetry_shifts_vectorised",
     "take_stamps",
     "without_pixels",
 ]
@@ -187,14 +189,27 @@ def model_error(st: Stamps, mu: F64, min_snr: float = 10.0) -> ModelError:
     return ModelError(eps, halo, misfit)
 
 
-def _symmetry_shifts(st: Stamps, reach: int = 2) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+def symmetry_shifts(st: Stamps, reach: int = 2) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     """Each star's centre of symmetry, as twice its offset from the window centre (up to ``reach``
     half pixels per axis: a window may be centred on an artefact next to its star).
 
     The reflection that changes the window least (mean absolute difference between the pixels
     and their mirrors, over the valid pairs inside the window): a star's light decides it
-    whatever its shape, and an artefact weighs on every candidate alike.
+    whatever its shape, and an artefact weighs on every candidate alike. Compiled
+    (:func:`starlog.centroid._kernels.symmetry_shifts`); :func:`symmetry_shifts_vectorised` is the same in numpy,
+    bit for bit.
     """
+    from starlog.centroid._kernels import symmetry_shifts as compiled  # numba: imported, and compiled, on first use
+
+    n = st.data.shape[0]
+    shift_x, shift_y = np.empty(n, np.intp), np.empty(n, np.intp)
+    compiled(np.ascontiguousarray(st.data, np.float64), np.ascontiguousarray(st.valid, np.bool_), int(reach),
+             shift_x, shift_y)
+    return shift_x, shift_y
+
+
+def symmetry_shifts_vectorised(st: Stamps, reach: int = 2) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """:func:`symmetry_shifts` in numpy: the reference the tests compare the compiled loop with."""
     n = st.data.shape[0]
     best = np.full(n, np.inf)
     shift_x = np.zeros(n, np.intp)
@@ -215,13 +230,13 @@ def _symmetry_shifts(st: Stamps, reach: int = 2) -> tuple[npt.NDArray[np.intp], 
 def symmetry_centre(st: Stamps) -> tuple[F64, F64]:
     """Each star's centre of symmetry (offsets from the window centre, to the half pixel): a start
     that an artefact does not pull, unlike a centroid or a fit over the whole window."""
-    shift_x, shift_y = _symmetry_shifts(st)
+    shift_x, shift_y = symmetry_shifts(st)
     return 0.5 * shift_x, 0.5 * shift_y
 
 
 def _mirrored(a: npt.NDArray[Any], shifts: tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]
               ) -> tuple[npt.NDArray[Any], Mask]:
-    """Each window point-reflected about its star's centre of symmetry (:func:`_symmetry_shifts`):
+    """Each window point-reflected about its star's centre of symmetry (:func:`symmetry_shifts`):
     the value at the mirror pixel of every pixel, and where that mirror pixel lies inside the window."""
     n, w, _ = a.shape
     h = (w - 1) // 2
@@ -265,7 +280,7 @@ def outlier_pixels(st: Stamps, mu: F64, k: F64 | float | None = None, error: Mod
     # the star's own light is mirrored about its centre: a pixel no brighter (beyond noise) than
     # the brightest pixel around its mirror is that light, not an artefact
     mirror_max, inside = _mirrored(_max3x3(np.where(st.valid | st.satpix, _with_clipped(st), -np.inf)),
-                                   _symmetry_shifts(st))
+                                   symmetry_shifts(st))
     mirror_max = np.where(inside, mirror_max, -np.inf)
     core &= ~by_symmetry[:, None, None] | ((st.data - mirror_max) > level * np.sqrt(2.0 * var))
     if not core.any():

@@ -5,8 +5,12 @@ A star tracker acquires its stars by searching the whole frame (detection, :func
 then tracks them: each star's next position is predicted from its last ones (constant velocity), its peak is
 found in a small window of the matched-filtered frame around the prediction, and its coarse position, with
 the background and noise its acquisition measured, makes the detection row that the ordinary measurement
-(:func:`starlog.centroid.extract.measure_methods`) takes. So a tracked star is measured by the very code of
-full mode, on the same window whenever the coarse position rounds to the same pixel.
+(:func:`starlog.centroid.extract.measure_methods`) takes. So a tracked star is measured as full mode measures
+it, on the same window whenever the coarse position rounds to the same pixel.
+
+The functions here are the numpy form of a tracked frame (:func:`track_frame_vectorised`, completed by
+:func:`finish_tracked` once measured); :mod:`starlog.centroid.tracked_frame` does the same in compiled code,
+the same numbers given the same state, and the tests compare the two.
 
 The functions here decide when a tracked frame must be searched in full instead:
 
@@ -26,8 +30,8 @@ Coordinates: x = column, y = row, 0-based, (0, 0) at the centre of the top-left 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -40,16 +44,18 @@ from starlog.detect.detection import matched_filter_kernel
 from starlog.detect.position import coarse_offsets
 from starlog.errors import InvalidParameterError
 
-__all__ = ["DEFAULT_ACQUIRE_EVERY", "TrackingSettings", "TrackState", "advance", "is_image_sequence",
-           "lasting_light", "locate_stars", "lost_stars", "new_light", "start_tracking"]
+__all__ = ["DEFAULT_ACQUIRE_EVERY", "TrackedFrame", "TrackingSettings", "TrackState", "advance", "cell_means",
+           "finish_tracked", "is_image_sequence", "lasting_light", "locate_stars", "lost_stars", "new_light",
+           "start_tracking", "track_frame_vectorised"]
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
 
 DEFAULT_ACQUIRE_EVERY = 100
 """Frames between two full-frame searches. ``tools/bench_centroid_stage.py`` measures the choice: at 1024² a
-search costs about as much as two tracked frames, so one every 100 frames adds about 1 % to a tracked frame's
-cost, and a star entering too faint for :func:`new_light` waits at most a third of a second at 300 Hz."""
+search costs about five compiled tracked frames, so one every 100 frames adds about 4 % to a tracked frame's cost
+(every 200 frames is no cheaper within the machine's noise), and a star entering too faint for :func:`new_light`
+waits at most a third of a second at 300 Hz."""
 
 _KEPT_FLAGS = int(StarFlag.BLENDED | StarFlag.ELONGATED)
 """Detection flags a tracked star keeps from its acquisition (the others are measured again in every frame)."""
@@ -118,6 +124,9 @@ class TrackState:
     """Stars lost in the frame right after their acquisition: still looked for, measured when found, but their
     loss calls for no full search (a star at the detection's threshold would call for one every frame)."""
     since_acquisition: int = 0
+    excess: F64 | None = None
+    """Half of how far each cell of the acquisition stands above its median cell (:func:`new_light`'s margin for
+    light already there), made once with the state."""
 
     @property
     def quiet_stars(self) -> Mask:
@@ -172,9 +181,10 @@ def start_tracking(image: npt.NDArray[Any], detections: npt.NDArray[np.void], ce
         vx, vy = _carried_velocities(x, y, previous, 2.0 * settings.search + speed)
     else:
         vx, vy = np.zeros(x.size), np.zeros(x.size)
+    cells = cell_means(image, settings.cell)
     return TrackState(reference=detections[good].copy(), flux=np.asarray(centroids["flux"][good], np.float64),
-                      x=x[good], y=y[good], vx=vx[good], vy=vy[good], cells=cell_means(image, settings.cell),
-                      acquired_x=x, acquired_y=y, quiet=np.zeros(int(good.sum()), np.bool_))
+                      x=x[good], y=y[good], vx=vx[good], vy=vy[good], cells=cells, acquired_x=x, acquired_y=y,
+                      quiet=np.zeros(int(good.sum()), np.bool_), excess=0.5 * _lit(cells))
 
 
 def _reflect(index: npt.NDArray[np.intp], n: int) -> npt.NDArray[np.intp]:
@@ -197,15 +207,17 @@ def _search_windows(image: npt.NDArray[Any], xc: npt.NDArray[np.intp], yc: npt.N
 
 
 def _filtered(windows: F64, k1: F64) -> F64:
-    """The windows smoothed by the separable kernel ``k1``, 'valid' part only (each side shorter by its radius).
-
-    The windows are stacked into one image for OpenCV; the rows where neighbours bleed into each other are
-    the ones the 'valid' part leaves out."""
-    n, side = windows.shape[0], windows.shape[1]
-    r = k1.size // 2
-    stacked = np.ascontiguousarray(windows.reshape(n * side, side), np.float32)
-    smooth = cv2.sepFilter2D(stacked, cv2.CV_32F, k1, k1, borderType=cv2.BORDER_REFLECT).reshape(n, side, side)
-    return np.asarray(smooth[:, r: side - r, r: side - r], np.float64)
+    """The windows smoothed by the separable kernel ``k1``, 'valid' part only (each side shorter by its radius):
+    rows, then columns, in float64, each tap added in turn (the compiled search's order, so the same bits)."""
+    taps = k1.size
+    inner = windows.shape[2] - taps + 1
+    rows = k1[0] * windows[:, :, :inner]
+    for t in range(1, taps):
+        rows = rows + k1[t] * windows[:, :, t: t + inner]
+    out = k1[0] * rows[:, :inner, :]
+    for t in range(1, taps):
+        out = out + k1[t] * rows[:, t: t + inner, :]
+    return out
 
 
 def _nearest_peak(filtered: F64, outside: Mask, level: F64, dx: F64, dy: F64) -> npt.NDArray[np.intp]:
@@ -333,7 +345,8 @@ def new_light(image: npt.NDArray[Any], state: TrackState, settings: TrackingSett
     common = float(np.median(change))
     spread = 1.4826 * float(np.median(np.abs(change - common)))
     floor = float(np.median(state.reference["noise"])) * np.sqrt(2.0) / c if state.reference.size else 0.0
-    limit = settings.new_light_sigma * max(spread, floor, 1e-6) + 0.5 * _lit(state.cells)
+    excess = state.excess if state.excess is not None else 0.5 * _lit(state.cells)
+    limit = settings.new_light_sigma * max(spread, floor, 1e-6) + excess
     return free & (change - common > limit)
 
 
@@ -352,8 +365,8 @@ def lasting_light(risen: Mask, before: Mask | None, tracked: int) -> bool:
 
 
 def _lit(cells: F64) -> F64:
-    """How far each cell's mean stands above the frame's median cell."""
-    return np.maximum(cells - np.median(cells), 0.0)
+    """How far each cell's mean stands above the frame's median cell (none: a frame smaller than a cell)."""
+    return np.maximum(cells - np.median(cells), 0.0) if cells.size else np.zeros(cells.shape)
 
 
 def advance(state: TrackState, centroids: npt.NDArray[np.void], measured: Mask, quiet: Mask,
@@ -368,6 +381,61 @@ def advance(state: TrackState, centroids: npt.NDArray[np.void], measured: Mask, 
                        (y + vy > -margin) & (y + vy < shape[0] - 1 + margin))
     return replace(state, reference=state.reference[keep], flux=state.flux[keep], x=x[keep], y=y[keep],
                    vx=vx[keep], vy=vy[keep], quiet=quiet[keep], since_acquisition=state.since_acquisition + 1)
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """What a tracked frame came to (:func:`track_frame_vectorised`, and its compiled form
+    :func:`starlog.centroid.tracked_frame.track_frame`)."""
+
+    search: bool
+    """The frame must be searched in full (the other fields but ``risen`` are then empty)."""
+    risen: Mask | None
+    """:func:`new_light`'s cells (None: the frame's size differs from the acquisition's)."""
+    detections: npt.NDArray[np.void] = field(default_factory=lambda: np.zeros(0, DETECTION_DTYPE))
+    """:func:`locate_stars`' rows, one per tracked star."""
+    found: Mask = field(default_factory=lambda: np.zeros(0, np.bool_))
+    centroids: npt.NDArray[np.void] | None = None
+    """The first method's rows, one per tracked star (None: not measured yet)."""
+    lost: Mask | None = None
+    """Stars not found or lost (:func:`lost_stars`): left out of the frame's tables."""
+    state: TrackState | None = None
+    """The state after the frame (:func:`advance`)."""
+    remeasured: bool = False
+    """The compiled frame left the end of the measurement to numpy: a window needed the robust re-measurement."""
+
+
+def finish_tracked(frame: TrackedFrame, centroids: npt.NDArray[np.void], state: TrackState,
+                   settings: TrackingSettings, half_size: int, shape: tuple[int, ...]) -> TrackedFrame:
+    """A located ``frame`` completed with its first method's ``centroids`` (every tracked star): the stars lost
+    (:func:`lost_stars` within ``half_size``, the windows' half-size), a search when one that is not quiet is (but
+    right after an acquisition), else the state :func:`advance` gives."""
+    lost = ~frame.found | lost_stars(centroids, state, settings, float(half_size))
+    quiet = state.quiet_stars
+    if (lost & ~quiet).any() and state.since_acquisition:
+        return replace(frame, search=True)
+    after = advance(state, centroids, ~lost, quiet | lost, shape, float(settings.search))
+    return replace(frame, centroids=centroids, lost=lost, state=after)
+
+
+def track_frame_vectorised(image: npt.NDArray[Any], state: TrackState, settings: TrackingSettings,
+                           before: Mask | None, half_size: int,
+                           measure: Callable[[npt.NDArray[np.void]], npt.NDArray[np.void]] | None = None
+                           ) -> TrackedFrame:
+    """One tracked frame in numpy, the reference of the compiled :func:`~starlog.centroid.tracked_frame.track_frame`:
+    the light check (:func:`new_light` around windows of ``half_size``, :func:`lasting_light` against ``before``,
+    the frame before's cells), the window search (:func:`locate_stars`), then with ``measure`` (the first method's
+    rows of given detection rows) :func:`finish_tracked`."""
+    risen = new_light(image, state, settings, half_size + settings.search + 1)
+    if risen is None or lasting_light(risen, before, state.x.size):
+        return TrackedFrame(search=True, risen=risen)
+    detections, found = locate_stars(image, state, settings)
+    if (~found & ~state.quiet_stars).any() and state.since_acquisition:
+        return TrackedFrame(search=True, risen=risen)
+    frame = TrackedFrame(search=False, risen=risen, detections=detections, found=found)
+    if measure is None:
+        return frame
+    return finish_tracked(frame, measure(detections), state, settings, half_size, image.shape)
 
 
 def is_image_sequence(positions: Sequence[tuple[F64, F64]], search: float, *, min_matched: float = 0.5

@@ -23,16 +23,8 @@ from starlog.centroid.evidence import FrameEvidence, frame_evidence
 from starlog.centroid.extract import measure_methods, window_half_size
 from starlog.centroid.hotpixels import without_hot_pixels
 from starlog.centroid.phase import PhaseCalibration
-from starlog.centroid.tracking import (
-    TrackingSettings,
-    TrackState,
-    advance,
-    lasting_light,
-    locate_stars,
-    lost_stars,
-    new_light,
-    start_tracking,
-)
+from starlog.centroid.tracked_frame import WindowFit, track_frame
+from starlog.centroid.tracking import TrackingSettings, TrackState, finish_tracked, start_tracking
 from starlog.io import encode_image_annotations
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader, LogSource
@@ -95,11 +87,12 @@ class FrameExtractor:
             saturation = float(np.iinfo(raw.dtype).max) if raw.dtype.kind in "ui" else float("inf")
         return without_hot_pixels(raw, self.hot_pixels), saturation
 
-    def measure(self, prepared: npt.NDArray[Any], saturation: float | None, detections: npt.NDArray[Any]
-                ) -> dict[CentroidMethod, npt.NDArray[Any]]:
-        """Centroids per method of given detections in a :meth:`prepared` frame (before any phase correction),
-        measured as :meth:`centroids` measures its own detections."""
-        return measure_methods(prepared, detections, self.methods, gain=self.gain, read_noise=self.read_noise,
+    def measure(self, prepared: npt.NDArray[Any], saturation: float | None, detections: npt.NDArray[Any],
+                methods: tuple[CentroidMethod, ...] | None = None) -> dict[CentroidMethod, npt.NDArray[Any]]:
+        """Centroids per method (``methods``: these only) of given detections in a :meth:`prepared` frame (before
+        any phase correction), measured as :meth:`centroids` measures its own detections."""
+        return measure_methods(prepared, detections, self.methods if methods is None else methods, gain=self.gain,
+                               read_noise=self.read_noise,
                                psf_sigma=self.options.get("psf_sigma"), window=self.options.get("window"),
                                saturation=saturation, **dict(self.options.get("centroid_options") or {}),
                                **({"epsf": self.epsf} if self.epsf is not None else {}))
@@ -162,6 +155,9 @@ class TrackedFrames:
     windows and was there in the frame before. A star lost in the frame right after an acquisition becomes *quiet* instead: still looked for
     and measured whenever found, but its loss calls for no search (the search just done did not make it
     measurable), so a star at the detection's threshold cannot force a search every frame.
+    A tracked frame is compiled (:func:`~starlog.centroid.tracked_frame.track_frame`): GAUSSFIT as the first
+    method with the PSF width given is measured there; other methods, and a frame where a window needs the robust
+    re-measurement, are measured by numpy from the located rows.
     Blocks never share state: the output does not depend on how blocks are spread over workers.
     """
 
@@ -175,6 +171,8 @@ class TrackedFrames:
         """The cells where light appeared in the frame before (:func:`~starlog.centroid.tracking.new_light`)."""
         psf = extract.options.get("psf_sigma")
         self.half_size = window_half_size(float(psf) if psf is not None else 1.0, extract.options.get("window"))
+        self.fit = _window_fit(extract)
+        """How the compiled frame measures the first method (None: numpy measures every tracked frame)."""
 
     def __call__(self, frame: int, log_time: int, image: npt.NDArray[Any], stamp: int | None = None
                  ) -> FrameMessages:
@@ -198,25 +196,38 @@ class TrackedFrames:
 
     def _tracked(self, image: npt.NDArray[Any], state: TrackState
                  ) -> tuple[npt.NDArray[Any], dict[CentroidMethod, npt.NDArray[Any]]] | None:
-        """The tracked stars measured in their windows; None when the frame must be searched in full."""
-        just_acquired = state.since_acquisition == 0
-        reach = self.half_size + self.settings.search + 1
+        """The tracked stars measured in their windows (:func:`~starlog.centroid.tracked_frame.track_frame`); None
+        when the frame must be searched in full."""
         prepared, saturation = self.extract.prepared(image)
-        risen, self.risen = self.risen, new_light(prepared, state, self.settings, reach)
-        if self.risen is None or lasting_light(self.risen, risen, state.x.size):
+        frame = track_frame(prepared, state, self.settings, self.risen, self.half_size, self.fit, saturation)
+        self.risen = frame.risen
+        if frame.search:
             return None
-        detections, found = locate_stars(prepared, state, self.settings)
-        quiet = state.quiet_stars
-        if (~found & ~quiet).any() and not just_acquired:
-            return None
-        centroids = self.extract.measure(prepared, saturation, detections)
-        first = centroids[self.extract.methods[0]]
-        lost = ~found | lost_stars(first, state, self.settings, float(self.half_size))
-        if (lost & ~quiet).any() and not just_acquired:
-            return None
-        keep = ~lost
-        self.state = advance(state, first, keep, quiet | lost, prepared.shape, float(self.settings.search))
-        return detections[keep], {m: c[keep] for m, c in centroids.items()}
+        methods = self.extract.methods
+        if frame.centroids is None:  # numpy measures the frame (see track_frame)
+            centroids = self.extract.measure(prepared, saturation, frame.detections)
+            frame = finish_tracked(frame, centroids[methods[0]], state, self.settings, self.half_size, prepared.shape)
+            if frame.search:
+                return None
+        else:
+            centroids = {methods[0]: frame.centroids}
+            if len(methods) > 1:
+                centroids.update(self.extract.measure(prepared, saturation, frame.detections, methods[1:]))
+        assert frame.lost is not None and frame.state is not None
+        keep = ~frame.lost
+        self.state = frame.state
+        return frame.detections[keep], {m: centroids[m][keep] for m in methods}
+
+
+def _window_fit(extract: FrameExtractor) -> WindowFit | None:
+    """The compiled frame's measurement of ``extract``'s first method: GAUSSFIT with the PSF width given."""
+    psf = extract.options.get("psf_sigma")
+    if extract.methods[0] is not CentroidMethod.GAUSSFIT or psf is None:
+        return None
+    options = dict(extract.options.get("centroid_options") or {})
+    return WindowFit(half_size=window_half_size(float(psf), extract.options.get("window")), psf_sigma=float(psf),
+                     gain=extract.gain, read_noise=extract.read_noise,
+                     fit_psf_sigma=bool(options.get("fit_psf_sigma", False)), robust=bool(options.get("robust", True)))
 
 
 @contextmanager
