@@ -23,12 +23,9 @@ from starlog.plugins import load_reference
 from starlog.stage_api import Stage, run_stage, stage
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
-from tests.helpers import small_config
+from tests.helpers import doc_section, small_config
 
-ROOT = Path(__file__).resolve().parent.parent
-README = (ROOT / "README.md").read_text(encoding="utf-8")
-SECTION = README[README.index("## Your own stages"):]
-SECTION = SECTION[:SECTION.index("\n## ", 1)]
+SECTION = doc_section("## An example: `flux_fwhm`")  # docs/STAGES.md's own-stage example
 STARLOG = Path(sys.executable).with_name("starlog")
 
 #: Stages of the tests, written to a module in a temporary folder (workers import stages by name).
@@ -313,10 +310,10 @@ def test_config_errors_name_the_table(stage_folder: Path, tables: str, message: 
         _config(tables, stage_folder)
 
 
-# ---------------------------------------------------------------- the README's example, as a user runs it
+# ---------------------------------------------------------------- the docs' example, as a user runs it
 def _block(language: str, containing: str) -> str:
     blocks = [b for b in re.findall(rf"```{language}\n(.*?)```", SECTION, flags=re.S) if containing in b]
-    assert len(blocks) == 1, f"the README's own-stage section has no single {language} block with {containing!r}"
+    assert len(blocks) == 1, f"the docs' own-stage example has no single {language} block with {containing!r}"
     return blocks[0]
 
 

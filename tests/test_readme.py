@@ -1,4 +1,5 @@
-"""The README's Python examples run as written; the docs stand alone (no notes from outside the repository)."""
+"""The Python examples of the README and docs/ run as written; the docs stand alone (no notes from outside the
+repository)."""
 
 from __future__ import annotations
 
@@ -8,31 +9,37 @@ from pathlib import Path
 import pytest
 
 from starlog.stages import simulate_log
-from tests.helpers import small_config
+from tests.helpers import ROOT, doc_blocks, doc_pages, small_config
 
-README = Path(__file__).resolve().parent.parent / "README.md"
-BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), flags=re.S)
+README = ROOT / "README.md"
+BLOCKS = [(page.relative_to(ROOT).as_posix(), block) for page, block in doc_blocks("python")]
+
+#: The Python examples by a line each holds, and their page: one moved or dropped fails the test.
+EXAMPLES = {'with LogReader("demo.mcap") as log:': "docs/PYTHON.md",
+            'tracker = StarTracker(model="STATIC", sigma_floor=0.02)': "docs/PYTHON.md",
+            '@stage(name="flux_fwhm"': "docs/STAGES.md"}
 
 
-def test_readme_has_python_examples() -> None:
-    assert len(BLOCKS) >= 2
+def test_the_docs_hold_their_python_examples() -> None:
+    assert {line: [page for page, block in BLOCKS if line in block] for line in EXAMPLES} == {
+        line: [page] for line, page in EXAMPLES.items()}
 
 
-@pytest.mark.parametrize("index", range(len(BLOCKS)))
+@pytest.mark.parametrize("index", range(len(BLOCKS)), ids=[f"{page}-{i}" for i, (page, _) in enumerate(BLOCKS)])
 def test_readme_python_block_runs(index: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     simulate_log(small_config(), tmp_path / "demo.mcap")  # the quick start's demo log, small
-    exec(compile(BLOCKS[index], f"README.md python block {index}", "exec"), {"__name__": "readme"})
+    page, block = BLOCKS[index]
+    exec(compile(block, f"{page} python block {index}", "exec"), {"__name__": "readme"})
 
 
 # ---------------------------------------------------------------- the repository stands alone
-ROOT = README.parent
 PAPER = ROOT / "docs" / "PAPER.md"
 OUTSIDE_REFERENCES = re.compile(r"DESIGN(\.md| §)|\b[Ii]ssues? [0-9]")
 
 
 def _text_files() -> list[Path]:
-    files = [README, *sorted((ROOT / "docs").glob("*.md"))]
+    files = doc_pages()
     for folder in ("starlog", "tests", "tools"):
         files += sorted((ROOT / folder).rglob("*.py"))
     return files
@@ -54,7 +61,7 @@ def test_paper_reading_covers_every_equation_and_names_existing_modules() -> Non
     for module in re.findall(r"`(starlog/[\w/]+\.py)`", text):
         assert (ROOT / module).is_file(), module
     anchors = {re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in re.findall(r"^#+ (.+)$", text, re.M)}
-    for path in [README, *ROOT.glob("docs/*.md")]:
+    for path in doc_pages():
         for anchor in re.findall(r"PAPER\.md#([\w-]+)", path.read_text(encoding="utf-8")):
             assert anchor in anchors, f"{path.name} links to a missing section #{anchor}"
         for anchor in re.findall(r"\]\(#([\w-]+)\)", text if path == PAPER else ""):

@@ -184,11 +184,14 @@ def test_run_config_chains_centroid_and_solve(logs, tmp_path):
 
 
 def test_the_readme_solve_block_runs_as_written(tmp_path, monkeypatch):
-    import re
+    """The docs' solve block (docs/PROCESSING.md): a simulated sky field, centroided and solved per method."""
     import shlex
 
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
-    block = next(b for b in re.findall(r"```bash\n(.*?)```", readme, flags=re.S) if "--sky-attitude" in b)
+    from tests.helpers import doc_blocks
+
+    blocks = [b for _, b in doc_blocks("bash") if "--sky-attitude" in b and "--centroids all" in b]
+    assert len(blocks) == 1, "the docs have no single solve block"
+    block = blocks[0]
     monkeypatch.chdir(tmp_path)
     output = ""
     for command in block.strip().split(" && "):

@@ -22,7 +22,7 @@ from starlog.stages.filter import filter_log
 from starlog.stages.motion import motion_log
 from starlog.stages.track import track_log
 from tests.foreign_logs import write_plain
-from tests.helpers import small_config
+from tests.helpers import doc_pages, small_config
 from tests.json_logs import write_json_log
 
 TS_DIR = Path(__file__).resolve().parent.parent / "tools" / "ts_reader"
@@ -154,10 +154,11 @@ def test_typescript_reader_keeps_the_attitude_errors_present_only_when_written(n
 
 def test_the_readmes_foxglove_plot_paths_give_numbers_on_the_protobuf_layers(node_reader: Path,
                                                                             tmp_path: Path) -> None:
-    """Every message path the README gives for Foxglove's Plot panel, evaluated on the messages protobufjs decodes
-    (Foxglove's subset: fields, [:], {field==value}), yields numbers: the repeated sub-messages keep the filters."""
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
-    paths = sorted(set(re.findall(r"`(/[A-Za-z0-9_/]+\.[a-z_]+(?:\[:\]\{[a-z_]+==[a-z0-9]+\}\.[a-z_]+)?)`", readme)))
+    """Every message path the docs give for Foxglove's Plot panel (docs/FOXGLOVE.md, docs/LIVE.md), evaluated on the
+    messages protobufjs decodes (Foxglove's subset: fields, [:], {field==value}), yields numbers: the repeated
+    sub-messages keep the filters."""
+    docs = "\n".join(page.read_text(encoding="utf-8") for page in doc_pages())
+    paths = sorted(set(re.findall(r"`(/[A-Za-z0-9_/]+\.[a-z_]+(?:\[:\]\{[a-z_]+==[a-z0-9]+\}\.[a-z_]+)?)`", docs)))
     assert len(paths) >= 5 and any("{track==9}" in p for p in paths) and any(p.startswith("/attitude/") for p in paths)
     sim, cen, trk, mot, trk2 = (tmp_path / f"{n}.mcap" for n in ("sim", "cen", "trk", "mot", "trk2"))
     simulate_log(small_config(width=160, height=120, n_stars=12, n_frames=20, margin=12.0), sim)

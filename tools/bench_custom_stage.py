@@ -1,6 +1,6 @@
 """Your own stages: peak memory in log length, 1 vs 2 workers, and the cost of listing installed stages.
 
-Runs the README's example stage (``flux_fwhm``: flux and FWHM of every star in every frame,
+Runs docs/STAGES.md's example stage (``flux_fwhm``: flux and FWHM of every star in every frame,
 from the image) as a user would, through ``starlog run --config``, and prints:
 
 1. peak resident memory on a log and on one 10x longer (target: flat within 10 %);
@@ -37,8 +37,8 @@ ROOT = Path(__file__).resolve().parent.parent
 STARLOG = str(Path(sys.executable).with_name("starlog"))
 
 
-def _readme_block(language: str, containing: str) -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
+def _docs_block(language: str, containing: str) -> str:
+    text = (ROOT / "docs" / "STAGES.md").read_text(encoding="utf-8")
     return next(b for b in re.findall(rf"```{language}\n(.*?)```", text, flags=re.S) if containing in b)
 
 
@@ -55,8 +55,8 @@ def _timed(argv: list[str], *, env: dict[str, str] | None = None) -> tuple[float
 
 
 def _example(folder: Path) -> Path:
-    """The README's stage module and config in ``folder``, and a dist-info registering the stage."""
-    (folder / "flux_fwhm.py").write_text(_readme_block("python", "@stage("), encoding="utf-8")
+    """docs/STAGES.md's stage module and config in ``folder``, and a dist-info registering the stage."""
+    (folder / "flux_fwhm.py").write_text(_docs_block("python", "@stage("), encoding="utf-8")
     config = folder / "flux_fwhm.toml"
     config.write_text("[stages.flux_fwhm]\nuses = \"flux_fwhm:flux_fwhm\"\nmin_snr = 20\n", encoding="utf-8")
     dist = folder / "flux_fwhm_example-1.0.dist-info"
