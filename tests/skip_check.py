@@ -3,7 +3,7 @@ was skipped because a module could not be imported (``pytest.importorskip``), an
 
 CI installs every package a test imports (``.ci/run``): a test skipping there for want of one would let a
 change that breaks what it tests land green. Skips for other reasons (a program such as Chromium missing, a
-README block another test runs) stay skips, each with its reason (``-ra``).
+documentation block another test runs) stay skips, each with its reason (``-ra``).
 """
 
 from __future__ import annotations

@@ -117,7 +117,7 @@ def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], export
 
     Tables: frames, truth (simulated logs), detections, centroids, tracks, compensation,
     decisions — each written when the log has its channels. Columns are documented in
-    schemas/tables.json and the README. A log from another tool gets a frames table of its
+    schemas/tables.json and docs/FORMATS.md. A log from another tool gets a frames table of its
     image channels (topic column); --topic exports any channel as a flat table. With nothing
     to export, the command says so, lists the channels and fails. Several logs go to one
     sub-folder each, in parallel on a Dask cluster with --scheduler or --workers.

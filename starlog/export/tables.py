@@ -2,7 +2,7 @@
 
 Every table is declared here, in :data:`TABLES` (which channels feed it and how a message
 becomes rows), and its columns once, in ``schemas/tables.json``, which this module turns into
-Arrow schemas (with each column's description and unit as field metadata) and which the README
+Arrow schemas (with each column's description and unit as field metadata) and which docs/FORMATS.md
 documents. A family is written only when the log has its channels. The per-star tables are read
 as tables (:meth:`~starlog.io.reader.LogReader.tables`): each message's rows become columns whole,
 with no dict per star.
