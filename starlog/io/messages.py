@@ -15,6 +15,7 @@ import orjson
 
 from starlog.errors import InvalidInputError
 from starlog.io.rawimage_wire import parse_raw_image
+from starlog.io.table_fields import varint
 
 __all__ = [
     "encode_json",
@@ -191,8 +192,8 @@ def encode_image_annotations(
     by every circle of a frame are encoded once.
     """
     seconds, nanos = _timestamp(log_time)
-    stamp = _wire_message(0x0A, (b"\x08" + _wire_varint(seconds) if seconds else b"")
-                          + (b"\x10" + _wire_varint(nanos) if nanos else b""))
+    stamp = _wire_message(0x0A, (b"\x08" + varint(seconds) if seconds else b"")
+                          + (b"\x10" + varint(nanos) if nanos else b""))
     shared = _circle_look(struct.pack("<6d", diameter, thickness, *rgba))
     xs, ys = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     if xs.ndim == 1 and xs.shape == ys.shape:
@@ -225,7 +226,7 @@ def _same_layout_circles(stamp: bytes, shared: bytes, xs: npt.NDArray[np.float64
     """Circles whose positions are all non-zero: one template row repeated, the positions written in by numpy."""
     head = stamp + b"\x12\x12\x09"
     body_length = len(head) + 8 + 1 + 8 + len(shared)
-    template = b"\x0a" + _wire_varint(body_length) + head + bytes(8) + b"\x11" + bytes(8) + shared
+    template = b"\x0a" + varint(body_length) + head + bytes(8) + b"\x11" + bytes(8) + shared
     rows = bytearray(template * xs.size)
     positions = np.frombuffer(rows, dtype=_position_layout(len(template), len(template) - len(shared) - 17))
     positions["x"] = xs
@@ -243,17 +244,6 @@ _WIRE_DOUBLE = struct.Struct("<d")
 _WIRE_ZERO = bytes(8)
 
 
-def _wire_varint(value: int) -> bytes:
-    """A protobuf varint (negative values as their 64-bit two's complement, as int64 fields are)."""
-    value &= (1 << 64) - 1
-    out = bytearray()
-    while value >= 0x80:
-        out.append((value & 0x7F) | 0x80)
-        value >>= 7
-    out.append(value)
-    return bytes(out)
-
-
 def _wire_double(tag: int, value: float) -> bytes:
     """A proto3 ``double`` field: left out when it is +0.0, as protobuf does (-0.0 is written)."""
     packed = _WIRE_DOUBLE.pack(value)
@@ -262,4 +252,4 @@ def _wire_double(tag: int, value: float) -> bytes:
 
 def _wire_message(tag: int, body: bytes) -> bytes:
     """A submessage field (present even when empty, as a submessage whose fields were set is)."""
-    return bytes((tag,)) + _wire_varint(len(body)) + body
+    return bytes((tag,)) + varint(len(body)) + body
