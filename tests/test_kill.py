@@ -365,6 +365,39 @@ def test_a_ctrl_c_landing_in_a_callback_from_c_still_stops_the_command_quietly()
     assert done.stderr == b""
 
 
+CTRL_C_AS_A_CLASS_IS_MADE = """
+import os, signal
+from starlog import cli
+
+
+class Field:
+    def __set_name__(self, owner, name):
+        os.kill(os.getpid(), signal.SIGINT)
+        sum(range(100_000))  # Python runs the Ctrl-C handler here: 3.11 raises it as a RuntimeError
+
+
+def command(**click_arguments):
+    class Record:
+        value = Field()
+    print("lost")
+
+
+cli.cli = command
+cli.main()
+"""
+
+
+def test_a_ctrl_c_landing_while_a_module_defines_a_class_still_stops_the_command_quietly() -> None:
+    """Python wraps an exception raised while a class is created in a ``RuntimeError``: a Ctrl-C landing while a
+    module defines its classes (numba's, imported on first use) ends the command of SIGINT with click's one line,
+    not that error's traceback."""
+    done = subprocess.run([sys.executable, "-c", CTRL_C_AS_A_CLASS_IS_MADE], capture_output=True, timeout=60,
+                          preexec_fn=_default_sigint)
+    assert done.returncode == -signal.SIGINT, done.stderr
+    assert done.stdout == b""
+    assert done.stderr.decode().strip() == "Aborted!"
+
+
 def test_every_command_is_reproducible(workdir: Path, tmp_path: Path) -> None:
     """Identical inputs and parameters give identical bytes (no wall-clock time, host or random order)."""
     commands = [

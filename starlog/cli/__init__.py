@@ -197,11 +197,32 @@ def main() -> None:
         cli(prog_name="starlog")
     except _Terminated:
         _exit_of(signal.SIGTERM)
+    except Exception as err:
+        signum = _stop_behind(err)
+        if signum is None:
+            raise
+        if signum == signal.SIGINT:
+            click.echo("Aborted!", err=True)  # what click says of a Ctrl-C it sees itself
+        _exit_of(signum)
     except SystemExit:
         if _interrupted:
             _exit_of(signal.SIGINT)
         _flush_stdout()
         raise
+
+
+def _stop_behind(err: BaseException) -> int | None:
+    """The signal a stop wrapped in another exception came from, if one did. Python 3.11 wraps an exception
+    raised while a class is created (in ``__set_name__``) in a ``RuntimeError``: a Ctrl-C landing as a module
+    defines its classes (numba's, imported on first use) reaches the command as that error."""
+    cause: BaseException | None = err
+    while cause is not None:
+        if isinstance(cause, KeyboardInterrupt):
+            return signal.SIGINT
+        if isinstance(cause, _Terminated):
+            return signal.SIGTERM
+        cause = cause.__cause__
+    return None
 
 
 _ending: list[int] = []
