@@ -7,10 +7,10 @@ Conventions used everywhere in starlog (functions, messages, tables):
 * times are integer nanoseconds named ``log_time``.
 
 Subpackages: :mod:`starlog.io` (the MCAP log layer), :mod:`starlog.sim` (star-image
-simulator), :mod:`starlog.detect` and :mod:`starlog.centroid` (single-frame extraction),
-:mod:`starlog.track` (UKF tracking), :mod:`starlog.compensate` (error decomposition and
+simulator), :mod:`starlog.detect` and :mod:`starlog.centroiding` (single-frame extraction),
+:mod:`starlog.tracking` (UKF tracking), :mod:`starlog.compensation` (error decomposition and
 compensation), :mod:`starlog.stages` (the replay stages that join algorithms and logs),
-:mod:`starlog.pipeline` (several stages from one config), :mod:`starlog.export` (Parquet),
+:mod:`starlog.pipeline` (several stages from one config), :mod:`starlog.parquet` (Parquet),
 :mod:`starlog.batch` (many logs on Dask), :mod:`starlog.experiment` (the paper's tables) and
 :mod:`starlog.cli` (the command line).
 """

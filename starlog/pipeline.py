@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from starlog.batch import BatchOutcome, BatchTask, run_batch
-from starlog.compensate import Shortfall
+from starlog.compensation import Shortfall
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.io import topics
 from starlog.io.reader import LogReader, LogSource
@@ -67,21 +67,21 @@ methods = "all"         # every method that can win (starlog centroid --method a
 phase_correction = "auto"  # pixel-phase calibration from the log's own stars; "off", or a calibration file
 # mode = "auto"         # "tracking": stars measured in windows, full searches every acquire_every frames; "full"
 # acquire_every = 100   # tracking: frames between two full searches
-[centroid.options]      # keyword options of starlog.centroid.extract_stars
+[centroid.options]      # keyword options of starlog.centroiding.extract_stars
 
 [track]
 methods = ["NONE", "trusted"]   # centroid channels to track, one stage run each; "trusted": the method the log's
                                 # evidence names once its centroids are written (GAUSSFIT when it names none)
 models = "all"
-[track.tracker]         # starlog.track.TrackerConfig fields
+[track.tracker]         # starlog.tracking.TrackerConfig fields
 sigma_floor = 0.05      # px: the platform jitter a STATIC model must absorb
-[track.motion]          # starlog.track.MotionModelConfig fields
+[track.motion]          # starlog.tracking.MotionModelConfig fields
 
 [compensate]
 tracks = "all"          # or ["GAUSSFIT/STATIC", ...]
 rates = [10, 50]        # built-in config: a rate or protocol the log is too short for is left out;
 protocols = "all"       # in a --config file, it is refused before any stage runs
-[compensate.options]    # keyword options of starlog.compensate.evaluate
+[compensate.options]    # keyword options of starlog.compensation.evaluate
 """
 
 _STAGE_KEYS: dict[str, set[str]] = {

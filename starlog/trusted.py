@@ -1,7 +1,7 @@
 """What ``"trusted"`` stands for in a pipeline config's ``[track] methods``: the centroid method the log's evidence
 names, decided once the centroids are written.
 
-The evidence (:func:`starlog.centroid.evidence.trust`) is the sky's when the frames plate-solve (a ``solve``
+The evidence (:func:`starlog.centroiding.evidence.trust`) is the sky's when the frames plate-solve (a ``solve``
 record's catalogue residuals, else a few frames solved in memory, :func:`starlog.stages.solve.probe_sky`, when
 cedar-solve is installed), else the centroid stage's frame-to-frame noise. A log too short or too sparse for
 either keeps :data:`DEFAULT_TRACKED`, saying so. The decision and its reason go into the track stage's
@@ -33,13 +33,13 @@ def tracks_trusted(track: dict[str, Any] | None) -> bool:
 
 
 def trusted_method(log: LogReader) -> dict[str, Any]:
-    """The centroid method ``"trusted"`` stands for in a log (:func:`starlog.centroid.evidence.trust`): from its
+    """The centroid method ``"trusted"`` stands for in a log (:func:`starlog.centroiding.evidence.trust`): from its
     solve record's catalogue residuals, else from the sky probed on a few frames in memory
     (:func:`starlog.stages.solve.probe_sky`), else from the centroid stage's frame-to-frame noise; with none of
     them, :data:`DEFAULT_TRACKED` (the built-in config's method before the evidence), saying so. Returns
     ``method``, ``evidence`` (``"sky"``, ``"frame-to-frame"`` or None), ``figure_px``, ``interval_px``, ``p_best``
     and ``reason``."""
-    from starlog.centroid.evidence import trust
+    from starlog.centroiding.evidence import trust
     from starlog.io.info import evidence_summaries, trust_summary
     from starlog.stages.solve import probe_sky
 

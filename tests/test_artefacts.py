@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from starlog.centroid import CentroidFlag, extract_stars
+from starlog.centroiding import CentroidFlag, extract_stars
 # private module _stamps: remaining_snr takes stamps, which only it cuts
-from starlog.centroid._stamps import gather_stamps
-from starlog.centroid.artefacts import detection_threshold, remaining_snr
+from starlog.centroiding._stamps import gather_stamps
+from starlog.centroiding.artefacts import detection_threshold, remaining_snr
 from starlog.cli import cli
 from starlog.detect import detect_stars
 from starlog.detect.detection import matched_filter
@@ -190,7 +190,7 @@ def test_undersampled_stars_are_found_and_hot_pixels_are_not(psf_sigma: float) -
 
 
 def test_a_well_sampled_frame_keeps_the_default_spike_test() -> None:
-    from starlog.centroid.extract import detect_options_for_psf
+    from starlog.centroiding.extract import detect_options_for_psf
 
     assert detect_options_for_psf(1.2) == {}
     assert detect_options_for_psf(0.4) == {"sharpness_ratio": 0.02}

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.track import (
+from starlog.tracking import (
     TRACK_DTYPE,
     TRACK_STATS_DTYPE,
     MotionModel,
@@ -19,8 +19,8 @@ from starlog.track import (
     TrackerConfig,
     track_centroids,
 )
-from starlog.track.models import MotionModelConfig
-from starlog.track.state import FrameRows, TrackState
+from starlog.tracking.models import MotionModelConfig
+from starlog.tracking.state import FrameRows, TrackState
 
 PERIOD_NS = 3_333_333  # 300 Hz
 # well separated stars (> 50 px apart), row-major order is the order below

@@ -68,7 +68,7 @@ def _stack(modules: list[tuple[str, str]]):
 
 
 @pytest.mark.parametrize("modules, expected", [
-    ([("starlog.stages.centroid", "centroid_log"), ("starlog.centroid.gaussfit", "fit")], "algorithm"),
+    ([("starlog.stages.centroid", "centroid_log"), ("starlog.centroiding.gaussfit", "fit")], "algorithm"),
     ([("starlog.stages.track", "track_log"), ("starlog.io.reader", "messages"), ("starlog.io.messages", "check")],
      "read"),
     ([("starlog.stages.track", "track_log"), ("starlog.io.writer", "write"), ("starlog.io.messages", "check")],

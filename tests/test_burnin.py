@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from starlog.compensate import BurnIn, burn_in
+from starlog.compensation import BurnIn, burn_in
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 
@@ -51,7 +51,7 @@ def test_rejects(kwargs: dict[str, object], error: type) -> None:
 
 
 def test_cap_is_half_a_second_or_a_tenth_of_the_log() -> None:
-    from starlog.compensate import burn_in_cap
+    from starlog.compensation import burn_in_cap
 
     assert burn_in_cap(3248, native_rate=300.0) == 150
     assert burn_in_cap(3027, native_rate=200.0) == 100
@@ -61,14 +61,14 @@ def test_cap_is_half_a_second_or_a_tenth_of_the_log() -> None:
 @pytest.mark.parametrize(("value", "expected"), [(None, "auto"), ("auto", "auto"), (" OFF ", "off"), ("0", "off"),
                                                  (0.0, "off"), ("0.25", 0.25), ("1.5 s", 1.5), (2, 2.0)])
 def test_parse_burn_in(value: object, expected: object) -> None:
-    from starlog.compensate import parse_burn_in
+    from starlog.compensation import parse_burn_in
 
     assert parse_burn_in(value) == expected
 
 
 @pytest.mark.parametrize("value", ["soon", "-1", -0.5, float("nan"), True])
 def test_parse_burn_in_rejects(value: object) -> None:
-    from starlog.compensate import parse_burn_in
+    from starlog.compensation import parse_burn_in
 
     with pytest.raises(InvalidParameterError):
         parse_burn_in(value)
@@ -97,6 +97,6 @@ def test_series_burn_in_settings_decide_the_first_sample() -> None:
 
 
 def test_label() -> None:
-    from starlog.compensate import burn_in_label
+    from starlog.compensation import burn_in_label
 
     assert [burn_in_label(s) for s in ("auto", "off", 0.5)] == ["auto", "off", "0.5 s"]

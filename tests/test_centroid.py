@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
-from starlog.centroid import (
+from starlog.centroiding import (
     CENTROID_DTYPE,
     CentroidFlag,
     CentroidMethod,

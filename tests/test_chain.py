@@ -21,7 +21,7 @@ from mcap.reader import make_reader
 
 from starlog.cli import cli
 from starlog.errors import BaseMismatchError, CorruptLogError, InvalidInputError
-from starlog.export import export_log
+from starlog.parquet import export_log
 from starlog.io import (
     LogReader,
     LogWriter,

@@ -274,7 +274,7 @@ def test_info_loads_neither_the_fitting_code_nor_scipy(quiet_logs: Path, tmp_pat
                                       "NONE,MOMENT", "--workers", "1", "-q"])
     assert result.exit_code == 0, result.output
     code = (f"import sys; from starlog.cli import cli; cli(['info', {str(two)!r}], standalone_mode=False); "
-            "print('LOADED', sorted(m for m in ('scipy', 'numba', 'starlog.centroid.extract') if m in sys.modules))")
+            "print('LOADED', sorted(m for m in ('scipy', 'numba', 'starlog.centroiding.extract') if m in sys.modules))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, timeout=60)
     assert done.returncode == 0, done.stderr
     assert "trust" in done.stdout and done.stdout.rstrip().endswith("LOADED []"), done.stdout

@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from numpy.testing import assert_allclose, assert_array_equal
 
-from starlog.compensate import strategies as S
-from starlog.compensate.strategies import Strategy
+from starlog.compensation import strategies as S
+from starlog.compensation.strategies import Strategy
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 

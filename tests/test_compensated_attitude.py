@@ -133,7 +133,7 @@ def test_a_run_config_compensates_every_star_and_solves_before_and_after(logs, t
 
 
 def test_export_keeps_the_brightest_decisions_and_every_attitude(logs, tmp_path):
-    from starlog.export import export_log
+    from starlog.parquet import export_log
 
     written = export_log(logs["folder"] / "att.mcap", tmp_path, tables=["decisions", "attitude"])
     frames = logs["compensated"].stars[0]["frames"]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from starlog.centroid import centroid_crb
+from starlog.centroiding import centroid_crb
 from starlog.errors import InvalidParameterError
 
 

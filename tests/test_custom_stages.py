@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from starlog.centroid.table import CENTROID_DTYPE
+from starlog.centroiding.table import CENTROID_DTYPE
 from starlog.stage_api import stage
 
 SCHEMA = {"title": "test.Brightest", "type": "object", "additionalProperties": False,

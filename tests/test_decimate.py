@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from starlog.compensate import decimation_indices, effective_rate, sampled_rate
+from starlog.compensation import decimation_indices, effective_rate, sampled_rate
 
 FIGURE5_RATES = [float(r) for r in range(10, 101, 10)]
 

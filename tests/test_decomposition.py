@@ -9,7 +9,7 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.signal import lfilter
 
-from starlog.compensate.decomposition import (
+from starlog.compensation.decomposition import (
     MIN_SAMPLES,
     ErrorCategory,
     ErrorDecomposition,

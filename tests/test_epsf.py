@@ -13,9 +13,9 @@ from starlog.io import topics
 from click.testing import CliRunner
 from numpy.testing import assert_allclose
 
-from starlog.centroid import CentroidFlag, centroid_crb, measure_centroids
-from starlog.centroid.crb import centroid_crb_psf
-from starlog.centroid.epsf import (
+from starlog.centroiding import CentroidFlag, centroid_crb, measure_centroids
+from starlog.centroiding.crb import centroid_crb_psf
+from starlog.centroiding.epsf import (
     EPSF,
     GaussianPSF,
     build_epsf,
@@ -167,7 +167,7 @@ def test_build_epsf_without_precise_stars_keeps_the_starting_gaussian() -> None:
 
 def _empty_stamps():
     # private module _stamps: build_epsf takes stamps, which only it cuts (here none, to be refused)
-    from starlog.centroid._stamps import gather_stamps
+    from starlog.centroiding._stamps import gather_stamps
 
     z = np.zeros(0)
     return gather_stamps(np.zeros((20, 20)), z, z, 3, z, z, 1.0, np.inf), z, z, z

@@ -8,8 +8,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from starlog.centroid import CentroidMethod, extract_stars
-from starlog.centroid.evidence import (
+from starlog.centroiding import CentroidMethod, extract_stars
+from starlog.centroiding.evidence import (
     EvidenceAccumulator,
     FrameEvidence,
     evidence_sums,

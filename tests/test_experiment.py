@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 import pytest
 from numpy.testing import assert_allclose
 
-from starlog.compensate import evaluate
+from starlog.compensation import evaluate
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.experiment import TABLE_FIELDS, ExperimentSummary, experiment_command, paper_tables, run_experiment
 from starlog.experiment.tables import TABLE_TITLES

@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
 # private module _stamps: fit_gaussians takes stamps, which only it cuts; its model draws the noise-free star
-from starlog.centroid._stamps import gather_stamps, model
-from starlog.centroid.gaussfit import fit_gaussians, fit_gaussians_vectorised
+from starlog.centroiding._stamps import gather_stamps, model
+from starlog.centroiding.gaussfit import fit_gaussians, fit_gaussians_vectorised
 from starlog.errors import InvalidInputError
 
 FIELDS = ("dx", "dy", "flux", "flux_err", "background", "psf_sigma", "sigma", "ok")
@@ -106,6 +106,6 @@ def test_a_window_without_valid_pixels_is_not_ok_and_does_not_stop_the_others(fi
 
 
 def _take(stamps, k: int):
-    from starlog.centroid.robust import take_stamps
+    from starlog.centroiding.robust import take_stamps
 
     return take_stamps(stamps, np.array([k]))

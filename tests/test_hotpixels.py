@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from starlog.centroid import CentroidMethod, extract_stars
-from starlog.centroid.hotpixels import (
+from starlog.centroiding import CentroidMethod, extract_stars
+from starlog.centroiding.hotpixels import (
     describe_hot_pixels,
     learn_hot_pixels,
     load_hot_pixels,

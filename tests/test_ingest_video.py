@@ -245,7 +245,7 @@ def test_not_a_video(tmp_path: Path) -> None:
 
 # ---------------------------------------------------------------- JPEG, BMP
 def test_jpeg_is_warned_about_and_centroids_stay_close(sim_frames, tmp_path: Path) -> None:
-    from starlog.centroid import extract_stars
+    from starlog.centroiding import extract_stars
 
     folder = tmp_path / "jpg"
     folder.mkdir()

@@ -12,11 +12,11 @@ import pytest
 from click.testing import CliRunner
 
 from starlog.cli import cli
-from starlog.compensate import ScoringProtocol, protocol_figures
-from starlog.export import export_log
+from starlog.compensation import ScoringProtocol, protocol_figures
+from starlog.parquet import export_log
 from starlog.io import load_json_schema, topics
 from starlog.io.reader import LogReader
-from starlog.motion import (
+from starlog.platform_motion import (
     MotionParameters,
     Observations,
     PlatformModel,
@@ -241,7 +241,7 @@ def test_motion_cli_json_and_summary(motion_logs: dict[str, Path], tmp_path: Pat
 
 # ---------------------------------------------------------------- compensate: relative protocol, motion modes
 def test_separate_on_a_motionless_field_equals_keep_within_noise() -> None:
-    from starlog.compensate import evaluate
+    from starlog.compensation import evaluate
 
     rng = np.random.default_rng(8)
     static = _field(rng, 10)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from starlog.centroid import extract_stars
-from starlog.centroid.phase import (
+from starlog.centroiding import extract_stars
+from starlog.centroiding.phase import (
     PhaseCalibration,
     _applied,
     distinct_samples,

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from starlog.compensate.decimate import (
+from starlog.compensation.decimate import (
     decimate,
     decimation_indices,
 )
-from starlog.compensate.protocols import FIGURE_DTYPE, evaluate, rmse
-from starlog.compensate.references import (
+from starlog.compensation.protocols import FIGURE_DTYPE, evaluate, rmse
+from starlog.compensation.references import (
     ScoringProtocol,
     global_mean_reference,
     running_mean_reference,

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from starlog.centroid import CentroidMethod, extract_stars
+from starlog.centroiding import CentroidMethod, extract_stars
 from starlog.errors import InvalidInputError
 from starlog.io import encode_json, json_message_type
 from starlog.io.checked import encode_checked_json

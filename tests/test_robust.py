@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from starlog.centroid import CentroidFlag, CentroidMethod, measure_centroids
+from starlog.centroiding import CentroidFlag, CentroidMethod, measure_centroids
 # private module _stamps: the robust functions take stamps, which only it cuts; its model is the true star
-from starlog.centroid._stamps import gather_stamps, model
-from starlog.centroid.robust import (
+from starlog.centroiding._stamps import gather_stamps, model
+from starlog.centroiding.robust import (
     clip_level,
     core_flux,
     gaussian_predictor,
@@ -130,7 +130,7 @@ def test_model_error_is_zero_for_the_true_model_and_measures_a_wrong_one():
     wide = 4e4 * model(st, cx, cy, np.full(det.size, 1.3 * sigma))  # a PSF 30 % too wide
     assert model_error(st, wide).core > 0.1
     # with the measured error, the mismatch is not mistaken for artefacts
-    from starlog.centroid.robust import outlier_pixels
+    from starlog.centroiding.robust import outlier_pixels
 
     assert outlier_pixels(st, wide, symmetric=False).sum() > 10
     assert outlier_pixels(st, wide, error=model_error(st, wide), symmetric=False).sum() <= 2
@@ -198,7 +198,7 @@ def test_a_saturated_star_s_own_light_is_judged_by_symmetry_and_an_artefact_besi
     """The model of a saturated star is fitted to what is left of it, its wings: where it falls short of the star
     (here its flux 30 % low), the excess is mirrored about the star and is kept; a cosmic ray beside the core is not
     mirrored and is masked."""
-    from starlog.centroid.robust import outlier_pixels
+    from starlog.centroiding.robust import outlier_pixels
 
     rng = np.random.default_rng(12)
     expected = SKY + render_stars((41, 41), np.array([20.3]), np.array([19.8]), np.array([4e6]), 1.5)

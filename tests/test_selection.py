@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from numpy.testing import assert_allclose, assert_array_equal
 
-from starlog.compensate.decomposition import ErrorCategory
-from starlog.compensate.references import ReferenceMode, ScoringProtocol
-from starlog.compensate.selection import (
+from starlog.compensation.decomposition import ErrorCategory
+from starlog.compensation.references import ReferenceMode, ScoringProtocol
+from starlog.compensation.selection import (
     StrategyProfile,
     PASS_DTYPE,
     TABLE_1,
@@ -21,7 +21,7 @@ from starlog.compensate.selection import (
     rank_strategies,
     strategy_scores,
 )
-from starlog.compensate.strategies import Strategy, apply_strategy
+from starlog.compensation.strategies import Strategy, apply_strategy
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 C = ErrorCategory

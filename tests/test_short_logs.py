@@ -1,4 +1,4 @@
-"""Logs too short for some compensation rates and protocols: the rule (starlog.compensate.lengths), ``run`` with
+"""Logs too short for some compensation rates and protocols: the rule (starlog.compensation.lengths), ``run`` with
 the built-in config (skips them) and with a config file (refuses at once), and ``compensate`` (refuses, or skips
 with --skip-short)."""
 
@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from starlog.cli import cli
-from starlog.compensate import (
+from starlog.compensation import (
     MIN_SAMPLES,
     ScoringProtocol,
     burn_in_cap,

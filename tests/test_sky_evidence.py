@@ -14,7 +14,7 @@ import pytest
 from starlog.attitude.camera import camera_for_image, fit_cameras_shared
 from starlog.attitude.rotation import attitude_from_radec_roll, small_rotation
 from starlog.attitude.sky_evidence import IdentifiedFrame, sky_evidence
-from starlog.centroid.evidence import MIN_SKY_STARS, EvidenceAccumulator, FrameEvidence, bootstrap_rms, trust
+from starlog.centroiding.evidence import MIN_SKY_STARS, EvidenceAccumulator, FrameEvidence, bootstrap_rms, trust
 
 SHAPE = (600, 800)
 

@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from starlog.cli import cli
-from starlog.export import export_log
+from starlog.parquet import export_log
 from starlog.io import file_digest, load_json_schema, topics
 from starlog.io.chain import base_reference
 from starlog.io.info import describe_log, format_description

@@ -15,11 +15,11 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 
-from starlog.centroid import CENTROID_DTYPE
+from starlog.centroiding import CENTROID_DTYPE
 from starlog.cli import cli
 from starlog.detect import DETECTION_DTYPE
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.export import TABLES, arrow_schema, export_log, table_columns
+from starlog.parquet import TABLES, arrow_schema, export_log, table_columns
 from starlog.io import LogReader, file_digest, json_message_type, load_json_schema, topics
 from starlog.io.star_tables import STAR_TABLES, star_codec
 from starlog.pipeline import PipelineConfig, load_config, run_pipeline
@@ -30,7 +30,7 @@ from starlog.stages._stage import extend_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
 from starlog.stages.track import track_log
-from starlog.track import TRACK_DTYPE
+from starlog.tracking import TRACK_DTYPE
 from tests.helpers import small_config
 
 
@@ -112,7 +112,7 @@ def test_parquet_tables_document_every_column(table: str) -> None:
 def test_export_declares_every_table_in_one_place_without_importing_stages(pipeline_logs: dict[str, Path],
                                                                            tmp_path: Path) -> None:
     assert [t.name for t in TABLES] == list(table_columns())
-    code = ("import sys; from starlog.export import export_log; "
+    code = ("import sys; from starlog.parquet import export_log; "
             f"written = export_log({str(pipeline_logs['comp'])!r}, {str(tmp_path)!r}); "
             "loaded = [m for m in sys.modules if m.startswith('starlog.stages')]; "
             "print(len(written), loaded); sys.exit(1 if loaded else 0)")

@@ -20,7 +20,7 @@ from google.protobuf.descriptor_pool import DescriptorPool
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from starlog.centroid.table import CENTROID_DTYPE
+from starlog.centroiding.table import CENTROID_DTYPE
 from starlog.errors import InvalidInputError
 from starlog.io import encode_json, load_json_schema, protobuf_message_type
 from starlog.io.star_tables import STAR_TABLES, json_table, star_codec

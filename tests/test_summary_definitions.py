@@ -34,7 +34,7 @@ from mcap_protobuf.schema import build_file_descriptor_set
 
 from starlog.cli import cli
 from starlog.errors import CorruptLogError
-from starlog.export.tables import export_log
+from starlog.parquet.tables import export_log
 from starlog.io import LogReader, LogWriter, encode_json, json_message_type
 from starlog.io.chunk_indexes import read_file_summary
 from starlog.io.copying import flatten_log

@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
 from starlog.errors import InvalidInputError
-from starlog.track import (
+from starlog.tracking import (
     TRACK_DTYPE,
     MotionModel,
     NoTrackError,
@@ -35,8 +35,8 @@ from starlog.track import (
     make_filterpy_ukf,
     state_dim,
 )
-from starlog.track._kernels import INT_COLUMNS, Status
-from starlog.track.state import INT_FIELDS, TrackState
+from starlog.tracking._kernels import INT_COLUMNS, Status
+from starlog.tracking.state import INT_FIELDS, TrackState
 
 RTOL = 1e-9
 RTOL_COV = 1e-6

@@ -9,7 +9,7 @@ from scipy.linalg import expm
 from scipy.stats import chi2
 
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.track import (
+from starlog.tracking import (
     BatchUKF,
     MotionModel,
     MotionModelConfig,

@@ -1,5 +1,5 @@
-"""The compiled tracked frame (:func:`starlog.centroid.tracked_frame.track_frame`) against its numpy reference
-(:func:`starlog.centroid.tracking.track_frame_vectorised`) on hand-checkable windows and on random star fields and
+"""The compiled tracked frame (:func:`starlog.centroiding.tracked_frame.track_frame`) against its numpy reference
+(:func:`starlog.centroiding.tracking.track_frame_vectorised`) on hand-checkable windows and on random star fields and
 motions, and its measurement against full mode's on the same detection rows."""
 
 from __future__ import annotations
@@ -13,12 +13,12 @@ from hypothesis import strategies as st
 from scipy.ndimage import binary_dilation
 from scipy.special import erf
 
-from starlog.centroid import CentroidFlag, CentroidMethod
+from starlog.centroiding import CentroidFlag, CentroidMethod
 # private module: the fraction of the saturation level full mode clips beside a saturated core
-from starlog.centroid._stamps import SHOULDER
-from starlog.centroid.extract import measure_methods, window_half_size
-from starlog.centroid.tracked_frame import WindowFit, track_frame
-from starlog.centroid.tracking import TrackedFrame, TrackingSettings, TrackState, cell_means, track_frame_vectorised
+from starlog.centroiding._stamps import SHOULDER
+from starlog.centroiding.extract import measure_methods, window_half_size
+from starlog.centroiding.tracked_frame import WindowFit, track_frame
+from starlog.centroiding.tracking import TrackedFrame, TrackingSettings, TrackState, cell_means, track_frame_vectorised
 # private module: the per-frame work of the centroid stage, tested without a log
 from starlog.stages._centroid_frames import FrameExtractor
 

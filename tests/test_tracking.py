@@ -1,4 +1,4 @@
-"""Tracking mode (:mod:`starlog.centroid.tracking`, :class:`starlog.stages._centroid_frames.TrackedFrames`) on
+"""Tracking mode (:mod:`starlog.centroiding.tracking`, :class:`starlog.stages._centroid_frames.TrackedFrames`) on
 hand-checkable sequences of small frames: where each star is is known, and so is when the whole frame must be
 searched again."""
 
@@ -12,9 +12,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.special import erf
 
-from starlog.centroid import CentroidFlag, CentroidMethod
-from starlog.centroid.extract import window_half_size
-from starlog.centroid.tracking import TrackingSettings, is_image_sequence
+from starlog.centroiding import CentroidFlag, CentroidMethod
+from starlog.centroiding.extract import window_half_size
+from starlog.centroiding.tracking import TrackingSettings, is_image_sequence
 from starlog.errors import InvalidParameterError
 from starlog.io import LogReader
 from starlog.pipeline import PipelineConfig, run_pipeline

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from starlog.centroid import CentroidMethod
+from starlog.centroiding import CentroidMethod
 from starlog.io.reader import LogReader
 from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.report.summary import run_summary_lines

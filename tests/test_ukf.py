@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.track import (
+from starlog.tracking import (
     BatchUKF,
     MotionModel,
     MotionModelConfig,
@@ -23,7 +23,7 @@ from starlog.track import (
     make_filterpy_ukf,
     state_dim,
 )
-from starlog.track.ukf import sigma_points, ukf_update
+from starlog.tracking.ukf import sigma_points, ukf_update
 
 MODELS = list(MotionModel)
 N_STEPS = 150

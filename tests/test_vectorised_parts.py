@@ -10,18 +10,18 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
 import starlog.detect.components as components
-from starlog.centroid.gaussfit import fit_gaussians
+from starlog.centroiding.gaussfit import fit_gaussians
 from starlog.detect import estimate_background
 from starlog.detect.background import Background
 from starlog.detect.components import find_components_vectorised
 from starlog.detect.detection import matched_filter
 
 # private module _stamps: the stamps and Gaussian model every fit uses, checked against their definitions
-from starlog.centroid._stamps import fisher_sigma, gather_stamps, model, profile_1d
+from starlog.centroiding._stamps import fisher_sigma, gather_stamps, model, profile_1d
 # private _Problem, _Profiles: GAUSSFIT's normal equations, checked against the dense Jacobian they stand for
-from starlog.centroid.gaussfit import _Problem, _Profiles
+from starlog.centroiding.gaussfit import _Problem, _Profiles
 # private _centre_of_weights: MOMENT's centre, checked against the weighted mean it computes
-from starlog.centroid.moment import _centre_of_weights
+from starlog.centroiding.moment import _centre_of_weights
 # private _edge_padded, _fit_planes(_vectorised): the background's padding and its compiled and numpy cell fits
 from starlog.detect.background import _edge_padded, _fit_planes, _fit_planes_vectorised
 # private _edge_noise_factor: detection's cached edge-noise table, checked against its definition
@@ -197,7 +197,7 @@ def test_edge_padding_copies_the_outer_cells(shape):
 
 def _keys_surface(sm: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """The Keys (a = -0.5) bicubic surface of one window at many points, straight from the kernel."""
-    from starlog.centroid.bicubic import keys_kernel
+    from starlog.centroiding.bicubic import keys_kernel
 
     w = sm.shape[0]
     cols = np.arange(w)
@@ -222,7 +222,7 @@ def test_bicubic_line_maxima_in_closed_form_match_a_fine_grid_search(seed, sigma
     """Each axis step of the peak search: the closed-form maximum of the surface along the line
     equals the best point of a 1e-4 px grid over the same bracket (to the grid's resolution), for
     either axis, any line and any start inside the window (the bracket clamped at its edges)."""
-    from starlog.centroid.bicubic import _line_maximum, _values_along
+    from starlog.centroiding.bicubic import _line_maximum, _values_along
 
     rng = np.random.default_rng(seed)
     w = 11
@@ -244,9 +244,9 @@ def test_bicubic_line_maxima_in_closed_form_match_a_fine_grid_search(seed, sigma
 def test_bicubic_finds_a_maximum_that_sits_on_a_pixel_centre():
     """A symmetric peak centred on a pixel: the slope's zero is at an interval's end, where rounding
     can put it a hair outside both intervals that share it."""
-    from starlog.centroid.bicubic import _line_maximum
+    from starlog.centroiding.bicubic import _line_maximum
 
-    from starlog.centroid.bicubic import keys_kernel
+    from starlog.centroiding.bicubic import keys_kernel
 
     rng = np.random.default_rng(2)
     misses = checked = 0

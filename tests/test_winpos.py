@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from starlog.centroid import CentroidMethod, measure_centroids
-from starlog.centroid.winpos import window_sigma, winpos
+from starlog.centroiding import CentroidMethod, measure_centroids
+from starlog.centroiding.winpos import window_sigma, winpos
 from starlog.detect import detect_stars
 from starlog.sim.psf import render_stars
 

@@ -5,7 +5,7 @@ Simulated frames (starlog.sim): isolated stars on a sky of 20 e-/px, read noise 
 bias 100 DN, 16-bit ADC; three flux regimes x three PSF sigmas. The star field of a regime is
 fixed and re-exposed ``--reps`` times (fresh noise), so each star has a per-star RMSE over
 noise realisations, compared to its own Cramer-Rao bound (at its pixel phase, known flux, sky
-and PSF; ``starlog.centroid.centroid_crb``).
+and PSF; ``starlog.centroiding.centroid_crb``).
 
 Columns: compl = matched stars / true stars (match radius 3 px; stars are >= 30 px apart); false = unmatched
 detections per frame; rmse = per-axis RMS error of matched stars about the truth, px;
@@ -18,11 +18,11 @@ speed targets are judged on fps*, because that is how `starlog centroid` runs: i
 PSF width once per log and passes it to every frame (fps shows the cost of re-estimating it).
 
 PSFFIT fits the empirical PSF (ePSF) of each regime, built as ``starlog centroid`` builds it
-(``starlog.centroid.epsf.epsf_from_frames``) from ``--epsf-frames`` further exposures of the same
+(``starlog.centroiding.epsf.epsf_from_frames``) from ``--epsf-frames`` further exposures of the same
 field (not used for the errors; its time is not in fps). The non-Gaussian section renders the
 stars with a pixel-integrated Moffat (beta 2.5) or Airy PSF of the same FWHM as the Gaussian of
 sigma 1.2 px (starlog.sim.profiles) and compares to that PSF's own bound
-(``starlog.centroid.crb.centroid_crb_psf``); its column sys = RMS error of the method on the
+(``starlog.centroiding.crb.centroid_crb_psf``); its column sys = RMS error of the method on the
 noise-free frame (the systematic, pixel-phase part a wrong PSF model leaves), px.
 
 
@@ -35,7 +35,7 @@ frames (CPU time with and without, the least of 20 calls each on every clean fra
 
 Dense artefact run (512x512 frames, hot pixels on 3e-4 of the pixels and 20 cosmic-ray tracks a
 frame; PSF sigma 1.2 and 2.0): false detections a frame once the detections only an artefact made
-are left out (flag ARTEFACT, ``starlog.centroid.artefact_detections``), and before; RMSE against the
+are left out (flag ARTEFACT, ``starlog.centroiding.artefact_detections``), and before; RMSE against the
 clean frames and SEP; true stars left out as artefacts. Every table takes starlog's detections as
 the centroid stage keeps them.
 
@@ -65,7 +65,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
-from starlog.centroid import (  # noqa: E402
+from starlog.centroiding import (  # noqa: E402
     CentroidFlag,
     CentroidMethod,
     artefact_detections,
@@ -74,9 +74,9 @@ from starlog.centroid import (  # noqa: E402
     extract_stars,
     measure_centroids,
 )
-from starlog.centroid.crb import centroid_crb_psf  # noqa: E402
-from starlog.centroid.epsf import epsf_from_frames  # noqa: E402
-from starlog.centroid.extract import artefact_candidates, window_half_size  # noqa: E402
+from starlog.centroiding.crb import centroid_crb_psf  # noqa: E402
+from starlog.centroiding.epsf import epsf_from_frames  # noqa: E402
+from starlog.centroiding.extract import artefact_candidates, window_half_size  # noqa: E402
 from starlog.detect import detect_stars  # noqa: E402
 from starlog.sim.camera import CameraModel  # noqa: E402
 from starlog.sim.profiles import AIRY_FWHM_PER_LAMBDA_D, AiryPSF, MoffatPSF, render_profile_stars  # noqa: E402

@@ -48,7 +48,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from starlog.centroid import CentroidMethod, measure_centroids
+from starlog.centroiding import CentroidMethod, measure_centroids
 from starlog.detect import detect_stars
 from starlog.io.reader import LogReader
 from starlog.io.frames import reuse_frame_buffers
@@ -194,7 +194,7 @@ def paired_rmse(full: list[dict], tracked: list[dict]) -> tuple[float, float, in
 
 def tracking_accuracy(args: argparse.Namespace, targets: Targets) -> None:
     """Tracking against full mode on each regime (:data:`TRACKING_REGIMES`): figures printed, targets checked."""
-    from starlog.centroid.tracking import DEFAULT_ACQUIRE_EVERY
+    from starlog.centroiding.tracking import DEFAULT_ACQUIRE_EVERY
 
     folder = Path(args.dir)
     period = DEFAULT_ACQUIRE_EVERY
@@ -232,7 +232,7 @@ def tracking_accuracy(args: argparse.Namespace, targets: Targets) -> None:
 def acquisition_sweep(log: Path, periods: list[int], count: int = 300) -> None:
     """CPU ms a frame of tracking mode in this process for each period of full searches (GAUSSFIT, frames
     decoded beforehand, messages encoded), best of two runs, and the searches made: what the period costs."""
-    from starlog.centroid.tracking import TrackingSettings
+    from starlog.centroiding.tracking import TrackingSettings
     from starlog.stages._centroid_frames import FrameExtractor
 
     with LogReader(log) as reader:

@@ -51,7 +51,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.json_logs writes the JSON layers
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
-from starlog.centroid.table import CENTROID_DTYPE  # noqa: E402
+from starlog.centroiding.table import CENTROID_DTYPE  # noqa: E402
 from starlog.detect.detection import DETECTION_DTYPE  # noqa: E402
 from starlog.io import LogReader, decode_json, encode_image_annotations, encode_json  # noqa: E402
 from starlog.io.records import record_encoder  # noqa: E402
@@ -61,7 +61,7 @@ from starlog.stages import ingest_folder, simulate_log  # noqa: E402
 from starlog.stages._centroid_frames import annotation_diameter  # noqa: E402
 from starlog.stages.centroid import centroid_log  # noqa: E402
 from starlog.stages.track import track_log  # noqa: E402
-from starlog.track.table import TRACK_DTYPE  # noqa: E402
+from starlog.tracking.table import TRACK_DTYPE  # noqa: E402
 from tests.json_logs import write_json_log  # noqa: E402
 
 

@@ -40,7 +40,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
 from starlog.io.reader import LogReader  # noqa: E402
-from starlog.motion import PlatformModel  # noqa: E402
+from starlog.platform_motion import PlatformModel  # noqa: E402
 from starlog.sim import Jitter, SimulationConfig, Simulator  # noqa: E402
 from starlog.stages import simulate_log  # noqa: E402
 from starlog.stages.centroid import centroid_log  # noqa: E402

@@ -141,7 +141,7 @@ MOTION_MEMORY = "the motion estimate is joint over the log and holds every measu
 CATEGORIES = ("read", "algorithm", "write", "stage", "import", "other")
 CATEGORY_TITLES = {"read": "read/decode", "algorithm": "algorithm", "write": "encode/write",
                    "stage": "stage code", "import": "import", "other": "other"}
-ALGORITHM_PACKAGES = ("starlog.detect", "starlog.centroid", "starlog.track", "starlog.motion", "starlog.compensate",
+ALGORITHM_PACKAGES = ("starlog.detect", "starlog.centroiding", "starlog.tracking", "starlog.platform_motion", "starlog.compensation",
                       "starlog.sim")
 READ_WORDS = ("decompress", "decode", "unpack", "read", "parse", "load", "digest")
 WRITE_WORDS = ("compress", "encode", "pack", "write", "dump", "serial")
@@ -621,7 +621,7 @@ def tracker_alone(centroids: Path, repeat: int = 2) -> float:
     """Seconds a frame of the tracker alone (``StarTracker.update``, the ``track`` stage's options) on every
     frame of the centroid channel of ``centroids``, decoded beforehand; the best of ``repeat`` runs."""
     from starlog.io import LogReader
-    from starlog.track import MotionModel, StarTracker, TrackerConfig
+    from starlog.tracking import MotionModel, StarTracker, TrackerConfig
 
     with LogReader(centroids) as log:
         frames = []

@@ -10,8 +10,8 @@ Protocol, per frame:
    one as the plain sum of its colour channels (every channel's photons count; no colour
    weighting, no tone curve undone: the camera's is unknown), a pixel saturated when any of
    its channels is at the file's maximum.
-2. Centroids: starlog's detection and every method of ``starlog.centroid.CentroidMethod``
-   (``starlog.centroid.extract_stars``, the library call of the centroid stage; read noise from
+2. Centroids: starlog's detection and every method of ``starlog.centroiding.CentroidMethod``
+   (``starlog.centroiding.extract_stars``, the library call of the centroid stage; read noise from
    the frame's measured background noise, the PSF width estimated from the frame). The gain of
    an unknown camera is measured, not assumed (``--gain auto``, :func:`estimate_gain`): the
    background's noise variance against its level over the frame (vignetting, sky gradient) has
@@ -38,7 +38,7 @@ Protocol, per frame:
 
 Pixel phase (``--phase-correction auto``, the default): between steps 2 and 3, every centroider's
 pixel-phase S-curve is calibrated on all frames' own stars (one camera, as one log; no catalogue)
-with :mod:`starlog.centroid.phase`, as ``starlog centroid --phase-correction auto`` does, and
+with :mod:`starlog.centroiding.phase`, as ``starlog centroid --phase-correction auto`` does, and
 removed: starlog's columns are the corrected positions, SEP's are shown as they are and corrected
 (``+pc``). The headline ratio compares starlog corrected with SEP as users run it; a second line
 with SEP corrected too.
@@ -87,10 +87,10 @@ from starlog.attitude.camera import (  # noqa: E402, F401
 from starlog.attitude.lost_in_space import load_solver, solve_lost_in_space  # noqa: E402
 from starlog.attitude.matching import isolated, match_nearest  # noqa: E402
 from starlog.attitude.rotation import radec_vectors  # noqa: E402, F401
-from starlog.centroid import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars  # noqa: E402
-from starlog.centroid.epsf import EPSF, epsf_from_frames  # noqa: E402
-from starlog.centroid.extract import window_half_size  # noqa: E402
-from starlog.centroid.phase import PhaseCalibration, estimate_phase_calibration, phase_sample_mask  # noqa: E402
+from starlog.centroiding import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars  # noqa: E402
+from starlog.centroiding.epsf import EPSF, epsf_from_frames  # noqa: E402
+from starlog.centroiding.extract import window_half_size  # noqa: E402
+from starlog.centroiding.phase import PhaseCalibration, estimate_phase_calibration, phase_sample_mask  # noqa: E402
 from starlog.detect import detect_stars  # noqa: E402
 from starlog.errors import InvalidInputError  # noqa: E402
 
@@ -472,7 +472,7 @@ def calibration_samples(frames: list[MeasuredFrame], name: str) -> tuple[np.ndar
     """(x, y, sigma) a centroider's phase calibration learns from, pooled over the frames.
 
     starlog: the stars ``starlog centroid --phase-correction auto`` uses
-    (:func:`starlog.centroid.phase.phase_sample_mask`). SEP reports no uncertainty: per frame,
+    (:func:`starlog.centroiding.phase.phase_sample_mask`). SEP reports no uncertainty: per frame,
     its brightest stars, as many as GAUSSFIT's usable ones there, sigma 0.
     """
     xs, ys, ss = [], [], []
@@ -666,12 +666,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--margin", type=float, default=8.0, help="catalogue stars kept this far inside the edges, px")
     ap.add_argument("--no-distortion", action="store_true", help="refit without the radial distortion term")
     ap.add_argument("--starlog-option", action="append", default=[], metavar="KEY=VALUE",
-                    help="extra keyword option of starlog.centroid.extract_stars (JSON value), repeatable")
+                    help="extra keyword option of starlog.centroiding.extract_stars (JSON value), repeatable")
     ap.add_argument("--plate-order", type=int, default=0,
                     help="fit a polynomial field pattern of this order instead of the camera refit (investigation)")
     ap.add_argument("--phase-correction", choices=("auto", "off"), default="auto",
                     help="auto (default): every centroider's pixel phase calibrated on the frames' own stars "
-                         "(starlog.centroid.phase, as starlog centroid --phase-correction auto); starlog's columns "
+                         "(starlog.centroiding.phase, as starlog centroid --phase-correction auto); starlog's columns "
                          "corrected, SEP's shown as they are and corrected (+pc)")
     ap.add_argument("--phase-harmonics", type=int, default=1,
                     help="harmonics of the S-curve per axis the calibration estimates (default 1)")

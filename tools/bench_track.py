@@ -2,10 +2,10 @@
 
 One update = one star in one frame (predict + measurement update). Measured, per motion model:
 
-* ``batched x20``  — :class:`starlog.track.BatchUKF` stepping 20 stars per call;
+* ``batched x20``  — :class:`starlog.tracking.BatchUKF` stepping 20 stars per call;
 * ``single``       — the same filter with one star per call;
 * ``filterpy``     — filterpy's per-object ``UnscentedKalmanFilter`` (reference, same run);
-* ``tracker``      — :class:`starlog.track.StarTracker` (predict, association, gated update,
+* ``tracker``      — :class:`starlog.tracking.StarTracker` (predict, association, gated update,
   output rows; each frame one compiled call) on a synthetic 300 Hz log of 20 stars, 3248 frames
   (the paper's lab dataset size), wall time and updates/s;
 * ``numpy``        — the same tracker as numpy steps (``StarTracker(vectorised=True)``, the
@@ -51,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
 from starlog.io import LogReader, LogWriter, file_digest, protobuf_message_type, topics  # noqa: E402
 from starlog.io.star_tables import star_codec  # noqa: E402
-from starlog.track import (  # noqa: E402
+from starlog.tracking import (  # noqa: E402
     BatchUKF,
     MotionModel,
     StarTracker,

@@ -12,7 +12,7 @@ Two questions, each answered on every camera in turn, never on the camera scored
   run of the benchmark: this code with its options, or an earlier run given with ``--loco-with RUN.json``
   (another version of the code, other options), so that a changed default is checked the same way;
 * **the trusted method**: the method ``starlog``'s rule names from the camera's own frames
-  (:func:`starlog.centroid.evidence.trust` on :func:`starlog.attitude.sky_evidence.sky_evidence` of the
+  (:func:`starlog.centroiding.evidence.trust` on :func:`starlog.attitude.sky_evidence.sky_evidence` of the
   benchmark's identified stars, one camera model per log), which needs no other camera. It is checked against
   the benchmark's own figure: it is the best starlog method on the common stars, or the 95 % bootstrap interval
   of its ratio to the best one (over the common stars) reaches 1.
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from starlog.attitude.sky_evidence import IdentifiedFrame, sky_evidence
-from starlog.centroid.evidence import trust
+from starlog.centroiding.evidence import trust
 
 __all__ = ["CameraScore", "held_out_rows", "load_scores", "print_loco", "score_camera", "trust_check"]
 

@@ -16,14 +16,14 @@ model, so:
    absorb part of the centroid errors into each frame's focal length and distortion.
 3. **The figure**: the per-axis RMS of the residuals, ``sqrt(mean(dx^2 + dy^2) / 2)`` px. The catalogue's
    own errors and what the camera model cannot describe add the same amount to every method.
-4. **Its confidence**: a bootstrap over the catalogue stars (:func:`starlog.centroid.evidence.bootstrap_rms`,
+4. **Its confidence**: a bootstrap over the catalogue stars (:func:`starlog.centroiding.evidence.bootstrap_rms`,
    fixed seed: the same evidence gives the same figures), each star with all its frames, so that a static
    field's star, whose error at one pixel phase repeats frame after frame, counts once: the 95 % interval of
    each method's figure, the fraction of draws in which it is the least (``p_best``), and the interval of
-   its ratio to the least one's (:func:`starlog.centroid.evidence.add_confidence`).
+   its ratio to the least one's (:func:`starlog.centroiding.evidence.add_confidence`).
 
 :func:`sky_evidence` computes it; :data:`MIN_SKY_STARS` distinct common stars are needed for the evidence to
-name a method (:func:`starlog.centroid.evidence.trust`).
+name a method (:func:`starlog.centroiding.evidence.trust`).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.attitude.camera import Camera, fit_cameras_shared
-from starlog.centroid.evidence import DRAWS, MIN_SKY_STARS, add_confidence, bootstrap_rms
+from starlog.centroiding.evidence import DRAWS, MIN_SKY_STARS, add_confidence, bootstrap_rms
 
 __all__ = ["BRIGHTER", "ISOLATION_PX", "MAX_SKY_FRAMES", "MIN_SKY_STARS", "IdentifiedFrame", "sky_evidence"]
 

@@ -1,4 +1,4 @@
-"""The ``starlog`` command line: a thin layer over :mod:`starlog.stages`, :mod:`starlog.io` and :mod:`starlog.export`.
+"""The ``starlog`` command line: a thin layer over :mod:`starlog.stages`, :mod:`starlog.io` and :mod:`starlog.parquet`.
 
 Every command has ``--help`` with an example; commands that print results accept ``--json``.
 Errors starlog raises on purpose are printed as one sentence with exit status 1.

@@ -130,7 +130,7 @@ def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], export
       python -c "import pyarrow.parquet as pq; print(pq.read_table('tables/truth.parquet'))"
     """
     from starlog.batch import BatchTask, run_batch
-    from starlog.export import export_log
+    from starlog.parquet import export_log
 
     selected = tables or None
     if len(logs) == 1 and not scheduler:

@@ -180,8 +180,8 @@ BURN_IN_HELP = ("The tracking filter's start-up skipped before scoring: auto (un
 
 
 def burn_in_setting(value: str) -> object:
-    """``--burn-in`` as a :data:`starlog.compensate.BurnInSetting` (a bad value is a usage error)."""
-    from starlog.compensate import parse_burn_in
+    """``--burn-in`` as a :data:`starlog.compensation.BurnInSetting` (a bad value is a usage error)."""
+    from starlog.compensation import parse_burn_in
     from starlog.errors import InvalidParameterError
 
     try:

@@ -105,7 +105,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
                      f"{_skipped_note(r['skipped'])}){reports[r['output']]}")
         return
 
-    from starlog.compensate import Shortfall
+    from starlog.compensation import Shortfall
     from starlog.errors import OutputExistsError
     from starlog.pipeline import report_path, stage_line
     from starlog.report import write_report

@@ -46,7 +46,7 @@ __all__ = ["centroid", "compensate", "motion", "solve", "stage_command", "track"
 @click.option("--read-noise", type=float, help="Read noise e- [default: from the simulator's provenance, else estimated].")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
               help="Detection or centroiding option: a keyword of starlog.detect.detect_stars (e.g. --set threshold=5) "
-                   "or of starlog.centroid.measure_centroids (e.g. --set robust=false). Repeatable.")
+                   "or of starlog.centroiding.measure_centroids (e.g. --set robust=false). Repeatable.")
 @image_topic_option
 @click.option("--skip-bad", is_flag=True, help="Leave out frames that do not decode or do not fit (each named) "
                                               "instead of stopping.")
@@ -158,7 +158,7 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
 @click.option("--model", "fit", type=click.Choice(["translation", "rigid", "similarity"]), default="rigid",
               show_default=True, help="2-D platform motion fitted per frame about the image centre.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
-              help="Option of starlog.motion.estimate_platform (k_sigma, min_stars, min_star_frames, max_iterations, "
+              help="Option of starlog.platform_motion.estimate_platform (k_sigma, min_stars, min_star_frames, max_iterations, "
                    "tol, max_rejections). Repeatable.")
 @time_range_options("the (first) track channel")
 @json_option
@@ -203,7 +203,7 @@ def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings:
               help="keep: compensate the positions (the paper's method); separate: compensate the star's residual "
                    "from the platform motion fitted to the other stars and add the motion back; or keep,separate.")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE",
-              help="Option of starlog.compensate.evaluate (accuracy_source, calibration_fraction, top_k, "
+              help="Option of starlog.compensation.evaluate (accuracy_source, calibration_fraction, top_k, "
                    "rollback_threshold, leakfree_reference). Repeatable.")
 @time_range_options("the (first) track channel")
 @json_option

@@ -1,8 +1,8 @@
 """Quality flags shared by detections and centroids (one IntFlag, two public names).
 
-The class lives here (and not in :mod:`starlog.centroid`) so that :mod:`starlog.detect`
-does not import :mod:`starlog.centroid`; it is re-exported as
-:class:`starlog.detect.DetectionFlag` and :class:`starlog.centroid.CentroidFlag`.
+The class lives here (and not in :mod:`starlog.centroiding`) so that :mod:`starlog.detect`
+does not import :mod:`starlog.centroiding`; it is re-exported as
+:class:`starlog.detect.DetectionFlag` and :class:`starlog.centroiding.CentroidFlag`.
 """
 
 from __future__ import annotations
@@ -35,15 +35,15 @@ class StarFlag(enum.IntFlag):
     MASKED : 64
         Pixels of the star's window were left out: non-finite (NaN/inf) or hot pixels, or
         pixels its fitted profile plus noise cannot explain (a cosmic ray, a hot pixel, a
-        neighbour's wing; :mod:`starlog.centroid.robust`).
+        neighbour's wing; :mod:`starlog.centroiding.robust`).
     ARTEFACT : 128
         The detection exists only because of an artefact: once the pixels its star's profile
         cannot explain are masked, nothing within the reach of a star's light passes the
-        detector's own threshold (:mod:`starlog.centroid.artefacts`). The centroid stage keeps
+        detector's own threshold (:mod:`starlog.centroiding.artefacts`). The centroid stage keeps
         it in the detections and leaves it out of the centroids.
     TRACKED : 256
         Tracking mode: the star was found in a window around its predicted position, not by a search of
-        the whole frame (:mod:`starlog.centroid.tracking`); without it, the frame was searched in full.
+        the whole frame (:mod:`starlog.centroiding.tracking`); without it, the frame was searched in full.
     """
 
     SATURATED = 1

@@ -97,7 +97,7 @@ elongation : float64
     Axis ratio (>= 1) from the second moments of the filtered image around the peak.
 flags : uint16
     :class:`starlog.detect.DetectionFlag` bits (SATURATED, BORDER, BLENDED, ELONGATED,
-    LOW_SNR, MASKED; ARTEFACT is set by :func:`starlog.centroid.extract_stars`).
+    LOW_SNR, MASKED; ARTEFACT is set by :func:`starlog.centroiding.extract_stars`).
 """
 
 

@@ -22,7 +22,7 @@ centroid by ~1 px and would make the truth protocols meaningless).  Everything i
 deterministic.
 
 ``quick`` datasets (CI): 48×48 px, 2 stars (``paper``: its one star), 3.7 s of data (1110 / 740 frames): after the
-filter's start-up (at most :data:`~starlog.compensate.MAX_BURN_IN_S` = 0.5 s) enough for 32
+filter's start-up (at most :data:`~starlog.compensation.MAX_BURN_IN_S` = 0.5 s) enough for 32
 samples at 10 Hz, i.e. 16 calibration + 16 scored samples under the ``leakfree`` protocol
 (the compensation needs at least 16).
 """
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from starlog.compensate import MAX_BURN_IN_S
+from starlog.compensation import MAX_BURN_IN_S
 from starlog.experiment import paper_regime
 from starlog.sim import PRESETS, CameraModel, Jitter, SimulationConfig, Simulator
 

@@ -12,7 +12,7 @@ from typing import Any
 from tqdm import tqdm
 
 from starlog.batch import executor_for
-from starlog.compensate import BurnInSetting, burn_in_label, parse_burn_in
+from starlog.compensation import BurnInSetting, burn_in_label, parse_burn_in
 from starlog.errors import InvalidParameterError, OutputExistsError
 from starlog.experiment import null_check, realisations, tables
 from starlog.experiment.datasets import REGIMES, SIGMA_FLOOR_PX, Dataset, regime_datasets
@@ -105,11 +105,11 @@ def run_experiment(
         Dataset regimes to run, ``paper`` and/or ``modern`` (default both;
         :mod:`starlog.experiment.datasets`).
     compensation : dict, optional
-        Keyword options of :func:`starlog.compensate.evaluate` for every run (e.g.
+        Keyword options of :func:`starlog.compensation.evaluate` for every run (e.g.
         ``{"top_k": 3, "select_positive": False}`` for the forced-three ablation).
     burn_in : str or float
         The filter's start-up skipped before scoring: ``"auto"`` (default), ``"off"`` or seconds
-        (:func:`starlog.compensate.parse_burn_in`); recorded in ``summary.json`` and in every row
+        (:func:`starlog.compensation.parse_burn_in`); recorded in ``summary.json`` and in every row
         (``burn_in_setting``).
     """
     t0 = time.perf_counter()

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from starlog.compensate import MAX_BURN_IN_S, protocols_for
-from starlog.compensate.protocols import evaluate
+from starlog.compensation import MAX_BURN_IN_S, protocols_for
+from starlog.compensation.protocols import evaluate
 from starlog.sim import SimulationConfig
 from starlog.experiment.parquet import write_rows
 
@@ -82,7 +82,7 @@ def run_null_check(dataset: dict[str, Any], logs_dir: str, *, compensation: dict
                    window_s: float | None = 6.0, burn_in: str | float = "auto",
                    force: bool = False) -> list[dict[str, Any]]:
     """Task: both null cases for one regime (``dataset`` is a :meth:`Dataset.to_dict` of it); the
-    motionless star's start-up is skipped per ``burn_in`` (:func:`starlog.compensate.parse_burn_in`).
+    motionless star's start-up is skipped per ``burn_in`` (:func:`starlog.compensation.parse_burn_in`).
 
     Writes ``<regime>_null_{sim,centroids,track}.mcap`` into ``logs_dir``; returns rows of
     :data:`NULL_FIELDS`.

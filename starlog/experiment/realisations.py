@@ -21,13 +21,13 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from starlog.compensate import MAX_BURN_IN_S, BurnInSetting
+from starlog.compensation import MAX_BURN_IN_S, BurnInSetting
 from starlog.errors import InvalidInputError
 from starlog.experiment.parquet import write_rows
 from starlog.experiment import paper_tables
 from starlog.experiment.datasets import MIN_SEPARATION_PX, min_separation
 from starlog.sim import SimulationConfig
-from starlog.track import NoTrackError
+from starlog.tracking import NoTrackError
 
 __all__ = ["REALISATIONS", "REALISATION_FIELDS", "markdown", "realisation_seeds",
            "run_realisation", "sort_records", "summarise", "write_parquet"]

@@ -3,7 +3,7 @@
 A sweep over simulated logs (``starlog experiment --sweep``): platform jitter from 0 to 10 times
 the centroid noise, 3, 6 and 20 stars, decimated to 10 and 50 Hz, every UKF model; for each,
 the compensation gain (eq. 13) of ``keep`` (the paper's method) and ``separate`` (compensate the
-residual from the motion fitted to the other stars, :mod:`starlog.motion`) under ``truth``
+residual from the motion fitted to the other stars, :mod:`starlog.platform_motion`) under ``truth``
 (``truth_series``, ``truth_fixed``), ``leakfree`` (``heldout_mean``) and ``relative``.
 
 One task per (star count, jitter ratio): simulate → centroid (GAUSSFIT) → track (all models) →
@@ -29,7 +29,7 @@ import numpy as np
 import pyarrow as pa
 from tqdm import tqdm
 
-from starlog.compensate import MotionMode, ScoringProtocol, sampled_rate
+from starlog.compensation import MotionMode, ScoringProtocol, sampled_rate
 from starlog.errors import OutputExistsError
 from starlog.experiment.parquet import write_rows
 from starlog.experiment.runner import MODELS

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensate import (
+from starlog.compensation import (
     MIN_SAMPLES,
     BurnInSetting,
     Evaluation,
@@ -99,7 +99,7 @@ UNCOMPENSATED_RATES: tuple[float, ...] = (5.0,)
 #: Rates scored before and after compensation.
 COMPENSATED_RATES: tuple[float, ...] = FIGURE5_RATES
 #: Fewest samples a compensated rate needs: 16 calibration + 16 scored samples under ``leakfree``
-#: (:data:`starlog.compensate.MIN_SAMPLES` each); shorter series are scored uncompensated.
+#: (:data:`starlog.compensation.MIN_SAMPLES` each); shorter series are scored uncompensated.
 MIN_COMPENSATED: int = 2 * MIN_SAMPLES
 #: The two burn-in variants: (label, skip the filter's start-up); ``kept`` is scored on the
 #: tables' window only.
@@ -108,7 +108,7 @@ BURN_IN_VARIANTS: tuple[tuple[str, bool], ...] = (("skipped", True), ("kept", Fa
 TIE_FRACTION: float = 1e-3
 #: Default scoring window, s (the paper's "Image number" column).
 WINDOW_S: float = 6.0
-#: The RMSE figures of each protocol, primary first (:func:`starlog.compensate.protocol_figures`).
+#: The RMSE figures of each protocol, primary first (:func:`starlog.compensation.protocol_figures`).
 PROTOCOL_REFERENCES: dict[str, tuple[str, ...]] = {
     "paper": ("global_mean",),
     "truth": ("truth_fixed", "truth_series"),
@@ -182,9 +182,9 @@ def uncompensated_figures(
 ) -> dict[str, list[tuple[str, float, int]]]:
     """RMSE figures of an uncompensated series under each protocol (Table 2).
 
-    :func:`starlog.compensate.protocol_figures` without a compensation (``evaluate`` needs at
+    :func:`starlog.compensation.protocol_figures` without a compensation (``evaluate`` needs at
     least 16 samples to also compensate), with the leak-free split of
-    :func:`starlog.compensate.scored_start`.
+    :func:`starlog.compensation.scored_start`.
 
     Returns
     -------
@@ -311,9 +311,9 @@ def track_and_score(
 ) -> dict[str, Any]:
     """Task 2: track one centroid channel under ``models`` and score every model's brightest series.
 
-    ``compensation``: keyword options of :func:`starlog.compensate.evaluate` (``A`` of eq. 10 is
+    ``compensation``: keyword options of :func:`starlog.compensation.evaluate` (``A`` of eq. 10 is
     the centroid's own ``sigma`` unless ``accuracy_source`` is given).  ``burn_in``: what the
-    ``skipped`` rows skip (:func:`starlog.compensate.parse_burn_in`).
+    ``skipped`` rows skip (:func:`starlog.compensation.parse_burn_in`).
 
     Returns ``{"regime", "dataset", "method", "track_path", "track": TrackSummary.to_dict(), "rows": [...],
     "series": {...}}`` — plain data (rows of :data:`RESULT_FIELDS`).

@@ -118,9 +118,9 @@ def solve_summaries(log: LogReader) -> dict[str, Any]:
 
 def trust_summary(log: LogReader) -> dict[str, Any]:
     """``{"trust": {...}}``: the centroid method to trust from the evidence the log holds
-    (:func:`starlog.centroid.evidence.trust`: the last ``solve`` record's catalogue residuals, else the last
+    (:func:`starlog.centroiding.evidence.trust`: the last ``solve`` record's catalogue residuals, else the last
     centroid record's frame-to-frame noise, else none, saying why); {} for a log without centroids."""
-    from starlog.centroid.evidence import trust
+    from starlog.centroiding.evidence import trust
 
     noise = [r for r in evidence_summaries(log).get("centroid_evidence", []) if "error" not in r]
     solved = [r for r in solve_summaries(log).get("solve", []) if "error" not in r]

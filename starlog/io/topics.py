@@ -54,15 +54,15 @@ DETECTIONS = "/stars/detections"
 ANNOTATIONS = "/stars/annotations"
 
 #: Name of the metadata record holding a log's empirical PSF (``starlog centroid --psf empirical``):
-#: the string map of :meth:`starlog.centroid.epsf.EPSF.to_metadata`.
+#: the string map of :meth:`starlog.centroiding.epsf.EPSF.to_metadata`.
 EPSF_METADATA = "starlog.epsf"
 
 #: Name of the metadata record holding a log's pixel-phase calibrations (``starlog centroid
-#: --phase-correction``): source, and the calibrations as a JSON list (:mod:`starlog.centroid.phase`).
+#: --phase-correction``): source, and the calibrations as a JSON list (:mod:`starlog.centroiding.phase`).
 PHASE_METADATA = "starlog.phase_correction"
 
 #: Name of the metadata record holding the evidence on which centroid method to trust, and the method
-#: recommended (:mod:`starlog.centroid.evidence`): ``methods`` (JSON), ``recommended``, ``reason``.
+#: recommended (:mod:`starlog.centroiding.evidence`): ``methods`` (JSON), ``recommended``, ``reason``.
 EVIDENCE_METADATA = "starlog.centroid_evidence"
 
 #: Name of the metadata record of a ``starlog solve`` run: ``methods`` (JSON), per centroid method the frames

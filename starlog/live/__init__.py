@@ -43,7 +43,7 @@ def open_source(source: str | None, output: Path, config: PipelineConfig, *, cam
                 idle_timeout: float | None = None, fps: float | None = None, force: bool = False,
                 compression: str = "zstd") -> object:
     """The source ``live`` reads: a camera (``camera``), a folder, or a log (followed; it may appear later)."""
-    from starlog.centroid.tracking import DEFAULT_ACQUIRE_EVERY
+    from starlog.centroiding.tracking import DEFAULT_ACQUIRE_EVERY
     from starlog.live.sources import BaseRecorder, Camera, FollowedLog, WatchedFolder
 
     table = config.centroid or {}

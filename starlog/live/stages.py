@@ -3,7 +3,7 @@
 * :class:`LiveCentroid` — the centroid stage's :class:`~starlog.stages.centroid.CentroidLayer` fed by its
   :class:`~starlog.stages._centroid_frames.FrameExtractor` (a new block's extractor where the source's
   chunks start a block, as the stage cuts them);
-* :class:`LiveTrack` — one :class:`~starlog.track.StarTracker` per motion model of a centroid method, fed
+* :class:`LiveTrack` — one :class:`~starlog.tracking.StarTracker` per motion model of a centroid method, fed
   by :func:`~starlog.stages.track.track_frame` from the rows of the centroid message as the layer holds it
   (:func:`centroid_rows`). Which track is the brightest star's is known only at the end: live marks the
   brightest *so far* (looked again every second) and spools every frame's rows; when the source ends, the
@@ -53,7 +53,7 @@ from starlog.stages.track import (
     tracker_configs,
     tracks_message_type,
 )
-from starlog.track import NoTrackError, StarTracker
+from starlog.tracking import NoTrackError, StarTracker
 
 __all__ = ["LiveCentroid", "LiveSolve", "LiveTrack", "centroid_rows", "star_columns"]
 

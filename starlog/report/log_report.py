@@ -191,9 +191,9 @@ def _rounded(value: Any) -> Any:
 
 
 def _trust_section(data: ReportData) -> str:
-    """Which centroid method to trust (:func:`starlog.centroid.evidence.trust`): the method named and why, then the
+    """Which centroid method to trust (:func:`starlog.centroiding.evidence.trust`): the method named and why, then the
     evidence per method: the catalogue residual on the stars every method identified (``starlog solve``) and the
-    frame-to-frame noise (:mod:`starlog.centroid.evidence`)."""
+    frame-to-frame noise (:mod:`starlog.centroiding.evidence`)."""
     if not data.evidence and not data.sky:
         return missing("This log holds no centroid evidence: `starlog centroid` records it.")
     out = ""

@@ -37,7 +37,7 @@ def run_summary_lines(output: Path, stages: list[tuple[str, dict[str, Any]]], re
                       skipped: Sequence[dict[str, Any]] = (), trusted: dict[str, Any] | None = None) -> list[str]:
     """What ran, the method trusted (``trusted``: what ``"trusted"`` in ``[track]`` stood for, else the centroid
     stage's own recommendation), the headline compensation figures of one track channel, what was ``skipped``
-    because the log is too short (:meth:`starlog.compensate.Shortfall.to_dict` each), and where the report and
+    because the log is too short (:meth:`starlog.compensation.Shortfall.to_dict` each), and where the report and
     the rows are."""
     lines = [f"{output}: " + ", ".join(name for name, _ in stages)]
     for name, result in stages:

@@ -1,7 +1,7 @@
 """Replay stages: each reads the channels it needs from a log and writes a new log with its channels added.
 
-The algorithms live in :mod:`starlog.sim`, :mod:`starlog.detect`, :mod:`starlog.centroid`,
-:mod:`starlog.track` and :mod:`starlog.compensate` and know nothing of MCAP; the functions
+The algorithms live in :mod:`starlog.sim`, :mod:`starlog.detect`, :mod:`starlog.centroiding`,
+:mod:`starlog.tracking` and :mod:`starlog.compensation` and know nothing of MCAP; the functions
 here join them to the log layer (:mod:`starlog.io`) and record provenance.
 
 The names below are imported on first use, so a command running one stage does not pay for

@@ -17,14 +17,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid import CentroidFlag, CentroidMethod, extract_stars
-from starlog.centroid.epsf import EPSF
-from starlog.centroid.evidence import FrameEvidence, frame_evidence
-from starlog.centroid.extract import measure_methods, window_half_size
-from starlog.centroid.hotpixels import without_hot_pixels
-from starlog.centroid.phase import PhaseCalibration
-from starlog.centroid.tracked_frame import WindowFit, track_frame
-from starlog.centroid.tracking import TrackingSettings, TrackState, finish_tracked, start_tracking
+from starlog.centroiding import CentroidFlag, CentroidMethod, extract_stars
+from starlog.centroiding.epsf import EPSF
+from starlog.centroiding.evidence import FrameEvidence, frame_evidence
+from starlog.centroiding.extract import measure_methods, window_half_size
+from starlog.centroiding.hotpixels import without_hot_pixels
+from starlog.centroiding.phase import PhaseCalibration
+from starlog.centroiding.tracked_frame import WindowFit, track_frame
+from starlog.centroiding.tracking import TrackingSettings, TrackState, finish_tracked, start_tracking
 from starlog.io import encode_image_annotations
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader, LogSource
@@ -50,7 +50,7 @@ class FrameMessages:
     n_failed: tuple[int, ...]
     n_artefacts: int = 0
     evidence: FrameEvidence | None = None
-    """Each method's differences to the other methods' median (:mod:`starlog.centroid.evidence`)."""
+    """Each method's differences to the other methods' median (:mod:`starlog.centroiding.evidence`)."""
     acquired: bool = True
     """Whether the whole frame was searched (always in full mode; in tracking mode, an acquisition)."""
 
@@ -69,7 +69,7 @@ class FrameExtractor:
     phase: dict[str, PhaseCalibration] | None = None
 
     tracking: TrackingSettings | None = None
-    """Tracking mode's settings (:mod:`starlog.centroid.tracking`); None: every frame searched in full."""
+    """Tracking mode's settings (:mod:`starlog.centroiding.tracking`); None: every frame searched in full."""
 
     def centroids(self, image: npt.NDArray[Any]) -> tuple[npt.NDArray[Any], dict[CentroidMethod, npt.NDArray[Any]]]:
         """Detections and centroids per method of one frame, before any phase correction."""
@@ -148,14 +148,14 @@ def annotation_diameter(centroids: npt.NDArray[Any]) -> float:
 
 
 class TrackedFrames:
-    """Tracking mode over one block of consecutive frames (:mod:`starlog.centroid.tracking`).
+    """Tracking mode over one block of consecutive frames (:mod:`starlog.centroiding.tracking`).
 
     The block's first frame is searched in full (an acquisition), and so is every ``acquire_every``-th after
     it, a frame where a tracked star is not found or is lost, and one where light appeared outside the
     windows and was there in the frame before. A star lost in the frame right after an acquisition becomes *quiet* instead: still looked for
     and measured whenever found, but its loss calls for no search (the search just done did not make it
     measurable), so a star at the detection's threshold cannot force a search every frame.
-    A tracked frame is compiled (:func:`~starlog.centroid.tracked_frame.track_frame`): GAUSSFIT as the first
+    A tracked frame is compiled (:func:`~starlog.centroiding.tracked_frame.track_frame`): GAUSSFIT as the first
     method with the PSF width given is measured there; other methods, and a frame where a window needs the robust
     re-measurement, are measured by numpy from the located rows.
     Blocks never share state: the output does not depend on how blocks are spread over workers.
@@ -168,7 +168,7 @@ class TrackedFrames:
         self.settings: TrackingSettings = extract.tracking
         self.state: TrackState | None = None
         self.risen: npt.NDArray[np.bool_] | None = None
-        """The cells where light appeared in the frame before (:func:`~starlog.centroid.tracking.new_light`)."""
+        """The cells where light appeared in the frame before (:func:`~starlog.centroiding.tracking.new_light`)."""
         psf = extract.options.get("psf_sigma")
         self.half_size = window_half_size(float(psf) if psf is not None else 1.0, extract.options.get("window"))
         self.fit = _window_fit(extract)
@@ -196,7 +196,7 @@ class TrackedFrames:
 
     def _tracked(self, image: npt.NDArray[Any], state: TrackState
                  ) -> tuple[npt.NDArray[Any], dict[CentroidMethod, npt.NDArray[Any]]] | None:
-        """The tracked stars measured in their windows (:func:`~starlog.centroid.tracked_frame.track_frame`); None
+        """The tracked stars measured in their windows (:func:`~starlog.centroiding.tracked_frame.track_frame`); None
         when the frame must be searched in full."""
         prepared, saturation = self.extract.prepared(image)
         frame = track_frame(prepared, state, self.settings, self.risen, self.half_size, self.fit, saturation)

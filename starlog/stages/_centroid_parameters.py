@@ -19,12 +19,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroid import CentroidMethod, artefact_detections, estimate_psf_sigma, measure_centroids
-from starlog.centroid.epsf import EPSF, epsf_from_frames
-from starlog.centroid.extract import detect_options_for_psf, window_half_size
-from starlog.centroid.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
-from starlog.centroid.tracking import DEFAULT_ACQUIRE_EVERY, TrackingSettings, is_image_sequence
-from starlog.centroid.phase import (
+from starlog.centroiding import CentroidMethod, artefact_detections, estimate_psf_sigma, measure_centroids
+from starlog.centroiding.epsf import EPSF, epsf_from_frames
+from starlog.centroiding.extract import detect_options_for_psf, window_half_size
+from starlog.centroiding.hotpixels import describe_hot_pixels, learn_hot_pixels, load_hot_pixels
+from starlog.centroiding.tracking import DEFAULT_ACQUIRE_EVERY, TrackingSettings, is_image_sequence
+from starlog.centroiding.phase import (
     DISTINCT_CELL,
     PhaseCalibration,
     estimate_phase_calibration,
@@ -44,9 +44,9 @@ __all__ = ["HOT_PIXEL_FRAMES", "MODES", "MODE_FRAMES", "PHASE_MAX_FRAMES", "PHAS
 
 MODES = ("auto", "tracking", "full")
 """The centroid stage's modes: ``full`` searches every frame, ``tracking`` measures known stars in windows
-(:mod:`starlog.centroid.tracking`), ``auto`` chooses tracking for a sequence of one field, else full."""
+(:mod:`starlog.centroiding.tracking`), ``auto`` chooses tracking for a sequence of one field, else full."""
 MODE_FRAMES = 8
-"""Frames at the log's start whose stars ``mode="auto"`` compares (:func:`starlog.centroid.tracking.is_image_sequence`)."""
+"""Frames at the log's start whose stars ``mode="auto"`` compares (:func:`starlog.centroiding.tracking.is_image_sequence`)."""
 
 
 ALL_METHODS = (CentroidMethod.NONE, CentroidMethod.MOMENT, CentroidMethod.BICUBIC, CentroidMethod.GAUSSFIT,
@@ -77,7 +77,7 @@ def parse_methods(spec: str | Sequence[str]) -> list[CentroidMethod]:
     return list(dict.fromkeys(out))
 
 
-#: Options the stage passes to :func:`starlog.centroid.extract_stars` as they are.
+#: Options the stage passes to :func:`starlog.centroiding.extract_stars` as they are.
 _EXTRACT_KEYS = ("psf_sigma", "window", "saturation", "drop_artefacts", "detect_options", "centroid_options")
 #: Keywords the stage sets itself (``--gain``, ``--read-noise``, ``--method``, ``--psf``, ``--hot-pixels``).
 _STAGE_KEYS = {"image", "detections", "method", "methods", "gain", "read_noise", "epsf", "hot_pixels", "background"}
@@ -89,10 +89,10 @@ def _keywords(function: Any) -> list[str]:
 
 
 def extract_options(options: dict[str, Any] | None) -> dict[str, Any]:
-    """Flat ``KEY=VALUE`` options (``--set``) → keyword options of :func:`starlog.centroid.extract_stars`.
+    """Flat ``KEY=VALUE`` options (``--set``) → keyword options of :func:`starlog.centroiding.extract_stars`.
 
     A key of :func:`starlog.detect.detect_stars` (``threshold``, ``min_area``, …) goes into
-    ``detect_options``, a key of :func:`starlog.centroid.measure_centroids` (``debias``,
+    ``detect_options``, a key of :func:`starlog.centroiding.measure_centroids` (``debias``,
     ``robust``, …) into ``centroid_options``; ``psf_sigma``, ``window``, ``saturation`` and the two
     mappings themselves stay as they are. Any other key is an error that lists the valid ones.
     """
@@ -127,7 +127,7 @@ class CentroidParameters:
     gain: float
     read_noise: float | None
     options: dict[str, Any]
-    """Keyword options of :func:`starlog.centroid.extract_stars`, ``psf_sigma`` included."""
+    """Keyword options of :func:`starlog.centroiding.extract_stars`, ``psf_sigma`` included."""
     epsf: EPSF | None
     hot_pixels: npt.NDArray[np.bool_] | None
     phase: PhaseCorrection | None
@@ -222,7 +222,7 @@ def _choose_mode(log: LogReader, topic: str, mode: str, tracking: TrackingSettin
                  detect_options: dict[str, Any] | None) -> dict[str, Any]:
     """The mode the stage runs in and why (the provenance's ``mode``, ``mode_reason`` and, tracking, ``tracking``):
     ``auto`` is tracking when the stars of the log's first :data:`MODE_FRAMES` frames are one field moving
-    little from frame to frame (:func:`starlog.centroid.tracking.is_image_sequence`), else full."""
+    little from frame to frame (:func:`starlog.centroiding.tracking.is_image_sequence`), else full."""
     if mode == "auto":
         positions = []
         for index, _, image in log.frames(topic, on_bad=lambda skipped: None):

@@ -5,7 +5,7 @@ Reads an image channel (``/camera/image`` by default; any image type of
 ``/stars/centroids/<METHOD>`` per method (starlog.Centroids) and ``/stars/annotations``
 (foxglove.ImageAnnotations: circles at the first method's centroids, so the stars show over
 the frames in Foxglove), each message at its frame's ``log_time``. A detection that exists only
-because of an artefact (flag ``ARTEFACT``, :mod:`starlog.centroid.artefacts`) stays in the
+because of an artefact (flag ``ARTEFACT``, :mod:`starlog.centroiding.artefacts`) stays in the
 detections and is left out of the centroids and annotations; the summary and the provenance
 (``results.artefacts``) count them. Frames are processed one at
 a time (memory flat in log length). With ``workers > 1`` the log is split into blocks of
@@ -13,8 +13,8 @@ consecutive image chunks; each worker process opens the log itself, decodes and 
 block (so no image crosses a process boundary), and the results are written in frame order:
 the output does not depend on the number of workers. With PSFFIT (or ``psf="empirical"``) an
 empirical PSF is built once from the log's first frames before that, stored as the metadata
-record ``starlog.epsf`` (:meth:`starlog.centroid.epsf.EPSF.to_metadata`) and fitted by PSFFIT
-in every frame. In tracking mode (``mode``; :mod:`starlog.centroid.tracking`) the blocks are cut
+record ``starlog.epsf`` (:meth:`starlog.centroiding.epsf.EPSF.to_metadata`) and fitted by PSFFIT
+in every frame. In tracking mode (``mode``; :mod:`starlog.centroiding.tracking`) the blocks are cut
 whatever the number of workers, each starts with a full search, and known stars are measured in
 windows around their predicted positions in between. The summary says how many frames were
 read against how many messages the channel holds; they must agree unless ``skip_bad`` names
@@ -29,7 +29,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from starlog.centroid.evidence import EvidenceAccumulator, recommend
+from starlog.centroiding.evidence import EvidenceAccumulator, recommend
 from starlog.io import protobuf_message_type, topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
@@ -150,7 +150,7 @@ def centroid_log(
         centroid's ``sigma``. Default: the values recorded by ``simulate`` in the log's
         provenance, else gain 1 and read noise estimated from the frame.
     options : dict, optional
-        Keyword options of :func:`starlog.centroid.extract_stars` (``psf_sigma``, ``window``,
+        Keyword options of :func:`starlog.centroiding.extract_stars` (``psf_sigma``, ``window``,
         ``detect_options``, ...). Without ``psf_sigma``, the PSF width is estimated once for
         the whole log, from the first frames with measurable stars, and recorded in the
         provenance (one optics, one PSF; re-estimating it per frame costs time and adds noise).
@@ -174,12 +174,12 @@ def centroid_log(
         methods. ``"gaussian"``: PSFFIT fits the pixel-integrated Gaussian of the PSF sigma.
         Default: empirical when PSFFIT is among the methods, else none.
     hot_pixels : "auto" or path, optional
-        A hot-pixel map (:mod:`starlog.centroid.hotpixels`): ``"auto"`` learns it from the
+        A hot-pixel map (:mod:`starlog.centroiding.hotpixels`): ``"auto"`` learns it from the
         log's first frames, a path reads it (``.npy`` boolean mask or ``x,y`` text lines). Hot
         pixels are never detections and are left out of the star windows; the map (source,
         count, SHA-256, pixels) is recorded in the provenance.
     phase_correction : "auto", "off" or path, optional
-        Remove each method's pixel-phase bias (S-curve, :mod:`starlog.centroid.phase`) from
+        Remove each method's pixel-phase bias (S-curve, :mod:`starlog.centroiding.phase`) from
         every centroid. ``"auto"`` learns it from the log's own stars (the first
         :data:`~starlog.stages._centroid_parameters.PHASE_MIN_FRAMES` frames and more while they
         show new phases, each distinct star once; no catalogue), per method; a method with too
@@ -193,13 +193,13 @@ def centroid_log(
         ``"full"`` searches every frame for stars. ``"tracking"`` searches the first frame of every block of
         about ``acquire_every`` frames, then measures each known star in a window around its predicted
         position and searches the whole frame again every ``acquire_every`` frames, whenever a star is not
-        found or is lost, and whenever light appears outside the windows (:mod:`starlog.centroid.tracking`);
+        found or is lost, and whenever light appears outside the windows (:mod:`starlog.centroiding.tracking`);
         its centroids carry the flag ``TRACKED``. ``"auto"`` (default): tracking when the stars of the log's
         first frames are one field moving little from frame to frame, else full. The mode, why, and the
         number of full searches are recorded in the provenance.
     acquire_every : int, optional
         Tracking: frames between two full searches (default
-        :data:`~starlog.centroid.tracking.DEFAULT_ACQUIRE_EVERY`).
+        :data:`~starlog.centroiding.tracking.DEFAULT_ACQUIRE_EVERY`).
     """
     parameters = resolve_centroid_parameters(input_path, methods=methods, gain=gain, read_noise=read_noise,
                                              options=options, image_topic=image_topic, psf=psf, hot_pixels=hot_pixels,
@@ -306,7 +306,7 @@ def _frame_results(log: LogReader, source: LogSource, p: CentroidParameters, wor
 
 def _record_evidence(writer: LogWriter, summary: CentroidSummary, evidence: EvidenceAccumulator,
                      p: CentroidParameters) -> None:
-    """The evidence on which method to trust (:mod:`starlog.centroid.evidence`), each method's phase
+    """The evidence on which method to trust (:mod:`starlog.centroiding.evidence`), each method's phase
     calibration beside it, and the method recommended: into the summary and the metadata record."""
     summary.evidence = evidence.result()
     calibrations = p.phase.calibrations if p.phase is not None else {}

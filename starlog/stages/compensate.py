@@ -3,10 +3,10 @@
 Reads one track channel (``/track/<METHOD>/<MODEL>``), takes the brightest star's track (the
 paper's centroid sequence: its filtered ``x``, ``y``, flux and centroid ``sigma``), decimates
 it to each requested rate (the frame nearest each ideal sample time,
-:func:`starlog.compensate.decimation_indices`), and runs :func:`starlog.compensate.evaluate` under
+:func:`starlog.compensation.decimation_indices`), and runs :func:`starlog.compensation.evaluate` under
 each protocol (``paper``; ``truth`` when the log has ``/sim/truth``; ``leakfree``; ``relative`` when
 asked for) and each motion mode (``keep``, the paper's; ``separate``: compensate the star's
-residual from the platform motion fitted to the other stars, :mod:`starlog.motion`). It writes
+residual from the platform motion fitted to the other stars, :mod:`starlog.platform_motion`). It writes
 
 * ``/compensated/<METHOD>/<MODEL>/<RATE>Hz/<protocol>`` (starlog.CompensatedSample): one message
   per decimated sample at its frame's ``log_time``, the series before and after (``.../separate``
@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensate import (
+from starlog.compensation import (
     CALIBRATION_FRACTION,
     RATE_TOLERANCE,
     BurnIn,
@@ -74,7 +74,7 @@ from starlog.compensate import (
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
-from starlog.motion import star_reference
+from starlog.platform_motion import star_reference
 from starlog.stages._parallel import ordered_map, process_pool
 from starlog.stages._progress import progress
 from starlog.stages._channels import select_track_channels
@@ -115,9 +115,9 @@ class BrightestSeries:
     """The filter's posterior position variance per sample, ``(cov_xx + cov_yy) / 2``, px²."""
 
     def burn_in(self, setting: BurnInSetting = "auto") -> BurnIn:
-        """The filter's start-up (:func:`starlog.compensate.burn_in`, capped by :func:`~starlog.compensate.burn_in_cap`);
+        """The filter's start-up (:func:`starlog.compensation.burn_in`, capped by :func:`~starlog.compensation.burn_in_cap`);
         no burn-in when the variances are unknown.  ``setting``: ``"auto"`` (that rule), ``"off"``
-        (none) or a fixed number of seconds (:func:`starlog.compensate.parse_burn_in`)."""
+        (none) or a fixed number of seconds (:func:`starlog.compensation.parse_burn_in`)."""
         if setting == "off":
             return BurnIn(samples=0, steady_variance=0.0, capped=False)
         if not isinstance(setting, str):
@@ -128,7 +128,7 @@ class BrightestSeries:
 
     def indices(self, rate: float, *, skip_burn_in: bool = True,
                 burn_in: BurnInSetting = "auto") -> npt.NDArray[np.int64]:
-        """The samples kept at ``rate`` Hz (:func:`starlog.compensate.decimation_indices`), starting
+        """The samples kept at ``rate`` Hz (:func:`starlog.compensation.decimation_indices`), starting
         after the filter's burn-in (per ``burn_in``) when ``skip_burn_in``."""
         start = self.burn_in(burn_in).samples if skip_burn_in else 0
         return decimation_indices(self.xy.shape[0], native_rate=self.native_rate, target_rate=rate, start=start)
@@ -271,7 +271,7 @@ def _with_truth(log: LogReader, series: BrightestSeries, cache: dict[int, StarTr
 
 def with_platform_reference(log: LogReader, series: BrightestSeries, topic: str, *,
                             fit: str = "rigid") -> BrightestSeries:
-    """``series`` with its reference from the other stars of ``topic`` (:func:`starlog.motion.star_reference`)."""
+    """``series`` with its reference from the other stars of ``topic`` (:func:`starlog.platform_motion.star_reference`)."""
     data, est = estimate_track_motion(log, topic, model=fit)
     return _attach_reference(series, data, est, topic)
 
@@ -291,10 +291,10 @@ def _attach_reference(series: BrightestSeries, data: Any, est: Any, topic: str) 
 def evaluate_series(series: BrightestSeries, idx: npt.NDArray[np.int64], *, rate_hz: float,
                     protocol: ScoringProtocol, motion: MotionMode | str = MotionMode.KEEP,
                     **options: Any) -> Evaluation:
-    """:func:`starlog.compensate.evaluate` on the samples ``idx`` of ``series`` (sampled at ``rate_hz``).
+    """:func:`starlog.compensation.evaluate` on the samples ``idx`` of ``series`` (sampled at ``rate_hz``).
 
     The truth goes with every protocol but ``paper`` when the series has it, the platform
-    reference whenever it is attached; ``options`` are :func:`~starlog.compensate.evaluate`'s
+    reference whenever it is attached; ``options`` are :func:`~starlog.compensation.evaluate`'s
     keyword options.  ``A`` of eq. 10 is the series' ``sigma`` (the centroid's own,
     :attr:`BrightestSeries.sigma_source`) unless ``accuracy_source`` says otherwise.
     """
@@ -416,7 +416,7 @@ def compensate_log(
         ``"all"`` (paper, truth when simulated, leakfree) or any of ``paper``, ``truth``,
         ``leakfree``, ``relative``.
     options : dict, optional
-        Keyword options of :func:`starlog.compensate.evaluate` (accuracy_source,
+        Keyword options of :func:`starlog.compensation.evaluate` (accuracy_source,
         calibration_fraction, top_k, rollback_threshold, leakfree_reference, select_positive).
         ``A`` of eq. 10 is the centroid's own ``sigma`` unless ``accuracy_source`` is given.
     motion : str or sequence of str
@@ -432,7 +432,7 @@ def compensate_log(
         default), ``"off"`` (nothing skipped) or a number of seconds; recorded in every
         decision record.
     skip_short : bool
-        Leave out the rates and protocols the track is too short for (:func:`starlog.compensate.shortfalls`,
+        Leave out the rates and protocols the track is too short for (:func:`starlog.compensation.shortfalls`,
         listed in the summary's ``skipped`` and the stage's parameters) instead of refusing the log, before
         anything is written.
     stars : str
@@ -511,7 +511,7 @@ def track_shortfalls(log: LogReader, channels: Sequence[ChannelSummary], rates: 
                      protocols: Sequence[ScoringProtocol], *, options: dict[str, Any],
                      burn_in: BurnInSetting = "auto") -> list[Shortfall]:
     """The rates and protocols the shortest of ``channels`` gives too few samples for
-    (:func:`starlog.compensate.shortfalls`), at the frame rate :func:`read_brightest_series` uses."""
+    (:func:`starlog.compensation.shortfalls`), at the frame rate :func:`read_brightest_series` uses."""
     image_rate = log.channel(topics.IMAGE).rate_hz if log.has_topic(topics.IMAGE) else 0.0
     shortest = min(channels, key=lambda c: c.message_count)
     native = image_rate if image_rate > 0 else shortest.rate_hz

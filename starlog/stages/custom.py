@@ -329,14 +329,14 @@ def _structured(rows: np.ndarray | None, kind: str) -> np.ndarray:
 @functools.cache
 def _dtype(kind: str) -> np.dtype[Any]:
     if kind == "centroids":
-        from starlog.centroid.table import CENTROID_DTYPE
+        from starlog.centroiding.table import CENTROID_DTYPE
 
         return CENTROID_DTYPE
     if kind == "detections":
         from starlog.detect.detection import DETECTION_DTYPE
 
         return DETECTION_DTYPE
-    from starlog.track.table import TRACK_DTYPE
+    from starlog.tracking.table import TRACK_DTYPE
 
     return np.dtype([*((n, TRACK_DTYPE.fields[n][0]) for n in TRACK_DTYPE.names or ()), ("brightest", np.bool_)])
 

@@ -3,7 +3,7 @@
 Reads one track channel (``/track/<METHOD>/<MODEL>``: every row with an associated
 measurement gives ``meas_x``, ``meas_y`` and the track id), estimates the per-frame platform
 motion jointly with every star's static position and centroid noise
-(:func:`starlog.motion.estimate_platform`), and writes
+(:func:`starlog.platform_motion.estimate_platform`), and writes
 
 * ``/platform/<METHOD>/<MODEL>`` (starlog.PlatformMotion): dx, dy, roll (and scale), their
   1-sigma, the stars used and the residual RMS, one message per frame with a motion;
@@ -31,7 +31,7 @@ from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import protobuf_message_type, topics
 from starlog.io.reader import LogReader
 from starlog.io.star_tables import star_codec
-from starlog.motion import Observations, PlatformEstimate, PlatformModel, estimate_platform
+from starlog.platform_motion import Observations, PlatformEstimate, PlatformModel, estimate_platform
 from starlog.stages._channels import check_messages_read, select_track_channels
 from starlog.stages.window import windowed
 from starlog.stages._stage import StageOutput, extend_log
@@ -178,7 +178,7 @@ def motion_log(
     model : str
         ``translation``, ``rigid`` (default) or ``similarity``.
     options : dict, optional
-        Keywords of :func:`starlog.motion.estimate_platform` (k_sigma, min_stars, min_star_frames,
+        Keywords of :func:`starlog.platform_motion.estimate_platform` (k_sigma, min_stars, min_star_frames,
         max_iterations, tol, max_rejections).
     start, end : str or int, optional
         Only the range ``start <= log_time < end`` (ns, ``"12.5s"`` or ``"frame:N"`` of the first

@@ -52,7 +52,7 @@ from starlog.attitude.catalogue import Catalogue, load_catalogue, solver_data_fi
 from starlog.attitude.identify import ARCSEC_PER_RAD, AttitudeTracker, FrameAttitude, TrackerSettings
 from starlog.attitude.rotation import attitude_error, matrix_from_quaternion, radec_roll
 from starlog.attitude.sky_evidence import MAX_SKY_FRAMES, IdentifiedFrame, sky_evidence
-from starlog.centroid.table import CentroidFlag
+from starlog.centroiding.table import CentroidFlag
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import protobuf_message_type, topics
 from starlog.io.reader import LogReader

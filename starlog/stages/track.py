@@ -4,7 +4,7 @@ Reads ``/stars/centroids/<METHOD>`` and writes ``/track/<METHOD>/<MODEL>`` (``st
 one message per frame). The brightest star's track — the paper's centroid sequence — is
 marked in every row (``brightest``). Finding it needs the whole log (it is the confirmed track
 with the most measurements and the highest mean flux, see
-:meth:`starlog.track.StarTracker.brightest_track`), so the stage runs in three passes, each
+:meth:`starlog.tracking.StarTracker.brightest_track`), so the stage runs in three passes, each
 streaming block by block so that memory does not grow with the log's length:
 
 1. **read** — the centroid channel is decoded once into numpy blocks, spooled to a temporary
@@ -55,7 +55,7 @@ from starlog.stages._progress import progress
 from starlog.stages._spool import Spool, opened, read_block, read_blocks, write_block
 from starlog.stages.window import windowed
 from starlog.stages._stage import StageOutput, extend_log
-from starlog.track import (
+from starlog.tracking import (
     MotionModel,
     MotionModelConfig,
     NoTrackError,
@@ -289,7 +289,7 @@ class NisSum:
 
 def _track_block(tracker: StarTracker, times: npt.NDArray[np.int64], counts: npt.NDArray[np.int64],
                  table: npt.NDArray[np.float64], nis: NisSum) -> tuple[npt.NDArray[np.void], npt.NDArray[np.int64]]:
-    """Each frame of a block through the tracker (:meth:`~starlog.track.StarTracker.update_block`): the block's
+    """Each frame of a block through the tracker (:meth:`~starlog.tracking.StarTracker.update_block`): the block's
     rows, one table, and each frame's number of rows."""
     rows, row_counts = tracker.update_block(times, counts, table)
     nis.add(rows)
@@ -494,10 +494,10 @@ def track_log(
     models : str or sequence of str
         ``"all"`` or motion model names.
     tracker : dict, optional
-        :class:`~starlog.track.TrackerConfig` fields (gate_probability, association_radius,
+        :class:`~starlog.tracking.TrackerConfig` fields (gate_probability, association_radius,
         confirm_hits, max_missed, sigma_floor).
     motion : dict, optional
-        :class:`~starlog.track.MotionModelConfig` fields (process-noise intensities).
+        :class:`~starlog.tracking.MotionModelConfig` fields (process-noise intensities).
     workers : int
         Processes tracking the models (at most one per model; with several, they also encode
         the messages; with one model, they read and encode around the tracker). The output does not
