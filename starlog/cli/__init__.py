@@ -27,7 +27,7 @@ from typing import Any
 
 import click
 
-from starlog import __version__
+from starlog.version import __version__
 from starlog._lifeline import die_of
 from starlog.cli.inspect import cat, export, info, report_command
 from starlog.cli.live import live
