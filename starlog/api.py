@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from starlog.log import Log, TimeBound
@@ -223,31 +224,38 @@ def solve(log: PathLike, output: PathLike, *, centroids: str | Sequence[str] | N
                      flatten=flatten)
 
 
-def run(log: PathLike, output: PathLike, *, config: PathLike | PipelineConfig | None = None, start: TimeBound = None,
+def run(log: PathLike, output: PathLike, *, config: PathLike | Mapping[str, Any] | PipelineConfig | None = None, start: TimeBound = None,
         end: TimeBound = None, flatten: bool = False, report: bool = True, force: bool = False,
         compression: str = "zstd", workers: int | None = None, progress: bool = False,
         on_stage: Callable[[str, dict[str, Any]], object] | None = None,
         on_skip: Callable[[Shortfall], object] | None = None) -> PipelineResult:
     """Replay a log through the stages of a pipeline config (``starlog run``), each writing a layer on the one
     before; ``output`` is the last. ``config``: a TOML file (``starlog run --print-config`` prints the built-in
-    one) or a :class:`~starlog.pipeline.PipelineConfig`; default the built-in config. With ``report``, the HTML
+    one), the same tables as a dict, or a :class:`~starlog.pipeline.PipelineConfig`; default the built-in config. With ``report``, the HTML
     report is written beside ``output`` (suffix .html, :func:`starlog.pipeline.report_path`).
     ``on_stage(name, summary)`` is called as each stage ends, ``on_skip(shortfall)`` for each rate or protocol
     left out because the log is too short for it.
 
     Example::
 
-        result = starlog.run("sim.mcap", "result.mcap")
+        result = starlog.run("sim.mcap", "result.mcap", config={
+            "centroid": {"methods": "GAUSSFIT"}, "track": {"methods": ["GAUSSFIT"], "models": "STATIC"},
+            "compensate": {"rates": [50], "protocols": "paper"}})
         print(result.to_dict()["layers"])
     """
     from starlog.errors import OutputExistsError
     from starlog.pipeline import PipelineConfig, load_config, report_path, run_pipeline
     from starlog.report import write_report
 
-    html = report_path(output)
+    html = report_path(Path(output))
     if report and html.exists() and not force:
         raise OutputExistsError(html)
-    chosen = config if isinstance(config, PipelineConfig) else load_config(config)
+    if isinstance(config, PipelineConfig):
+        chosen = config
+    elif isinstance(config, Mapping):
+        chosen = PipelineConfig.from_dict(dict(config), source="the config given")
+    else:
+        chosen = load_config(config)
     result = run_pipeline(log, output, chosen, workers=_cores(workers), force=force, flatten=flatten,
                           compression=compression, show_progress=progress, on_stage=on_stage, on_skip=on_skip,
                           start=start, end=end)

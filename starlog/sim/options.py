@@ -30,18 +30,27 @@ def simulation_config(*, preset: str | None = None, size: tuple[int, int] = (256
     or ``duration`` override."""
     params: dict[str, Any] = {}
     if sky_attitude is not None:
-        params.update(sky_attitude=tuple(sky_attitude), fov_deg=fov, magnitude_limit=mag_limit, flux_mag6=flux_mag6)
-    params.update(_timing(preset, fps, frames, duration))
-    params.update(_psf_shape(psf, psf_fwhm, moffat_beta, airy_lambda_d, airy_zero))
-    roll_hz, roll_rad = roll if roll is not None else (1.0, 0.0)
-    width, height = size
+        params.update(sky_attitude=_floats(sky_attitude), fov_deg=float(fov), magnitude_limit=float(mag_limit),
+                      flux_mag6=float(flux_mag6))
+    params.update(_timing(preset, None if fps is None else float(fps), frames, duration))
+    params.update(_psf_shape(psf, float(psf_fwhm), float(moffat_beta), float(airy_lambda_d), float(airy_zero)))
+    roll_hz, roll_rad = _floats(roll) if roll is not None else (1.0, 0.0)
+    width, height = (int(v) for v in size)
+    flux_min, flux_max = _floats(flux)
     return SimulationConfig(
-        width=width, height=height, n_stars=stars, flux_min=flux[0], flux_max=flux[1], psf_sigma=psf_sigma, sky=sky,
-        camera=CameraModel(read_noise=read_noise, gain=gain, bias=bias, adc_bits=adc_bits), hot_pixels=hot_pixels,
-        cosmic_rays_per_frame=cosmic_rays,
-        jitter=tuple(Jitter(frequency_hz=f, amplitude_px=a) for f, a in jitter),
-        drift_px_per_s=tuple(drift), random_walk_px_per_sqrt_s=random_walk, roll_amplitude_rad=roll_rad,
-        roll_frequency_hz=roll_hz, seed=seed, start_time_ns=start_ns, **params)
+        width=width, height=height, n_stars=int(stars), flux_min=flux_min, flux_max=flux_max,
+        psf_sigma=float(psf_sigma), sky=float(sky),
+        camera=CameraModel(read_noise=float(read_noise), gain=float(gain), bias=float(bias), adc_bits=int(adc_bits)),
+        hot_pixels=int(hot_pixels), cosmic_rays_per_frame=float(cosmic_rays),
+        jitter=tuple(Jitter(frequency_hz=f, amplitude_px=a) for f, a in map(_floats, jitter)),
+        drift_px_per_s=_floats(drift), random_walk_px_per_sqrt_s=float(random_walk), roll_amplitude_rad=roll_rad,
+        roll_frequency_hz=roll_hz, seed=int(seed), start_time_ns=int(start_ns), **params)
+
+
+def _floats(values: Sequence[float]) -> tuple[float, ...]:
+    """Numbers as floats: the configuration (and the provenance that records it) is the same whether a caller
+    wrote 10 or 10.0."""
+    return tuple(float(v) for v in values)
 
 
 def _timing(preset: str | None, fps: float | None, frames: int | None, duration: float | None) -> dict[str, Any]:
