@@ -17,6 +17,7 @@ import _thread
 import atexit
 import contextlib
 import errno
+import faulthandler
 import functools
 import os
 import signal
@@ -192,6 +193,7 @@ def main() -> None:
     SIGTERM and Ctrl-C unwind the command (partial outputs removed, worker pools stopped); the process then
     ends of that signal, as a shell expects of a stopped command.
     """
+    faulthandler.enable()  # a crash in compiled code (a bug) prints where it happened instead of dying silently
     _handle_stops()
     try:
         cli(prog_name="starlog")
