@@ -193,7 +193,8 @@ def main() -> None:
     SIGTERM and Ctrl-C unwind the command (partial outputs removed, worker pools stopped); the process then
     ends of that signal, as a shell expects of a stopped command.
     """
-    faulthandler.enable()  # a crash in compiled code (a bug) prints where it happened instead of dying silently
+    with contextlib.suppress(Exception):  # stderr may be no file (an embedding): nothing to print the crash to
+        faulthandler.enable()  # a crash in compiled code (a bug) prints where it happened instead of dying silently
     _handle_stops()
     try:
         cli(prog_name="starlog")
