@@ -6,7 +6,12 @@ Options are the command's, as Python keywords (``--read-noise`` → ``read_noise
 → ``options={"K": V}``); a progress bar only with ``progress=True``; ``workers=None`` uses every
 core, as the command does. Errors are :class:`~starlog.errors.StarlogError` subclasses carrying
 the command's one-line message. Time bounds (``start`` / ``end``) are written as on the command
-line: log time in ns, ``"12.5s"`` or ``"frame:N"``.
+line: log time in ns, ``"12.5s"`` or ``"frame:N"``. Where a command takes a comma-separated list
+(``--method``, ``--rate``, ``--table``), the function takes that string or a list.
+
+From a script (not a notebook), put the calls under ``if __name__ == "__main__":``: with more than
+one worker, starlog's worker processes import the script again, as Python's ``multiprocessing``
+does (``workers=1`` needs no guard).
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from starlog.errors import InvalidParameterError, LogNotFoundError
 from starlog.log import Log, TimeBound
 
 if TYPE_CHECKING:
@@ -31,6 +37,8 @@ if TYPE_CHECKING:
     from starlog.stages.solve import SolveSummary
     from starlog.stages.track import TrackSummary
 
+__docformat__ = "restructuredtext"
+
 __all__ = ["centroid", "compensate", "export", "flatten", "ingest", "motion", "open", "run", "simulate", "solve",
            "track", "verify"]
 
@@ -39,6 +47,23 @@ PathLike = str | os.PathLike[str]
 
 def _cores(workers: int | None) -> int:
     return workers if workers is not None else (os.cpu_count() or 1)
+
+
+def _names(value: str | Sequence[str] | None) -> list[str] | None:
+    """A command's comma-separated list, given as that string or as a list."""
+    if value is None:
+        return None
+    items = value.split(",") if isinstance(value, str) else [str(v) for v in value]
+    return [item.strip() for item in items if item.strip()]
+
+
+def _rates(rate: float | str | Sequence[float]) -> list[float]:
+    """``rate`` (Hz) as ``compensate --rate`` takes it: a number, ``"10,50"`` or a list of numbers."""
+    items = _names(rate) if isinstance(rate, str) else [rate] if not isinstance(rate, Sequence) else list(rate)
+    try:
+        return [float(r) for r in items or []]
+    except (TypeError, ValueError):
+        raise InvalidParameterError(f"rate={rate!r}: expected rates in Hz, e.g. 50, [10, 50] or '10,50'.") from None
 
 
 def open(path: PathLike) -> Log:  # noqa: A001 - starlog.open, as io.open and tarfile.open
@@ -101,12 +126,16 @@ def simulate(output: PathLike, *, preset: str | None = None, size: tuple[int, in
     return summary
 
 
-def ingest(source: PathLike, output: PathLike, *, fps: float | None = None, start_ns: int = 0,
+def ingest(source: PathLike, output: PathLike, *, fps: float | None = None, start: int = 0,
            time_pattern: str | None = None, time_unit: str = "ns", skip_bad: bool = False, force: bool = False,
            compression: str = "lz4", workers: int | None = None, progress: bool = False) -> IngestSummary:
     """Record camera output into a log (``starlog ingest``): a folder of images, a SER file or a video.
 
-    Notes (lossy compression, colour frames) are Python warnings.
+    ``fps``: frame n at ``start`` + n/fps (ns); without it, a SER or video file's own times. ``start``: the log
+    time of the first frame in ns (with ``fps``), or the offset added to the times parsed with ``time_pattern``
+    (a regular expression whose group ``t`` finds the time in each file name, in ``time_unit``) or read from
+    the file. ``skip_bad`` leaves out unreadable frames instead of stopping. Notes (lossy compression, colour
+    frames) are Python warnings.
 
     Example::
 
@@ -114,7 +143,7 @@ def ingest(source: PathLike, output: PathLike, *, fps: float | None = None, star
     """
     from starlog.stages.ingest import ingest_folder
 
-    return ingest_folder(source, output, fps=fps, start_ns=start_ns, time_pattern=time_pattern,
+    return ingest_folder(source, output, fps=fps, start_ns=start, time_pattern=time_pattern,
                          time_unit=time_unit, skip_bad=skip_bad, compression=compression, workers=_cores(workers),
                          force=force, show_progress=progress)
 
@@ -127,8 +156,17 @@ def centroid(log: PathLike, output: PathLike, *, method: str | Sequence[str] = "
              compression: str = "zstd", workers: int | None = None, progress: bool = False) -> CentroidSummary:
     """Detect stars and measure sub-pixel centroids in every frame (``starlog centroid``).
 
-    Writes a layer on ``log`` with /stars/detections, /stars/centroids/<METHOD> per method and
-    /stars/annotations. ``options`` are detection and centroiding keywords (the command's ``--set``).
+    Writes a layer on ``log`` with ``/stars/detections``, ``/stars/centroids/<METHOD>`` per method and
+    ``/stars/annotations``. ``method``: NONE, MOMENT, MOMENT_SQUARED, BICUBIC, GAUSSFIT, GRADIENT, PSFFIT,
+    WINPOS, or ``"all"``. ``options``: keywords of :func:`starlog.detect.detect_stars` and
+    :func:`starlog.centroiding.measure_centroids` (the command's ``--set``). ``psf``: PSFFIT's model,
+    ``"empirical"`` (an ePSF built from the log's stars) or ``"gaussian"``. ``gain`` (e-/DN) and
+    ``read_noise`` (e-): by default from the simulator's provenance, else 1 and estimated. ``hot_pixels``:
+    ``"auto"`` (learnt from the log) or a file (.npy mask, or ``x,y`` lines). ``phase_correction``:
+    ``"auto"`` (each method's pixel-phase bias learnt from the log's stars), ``"off"`` or a calibration file.
+    ``mode``: ``"full"`` (search every frame), ``"tracking"`` (windows around predicted positions, a full
+    search every ``acquire_every`` frames, 100 by default) or ``"auto"``. ``skip_bad`` leaves out frames that
+    do not decode instead of stopping.
 
     Example::
 
@@ -150,8 +188,10 @@ def track(log: PathLike, output: PathLike, *, centroids: str, model: str | Seque
           compression: str = "zstd", workers: int | None = None, progress: bool = False) -> TrackSummary:
     """Track every star with a UKF under each motion model (``starlog track``).
 
-    ``centroids`` is the centroid method whose channel is tracked; ``options`` the tracker's
-    (``--set``), ``motion`` the process noise (``--motion``).
+    ``centroids`` is the centroid method whose channel is tracked; ``model``: STATIC, RANDOM_WALK,
+    BROWNIAN_MOTION, POLYNOMIAL_TREND, CONSTANT_VELOCITY, or ``"all"``; ``options``: the tracker's
+    (:class:`starlog.tracking.TrackerConfig` fields, the command's ``--set``); ``motion``: the process noise
+    (:class:`starlog.tracking.MotionModelConfig` fields, ``--motion``).
 
     Example::
 
@@ -170,6 +210,10 @@ def motion(log: PathLike, output: PathLike, *, track: str | Sequence[str] | None
            workers: int | None = None) -> MotionSummary:
     """Fit the platform motion to all tracked stars; each star's residual is its error alone (``starlog motion``).
 
+    ``track``: the track channel (``/track/GAUSSFIT/STATIC``), or ``"all"``; default the only one.
+    ``model``: ``"translation"``, ``"rigid"`` or ``"similarity"``. ``options``: keywords of
+    :func:`starlog.platform_motion.estimate_platform`.
+
     Example::
 
         starlog.motion("trk.mcap", "mot.mcap", track="/track/GAUSSFIT/STATIC")
@@ -180,15 +224,21 @@ def motion(log: PathLike, output: PathLike, *, track: str | Sequence[str] | None
                       compression=compression, workers=_cores(workers), start=start, end=end, flatten=flatten)
 
 
-def compensate(log: PathLike, output: PathLike, *, rate: float | Sequence[float], track: str | None = None,
+def compensate(log: PathLike, output: PathLike, *, rate: float | str | Sequence[float], track: str | None = None,
                protocol: str | Sequence[str] = "all", motion: str | Sequence[str] = "keep",
                options: Mapping[str, Any] | None = None, burn_in: str | float = "auto", skip_short: bool = False,
                stars: str = "brightest", start: TimeBound = None, end: TimeBound = None, flatten: bool = False,
-               force: bool = False, compression: str = "zstd", workers: int = 1,
+               force: bool = False, compression: str = "zstd", workers: int | None = 1,
                progress: bool = False) -> CompensateSummary:
     """Decompose the brightest star's error, select strategies and compensate (``starlog compensate``).
 
-    ``rate`` in Hz (one or several); ``burn_in`` ``"auto"``, ``"off"`` or seconds.
+    ``rate`` in Hz: a number, a list or ``"10,50"``. ``protocol``: ``paper``, ``truth`` (simulated logs),
+    ``leakfree``, ``relative``, or ``"all"`` (paper, truth, leakfree). ``motion``: ``"keep"`` (the paper's
+    method) and/or ``"separate"`` (the platform motion fitted to the other stars set aside). ``options``:
+    keywords of :func:`starlog.compensation.evaluate`. ``burn_in``: ``"auto"``, ``"off"`` or seconds.
+    ``stars``: ``"brightest"``, or ``"all"`` (every confirmed track too). ``skip_short`` leaves out the rates
+    and protocols the track is too short for instead of refusing the log. ``workers``: one by default, as
+    for the command (None: every core).
 
     Example::
 
@@ -198,11 +248,10 @@ def compensate(log: PathLike, output: PathLike, *, rate: float | Sequence[float]
     from starlog.compensation import parse_burn_in
     from starlog.stages.compensate import compensate_log
 
-    rates = [float(rate)] if isinstance(rate, int | float) else [float(r) for r in rate]
-    return compensate_log(log, output, rates=rates, track=track, protocols=protocol, options=dict(options or {}),
-                          motion=motion, workers=workers, show_progress=progress, force=force,
-                          compression=compression, start=start, end=end, burn_in=parse_burn_in(burn_in),
-                          skip_short=skip_short, flatten=flatten, stars=stars)
+    return compensate_log(log, output, rates=_rates(rate), track=track, protocols=_names(protocol) or "all",
+                          options=dict(options or {}), motion=_names(motion) or "keep", workers=_cores(workers),
+                          show_progress=progress, force=force, compression=compression, start=start, end=end,
+                          burn_in=parse_burn_in(burn_in), skip_short=skip_short, flatten=flatten, stars=stars)
 
 
 def solve(log: PathLike, output: PathLike, *, centroids: str | Sequence[str] | None = None,
@@ -211,6 +260,10 @@ def solve(log: PathLike, output: PathLike, *, centroids: str | Sequence[str] | N
           compression: str = "zstd", progress: bool = False) -> SolveSummary:
     """Identify the stars in a catalogue and solve the attitude of every frame (``starlog solve``).
 
+    ``centroids``: centroid methods (``"GAUSSFIT,MOMENT"``, a list, or ``"all"``; default the only one).
+    ``compensated``: all-star compensated channels of ``compensate(stars="all")``, e.g. ``"50/truth"``.
+    ``options``: match_radius, min_matches, min_stars, fov_deg, focal_px, distortion, fit_distortion,
+    brightest, timeout_ms, try_mirrored, tracking, reject, max_magnitude, camera (the command's ``--set``).
     Needs cedar-solve (``pip install 'starlog[solve]'``).
 
     Example::
@@ -264,11 +317,11 @@ def run(log: PathLike, output: PathLike, *, config: PathLike | Mapping[str, Any]
     return result
 
 
-def export(log: PathLike, output: PathLike, *, tables: Sequence[str] | None = None, topics: Sequence[str] = (),
-           force: bool = False) -> dict[str, int]:
+def export(log: PathLike, output: PathLike, *, tables: str | Sequence[str] | None = None,
+           topics: str | Sequence[str] = (), force: bool = False) -> dict[str, int]:
     """Write the log's tables as Parquet files in the folder ``output`` (``starlog export``); returns
-    ``{table: rows}``. ``topics``: other channels written as flat tables. In memory instead:
-    ``starlog.open(log).table(name)``.
+    ``{table: rows}``. ``tables``: only these (a name, a list or ``"a,b"``; default every table the log has);
+    ``topics``: other channels written as flat tables. In memory instead: ``starlog.open(log).table(name)``.
 
     Example::
 
@@ -276,7 +329,7 @@ def export(log: PathLike, output: PathLike, *, tables: Sequence[str] | None = No
     """
     from starlog.parquet import export_log
 
-    return export_log(log, output, tables=tables, force=force, topics=topics)
+    return export_log(log, output, tables=_names(tables), force=force, topics=_names(topics) or [])
 
 
 def flatten(log: PathLike, output: PathLike, *, force: bool = False) -> CopyReport:
@@ -292,9 +345,9 @@ def flatten(log: PathLike, output: PathLike, *, force: bool = False) -> CopyRepo
 
 
 def verify(log: PathLike, *, file_only: bool = False, progress: bool = False) -> ChainReport:
-    """Check every record of a log and of its chain's files (``starlog verify``); never raises for a damaged
-    file: the report's ``status`` says VALID, NONCONFORMANT, REFUSED or DAMAGED, its ``lines()`` why, and
-    ``exit_status`` is the command's.
+    """Check every record of a log and of its chain's files (``starlog verify``); a damaged file is reported, not
+    raised: the report's ``status`` is ``"valid"``, ``"nonconformant"``, ``"refused"`` or ``"damaged"``,
+    ``lines()`` says why and ``exit_status`` is the command's. ``file_only`` checks the file without its chain.
 
     Example::
 
@@ -305,6 +358,8 @@ def verify(log: PathLike, *, file_only: bool = False, progress: bool = False) ->
 
     from starlog.io.verify import verify_log
 
+    if not Path(log).is_file():
+        raise LogNotFoundError(log)
     with tqdm(desc="verify", unit="B", unit_scale=True, leave=False, dynamic_ncols=True,
               disable=None if progress else True) as bar:  # None: shown on a terminal only
 

@@ -9,11 +9,13 @@ the command line: log time in ns (``1234567``), seconds on the same clock (``"12
 
 from __future__ import annotations
 
+import numbers
 import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from starlog.errors import InvalidParameterError, StarlogError
 from starlog.io.copying import frame_time_lookup
 from starlog.io.reader import ChannelSummary, DecodedMessage, LogReader
 from starlog.io.timerange import TimeRange
@@ -24,10 +26,15 @@ if TYPE_CHECKING:
 
     from starlog.io.provenance import Provenance
 
-__all__ = ["Log", "TimeBound"]
+__all__ = ["Log", "LogClosedError", "TimeBound"]
 
-#: A time bound: log time in ns, ``"12.5s"`` (seconds on the log's clock) or ``"frame:N"``.
+#: A time bound: log time in ns (an integer, numpy's too), ``"12.5s"`` (seconds on the log's clock) or
+#: ``"frame:N"``; None: open.
 TimeBound = int | str | None
+
+
+class LogClosedError(StarlogError):
+    """A :class:`Log` was read after it was closed (after its ``with`` block)."""
 
 
 class Log:
@@ -45,17 +52,21 @@ class Log:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self._reader = LogReader(self.path)
+        self._closed = False
 
     # ------------------------------------------------------------------ facts
     @property
     def reader(self) -> LogReader:
         """The :class:`~starlog.io.reader.LogReader` underneath (raw messages, metadata, chunk counts)."""
+        if self._closed:
+            raise LogClosedError(f"{self.path}: the log is closed (its with block ended); open it again with "
+                                 "starlog.open.")
         return self._reader
 
     @property
     def files(self) -> list[Path]:
-        """The files of the chain, the base first, then each layer."""
-        return [Path(f.path) for f in self._reader.files]
+        """The files of the chain (absolute paths), the base first, then each layer."""
+        return [Path(f.path).absolute() for f in self._reader.files]
 
     @property
     def topics(self) -> list[str]:
@@ -75,7 +86,7 @@ class Log:
     @property
     def provenance(self) -> list[Provenance]:
         """What wrote each file: stage, version, parameters and inputs, oldest first."""
-        return self._reader.provenance()
+        return self.reader.provenance()
 
     def describe(self) -> dict[str, Any]:
         """Everything ``starlog info --json`` prints about the log (reads its summaries and metadata only)."""
@@ -87,9 +98,9 @@ class Log:
     def table_names(self) -> list[str]:
         """The tables of ``starlog export`` this log has channels for (``frames``, ``centroids``, ...)."""
         from starlog.parquet import TABLES
-        from starlog.parquet.tables import table_of_channel
+        from starlog.parquet.tables import tables_of
 
-        found = {table_of_channel(c) for c in self._reader.channels()}
+        found = tables_of(self.reader)
         return [t.name for t in TABLES if t.name in found]
 
     def table(self, name: str, *, start: TimeBound = None, end: TimeBound = None) -> pa.Table:
@@ -100,21 +111,29 @@ class Log:
         other topic (a flat table, one row per message, as ``starlog export --topic`` writes it).
         ``start`` / ``end`` bound the log time (``end`` exclusive); ``frame:N`` counts the messages of
         the channel read (of the table's first channel). Only the chunks holding the range are read.
+        A table the log has no channel of, or a range outside the channel, is an error.
         """
         from starlog.parquet import TABLES
         from starlog.parquet.channels import topic_table
-        from starlog.parquet.tables import family_table, table_of_channel
+        from starlog.parquet.tables import family_table, table_of_channel, tables_of
 
+        log = self.reader
         if name in {t.name for t in TABLES}:
-            feeding = [c.topic for c in self._reader.channels() if table_of_channel(c) == name]
-            lo, hi = self._bounds(start, end, feeding[0] if feeding else None)
-            return family_table(self._reader, name, start=lo, end=hi)
-        channel = self._reader.channel(name)
+            feeding = tables_of(log).get(name)
+            if not feeding:
+                raise InvalidParameterError(f"{self.path}: the log has no channel of the {name} table; its tables: "
+                                            f"{', '.join(self.table_names()) or 'none'}.")
+            lo, hi = self._bounds(start, end, feeding[0])
+            return family_table(log, name, start=lo, end=hi)
+        if name not in log.topics:
+            raise InvalidParameterError(
+                f"{self.path}: {name!r} is neither a table of the log ({', '.join(self.table_names()) or 'none'}) nor "
+                f"one of its topics ({', '.join(self.topics) or 'none'}).")
         lo, hi = self._bounds(start, end, name)
-        family = table_of_channel(channel)
+        family = table_of_channel(log.channel(name))
         if family is not None:
-            return family_table(self._reader, family, topics=[name], start=lo, end=hi)
-        return topic_table(self._reader, name, start=lo, end=hi)
+            return family_table(log, family, topics=[name], start=lo, end=hi)
+        return topic_table(log, name, start=lo, end=hi)
 
     # ------------------------------------------------------------------ streams
     def frames(self, topic: str | None = None, *, start: TimeBound = None, end: TimeBound = None
@@ -123,31 +142,38 @@ class Log:
         the log's only image channel) in ``[start, end)``, decoded to a 2-D mono array, streamed."""
         from starlog.io.images import choose_image_topic
 
-        topic, _ = choose_image_topic(self.path, self._reader.channels(), topic)
-        lo, hi = self._bounds(start, end, topic)
-        for _, log_time, image in self._reader.frames(topic, start=lo, end=hi):
-            yield log_time, image
+        chosen, _ = choose_image_topic(self.path, self.reader.channels(), topic)
+        lo, hi = self._bounds(start, end, chosen)
+        return ((log_time, image) for _, log_time, image in self.reader.frames(chosen, start=lo, end=hi))
 
     def messages(self, topic: str, *, start: TimeBound = None, end: TimeBound = None
                  ) -> Iterator[DecodedMessage]:
         """The decoded messages of ``topic`` in ``[start, end)``: each with ``log_time`` and its ``payload``
         (a dict; star tables as the dict of their JSON form), streamed."""
         lo, hi = self._bounds(start, end, topic)
-        return self._reader.messages(topic, start=lo, end=hi)
+        return self.reader.messages(topic, start=lo, end=hi)
 
-    def _bounds(self, start: TimeBound, end: TimeBound, topic: str | None) -> tuple[int | None, int | None]:
-        """``start`` / ``end`` in ns (None: open); ``frame:N`` counts the messages of ``topic``."""
-        time_range = TimeRange.parse(start, end)
+    def _bounds(self, start: TimeBound, end: TimeBound, topic: str) -> tuple[int | None, int | None]:
+        """``start`` / ``end`` in ns (None: open); ``frame:N`` counts the messages of ``topic``. A range that holds
+        no time of ``topic`` is an error, as it is for a stage."""
+        time_range = TimeRange.parse(_bound(start, "start"), _bound(end, "end"))
         if time_range is None:
             return None, None
-        frame_time = frame_time_lookup(self._reader, topic) if topic and time_range.counts_frames else None
+        log = self.reader
+        frame_time = frame_time_lookup(log, topic) if time_range.counts_frames else None
         resolved = time_range.resolve(frame_time, frame_topic=topic)
+        channel = log.channel(topic)
+        if channel.message_count and not resolved.overlaps(channel.first_log_time, channel.last_log_time):
+            raise InvalidParameterError(
+                f"{self.path}: the time range {resolved.describe()} ({resolved.describe_ns()}) is outside {topic} "
+                f"(log_time {channel.first_log_time}..{channel.last_log_time} ns).")
         return resolved.start_ns, resolved.end_ns
 
     # ------------------------------------------------------------------ life cycle
     def close(self) -> None:
         """Close the log's files."""
         self._reader.close()
+        self._closed = True
 
     def __enter__(self) -> Log:
         return self
@@ -159,3 +185,13 @@ class Log:
         first, last = self.time_range
         return (f"Log({str(self.path)!r}: {len(self.files)} file(s), {len(self.topics)} topics, "
                 f"{(last - first) * 1e-9:.3f} s)")
+
+
+def _bound(value: TimeBound, which: str) -> str | int | None:
+    """A bound as :class:`~starlog.io.timerange.TimeRange` parses it: an integer of any kind is ns."""
+    if value is None or isinstance(value, str):
+        return value
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return int(value)
+    raise InvalidParameterError(f"{which}={value!r}: give the log time in ns as an integer, seconds as a string "
+                                "such as '12.5s', or 'frame:N'.")

@@ -7,6 +7,7 @@ import hashlib
 import json
 import os
 import pydoc
+import re
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -274,10 +275,82 @@ def test_the_notebook_runs_top_to_bottom(tmp_path: Path) -> None:
 
 
 def test_the_api_reference_builds_without_warnings(tmp_path: Path) -> None:
-    """The reference (pdoc, from the docstrings) of the public face and the modules it names."""
+    """The reference (pdoc, from the docstrings) of the public face, in one page, and the modules it names."""
     done = subprocess.run([sys.executable, "-W", "error", "-m", "pdoc", "starlog", "starlog.api", "starlog.log",
                            "-o", str(tmp_path / "reference")], capture_output=True, text=True)
     assert done.returncode == 0 and not done.stderr.strip(), done.stderr
     page = (tmp_path / "reference" / "starlog.html").read_text(encoding="utf-8")
-    for name in ("open", "centroid", "track", "run", "Log"):
-        assert f'id="{name}"' in page or f"starlog.{name}" in page, name
+    documented = set(re.findall(r'id="([A-Za-z_.]+)"', page))
+    assert set(starlog.__all__) <= documented
+    assert {"Log.table", "Log.frames", "Log.messages", "Log.describe"} <= documented
+
+
+#: The options of a command that are not keywords of its function: what it prints and how, and the batches of
+#: several logs (a Dask scheduler; export's workers, one per log).
+COMMAND_ONLY = {"as_json", "quiet", "print_config", "full_table", "scheduler"}
+BATCH_ONLY = {("export", "workers")}
+#: A command's option → its function's keyword, where the names differ (the command's dest names are older).
+RENAMED = {"methods": "method", "models": "model", "settings": "options", "track_topic": "track", "fit": "model",
+           "rates": "rate", "protocols": "protocol", "n_stars": "stars", "n_frames": "frames", "psf_model": "psf",
+           "fov_deg": "fov", "config_path": "config", "export_topics": "topics", "logs": "log"}
+RENAMED_IN = {("ingest", "start_ns"): "start", ("track", "method"): "centroids", ("solve", "methods"): "centroids"}
+COMMANDS = ["simulate", "ingest", "centroid", "track", "motion", "compensate", "solve", "run", "export", "flatten",
+            "verify"]
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_each_function_takes_its_commands_options_with_its_defaults(name: str) -> None:
+    import inspect
+
+    command = cli.commands[name]
+    keywords = inspect.signature(getattr(starlog, name)).parameters
+    for param in command.params:
+        if param.name in COMMAND_ONLY or (name, param.name) in BATCH_ONLY:
+            continue
+        keyword = RENAMED_IN.get((name, param.name), RENAMED.get(param.name, param.name))
+        assert keyword in keywords, f"starlog.{name} has no keyword for the command's {param.opts}"
+        given, default = keywords[keyword].default, param.default
+        if param.name == "workers":
+            assert given in (None, default), f"starlog.{name}(workers=) {given} vs {default}"
+        elif (not param.required and default not in (None, ()) and "UNSET" not in repr(default)
+              and not param.multiple and param.name not in ("size", "flux", "drift", "logs")):
+            # size, flux, drift: numbers in Python, text on the command line
+            assert given == default, f"starlog.{name}({keyword}=) defaults to {given!r}, the command to {default!r}"
+
+
+def test_lists_are_taken_as_the_commands_text_or_as_lists(every_table: Path, tmp_path: Path) -> None:
+    assert starlog.export(every_table, tmp_path / "a", tables="centroids,tracks") == \
+        starlog.export(every_table, tmp_path / "b", tables=["centroids", "tracks"])
+    with pytest.raises(StarlogError, match="rates in Hz"):
+        starlog.compensate(every_table, tmp_path / "c.mcap", rate="ten")
+
+
+def test_a_log_of_a_camera_has_the_frames_table_export_writes(every_table: Path, tmp_path: Path) -> None:
+    """Image channels without starlog's frame channel: the frames table of the image channels."""
+    camera = tmp_path / "camera.mcap"
+    assert CliRunner().invoke(cli, ["filter", str(every_table), "-o", str(camera), "--topic", "/camera/image",
+                                    "--end", "frame:6", "-q"]).exit_code == 0
+    starlog.export(camera, tmp_path / "tables")
+    with starlog.open(camera) as log:
+        assert log.table_names() == ["frames"]
+        assert log.table("frames").equals(pq.read_table(tmp_path / "tables" / "frames.parquet"))
+        assert log.table("frames", start="frame:2")["frame"].to_pylist() == [2, 3, 4, 5]
+
+
+def test_mistakes_are_one_line_starlog_errors(every_table: Path) -> None:
+    with starlog.open(every_table) as log:
+        first, _ = log.time_range
+        mistakes = [lambda: log.table("centroid"), lambda: log.table("centroids", start=1.5),
+                    lambda: log.table("centroids", end=first - 1), lambda: log.frames("/stars/detections"),
+                    lambda: log.table("centroids", start="frame:100000")]
+        for mistake in mistakes:
+            with pytest.raises(StarlogError) as raised:
+                mistake()
+            assert "\n" not in str(raised.value)
+        assert log.table("centroids", start=np.int64(first), end="frame:1").num_rows > 0
+    with pytest.raises(StarlogError, match="closed"):
+        log.table("centroids")
+    with starlog.open(every_table) as log, pytest.raises(StarlogError, match="neither a table"):
+        log.table("ingest")
+    with pytest.raises(LogNotFoundError):
+        starlog.verify(every_table.parent / "missing.mcap")

@@ -174,7 +174,7 @@ def ingest(source: Path, output: Path, fps: float | None, start_ns: int, time_pa
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.showwarning = lambda message, *_, **__: click.echo(f"note: {message}", err=True)
-        summary = api.ingest(source, output, fps=fps, start_ns=start_ns, time_pattern=time_pattern,
+        summary = api.ingest(source, output, fps=fps, start=start_ns, time_pattern=time_pattern,
                              time_unit=time_unit, skip_bad=skip_bad, compression=compression, workers=workers,
                              force=force, progress=not quiet)
     echo_status(quiet, f"wrote {output}: {summary.frames} frames {summary.width}x{summary.height} "

@@ -30,7 +30,7 @@ from starlog.io.messages import decode_json
 from starlog.io.reader import LogReader
 from starlog.io.writer import atomic_output
 
-__all__ = ["flatten", "export_topic", "export_image_frames", "parquet_writer", "topic_file_name", "topic_table"]
+__all__ = ["flatten", "export_topic", "export_image_frames", "image_frames_table", "parquet_writer", "topic_file_name", "topic_table"]
 
 
 @contextmanager
@@ -152,9 +152,13 @@ def export_topic(log: LogReader, topic: str, output_dir: Path, *, force: bool = 
     return name, _write_rows(_rows(log, topic), path, row_group_rows, force)
 
 
-def _frame_rows(log: LogReader, topics: list[str]) -> Iterator[dict[str, Any]]:
+def _frame_rows(log: LogReader, topics: list[str], start: int | None = None, end: int | None = None
+                ) -> Iterator[dict[str, Any]]:
     index: dict[str, int] = {}
-    for schema, channel, message in log.raw_messages(topics):
+    if start is not None:  # the frames before the range number the first in it (their messages read, not decoded)
+        for _, channel, _ in log.raw_messages(topics, end=start):
+            index[channel.topic] = index.get(channel.topic, -1) + 1
+    for schema, channel, message in log.raw_messages(topics, start=start, end=end):
         decode = cached_image_decoder(schema, channel.message_encoding)
         n = index[channel.topic] = index.get(channel.topic, -1) + 1
         try:
@@ -168,6 +172,14 @@ def _frame_rows(log: LogReader, topics: list[str]) -> Iterator[dict[str, Any]]:
                "kind": IMAGE_SCHEMAS.get(schema.name if schema else "", ""),
                "frame_id": decoded.frame_id if decoded else "",
                "stamp": decoded.stamp if decoded and decoded.stamp is not None else -1}
+
+
+def image_frames_table(log: LogReader, topics: list[str], *, start: int | None = None, end: int | None = None
+                       ) -> pa.Table:
+    """The ``frames`` table :func:`export_image_frames` writes for the image channels ``topics``, in memory: messages
+    with ``start <= log_time < end`` only (``frame`` still counts from the channel's first)."""
+    tables = list(_row_tables(_frame_rows(log, topics, start, end), _ROW_GROUP_ROWS, "frames"))
+    return pa.concat_tables(tables) if tables else _EMPTY
 
 
 def export_image_frames(log: LogReader, output_dir: Path, *, force: bool = False,

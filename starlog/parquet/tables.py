@@ -24,13 +24,15 @@ import numpy.typing as npt
 import pyarrow as pa
 
 from starlog.errors import InvalidParameterError, OutputExistsError, file_errors
-from starlog.parquet.channels import export_image_frames, export_topic, parquet_writer
+from starlog.parquet.channels import export_image_frames, export_topic, image_frames_table, parquet_writer
+from starlog.io.images import is_image_schema
 from starlog.io.reader import ChannelSummary, LogReader, TableMessage
 from starlog.io.schemas import schema_dir
 from starlog.io.writer import atomic_output
 from starlog.io import topics
 
-__all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "family_table", "table_columns", "table_of_channel"]
+__all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "family_table", "table_columns", "table_of_channel",
+           "tables_of"]
 
 _ARROW_TYPES: dict[str, pa.DataType] = {
     "int64": pa.int64(),
@@ -195,12 +197,16 @@ def _row_groups(log: LogReader, spec: TableSpec, channels: list[ChannelSummary],
 def family_table(log: LogReader, name: str, *, topics: Iterable[str] | None = None, start: int | None = None,
                  end: int | None = None) -> pa.Table:
     """The table ``name`` of :data:`TABLES` as ``export`` writes it, in memory: every channel feeding it (or the
-    ``topics`` among them), messages with ``start <= log_time < end`` only (the rest of the log is not read)."""
+    ``topics`` among them), messages with ``start <= log_time < end`` only (the rest of the log is not read).
+    A log without starlog's frame channel has the ``frames`` table of its image channels, as ``export`` writes."""
     spec = next((t for t in TABLES if t.name == name), None)
     if spec is None:
         raise InvalidParameterError(f"unknown table {name!r}; known tables: {[t.name for t in TABLES]}.")
     chosen = None if topics is None else set(topics)
     channels = [c for c in log.channels() if spec.matches(c) and (chosen is None or c.topic in chosen)]
+    if name == "frames" and not channels:
+        return image_frames_table(log, [t for t in tables_of(log).get("frames", []) if chosen is None or t in chosen],
+                                  start=start, end=end)
     groups = list(_row_groups(log, spec, channels, 1 << 62, start, end))
     return groups[0] if groups else arrow_schema(name).empty_table()
 
@@ -208,6 +214,21 @@ def family_table(log: LogReader, name: str, *, topics: Iterable[str] | None = No
 def table_of_channel(channel: ChannelSummary) -> str | None:
     """The name of the table of :data:`TABLES` a channel feeds, if any."""
     return next((t.name for t in TABLES if t.matches(channel)), None)
+
+
+def tables_of(log: LogReader) -> dict[str, list[str]]:
+    """The tables ``export`` writes for this log, each with the topics feeding it, in export order (``frames``
+    from the image channels when the log has no starlog frame channel)."""
+    found: dict[str, list[str]] = {}
+    for channel in log.channels():
+        name = table_of_channel(channel)
+        if name is not None:
+            found.setdefault(name, []).append(channel.topic)
+    if "frames" not in found:
+        images = [c.topic for c in log.channels() if is_image_schema(c.schema_name)]
+        if images:
+            found["frames"] = images
+    return {t.name: found[t.name] for t in TABLES if t.name in found}
 
 
 def _joined(pieces: list[Any], kind: pa.DataType) -> pa.Array:
