@@ -3,8 +3,9 @@
 :func:`log_facts` reads the container (:mod:`starlog.io`: files of the chain, channels, time range, the
 provenance of every stage) and the records the stages leave in it, named in :mod:`starlog.topics`: the
 empirical PSF, the pixel-phase calibrations, the evidence on which centroid method to trust, the solve
-runs, and the method to trust from them (:func:`starlog.centroiding.evidence.trust`). Each reads only
-the log's summary and metadata, never its messages.
+runs, and the method to trust from them (:func:`starlog.centroiding.evidence.trust`). It reads the log's
+summary and metadata, and of its messages only the first 64 frames of each image channel (a note when their
+own stamps disagree with their ``log_time``).
 """
 
 from __future__ import annotations
@@ -14,12 +15,12 @@ import os
 from pathlib import Path
 from typing import Any
 
+from starlog import topics
+from starlog.codecs.images import is_image_schema
 from starlog.io.chain import base_reference
 from starlog.io.frames import stamp_disagreement
-from starlog.codecs.images import is_image_schema
 from starlog.io.mcap_file import McapFile
 from starlog.io.reader import LogReader
-from starlog import topics
 
 __all__ = ["evidence_summaries", "log_facts", "solve_summaries", "trust_summary"]
 
