@@ -1,4 +1,8 @@
-"""JSON messages whose last property is a list of flat records, encoded from a structured array.
+"""JSON star rows: messages whose last property is a list of flat records, encoded from a structured array.
+
+The star tables of earlier versions were such JSON messages (starlog writes them as protobuf now,
+:mod:`starlog.codecs.star_tables`); this writes them for the old logs the tests read (``tests/json_logs.py``)
+and for ``tools/bench_io.py``'s JSON side.
 
 Per-frame messages (detections, centroids, tracks) hold one record per star. Building a dict
 per record, encoding it, decoding it back and walking every value against the schema cost more
