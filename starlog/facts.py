@@ -25,38 +25,48 @@ from starlog.io.reader import LogReader
 __all__ = ["evidence_summaries", "log_facts", "solve_summaries", "trust_summary"]
 
 
-def log_facts(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """What the log at ``path`` holds, JSON-ready: ``path``, ``size_bytes``, ``message_count``, ``chunk_count``,
+def log_facts(log: str | os.PathLike[str] | LogReader) -> dict[str, Any]:
+    """What a log holds, JSON-ready: ``path``, ``size_bytes``, ``message_count``, ``chunk_count``,
     ``compression``, ``files`` (each file of the chain), ``start_log_time``, ``end_log_time``, ``duration_s``,
     ``channels``, ``provenance`` (one dict per stage), ``notes`` (how the log was read), and, when the log
-    holds them, ``epsf``, ``phase_correction``, ``centroid_evidence``, ``solve`` and ``trust``."""
-    with LogReader(path) as log:
-        channels = [c.to_dict() for c in log.channels()]
-        start, end = log.time_range()
-        for channel in log.channels():
-            conflict = log.topic_conflict(channel.topic)
-            if conflict is not None:
-                log.add_note(conflict)
-            elif is_image_schema(channel.schema_name):
-                note = stamp_disagreement(log, channel.topic)
-                if note:
-                    log.add_note(note)
-        files = [_file_description(file) for file in log.files]
-        return {
-            "path": str(Path(path)),
-            "size_bytes": sum(f["size_bytes"] for f in files),
-            "message_count": log.message_count(),
-            "chunk_count": sum(f["chunk_count"] for f in files),
-            "compression": sorted({c for f in files for c in f["compression"]}),
-            "files": files,
-            "start_log_time": start,
-            "end_log_time": end,
-            "duration_s": (end - start) * 1e-9,
-            "channels": channels,
-            "provenance": [p.to_dict() for p in log.provenance()],
-            "notes": list(log.notes),
-        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log) | solve_summaries(log) | \
-            trust_summary(log)
+    holds them, ``epsf``, ``phase_correction``, ``centroid_evidence``, ``solve`` and ``trust``.
+
+    ``log`` is a path, or a log already open (left open; the notes found here are added to its own).
+    """
+    if isinstance(log, LogReader):
+        return _facts(log, log.path)
+    with LogReader(log) as reader:
+        return _facts(reader, log)
+
+
+def _facts(log: LogReader, path: str | os.PathLike[str]) -> dict[str, Any]:
+    """:func:`log_facts` of an open log opened from ``path``."""
+    channels = [c.to_dict() for c in log.channels()]
+    start, end = log.time_range()
+    for channel in log.channels():
+        conflict = log.topic_conflict(channel.topic)
+        if conflict is not None:
+            log.add_note(conflict)
+        elif is_image_schema(channel.schema_name):
+            note = stamp_disagreement(log, channel.topic)
+            if note:
+                log.add_note(note)
+    files = [_file_description(file) for file in log.files]
+    return {
+        "path": str(Path(path)),
+        "size_bytes": sum(f["size_bytes"] for f in files),
+        "message_count": log.message_count(),
+        "chunk_count": sum(f["chunk_count"] for f in files),
+        "compression": sorted({c for f in files for c in f["compression"]}),
+        "files": files,
+        "start_log_time": start,
+        "end_log_time": end,
+        "duration_s": (end - start) * 1e-9,
+        "channels": channels,
+        "provenance": [p.to_dict() for p in log.provenance()],
+        "notes": list(log.notes),
+    } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log) | solve_summaries(log) | \
+        trust_summary(log)
 
 
 def _file_description(file: McapFile) -> dict[str, Any]:

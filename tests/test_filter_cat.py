@@ -264,3 +264,13 @@ def test_a_cat_line_is_strict_json_of_the_plain_values(value: Any) -> None:
         return printed == original and type(printed) is type(original)
 
     assert same(json.loads(line, parse_constant=refuse), value)
+
+
+def test_the_facts_of_an_open_log_are_those_of_its_path(logs: dict[str, Path]) -> None:
+    from starlog.facts import log_facts
+
+    with LogReader(logs["cen"]) as log:
+        facts = log_facts(log)
+        assert log.message_count() == facts["message_count"]  # still open
+    assert facts == log_facts(logs["cen"]) and facts["path"] == str(logs["cen"])
+    assert [c["topic"] for c in facts["channels"]][:3] == ["/camera/image", "/camera/frame", "/sim/truth"]
