@@ -13,13 +13,14 @@ function per command runs it with the command's options and returns what it prin
 :func:`starlog.export`, :func:`starlog.flatten`, :func:`starlog.verify`; :mod:`starlog.api`).
 Errors are :class:`StarlogError` subclasses with the command's one-line message.
 
-Subpackages: :mod:`starlog.io` (the MCAP log layer), :mod:`starlog.sim` (star-image
-simulator), :mod:`starlog.detect` and :mod:`starlog.centroiding` (single-frame extraction),
-:mod:`starlog.tracking` (UKF tracking), :mod:`starlog.compensation` (error decomposition and
-compensation), :mod:`starlog.stages` (the replay stages that join algorithms and logs),
-:mod:`starlog.pipeline` (several stages from one config), :mod:`starlog.parquet` (Parquet),
-:mod:`starlog.batch` (many logs on Dask), :mod:`starlog.experiment` (the paper's tables) and
-:mod:`starlog.cli` (the command line).
+Subpackages: :mod:`starlog.io` (the MCAP container), :mod:`starlog.codecs` (the payloads: star tables, images,
+JSON messages, schemas, other tools' messages), :mod:`starlog.topics` (channel names), :mod:`starlog.facts`
+(what a log holds, as data), :mod:`starlog.sim` (star-image simulator), :mod:`starlog.detect` and
+:mod:`starlog.centroiding` (single-frame extraction), :mod:`starlog.tracking` (UKF tracking),
+:mod:`starlog.compensation` (error decomposition and compensation), :mod:`starlog.stages` (the replay stages
+that join algorithms and logs), :mod:`starlog.pipeline` (several stages from one config),
+:mod:`starlog.parquet` (Parquet), :mod:`starlog.batch` (many logs on Dask), :mod:`starlog.experiment` (the
+paper's tables) and :mod:`starlog.cli` (the command line).
 """
 
 from __future__ import annotations

@@ -90,9 +90,9 @@ class Log:
 
     def describe(self) -> dict[str, Any]:
         """Everything ``starlog info --json`` prints about the log (reads its summaries and metadata only)."""
-        from starlog.io.info import describe_log
+        from starlog.facts import log_facts
 
-        return describe_log(self.path)
+        return log_facts(self.reader)
 
     # ------------------------------------------------------------------ tables
     def table_names(self) -> list[str]:
@@ -140,7 +140,7 @@ class Log:
                ) -> Iterator[tuple[int, np.ndarray]]:
         """``(log_time, image)`` of every frame of the image channel ``topic`` (default: ``/camera/image``, else
         the log's only image channel) in ``[start, end)``, decoded to a 2-D mono array, streamed."""
-        from starlog.io.images import choose_image_topic
+        from starlog.codecs.images import choose_image_topic
 
         chosen, _ = choose_image_topic(self.path, self.reader.channels(), topic)
         lo, hi = self._bounds(start, end, chosen)

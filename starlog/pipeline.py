@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 from starlog.batch import BatchOutcome, BatchTask, run_batch
 from starlog.compensation import Shortfall
 from starlog.errors import InvalidParameterError, OutputExistsError
-from starlog.io import topics
+from starlog import topics
 from starlog.io.reader import LogReader, LogSource
 from starlog.io.copying import flatten_log
 from starlog.io.timerange import TimeRange

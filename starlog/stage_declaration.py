@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from starlog.errors import InvalidParameterError
-from starlog.io.json_schema import compile_json_schema
-from starlog.io.schemas import MessageType
+from starlog.codecs.json_schema import compile_json_schema
+from starlog.codecs.schemas import MessageType
 
 __all__ = ["KINDS", "Message", "Output", "Stage", "stage"]
 
@@ -158,7 +158,7 @@ def stage(*, name: str, version: str, reads: str, writes: Mapping[str, Any],
         ``input`` (``--input TOPIC``, or ``--input all`` to read each in turn).
     writes : mapping
         Topic → JSON Schema of its records: a dict, or a ``.json`` file (a path relative to the
-        function's module). A :class:`~starlog.io.schemas.MessageType` declares any other
+        function's module). A :class:`~starlog.codecs.schemas.MessageType` declares any other
         encoding (the function then returns the message's bytes or a protobuf object).
         With one channel the function returns its record (or None: nothing for this message);
         with several, a dict topic → record.

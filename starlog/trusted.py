@@ -40,7 +40,7 @@ def trusted_method(log: LogReader) -> dict[str, Any]:
     ``method``, ``evidence`` (``"sky"``, ``"frame-to-frame"`` or None), ``figure_px``, ``interval_px``, ``p_best``
     and ``reason``."""
     from starlog.centroiding.evidence import trust
-    from starlog.io.info import evidence_summaries, trust_summary
+    from starlog.facts import evidence_summaries, trust_summary
     from starlog.stages.solve import probe_sky
 
     decision = trust_summary(log).get("trust")

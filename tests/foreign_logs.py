@@ -14,7 +14,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from starlog.io import LogReader, topics
+from starlog.io import LogReader
+from starlog import topics
 
 ROS2_TIME = "int32 sec\nuint32 nanosec\n"
 ROS2_HEADER = "builtin_interfaces/Time stamp\nstring frame_id\n"

@@ -2,8 +2,8 @@
 
 :func:`write_json_log` copies a log (a whole chain into one file, or one layer alone onto a base of
 either kind), every star table rewritten as JSON with the JSON writer starlog kept for them
-(:func:`~starlog.io.records.record_encoder` for detections, centroids and tracks, as the stages
-encoded them; :func:`~starlog.io.messages.encode_json` for the others); every other channel and
+(:func:`~starlog.codecs.json_rows.record_encoder` for detections, centroids and tracks, as the stages
+encoded them; :func:`~starlog.codecs.json_messages.encode_json` for the others); every other channel and
 every metadata record is copied as it is. Used by the tests of old logs and by ``tools/bench_io.py``
 (the size of a layer written both ways).
 """
@@ -14,9 +14,10 @@ from pathlib import Path
 
 from mcap.records import Schema
 
-from starlog.io import LogReader, LogWriter, MessageType, encode_json, json_message_type
-from starlog.io.records import record_encoder
-from starlog.io.star_tables import STAR_TABLES, decode_table, star_codec
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import MessageType, encode_json, json_message_type
+from starlog.codecs.json_rows import record_encoder
+from starlog.codecs.star_tables import STAR_TABLES, decode_table, star_codec
 
 #: The star tables the stages encoded column by column (the others were written from dicts).
 _RECORDS = {"starlog.Detections", "starlog.Centroids", "starlog.Tracks"}

@@ -7,7 +7,7 @@ import math
 from hypothesis import given
 from hypothesis import strategies as st
 
-from starlog.io import encode_image_annotations
+from starlog.codecs import encode_image_annotations
 
 
 def _by_protobuf(x: list[float], y: list[float], *, log_time: int, diameter: float, thickness: float,

@@ -133,3 +133,13 @@ def test_the_check_finds_a_cycle_through_a_function_local_import(tmp_path: Path)
     graph = import_graph(tmp_path, "pkg")
     assert graph["pkg.a"] == {"pkg.sub", "pkg.sub.b"} and graph["pkg.d"] == {"pkg.a"}
     assert cycles(graph) == [["pkg.a", "pkg.sub", "pkg.sub.b", "pkg.sub.c"]]
+
+
+def test_codecs_import_neither_io_nor_stages() -> None:
+    graph = import_graph(ROOT, "starlog")
+    codecs = [name for name in graph if name == "starlog.codecs" or name.startswith("starlog.codecs.")]
+    assert len(codecs) > 10
+    layers = ("starlog.io", "starlog.stages")
+    found = {name: sorted(d for d in graph[name] if any(d == p or d.startswith(p + ".") for p in layers))
+             for name in codecs}
+    assert not {name: deps for name, deps in found.items() if deps}, "codecs import the container or a stage"

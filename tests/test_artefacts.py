@@ -16,7 +16,8 @@ from starlog.centroiding.artefacts import detection_threshold, remaining_snr
 from starlog.cli import cli
 from starlog.detect import detect_stars
 from starlog.detect.detection import matched_filter
-from starlog.io import LogReader, topics
+from starlog.io import LogReader
+from starlog import topics
 from starlog.sim.camera import CameraModel
 from starlog.sim.psf import render_stars
 

@@ -69,13 +69,13 @@ def _stack(modules: list[tuple[str, str]]):
 
 @pytest.mark.parametrize("modules, expected", [
     ([("starlog.stages.centroid", "centroid_log"), ("starlog.centroiding.gaussfit", "fit")], "algorithm"),
-    ([("starlog.stages.track", "track_log"), ("starlog.io.reader", "messages"), ("starlog.io.messages", "check")],
+    ([("starlog.stages.track", "track_log"), ("starlog.io.reader", "messages"), ("starlog.codecs.json_schema", "check")],
      "read"),
-    ([("starlog.stages.track", "track_log"), ("starlog.io.writer", "write"), ("starlog.io.messages", "check")],
+    ([("starlog.stages.track", "track_log"), ("starlog.io.writer", "write"), ("starlog.codecs.json_schema", "check")],
      "write"),
-    ([("starlog.stages.centroid", "__call__"), ("starlog.io.messages", "encode_json")], "write"),
+    ([("starlog.stages.centroid", "__call__"), ("starlog.codecs.json_messages", "encode_json")], "write"),
     ([("starlog.stages.centroid", "rows")], "stage"),
-    ([("starlog.stages.centroid", "centroid_log"), ("starlog.io.schemas", "json_message_type")], "other"),
+    ([("starlog.stages.centroid", "centroid_log"), ("starlog.codecs.schemas", "json_message_type")], "other"),
     ([("click.core", "invoke")], "other"),
 ])
 def test_sampled_time_goes_to_the_innermost_starlog_frame(bench, modules, expected):

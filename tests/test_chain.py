@@ -22,14 +22,8 @@ from mcap.reader import make_reader
 from starlog.cli import cli
 from starlog.errors import BaseMismatchError, CorruptLogError, InvalidInputError
 from starlog.parquet import export_log
-from starlog.io import (
-    LogReader,
-    LogWriter,
-    encode_raw_image,
-    file_digest,
-    json_message_type,
-    protobuf_message_type,
-)
+from starlog.io import LogReader, LogWriter, file_digest
+from starlog.codecs import encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference
 from starlog.io.recover import recover_log
 from starlog.io.copying import flatten_log

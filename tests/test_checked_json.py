@@ -10,9 +10,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from starlog.errors import InvalidInputError
-from starlog.io import LogReader, LogWriter, encode_json, json_message_type
-from starlog.io.checked import CheckedJson, encode_checked_json, schema_checker, schema_digest
-from starlog.io.messages import decode_json
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import encode_json, json_message_type
+from starlog.codecs.checked_json import CheckedJson, encode_checked_json, schema_checker, schema_digest
+from starlog.codecs.json_messages import decode_json
 
 DETECTIONS = json_message_type("starlog.Detections")
 FRAME_INFO = json_message_type("starlog.FrameInfo")

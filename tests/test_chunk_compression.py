@@ -8,7 +8,8 @@ import numpy as np
 import lz4.frame
 import zstandard
 
-from starlog.io import LogReader, LogWriter, encode_json, encode_raw_image, json_message_type, protobuf_message_type
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io.layout import decompress
 from starlog.io.writer import ZSTD_LEVEL
 

@@ -10,7 +10,8 @@ import pytest
 from click.testing import CliRunner
 
 from starlog.cli import cli
-from starlog.io import load_json_schema, topics
+from starlog.codecs import load_json_schema
+from starlog import topics
 from starlog.io.reader import LogReader
 from starlog.sim import Jitter, SimulationConfig
 from starlog.stages import simulate_log

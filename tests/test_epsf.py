@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from starlog.io import topics
+from starlog import topics
 from click.testing import CliRunner
 from numpy.testing import assert_allclose
 
@@ -26,7 +26,8 @@ from starlog.centroiding.epsf import (
 from starlog.cli import cli
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError
-from starlog.io.info import describe_log, format_description
+from starlog.facts import log_facts
+from starlog.cli.describe import info_text
 from starlog.io.reader import LogReader
 from starlog.sim import CameraModel, SimulationConfig, Simulator
 from starlog.sim.profiles import AiryPSF, MoffatPSF, render_profile_stars
@@ -243,9 +244,9 @@ def test_centroid_psf_empirical_end_to_end(tmp_path: Path) -> None:
     assert epsf.fwhm == pytest.approx(3.0, rel=0.1)  # the Moffat's FWHM, widened a little by the pixel
     assert record.parameters["psf"] == "empirical" and record.parameters["epsf"]["n_stars"] == epsf.n_stars
     assert errs["PSFFIT"] < 0.05
-    info = describe_log(out)
+    info = log_facts(out)
     assert info["epsf"][0]["oversampling"] == 4
-    assert "epsf" in format_description(info) and "oversampling 4" in format_description(info)
+    assert "epsf" in info_text(info) and "oversampling 4" in info_text(info)
 
 
 def test_cli_centroid_psf_empirical_and_info(tmp_path: Path) -> None:
@@ -260,7 +261,7 @@ def test_cli_centroid_psf_empirical_and_info(tmp_path: Path) -> None:
     assert json.loads(result.output[result.output.index("{"):])["epsf"]["oversampling"] == 4
     text = runner.invoke(cli, ["info", str(cen)]).output
     assert "epsf" in text and "FWHM" in text
-    params = describe_log(sim)["provenance"][0]["parameters"]
+    params = log_facts(sim)["provenance"][0]["parameters"]
     assert params["psf_model"] == "airy" and params["airy_lambda_d"] == pytest.approx(3 / 1.2196698912665045)
 
 

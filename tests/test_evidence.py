@@ -17,7 +17,8 @@ from starlog.centroiding.evidence import (
     frame_evidence,
     recommend,
 )
-from starlog.io.info import describe_log, format_description
+from starlog.facts import log_facts
+from starlog.cli.describe import info_text
 from starlog.sim.psf import render_stars
 from starlog.stages.centroid import centroid_log
 from starlog.sim import SimulationConfig
@@ -64,9 +65,9 @@ def test_the_stage_records_the_evidence_and_info_names_the_method(tmp_path: Path
     summary = centroid_log(sim, out, methods="NONE,MOMENT,GAUSSFIT").to_dict()
     assert summary["recommended"]["method"] in ("GAUSSFIT", "MOMENT")
     assert set(summary["evidence"]) == {"NONE", "MOMENT", "GAUSSFIT"}
-    info = describe_log(out)
+    info = log_facts(out)
     assert info["centroid_evidence"][0]["recommended"] == summary["recommended"]["method"]
-    assert "recommended: " + summary["recommended"]["reason"] in format_description(info)
+    assert "recommended: " + summary["recommended"]["reason"] in info_text(info)
 
 
 @settings(max_examples=200, deadline=None, derandomize=True)

@@ -6,9 +6,12 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from starlog.cli import cli
 from starlog.errors import InvalidParameterError
@@ -191,3 +194,83 @@ def test_info_shows_list_and_map_parameters(logs: dict[str, Path], tmp_path: Pat
     assert 'methods=["' in result.output  # the centroid stage's list parameter
     assert 'exclude_topics=["/camera/*"]' in result.output and "filter (starlog" in result.output
     assert "-> no new channel" in result.output
+
+
+def test_cat_prints_bytes_and_non_finite_numbers_as_strict_json(tmp_path: Path) -> None:
+    """The library gives plain values (bytes, NaN as they are); the command prints them as strict JSON."""
+    import base64
+    import hashlib
+    import math
+
+    from foxglove_schemas_protobuf.RawAudio_pb2 import RawAudio
+    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+    from mcap_protobuf.writer import Writer
+
+    short, long = bytes(range(256)) * 4, bytes(range(256)) * 4 + b"!"  # 1024 bytes, inline; 1025, summarised
+    path = tmp_path / "proto.mcap"
+    with open(path, "wb") as f, Writer(f) as writer:
+        writer.write_message("/audio", RawAudio(data=short, format="pcm-s16"), log_time=0, publish_time=0)
+        writer.write_message("/audio", RawAudio(data=long, format="pcm-s16"), log_time=1, publish_time=1)
+        writer.write_message("/vector", Vector3(x=float("nan"), y=float("-inf"), z=2.5), log_time=2, publish_time=2)
+    plain = [line["message"] for line in cat_messages(path)]
+    assert plain[0]["data"] == short and plain[1]["data"] == long
+    assert math.isnan(plain[2]["x"]) and plain[2]["y"] == -math.inf
+    result = CliRunner().invoke(cli, ["cat", str(path)])
+    assert result.exit_code == 0, result.output
+
+    def refuse(name: str) -> None:
+        raise AssertionError(f"{name} is not JSON")
+
+    printed = [json.loads(line, parse_constant=refuse)["message"] for line in result.output.splitlines()]
+    assert base64.b64decode(printed[0]["data"]) == short
+    assert printed[1]["data"] == {"bytes": 1025, "sha256": "sha256:" + hashlib.sha256(long).hexdigest()}
+    assert printed[2] == {"x": None, "y": None, "z": 2.5}
+
+
+_PLAIN = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text() | st.binary(max_size=1100),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=5), inner, max_size=4),
+    max_leaves=20)
+
+
+@settings(max_examples=200, deadline=None)
+@given(_PLAIN)
+def test_a_cat_line_is_strict_json_of_the_plain_values(value: Any) -> None:
+    """Every plain value prints as one line of strict JSON: finite numbers, text and structure as they are,
+    bytes as base64 (up to 1 KiB) or their size and SHA-256, non-finite numbers as null."""
+    import base64
+    import hashlib
+    import math
+
+    from starlog.cli.describe import json_line
+
+    line = json_line(value)
+    assert "\n" not in line
+
+    def refuse(name: str) -> None:
+        raise AssertionError(f"{name} is not JSON")
+
+    def same(printed: Any, original: Any) -> bool:
+        if isinstance(original, bytes):
+            if len(original) <= 1024:
+                return base64.b64decode(printed) == original
+            return printed == {"bytes": len(original), "sha256": "sha256:" + hashlib.sha256(original).hexdigest()}
+        if isinstance(original, float) and not math.isfinite(original):
+            return printed is None
+        if isinstance(original, dict):
+            return printed.keys() == original.keys() and all(same(printed[k], v) for k, v in original.items())
+        if isinstance(original, list):
+            return len(printed) == len(original) and all(same(p, o) for p, o in zip(printed, original))
+        return printed == original and type(printed) is type(original)
+
+    assert same(json.loads(line, parse_constant=refuse), value)
+
+
+def test_the_facts_of_an_open_log_are_those_of_its_path(logs: dict[str, Path]) -> None:
+    from starlog.facts import log_facts
+
+    with LogReader(logs["cen"]) as log:
+        facts = log_facts(log)
+        assert log.message_count() == facts["message_count"]  # still open
+    assert facts == log_facts(logs["cen"]) and facts["path"] == str(logs["cen"])
+    assert [c["topic"] for c in facts["channels"]][:3] == ["/camera/image", "/camera/frame", "/sim/truth"]

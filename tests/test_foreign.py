@@ -17,8 +17,9 @@ from click.testing import CliRunner
 
 from starlog.cli import cli
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.io import LogReader, topics
-from starlog.io.images import pixels_to_mono
+from starlog.io import LogReader
+from starlog import topics
+from starlog.codecs.images import pixels_to_mono
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from tests.foreign_logs import native_frames, write_foxglove_compressed, write_plain, write_ros1, write_ros2

@@ -15,10 +15,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from starlog.errors import InvalidInputError
-from starlog.io import LogReader, LogWriter, decode_raw_image, encode_raw_image, protobuf_message_type
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import decode_raw_image, encode_raw_image, protobuf_message_type
 from starlog.io.frames import cached_image_decoder
-from starlog.io.images import pixels_to_mono
-from starlog.io.rawimage_wire import parse_raw_image
+from starlog.codecs.images import pixels_to_mono
+from starlog.codecs.rawimage_wire import parse_raw_image
 from starlog.io.layout import decompress
 
 

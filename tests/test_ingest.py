@@ -11,7 +11,7 @@ import tifffile
 
 from starlog.errors import ImageFolderError, InvalidParameterError, OutputExistsError
 from starlog.io import LogReader
-from starlog.io import topics
+from starlog import topics
 from starlog.stages import ingest_folder
 from starlog.stages.ingest import ColourImageWarning, natural_key
 

@@ -19,7 +19,7 @@ from click.testing import CliRunner
 from starlog.cli import cli
 from starlog.errors import ImageFolderError, InvalidParameterError, StarlogError
 from starlog.io import LogReader
-from starlog.io import topics
+from starlog import topics
 from starlog.stages.ingest_ser import unix_ns_to_ticks
 from starlog.sim import SimulationConfig, Simulator
 from starlog.stages import ingest_source

@@ -21,18 +21,16 @@ from starlog.errors import (
     OutputExistsError,
     TruncatedLogError,
 )
-from starlog.io import (
-    LogReader,
-    LogWriter,
-    Provenance,
+from starlog.io import LogReader, LogWriter, Provenance, file_digest
+from starlog.codecs import (
     decode_raw_image,
     encode_json,
     encode_raw_image,
-    file_digest,
     json_message_type,
     load_json_schema,
+    protobuf_message_type,
 )
-from starlog.io import topics
+from starlog import topics
 
 
 @settings(max_examples=40, deadline=None)
@@ -104,7 +102,7 @@ def test_embedded_schema_is_the_repository_schema(sim_log: Path) -> None:
 
 
 def test_every_schema_file_is_a_valid_json_schema() -> None:
-    from starlog.io.schemas import schema_dir
+    from starlog.codecs.schemas import schema_dir
 
     for path in sorted(schema_dir().glob("starlog.*.json")):
         jsonschema.Draft202012Validator.check_schema(json.loads(path.read_text()))
@@ -180,8 +178,7 @@ def test_parallel_compression_gives_the_same_bytes(sim_log: Path, tmp_path: Path
     for workers in (1, 2):
         with LogReader(sim_log) as log, LogWriter(tmp_path / f"w{workers}.mcap", workers=workers,
                                                   chunk_size=4096, compression="lz4") as w:
-            ch = w.add_channel(topics.IMAGE, __import__("starlog.io", fromlist=["x"]).protobuf_message_type(
-                "foxglove.RawImage"))
+            ch = w.add_channel(topics.IMAGE, protobuf_message_type("foxglove.RawImage"))
             for _, t, image in log.frames():
                 w.write(ch, log_time=t, data=encode_raw_image(image, log_time=t))
     assert (tmp_path / "w1.mcap").read_bytes() == (tmp_path / "w2.mcap").read_bytes()

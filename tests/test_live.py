@@ -25,7 +25,8 @@ import cv2
 import numpy as np
 import pytest
 
-from starlog.io import LogReader, topics
+from starlog.io import LogReader
+from starlog import topics
 from starlog.io.mcap_file import McapFile
 from starlog.io.recover import recover_log
 from starlog.io.verify import verify_log

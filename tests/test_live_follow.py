@@ -15,7 +15,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from starlog.io import LogReader, LogWriter, json_message_type
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import json_message_type
 from starlog.io.mcap_file import McapFile
 from starlog.io.verify import verify_log
 from starlog.live.follow import DamagedChunk, FollowedChunk, FollowedMessage, McapFollower

@@ -13,10 +13,12 @@ import pytest
 from mcap.writer import Writer as McapWriter
 
 from starlog.errors import InvalidInputError, InvalidMessageError
-from starlog.io import LogReader, LogWriter, encode_json, json_message_type, topics
-from starlog.io.json_schema import compile_json_schema
-from starlog.io.messages import decode_json
-from starlog.io.schemas import load_json_schema, schema_dir
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import encode_json, json_message_type
+from starlog import topics
+from starlog.codecs.json_schema import compile_json_schema
+from starlog.codecs.json_messages import decode_json
+from starlog.codecs.schemas import load_json_schema, schema_dir
 from starlog.io.writer import VALIDATED_METADATA_KEY
 from tests.json_logs import write_json_log
 

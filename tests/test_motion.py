@@ -14,7 +14,8 @@ from click.testing import CliRunner
 from starlog.cli import cli
 from starlog.compensation import ScoringProtocol, protocol_figures
 from starlog.parquet import export_log
-from starlog.io import load_json_schema, topics
+from starlog.codecs import load_json_schema
+from starlog import topics
 from starlog.io.reader import LogReader
 from starlog.platform_motion import (
     MotionParameters,

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from starlog.cli import cli
 from starlog.io import LogReader
-from starlog.io.star_tables import STAR_TABLES
+from starlog.codecs.star_tables import STAR_TABLES
 from starlog.sim import Jitter
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log

@@ -13,7 +13,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from starlog.io import LogReader, LogView, topics
+from starlog.io import LogReader, LogView
+from starlog import topics
 from starlog.io.timerange import TimeRange
 from starlog.stages import simulate_log
 # private module _blocks: how the stages split a channel among workers; its edge cases need stand-in logs

@@ -21,8 +21,9 @@ from starlog.centroiding.phase import (
 )
 from starlog.cli import cli
 from starlog.errors import InvalidInputError
-from starlog.io import topics
-from starlog.io.info import describe_log, format_description
+from starlog import topics
+from starlog.facts import log_facts
+from starlog.cli.describe import info_text
 from starlog.io.reader import LogReader
 from starlog.sim import CameraModel, SimulationConfig, Simulator
 from starlog.stages import simulate_log
@@ -225,13 +226,13 @@ def test_centroid_stage_phase_correction_auto_file_and_info(tmp_path: Path) -> N
     with LogReader(auto) as log:
         assert log.provenance()[-1].parameters["phase_correction"] == record
         assert len(log.metadata(topics.PHASE_METADATA)) == 1
-    text = format_description(describe_log(auto))
+    text = info_text(log_facts(auto))
     assert "pixel-phase correction (auto" in text and "GAUSSFIT" in text
     summary_json = tmp_path / "summary.json"  # what ``starlog centroid --json`` prints
     summary_json.write_text(json.dumps(summary.to_dict()))
     assert load_phase_calibrations(summary_json) == {"GAUSSFIT": PhaseCalibration.from_dict(cal)}
     info_json = tmp_path / "info.json"  # ``starlog info --json`` of the output: its calibration again
-    info_json.write_text(json.dumps(describe_log(auto), default=str))
+    info_json.write_text(json.dumps(log_facts(auto), default=str))
     assert load_phase_calibrations(info_json) == {"GAUSSFIT": PhaseCalibration.from_dict(cal)}
     # a calibration given as a file (here made up), as the JSON of a run prints it
     given = PhaseCalibration("GAUSSFIT", (-0.05,), (-0.03,), (-0.05,), (-0.03,), (0.01,), (0.01,), 400, (True,))

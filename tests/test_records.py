@@ -11,10 +11,10 @@ from hypothesis import strategies as st
 
 from starlog.centroiding import CentroidMethod, extract_stars
 from starlog.errors import InvalidInputError
-from starlog.io import encode_json, json_message_type
-from starlog.io.checked import encode_checked_json
-from starlog.io.records import RecordEncoder, record_encoder, structured_to_dicts
-from starlog.io.schemas import MessageType
+from starlog.codecs import encode_json, json_message_type
+from starlog.codecs.checked_json import encode_checked_json
+from starlog.codecs.json_rows import RecordEncoder, record_encoder, structured_to_dicts
+from starlog.codecs.schemas import MessageType
 from starlog.sim import SimulationConfig, Simulator
 
 CENTROIDS = json_message_type("starlog.Centroids")

@@ -9,8 +9,9 @@ from click.testing import CliRunner
 
 from starlog.cli import cli
 from starlog.errors import CorruptLogError
-from starlog.io import LogReader, LogWriter, encode_json, file_digest, json_message_type
-from starlog.io import topics
+from starlog.io import LogReader, LogWriter, file_digest
+from starlog.codecs import encode_json, json_message_type
+from starlog import topics
 from starlog.io.recover import recover_log
 from starlog.stages import simulate_log
 from tests.helpers import killed_writer_bytes, small_config
@@ -29,7 +30,7 @@ def _rewrite_with_small_chunks(src: Path, dst: Path) -> None:
         ids = {}
         for schema, channel, message in log.raw_messages(log.topics):
             if channel.topic not in ids:
-                from starlog.io.schemas import MessageType
+                from starlog.codecs.schemas import MessageType
 
                 ids[channel.topic] = w.add_channel(channel.topic, MessageType(
                     schema.name, schema.encoding, schema.data, channel.message_encoding))

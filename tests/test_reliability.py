@@ -25,20 +25,11 @@ from starlog.errors import (
     StarlogError,
     TruncatedLogError,
 )
-from starlog.io import (
-    LogReader,
-    LogWriter,
-    Provenance,
-    decode_raw_image,
-    encode_json,
-    encode_raw_image,
-    file_digest,
-    json_message_type,
-    protobuf_message_type,
-)
-from starlog.io import topics
+from starlog.io import LogReader, LogWriter, Provenance, file_digest
+from starlog.codecs import decode_raw_image, encode_json, encode_raw_image, json_message_type, protobuf_message_type
+from starlog import topics
 from starlog.io.recover import recover_log
-from starlog.io.schemas import MessageType
+from starlog.codecs.schemas import MessageType
 from starlog.stages import simulate_log
 from tests.helpers import killed_writer_bytes, small_config
 

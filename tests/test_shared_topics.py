@@ -35,9 +35,10 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from starlog.cli import cli
 from starlog.errors import InvalidInputError, InvalidMessageError, MixedTopicError
 from starlog.parquet.tables import export_log
-from starlog.io import LogReader, LogWriter, encode_json, json_message_type
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import encode_json, json_message_type
 from starlog.io.copying import flatten_log
-from starlog.io.images import choose_image_topic
+from starlog.codecs.images import choose_image_topic
 from starlog.io.recover import recover_log
 from starlog.io.verify import verify_log
 from starlog.stages._blocks import channel_blocks

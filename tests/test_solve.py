@@ -14,9 +14,12 @@ from click.testing import CliRunner
 
 from starlog.cli import cli
 from starlog.parquet import export_log
-from starlog.io import file_digest, load_json_schema, topics
+from starlog.io import file_digest
+from starlog.codecs import load_json_schema
+from starlog import topics
 from starlog.io.chain import base_reference
-from starlog.io.info import describe_log, format_description
+from starlog.facts import log_facts
+from starlog.cli.describe import info_text
 from starlog.io.reader import LogReader
 from starlog.sim import Jitter, SimulationConfig, Simulator
 from starlog.stages import simulate_log
@@ -238,9 +241,9 @@ def test_the_sky_judges_the_centroid_methods_on_the_stars_both_identified(deep):
         assert 0.0 < e["residual_px"] < 0.1 and e["interval_px"][0] <= e["residual_px"] <= e["interval_px"][1]
         assert e["focal_px"] == pytest.approx(384 / 2 / np.tan(np.radians(5.0)), rel=1e-3)
     assert g["p_best"] + m["p_best"] == pytest.approx(1.0)
-    info = describe_log(deep["att"])
+    info = log_facts(deep["att"])
     assert info["solve"][-1]["sky_evidence"] == json.loads(json.dumps(sky))
-    text = format_description(info)
+    text = info_text(info)
     assert "sky        per centroid method: catalogue residual" in text
     decision = info["trust"]
     assert decision["evidence"] == "sky" and decision["method"] == min(sky, key=lambda k: sky[k]["residual_px"])
@@ -250,7 +253,7 @@ def test_the_sky_judges_the_centroid_methods_on_the_stars_both_identified(deep):
 def test_too_few_stars_for_the_sky_leave_the_frame_to_frame_noise_to_name_the_method(logs):
     sky = logs["summary"].sky_evidence
     assert 0 < sky["GAUSSFIT"]["stars"] < 20
-    decision = describe_log(logs["att"])["trust"]
+    decision = log_facts(logs["att"])["trust"]
     assert decision["evidence"] == "frame-to-frame" and "the sky needs 20" in decision["reason"]
 
 

@@ -10,7 +10,9 @@ from typing import Any
 
 import pytest
 
-from starlog.io import LogReader, LogWriter, Provenance, file_digest, json_message_type, topics
+from starlog.io import LogReader, LogWriter, Provenance, file_digest
+from starlog.codecs import json_message_type
+from starlog import topics
 from starlog.io.provenance import BackgroundDigest
 from starlog.stages.compensate import compensate_log
 from starlog.stages.simulate import simulate_log

@@ -20,8 +20,10 @@ from starlog.cli import cli
 from starlog.detect import DETECTION_DTYPE
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.parquet import TABLES, arrow_schema, export_log, table_columns
-from starlog.io import LogReader, file_digest, json_message_type, load_json_schema, topics
-from starlog.io.star_tables import STAR_TABLES, star_codec
+from starlog.io import LogReader, file_digest
+from starlog.codecs import json_message_type, load_json_schema
+from starlog import topics
+from starlog.codecs.star_tables import STAR_TABLES, star_codec
 from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.sim import Jitter
 from starlog.stages import simulate_log

@@ -1,5 +1,5 @@
 """The star tables' protobuf form: the ``.proto`` sources against their descriptor set and their JSON Schemas,
-and the wire codec (:mod:`starlog.io.table_wire`) against the protobuf runtime, both ways."""
+and the wire codec (:mod:`starlog.codecs.table_wire`) against the protobuf runtime, both ways."""
 
 from __future__ import annotations
 
@@ -22,9 +22,9 @@ from hypothesis import strategies as st
 
 from starlog.centroiding.table import CENTROID_DTYPE
 from starlog.errors import InvalidInputError
-from starlog.io import encode_json, load_json_schema, protobuf_message_type
-from starlog.io.star_tables import STAR_TABLES, json_table, star_codec
-from starlog.io.table_wire import TableCodec
+from starlog.codecs import encode_json, load_json_schema, protobuf_message_type
+from starlog.codecs.star_tables import STAR_TABLES, json_table, star_codec
+from starlog.codecs.table_wire import TableCodec
 from tests.tool_modules import tool_module
 
 SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
@@ -326,7 +326,8 @@ def test_a_log_written_with_another_version_of_a_schema_reads_by_its_own_schema(
     read it by the schema in the log, the new field included."""
     from google.protobuf.descriptor_pb2 import FieldDescriptorProto
 
-    from starlog.io import LogReader, LogWriter, MessageType
+    from starlog.io import LogReader, LogWriter
+    from starlog.codecs import MessageType
 
     fds = FileDescriptorSet.FromString(protobuf_message_type("starlog.Centroids").schema_data)
     row = next(m for m in fds.file[0].message_type if m.name == "Centroid")

@@ -35,10 +35,11 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from starlog.cli import cli
 from starlog.errors import CorruptLogError
 from starlog.parquet.tables import export_log
-from starlog.io import LogReader, LogWriter, encode_json, json_message_type
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import encode_json, json_message_type
 from starlog.io.chunk_indexes import read_file_summary
 from starlog.io.copying import flatten_log
-from starlog.io.images import choose_image_topic
+from starlog.codecs.images import choose_image_topic
 from starlog.io.verify import verify_log
 from starlog.stages._blocks import channel_blocks
 

@@ -12,9 +12,10 @@ from typing import Any
 import pytest
 from google.protobuf.descriptor import FieldDescriptor as FD
 
-from starlog.io import LogReader, LogWriter, encode_json, json_message_type, protobuf_message_type
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import encode_json, json_message_type, protobuf_message_type
 from starlog.io.copying import flatten_log
-from starlog.io.star_tables import star_codec
+from starlog.codecs.star_tables import star_codec
 from starlog.io.verify import verify_file
 from starlog.stages.centroid import centroid_log
 from starlog.stages import simulate_log

@@ -17,8 +17,9 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import ChunkIndex
 
 from starlog.cli import cli
-from starlog.io import LogReader, LogWriter, encode_json, encode_raw_image, json_message_type, protobuf_message_type
-from starlog.io import topics
+from starlog.io import LogReader, LogWriter
+from starlog.codecs import encode_json, encode_raw_image, json_message_type, protobuf_message_type
+from starlog import topics
 from starlog.io.verify import verify_file, verify_log
 # private: verify's walk-time chunk-index check, tested directly on hypothesis's tables (a file for each is too slow)
 from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen
@@ -46,7 +47,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         ids: dict[str, int] = {}
         for schema, channel, message in log.raw_messages(log.topics):
             if channel.topic not in ids:
-                from starlog.io.schemas import MessageType
+                from starlog.codecs.schemas import MessageType
 
                 ids[channel.topic] = w.add_channel(channel.topic, MessageType(
                     schema.name, schema.encoding, schema.data, channel.message_encoding))  # type: ignore[union-attr]

@@ -52,7 +52,7 @@ from starlog.centroiding import CentroidMethod, measure_centroids
 from starlog.detect import detect_stars
 from starlog.io.reader import LogReader
 from starlog.io.frames import reuse_frame_buffers
-from starlog.io.star_tables import star_codec
+from starlog.codecs.star_tables import star_codec
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402

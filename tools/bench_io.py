@@ -53,9 +53,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
 from starlog.centroiding.table import CENTROID_DTYPE  # noqa: E402
 from starlog.detect.detection import DETECTION_DTYPE  # noqa: E402
-from starlog.io import LogReader, decode_json, encode_image_annotations, encode_json  # noqa: E402
-from starlog.io.records import record_encoder  # noqa: E402
-from starlog.io.star_tables import STAR_TABLES, json_table, star_codec  # noqa: E402
+from starlog.io import LogReader  # noqa: E402
+from starlog.codecs import decode_json, encode_image_annotations, encode_json
+from starlog.codecs.json_rows import record_encoder  # noqa: E402
+from starlog.codecs.star_tables import STAR_TABLES, json_table, star_codec  # noqa: E402
 from starlog.sim import SimulationConfig, Simulator  # noqa: E402
 from starlog.stages import ingest_folder, simulate_log  # noqa: E402
 from starlog.stages._centroid_frames import annotation_diameter  # noqa: E402

@@ -42,7 +42,7 @@ Printed as Markdown tables, every ratio from this one run:
 3. a breakdown per stage: the stage run in-process on one core on the shortest log under a
    wall-clock stack sampler (SIGALRM every millisecond; the time since the previous sample goes to
    the innermost starlog frame of the interrupted stack): read/decode and encode/write
-   (``starlog.io``, by the reading or writing side it serves), algorithm (``starlog.detect``,
+   (``starlog.io`` and ``starlog.codecs``, by the reading or writing side they serve), algorithm (``starlog.detect``,
    ``.centroid``, ``.track``, ``.motion``, ``.compensate``), stage code (``starlog.stages``,
    ``.pipeline``, ``.cli``: per-message conversion, orchestration), import, other (outside starlog);
 4. checks: output SHA-256 identical for ``--workers 1`` and all cores, and on a rerun; each of
@@ -143,6 +143,8 @@ CATEGORY_TITLES = {"read": "read/decode", "algorithm": "algorithm", "write": "en
                    "stage": "stage code", "import": "import", "other": "other"}
 ALGORITHM_PACKAGES = ("starlog.detect", "starlog.centroiding", "starlog.tracking", "starlog.platform_motion", "starlog.compensation",
                       "starlog.sim")
+#: The log layer: the MCAP container and the payload codecs.
+LOG_PACKAGES = ("starlog.io", "starlog.codecs")
 READ_WORDS = ("decompress", "decode", "unpack", "read", "parse", "load", "digest")
 WRITE_WORDS = ("compress", "encode", "pack", "write", "dump", "serial")
 
@@ -212,7 +214,7 @@ def _frame_tag(code: CodeType, module: str) -> str | None:
     """Category of one stack frame; ``"io"`` is a log-layer frame that serves whichever side calls it."""
     if code.co_filename.startswith("<frozen importlib"):
         return "import"
-    if module == "starlog.io" or module.startswith("starlog.io."):
+    if any(module == p or module.startswith(p + ".") for p in LOG_PACKAGES):
         name = code.co_name.lower()
         if module == "starlog.io.reader" or any(w in name for w in READ_WORDS):
             return "read"

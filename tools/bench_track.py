@@ -49,8 +49,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_targets import Targets  # noqa: E402
-from starlog.io import LogReader, LogWriter, file_digest, protobuf_message_type, topics  # noqa: E402
-from starlog.io.star_tables import star_codec  # noqa: E402
+from starlog.io import LogReader, LogWriter, file_digest  # noqa: E402
+from starlog.codecs import protobuf_message_type
+from starlog import topics
+from starlog.codecs.star_tables import star_codec  # noqa: E402
 from starlog.tracking import (  # noqa: E402
     BatchUKF,
     MotionModel,

@@ -1,7 +1,7 @@
 """Compile starlog's ``.proto`` sources (``schemas/starlog/*.proto``) into the FileDescriptorSet it embeds in logs.
 
 starlog does not generate ``_pb2.py`` modules (they couple to the protobuf runtime's version): at run
-time it builds its message classes from this descriptor set (:mod:`starlog.io.star_tables`), and each
+time it builds its message classes from this descriptor set (:mod:`starlog.codecs.star_tables`), and each
 protobuf channel's schema is the part of it that defines the channel's message. protoc comes from
 grpcio-tools (the test extra); ``tests/test_star_tables.py`` compiles the sources again and compares,
 so the sources and the committed ``schemas/starlog.desc`` never drift apart.

@@ -20,7 +20,7 @@ result on its own centroid and re-normalise it. Residuals are taken from the fix
 from the previous ePSF, so the shrinkage regularises instead of slowing a convergence to the noise.
 
 Storage in a log (``starlog centroid --psf empirical``): one MCAP metadata record named
-``starlog.epsf`` (:data:`starlog.io.topics.EPSF_METADATA`), a string map (see :meth:`EPSF.to_metadata`).
+``starlog.epsf`` (:data:`starlog.topics.EPSF_METADATA`), a string map (see :meth:`EPSF.to_metadata`).
 """
 
 from __future__ import annotations

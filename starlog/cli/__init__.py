@@ -1,4 +1,5 @@
-"""The ``starlog`` command line: a thin layer over :mod:`starlog.stages`, :mod:`starlog.io` and :mod:`starlog.parquet`.
+"""The ``starlog`` command line: a thin layer over :mod:`starlog.stages`, :mod:`starlog.io`, :mod:`starlog.facts`
+and :mod:`starlog.parquet`.
 
 Every command has ``--help`` with an example; commands that print results accept ``--json``.
 Errors starlog raises on purpose are printed as one sentence with exit status 1.
@@ -6,7 +7,8 @@ Errors starlog raises on purpose are printed as one sentence with exit status 1.
 One module per group of commands, each command a call of the library: :mod:`~starlog.cli.logs`
 (simulate, ingest), :mod:`~starlog.cli.stages` (centroid, track, motion, compensate, solve, and the
 command of each installed stage), :mod:`~starlog.cli.pipeline` (run, experiment), :mod:`~starlog.cli.live` (live),
-:mod:`~starlog.cli.inspect` (info, cat, export, report) and :mod:`~starlog.cli.maintain`
+:mod:`~starlog.cli.inspect` (info, cat, export, report; the text info and cat print is
+:mod:`~starlog.cli.describe`'s) and :mod:`~starlog.cli.maintain`
 (filter, flatten, recover, verify); the options they share are in :mod:`~starlog.cli.options`.
 Here: the group, which also lists the stages installed packages register, and :func:`main`.
 """

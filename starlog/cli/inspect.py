@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 from pathlib import Path
@@ -41,14 +40,15 @@ def info(log: Path, as_json: bool, quiet: bool) -> None:
       starlog info sim.mcap
       starlog info sim.mcap --json | jq '.channels[].topic'
     """
-    from starlog.io.info import describe_log, format_description
+    from starlog.cli.describe import info_text
+    from starlog.facts import log_facts
 
-    description = describe_log(log)
+    facts = log_facts(log)
     if as_json:
-        print_json(description)
+        print_json(facts)
         return
-    click.echo(format_description(description))
-    for note in description["notes"]:  # how the log was read, not what it holds
+    click.echo(info_text(facts))
+    for note in facts["notes"]:  # how the log was read, not what it holds
         echo_status(quiet, f"note: {note}")
 
 
@@ -73,6 +73,7 @@ def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], fra
       starlog cat cen.mcap --topic '/stars/centroids/*' --start frame:10 --end frame:20 | jq '.message.stars | length'
       starlog cat bag.mcap --topic /camera/image_raw | head -n 5
     """
+    from starlog.cli.describe import json_line
     from starlog.stages.filter import cat_messages
 
     notes: list[str] = []
@@ -82,7 +83,7 @@ def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], fra
     try:
         for line in lines:
             with file_errors("standard output"):
-                out.write(json.dumps(line, separators=(",", ":"), allow_nan=False))
+                out.write(json_line(line))
                 out.write("\n")
         with file_errors("standard output"):
             out.flush()

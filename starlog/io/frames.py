@@ -20,8 +20,8 @@ import numpy.typing as npt
 from mcap.records import Channel, Message, Schema
 
 from starlog.errors import InvalidInputError, InvalidMessageError, LogError, MessageDecodeError
-from starlog.io.foreign import schema_key
-from starlog.io.images import DecodedImage, image_decoder
+from starlog.codecs.foreign_decoders import schema_key
+from starlog.codecs.images import DecodedImage, image_decoder
 
 __all__ = ["Frame", "SkippedFrame", "cached_image_decoder", "decode_image_message", "iter_frames", "reuse_frame_buffers",
            "stamp_disagreement"]
@@ -66,7 +66,7 @@ class SkippedFrame:
 
 def cached_image_decoder(schema: Schema | None, message_encoding: str
                          ) -> Callable[[bytes | memoryview], DecodedImage] | None:
-    """:func:`~starlog.io.images.image_decoder`, built once per schema (process-wide).
+    """:func:`~starlog.codecs.images.image_decoder`, built once per schema (process-wide).
 
     Raises :class:`InvalidInputError` when the schema itself cannot be parsed.
     """
@@ -126,7 +126,7 @@ def iter_frames(log: MessageSource, topic: str, *, start: int | None = None, end
     does not come strictly after the previous one raises :class:`MessageDecodeError` /
     :class:`InvalidMessageError` naming it; with ``on_bad`` it is handed to ``on_bad`` instead
     and left out (its index stays taken, so frame numbers do not depend on what was skipped).
-    An image may be a read-only view of the log's bytes (:mod:`starlog.io.images`): copy it to write into it.
+    An image may be a read-only view of the log's bytes (:mod:`starlog.codecs.images`): copy it to write into it.
     """
     reuse_frame_buffers()
     first: tuple[tuple[int, ...], np.dtype[Any], int] | None = None

@@ -16,7 +16,7 @@ their messages in ``log_time`` order, each decoded by its own channel's schema, 
 (:mod:`starlog.io.shared_topics`) is refused as a series (:class:`~starlog.errors.MixedTopicError`);
 :meth:`LogReader.raw_messages` with ``mixed=True`` still hands out its messages one by one.
 
-Star tables (:mod:`starlog.io.star_tables`) are protobuf in the logs starlog writes and JSON in older
+Star tables (:mod:`starlog.codecs.star_tables`) are protobuf in the logs starlog writes and JSON in older
 ones; either way :meth:`LogReader.messages` gives them as the dict of their JSON form and
 :meth:`LogReader.tables` as a header and a structured array of rows. A protobuf message is checked
 by decoding it.
@@ -50,15 +50,15 @@ from starlog.errors import (
     MixedTopicError,
 )
 from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference, open_chain
-from starlog.io.foreign import message_decoder
+from starlog.codecs.foreign_decoders import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
-from starlog.io.images import is_image_schema
+from starlog.codecs.images import is_image_schema
 from starlog.io.mcap_file import ChannelSummary, McapFile, channel_summaries
-from starlog.io.json_schema import compile_json_schema
-from starlog.io.messages import decode_json
+from starlog.codecs.json_schema import compile_json_schema
+from starlog.codecs.json_messages import decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
 from starlog.io.shared_topics import topic_conflict
-from starlog.io.star_tables import STAR_TABLES, decode_table, json_table
+from starlog.codecs.star_tables import STAR_TABLES, decode_table, json_table
 from starlog.io.timerange import END_OF_TIME, ResolvedRange
 from starlog.io.writer import VALIDATED_METADATA_KEY
 
@@ -97,7 +97,7 @@ class DecodedMessage:
 
 @dataclass(frozen=True)
 class TableMessage:
-    """A star-table message (:data:`~starlog.io.star_tables.STAR_TABLES`) as its header fields and its rows
+    """A star-table message (:data:`~starlog.codecs.star_tables.STAR_TABLES`) as its header fields and its rows
     (a structured array; None for a header-only type), whatever its encoding."""
 
     topic: str
@@ -113,9 +113,9 @@ def decode_payload(
 ) -> Any:
     """Decode one message by its schema.
 
-    JSON → dict; an image type (:mod:`starlog.io.images`) → 2-D mono ndarray; other protobuf,
+    JSON → dict; an image type (:mod:`starlog.codecs.images`) → 2-D mono ndarray; other protobuf,
     ROS 2 (cdr) and ROS 1 messages → the object their support library decodes; anything else → bytes.
-    ``check`` (a :func:`~starlog.io.json_schema.compile_json_schema` checker) validates a JSON
+    ``check`` (a :func:`~starlog.codecs.json_schema.compile_json_schema` checker) validates a JSON
     payload; a violation raises :class:`InvalidMessageError`.
     """
     try:
@@ -382,7 +382,7 @@ class LogReader:
 
     def tables(self, topic: str | Iterable[str], *, start: int | None = None, end: int | None = None
                ) -> Iterator[TableMessage]:
-        """Messages of star-table channels (:data:`~starlog.io.star_tables.STAR_TABLES`) as
+        """Messages of star-table channels (:data:`~starlog.codecs.star_tables.STAR_TABLES`) as
         :class:`TableMessage`: the rows as one structured array, no dict per star; JSON messages are
         checked as :meth:`messages` checks them. A row field an older log lacks reads as its default.
 
@@ -423,7 +423,7 @@ class LogReader:
                ) -> Iterator[tuple[int, int, np.ndarray]]:
         """``(frame_index, log_time, image)`` for every image of ``topic`` (``start <= log_time < end``), in time order.
 
-        Any image type of :mod:`starlog.io.images` is decoded to a 2-D mono array.
+        Any image type of :mod:`starlog.codecs.images` is decoded to a 2-D mono array.
         ``first_index`` numbers the first frame returned (for a block read out of a longer log).
         Raises :class:`InvalidMessageError` when a frame is not 2-D, has another size or pixel type
         than the first, or does not come strictly after the previous frame; with ``on_bad``,

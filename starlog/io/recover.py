@@ -45,7 +45,7 @@ from starlog.io.layout import (
 )
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance, file_digest
 from starlog.io.reader import LogReader
-from starlog.io.schemas import MessageType
+from starlog.codecs.schemas import MessageType
 from starlog.io.writer import LogWriter
 
 __all__ = ["RecoveryReport", "recover_log"]

@@ -4,7 +4,7 @@ MCAP lets channels share a topic, each with its own schema. A topic is read as t
 channels' messages in ``log_time`` order, each message decoded by its own channel's schema, as
 the ``mcap`` library and Foxglove read it. Whatever takes a topic as one series of one type of
 message (frames, tables, the stages' inputs) needs its channels to carry one type: their schemas
-have one name and encoding, or are all image types (:mod:`starlog.io.images`; each frame decoded
+have one name and encoding, or are all image types (:mod:`starlog.codecs.images`; each frame decoded
 by its own schema). :func:`topic_conflict` says, in one line, when they do not (of the channels
 that hold messages: an empty channel has nothing to merge); the readers refuse such a topic as a
 series with that line, and ``starlog verify`` reports the same line.
@@ -16,7 +16,7 @@ from collections.abc import Iterable
 
 from mcap.records import Channel, Schema
 
-from starlog.io.images import is_image_schema
+from starlog.codecs.images import is_image_schema
 
 __all__ = ["message_kind", "topic_conflict"]
 

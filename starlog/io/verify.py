@@ -46,9 +46,9 @@ from starlog.errors import BaseMismatchError, CorruptLogError
 from starlog.io.chain import BASE_METADATA_NAME, BaseReference, id_collisions, open_base
 from starlog.io.checksum import crc32
 from starlog.io.chunk_indexes import ChunkIndexTable
-from starlog.io.foreign import message_decoder
+from starlog.codecs.foreign_decoders import message_decoder
 from starlog.io.frames import cached_image_decoder
-from starlog.io.images import is_image_schema
+from starlog.codecs.images import is_image_schema
 from starlog.io.layout import (
     DATA_END_RECORD_LEN,
     FOOTER,
@@ -66,8 +66,8 @@ from starlog.io.layout import (
     summary_crc,
     walk_records,
 )
-from starlog.io.json_schema import compile_json_schema
-from starlog.io.messages import decode_json
+from starlog.codecs.json_schema import compile_json_schema
+from starlog.codecs.json_messages import decode_json
 from starlog.io.provenance import BackgroundDigest
 from starlog.io.shared_topics import OTHER_READERS, topic_conflict
 

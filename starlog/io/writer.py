@@ -19,8 +19,8 @@ Why not :class:`mcap.writer.Writer` directly? Three things it does not do:
 Each channel gets chunks of its own, so a reader of small channels (centroids, truth) never
 decompresses image chunks; the open chunks of all channels are closed together. Every JSON
 message is checked against its channel's JSON Schema as it is written (a compiled checker,
-see :func:`~starlog.io.json_schema.compile_json_schema`; or where it was encoded, e.g. in a worker
-process, see :mod:`starlog.io.checked`), and the channel is marked so (metadata
+see :func:`~starlog.codecs.json_schema.compile_json_schema`; or where it was encoded, e.g. in a worker
+process, see :mod:`starlog.codecs.checked_json`), and the channel is marked so (metadata
 ``starlog.validated``): a reader then need not check those messages again when their chunk's
 CRC vouches for the bytes.
 
@@ -77,12 +77,12 @@ from starlog.errors import (
     file_errors,
 )
 from starlog.io.chain import BASE_METADATA_NAME
-from starlog.io.checked import CheckedJson, schema_checker, schema_digest
+from starlog.codecs.checked_json import CheckedJson, schema_checker, schema_digest
 from starlog.io.checksum import crc32
 from starlog.io.chunk_indexes import ChunkIndexTable
 from starlog.io.layout import MAGIC, chunk_record, footer_crc, message_index_record
-from starlog.io.messages import decode_json
-from starlog.io.schemas import MessageType
+from starlog.codecs.json_messages import decode_json
+from starlog.codecs.schemas import MessageType
 
 if TYPE_CHECKING:
     from starlog.io.chain import LayerBase
@@ -322,7 +322,8 @@ class LogWriter:
 
     Examples
     --------
-    >>> from starlog.io import LogWriter, json_message_type
+    >>> from starlog.codecs import json_message_type
+    >>> from starlog.io import LogWriter
     >>> with LogWriter(tmp / "a.mcap") as log:  # doctest: +SKIP
     ...     ch = log.add_channel("/demo", json_message_type("starlog.FrameInfo"))
     ...     log.write(ch, log_time=0, data=b'{"frame":0}')
@@ -509,7 +510,7 @@ class LogWriter:
 
         A message of a JSON channel that does not decode or does not match the channel's schema
         raises :class:`InvalidInputError` (unless the writer was made with ``validate=False``). A
-        :class:`~starlog.io.checked.CheckedJson` checked against the channel's own schema is not checked again.
+        :class:`~starlog.codecs.checked_json.CheckedJson` checked against the channel's own schema is not checked again.
         """
         channel_id = self._topics[channel] if isinstance(channel, str) else channel
         builder = self._builders.get(channel_id)

@@ -23,7 +23,7 @@ from mcap.records import Channel, Schema
 
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.io.reader import LogReader
-from starlog.io.schemas import MessageType
+from starlog.codecs.schemas import MessageType
 from starlog.io.writer import LogWriter
 from starlog.stages._stage import StageOutput, extend_log, record_provenance
 

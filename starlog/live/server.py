@@ -16,7 +16,7 @@ import json
 from collections.abc import Callable
 from typing import Any
 
-from starlog.io.schemas import MessageType
+from starlog.codecs.schemas import MessageType
 
 __all__ = ["STATUS_SCHEMA", "STATUS_TOPIC", "LiveServer"]
 

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from starlog.errors import InvalidInputError, InvalidParameterError, OutputExistsError
-from starlog.io import topics
+from starlog import topics
 from starlog.io.frames import SkippedFrame, reuse_frame_buffers
 from starlog.io.reader import LogReader
 from starlog.live.extraction import Handle
@@ -231,7 +231,7 @@ class LiveSession:
             return None
         topic = event.channel.topic
         if topic not in self._outlets:
-            from starlog.io.schemas import MessageType
+            from starlog.codecs.schemas import MessageType
 
             schema = event.schema
             self._outlets[topic] = self.server.outlet(topic, MessageType(
@@ -446,7 +446,7 @@ def _names(value: Any) -> list[str]:
 
 
 def _true_attitude(event: SourceMessage) -> Any:
-    from starlog.io.messages import decode_json
+    from starlog.codecs.json_messages import decode_json
     from starlog.stages.solve import true_attitude
 
     return true_attitude(decode_json(event.data))

@@ -33,8 +33,9 @@ from mcap.records import Channel, Schema
 
 from starlog.version import __version__
 from starlog.errors import ImageFolderError, InvalidParameterError, LogError
-from starlog.io import encode_json, encode_raw_image, json_message_type, protobuf_message_type, topics
-from starlog.io.images import choose_image_topic, is_image_schema
+from starlog.codecs import encode_json, encode_raw_image, json_message_type, protobuf_message_type
+from starlog import topics
+from starlog.codecs.images import choose_image_topic, is_image_schema
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
 from starlog.io.writer import LogWriter
 from starlog.live.follow import DamagedChunk, FollowedChunk, FollowedMessage, FollowedMetadata, McapFollower
@@ -228,7 +229,7 @@ class FollowedLog(Source):
 
 @dataclass(frozen=True)
 class _Named:
-    """A channel as :func:`~starlog.io.images.choose_image_topic` reads it."""
+    """A channel as :func:`~starlog.codecs.images.choose_image_topic` reads it."""
 
     topic: str
     schema: Schema | None

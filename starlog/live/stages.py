@@ -30,10 +30,10 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import InvalidInputError
-from starlog.io import topics
+from starlog import topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader
-from starlog.io.star_tables import star_codec
+from starlog.codecs.star_tables import star_codec
 from starlog.live.extraction import CentroidWorkers, Done, FrameResult, Handle, extract_frame
 from starlog.live.layers import PublishingWriter, close_on_base, relayer
 from starlog.live.sources import SourceMessage

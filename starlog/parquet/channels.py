@@ -23,10 +23,10 @@ from starlog.errors import (
     MessageDecodeError,
     OutputExistsError,
 )
-from starlog.io.foreign import message_decoder, to_plain
+from starlog.codecs.foreign_decoders import message_decoder, to_plain
 from starlog.io.frames import cached_image_decoder
-from starlog.io.images import IMAGE_SCHEMAS, is_image_schema
-from starlog.io.messages import decode_json
+from starlog.codecs.images import IMAGE_SCHEMAS, is_image_schema
+from starlog.codecs.json_messages import decode_json
 from starlog.io.reader import LogReader
 from starlog.io.writer import atomic_output
 

@@ -25,11 +25,11 @@ import pyarrow as pa
 
 from starlog.errors import InvalidParameterError, OutputExistsError, file_errors
 from starlog.parquet.channels import export_image_frames, export_topic, image_frames_table, parquet_writer
-from starlog.io.images import is_image_schema
+from starlog.codecs.images import is_image_schema
 from starlog.io.reader import ChannelSummary, LogReader, TableMessage
-from starlog.io.schemas import schema_dir
+from starlog.codecs.schemas import schema_dir
 from starlog.io.writer import atomic_output
-from starlog.io import topics
+from starlog import topics
 
 __all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "family_table", "table_columns", "table_of_channel",
            "tables_of"]

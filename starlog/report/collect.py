@@ -18,11 +18,11 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import StarlogError
-from starlog.io.images import choose_image_topic
-from starlog.io.info import evidence_summaries, solve_summaries, trust_summary
+from starlog.codecs.images import choose_image_topic
+from starlog.facts import evidence_summaries, solve_summaries, trust_summary
 from starlog.io.provenance import Provenance
 from starlog.io.reader import ChannelSummary, LogReader
-from starlog.io.topics import FRAME_INFO
+from starlog.topics import FRAME_INFO
 from starlog.report.attitude import AttitudeSeries, read_attitude
 
 __all__ = ["MAX_SERIES_SAMPLES", "MAX_TRACK_SAMPLES", "ErrorSeries", "FrameView", "ReportData", "TrackPaths",

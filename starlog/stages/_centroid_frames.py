@@ -25,10 +25,10 @@ from starlog.centroiding.hotpixels import without_hot_pixels
 from starlog.centroiding.phase import PhaseCalibration
 from starlog.centroiding.tracked_frame import WindowFit, track_frame
 from starlog.centroiding.tracking import TrackingSettings, TrackState, finish_tracked, start_tracking
-from starlog.io import encode_image_annotations
+from starlog.codecs import encode_image_annotations
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader, LogSource
-from starlog.io.star_tables import star_codec
+from starlog.codecs.star_tables import star_codec
 from starlog.stages._blocks import worker_log
 from starlog.stages._parallel import ordered_map, process_pool
 

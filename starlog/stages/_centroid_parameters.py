@@ -33,8 +33,8 @@ from starlog.centroiding.phase import (
 )
 from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.io import topics
-from starlog.io.images import choose_image_topic
+from starlog import topics
+from starlog.codecs.images import choose_image_topic
 from starlog.io.reader import LogReader, LogSource
 from starlog.stages._centroid_frames import FrameExtractor, opencv_threads
 from starlog.stages._progress import progress

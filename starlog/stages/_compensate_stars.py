@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.io import encode_json, json_message_type, topics
+from starlog.codecs import encode_json, json_message_type
+from starlog import topics
 from starlog.io.reader import LogReader
 from starlog.stages._channels import check_messages_read
 from starlog.stages._stage import StageOutput

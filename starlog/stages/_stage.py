@@ -14,7 +14,7 @@ from starlog.errors import OutputExistsError, file_errors
 from starlog.io import LogReader, LogWriter, Provenance
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.io.reader import LogSource, LogView
-from starlog.io.schemas import MessageType
+from starlog.codecs.schemas import MessageType
 from starlog.io.copying import flatten_log
 from starlog.io.writer import temporary_folder
 

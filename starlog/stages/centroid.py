@@ -1,7 +1,7 @@
 """The ``centroid`` stage: detection and sub-pixel centroids of every frame.
 
 Reads an image channel (``/camera/image`` by default; any image type of
-:mod:`starlog.io.images`, chosen with ``image_topic``) and writes ``/stars/detections`` (starlog.Detections),
+:mod:`starlog.codecs.images`, chosen with ``image_topic``) and writes ``/stars/detections`` (starlog.Detections),
 ``/stars/centroids/<METHOD>`` per method (starlog.Centroids) and ``/stars/annotations``
 (foxglove.ImageAnnotations: circles at the first method's centroids, so the stars show over
 the frames in Foxglove), each message at its frame's ``log_time``. A detection that exists only
@@ -30,9 +30,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from starlog.centroiding.evidence import EvidenceAccumulator, recommend
-from starlog.io import protobuf_message_type, topics
+from starlog.codecs import protobuf_message_type
+from starlog import topics
 from starlog.io.frames import SkippedFrame
-from starlog.io.images import choose_image_topic
+from starlog.codecs.images import choose_image_topic
 from starlog.io.reader import LogReader, LogSource
 from starlog.io.writer import LogWriter
 from starlog.stages._blocks import channel_blocks

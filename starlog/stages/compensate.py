@@ -72,7 +72,8 @@ from starlog.compensation import (
     shortfalls,
 )
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.io import encode_json, json_message_type, topics
+from starlog.codecs import encode_json, json_message_type
+from starlog import topics
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.platform_motion import star_reference
 from starlog.stages._parallel import ordered_map, process_pool

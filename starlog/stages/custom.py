@@ -32,10 +32,10 @@ from starlog.errors import (
     StarlogError,
 )
 from starlog.io.frames import iter_frames
-from starlog.io.images import choose_image_topic, is_image_schema
-from starlog.io.messages import encode_json
+from starlog.codecs.images import choose_image_topic, is_image_schema
+from starlog.codecs.json_messages import encode_json
 from starlog.io.reader import ChannelSummary, LogReader, decode_payload, source_path
-from starlog.io.star_tables import decode_table
+from starlog.codecs.star_tables import decode_table
 from starlog.io.writer import LogWriter
 from starlog.stage_declaration import KINDS, Message, Output, Stage
 from starlog.stages._channels import check_messages_read

@@ -5,7 +5,7 @@ Both select channels by :mod:`fnmatch` globs (``--topic``, ``--exclude-topic``) 
 of ``frame_topic``: by default the only channel selected, else the log's image channel (as the
 stages choose it). ``filter`` writes a new log through :func:`starlog.io.copying.copy_log`
 (chunks kept whole are copied byte for byte) and records its own provenance; ``cat`` streams
-each message as one JSON object (:mod:`starlog.io.message_json`).
+each message as plain values (:mod:`starlog.codecs.plain_values`), which the command prints as JSON lines.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from typing import Any
 
 from starlog.version import __version__
 from starlog.errors import InvalidParameterError, StarlogError
-from starlog.io.images import choose_image_topic
-from starlog.io.message_json import MessageRenderer
+from starlog.codecs.images import choose_image_topic
+from starlog.codecs.plain_values import PlainValues
 from starlog.io.provenance import BackgroundDigest, Provenance
 from starlog.io.reader import LogReader
 from starlog.io.copying import CopyReport, TopicSelection, check_topics_exist, frame_time_lookup, copy_log
@@ -112,12 +112,12 @@ def cat_messages(
     limit: int | None = None,
     notes: list[str] | None = None,
 ) -> Iterator[dict[str, Any]]:
-    """Each selected message, in ``log_time`` order, as ``{topic, log_time, publish_time, sequence, message}``;
-    ``notes`` gets the reader's notes on how the log was read, once every message is given."""
+    """Each selected message, in ``log_time`` order, as ``{topic, log_time, publish_time, sequence, message}``
+    (``message``: :class:`~starlog.codecs.plain_values.PlainValues`' plain values); ``notes`` gets the reader's notes on how the log was read, once every message is given."""
     if limit is not None and limit < 0:
         raise InvalidParameterError(f"--limit must be >= 0, got {limit}.")
     selection = TopicSelection(tuple(topics), tuple(exclude_topics))
-    render = MessageRenderer()
+    render = PlainValues()
     with LogReader(input_path) as log:
         chosen = _selected(log, selection)
         resolved = _resolve(log, TimeRange.parse(start, end), chosen, frame_topic)

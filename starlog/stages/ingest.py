@@ -28,8 +28,9 @@ import numpy as np
 
 from starlog.version import __version__
 from starlog.errors import ImageFolderError, InvalidParameterError
-from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
-from starlog.io import topics
+from starlog.io import LogWriter, Provenance
+from starlog.codecs import encode_json, encode_raw_image, json_message_type, protobuf_message_type
+from starlog import topics
 from starlog.io.writer import FRAME_COMPRESSION
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.stages._progress import progress

@@ -28,9 +28,10 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.io import protobuf_message_type, topics
+from starlog.codecs import protobuf_message_type
+from starlog import topics
 from starlog.io.reader import LogReader
-from starlog.io.star_tables import star_codec
+from starlog.codecs.star_tables import star_codec
 from starlog.platform_motion import Observations, PlatformEstimate, PlatformModel, estimate_platform
 from starlog.stages._channels import check_messages_read, select_track_channels
 from starlog.stages.window import windowed

@@ -9,8 +9,9 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from starlog.version import __version__
-from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
-from starlog.io import topics
+from starlog.io import LogWriter, Provenance
+from starlog.codecs import encode_json, encode_raw_image, json_message_type, protobuf_message_type
+from starlog import topics
 from starlog.io.writer import FRAME_COMPRESSION
 from starlog.attitude.rotation import quaternion_from_matrix, radec_roll
 from starlog.io.provenance import PROVENANCE_METADATA_NAME

@@ -54,9 +54,10 @@ from starlog.attitude.rotation import attitude_error, matrix_from_quaternion, ra
 from starlog.attitude.sky_evidence import MAX_SKY_FRAMES, IdentifiedFrame, sky_evidence
 from starlog.centroiding.table import CentroidFlag
 from starlog.errors import InvalidInputError, InvalidParameterError
-from starlog.io import protobuf_message_type, topics
+from starlog.codecs import protobuf_message_type
+from starlog import topics
 from starlog.io.reader import LogReader
-from starlog.io.star_tables import star_codec
+from starlog.codecs.star_tables import star_codec
 from starlog.stages._channels import check_messages_read
 from starlog.stages._progress import progress
 from starlog.stages._stage import StageOutput, extend_log
@@ -449,7 +450,7 @@ def add_solve_channels(out: StageOutput, method: str) -> tuple[int, int, int]:
 
 def usable_centroids(rows: npt.NDArray[np.void]) -> _Centroids:
     """The centroids a frame is solved from (finite, sigma > 0, fitted), of the rows of its ``starlog.Centroids``
-    message (:func:`~starlog.io.star_tables.decode_table`, :meth:`~starlog.io.reader.LogReader.tables`)."""
+    message (:func:`~starlog.codecs.star_tables.decode_table`, :meth:`~starlog.io.reader.LogReader.tables`)."""
     return _Centroids.from_rows(rows)
 
 

@@ -21,7 +21,7 @@ its rows are marked in the encoded messages as they are written (:func:`_track_p
 of a ``starlog.Tracks`` message has the same length, so its ``brightest`` byte is at a known place.
 
 The centroids are read as tables (:meth:`~starlog.io.reader.LogReader.tables`, no dict per star), and
-the rows of a whole block are encoded at once (:func:`~starlog.io.star_tables.star_codec`).
+the rows of a whole block are encoded at once (:func:`~starlog.codecs.star_tables.star_codec`).
 
 The bytes written do not depend on ``workers``.
 
@@ -44,10 +44,11 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import InvalidParameterError
-from starlog.io import protobuf_message_type, topics
+from starlog.codecs import protobuf_message_type
+from starlog import topics
 from starlog.io.reader import LogReader, LogSource, TableMessage
-from starlog.io.schemas import MessageType
-from starlog.io.star_tables import star_codec
+from starlog.codecs.schemas import MessageType
+from starlog.codecs.star_tables import star_codec
 from starlog.stages._blocks import channel_blocks, worker_log
 from starlog.stages._channels import check_messages_read
 from starlog.stages._parallel import ordered_map, process_pool

@@ -16,9 +16,9 @@ from collections.abc import Callable
 from typing import Any
 
 from starlog.errors import InvalidInputError
-from starlog.io.json_schema import compile_json_schema
-from starlog.io.messages import decode_json, encode_json
-from starlog.io.schemas import MessageType
+from starlog.codecs.json_schema import compile_json_schema
+from starlog.codecs.json_messages import decode_json, encode_json
+from starlog.codecs.schemas import MessageType
 
 __all__ = ["CheckedJson", "encode_checked_json", "schema_checker", "schema_digest"]
 
@@ -27,7 +27,7 @@ _DIGESTS: dict[bytes, bytes] = {}
 
 
 def schema_checker(schema_data: bytes) -> Callable[[Any], str | None]:
-    """The compiled checker (:func:`~starlog.io.json_schema.compile_json_schema`) of a JSON Schema text,
+    """The compiled checker (:func:`~starlog.codecs.json_schema.compile_json_schema`) of a JSON Schema text,
     compiled once per process."""
     checker = _CHECKERS.get(schema_data)
     if checker is None:
@@ -58,7 +58,7 @@ class CheckedJson(bytes):
 
 
 def encode_checked_json(value: Any, message_type: MessageType) -> CheckedJson:
-    """:func:`~starlog.io.messages.encode_json` of ``value``, checked against ``message_type``'s JSON Schema
+    """:func:`~starlog.codecs.json_messages.encode_json` of ``value``, checked against ``message_type``'s JSON Schema
     as :class:`~starlog.io.writer.LogWriter` checks what it writes (the decoded bytes, not ``value``).
 
     Raises :class:`InvalidInputError` when the message does not match the schema (or cannot be encoded).

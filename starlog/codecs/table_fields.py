@@ -1,7 +1,7 @@
-"""The fields of a table message (:mod:`starlog.io.table_wire`): what each one holds, how it is written on the
+"""The fields of a table message (:mod:`starlog.codecs.table_wire`): what each one holds, how it is written on the
 protobuf wire, and the wire's varints.
 
-Shared by :mod:`starlog.io.table_rows` (the rows) and :mod:`starlog.io.table_wire` (the header and the
+Shared by :mod:`starlog.codecs.table_rows` (the rows) and :mod:`starlog.codecs.table_wire` (the header and the
 message). Wire format: https://protobuf.dev/programming-guides/encoding/ .
 """
 

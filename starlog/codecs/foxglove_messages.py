@@ -1,9 +1,9 @@
-"""Encoding and decoding of message payloads (JSON, foxglove.RawImage, foxglove.ImageAnnotations)."""
+"""The Foxglove messages starlog writes, as protobuf bytes: ``foxglove.RawImage`` (mono8 / mono16 frames,
+both ways) and ``foxglove.ImageAnnotations`` (circles at centroids)."""
 
 from __future__ import annotations
 
 import functools
-import json
 import math
 import struct
 from collections.abc import Sequence
@@ -11,20 +11,12 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-import orjson
 
 from starlog.errors import InvalidInputError
-from starlog.io.rawimage_wire import parse_raw_image
-from starlog.io.table_fields import varint
+from starlog.codecs.rawimage_wire import parse_raw_image
+from starlog.codecs.table_fields import varint
 
-__all__ = [
-    "encode_json",
-    "decode_json",
-    "encode_raw_image",
-    "decode_raw_image",
-    "encode_image_annotations",
-    "IMAGE_ENCODINGS",
-]
+__all__ = ["IMAGE_ENCODINGS", "decode_raw_image", "encode_image_annotations", "encode_raw_image"]
 
 #: foxglove.RawImage encodings starlog reads (and, for mono8 / mono16, writes): name -> numpy dtype.
 #: ``8UC1`` / ``16UC1`` are the OpenCV names Foxglove also accepts for the same layouts.
@@ -37,59 +29,6 @@ IMAGE_ENCODINGS: dict[str, np.dtype[Any]] = {
 
 #: Encodings that announce a big-endian (or otherwise foreign) 16-bit layout: rejected with a clear message.
 _FOREIGN_BYTE_ORDER = {"mono16be", "16uc1be", "mono16_be", "16uc1_be", ">u2", "big_endian", "bigendian"}
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.floating):
-        return float(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
-#: Non-string keys become strings (as the standard library does); numpy values go through ``_json_default``
-#: so a float32 is written as the same Python float as before.
-_ORJSON_OPTIONS = orjson.OPT_NON_STR_KEYS
-
-
-def encode_json(obj: Any) -> bytes:
-    """Encode a message as compact UTF-8 JSON; NaN and infinities are refused (Foxglove cannot read them).
-
-    orjson writes NaN and infinities as ``null``; so when ``null`` appears in the output, the
-    object is encoded again by the standard library, which names the offending value.
-    """
-    try:
-        data = orjson.dumps(obj, default=_json_default, option=_ORJSON_OPTIONS)
-    except (orjson.JSONEncodeError, TypeError) as err:
-        raise InvalidInputError(f"message cannot be encoded as JSON: {err}") from err
-    if b"null" in data:
-        try:
-            json.dumps(obj, allow_nan=False, default=_json_default)
-        except ValueError as err:
-            raise InvalidInputError(
-                f"message contains a NaN or infinite number and cannot be logged: {err}") from err
-    return data
-
-
-def decode_json(data: bytes | memoryview) -> Any:
-    """Decode a UTF-8 JSON message; ``NaN`` and ``Infinity`` are not JSON and are refused.
-
-    Raises
-    ------
-    InvalidInputError
-        The bytes are not UTF-8 JSON, or hold ``NaN`` / ``Infinity``.
-    """
-    try:
-        return orjson.loads(data)
-    except orjson.JSONDecodeError as err:  # a ValueError: bad UTF-8, NaN/Infinity, syntax, absurd nesting
-        note = ""
-        if any(word in bytes(data) for word in (b"NaN", b"Infinity")):
-            note = " (NaN and Infinity are not JSON; starlog never writes them)"
-        raise InvalidInputError(f"not valid UTF-8 JSON: {err}{note}") from err
 
 
 def _timestamp(log_time: int) -> tuple[int, int]:

@@ -2,7 +2,7 @@
 
 The star tables are the messages of :data:`STAR_TABLES`: a header (frame, method, ...) and, for most,
 one row per star under one key (``stars`` or ``tracks``). starlog writes them as protobuf
-(``schemas/starlog/*.proto``) with :func:`star_codec` (:class:`~starlog.io.table_wire.TableCodec`:
+(``schemas/starlog/*.proto``) with :func:`star_codec` (:class:`~starlog.codecs.table_wire.TableCodec`:
 the rows as one numpy array). Logs of earlier versions hold them as JSON, described by
 ``schemas/starlog.*.json``, with the same fields, names and meanings.
 
@@ -11,7 +11,7 @@ Readers get either encoding in two shapes:
 * the dict of the JSON form (``payload["stars"]``, a list of dicts): :func:`schema_codec`'s
   ``to_dict`` for a protobuf channel (what :class:`~starlog.io.reader.LogReader` gives as a
   payload, ``cat`` prints and ``export --topic`` flattens), the JSON itself for a JSON channel;
-* a :class:`~starlog.io.table_wire.DecodedTable`, the header as a dict and the rows as a
+* a :class:`~starlog.codecs.table_wire.DecodedTable`, the header as a dict and the rows as a
   structured array, no dict per star (:func:`decode_table`, ``LogReader.tables``): for the
   readers that go through every star of every frame.
 
@@ -30,9 +30,9 @@ from google.protobuf.message import DecodeError
 from mcap.records import Schema
 
 from starlog.errors import InvalidInputError
-from starlog.io.messages import decode_json
-from starlog.io.schemas import load_json_schema, protobuf_message_type, starlog_descriptor_set
-from starlog.io.table_wire import DecodedTable, TableCodec, UnsupportedMessage
+from starlog.codecs.json_messages import decode_json
+from starlog.codecs.schemas import load_json_schema, protobuf_message_type, starlog_descriptor_set
+from starlog.codecs.table_wire import DecodedTable, TableCodec, UnsupportedMessage
 
 __all__ = ["STAR_TABLES", "DecodedTable", "decode_table", "json_table", "schema_codec", "star_codec"]
 

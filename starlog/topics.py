@@ -1,4 +1,5 @@
-"""Channel names (topics) of a starlog log. Stable: scripts outside starlog rely on them.
+"""Channel names (topics) of a starlog log, and the names of the metadata records its stages write. Stable:
+scripts outside starlog rely on them.
 
 ========================================  ===========================  ======================
 topic                                     schema                       written by

@@ -32,9 +32,9 @@ import numpy.typing as npt
 from mcap.records import Schema
 
 from starlog.errors import ChannelNotFoundError, InvalidInputError, InvalidParameterError
-from starlog.io.foreign import message_decoder
-from starlog.io.messages import decode_json
-from starlog.io.rawimage_wire import parse_raw_image
+from starlog.codecs.foreign_decoders import message_decoder
+from starlog.codecs.json_messages import decode_json
+from starlog.codecs.rawimage_wire import parse_raw_image
 
 __all__ = [
     "IMAGE_SCHEMAS",
@@ -217,7 +217,7 @@ def image_decoder(schema: Schema | None, message_encoding: str
                   ) -> Callable[[bytes | memoryview], DecodedImage] | None:
     """A function decoding one message of this image schema to a :class:`DecodedImage` (None if not an image).
 
-    A protobuf ``foxglove.RawImage`` is read from the wire format (:mod:`starlog.io.rawimage_wire`)
+    A protobuf ``foxglove.RawImage`` is read from the wire format (:mod:`starlog.codecs.rawimage_wire`)
     and a mono frame comes back as a read-only view of the message's bytes; whatever that
     reader does not take goes to the protobuf parser, as every other type does.
     """

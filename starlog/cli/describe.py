@@ -1,135 +1,40 @@
-"""``starlog info``: what a log holds — its files (a chain: the base and each layer), channels, time range,
-provenance."""
+"""The text ``starlog info`` and ``starlog cat`` print: a log's facts (:func:`starlog.facts.log_facts`) as
+lines for people, and each message (:class:`starlog.codecs.plain_values.PlainValues`) as one strict JSON line."""
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import json
-import os
-from pathlib import Path
+import math
 from typing import Any
 
-from starlog.io.chain import base_reference
-from starlog.io.frames import stamp_disagreement
-from starlog.io.images import is_image_schema
-from starlog.io.mcap_file import McapFile
-from starlog.io.reader import LogReader
-from starlog.io import topics
+__all__ = ["evidence_lines", "info_text", "json_line", "json_safe", "trust_lines"]
 
-__all__ = ["describe_log", "evidence_summaries", "format_description", "solve_summaries", "trust_lines",
-           "trust_summary"]
+#: Byte fields up to this size print as base64 text; longer ones as ``{bytes, sha256}``.
+INLINE_BYTES = 1024
 
 
-def describe_log(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """A JSON-ready description of the log at ``path`` (reads only its summary and metadata)."""
-    with LogReader(path) as log:
-        channels = [c.to_dict() for c in log.channels()]
-        start, end = log.time_range()
-        for channel in log.channels():
-            conflict = log.topic_conflict(channel.topic)
-            if conflict is not None:
-                log.add_note(conflict)
-            elif is_image_schema(channel.schema_name):
-                note = stamp_disagreement(log, channel.topic)
-                if note:
-                    log.add_note(note)
-        files = [_file_description(file) for file in log.files]
-        return {
-            "path": str(Path(path)),
-            "size_bytes": sum(f["size_bytes"] for f in files),
-            "message_count": log.message_count(),
-            "chunk_count": sum(f["chunk_count"] for f in files),
-            "compression": sorted({c for f in files for c in f["compression"]}),
-            "files": files,
-            "start_log_time": start,
-            "end_log_time": end,
-            "duration_s": (end - start) * 1e-9,
-            "channels": channels,
-            "provenance": [p.to_dict() for p in log.provenance()],
-            "notes": list(log.notes),
-        } | _epsf_summaries(log) | _phase_summaries(log) | evidence_summaries(log) | solve_summaries(log) | \
-            trust_summary(log)
+def json_safe(value: Any) -> Any:
+    """Plain values → strict-JSON values (bytes as base64 text, or ``{bytes, sha256}`` when longer than
+    :data:`INLINE_BYTES`; NaN and infinities → None)."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [json_safe(v) for v in value]
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        data = bytes(value)
+        if len(data) <= INLINE_BYTES:
+            return base64.b64encode(data).decode("ascii")
+        return {"bytes": len(data), "sha256": "sha256:" + hashlib.sha256(data).hexdigest()}
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
-def _file_description(file: McapFile) -> dict[str, Any]:
-    """One file of a chain: its path, size, what it holds and (for a layer) what it records of its base."""
-    reference = base_reference(file)
-    return {"path": str(file.path), "size_bytes": file.size,
-            "topics": list(dict.fromkeys(c.topic for _, c in sorted(file.summary.channels.items()))),
-            "message_count": sum(e[0] for e in file.channel_extents().values()),
-            "chunk_count": len(file.summary.chunk_indexes),
-            "compression": sorted({n or "none" for n in file.summary.chunk_indexes.compressions()}),
-            "base": None if reference is None else reference.to_dict()}
-
-
-def _epsf_summaries(log: LogReader) -> dict[str, Any]:
-    """``{"epsf": [...]}``: size, oversampling, stars used and FWHM of each stored empirical PSF (none: {}).
-
-    Read from the record's own fields (:data:`starlog.io.topics.EPSF_METADATA`); the grid is not decoded.
-    """
-    out = []
-    for _, meta in log.metadata(topics.EPSF_METADATA):
-        try:
-            oversampling, half = int(meta["oversampling"]), int(meta["half_size"])
-            side = 2 * half * oversampling + 1
-            out.append({"size_px": 2 * half + 1, "grid": [side, side], "oversampling": oversampling,
-                        "n_stars": int(meta.get("n_stars", 0)), "fwhm_px": round(float(meta["fwhm_px"]), 4)})
-        except (ValueError, KeyError) as err:
-            out.append({"error": f"unreadable ePSF record: {err}"})
-    return {"epsf": out} if out else {}
-
-
-def _phase_summaries(log: LogReader) -> dict[str, Any]:
-    """``{"phase_correction": [...]}``: each stored pixel-phase calibration record (source, calibrations per
-    method, methods declined; :data:`starlog.io.topics.PHASE_METADATA`); none: {}."""
-    out = []
-    for _, meta in log.metadata(topics.PHASE_METADATA):
-        try:
-            out.append({"source": meta.get("source", ""), "calibrations": json.loads(meta["calibrations"]),
-                        "declined": json.loads(meta.get("declined", "{}"))})
-        except (KeyError, ValueError) as err:
-            out.append({"error": f"unreadable phase-correction record: {err!r}"})
-    return {"phase_correction": out} if out else {}
-
-
-def evidence_summaries(log: LogReader) -> dict[str, Any]:
-    """``{"centroid_evidence": [...]}``: each stored record of which centroid method to trust (per method the
-    evidence, and the method recommended with its reason; :data:`starlog.io.topics.EVIDENCE_METADATA`); none: {}."""
-    out = []
-    for _, meta in log.metadata(topics.EVIDENCE_METADATA):
-        try:
-            out.append({"methods": json.loads(meta["methods"]), "recommended": meta.get("recommended") or None,
-                        "reason": meta.get("reason", "")})
-        except (KeyError, ValueError) as err:
-            out.append({"error": f"unreadable centroid-evidence record: {err!r}"})
-    return {"centroid_evidence": out} if out else {}
-
-
-def solve_summaries(log: LogReader) -> dict[str, Any]:
-    """``{"solve": [...]}``: each ``starlog solve`` run's figures per centroid method
-    (:data:`starlog.io.topics.SOLVE_METADATA`); none: {}."""
-    out = []
-    for _, meta in log.metadata(topics.SOLVE_METADATA):
-        try:
-            out.append({"methods": json.loads(meta["methods"]), "sky_evidence": json.loads(meta.get("sky_evidence", "{}"))})
-        except (KeyError, ValueError) as err:
-            out.append({"error": f"unreadable solve record: {err!r}"})
-    return {"solve": out} if out else {}
-
-
-def trust_summary(log: LogReader) -> dict[str, Any]:
-    """``{"trust": {...}}``: the centroid method to trust from the evidence the log holds
-    (:func:`starlog.centroiding.evidence.trust`: the last ``solve`` record's catalogue residuals, else the last
-    centroid record's frame-to-frame noise, else none, saying why); {} for a log without centroids."""
-    from starlog.centroiding.evidence import trust
-
-    noise = [r for r in evidence_summaries(log).get("centroid_evidence", []) if "error" not in r]
-    solved = [r for r in solve_summaries(log).get("solve", []) if "error" not in r]
-    if not noise and not solved:
-        return {}
-    sky = solved[-1].get("sky_evidence") if solved else None
-    missing = ("the log was not plate-solved (starlog solve --centroids all; it needs starlog[solve])" if not solved
-               else "its solve record compares no two centroid methods (starlog solve --centroids all)")
-    return {"trust": trust(noise[-1]["methods"] if noise else None, sky or None, sky_missing=missing)}
+def json_line(value: Any) -> str:
+    """One line of ``starlog cat``: ``value`` (a message and where it is) as compact strict JSON, ``jq`` reads it."""
+    return json.dumps(json_safe(value), separators=(",", ":"), allow_nan=False)
 
 
 def trust_lines(decision: dict[str, Any], indent: str = "           ") -> list[str]:
@@ -249,30 +154,47 @@ def _short(value: Any, limit: int = 80) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
-def format_description(info: dict[str, Any]) -> str:
-    """Human-readable text of :func:`describe_log`'s result."""
+def info_text(facts: dict[str, Any]) -> str:
+    """``starlog info``'s text of :func:`starlog.facts.log_facts`' result."""
     lines = [
-        f"log        {info['path']}  ({info['size_bytes'] / 2**20:.1f} MiB, {info['chunk_count']} chunks, "
-        f"{'/'.join(info['compression']) or 'no data'})",
-        *_chain_lines(info.get("files", [])),
-        f"time       {info['start_log_time']} .. {info['end_log_time']} ns  ({info['duration_s']:.3f} s)",
-        f"messages   {info['message_count']}",
+        f"log        {facts['path']}  ({facts['size_bytes'] / 2**20:.1f} MiB, {facts['chunk_count']} chunks, "
+        f"{'/'.join(facts['compression']) or 'no data'})",
+        *_chain_lines(facts.get("files", [])),
+        f"time       {facts['start_log_time']} .. {facts['end_log_time']} ns  ({facts['duration_s']:.3f} s)",
+        f"messages   {facts['message_count']}",
         "",
-        f"{'topic':<40} {'schema':<28} {'encoding':<9} {'count':>8} {'rate Hz':>9}",
+        *_channel_lines(facts["channels"]),
+        "",
+        *_provenance_lines(facts["provenance"]),
+        *_epsf_lines(facts.get("epsf", [])),
+        *_phase_lines(facts.get("phase_correction", [])),
+        *evidence_lines(facts.get("centroid_evidence", [])),
+        *_solve_lines(facts.get("solve", [])),
+        *(trust_lines(facts["trust"]) if facts.get("trust") else []),
     ]
-    for ch in info["channels"]:
+    return "\n".join(lines)
+
+
+def _channel_lines(channels: list[dict[str, Any]]) -> list[str]:
+    """The table of channels: topic, schema, encoding, messages, rate; a topic of several channels, each under it."""
+    lines = [f"{'topic':<40} {'schema':<28} {'encoding':<9} {'count':>8} {'rate Hz':>9}"]
+    for ch in channels:
         lines.append(
             f"{ch['topic']:<40} {ch['schema']:<28} {ch['message_encoding']:<9} {ch['message_count']:>8} "
             f"{ch['rate_hz']:>9.2f}"
         )
-        for part in ch.get("per_channel", []):  # a topic of several channels: each one under it
+        for part in ch.get("per_channel", []):
             lines.append(f"{'  channel ' + str(part['channel_ids'][0]):<40} {part['schema']:<28} "
                          f"{part['message_encoding']:<9} {part['message_count']:>8} {part['rate_hz']:>9.2f}")
-    lines.append("")
-    lines.append("provenance")
-    if not info["provenance"]:
+    return lines
+
+
+def _provenance_lines(records: list[dict[str, Any]]) -> list[str]:
+    """Each stage: what ran and made which channels, its input, its parameters, the time slice it ran on."""
+    lines = ["provenance"]
+    if not records:
         lines.append("  (none recorded)")
-    for i, p in enumerate(info["provenance"], 1):
+    for i, p in enumerate(records, 1):
         params = ", ".join(f"{k}={_short(v)}" for k, v in sorted(p["parameters"].items()) if k != "range")
         lines.append(f"  {i}. {p['stage']} (starlog {p['version']}) -> {', '.join(p['channels']) or 'no new channel'}")
         if p["input_digest"]:
@@ -284,15 +206,16 @@ def format_description(info: dict[str, Any]) -> str:
             span = (f"log_time from {time_range.get('start_ns')} ns" if time_range.get("end_ns") is None else
                     f"log_time {time_range.get('start_ns')} to {time_range['end_ns']} ns (end exclusive)")
             lines.append(f"     range [{time_range.get('start') or 'start'}, {time_range.get('end') or 'end'}): {span}")
-    for e in info.get("epsf", []):
+    return lines
+
+
+def _epsf_lines(records: list[dict[str, Any]]) -> list[str]:
+    """Each stored empirical PSF: size, oversampling, grid, stars used, FWHM."""
+    lines = []
+    for e in records:
         if "error" in e:
             lines.append(f"epsf       {e['error']}")
         else:
             lines.append(f"epsf       {e['size_px']}x{e['size_px']} px, oversampling {e['oversampling']} "
                          f"(grid {e['grid'][0]}x{e['grid'][1]}), {e['n_stars']} stars, FWHM {e['fwhm_px']:.3f} px")
-    lines += _phase_lines(info.get("phase_correction", []))
-    lines += evidence_lines(info.get("centroid_evidence", []))
-    lines += _solve_lines(info.get("solve", []))
-    if info.get("trust"):
-        lines += trust_lines(info["trust"])
-    return "\n".join(lines)
+    return lines

@@ -5,7 +5,7 @@ The decoders come from the mcap support libraries (``mcap-protobuf-support``,
 (keyed by the schema's name, encoding and bytes, so two logs with different schemas under one
 id never share a decoder). Foxglove's own protobuf types use the compiled classes of
 ``foxglove-schemas-protobuf``, which parse faster than classes built from a descriptor set.
-starlog's protobuf star tables decode to the dict of their JSON form (:mod:`starlog.io.star_tables`),
+starlog's protobuf star tables decode to the dict of their JSON form (:mod:`starlog.codecs.star_tables`),
 so every reader sees them as it sees the JSON tables of earlier logs.
 """
 
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from mcap.records import Schema
 
-from starlog.io.star_tables import schema_codec
+from starlog.codecs.star_tables import schema_codec
 
 __all__ = ["message_decoder", "schema_key", "to_plain"]
 

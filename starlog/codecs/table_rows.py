@@ -18,7 +18,7 @@ import numpy.typing as npt
 from google.protobuf.descriptor import FieldDescriptor
 
 from starlog.errors import InvalidInputError
-from starlog.io.table_fields import FIXED, LENGTH, RANGES, VARINTS, Field, Unusual, UnsupportedMessage, varint
+from starlog.codecs.table_fields import FIXED, LENGTH, RANGES, VARINTS, Field, Unusual, UnsupportedMessage, varint
 
 __all__ = ["RowLayout"]
 

@@ -1,56 +1,35 @@
-"""Any message of any log as a JSON-ready value, for ``starlog cat`` and scripts.
+"""Any message of any log as plain Python values (what ``starlog cat`` prints, as JSON).
 
 * starlog's own (JSON) channels → the decoded object, as written;
 * camera frames (``foxglove.RawImage`` / ``CompressedImage``, ROS 1 and ROS 2 ``sensor_msgs``
   ``Image`` / ``CompressedImage``) → ``{width, height, encoding, bytes, sha256}`` of the pixel
   (or compressed) data instead of the pixels: ``encoding`` is the pixel encoding (``mono16``) or
   the compression format (``png``), ``bytes`` its size and ``sha256`` its checksum;
-* other protobuf, ROS 2 (``cdr``) and ROS 1 messages → their fields, decoded by the support
-  libraries (byte fields up to 1 KiB as base64 text, longer ones as ``{bytes, sha256}``);
+* other protobuf, ROS 2 (``cdr``) and ROS 1 messages → their fields as dicts, lists and scalars,
+  decoded by the support libraries (byte fields as ``bytes``, floats as they are, NaN included);
 * anything else (or a message that does not decode) → ``{schema, encoding, bytes}`` (plus ``error``).
 
-Non-finite floats become ``null`` so every line is strict JSON (``jq`` reads it).
+Turning the values into strict JSON (bytes, NaN) is the command's: :mod:`starlog.cli.describe`.
 """
 
 from __future__ import annotations
 
-import base64
 import hashlib
-import math
 from collections.abc import Callable
 from typing import Any
 
 from mcap.records import Channel, Schema
 
-from starlog.io.foreign import to_plain
-from starlog.io.foreign import message_decoder
-from starlog.io.images import IMAGE_SCHEMAS, RAW, decompress_to_mono, image_fields
-from starlog.io.messages import decode_json
-from starlog.io.rawimage_wire import parse_raw_image
+from starlog.codecs.foreign_decoders import message_decoder, to_plain
+from starlog.codecs.images import IMAGE_SCHEMAS, RAW, decompress_to_mono, image_fields
+from starlog.codecs.json_messages import decode_json
+from starlog.codecs.rawimage_wire import parse_raw_image
 
-__all__ = ["MessageRenderer", "image_summary"]
-
-_INLINE_BYTES = 1024
+__all__ = ["PlainValues", "image_summary"]
 
 
 def _digest(data: bytes | memoryview) -> str:
     return "sha256:" + hashlib.sha256(data).hexdigest()
-
-
-def _json_safe(value: Any) -> Any:
-    """Plain values → strict-JSON values (bytes summarised or base64, NaN/inf → None)."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (bytes, bytearray, memoryview)):
-        data = bytes(value)
-        if len(data) <= _INLINE_BYTES:
-            return base64.b64encode(data).decode("ascii")
-        return {"bytes": len(data), "sha256": _digest(data)}
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def image_summary(schema: Schema, message_encoding: str, data: bytes | memoryview) -> dict[str, Any]:
@@ -78,35 +57,35 @@ def image_summary(schema: Schema, message_encoding: str, data: bytes | memoryvie
             "sha256": _digest(pixels)}
 
 
-class MessageRenderer:
-    """Turns messages into JSON-ready values, with one decoder per channel built on first use."""
+class PlainValues:
+    """Turns messages into plain Python values, with one decoder per channel built on first use."""
 
     def __init__(self) -> None:
-        self._render: dict[int, Callable[[bytes | memoryview], Any]] = {}
+        self._decoders: dict[int, Callable[[bytes | memoryview], Any]] = {}
 
     def __call__(self, schema: Schema | None, channel: Channel, data: bytes | memoryview) -> Any:
-        render = self._render.get(channel.id)
-        if render is None:
-            render = self._render[channel.id] = self._renderer(schema, channel)
+        decode = self._decoders.get(channel.id)
+        if decode is None:
+            decode = self._decoders[channel.id] = self._decoder(schema, channel)
         try:
-            return render(data)
+            return decode(data)
         except Exception as err:  # a message that does not decode: say so, keep streaming
             return {**_opaque(schema, channel, data), "error": f"{type(err).__name__}: {err}"}
 
     @staticmethod
-    def _renderer(schema: Schema | None, channel: Channel) -> Callable[[bytes | memoryview], Any]:
+    def _decoder(schema: Schema | None, channel: Channel) -> Callable[[bytes | memoryview], Any]:
         encoding = channel.message_encoding
         if schema is not None and schema.name in IMAGE_SCHEMAS:
             return lambda data: image_summary(schema, encoding, data)
         if encoding == "json":
-            return lambda data: _json_safe(decode_json(data))
+            return decode_json
         try:
             decode = message_decoder(schema, encoding)
         except Exception:  # a schema its support library cannot parse
             decode = None
         if decode is None:
             return lambda data: _opaque(schema, channel, data)
-        return lambda data: _json_safe(to_plain(decode(bytes(data))))
+        return lambda data: to_plain(decode(bytes(data)))
 
 
 def _opaque(schema: Schema | None, channel: Channel, data: bytes | memoryview) -> dict[str, Any]:

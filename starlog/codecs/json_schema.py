@@ -253,6 +253,23 @@ def _check_keywords(schema: Any) -> None:
 def _compile_walker(schema: dict[str, Any]) -> Any:
     """The schema as nested closures: slower, but names the first violation and its JSON path."""
     _check_keywords(schema)
+    checks = _value_checks(schema)
+    for composite in (_object_check(schema), _array_check(schema)):
+        if composite is not None:
+            checks.append(composite)
+
+    def check(value: Any, path: str = "$") -> str | None:
+        for c in checks:
+            problem = c(value, path)
+            if problem:
+                return problem
+        return None
+
+    return check
+
+
+def _value_checks(schema: dict[str, Any]) -> list[Any]:
+    """The checks of the value itself: its type, enum, minimum and maximum."""
     checks: list[Any] = []
     kind = schema.get("type")
     if kind is not None:
@@ -269,59 +286,61 @@ def _compile_walker(schema: dict[str, Any]) -> Any:
     if "maximum" in schema:
         hi = schema["maximum"]
         checks.append(lambda v, p: f"{p}: {v!r} > maximum {hi}" if _JSON_TYPES["number"](v) and v > hi else None)
+    return checks
+
+
+def _object_check(schema: dict[str, Any]) -> Any:
+    """The check of an object's properties (required, each one's schema, additional ones), or None."""
     props = {k: _compile_walker(v) for k, v in schema.get("properties", {}).items()}
     required = list(schema.get("required", []))
     extra = schema.get("additionalProperties", True)
     extra_check = _compile_walker(extra) if isinstance(extra, dict) else None
-    if props or required or extra is not True:
+    if not (props or required or extra is not True):
+        return None
 
-        def check_object(v: Any, p: str) -> str | None:
-            if not isinstance(v, dict):
-                return None
-            for key in required:
-                if key not in v:
-                    return f"{p}: missing required property {key!r}"
-            for key, item in v.items():
-                sub = props.get(key)
-                if sub is not None:
-                    problem = sub(item, f"{p}.{key}")
-                elif extra is False:
-                    problem = f"{p}: unexpected property {key!r}"
-                elif extra_check is not None:
-                    problem = extra_check(item, f"{p}.{key}")
-                else:
-                    problem = None
-                if problem:
-                    return problem
+    def check_object(v: Any, p: str) -> str | None:
+        if not isinstance(v, dict):
             return None
-
-        checks.append(check_object)
-    items = schema.get("items")
-    item_check = _compile_walker(items) if isinstance(items, dict) else None
-    min_items, max_items = schema.get("minItems"), schema.get("maxItems")
-    if item_check is not None or min_items is not None or max_items is not None:
-
-        def check_array(v: Any, p: str) -> str | None:
-            if not isinstance(v, list):
-                return None
-            if min_items is not None and len(v) < min_items:
-                return f"{p}: {len(v)} items, fewer than {min_items}"
-            if max_items is not None and len(v) > max_items:
-                return f"{p}: {len(v)} items, more than {max_items}"
-            if item_check is not None:
-                for i, item in enumerate(v):
-                    problem = item_check(item, f"{p}[{i}]")
-                    if problem:
-                        return problem
-            return None
-
-        checks.append(check_array)
-
-    def check(value: Any, path: str = "$") -> str | None:
-        for c in checks:
-            problem = c(value, path)
+        for key in required:
+            if key not in v:
+                return f"{p}: missing required property {key!r}"
+        for key, item in v.items():
+            sub = props.get(key)
+            if sub is not None:
+                problem = sub(item, f"{p}.{key}")
+            elif extra is False:
+                problem = f"{p}: unexpected property {key!r}"
+            elif extra_check is not None:
+                problem = extra_check(item, f"{p}.{key}")
+            else:
+                problem = None
             if problem:
                 return problem
         return None
 
-    return check
+    return check_object
+
+
+def _array_check(schema: dict[str, Any]) -> Any:
+    """The check of an array's length and items, or None."""
+    items = schema.get("items")
+    item_check = _compile_walker(items) if isinstance(items, dict) else None
+    min_items, max_items = schema.get("minItems"), schema.get("maxItems")
+    if item_check is None and min_items is None and max_items is None:
+        return None
+
+    def check_array(v: Any, p: str) -> str | None:
+        if not isinstance(v, list):
+            return None
+        if min_items is not None and len(v) < min_items:
+            return f"{p}: {len(v)} items, fewer than {min_items}"
+        if max_items is not None and len(v) > max_items:
+            return f"{p}: {len(v)} items, more than {max_items}"
+        if item_check is not None:
+            for i, item in enumerate(v):
+                problem = item_check(item, f"{p}[{i}]")
+                if problem:
+                    return problem
+        return None
+
+    return check_array

@@ -1,9 +1,13 @@
-"""JSON messages whose last property is a list of flat records, encoded from a structured array.
+"""JSON star rows: messages whose last property is a list of flat records, encoded from a structured array.
+
+The star tables of earlier versions were such JSON messages (starlog writes them as protobuf now,
+:mod:`starlog.codecs.star_tables`); this writes them for the old logs the tests read (``tests/json_logs.py``)
+and for ``tools/bench_io.py``'s JSON side.
 
 Per-frame messages (detections, centroids, tracks) hold one record per star. Building a dict
 per record, encoding it, decoding it back and walking every value against the schema cost more
 than the algorithms that made the records. :class:`RecordEncoder` writes the same bytes as
-:func:`~starlog.io.messages.encode_json` of the dicts would, from the array's columns (each
+:func:`~starlog.codecs.json_messages.encode_json` of the dicts would, from the array's columns (each
 column is encoded once, as one list, and cut into its values), and checks columns, not decoded
 values, against the records' schema: a column's dtype gives the JSON type of all its values
 (settled once per column layout), and bounds, enums and finiteness are tested on whole columns.
@@ -24,10 +28,10 @@ import numpy.typing as npt
 import orjson
 
 from starlog.errors import InvalidInputError
-from starlog.io.checked import CheckedJson, schema_checker, schema_digest
-from starlog.io.json_schema import compile_json_schema
-from starlog.io.messages import decode_json, encode_json
-from starlog.io.schemas import MessageType, json_message_type
+from starlog.codecs.checked_json import CheckedJson, schema_checker, schema_digest
+from starlog.codecs.json_schema import compile_json_schema
+from starlog.codecs.json_messages import decode_json, encode_json
+from starlog.codecs.schemas import MessageType, json_message_type
 
 __all__ = ["RecordEncoder", "record_encoder", "structured_to_dicts"]
 

@@ -17,7 +17,7 @@ Decoded, a message is its header as a dict (field-number order, proto3 defaults 
 (one field per row field, native byte order; enums as strings); :meth:`TableCodec.to_dict` gives the
 whole message as the JSON-shaped dict, ``{header..., table: [row dicts]}``.
 
-The rows are :mod:`starlog.io.table_rows`'s, the fields :mod:`starlog.io.table_fields`'s; the three modules
+The rows are :mod:`starlog.codecs.table_rows`'s, the fields :mod:`starlog.codecs.table_fields`'s; the three modules
 depend on numpy and the protobuf runtime only (and starlog's error type). Wire format:
 https://protobuf.dev/programming-guides/encoding/ .
 """
@@ -34,7 +34,7 @@ from google.protobuf.descriptor import Descriptor, FieldDescriptor
 from google.protobuf.message import DecodeError
 
 from starlog.errors import InvalidInputError
-from starlog.io.table_fields import (
+from starlog.codecs.table_fields import (
     FIXED,
     LENGTH,
     RANGES,
@@ -49,7 +49,7 @@ from starlog.io.table_fields import (
     signed,
     varint,
 )
-from starlog.io.table_rows import RowLayout
+from starlog.codecs.table_rows import RowLayout
 
 __all__ = ["DecodedTable", "TableCodec", "UnsupportedMessage"]
 
