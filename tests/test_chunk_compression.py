@@ -9,8 +9,8 @@ import lz4.frame
 import zstandard
 
 from starlog.io import LogReader, LogWriter, encode_json, encode_raw_image, json_message_type, protobuf_message_type
-from starlog.io.layout import decompress
-from starlog.io.writer import ZSTD_LEVEL
+from starlog.io.chunks import decompress
+from starlog.io.chunks import ZSTD_LEVEL
 
 
 def _chunks_by_topic(path: Path) -> dict[str, list[tuple[bytes, bytes]]]:

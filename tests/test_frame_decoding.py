@@ -19,7 +19,7 @@ from starlog.io import LogReader, LogWriter, decode_raw_image, encode_raw_image,
 from starlog.io.frames import cached_image_decoder
 from starlog.io.images import pixels_to_mono
 from starlog.io.rawimage_wire import parse_raw_image
-from starlog.io.layout import decompress
+from starlog.io.chunks import decompress
 
 
 # ---------------------------------------------------------------- protobuf wire encoding, by hand

@@ -34,8 +34,9 @@ from mcap.opcode import Opcode
 from mcap.records import ChunkIndex, Header, Message, Metadata, MetadataIndex
 from mcap.summary import Summary
 
-from starlog.errors import CorruptChunkError, CorruptLogError, LogNotFoundError, NotMcapError, TruncatedLogError
-from starlog.io.chunk_indexes import ChunkIndexTable, read_summary
+from starlog.errors import CorruptChunkError, CorruptLogError, LogNotFoundError
+from starlog.io.chunk_indexes import ChunkIndexTable
+from starlog.io.chunks import ChunkContents, decode_chunk
 from starlog.io.layout import (
     DATA_END,
     MAGIC,
@@ -44,14 +45,14 @@ from starlog.io.layout import (
     MESSAGE_INDEX_ENTRY,
     RECORD_HEADER,
     Footer,
-    decode_chunk,
-    iter_records,
+    FooterError,
     locate_data_end,
     parse_message_index,
     parse_record,
     read_footer,
     summary_crc,
 )
+from starlog.io.record_walk import walk_records
 from starlog.io.scan import (
     Gaps,
     LooseRun,
@@ -62,6 +63,7 @@ from starlog.io.scan import (
     read_loose,
     synthesize_summary,
 )
+from starlog.io.summary_section import read_summary
 from starlog.io.timerange import END_OF_TIME
 
 __all__ = ["ChannelSummary", "McapFile", "channel_summaries", "recover_hint"]
@@ -214,10 +216,10 @@ class McapFile:
     def _open(self) -> int:
         f = self._file
         try:
-            data_end = locate_data_end(self.path, f)
-            self.footer: Footer = read_footer(self.path, f)
-        except (TruncatedLogError, NotMcapError):
-            raise
+            self.footer: Footer = read_footer(f)
+            data_end = locate_data_end(self.path, f, self.footer)
+        except FooterError as err:
+            raise err.log_error(self.path) from err
         except CorruptLogError as err:
             raise CorruptLogError(self.path, f"{err.reason} {recover_hint(self.path)}") from err
         except (ValueError, OSError, struct.error) as err:  # footer pointing before the file start
@@ -241,7 +243,7 @@ class McapFile:
                     f"{recover_hint(self.path)}")
             self.summary_verified = True
         try:
-            self.summary: Summary = read_summary(f, footer.summary_start)
+            self.summary: Summary = read_summary(f, footer.summary_start, footer.offset)
         except (McapError, ValueError, EOFError, OSError, struct.error, KeyError, MemoryError) as err:
             raise CorruptLogError(self.path, f"its summary cannot be read ({type(err).__name__}: {err}). "
                                              f"{recover_hint(self.path)}") from err
@@ -551,18 +553,18 @@ class McapFile:
         view = memoryview(data).toreadonly()  # payloads are slices of it, not copies
         known = ci.message_index_offsets or self.summary.channels
         try:
-            for pos, opcode, body, length in iter_records(data):
-                if opcode != Opcode.MESSAGE:
+            for pos, opcode, _, body in walk_records(view):
+                if opcode != Opcode.MESSAGE or body is None:
                     continue
-                cid, seq, log_time, publish_time = MESSAGE_HEADER.unpack_from(data, body)
+                cid, seq, log_time, publish_time = MESSAGE_HEADER.unpack_from(body)
                 if cid not in known:
                     raise ValueError(f"it holds a message of channel {cid}, which "
                                      f"{'its index' if ci.message_index_offsets else 'the log'} does not list")
                 if not contents.start <= log_time <= contents.end:
                     raise ValueError(f"a message at log_time {log_time} lies outside its range "
                                      f"{contents.start}..{contents.end}")
-                payload = view[body + MESSAGE_HEADER.size: body + length]
-                messages.append((log_time, len(messages), cid, Message(cid, log_time, payload, publish_time, seq)))
+                messages.append((log_time, len(messages), cid, Message(cid, log_time, body[MESSAGE_HEADER.size:],
+                                                                       publish_time, seq)))
                 offsets.setdefault(cid, []).append((log_time, pos))
         except (struct.error, ValueError) as err:
             raise self.chunk_error(ci, str(err)) from err
@@ -571,7 +573,7 @@ class McapFile:
             raise self.chunk_error(ci, "its message indexes do not match the chunk's messages")
         return messages, contents.crc_checked
 
-    def _chunk_contents(self, ci: ChunkIndex) -> Any:
+    def _chunk_contents(self, ci: ChunkIndex) -> ChunkContents:
         """The decompressed, CRC-checked contents of the chunk ``ci``, its header checked against the index."""
         raw = self.read_bytes(ci.chunk_start_offset, ci.chunk_length)
         if len(raw) != ci.chunk_length:

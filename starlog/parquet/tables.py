@@ -27,7 +27,7 @@ from starlog.errors import InvalidParameterError, OutputExistsError, file_errors
 from starlog.parquet.channels import export_image_frames, export_topic, parquet_writer
 from starlog.io.reader import ChannelSummary, LogReader, TableMessage
 from starlog.io.schemas import schema_dir
-from starlog.io.writer import atomic_output
+from starlog.io.output_files import atomic_output
 from starlog.io import topics
 
 __all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "table_columns"]
