@@ -254,7 +254,7 @@ nearby_chunk_indexes = st.builds(
 )
 
 
-# private _chunk_index_problems, _covered: their blocks need 65,536+ chunks in a real log; tested directly on tables
+# private _covered: its blocks need 65,536+ chunks in a real log; tested directly on tables (with chunk_index_problems)
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.one_of(chunk_indexes, nearby_chunk_indexes), max_size=9), st.integers(1, 4),
        st.one_of(st.integers(0, 2**64 - 1), SMALL))
@@ -265,13 +265,13 @@ def test_checks_and_gaps_made_block_by_block_are_those_of_the_whole_table(
     from mcap.summary import Summary
 
     import starlog.io.chunk_indexes as chunk_module
-    from starlog.io.mcap_file import _chunk_index_problems
     from starlog.io.scan import _covered
+    from starlog.io.summary_checks import chunk_index_problems
 
     def both() -> tuple[list[str], list[tuple[int, int]]]:
         summary = Summary()
         summary.chunk_indexes = ChunkIndexTable(indexes)  # type: ignore[assignment]
-        return (_chunk_index_problems(summary.chunk_indexes, data_end),  # type: ignore[arg-type]
+        return (chunk_index_problems(summary.chunk_indexes, data_end),  # type: ignore[arg-type]
                 _covered(summary))
 
     whole = both()

@@ -8,12 +8,16 @@ from __future__ import annotations
 
 import io
 import threading
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 from starlog.io.checksum import crc32
 from starlog.io.layout import chunk_header, message_record
 
-__all__ = ["ZSTD_LEVEL", "ChunkBuilder", "ChunkContents", "compress", "decode_chunk", "decompress"]
+__all__ = ["ZSTD_LEVEL", "ChunkBuilder", "ChunkContents", "CompressionQueue", "PendingChunk", "compress", "decode_chunk",
+           "decompress"]
 
 #: zstd level of every chunk. Camera frames: sensor noise leaves little for the match finder, so
 #: level 3 makes 16-bit frames 5 % smaller than level 1 but costs twice the time to compress and a
@@ -77,6 +81,51 @@ def compress(data: bytes | bytearray, compression: str) -> tuple[bytes | bytearr
         # zstd) or of 4 MiB ones, for the same size (``python tools/bench_io.py``'s frame table)
         return lz4.frame.compress(data, block_size=lz4.frame.BLOCKSIZE_MAX1MB), crc
     return data, crc
+
+
+@dataclass
+class PendingChunk:
+    """A closed chunk on its way to the file: its compression (the compressed bytes and the CRC of the
+    uncompressed ones, when done), its uncompressed size, message indices and time range."""
+
+    future: Future[tuple[bytes | bytearray, int]]
+    uncompressed_size: int
+    message_indices: dict[int, list[tuple[int, int]]]
+    start_time: int
+    end_time: int
+
+
+class CompressionQueue:
+    """Closed chunks compressed on a thread pool (zstd and lz4 release the GIL; with one worker, at once) and
+    handed to ``write`` in the order they were closed, so the bytes written do not depend on the workers."""
+
+    def __init__(self, compression: str, workers: int, write: Callable[[PendingChunk], object]) -> None:
+        self.compression, self.workers, self._write = compression, workers, write
+        self._pending: deque[PendingChunk] = deque()
+        self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+
+    def put(self, data: bytes | bytearray, indices: dict[int, list[tuple[int, int]]], start: int, end: int, *,
+            now: bool = False) -> None:
+        """Queue a chunk's records for compression; ``now``: compress it here and write every queued chunk."""
+        if self._executor is None or now:
+            future: Future[tuple[bytes | bytearray, int]] = Future()
+            future.set_result(compress(data, self.compression))
+        else:
+            future = self._executor.submit(compress, data, self.compression)
+        self._pending.append(PendingChunk(future, len(data), indices, start, end))
+        self.drain(all_of_them=now)
+
+    def drain(self, *, all_of_them: bool) -> None:
+        """Write the chunks whose compression is done, in order (``all_of_them``: every chunk, waiting for them;
+        else at most twice the workers stay queued)."""
+        limit = 0 if all_of_them else 2 * self.workers
+        while self._pending and (len(self._pending) > limit or self._pending[0].future.done()):
+            self._write(self._pending.popleft())
+
+    def shutdown(self, *, cancel: bool = False) -> None:
+        """Stop the workers (``cancel``: the chunks not yet compressed are dropped)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=cancel)
 
 
 @dataclass(frozen=True)

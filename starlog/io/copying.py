@@ -35,7 +35,7 @@ from mcap.records import AttachmentIndex, ChunkIndex, MetadataIndex
 from starlog.errors import InvalidParameterError
 from starlog.io.chain import BASE_METADATA_NAME
 from starlog.io.chunks import decode_chunk
-from starlog.io.layout import MESSAGE_HEADER, RECORD_HEADER
+from starlog.io.layout import MESSAGE_HEADER, RECORD_HEADER, message_record
 from starlog.io.mcap_file import McapFile
 from starlog.io.record_walk import Record, walk_records
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
@@ -183,8 +183,8 @@ class _Slicer:
         for log_time, _, cid, message in messages:
             if self.keeps(cid, log_time):
                 indices.setdefault(cid, []).append((log_time, len(kept)))
-                body = MESSAGE_HEADER.pack(cid, message.sequence, log_time, message.publish_time) + bytes(message.data)
-                kept += RECORD_HEADER.pack(Opcode.MESSAGE, len(body)) + body
+                kept += message_record(cid, message.sequence, log_time, message.publish_time, len(message.data))
+                kept += message.data
         if indices:
             self.writer.copy_messages(bytes(kept), indices)
             self.report.chunks_reencoded += 1

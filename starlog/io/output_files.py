@@ -3,7 +3,9 @@
 Every output of starlog (logs, tables, figures, reports) goes to a temporary file beside its
 destination and is renamed over it only when it is complete, so a killed command leaves either
 no output or the previous file, never a half-written one under the final name. Two commands
-writing one path at once: the first to finish wins (:func:`commit_output`).
+writing one path at once: the first to finish wins (:func:`commit_output`). A log read while it is
+written is the one output written under its final name from the start (:func:`open_in_place`).
+:class:`ChecksummedFile` keeps the CRC-32 of what is written to an output.
 """
 
 from __future__ import annotations
@@ -14,10 +16,13 @@ import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
+from typing import BinaryIO
 
 from starlog.errors import FileAccessError, OutputChangedError, OutputExistsError, OutputFolderError, file_errors
+from starlog.io.checksum import crc32
 
-__all__ = ["Identity", "atomic_output", "commit_output", "output_identity", "temporary_folder", "temporary_output"]
+__all__ = ["ChecksummedFile", "Identity", "atomic_output", "commit_output", "open_in_place", "output_identity",
+           "temporary_folder", "temporary_output"]
 
 
 def temporary_output(output: Path) -> tuple[int, Path]:
@@ -151,3 +156,39 @@ def temporary_folder(beside: Path) -> Iterator[Path]:
             if Path(name) not in err.path.parents:
                 raise
             raise FileAccessError(beside, err.action, err.errno, err.detail) from err
+
+
+def open_in_place(output: Path) -> tuple[int, Path]:
+    """``output`` itself, created or emptied (the caller refused an existing one without ``force``); an OS error
+    is a :class:`~starlog.errors.FileAccessError` naming it."""
+    with file_errors(output):
+        return os.open(output, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666), output
+
+
+class ChecksummedFile:
+    """An output file keeping the CRC-32 of every byte written to it (a log's writer: until the summary, that of
+    the data section, which the DataEnd record stores). A failed write is a
+    :class:`~starlog.errors.FileAccessError` naming the output (``path``), not its temporary file."""
+
+    def __init__(self, file: BinaryIO, path: Path) -> None:
+        self._file = file
+        self._path = path
+        self.crc = 0
+
+    def write(self, data: bytes | memoryview) -> int:
+        self.crc = crc32(data, self.crc)
+        with file_errors(self._path):
+            return self._file.write(data)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def flush(self) -> None:
+        with file_errors(self._path):
+            self._file.flush()
+
+    def fileno(self) -> int:
+        return self._file.fileno()
+
+    def close(self) -> None:
+        self._file.close()

@@ -53,7 +53,8 @@ from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference, open
 from starlog.io.foreign import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
 from starlog.io.images import is_image_schema
-from starlog.io.mcap_file import ChannelSummary, McapFile, channel_summaries
+from starlog.io.channel_summary import ChannelSummary, channel_summaries
+from starlog.io.mcap_file import McapFile
 from starlog.io.json_schema import compile_json_schema
 from starlog.io.messages import decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance

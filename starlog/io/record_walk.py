@@ -57,36 +57,36 @@ def walk_records(source: bytes | bytearray | memoryview | BinaryIO, start: int =
     if isinstance(source, bytes | bytearray | memoryview):
         view = memoryview(source)
         stop = len(view) if end is None else end
-        pos = yield from _in_buffer(view, start, stop, stop, base, bodies, runs)
-        if pos < stop:
-            raise _cut_header(base + pos) if pos + _HEAD > stop else _overrun(
-                base + pos, *RECORD_HEADER.unpack_from(view, pos))
-        return
-    yield from _walk_file(source, start, end, bodies, runs, block)
+        return _in_buffer(view, start, stop, stop, base, bodies, runs, whole=True)
+    return _walk_file(source, start, end, bodies, runs, block)
 
 
 def _in_buffer(view: memoryview, pos: int, stop: int, limit: int, base: int, bodies: Container[int] | None,
-               runs: Container[int]) -> Generator[Record, None, int]:
+               runs: Container[int], *, whole: bool = False) -> Generator[Record, None, int]:
     """The records from ``view[pos]`` that end by ``limit`` and whose header (and body, when it is wanted) lie
-    before ``stop`` (offsets from ``base``); returns where the first of the others starts."""
+    before ``stop`` (offsets from ``base``); returns where the first of the others starts. ``whole``: ``view``
+    holds the whole section up to ``stop``, and a record that does not end by it raises :class:`RecordOverrun`."""
     while pos + _HEAD <= stop:
         opcode, length = RECORD_HEADER.unpack_from(view, pos)
         body = pos + _HEAD
         after = body + length
         if after > limit:
-            return pos
+            break
         if opcode in runs:
             if after > stop:
-                return pos
+                break
             after = pos + _same_records(view, pos, stop, _HEAD + length) * (_HEAD + length)
             yield base + pos, opcode, length, view[pos:after]
         elif bodies is None or opcode in bodies:
             if after > stop:
-                return pos
+                break
             yield base + pos, opcode, length, view[body:after]
         else:
             yield base + pos, opcode, length, None
         pos = after
+    if whole and pos < stop:
+        raise _cut_header(base + pos) if pos + _HEAD > stop else _overrun(base + pos,
+                                                                          *RECORD_HEADER.unpack_from(view, pos))
     return pos
 
 

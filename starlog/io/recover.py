@@ -1,8 +1,9 @@
 """Rebuild a readable, fully indexed log from a truncated, unfinished or damaged one.
 
-The file is scanned record by record in file order (no summary needed). Every complete record
-is kept: schemas, channels, messages of every chunk whose bytes are whole and whose CRC checks,
-and metadata (provenance); a topic's channels of one type of message become one channel, those of
+The file is scanned record by record in file order (no summary needed), by the log layer's one
+pass over a data section (:mod:`starlog.io.data_section`, :class:`_Rebuilder` its visitor). Every
+complete record is kept: schemas, channels, messages of every chunk whose bytes are whole and whose
+CRC checks, and metadata (provenance); a topic's channels of one type of message become one channel, those of
 another type a channel of their own on the same topic. A chunk cut off by the end of the file, or
 whose CRC does not match, is dropped and reported — with its offset, time range and, from the
 message-index records that follow it when they survived, how many messages of which channels it

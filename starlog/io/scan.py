@@ -13,9 +13,10 @@ and still holds every message. This module finds what the indexes do not say:
 * :func:`find_definitions` finds the schemas and channels a summary does not repeat (the
   ``mcap`` writer's ``repeat_schemas=False`` / ``repeat_channels=False``) in the chunks' records.
 
-They read record headers (nine bytes each) and skip record bodies, except schema, channel,
-metadata and attachment records and the chunks whose channels must be learnt. Memory stays flat: only indexes and
-counters are kept, never messages.
+The walks are visitors of the one pass over a data section (:mod:`starlog.io.data_section`). They
+read record headers (nine bytes each) and a message's fixed fields, and skip the other record bodies
+but those of schema, channel, metadata and attachment records (and, rebuilding a summary, of chunks
+and message indexes). Memory stays flat: only indexes and counters are kept, never messages.
 """
 
 from __future__ import annotations
@@ -48,8 +49,9 @@ from starlog.io.chunks import ChunkContents, decode_chunk
 from starlog.io.data_section import DataVisitor, MessageHead, walk_chunk, walk_data_section
 from starlog.io.layout import MAGIC, MESSAGE_HEADER, MESSAGE_INDEX_BODY, RECORD_HEADER, parse_record
 from starlog.io.record_walk import walk_records
+from starlog.io.summary_checks import missing_schemas
 
-__all__ = ["Gaps", "LooseRun", "ScanResult", "find_definitions", "find_loose_runs", "missing_schemas",
+__all__ = ["Gaps", "LooseRun", "ScanResult", "find_definitions", "find_loose_runs",
            "read_definitions", "read_loose", "synthesize_summary"]
 
 _RUN_MESSAGES = 1024  # loose messages per segment: bounds what one read holds in memory
@@ -244,11 +246,6 @@ def read_definitions(data: bytes | memoryview, schemas: dict[int, Schema] | None
     ``channels`` (when given; the first of an id kept), and ``on_message(channel_id, log_time)`` for each message.
     Raises ``ValueError`` / ``struct.error`` (or the record parser's errors) for damaged records."""
     walk_chunk(data, _Definitions(schemas, channels, on_message), 0)
-
-
-def missing_schemas(summary: Summary) -> set[int]:
-    """The schema ids the summary's channels name that its schemas do not hold."""
-    return {ch.schema_id for ch in summary.channels.values() if ch.schema_id} - summary.schemas.keys()
 
 
 def find_definitions(summary: Summary, wanted: Iterable[int], open_chunk: Callable[[ChunkIndex], ChunkContents]

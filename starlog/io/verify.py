@@ -29,7 +29,6 @@ compared with its chunk as the walk finishes that chunk).
 from __future__ import annotations
 
 import os
-import struct
 from array import array
 from collections.abc import Callable
 from pathlib import Path
@@ -49,6 +48,7 @@ from starlog.io.layout import (
     MAGIC,
     MESSAGE_INDEX_BODY,
     RECORD_HEADER,
+    U32,
     Footer,
     FooterError,
     chunk_header,
@@ -232,7 +232,7 @@ class _Verifier(DataVisitor):
     def attachment(self, offset: int, length: int, body: memoryview | None) -> None:
         assert body is not None
         record = parse_record(body, Attachment)
-        (stored,) = struct.unpack_from("<I", body, len(body) - 4)
+        (stored,) = U32.unpack_from(body, len(body) - U32.size)
         if stored != 0 and crc32(body[:-4]) != stored:
             self.problem("attachment_crc", f"the attachment {record.name!r} fails its CRC", offset=offset)
 

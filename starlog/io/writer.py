@@ -29,20 +29,22 @@ The chunks are built and compressed by :mod:`starlog.io.chunks`, the summary sec
 is renamed over it only when :meth:`LogWriter.close` completes (:mod:`starlog.io.output_files`),
 so a killed stage leaves either no output or the previous file, never a half-written one under
 the final name (``in_place`` aside).
+
+One module of over 500 lines: :class:`LogWriter`'s registration of channels, chunking, copying of
+records and summary share one open file's state (open chunks, indexes, statistics), so they are one
+class.
 """
 
 from __future__ import annotations
 
 import os
-from collections import defaultdict, deque
+from collections import defaultdict
 from collections.abc import Callable, Iterable
-from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import suppress
-from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, BinaryIO
+from typing import TYPE_CHECKING, Any
 
 from mcap.records import (
     AttachmentIndex,
@@ -67,12 +69,11 @@ from starlog.errors import (
 )
 from starlog.io.chain import BASE_METADATA_NAME
 from starlog.io.checked import CheckedJson, schema_checker, schema_digest
-from starlog.io.checksum import crc32
 from starlog.io.chunk_indexes import ChunkIndexTable
-from starlog.io.chunks import ChunkBuilder, compress
+from starlog.io.chunks import ChunkBuilder, CompressionQueue, PendingChunk
 from starlog.io.layout import MAGIC, chunk_record, encode_record, message_index_record
 from starlog.io.messages import decode_json
-from starlog.io.output_files import commit_output, output_identity, temporary_output
+from starlog.io.output_files import ChecksummedFile, commit_output, open_in_place, output_identity, temporary_output
 from starlog.io.schemas import MessageType
 from starlog.io.summary_section import write_summary
 
@@ -102,22 +103,6 @@ class Compression(str, Enum):
 #: files about 1.6 times as large; uncompressed chunks decode fastest and are 2.6 times as large
 #: (``python tools/bench_io.py``, docs/BENCHMARKS.md). ``--compression`` keeps the choice with the user.
 FRAME_COMPRESSION = "lz4"
-
-def _open_in_place(output: Path) -> tuple[int, Path]:
-    """``output`` itself, created or emptied (the caller refused an existing one without ``force``); an OS error
-    is a :class:`~starlog.errors.FileAccessError` naming it."""
-    with file_errors(output):
-        return os.open(output, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666), output
-
-
-@dataclass
-class _PendingChunk:
-    future: Future[tuple[bytes | bytearray, int]]
-    uncompressed_size: int
-    message_indices: dict[int, list[tuple[int, int]]]
-    start_time: int
-    end_time: int
-
 
 class LogWriter:
     """Write a new MCAP log, or a layer on an existing one.
@@ -189,6 +174,7 @@ class LogWriter:
         self.workers = workers
         self.validate = validate
         self.layer = layer
+        self.in_place = in_place
         self._next_schema_id, self._next_channel_id = (
             first_ids if first_ids is not None else (layer.next_schema_id, layer.next_channel_id) if layer else (1, 1))
         self._checkers: dict[int, Callable[[Any], str | None]] = {}
@@ -206,21 +192,21 @@ class LogWriter:
         self._last_time: dict[int, int] = {}
         self._builders: dict[int, ChunkBuilder] = {}
         self._open_bytes = 0  # message bytes in the open chunks of all channels
-        self._pending: deque[_PendingChunk] = deque()
-        self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
-        self.in_place = in_place
+        self._open_output(profile)
+
+    def _open_output(self, profile: str) -> None:
+        """Create the output (a temporary file beside it, or itself ``in_place``) and write its header."""
         try:
             self._seen = output_identity(self.path)
-            fd, self._tmp_path = _open_in_place(self.path) if in_place else temporary_output(self.path)
+            fd, self._tmp_path = open_in_place(self.path) if self.in_place else temporary_output(self.path)
         except BaseException:
             self._closed = True
-            if self._executor is not None:
-                self._executor.shutdown(wait=False)
-            if layer is not None:
-                layer.cancel()
+            if self.layer is not None:
+                self.layer.cancel()
             raise
-        self._file = _DataSectionFile(os.fdopen(fd, "w+b", buffering=1024 * 1024), self.path)
+        self._chunks = CompressionQueue(self.compression.value, self.workers, self._write_chunk)
+        self._file = ChecksummedFile(os.fdopen(fd, "w+b", buffering=1024 * 1024), self.path)
         try:
             self._file.write(MAGIC)
             self._file.write(encode_record(Header(profile=profile, library=LIBRARY)))
@@ -382,7 +368,7 @@ class LogWriter:
         growing file sees every message written so far (each flush ends the chunks, so flush at the pace a
         reader needs, not per message)."""
         self._close_chunk()
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         self._file.flush()
 
     def attach_base(self, layer: LayerBase) -> None:
@@ -403,7 +389,7 @@ class LogWriter:
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Add an MCAP Metadata record (indexed)."""
         self._close_chunk()
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         offset = self._file.tell()
         record = encode_record(Metadata(name=name, metadata=dict(data)))
         length = len(record)
@@ -419,7 +405,7 @@ class LogWriter:
             if self.layer is not None:
                 self.add_metadata(BASE_METADATA_NAME, self.layer.reference(self.path).to_metadata())
             self._close_chunk()
-            self._drain(all_of_them=True)
+            self._chunks.drain(all_of_them=True)
             self._write_summary()
             with file_errors(self.path):
                 self._file.flush()
@@ -431,8 +417,7 @@ class LogWriter:
             self.abort()
             raise
         finally:
-            if self._executor is not None:
-                self._executor.shutdown(wait=True)
+            self._chunks.shutdown()
         self._closed = True
         return self.path
 
@@ -441,8 +426,7 @@ class LogWriter:
         if self._closed:
             return
         self._closed = True
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
+        self._chunks.shutdown(cancel=True)
         if self.layer is not None:
             self.layer.cancel()
         try:
@@ -469,7 +453,7 @@ class LogWriter:
     def copy_chunk(self, source: McapFile, ci: ChunkIndex, counts: dict[int, int]) -> int:
         """Copy the chunk ``ci`` of ``source`` and its message index records byte for byte (``counts``: its
         messages per channel, for the statistics); returns the bytes copied."""
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         chunk = source.read_bytes(ci.chunk_start_offset, ci.chunk_length)
         first_index = min(ci.message_index_offsets.values())
         indexes = source.read_bytes(first_index, ci.message_index_length)
@@ -493,7 +477,7 @@ class LogWriter:
     def copy_chunk_record(self, raw: bytes, ci: ChunkIndex, indices: dict[int, list[tuple[int, int]]]) -> None:
         """Write a chunk record as it is (``raw``) followed by new message index records (``indices``: the
         ``(log_time, offset)`` of its messages per channel)."""
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         chunk_start = self._file.tell()
         self._file.write(raw)
         self._write_chunk_index(chunk_start, len(raw), ci.message_start_time, ci.message_end_time, indices,
@@ -503,16 +487,14 @@ class LogWriter:
     def copy_messages(self, data: bytes, indices: dict[int, list[tuple[int, int]]]) -> None:
         """Write message records (``data``, their bytes as read) as one new chunk, compressed as this log's
         (``indices``: the ``(log_time, offset in data)`` of each message, per channel)."""
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         times = [t for records in indices.values() for t, _ in records]
-        future: Future[tuple[bytes | bytearray, int]] = Future()
-        future.set_result(compress(data, self.compression.value))
-        self._write_chunk(_PendingChunk(future, len(data), indices, min(times), max(times)))
+        self._chunks.put(data, indices, min(times), max(times), now=True)
         self._count_indexed(indices)
 
     def copy_record(self, source: McapFile, offset: int, length: int) -> int:
         """Copy one top-level record (metadata, attachment) of ``source`` byte for byte; returns its offset here."""
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         data = source.read_bytes(offset, length)
         if len(data) != length:
             raise CorruptLogError(source.path, f"the record at offset {offset} is cut off")
@@ -565,21 +547,9 @@ class LogWriter:
     def _close_builder(self, builder: ChunkBuilder) -> None:
         if builder.num_messages == 0:
             return
-        data, indices, start, end = builder.take()
-        if self._executor is None:
-            future: Future[tuple[bytes | bytearray, int]] = Future()
-            future.set_result(compress(data, self.compression.value))
-        else:
-            future = self._executor.submit(compress, data, self.compression.value)
-        self._pending.append(_PendingChunk(future, len(data), indices, start, end))
-        self._drain(all_of_them=False)
+        self._chunks.put(*builder.take())
 
-    def _drain(self, *, all_of_them: bool) -> None:
-        limit = 0 if all_of_them else 2 * self.workers
-        while self._pending and (len(self._pending) > limit or self._pending[0].future.done()):
-            self._write_chunk(self._pending.popleft())
-
-    def _write_chunk(self, pending: _PendingChunk) -> None:
+    def _write_chunk(self, pending: PendingChunk) -> None:
         compressed, crc = pending.future.result()
         compression = "" if self.compression is Compression.NONE else self.compression.value
         chunk_start = self._file.tell()
@@ -613,32 +583,3 @@ class LogWriter:
         write_summary(self._file.write, self._file.tell(), [self._schemas[k] for k in sorted(self._schemas)],
                       [self._channels[k] for k in sorted(self._channels)], self._stats, self._chunk_indexes,
                       list(self._attachment_indexes), list(self._metadata_indexes))
-
-
-class _DataSectionFile:
-    """The output file, keeping the CRC-32 of every byte written to it (until the summary, that of the data
-    section, which the DataEnd record stores: the reference MCAP writers do the same). A failed write is a
-    :class:`~starlog.errors.FileAccessError` naming the output (``path``), not its temporary file."""
-
-    def __init__(self, file: BinaryIO, path: Path) -> None:
-        self._file = file
-        self._path = path
-        self.crc = 0
-
-    def write(self, data: bytes | memoryview) -> int:
-        self.crc = crc32(data, self.crc)
-        with file_errors(self._path):
-            return self._file.write(data)
-
-    def tell(self) -> int:
-        return self._file.tell()
-
-    def flush(self) -> None:
-        with file_errors(self._path):
-            self._file.flush()
-
-    def fileno(self) -> int:
-        return self._file.fileno()
-
-    def close(self) -> None:
-        self._file.close()
