@@ -377,7 +377,7 @@ def test_a_chunk_index_the_reader_refuses_is_a_damaged_summary(tmp_path: Path) -
 # private _PROGRESS_STEP: progress comes every 8 MiB, with no public setting; 1 byte makes a small log report
 def test_progress_is_reported_in_bytes_of_the_data_section(logs: dict[str, Path],
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
-    import starlog.io.verify as verify_module
+    import starlog.io.verify_walk as verify_module
 
     monkeypatch.setattr(verify_module, "_PROGRESS_STEP", 1)  # every record
     done: list[int] = []
