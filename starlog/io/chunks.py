@@ -1,5 +1,6 @@
-"""Chunk contents: building one (the writer's open chunk of a channel, then compressed) and opening one
-(decompressed and CRC-checked).
+"""Chunk contents: building one (the writer's open chunk of a channel, :class:`ChunkBuilder`), compressing
+closed chunks (on a thread pool, handed on in order, :class:`CompressionQueue`), and opening one
+(decompressed and CRC-checked, :func:`decode_chunk`).
 
 The Chunk record itself is :func:`~starlog.io.layout.chunk_record` / :func:`~starlog.io.layout.chunk_header`.
 """
@@ -16,8 +17,8 @@ from dataclasses import dataclass
 from starlog.io.checksum import crc32
 from starlog.io.layout import chunk_header, message_record
 
-__all__ = ["ZSTD_LEVEL", "ChunkBuilder", "ChunkContents", "CompressionQueue", "PendingChunk", "compress", "decode_chunk",
-           "decompress"]
+__all__ = ["ZSTD_LEVEL", "ChunkBuilder", "ChunkContents", "CompressionQueue", "PendingChunk", "compress",
+           "decode_chunk", "decompress"]
 
 #: zstd level of every chunk. Camera frames: sensor noise leaves little for the match finder, so
 #: level 3 makes 16-bit frames 5 % smaller than level 1 but costs twice the time to compress and a

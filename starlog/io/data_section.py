@@ -28,8 +28,9 @@ class DataVisitor:
     """The callbacks of a pass over a data section; each does nothing here (:meth:`damaged` re-raises).
 
     ``bodies``: the opcodes whose bodies the pass reads (None: every one); a callback gets None for the
-    others, but a message's fixed fields are read in any case. A callback sets ``done`` to end the pass
-    after its record; the DataEnd record's does.
+    others, but a message's fixed fields are read in any case, and schema and channel records are handed
+    on (parsed) only when their bodies are read. A callback sets ``done`` to end the pass after its
+    record; the DataEnd record's does.
     """
 
     bodies: Container[int] | None = None
@@ -123,8 +124,9 @@ def walk_chunk(data: bytes | memoryview, visitor: DataVisitor, offset: int) -> N
     Raises :class:`~starlog.io.record_walk.RecordOverrun` and the parsers' errors for damaged records.
     """
     for position, opcode, _, body in walk_records(data):
+        if body is None:  # never: this walk reads every body
+            continue
         if opcode == Opcode.MESSAGE:
-            assert body is not None
             visitor.chunk_message(position, MESSAGE_HEADER.unpack_from(body), body[MESSAGE_HEADER.size:])
         elif opcode == Opcode.SCHEMA:
             visitor.schema(offset, parse_record(body, Schema))
