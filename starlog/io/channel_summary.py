@@ -7,10 +7,9 @@ merges more messages into them.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:
-    from starlog.io.mcap_file import McapFile
+from mcap.summary import Summary
 
 __all__ = ["ChannelSummary", "add_extent", "channel_summaries"]
 
@@ -78,12 +77,13 @@ def add_extent(extents: dict[int, list[int]], cid: int, count: int, first: int, 
         e[1], e[2] = min(e[1], first), max(e[2], last)
 
 
-def channel_summaries(file: McapFile, extents: dict[int, list[int]]) -> dict[int, ChannelSummary]:
-    """The :class:`ChannelSummary` of each channel of ``file`` from its ``[count, first, last]`` extents."""
+def channel_summaries(summary: Summary, extents: dict[int, list[int]]) -> dict[int, ChannelSummary]:
+    """The :class:`ChannelSummary` of each channel of a file's ``summary`` from its ``[count, first, last]``
+    extents."""
     out = {}
-    for cid in sorted(file.summary.channels):
-        ch = file.summary.channels[cid]
-        schema = file.summary.schemas.get(ch.schema_id)
+    for cid in sorted(summary.channels):
+        ch = summary.channels[cid]
+        schema = summary.schemas.get(ch.schema_id)
         count, first, last = extents.get(cid, (0, 0, 0))
         out[cid] = ChannelSummary(topic=ch.topic, schema_name=schema.name if schema else "",
                                   schema_encoding=schema.encoding if schema else "",

@@ -279,7 +279,7 @@ class LogReader:
         extents = self._channel_extents()
         summaries: dict[int, ChannelSummary] = {}
         for file in self.files:
-            summaries.update(channel_summaries(file, extents))
+            summaries.update(channel_summaries(file.summary, extents))
         return [ChannelSummary.union([summaries[cid] for cid in ids]) for ids in self._by_topic.values()]
 
     def channel(self, topic: str) -> ChannelSummary:
