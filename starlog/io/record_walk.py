@@ -21,6 +21,7 @@ __all__ = ["Record", "RecordOverrun", "walk_records"]
 Record = tuple[int, int, int, "memoryview | None"]
 
 _HEAD = RECORD_HEADER.size
+_IN_MEMORY = (memoryview, bytes, bytearray)
 
 
 class RecordOverrun(ValueError):
@@ -54,15 +55,15 @@ def walk_records(source: bytes | bytearray | memoryview | BinaryIO, start: int =
     after the other, and ``length`` is each one's body length. Raises :class:`RecordOverrun` for a
     record that runs past ``end``.
     """
-    if isinstance(source, bytes | bytearray | memoryview):
-        view = memoryview(source)
+    if isinstance(source, _IN_MEMORY):
+        view = source if type(source) is memoryview else memoryview(source)
         stop = len(view) if end is None else end
-        return _in_buffer(view, start, stop, stop, base, bodies, runs, whole=True)
+        return _in_buffer(view, start, stop, stop, base, bodies, runs, True)
     return _walk_file(source, start, end, bodies, runs, block)
 
 
 def _in_buffer(view: memoryview, pos: int, stop: int, limit: int, base: int, bodies: Container[int] | None,
-               runs: Container[int], *, whole: bool = False) -> Generator[Record, None, int]:
+               runs: Container[int], whole: bool = False) -> Generator[Record, None, int]:
     """The records from ``view[pos]`` that end by ``limit`` and whose header (and body, when it is wanted) lie
     before ``stop`` (offsets from ``base``); returns where the first of the others starts. ``whole``: ``view``
     holds the whole section up to ``stop``, and a record that does not end by it raises :class:`RecordOverrun`."""
@@ -72,7 +73,7 @@ def _in_buffer(view: memoryview, pos: int, stop: int, limit: int, base: int, bod
         after = body + length
         if after > limit:
             break
-        if opcode in runs:
+        if runs and opcode in runs:
             if after > stop:
                 break
             after = pos + _same_records(view, pos, stop, _HEAD + length) * (_HEAD + length)
