@@ -231,7 +231,6 @@ class FileVerifier(DataVisitor):
             self.problem("channel_conflict", f"channel {channel.id} is defined twice, differently", offset=offset,
                          channel=channel.topic)
 
-
     def chunk(self, offset: int, length: int, body: memoryview | None) -> None:
         assert body is not None
         self.report.chunks += 1
@@ -387,7 +386,6 @@ class FileVerifier(DataVisitor):
                      f"{len(lacking)} channels ({', '.join(topics[:5])}{', ...' if len(topics) > 5 else ''}), which "
                      f"starlog reads from the data section ({spec}){readers}",
                      severity="warning" if rules else "note", rule=quoted)
-
 
     def finish(self) -> None:
         for cid, channel in sorted(self.channels.items()):

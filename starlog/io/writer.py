@@ -197,15 +197,16 @@ class LogWriter:
 
     def _open_output(self, profile: str) -> None:
         """Create the output (a temporary file beside it, or itself ``in_place``) and write its header."""
+        self._chunks = CompressionQueue(self.compression.value, self.workers, self._write_chunk)
         try:
             self._seen = output_identity(self.path)
             fd, self._tmp_path = open_in_place(self.path) if self.in_place else temporary_output(self.path)
         except BaseException:
             self._closed = True
+            self._chunks.shutdown(cancel=True)
             if self.layer is not None:
                 self.layer.cancel()
             raise
-        self._chunks = CompressionQueue(self.compression.value, self.workers, self._write_chunk)
         self._file = ChecksummedFile(os.fdopen(fd, "w+b", buffering=1024 * 1024), self.path)
         try:
             self._file.write(MAGIC)
