@@ -42,7 +42,7 @@ from starlog import topics
 from starlog.io.reader import LogReader, LogSource
 from starlog.io.copying import flatten_log
 from starlog.io.timerange import TimeRange
-from starlog.io.writer import output_identity, temporary_folder
+from starlog.io.output_files import output_identity, temporary_folder
 from starlog.stages.centroid import centroid_log, parse_methods
 from starlog.stages.compensate import compensate_log, parse_protocols, too_short_message, track_shortfalls
 from starlog.stages.window import window_of

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import lz4.frame
+import numpy as np
 import zstandard
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from starlog.io import LogReader, LogWriter
 from starlog.codecs import encode_json, encode_raw_image, json_message_type, protobuf_message_type
-from starlog.io.layout import decompress
-from starlog.io.writer import ZSTD_LEVEL
+from starlog.io.chunks import ZSTD_LEVEL, decompress
 
 
 def _chunks_by_topic(path: Path) -> dict[str, list[tuple[bytes, bytes]]]:
@@ -91,3 +92,44 @@ def test_compression_option_keeps_the_choice_with_the_user(tmp_path: Path) -> No
         assert result.exit_code == 0, result.output
         with LogReader(path) as log:
             assert {ci.compression for ci in log.files[-1].summary.chunk_indexes} == {expected}
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 2**63), st.integers(0, 2**63), st.binary(max_size=300)), min_size=1,
+                max_size=20))
+def test_a_chunk_is_built_as_the_mcap_writer_builds_it(messages: list[tuple[int, int, bytes]]) -> None:
+    """An independent oracle: the records, time range and message index of the one chunk of a log written by the
+    ``mcap`` library's own writer (no compression) are those starlog's chunk builder makes."""
+    import io
+
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Schema
+    from mcap.writer import CompressionType, Writer
+
+    from starlog.io.chunks import ChunkBuilder, decode_chunk
+    from starlog.io.layout import encode_record, parse_message_index
+    from starlog.io.record_walk import walk_records
+
+    out = io.BytesIO()
+    writer = Writer(out, chunk_size=1 << 30, compression=CompressionType.NONE)
+    writer.start()
+    schema_id = writer.register_schema("s", "jsonschema", b"{}")
+    channel_id = writer.register_channel("/t", "json", schema_id)
+    for sequence, (log_time, publish_time, data) in enumerate(messages):
+        writer.add_message(channel_id, log_time, data, publish_time, sequence)
+    writer.finish()
+    raw = out.getvalue()
+    records = {opcode: body for _, opcode, _, body in walk_records(raw, 8, len(raw) - 8)  # between the magics
+               if opcode in (Opcode.CHUNK, Opcode.MESSAGE_INDEX)}
+    theirs = decode_chunk(records[Opcode.CHUNK])
+
+    ours = ChunkBuilder()
+    ours.add_record(encode_record(Schema(id=schema_id, name="s", encoding="jsonschema", data=b"{}")))
+    ours.add_record(encode_record(Channel(id=channel_id, topic="/t", message_encoding="json", schema_id=schema_id,
+                                          metadata={})))
+    for sequence, (log_time, publish_time, data) in enumerate(messages):
+        ours.add_message(channel_id, sequence, log_time, publish_time, data)
+    data, indices, start, end = ours.take()
+    assert bytes(data) == bytes(theirs.data) and (start, end) == (theirs.start, theirs.end)
+    assert indices == dict([parse_message_index(records[Opcode.MESSAGE_INDEX])])
+    assert ours.take()[0] == bytearray() and ours.num_messages == 0

@@ -16,7 +16,8 @@ from mcap.writer import CompressionType, Writer
 
 from starlog.io import LogReader
 from starlog.io.copying import flatten_log
-from starlog.io.chunk_indexes import ChunkIndexTable, read_file_summary
+from starlog.io.chunk_indexes import ChunkIndexTable
+from starlog.io.summary_section import read_file_summary
 
 U64 = st.integers(0, 2**64 - 1)
 
@@ -77,7 +78,6 @@ same_layouts = st.builds(  # few layouts, so that runs of records of one length 
 )
 
 
-# private _READ_BLOCK: the summary's read size (1 MiB) has no public setting; made tiny to split runs across reads
 @settings(max_examples=300, deadline=None)
 @given(st.lists(same_layouts, max_size=40), st.sampled_from([9, 64, 1 << 20]))
 def test_a_summary_of_chunk_indexes_reads_back_run_by_run_as_record_by_record(
@@ -85,19 +85,13 @@ def test_a_summary_of_chunk_indexes_reads_back_run_by_run_as_record_by_record(
     """Runs of records of one length are parsed as columns; the table is the same as mcap's objects."""
     from mcap.records import Footer
 
-    from starlog.io import chunk_indexes as module
-    from starlog.io.chunk_indexes import read_summary
+    from starlog.io.summary_section import read_summary
 
     out = RecordBuilder()
     for ci in indexes:
         ci.write(out)
     Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(out)
-    saved = module._READ_BLOCK
-    module._READ_BLOCK = block
-    try:
-        table = read_summary(io.BytesIO(out.end()), 0).chunk_indexes
-    finally:
-        module._READ_BLOCK = saved
+    table = read_summary(io.BytesIO(out.end()), 0, block=block).chunk_indexes
     assert list(table) == indexes
     assert [list(ci.message_index_offsets) for ci in table] == [list(ci.message_index_offsets) for ci in indexes]
     assert table.entry_counts().tolist() == [len(ci.message_index_offsets) for ci in indexes]
@@ -166,22 +160,23 @@ def test_a_log_of_many_chunks_reads_in_time_order(tmp_path: Path) -> None:
     assert counts == {"/camera/frame": (1000, 0, 2_997_000), "/other": (2000, 1000, 2_999_000)}
 
 
-# private _READ_BLOCK, _SummarySink._FLUSH_AT: read and write sizes have no public setting; made small for small logs
+# private _SummarySink._FLUSH_AT: the write size has no public setting; made small for small logs
 def test_summaries_read_and_written_in_pieces_are_the_same_bytes(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """Reading in blocks smaller than a record, and a summary written out every few records, change nothing."""
-    from starlog.io import chunk_indexes, writer
+    from starlog.io import summary_section
+    from starlog.io.layout import read_footer
 
     path = _foreign_log(tmp_path / "f.mcap", 2000, 1)
     with open(path, "rb") as f:
         whole = read_file_summary(f)
-        monkeypatch.setattr(chunk_indexes, "_READ_BLOCK", 37)
-        pieces = read_file_summary(f)
+        footer = read_footer(f)
+        pieces = summary_section.read_summary(f, footer.summary_start, footer.offset, block=37)
     assert pieces is not None and whole is not None
     assert pieces.chunk_indexes == whole.chunk_indexes and pieces.channels == whole.channels
     outputs = []
     for flush_at in (4 << 20, 100):
-        monkeypatch.setattr(writer._SummarySink, "_FLUSH_AT", flush_at)
+        monkeypatch.setattr(summary_section._SummarySink, "_FLUSH_AT", flush_at)
         out = tmp_path / f"out_{flush_at}.mcap"
         flatten_log(path, out)  # its summary repeats the input's chunk indexes
         outputs.append(out.read_bytes())
@@ -243,7 +238,7 @@ def test_a_summary_cut_short_is_refused(tmp_path: Path) -> None:
     (summary_start,) = struct.unpack_from("<Q", data, len(data) - 8 - 29 + 9)  # the footer's first field
     damaged = bytearray(data)
     damaged[summary_start + 1:summary_start + 9] = (10**9).to_bytes(8, "little")  # a record longer than the file
-    with pytest.raises(ValueError, match="ends inside a record"):
+    with pytest.raises(ValueError, match="runs past the end of its section"):
         read_file_summary(io.BytesIO(bytes(damaged)))
 
 
@@ -259,7 +254,7 @@ nearby_chunk_indexes = st.builds(
 )
 
 
-# private _chunk_index_problems, _covered: their blocks need 65,536+ chunks in a real log; tested directly on tables
+# private _covered: its blocks need 65,536+ chunks in a real log; tested directly on tables (with chunk_index_problems)
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.one_of(chunk_indexes, nearby_chunk_indexes), max_size=9), st.integers(1, 4),
        st.one_of(st.integers(0, 2**64 - 1), SMALL))
@@ -270,13 +265,13 @@ def test_checks_and_gaps_made_block_by_block_are_those_of_the_whole_table(
     from mcap.summary import Summary
 
     import starlog.io.chunk_indexes as chunk_module
-    from starlog.io.mcap_file import _chunk_index_problems
     from starlog.io.scan import _covered
+    from starlog.io.summary_checks import chunk_index_problems
 
     def both() -> tuple[list[str], list[tuple[int, int]]]:
         summary = Summary()
         summary.chunk_indexes = ChunkIndexTable(indexes)  # type: ignore[assignment]
-        return (_chunk_index_problems(summary.chunk_indexes, data_end),  # type: ignore[arg-type]
+        return (chunk_index_problems(summary.chunk_indexes, data_end),  # type: ignore[arg-type]
                 _covered(summary))
 
     whole = both()

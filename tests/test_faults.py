@@ -28,7 +28,7 @@ from click.testing import CliRunner
 from starlog.cli import cli
 from starlog.errors import FileAccessError, OutputChangedError
 from starlog.io import LogReader
-from starlog.io.writer import atomic_output
+from starlog.io.output_files import atomic_output
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log

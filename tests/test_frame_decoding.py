@@ -20,7 +20,7 @@ from starlog.codecs import decode_raw_image, encode_raw_image, protobuf_message_
 from starlog.io.frames import cached_image_decoder
 from starlog.codecs.images import pixels_to_mono
 from starlog.codecs.rawimage_wire import parse_raw_image
-from starlog.io.layout import decompress
+from starlog.io.chunks import decompress
 
 
 # ---------------------------------------------------------------- protobuf wire encoding, by hand

@@ -37,7 +37,7 @@ from starlog.errors import CorruptLogError
 from starlog.parquet.tables import export_log
 from starlog.io import LogReader, LogWriter
 from starlog.codecs import encode_json, json_message_type
-from starlog.io.chunk_indexes import read_file_summary
+from starlog.io.summary_section import read_file_summary
 from starlog.io.copying import flatten_log
 from starlog.codecs.images import choose_image_topic
 from starlog.io.verify import verify_log

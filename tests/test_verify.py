@@ -21,8 +21,7 @@ from starlog.io import LogReader, LogWriter
 from starlog.codecs import encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog import topics
 from starlog.io.verify import verify_file, verify_log
-# private: verify's walk-time chunk-index check, tested directly on hypothesis's tables (a file for each is too slow)
-from starlog.io.verify import _ChunkIndexCheck, _disagreement, _Seen
+from starlog.io.verify_indexes import ChunkIndexCheck, Seen, disagreement
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
 from tests.foreign_logs import write_foxglove_compressed, write_numbers, write_plain, write_ros1, write_ros2
@@ -281,12 +280,12 @@ def test_a_summary_without_chunk_indexes_is_a_note_that_counts_the_chunks(tmp_pa
         ("no_chunk_indexes", "the summary lists none of the 3 chunks: readers must scan the file")]
 
 
-def _seen_chunk(offset: int, field: int) -> _Seen:
-    return _Seen(offset, 100 + field, field, field + 5, "zstd" if field % 2 else "", 50 + field, 90 + field, {},
+def _seen_chunk(offset: int, field: int) -> Seen:
+    return Seen(offset, 100 + field, field, field + 5, "zstd" if field % 2 else "", 50 + field, 90 + field, {},
                  {1: offset + 200} if field % 3 else {}, offset + 250 if field % 3 else 0)
 
 
-def _index_of(seen: _Seen, changed: str | None) -> ChunkIndex:
+def _index_of(seen: Seen, changed: str | None) -> ChunkIndex:
     ci = ChunkIndex(chunk_start_offset=seen.offset, chunk_length=seen.length, message_start_time=seen.start,
                     message_end_time=seen.end, compression=seen.compression, compressed_size=seen.compressed_size,
                     uncompressed_size=seen.uncompressed_size, message_index_offsets=dict(seen.index_offsets),
@@ -308,11 +307,16 @@ def test_chunk_indexes_checked_as_the_walk_meets_the_chunks_find_what_a_lookup_a
     summary's order, as comparing every index with a dictionary of every chunk once the walk is over."""
     seen = [_seen_chunk(1000 * (k + 1), k) for k in range(chunks)]
     table = [_index_of(seen[k % chunks] if chunks else _seen_chunk(500, k), changed) for k, changed in indexes]
-    check = _ChunkIndexCheck()
-    for row, ci in enumerate(table):
+    from array import array
+
+    from starlog.io.chunk_indexes import ChunkIndexTable
+
+    parsed = ChunkIndexTable()
+    for ci in table:
         out = RecordBuilder()
         ci.write(out)
-        check.add(10_000 + row, out.end()[9:])  # the record's body
+        parsed.append_record(out.end()[9:])  # the record's body
+    check = ChunkIndexCheck(parsed, array("Q", range(10_000, 10_000 + len(table))))
     unlisted = [s.offset for s in seen if not check.compare(s)]
 
     by_offset = {s.offset: s for s in seen}
@@ -321,7 +325,7 @@ def test_chunk_indexes_checked_as_the_walk_meets_the_chunks_find_what_a_lookup_a
         chunk = by_offset.get(ci.chunk_start_offset)
         if chunk is None:
             expected.append((10_000 + row, f"a chunk index points at {ci.chunk_start_offset}, where no chunk starts"))
-        elif wrong := _disagreement(ci, chunk):
+        elif wrong := disagreement(ci, chunk):
             expected.append((10_000 + row, f"the chunk index disagrees with the chunk at {ci.chunk_start_offset} "
                                            f"in {', '.join(wrong)}"))
     assert list(check.problems()) == expected
@@ -335,7 +339,7 @@ def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
         records: list[tuple[int, bytes]], cut: int, block: int, lead: int) -> None:
     import io
 
-    from starlog.io.layout import iter_records, walk_records
+    from starlog.io.record_walk import walk_records
 
     section = b"".join(struct.pack("<BQ", opcode, len(body)) + body for opcode, body in records)
     section = section[:max(0, len(section) - cut)]  # perhaps a record cut off
@@ -347,9 +351,9 @@ def test_summary_records_read_a_block_at_a_time_are_those_of_the_whole_section(
         except ValueError as err:
             return None, str(err)
 
-    whole = read(lambda: ((o, op, section[b: b + n]) for o, op, b, n in iter_records(section, lead)))
-    blocks = read(lambda: ((o, op, body) for o, op, _, body in walk_records(io.BytesIO(data), lead, lead + len(section),
-                                                                          block=block)))
+    whole = read(lambda: ((o, op, bytes(body)) for o, op, _, body in walk_records(section, base=lead)))
+    blocks = read(lambda: ((o, op, bytes(body)) for o, op, _, body in walk_records(io.BytesIO(data), lead,
+                                                                                 lead + len(section), block=block)))
     assert blocks == whole
 
 
@@ -374,7 +378,7 @@ def test_a_chunk_index_the_reader_refuses_is_a_damaged_summary(tmp_path: Path) -
 # private _PROGRESS_STEP: progress comes every 8 MiB, with no public setting; 1 byte makes a small log report
 def test_progress_is_reported_in_bytes_of_the_data_section(logs: dict[str, Path],
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
-    import starlog.io.verify as verify_module
+    import starlog.io.verify_walk as verify_module
 
     monkeypatch.setattr(verify_module, "_PROGRESS_STEP", 1)  # every record
     done: list[int] = []

@@ -40,7 +40,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from starlog.io.chunk_indexes import read_file_summary
+from starlog.io.summary_section import read_file_summary
 from starlog.io.mcap_file import McapFile
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

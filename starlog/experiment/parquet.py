@@ -10,7 +10,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from starlog.io.writer import atomic_output
+from starlog.io.output_files import atomic_output
 
 __all__ = ["write_rows"]
 

@@ -1,41 +1,41 @@
-"""The summary's chunk indexes as columns of numbers, and a summary reader that streams them in.
+"""The summary's chunk indexes as columns of numbers.
 
 An MCAP summary lists one Chunk Index record per chunk. Parsed into ``mcap.records.ChunkIndex``
 objects they keep about 0.5 KB each and take 10-16 us to parse: an hour of 1024x1024 frames at
 300 Hz has about 1.6 million chunks, i.e. 0.8 GB and tens of seconds in every process that opens
 the log (``tools/bench_index.py``).
 :class:`ChunkIndexTable` keeps the same fields in arrays (about 80 bytes a chunk) and makes a
-``ChunkIndex`` only when one is asked for; :func:`read_summary` fills it from the file a block
-at a time, so the summary section is never held whole either.
+``ChunkIndex`` only when one is asked for; it parses runs of Chunk Index records of one layout as
+columns at once (:meth:`ChunkIndexTable.append_records`, as :mod:`starlog.io.summary_section` reads
+them a block at a time).
 """
 
 from __future__ import annotations
 
-import io
 import math
-import struct
 from array import array
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from typing import Any, BinaryIO, overload
+from typing import Any, overload
 
 import numpy as np
 import numpy.typing as npt
-from mcap.data_stream import ReadDataStream
-from mcap.opcode import Opcode
-from mcap.records import AttachmentIndex, Channel, ChunkIndex, MetadataIndex, Schema, Statistics
-from mcap.summary import Summary
+from mcap.records import ChunkIndex
 
-from starlog.io.layout import FOOTER, MAGIC, RECORD_HEADER
+from starlog.io.layout import (
+    CHUNK_INDEX_HEAD,
+    CHUNK_INDEX_PAIR,
+    CHUNK_INDEX_SIZES,
+    CHUNK_INDEX_TAIL_MIN,
+    RECORD_HEADER,
+    U32,
+    U64,
+    chunk_index_dtype,
+    chunk_index_record,
+    parse_chunk_index,
+)
 
-__all__ = ["ChunkIndexTable", "read_file_summary", "read_summary"]
+__all__ = ["ROW_BLOCK", "ChunkIndexTable"]
 
-_CHUNK_INDEX_HEAD = struct.Struct("<QQQQI")  # start time, end time, chunk offset, chunk length, offsets' bytes
-_U64 = struct.Struct("<Q")
-_U32 = struct.Struct("<I")
-_SIZES = struct.Struct("<QQ")  # compressed, uncompressed
-_PAIR = struct.Struct("<HQ")  # channel id, message index offset
-_TAIL_MIN = 8 + 4 + 16  # message index length, compression name length, sizes
-_READ_BLOCK = 1 << 20
 #: Chunks in a block of :meth:`ChunkIndexTable.row_blocks` (a few MB of temporary arrays for a check).
 ROW_BLOCK = 1 << 16
 
@@ -98,7 +98,27 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
 
         Raises ``ValueError`` or ``struct.error`` (the table unchanged) for a body that does not parse.
         """
-        _append_chunk_index(self, memoryview(body))
+        self.append_fields(*parse_chunk_index(memoryview(body)))
+
+    def append_records(self, records: memoryview) -> None:
+        """Add the Chunk Index records ``records``: whole records (headers included) of one length, one after
+        the other. Those that share the first one's layout (channel count, compression) are parsed together, as
+        columns; the rest one at a time. Raises as :meth:`append_record` (the records before the bad one added)."""
+        (length,) = U64.unpack_from(records, 1)
+        size = RECORD_HEADER.size + length
+        count = len(records) // size
+        layout = _run_layout(records[RECORD_HEADER.size:size])
+        done = 0
+        if layout is not None and count > 1:
+            rows = np.frombuffer(records, dtype=layout, count=count)
+            same = (rows["pairs_bytes"] == rows["pairs_bytes"][0]) & (rows["name_length"] == rows["name_length"][0])
+            if "name" in layout.names:  # raw bytes compared (a bytes dtype would drop trailing NULs)
+                same &= (rows["name"] == rows["name"][0])
+            done = int(np.argmin(same)) if not same.all() else count
+            name = rows["name"][0].tobytes() if "name" in layout.names else b""
+            self.append_columns(rows[:done], name.decode())
+        for k in range(done, count):
+            self.append_record(records[k * size + RECORD_HEADER.size:(k + 1) * size])
 
     def append_columns(self, rows: npt.NDArray[np.void], compression: str) -> None:
         """Add chunk indexes of one compression from a record array with the numeric fields' names and a
@@ -309,193 +329,24 @@ class ChunkIndexTable(Sequence[ChunkIndex]):
         encoded = [name.encode() for name in self._names]
         for k in range(len(self)):
             a, b = starts[k], starts[k + 1]
-            name = encoded[self._compression[k]]
-            pairs = b"".join(map(_PAIR.pack, channels[a:b], offsets[a:b]))
-            body = b"".join((
-                _CHUNK_INDEX_HEAD.pack(c["message_start_time"][k], c["message_end_time"][k],
-                                       c["chunk_start_offset"][k], c["chunk_length"][k], len(pairs)),
-                pairs, _U64.pack(c["message_index_length"][k]), _U32.pack(len(name)), name,
-                _SIZES.pack(c["compressed_size"][k], c["uncompressed_size"][k]),
-            ))
-            write(RECORD_HEADER.pack(Opcode.CHUNK_INDEX, len(body)) + body)
-
-
-# ---------------------------------------------------------------------- reading a summary
-def read_summary(f: BinaryIO, summary_start: int) -> Summary:
-    """The summary section that starts at ``summary_start`` in ``f``, read up to the footer.
-
-    As ``mcap``'s own summary reader, with the chunk indexes in a :class:`ChunkIndexTable` and
-    the section read a block at a time. Raises ``ValueError`` or ``struct.error`` for a damaged or
-    cut section (``mcap``'s errors for a damaged record of another kind).
-    """
-    summary = Summary()
-    table = ChunkIndexTable()
-    summary.chunk_indexes = table  # type: ignore[assignment]  # a sequence of ChunkIndex, stored by column
-    for opcode, body in _records(f, summary_start):
-        if opcode == Opcode.FOOTER:
-            break
-        if opcode == Opcode.CHUNK_INDEX:
-            _append_chunk_indexes(table, body)
-            continue
-        record = _read_other(opcode, body)
-        if isinstance(record, Statistics):
-            summary.statistics = record
-        elif isinstance(record, Schema):
-            summary.schemas[record.id] = record
-        elif isinstance(record, Channel):
-            summary.channels[record.id] = record
-        elif isinstance(record, AttachmentIndex):
-            summary.attachment_indexes.append(record)
-        elif isinstance(record, MetadataIndex):
-            summary.metadata_indexes.append(record)
-    else:
-        raise ValueError("the summary section ends without a footer")
-    return summary
-
-
-def read_file_summary(f: BinaryIO) -> Summary | None:
-    """The summary of the MCAP file ``f`` (found through its footer); None when it has none."""
-    size = f.seek(0, io.SEEK_END)
-    if size < FOOTER.size + len(MAGIC):
-        raise ValueError("the file is too short to end with a footer")
-    f.seek(size - len(MAGIC) - FOOTER.size)
-    opcode, _, summary_start, _, _ = FOOTER.unpack(f.read(FOOTER.size))
-    if opcode != Opcode.FOOTER:
-        raise ValueError(f"the file does not end with a footer record (opcode {opcode:#04x})")
-    return None if summary_start == 0 else read_summary(f, summary_start)
-
-
-def _records(f: BinaryIO, start: int) -> Iterator[tuple[int, memoryview]]:
-    """``(opcode, body)`` of each record from ``start`` on; a body is valid until the next one is asked for.
-
-    Chunk indexes come as runs instead: ``(CHUNK_INDEX, records)``, one or more whole records (headers
-    included) of the same length, one after the other.
-    """
-    left = f.seek(0, io.SEEK_END) - start  # bytes not yet read: no record can claim more
-    f.seek(start)
-    buffer = b""
-    pos = 0
-    while True:
-        if len(buffer) - pos < RECORD_HEADER.size:
-            block = f.read(min(_READ_BLOCK, max(left, 0)))
-            left -= len(block)
-            buffer, pos = buffer[pos:] + block, 0
-            if len(buffer) < RECORD_HEADER.size:
-                if buffer:
-                    raise ValueError("the summary section ends inside a record header")
-                return
-        opcode, length = RECORD_HEADER.unpack_from(buffer, pos)
-        end = pos + RECORD_HEADER.size + length
-        if end > len(buffer):
-            if end - len(buffer) > left:
-                raise ValueError(f"the summary section ends inside a record (opcode {opcode:#04x}, length {length})")
-            block = f.read(max(min(_READ_BLOCK, left), end - len(buffer)))
-            left -= len(block)
-            buffer, end, pos = buffer[pos:] + block, end - pos, 0
-            if end > len(buffer):
-                raise ValueError(f"the summary section ends inside a record (opcode {opcode:#04x}, length {length})")
-        if opcode == Opcode.CHUNK_INDEX:  # the records of the same length that follow, in one piece
-            end = pos + _same_records(buffer, pos, RECORD_HEADER.size + length) * (RECORD_HEADER.size + length)
-            yield opcode, memoryview(buffer)[pos:end]
-        else:
-            yield opcode, memoryview(buffer)[pos + RECORD_HEADER.size:end]
-        pos = end
-
-
-def _same_records(buffer: bytes, pos: int, size: int) -> int:
-    """How many records of ``size`` bytes from ``pos`` start with the same header (opcode and length)
-    as the first, within ``buffer`` (at least one)."""
-    whole = (len(buffer) - pos) // size
-    if whole <= 1:
-        return 1
-    heads = np.frombuffer(buffer, dtype=np.uint8, count=whole * size, offset=pos).reshape(whole, size)
-    differ = np.flatnonzero((heads[:, :RECORD_HEADER.size] != heads[0, :RECORD_HEADER.size]).any(axis=1))
-    return int(differ[0]) if differ.size else whole
-
-
-def _append_chunk_indexes(table: ChunkIndexTable, records: memoryview) -> None:
-    """Chunk Index records of one length, one after the other: those that share the first one's layout
-    (channel count, compression) are parsed together, as columns; the rest one at a time."""
-    (length,) = _U64.unpack_from(records, 1)
-    size = RECORD_HEADER.size + length
-    count = len(records) // size
-    first = records[RECORD_HEADER.size:size]
-    layout = _run_layout(first)
-    done = 0
-    if layout is not None and count > 1:
-        rows = np.frombuffer(records, dtype=layout, count=count)
-        same = (rows["pairs_bytes"] == rows["pairs_bytes"][0]) & (rows["name_length"] == rows["name_length"][0])
-        if "name" in layout.names:  # raw bytes compared (a bytes dtype would drop trailing NULs)
-            same &= (rows["name"] == rows["name"][0])
-        done = int(np.argmin(same)) if not same.all() else count
-        name = rows["name"][0].tobytes() if "name" in layout.names else b""
-        table.append_columns(rows[:done], name.decode())
-    for k in range(done, count):
-        _append_chunk_index(table, records[k * size + RECORD_HEADER.size:(k + 1) * size])
+            write(chunk_index_record(
+                c["message_start_time"][k], c["message_end_time"][k], c["chunk_start_offset"][k],
+                c["chunk_length"][k], c["message_index_length"][k], c["compressed_size"][k],
+                c["uncompressed_size"][k], encoded[self._compression[k]],
+                b"".join(map(CHUNK_INDEX_PAIR.pack, channels[a:b], offsets[a:b]))))
 
 
 def _run_layout(body: memoryview) -> np.dtype[Any] | None:
     """The record layout (header included) that a Chunk Index record with ``body`` has, or None when its
     fields do not fit it (left to the one-at-a-time parser, which says why)."""
-    if len(body) < _CHUNK_INDEX_HEAD.size + _TAIL_MIN:
+    if len(body) < CHUNK_INDEX_HEAD.size + CHUNK_INDEX_TAIL_MIN:
         return None
-    pairs_bytes = _CHUNK_INDEX_HEAD.unpack_from(body)[4]
-    n, odd = divmod(pairs_bytes, _PAIR.size)
-    name_at = _CHUNK_INDEX_HEAD.size + pairs_bytes + 8
-    if odd or name_at + 4 + _SIZES.size > len(body):
+    pairs_bytes = CHUNK_INDEX_HEAD.unpack_from(body)[4]
+    n, odd = divmod(pairs_bytes, CHUNK_INDEX_PAIR.size)
+    name_at = CHUNK_INDEX_HEAD.size + pairs_bytes + U64.size
+    if odd or name_at + U32.size + CHUNK_INDEX_SIZES.size > len(body):
         return None
-    name_length = _U32.unpack_from(body, name_at)[0]
-    if name_at + 4 + name_length + _SIZES.size != len(body):
+    name_length = U32.unpack_from(body, name_at)[0]
+    if name_at + U32.size + name_length + CHUNK_INDEX_SIZES.size != len(body):
         return None
-    return np.dtype([
-        ("opcode", "u1"), ("length", "<u8"), ("message_start_time", "<u8"), ("message_end_time", "<u8"),
-        ("chunk_start_offset", "<u8"), ("chunk_length", "<u8"), ("pairs_bytes", "<u4"),
-        ("pairs", [("channel", "<u2"), ("offset", "<u8")], (n,)), ("message_index_length", "<u8"),
-        ("name_length", "<u4"), *([("name", f"V{name_length}")] if name_length else []),
-        ("compressed_size", "<u8"), ("uncompressed_size", "<u8"),
-    ])
-
-
-def _append_chunk_index(table: ChunkIndexTable, body: memoryview) -> None:
-    start, end, offset, length, pairs_bytes = _CHUNK_INDEX_HEAD.unpack_from(body)
-    q = _CHUNK_INDEX_HEAD.size
-    if pairs_bytes % _PAIR.size:
-        raise ValueError(f"a chunk index's message index offsets take {pairs_bytes} bytes, not a multiple of "
-                         f"{_PAIR.size} (a channel id and an offset each)")
-    if q + pairs_bytes + _TAIL_MIN > len(body):
-        raise ValueError(f"a chunk index's message index offsets take {pairs_bytes} bytes, which do not fit "
-                         f"its record of {len(body)}")
-    pairs = list(_PAIR.iter_unpack(body[q:q + pairs_bytes]))
-    q += pairs_bytes
-    (index_length,) = _U64.unpack_from(body, q)
-    (name_length,) = _U32.unpack_from(body, q + 8)
-    q += 12
-    if q + name_length + _SIZES.size > len(body):
-        raise ValueError(f"a chunk index's compression name of {name_length} bytes does not fit its record")
-    name = bytes(body[q:q + name_length])
-    compressed, uncompressed = _SIZES.unpack_from(body, q + name_length)
-    table.append_fields(start, end, offset, length, index_length, compressed, uncompressed, name.decode(),
-                        [cid for cid, _ in pairs], [at for _, at in pairs])
-
-
-class _StrictBytes(io.BytesIO):
-    """A record's bytes whose ``read`` refuses to come back short (``mcap``'s parsers do not check)."""
-
-    def read(self, size: int | None = -1) -> bytes:
-        data = super().read(size)
-        if size is not None and size >= 0 and len(data) != size:
-            raise ValueError(f"a summary record is cut short ({len(data)} of {size} bytes)")
-        return data
-
-
-#: The other records a summary keeps, by opcode (the rest, e.g. summary offsets, are skipped).
-_OTHER_RECORDS: dict[int, Any] = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.STATISTICS: Statistics,
-                                  Opcode.ATTACHMENT_INDEX: AttachmentIndex, Opcode.METADATA_INDEX: MetadataIndex}
-
-
-def _read_other(opcode: int, body: memoryview) -> object | None:
-    """A summary record other than a chunk index, parsed by ``mcap`` (None for unknown or skipped kinds)."""
-    kind = _OTHER_RECORDS.get(opcode)
-    if kind is None:
-        return None
-    return kind.read(ReadDataStream(_StrictBytes(bytes(body))))
+    return chunk_index_dtype(n, name_length)

@@ -34,8 +34,10 @@ from mcap.records import AttachmentIndex, ChunkIndex, MetadataIndex
 
 from starlog.errors import InvalidParameterError
 from starlog.io.chain import BASE_METADATA_NAME
-from starlog.io.layout import MESSAGE_HEADER, RECORD_HEADER, decode_chunk, iter_records
+from starlog.io.chunks import decode_chunk
+from starlog.io.layout import MESSAGE_HEADER, RECORD_HEADER, message_record
 from starlog.io.mcap_file import McapFile
+from starlog.io.record_walk import Record, walk_records
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
 from starlog.io.reader import LogReader, LogView
 from starlog.io.scan import LooseRun
@@ -143,28 +145,27 @@ class _Slicer:
         raw = self.file.read_bytes(ci.chunk_start_offset, ci.chunk_length)
         try:
             data = decode_chunk(memoryview(raw)[RECORD_HEADER.size:]).data
-            records = list(iter_records(data))
+            records = list(walk_records(data))
         except Exception as err:  # struct.error, ValueError, zstd / lz4 errors
             raise self.file.chunk_error(ci, f"{type(err).__name__}: {err}") from err
         self.select(data, records, ci, raw if not channels else None)
 
-    def select(self, data: bytes | memoryview, records: list[tuple[int, int, int, int]], ci: ChunkIndex,
-               raw: bytes | None) -> None:
+    def select(self, data: bytes | memoryview, records: list[Record], ci: ChunkIndex, raw: bytes | None) -> None:
         """Keep the chunk's kept messages: the chunk as it is (``raw``, when every one is kept), else a new one."""
         kept = bytearray()
         indices: dict[int, list[tuple[int, int]]] = {}
         original: dict[int, list[tuple[int, int]]] = {}
         total = 0
-        for offset, opcode, body, length in records:
-            if opcode != Opcode.MESSAGE:
+        for offset, opcode, length, body in records:
+            if opcode != Opcode.MESSAGE or body is None:
                 continue
             total += 1
-            cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(data, body)
+            cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(body)
             if not self.keeps(cid, log_time):
                 continue
             original.setdefault(cid, []).append((log_time, offset))
             indices.setdefault(cid, []).append((log_time, len(kept)))
-            kept += data[offset: body + length]
+            kept += data[offset: offset + RECORD_HEADER.size + length]
         if not indices:
             self.report.chunks_dropped += 1
         elif raw is not None and sum(len(v) for v in original.values()) == total:
@@ -182,8 +183,8 @@ class _Slicer:
         for log_time, _, cid, message in messages:
             if self.keeps(cid, log_time):
                 indices.setdefault(cid, []).append((log_time, len(kept)))
-                body = MESSAGE_HEADER.pack(cid, message.sequence, log_time, message.publish_time) + bytes(message.data)
-                kept += RECORD_HEADER.pack(Opcode.MESSAGE, len(body)) + body
+                kept += message_record(cid, message.sequence, log_time, message.publish_time, len(message.data))
+                kept += message.data
         if indices:
             self.writer.copy_messages(bytes(kept), indices)
             self.report.chunks_reencoded += 1

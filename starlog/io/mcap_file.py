@@ -10,10 +10,11 @@ indexes, messages outside chunks) are read in full by scanning (:mod:`starlog.io
 schemas and channels a summary does not repeat are read from the data section.
 
 :class:`~starlog.io.reader.LogReader` reads a log, which is one file or a chain of them, through
-this class; the log layer's other tools (copying, verifying) use its public methods.
+this class; the log layer's other tools (chains, copying, info) use its public methods.
 
-One module of over 500 lines: :class:`McapFile`'s summary checks and chunk reads share the parsed
-summary and the open file, so they are one class.
+One module of over 500 lines: :class:`McapFile`'s opening (footer, summary, the indexes it lacks)
+and its chunk reads share the parsed summary and the open file, so they are one class; the checks of
+the summary are :mod:`starlog.io.summary_checks`.
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ import itertools
 import os
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any, BinaryIO
@@ -34,8 +34,9 @@ from mcap.opcode import Opcode
 from mcap.records import ChunkIndex, Header, Message, Metadata, MetadataIndex
 from mcap.summary import Summary
 
-from starlog.errors import CorruptChunkError, CorruptLogError, LogNotFoundError, NotMcapError, TruncatedLogError
-from starlog.io.chunk_indexes import ChunkIndexTable, read_summary
+from starlog.errors import CorruptChunkError, CorruptLogError, LogNotFoundError
+from starlog.io.chunk_indexes import ChunkIndexTable
+from starlog.io.chunks import ChunkContents, decode_chunk
 from starlog.io.layout import (
     DATA_END,
     MAGIC,
@@ -44,27 +45,29 @@ from starlog.io.layout import (
     MESSAGE_INDEX_ENTRY,
     RECORD_HEADER,
     Footer,
-    decode_chunk,
-    iter_records,
+    FooterError,
     locate_data_end,
     parse_message_index,
     parse_record,
     read_footer,
     summary_crc,
 )
+from starlog.io.record_walk import walk_records
 from starlog.io.scan import (
     Gaps,
     LooseRun,
     find_definitions,
     find_loose_runs,
-    missing_schemas,
     read_definitions,
     read_loose,
     synthesize_summary,
 )
+from starlog.io.channel_summary import add_extent
+from starlog.io.summary_checks import layout_problems, reference_problems
+from starlog.io.summary_section import read_summary
 from starlog.io.timerange import END_OF_TIME
 
-__all__ = ["ChannelSummary", "McapFile", "channel_summaries", "recover_hint"]
+__all__ = ["McapFile", "recover_hint"]
 
 #: ``(log_time, position in its chunk, channel id, message)`` of a message read from a chunk.
 ChunkMessage = tuple[int, int, int, Message]
@@ -75,97 +78,8 @@ def recover_hint(path: Path) -> str:
     return f"Rebuild a readable copy with: starlog recover {path} -o RECOVERED.mcap"
 
 
-@dataclass(frozen=True)
-class ChannelSummary:
-    """One topic of a log, as :meth:`~starlog.io.reader.LogReader.channels` lists it: its channel, or the union of
-    its channels (:meth:`union`).
-
-    ``rate_hz`` is ``(count - 1) / (last - first)`` in Hz (0 for fewer than two messages).
-    ``channel_ids`` are the ids of the topic's channels; ``per_channel`` holds each one's own summary
-    when there are several (empty otherwise).
-    """
-
-    topic: str
-    schema_name: str
-    schema_encoding: str
-    message_encoding: str
-    message_count: int
-    first_log_time: int
-    last_log_time: int
-    channel_ids: tuple[int, ...] = ()
-    per_channel: tuple[ChannelSummary, ...] = ()
-
-    @classmethod
-    def union(cls, parts: list[ChannelSummary]) -> ChannelSummary:
-        """The summary of a topic whose channels ``parts`` summarise (ascending ids): every message counted,
-        the schema and encodings of the first channel holding messages (else the first: Foxglove lists such a
-        topic under its first channel's schema)."""
-        if len(parts) == 1:
-            return parts[0]
-        held = [p for p in parts if p.message_count]
-        return replace(held[0] if held else parts[0], message_count=sum(p.message_count for p in parts),
-                       first_log_time=min((p.first_log_time for p in held), default=0),
-                       last_log_time=max((p.last_log_time for p in held), default=0),
-                       channel_ids=tuple(i for p in parts for i in p.channel_ids), per_channel=tuple(parts))
-
-    @property
-    def rate_hz(self) -> float:
-        span = self.last_log_time - self.first_log_time
-        return (self.message_count - 1) / (span * 1e-9) if self.message_count > 1 and span > 0 else 0.0
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready form."""
-        return {
-            "topic": self.topic,
-            "schema": self.schema_name,
-            "schema_encoding": self.schema_encoding,
-            "message_encoding": self.message_encoding,
-            "message_count": self.message_count,
-            "first_log_time": self.first_log_time,
-            "last_log_time": self.last_log_time,
-            "rate_hz": self.rate_hz,
-            "channel_ids": list(self.channel_ids),
-        } | ({"per_channel": [p.to_dict() for p in self.per_channel]} if self.per_channel else {})
 
 
-def _chunk_index_problems(table: ChunkIndexTable, data_end: int) -> list[str]:
-    """What is wrong with the chunk indexes (at most three of each kind): ranges outside the data
-    section, reversed time ranges, message indexes outside the data section.
-
-    Checked a block of chunks at a time, so the temporary arrays stay the size of a block.
-    """
-    kinds: list[list[str]] = [[], [], []]
-    for block in table.row_blocks():
-        for kind, found in zip(kinds, _block_problems(table, block, data_end), strict=True):
-            kind.extend(found[:3 - len(kind)])
-        if all(len(kind) == 3 for kind in kinds):
-            break
-    return [problem for kind in kinds for problem in kind]
-
-
-def _block_problems(table: ChunkIndexTable, block: tuple[int, int, int, int], data_end: int
-                    ) -> tuple[list[str], list[str], list[str]]:
-    """:func:`_chunk_index_problems` of each kind among the chunks of one of ``table.row_blocks()``."""
-    a, b, e0, e1 = block
-    start = table.column("chunk_start_offset")[a:b]
-    end = start + table.column("chunk_length")[a:b]  # wraps past 2**64 for a damaged length: then end <= start
-
-    def chunks_where(bad: np.ndarray, what: str) -> list[str]:
-        return [f"chunk index for offset {int(start[k])} {what}" for k in np.flatnonzero(bad)[:3]]
-
-    rows, _, offset = table.entries()
-    rows, offset = rows[e0:e1] - a, offset[e0:e1]
-    first = table.first_index_offsets()[a:b]
-    index_end = first + table.column("message_index_length")[a:b]
-    outside = (table.entry_counts(a, b) > 0) & (
-        (first < end) | (first >= data_end) | (index_end < first) | (index_end > data_end))
-    outside[rows[(offset < end[rows]) | (offset >= data_end)]] = True
-    return (
-        chunks_where((start < len(MAGIC)) | (end <= start) | (end > data_end), "points outside the data section"),
-        chunks_where(table.column("message_start_time")[a:b] > table.column("message_end_time")[a:b],
-                     "has its time range reversed"),
-        chunks_where(outside, "has a message index outside the data section"),
-    )
 
 
 class _Peekable:
@@ -214,10 +128,10 @@ class McapFile:
     def _open(self) -> int:
         f = self._file
         try:
-            data_end = locate_data_end(self.path, f)
-            self.footer: Footer = read_footer(self.path, f)
-        except (TruncatedLogError, NotMcapError):
-            raise
+            self.footer: Footer = read_footer(f)
+            data_end = locate_data_end(self.path, f, self.footer)
+        except FooterError as err:
+            raise err.log_error(self.path) from err
         except CorruptLogError as err:
             raise CorruptLogError(self.path, f"{err.reason} {recover_hint(self.path)}") from err
         except (ValueError, OSError, struct.error) as err:  # footer pointing before the file start
@@ -241,7 +155,7 @@ class McapFile:
                     f"{recover_hint(self.path)}")
             self.summary_verified = True
         try:
-            self.summary: Summary = read_summary(f, footer.summary_start)
+            self.summary: Summary = read_summary(f, footer.summary_start, footer.offset)
         except (McapError, ValueError, EOFError, OSError, struct.error, KeyError, MemoryError) as err:
             raise CorruptLogError(self.path, f"its summary cannot be read ({type(err).__name__}: {err}). "
                                              f"{recover_hint(self.path)}") from err
@@ -330,39 +244,14 @@ class McapFile:
 
     def _check_references(self) -> None:
         """Every channel must name a defined schema, every channel id the indexes, statistics or messages name
-        a defined channel (in the summary or, where it does not repeat them, the data section)."""
-        summary = self.summary
-        missing = missing_schemas(summary)
-        problems = [f"channel {ch.topic!r} refers to missing schema {ch.schema_id}"
-                    for ch in summary.channels.values() if ch.schema_id in missing]
-        table: ChunkIndexTable = summary.chunk_indexes
-        unknown = sorted(table.channel_ids() - summary.channels.keys())[:3]
-        if unknown:
-            offsets = table.column("chunk_start_offset")
-            problems += [f"chunk index for offset {int(offsets[row])} names unknown channel {cid}"
-                         for cid, row in sorted(table.first_rows(unknown).items())]
-        counted = summary.statistics.channel_message_counts if summary.statistics else {}
-        loose = {c: 1 for run in self._loose for c in run.message_index_offsets}
-        for what, ids in (("statistics count messages of", counted),
-                          ("chunks without message indexes hold messages of", self._extents or {}),
-                          ("messages outside chunks name", loose)):
-            unknown = sorted(c for c, n in ids.items() if n and c not in summary.channels)
-            if unknown:
-                problems.append(f"{what} unknown channels {unknown}")
-        if problems:
-            raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
-                                             f"{recover_hint(self.path)}")
+        a defined channel (:func:`~starlog.io.summary_checks.reference_problems`)."""
+        self._refuse(reference_problems(self.summary, self._loose, self._extents or {}))
 
     def _check_layout(self, data_end: int) -> None:
-        """The indexes must point inside the data section."""
-        summary = self.summary
-        problems = _chunk_index_problems(summary.chunk_indexes, data_end)
-        for mi in summary.metadata_indexes:
-            if not len(MAGIC) <= mi.offset < mi.offset + mi.length <= data_end:
-                problems.append(f"metadata index {mi.name!r} points outside the data section")
-        for ai in summary.attachment_indexes:
-            if not len(MAGIC) <= ai.offset < ai.offset + ai.length <= data_end:
-                problems.append(f"attachment index {ai.name!r} points outside the data section")
+        """The indexes must point inside the data section (:func:`~starlog.io.summary_checks.layout_problems`)."""
+        self._refuse(layout_problems(self.summary, data_end))
+
+    def _refuse(self, problems: list[str]) -> None:
         if problems:
             raise CorruptLogError(self.path, f"its summary is inconsistent ({'; '.join(problems[:3])}). "
                                              f"{recover_hint(self.path)}")
@@ -425,7 +314,7 @@ class McapFile:
             for cid, times in self._message_times(ci).items():
                 inside = [t for t in times if lo <= t < hi]
                 if inside:
-                    _extend(extents, cid, len(inside), min(inside), max(inside))
+                    add_extent(extents, cid, len(inside), min(inside), max(inside))
         return extents
 
     def _whole_extents(self) -> dict[int, list[int]]:
@@ -468,7 +357,7 @@ class McapFile:
         extents: dict[int, list[int]] = {}
 
         def count(cid: int, log_time: int) -> None:
-            _extend(extents, cid, 1, log_time, log_time)
+            add_extent(extents, cid, 1, log_time, log_time)
 
         schemas, channels = (self.summary.schemas, self.summary.channels) if learn else (None, None)
         for ci in table.indexes_at(rows):
@@ -551,18 +440,18 @@ class McapFile:
         view = memoryview(data).toreadonly()  # payloads are slices of it, not copies
         known = ci.message_index_offsets or self.summary.channels
         try:
-            for pos, opcode, body, length in iter_records(data):
-                if opcode != Opcode.MESSAGE:
+            for pos, opcode, _, body in walk_records(view):
+                if opcode != Opcode.MESSAGE or body is None:
                     continue
-                cid, seq, log_time, publish_time = MESSAGE_HEADER.unpack_from(data, body)
+                cid, seq, log_time, publish_time = MESSAGE_HEADER.unpack_from(body)
                 if cid not in known:
                     raise ValueError(f"it holds a message of channel {cid}, which "
                                      f"{'its index' if ci.message_index_offsets else 'the log'} does not list")
                 if not contents.start <= log_time <= contents.end:
                     raise ValueError(f"a message at log_time {log_time} lies outside its range "
                                      f"{contents.start}..{contents.end}")
-                payload = view[body + MESSAGE_HEADER.size: body + length]
-                messages.append((log_time, len(messages), cid, Message(cid, log_time, payload, publish_time, seq)))
+                messages.append((log_time, len(messages), cid, Message(cid, log_time, body[MESSAGE_HEADER.size:],
+                                                                       publish_time, seq)))
                 offsets.setdefault(cid, []).append((log_time, pos))
         except (struct.error, ValueError) as err:
             raise self.chunk_error(ci, str(err)) from err
@@ -571,7 +460,7 @@ class McapFile:
             raise self.chunk_error(ci, "its message indexes do not match the chunk's messages")
         return messages, contents.crc_checked
 
-    def _chunk_contents(self, ci: ChunkIndex) -> Any:
+    def _chunk_contents(self, ci: ChunkIndex) -> ChunkContents:
         """The decompressed, CRC-checked contents of the chunk ``ci``, its header checked against the index."""
         raw = self.read_bytes(ci.chunk_start_offset, ci.chunk_length)
         if len(raw) != ci.chunk_length:
@@ -697,25 +586,5 @@ class McapFile:
         return heapq.merge(chunks, others, key=lambda item: item[0])
 
 
-def _extend(extents: dict[int, list[int]], cid: int, count: int, first: int, last: int) -> None:
-    e = extents.get(cid)
-    if e is None:
-        extents[cid] = [count, first, last]
-    else:
-        e[0] += count
-        e[1], e[2] = min(e[1], first), max(e[2], last)
 
-
-def channel_summaries(file: McapFile, extents: dict[int, list[int]]) -> dict[int, ChannelSummary]:
-    """The :class:`ChannelSummary` of each channel of ``file`` from its ``[count, first, last]`` extents."""
-    out = {}
-    for cid in sorted(file.summary.channels):
-        ch = file.summary.channels[cid]
-        schema = file.summary.schemas.get(ch.schema_id)
-        count, first, last = extents.get(cid, (0, 0, 0))
-        out[cid] = ChannelSummary(topic=ch.topic, schema_name=schema.name if schema else "",
-                                  schema_encoding=schema.encoding if schema else "",
-                                  message_encoding=ch.message_encoding, message_count=int(count),
-                                  first_log_time=int(first), last_log_time=int(last), channel_ids=(cid,))
-    return out
 

@@ -53,7 +53,8 @@ from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference, open
 from starlog.codecs.foreign_decoders import message_decoder
 from starlog.io.frames import Frame, SkippedFrame, decode_image_message, iter_frames
 from starlog.codecs.images import is_image_schema
-from starlog.io.mcap_file import ChannelSummary, McapFile, channel_summaries
+from starlog.io.channel_summary import ChannelSummary, channel_summaries
+from starlog.io.mcap_file import McapFile
 from starlog.codecs.json_schema import compile_json_schema
 from starlog.codecs.json_messages import decode_json
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
@@ -278,7 +279,7 @@ class LogReader:
         extents = self._channel_extents()
         summaries: dict[int, ChannelSummary] = {}
         for file in self.files:
-            summaries.update(channel_summaries(file, extents))
+            summaries.update(channel_summaries(file.summary, extents))
         return [ChannelSummary.union([summaries[cid] for cid in ids]) for ids in self._by_topic.values()]
 
     def channel(self, topic: str) -> ChannelSummary:

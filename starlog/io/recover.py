@@ -1,8 +1,9 @@
 """Rebuild a readable, fully indexed log from a truncated, unfinished or damaged one.
 
-The file is scanned record by record in file order (no summary needed). Every complete record
-is kept: schemas, channels, messages of every chunk whose bytes are whole and whose CRC checks,
-and metadata (provenance); a topic's channels of one type of message become one channel, those of
+The file is scanned record by record in file order (no summary needed), by the log layer's one
+pass over a data section (:mod:`starlog.io.data_section`, :class:`_Rebuilder` its visitor). Every
+complete record is kept: schemas, channels, messages of every chunk whose bytes are whole and whose
+CRC checks, and metadata (provenance); a topic's channels of one type of message become one channel, those of
 another type a channel of their own on the same topic. A chunk cut off by the end of the file, or
 whose CRC does not match, is dropped and reported — with its offset, time range and, from the
 message-index records that follow it when they survived, how many messages of which channels it
@@ -24,28 +25,29 @@ from typing import Any, BinaryIO
 
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Message, MessageIndex, Metadata, Schema
+from mcap.records import Channel, MessageIndex, Metadata, Schema
 
 from starlog.version import __version__
 from starlog.errors import BaseMismatchError, CorruptLogError, LogError, LogNotFoundError
 from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference
-from starlog.io.chunk_indexes import read_file_summary
+from starlog.io.chunks import decode_chunk
+from starlog.io.data_section import DataVisitor, MessageHead, walk_chunk, walk_data_section
 from starlog.io.layout import (
     CHUNK_HEADER,
     MAGIC,
     RECORD_HEADER,
-    RecordOverrun,
+    Footer,
+    FooterError,
     chunk_header,
-    decode_chunk,
-    iter_records,
     parse_record,
     read_footer,
     summary_crc,
-    walk_records,
 )
 from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance, file_digest
 from starlog.io.reader import LogReader
+from starlog.io.record_walk import RecordOverrun, walk_records
 from starlog.codecs.schemas import MessageType
+from starlog.io.summary_section import read_summary
 from starlog.io.writer import LogWriter
 
 __all__ = ["RecoveryReport", "recover_log"]
@@ -133,7 +135,12 @@ class RecoveryReport:
         return lines
 
 
-class _Rebuilder:
+_KNOWN_OPCODES = {int(op) for op in Opcode}
+#: What a damaged record raises (anything else, such as a failed write of the output, is not the input's damage).
+_DAMAGE = (struct.error, ValueError, UnicodeDecodeError, EOFError, McapError, MemoryError)
+
+
+class _Rebuilder(DataVisitor):
     """The records of a file, handed over in file order, written again; damaged chunks reported lost."""
 
     def __init__(self, writer: LogWriter, report: RecoveryReport) -> None:
@@ -144,43 +151,82 @@ class _Rebuilder:
         self.out_ids: dict[int, int] = {}
         self.by_topic: dict[str, list[tuple[MessageType, int]]] = {}  # the output channels of each topic
         self.pending_lost: LostChunk | None = None  # the chunk just lost: its message indexes say what it held
-        self.last_whole: int | None = None  # the last record trusted by its length alone (see _read_records)
         self.base_record: dict[str, str] | None = None  # a layer's record naming its base, when met
+        self.restart()
 
-    def record(self, offset: int, opcode: int, body: bytes | memoryview) -> bool:
-        """Hand one record on; False at the DataEnd record."""
-        if opcode == Opcode.SCHEMA:
-            self.schema(parse_record(body, Schema))
-        elif opcode == Opcode.CHANNEL:
-            self.channel(parse_record(body, Channel))
-        elif opcode == Opcode.MESSAGE:
-            self.message(parse_record(body, Message))
-        elif opcode == Opcode.CHUNK:
-            self.pending_lost = self.chunk(body, offset)
-        elif opcode == Opcode.MESSAGE_INDEX and self.pending_lost is not None:
-            self.lost_index(self.pending_lost, parse_record(body, MessageIndex))
-        elif opcode == Opcode.METADATA:
-            self.metadata(parse_record(body, Metadata))
-        elif opcode == Opcode.DATA_END:
-            return False
-        elif opcode not in (Opcode.HEADER, Opcode.FOOTER, Opcode.MESSAGE_INDEX):
+    def restart(self) -> None:
+        """Before a pass from a new offset (the first, or after a damaged record)."""
+        self.done = False
+        self.damage: tuple[int, str] | None = None  # the offset of the damaged record that ended the pass, and why
+        self.stopped_at: int | None = None  # the end of the DataEnd record, when the pass met it
+        # the record (the one being read, and the one before it) trusted by its length alone: a message index that
+        # named no lost chunk (see _read_records)
+        self.trusted: int | None = None
+        self.trusted_before: int | None = None
+
+    def record(self, offset: int, opcode: int, length: int) -> None:
+        whole = opcode == Opcode.MESSAGE_INDEX and self.pending_lost is None
+        self.trusted_before, self.trusted = self.trusted, offset if whole else None
+
+    def damaged(self, offset: int, opcode: int, error: Exception) -> None:
+        if not isinstance(error, _DAMAGE):
+            raise error
+        self.stop(offset, f"damaged {Opcode(opcode).name} record: {type(error).__name__}: {error}")
+
+    def stop(self, offset: int, detail: str) -> None:
+        self.damage, self.done = (offset, detail), True
+
+    def schema(self, offset: int, schema: Schema) -> None:
+        self.schemas[schema.id] = schema
+
+    def channel(self, offset: int, channel: Channel) -> None:
+        if self.channels.get(channel.id, channel) != channel:
+            self.out_ids.pop(channel.id, None)  # a later, different definition of the id wins for what follows
+        self.channels[channel.id] = channel
+
+    def message(self, offset: int, length: int, head: MessageHead, payload: memoryview | None) -> None:
+        self.chunk_message(0, head, payload)  # type: ignore[arg-type]  # every body is read
+
+    def chunk(self, offset: int, length: int, body: memoryview | None) -> None:
+        self.pending_lost = self.open_chunk(body, offset)  # type: ignore[arg-type]  # every body is read
+
+    def message_index(self, offset: int, length: int, body: memoryview | None) -> None:
+        if self.pending_lost is not None:
+            self.lost_index(self.pending_lost, parse_record(body, MessageIndex))  # type: ignore[arg-type]
+
+    def metadata(self, offset: int, length: int, body: memoryview | None) -> None:
+        record = parse_record(body, Metadata)  # type: ignore[arg-type]  # every body is read
+        if record.name == BASE_METADATA_NAME:  # the writer names the base of the recovered layer itself
+            self.base_record = dict(record.metadata)
+            return
+        self.writer.add_metadata(record.name, dict(record.metadata))
+        self.report.metadata_kept += 1
+
+    def attachment(self, offset: int, length: int, body: memoryview | None) -> None:
+        self.skip(Opcode.ATTACHMENT.name)
+
+    def data_end(self, offset: int, length: int) -> None:
+        self.done, self.stopped_at = True, offset + RECORD_HEADER.size + length
+
+    def other(self, offset: int, opcode: int, length: int) -> None:
+        if opcode not in _KNOWN_OPCODES:
+            self.stop(offset, f"unknown record type {opcode:#04x}")
+        elif opcode not in (Opcode.HEADER, Opcode.FOOTER):
             self.skip(Opcode(opcode).name)
-        return True
 
-    def chunk(self, body: bytes | memoryview, offset: int) -> LostChunk | None:
+    def open_chunk(self, body: memoryview, offset: int) -> LostChunk | None:
         """Hand on the records of the chunk record at ``offset``; a damaged chunk is reported lost and returned
         (its message index records that follow then name what it held)."""
         start, end = CHUNK_HEADER.unpack_from(body)[:2]
         try:
             contents = decode_chunk(body)
-            records = [(opcode, contents.data[at: at + n]) for _, opcode, at, n in iter_records(contents.data)]
+            for _ in walk_records(contents.data):  # every record whole: a chunk is kept or lost whole
+                pass
         except Exception as err:  # CRC mismatch, damaged compressed data, a record past the chunk's end
             lost = LostChunk(offset, f"{type(err).__name__}: {err}", start, end)
             self.report.lost_chunks.append(lost)
             return lost
-        for opcode, record in records:
-            if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-                self.record(offset, opcode, record)
+        walk_chunk(contents.data, self, offset)
         return None
 
     def lost_index(self, lost: LostChunk, index: MessageIndex) -> None:
@@ -189,57 +235,45 @@ class _Rebuilder:
         topic = channel.topic if channel else f"channel {index.channel_id}"
         lost.messages_by_topic[topic] = len(index.records)
 
-    def metadata(self, record: Metadata) -> None:
-        if record.name == BASE_METADATA_NAME:  # the writer names the base of the recovered layer itself
-            self.base_record = dict(record.metadata)
-            return
-        self.writer.add_metadata(record.name, dict(record.metadata))
-        self.report.metadata_kept += 1
-
     def skip(self, what: str) -> None:
         self.report.skipped_records[what] = self.report.skipped_records.get(what, 0) + 1
 
-    def schema(self, schema: Schema) -> None:
-        self.schemas[schema.id] = schema
-
-    def channel(self, channel: Channel) -> None:
-        if self.channels.get(channel.id, channel) != channel:
-            self.out_ids.pop(channel.id, None)  # a later, different definition of the id wins for what follows
-        self.channels[channel.id] = channel
-
-    def message(self, message: Message) -> None:
-        out_id = self.out_ids.get(message.channel_id)
+    def chunk_message(self, position: int, head: MessageHead, payload: memoryview) -> None:
+        channel_id, _, log_time, publish_time = head
+        out_id = self.out_ids.get(channel_id)
         if out_id is None:
-            channel = self.channels.get(message.channel_id)
-            if channel is None:
-                self.skip("message without channel")
+            out_id = self.out_id(channel_id)
+            if out_id is None:
                 return
-            schema = self.schemas.get(channel.schema_id)
-            if channel.schema_id != 0 and schema is None:
-                self.skip("message whose channel's schema is lost")
-                return
-            mtype = MessageType(
-                schema.name if schema else "",
-                schema.encoding if schema else "",
-                schema.data if schema else b"",
-                channel.message_encoding,
-            )
-            known = self.by_topic.setdefault(channel.topic, [])
-            out_id = next((out for kind, out in known if kind == mtype), None)
-            if out_id is None:  # a topic's channels of one type become one channel; of another type, their own
-                out_id = self.writer.add_channel(channel.topic, mtype, metadata=dict(channel.metadata),
-                                                 shared_topic=True)
-                known.append((mtype, out_id))
-            self.out_ids[message.channel_id] = out_id
-        topic = self.channels[message.channel_id].topic
-        self.writer.write(out_id, log_time=message.log_time, data=message.data, publish_time=message.publish_time)
+        topic = self.channels[channel_id].topic
+        self.writer.write(out_id, log_time=log_time, data=payload, publish_time=publish_time)
         kept = self.report.kept_by_topic
         kept[topic] = kept.get(topic, 0) + 1
-        lo, hi = self.report.kept_time_range.get(topic, (message.log_time, message.log_time))
-        self.report.kept_time_range[topic] = (min(lo, message.log_time), max(hi, message.log_time))
+        lo, hi = self.report.kept_time_range.get(topic, (log_time, log_time))
+        self.report.kept_time_range[topic] = (min(lo, log_time), max(hi, log_time))
+
+    def out_id(self, channel_id: int) -> int | None:
+        """The output channel of the messages of ``channel_id`` (None, the message skipped, when its channel or
+        schema is lost): a topic's channels of one type become one channel; of another type, their own."""
+        channel = self.channels.get(channel_id)
+        if channel is None:
+            self.skip("message without channel")
+            return None
+        schema = self.schemas.get(channel.schema_id)
+        if channel.schema_id != 0 and schema is None:
+            self.skip("message whose channel's schema is lost")
+            return None
+        mtype = MessageType(schema.name if schema else "", schema.encoding if schema else "",
+                            schema.data if schema else b"", channel.message_encoding)
+        known = self.by_topic.setdefault(channel.topic, [])
+        out_id = next((out for kind, out in known if kind == mtype), None)
+        if out_id is None:
+            out_id = self.writer.add_channel(channel.topic, mtype, metadata=dict(channel.metadata), shared_topic=True)
+            known.append((mtype, out_id))
+        self.out_ids[channel_id] = out_id
+        return out_id
 
 
-_KNOWN_OPCODES = {int(op) for op in Opcode}
 _COMPRESSIONS = {b"", b"zstd", b"lz4"}
 
 
@@ -287,7 +321,7 @@ def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebu
             report.bytes_scanned = cut_off
             return replay.base_record
         offset, detail = damaged
-        skipped_by_length = replay.last_whole
+        skipped_by_length = replay.trusted_before
         # The bytes at `offset` are not a whole record: find the next chunk and go on from there. When the
         # record before was only skipped by its length, that length may be the damage: look inside it too.
         replay.pending_lost = None
@@ -308,22 +342,13 @@ def _read_records(f: BinaryIO, size: int, report: RecoveryReport, rebuild: _Rebu
 
 def _replay_until_damage(f: BinaryIO, offset: int, size: int, replay: _Rebuilder) -> tuple[Any, Any]:
     """Replay the records from ``offset``: ``((offset, what), runs past the end)`` of the first damaged record,
-    or ``(None, where reading stopped)`` at the DataEnd record or the end of the file."""
-    replay.last_whole = None
+    or ``(None, where reading stopped)`` at the DataEnd record or the end of the file. Leaves in
+    ``replay.trusted_before`` the record before the damaged one, when it was trusted by its length alone."""
+    replay.restart()
     try:
-        for offset, opcode, length, body in walk_records(f, offset, size):
-            if opcode not in _KNOWN_OPCODES:
-                return (offset, f"unknown record type {opcode:#04x}"), False
-            try:
-                going_on = replay.record(offset, opcode, body or b"")
-            except (struct.error, ValueError, UnicodeDecodeError, EOFError, McapError, MemoryError) as err:
-                return (offset, f"damaged {Opcode(opcode).name} record: {type(err).__name__}: {err}"), False
-            # a message index that named no lost chunk was trusted by its length alone
-            replay.last_whole = offset if opcode == Opcode.MESSAGE_INDEX and replay.pending_lost is None else None
-            if not going_on:
-                return None, offset + RECORD_HEADER.size + length
-        return None, size
+        walk_data_section(f, offset, size, replay)
     except RecordOverrun as err:
+        replay.trusted_before = replay.trusted  # the last record read is the one before
         if err.cut_header:
             return None, err.offset
         f.seek(err.offset)
@@ -331,38 +356,34 @@ def _replay_until_damage(f: BinaryIO, offset: int, size: int, replay: _Rebuilder
         if opcode not in _KNOWN_OPCODES:
             return (err.offset, f"unknown record type {opcode:#04x}"), False
         return (err.offset, f"a {Opcode(opcode).name} record of {length} bytes runs past the end of the file"), True
+    if replay.damage is not None:
+        return replay.damage, False
+    return None, size if replay.stopped_at is None else replay.stopped_at
 
 
-def _summary_crc_ok(f: BinaryIO, path: Path) -> bool:
+def _summary_crc_ok(f: BinaryIO, footer: Footer) -> bool:
     """Whether the footer's summary CRC matches (a damaged summary must not name channels)."""
-    try:
-        footer = read_footer(path, f)
-    except LogError:
-        return False
     if not len(MAGIC) < footer.summary_start <= footer.offset:
         return False
     return footer.summary_crc == 0 or summary_crc(f, footer) == footer.summary_crc
 
 
-def _seed_from_summary(f: BinaryIO, path: Path, rebuild: _Rebuilder) -> list[int]:
+def _seed_from_summary(f: BinaryIO, footer: Footer, rebuild: _Rebuilder) -> list[int]:
     """Schemas and channels from the summary when it survived intact (a chunk holding them may not have).
 
     Returns the chunk offsets the summary lists (used to resynchronise after a damaged record).
     """
-    if not _summary_crc_ok(f, path):
-        rebuild.skip("damaged summary section (rebuilt from the data section)")
-        return []
     try:
-        summary = read_file_summary(f)
+        if not _summary_crc_ok(f, footer):
+            raise ValueError("damaged")
+        summary = read_summary(f, footer.summary_start, footer.offset)
     except Exception:  # a damaged summary is simply not used; the scan finds the records in the chunks
         rebuild.skip("damaged summary section (rebuilt from the data section)")
         return []
-    if summary is None:
-        return []
     for schema in summary.schemas.values():
-        rebuild.schema(schema)
+        rebuild.schema(0, schema)
     for channel in summary.channels.values():
-        rebuild.channel(channel)
+        rebuild.channel(0, channel)
     return summary.chunk_indexes.column("chunk_start_offset").tolist()
 
 
@@ -385,15 +406,15 @@ def recover_log(
         if f.read(len(MAGIC)) != MAGIC:
             raise CorruptLogError(source, "does not start with the MCAP magic bytes; nothing can be recovered.")
         try:
-            read_footer(source, f)
-            report.had_footer = True
-        except LogError:
-            report.had_footer = False
+            footer: Footer | None = read_footer(f)
+        except FooterError:
+            footer = None
+        report.had_footer = footer is not None
         layer = _layer_base(source, report) if report.had_footer else None
         with LogWriter(output, force=force, compression=compression, validate=False,  # bytes as found
                        layer=layer, inputs=[source]) as writer:
             rebuild = _Rebuilder(writer, report)
-            hints = _seed_from_summary(f, source, rebuild) if report.had_footer else []
+            hints = _seed_from_summary(f, footer, rebuild) if footer is not None else []
             found_base = _read_records(f, report.input_size, report, rebuild, hints)
             if found_base is not None and layer is None and not report.base_note:
                 report.base_note = (f"it was a layer on {found_base.get('path', '?')!r} "

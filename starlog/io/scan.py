@@ -13,9 +13,10 @@ and still holds every message. This module finds what the indexes do not say:
 * :func:`find_definitions` finds the schemas and channels a summary does not repeat (the
   ``mcap`` writer's ``repeat_schemas=False`` / ``repeat_channels=False``) in the chunks' records.
 
-They read record headers (nine bytes each) and skip record bodies, except schema, channel,
-metadata and attachment records and the chunks whose channels must be learnt. Memory stays flat: only indexes and
-counters are kept, never messages.
+The walks are visitors of the one pass over a data section (:mod:`starlog.io.data_section`). They
+read record headers (nine bytes each) and a message's fixed fields, and skip the other record bodies
+but those of schema, channel, metadata and attachment records (and, rebuilding a summary, of chunks
+and message indexes). Memory stays flat: only indexes and counters are kept, never messages.
 """
 
 from __future__ import annotations
@@ -44,19 +45,13 @@ from mcap.records import (
 from mcap.summary import Summary
 
 from starlog.io.chunk_indexes import ChunkIndexTable
-from starlog.io.layout import (
-    MAGIC,
-    MESSAGE_HEADER,
-    MESSAGE_INDEX_BODY,
-    RECORD_HEADER,
-    ChunkContents,
-    decode_chunk,
-    iter_records,
-    parse_record,
-    walk_records,
-)
+from starlog.io.chunks import ChunkContents, decode_chunk
+from starlog.io.data_section import DataVisitor, MessageHead, walk_chunk, walk_data_section
+from starlog.io.layout import MAGIC, MESSAGE_HEADER, MESSAGE_INDEX_BODY, RECORD_HEADER, parse_record
+from starlog.io.record_walk import walk_records
+from starlog.io.summary_checks import missing_schemas
 
-__all__ = ["Gaps", "LooseRun", "ScanResult", "find_definitions", "find_loose_runs", "missing_schemas",
+__all__ = ["Gaps", "LooseRun", "ScanResult", "find_definitions", "find_loose_runs",
            "read_definitions", "read_loose", "synthesize_summary"]
 
 _RUN_MESSAGES = 1024  # loose messages per segment: bounds what one read holds in memory
@@ -98,12 +93,6 @@ class _RunBuilder:
             message_end_time=end, message_index_length=0, message_index_offsets={c: 0 for c in sorted(channels)},
             message_start_time=start, uncompressed_size=stop - first))
         self._open = None
-
-
-def _message_head(f: BinaryIO, offset: int) -> tuple[int, int]:
-    f.seek(offset + RECORD_HEADER.size)
-    channel_id, _, log_time, _ = MESSAGE_HEADER.unpack(f.read(MESSAGE_HEADER.size))
-    return channel_id, log_time
 
 
 def _merged(lo: npt.NDArray[np.uint64], hi: npt.NDArray[np.uint64]
@@ -169,54 +158,86 @@ def find_loose_runs(f: BinaryIO, summary: Summary, data_end: int) -> Gaps:
     A chunk met there (one the chunk indexes do not list) means the file must be read by
     :func:`synthesize_summary`. Raises ``ValueError`` (``struct.error``, ``EOFError``) for a damaged gap.
     """
-    builder = _RunBuilder()
-    gaps = Gaps()
+    gaps = _GapVisitor()
     pos = len(MAGIC)
     for lo, hi in _covered(summary) + [(data_end, data_end)]:
         if lo > pos:
-            for offset, opcode, length, body in walk_records(f, pos, lo, bodies=(Opcode.SCHEMA, Opcode.CHANNEL)):
-                if opcode == Opcode.MESSAGE:
-                    channel_id, log_time = _message_head(f, offset)
-                    builder.add(offset, RECORD_HEADER.size + length, channel_id, log_time)
-                    continue
-                builder.close()
-                if opcode == Opcode.CHUNK:
-                    gaps.unlisted_chunk = True
-                elif opcode in (Opcode.METADATA, Opcode.ATTACHMENT):
-                    _add_index(gaps, f, opcode, offset, length)
-                elif body is not None:
-                    _definition(opcode, body, gaps.schemas, gaps.channels)
+            walk_data_section(f, pos, lo, gaps)
         pos = max(pos, hi)
-    builder.close()
-    gaps.runs = builder.runs
-    return gaps
+    gaps.runs.close()
+    gaps.found.runs = gaps.runs.runs
+    return gaps.found
 
 
-def _add_index(summary: Summary | Gaps, f: BinaryIO, opcode: int, offset: int, length: int) -> None:
-    """Add the index of the metadata or attachment record at ``offset`` (body ``length`` bytes) to ``summary``."""
-    if opcode == Opcode.METADATA:
-        record = parse_record(_body(f, offset, length), Metadata)
-        summary.metadata_indexes.append(MetadataIndex(offset=offset, length=RECORD_HEADER.size + length,
-                                                      name=record.name))
-    else:
-        record = parse_record(_body(f, offset, length), Attachment)
-        summary.attachment_indexes.append(AttachmentIndex(
+class _Found(DataVisitor):
+    """What a walk of the data section finds that the scans keep: messages outside chunks (as runs), schema and
+    channel records (the first of an id; a schema of id 0 is ignored, as the format says), metadata and
+    attachment indexes."""
+
+    bodies = frozenset({Opcode.SCHEMA, Opcode.CHANNEL, Opcode.METADATA, Opcode.ATTACHMENT})
+
+    def __init__(self, summary: Summary | Gaps) -> None:
+        self.found = summary
+        self.runs = _RunBuilder()
+
+    def record(self, offset: int, opcode: int, length: int) -> None:
+        if opcode != Opcode.MESSAGE:
+            self.runs.close()
+
+    def message(self, offset: int, length: int, head: MessageHead, payload: memoryview | None) -> None:
+        self.runs.add(offset, RECORD_HEADER.size + length, head[0], head[2])
+
+    def schema(self, offset: int, schema: Schema) -> None:
+        if schema.id != 0:
+            self.found.schemas.setdefault(schema.id, schema)
+
+    def channel(self, offset: int, channel: Channel) -> None:
+        self.found.channels.setdefault(channel.id, channel)
+
+    def metadata(self, offset: int, length: int, body: memoryview | None) -> None:
+        record = parse_record(body, Metadata)
+        self.found.metadata_indexes.append(MetadataIndex(offset=offset, length=RECORD_HEADER.size + length,
+                                                         name=record.name))
+
+    def attachment(self, offset: int, length: int, body: memoryview | None) -> None:
+        record = parse_record(body, Attachment)
+        self.found.attachment_indexes.append(AttachmentIndex(
             offset=offset, length=RECORD_HEADER.size + length, log_time=record.log_time,
             create_time=record.create_time, data_size=len(record.data), name=record.name,
             media_type=record.media_type))
 
 
-def _definition(opcode: int, body: bytes | memoryview, schemas: dict[int, Schema], channels: dict[int, Channel]
-                ) -> None:
-    """A Schema or Channel record's body into ``schemas`` / ``channels`` (the first of an id kept; a schema
-    of id 0 is ignored, as the format says)."""
-    if opcode == Opcode.SCHEMA:
-        schema = parse_record(body, Schema)
-        if schema.id != 0:
-            schemas.setdefault(schema.id, schema)
-    else:
-        channel = parse_record(body, Channel)
-        channels.setdefault(channel.id, channel)
+class _GapVisitor(_Found):
+    """:func:`find_loose_runs`' walk of a gap: a chunk there is one the summary does not list."""
+
+    found: Gaps
+
+    def __init__(self) -> None:
+        super().__init__(Gaps())
+
+    def chunk(self, offset: int, length: int, body: memoryview | None) -> None:
+        self.found.unlisted_chunk = True
+
+
+class _Definitions(DataVisitor):
+    """The schema and channel records of a chunk into dicts (the first of an id kept; a schema of id 0 is
+    ignored), and each message to ``on_message(channel_id, log_time)``."""
+
+    def __init__(self, schemas: dict[int, Schema] | None, channels: dict[int, Channel] | None,
+                 on_message: Callable[[int, int], object] | None) -> None:
+        self.schemas, self.channels, self.on_message = schemas, channels, on_message
+
+    def schema(self, offset: int, schema: Schema) -> None:
+        if self.schemas is not None and schema.id != 0:
+            self.schemas.setdefault(schema.id, schema)
+
+    def channel(self, offset: int, channel: Channel) -> None:
+        if self.channels is not None:
+            self.channels.setdefault(channel.id, channel)
+
+    def chunk_message(self, position: int, head: MessageHead, payload: memoryview) -> None:
+        if self.on_message is not None:
+            self.on_message(head[0], head[2])
 
 
 def read_definitions(data: bytes | memoryview, schemas: dict[int, Schema] | None, channels: dict[int, Channel] | None,
@@ -224,18 +245,7 @@ def read_definitions(data: bytes | memoryview, schemas: dict[int, Schema] | None
     """The Schema and Channel records among a chunk's records (``data``, decompressed) into ``schemas`` and
     ``channels`` (when given; the first of an id kept), and ``on_message(channel_id, log_time)`` for each message.
     Raises ``ValueError`` / ``struct.error`` (or the record parser's errors) for damaged records."""
-    for _, opcode, body, size in iter_records(data):
-        if opcode == Opcode.MESSAGE:
-            if on_message is not None:
-                cid, _, log_time, _ = MESSAGE_HEADER.unpack_from(data, body)
-                on_message(cid, log_time)
-        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL) and schemas is not None and channels is not None:
-            _definition(opcode, data[body: body + size], schemas, channels)
-
-
-def missing_schemas(summary: Summary) -> set[int]:
-    """The schema ids the summary's channels name that its schemas do not hold."""
-    return {ch.schema_id for ch in summary.channels.values() if ch.schema_id} - summary.schemas.keys()
+    walk_chunk(data, _Definitions(schemas, channels, on_message), 0)
 
 
 def find_definitions(summary: Summary, wanted: Iterable[int], open_chunk: Callable[[ChunkIndex], ChunkContents]
@@ -293,11 +303,11 @@ def read_loose(f: BinaryIO, run: LooseRun) -> list[tuple[int, int, int, Message]
     if len(data) != run.chunk_length:
         raise ValueError("the file ends inside it")
     out: list[tuple[int, int, int, Message]] = []
-    for _, opcode, body, length in iter_records(data, run.chunk_start_offset):
-        if opcode == Opcode.MESSAGE:
-            cid, seq, log_time, publish_time = MESSAGE_HEADER.unpack_from(data, body)
-            payload = data[body + MESSAGE_HEADER.size: body + length]
-            out.append((log_time, len(out), cid, Message(cid, log_time, payload, publish_time, seq)))
+    for _, opcode, _, body in walk_records(data, base=run.chunk_start_offset):
+        if opcode == Opcode.MESSAGE and body is not None:
+            cid, seq, log_time, publish_time = MESSAGE_HEADER.unpack_from(body)
+            out.append((log_time, len(out), cid, Message(cid, log_time, body[MESSAGE_HEADER.size:], publish_time,
+                                                         seq)))
     return out
 
 
@@ -311,28 +321,42 @@ class ScanResult:
     extents: dict[int, list[int]]
 
 
-def _body(f: BinaryIO, offset: int, length: int) -> bytes:
-    f.seek(offset + RECORD_HEADER.size)
-    data = f.read(length)
-    if len(data) != length:
-        raise ValueError(f"the file ends inside the record at offset {offset}")
-    return data
+class _Rebuilt(_Found):
+    """:func:`synthesize_summary`'s walk: the summary the file should have had, built as the records come."""
 
+    bodies = _Found.bodies | {Opcode.CHUNK, Opcode.MESSAGE_INDEX}
 
-class _Tally:
     def __init__(self) -> None:
-        self.summary = Summary()
-        self.summary.chunk_indexes = ChunkIndexTable()  # type: ignore[assignment]  # a sequence of ChunkIndex
+        summary = Summary()
+        summary.chunk_indexes = ChunkIndexTable()  # type: ignore[assignment]  # a sequence of ChunkIndex
+        super().__init__(summary)
+        self.summary = summary
         self.extents: dict[int, list[int]] = {}
+        self.last_chunk: ChunkIndex | None = None  # until its message indexes, if any, are read
 
-    def schema(self, record: Schema) -> None:
-        if record.id != 0:
-            self.summary.schemas.setdefault(record.id, record)
+    def record(self, offset: int, opcode: int, length: int) -> None:
+        if opcode == Opcode.MESSAGE_INDEX and self.last_chunk is not None:
+            return
+        self.end_chunk()
+        super().record(offset, opcode, length)
 
-    def channel(self, record: Channel) -> None:
-        self.summary.channels.setdefault(record.id, record)
+    def end_chunk(self) -> None:
+        if self.last_chunk is not None:
+            self.summary.chunk_indexes.append(self.last_chunk)
+            self.last_chunk = None
 
-    def message(self, channel_id: int, log_time: int) -> None:
+    def message_index(self, offset: int, length: int, body: memoryview | None) -> None:
+        chunk = self.last_chunk
+        if chunk is None or body is None or length < MESSAGE_INDEX_BODY.size:
+            return
+        chunk.message_index_offsets[MESSAGE_INDEX_BODY.unpack_from(body)[0]] = offset
+        chunk.message_index_length = offset + RECORD_HEADER.size + length - min(chunk.message_index_offsets.values())
+
+    def message(self, offset: int, length: int, head: MessageHead, payload: memoryview | None) -> None:
+        super().message(offset, length, head, payload)
+        self.count(head[0], head[2])
+
+    def count(self, channel_id: int, log_time: int) -> None:
         extent = self.extents.get(channel_id)
         if extent is None:
             self.extents[channel_id] = [1, log_time, log_time]
@@ -340,23 +364,28 @@ class _Tally:
             extent[0] += 1
             extent[1], extent[2] = min(extent[1], log_time), max(extent[2], log_time)
 
-    def chunk(self, offset: int, length: int, contents: ChunkContents) -> ChunkIndex:
-        read_definitions(contents.data, self.summary.schemas, self.summary.channels, self.message)
-        return ChunkIndex(
-            chunk_length=length, chunk_start_offset=offset, compression=contents.compression,
+    def chunk(self, offset: int, length: int, body: memoryview | None) -> None:
+        try:
+            contents = decode_chunk(body)  # type: ignore[arg-type]  # CHUNK is in bodies
+        except (ValueError, struct.error) as err:
+            raise ValueError(f"the chunk at offset {offset} is damaged: {err}") from err
+        except Exception as err:  # zstd / lz4 errors
+            raise ValueError(f"the chunk at offset {offset} is damaged: {type(err).__name__}: {err}") from err
+        read_definitions(contents.data, self.summary.schemas, self.summary.channels, self.count)
+        self.last_chunk = ChunkIndex(
+            chunk_length=RECORD_HEADER.size + length, chunk_start_offset=offset, compression=contents.compression,
             compressed_size=contents.compressed_size, message_end_time=contents.end, message_index_length=0,
             message_index_offsets={}, message_start_time=contents.start, uncompressed_size=contents.uncompressed_size)
 
     def statistics(self) -> Statistics:
         counts = {cid: e[0] for cid, e in sorted(self.extents.items())}
-        starts = [e[1] for e in self.extents.values()]
-        ends = [e[2] for e in self.extents.values()]
+        summary = self.summary
         return Statistics(
-            message_count=sum(counts.values()), schema_count=len(self.summary.schemas),
-            channel_count=len(self.summary.channels), attachment_count=len(self.summary.attachment_indexes),
-            metadata_count=len(self.summary.metadata_indexes), chunk_count=len(self.summary.chunk_indexes),
-            message_start_time=min(starts, default=0), message_end_time=max(ends, default=0),
-            channel_message_counts=counts)
+            message_count=sum(counts.values()), schema_count=len(summary.schemas),
+            channel_count=len(summary.channels), attachment_count=len(summary.attachment_indexes),
+            metadata_count=len(summary.metadata_indexes), chunk_count=len(summary.chunk_indexes),
+            message_start_time=min((e[1] for e in self.extents.values()), default=0),
+            message_end_time=max((e[2] for e in self.extents.values()), default=0), channel_message_counts=counts)
 
 
 def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary | None = None) -> ScanResult:
@@ -365,48 +394,14 @@ def synthesize_summary(path: Path, f: BinaryIO, data_end: int, *, known: Summary
     ``known``: a summary without chunk indexes whose schemas and channels are kept.
     Raises ``ValueError`` naming the first damaged record.
     """
-    tally = _Tally()
+    rebuilt = _Rebuilt()
     if known is not None:
         for schema in known.schemas.values():
-            tally.schema(schema)
+            rebuilt.schema(0, schema)
         for channel in known.channels.values():
-            tally.channel(channel)
-    runs = _RunBuilder()
-    last_chunk: ChunkIndex | None = None
-    index_end = 0
-    for offset, opcode, length, _ in walk_records(f, len(MAGIC), data_end, bodies=()):
-        if opcode == Opcode.MESSAGE_INDEX and last_chunk is not None:
-            size = MESSAGE_INDEX_BODY.size
-            channel_id = MESSAGE_INDEX_BODY.unpack(_body(f, offset, size))[0] if length >= size else None
-            if channel_id is not None:
-                last_chunk.message_index_offsets[channel_id] = offset
-                index_end = offset + RECORD_HEADER.size + length
-                first = min(last_chunk.message_index_offsets.values())
-                last_chunk.message_index_length = index_end - first
-            continue
-        if last_chunk is not None:  # its message indexes, if any, are all read
-            tally.summary.chunk_indexes.append(last_chunk)
-        last_chunk = None
-        if opcode == Opcode.MESSAGE:
-            channel_id, log_time = _message_head(f, offset)
-            runs.add(offset, RECORD_HEADER.size + length, channel_id, log_time)
-            tally.message(channel_id, log_time)
-            continue
-        runs.close()
-        if opcode == Opcode.CHUNK:
-            try:
-                contents = decode_chunk(_body(f, offset, length))
-            except (ValueError, struct.error) as err:
-                raise ValueError(f"the chunk at offset {offset} is damaged: {err}") from err
-            except Exception as err:  # zstd / lz4 errors
-                raise ValueError(f"the chunk at offset {offset} is damaged: {type(err).__name__}: {err}") from err
-            last_chunk = tally.chunk(offset, RECORD_HEADER.size + length, contents)
-        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
-            _definition(opcode, _body(f, offset, length), tally.summary.schemas, tally.summary.channels)
-        elif opcode in (Opcode.METADATA, Opcode.ATTACHMENT):
-            _add_index(tally.summary, f, opcode, offset, length)
-    if last_chunk is not None:
-        tally.summary.chunk_indexes.append(last_chunk)
-    runs.close()
-    tally.summary.statistics = tally.statistics()
-    return ScanResult(tally.summary, runs.runs, tally.extents)
+            rebuilt.channel(0, channel)
+    walk_data_section(f, len(MAGIC), data_end, rebuilt)
+    rebuilt.end_chunk()
+    rebuilt.runs.close()
+    rebuilt.summary.statistics = rebuilt.statistics()
+    return ScanResult(rebuilt.summary, rebuilt.runs.runs, rebuilt.extents)

@@ -1,6 +1,6 @@
 """Writing starlog logs: chunked, compressed, fully indexed MCAP, written atomically.
 
-Why not :class:`mcap.writer.Writer` directly? Three things it does not do:
+Why not :class:`mcap.writer.Writer` directly? Four things it does not do:
 
 * **write a layer** — given the :class:`~starlog.io.chain.LayerBase` of the log a stage extends,
   the output holds only the stage's records, its schema and channel ids follow the chain's,
@@ -24,72 +24,64 @@ process, see :mod:`starlog.codecs.checked_json`), and the channel is marked so (
 ``starlog.validated``): a reader then need not check those messages again when their chunk's
 CRC vouches for the bytes.
 
-The output goes to a temporary file beside the destination and is renamed over it only
-when :meth:`LogWriter.close` completes, so a killed stage leaves either no output or the
-previous file, never a half-written one under the final name (``in_place`` aside).
+The chunks are built and compressed by :mod:`starlog.io.chunks`, the summary section written by
+:mod:`starlog.io.summary_section`. The output goes to a temporary file beside the destination and
+is renamed over it only when :meth:`LogWriter.close` completes (:mod:`starlog.io.output_files`),
+so a killed stage leaves either no output or the previous file, never a half-written one under
+the final name (``in_place`` aside).
 
-One module of over 500 lines: :class:`LogWriter`'s chunking, indexing, summary and atomic rename
-share one open file's state (open chunks, indexes, offsets), so they are one class.
+One module of over 500 lines: :class:`LogWriter`'s registration of channels, chunking, copying of
+records and summary share one open file's state (open chunks, indexes, statistics), so they are one
+class.
 """
 
 from __future__ import annotations
 
-import errno
 import os
-import tempfile
-from collections import defaultdict, deque
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager, suppress
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from collections import defaultdict
+from collections.abc import Callable, Iterable
+from contextlib import suppress
 from enum import Enum
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, BinaryIO
+from typing import TYPE_CHECKING, Any
 
-from mcap._chunk_builder import ChunkBuilder
-from mcap.data_stream import RecordBuilder
-from mcap.opcode import Opcode
 from mcap.records import (
     AttachmentIndex,
     Channel,
     ChunkIndex,
     DataEnd,
-    Footer,
     Header,
-    Message,
     Metadata,
     MetadataIndex,
     Schema,
     Statistics,
-    SummaryOffset,
 )
 
 from starlog.version import __version__
 from starlog.errors import (
     CorruptLogError,
-    FileAccessError,
     InvalidInputError,
     InvalidParameterError,
-    OutputChangedError,
     OutputExistsError,
     OutputFolderError,
     file_errors,
 )
 from starlog.io.chain import BASE_METADATA_NAME
 from starlog.codecs.checked_json import CheckedJson, schema_checker, schema_digest
-from starlog.io.checksum import crc32
 from starlog.io.chunk_indexes import ChunkIndexTable
-from starlog.io.layout import MAGIC, chunk_record, footer_crc, message_index_record
+from starlog.io.chunks import ChunkBuilder, CompressionQueue, PendingChunk
+from starlog.io.layout import MAGIC, chunk_record, encode_record, message_index_record
 from starlog.codecs.json_messages import decode_json
+from starlog.io.output_files import ChecksummedFile, commit_output, open_in_place, output_identity, temporary_output
 from starlog.codecs.schemas import MessageType
+from starlog.io.summary_section import write_summary
 
 if TYPE_CHECKING:
     from starlog.io.chain import LayerBase
     from starlog.io.mcap_file import McapFile
 
-__all__ = ["FRAME_COMPRESSION", "Compression", "LogWriter", "VALIDATED_METADATA_KEY", "atomic_output", "commit_output",
-           "output_identity", "temporary_folder", "temporary_output"]
+__all__ = ["FRAME_COMPRESSION", "Compression", "LogWriter", "VALIDATED_METADATA_KEY"]
 
 #: Channel metadata key set by :class:`LogWriter` on the JSON channels whose every message it
 #: checked against the channel's JSON Schema while writing.
@@ -106,185 +98,11 @@ class Compression(str, Enum):
     NONE = "none"
 
 
-#: zstd level of every chunk. Camera frames: sensor noise leaves little for the match finder, so
-#: level 3 makes 16-bit frames 5 % smaller than level 1 but costs twice the time to compress and a
-#: third more to decompress (1024x1024 mono16: 7.1 against 5.3 ms per 4 MB chunk), and every stage
-#: that reads frames pays the decompression. starlog's own channels are mostly JSON floats, and on
-#: them level 1 is both faster and smaller than level 3 (2 MB pieces of a 512², 40-star log's
-#: detections, centroids, tracks and annotations: 106-316 against 36-78 MB/s, 4-16 % smaller); only
-#: the simulator's truth packs tighter at level 3 (88x against 61x), a few kB a second.
-ZSTD_LEVEL = 1
-
 #: Chunk compression of the logs that hold camera frames (``simulate``, ``ingest``): the stages that read frames pay
 #: its decompression on every frame. lz4 decodes a 1024x1024 mono16 frame about twice as fast as zstd for
 #: files about 1.6 times as large; uncompressed chunks decode fastest and are 2.6 times as large
 #: (``python tools/bench_io.py``, docs/BENCHMARKS.md). ``--compression`` keeps the choice with the user.
 FRAME_COMPRESSION = "lz4"
-
-
-def _compress(data: bytes, compression: Compression) -> tuple[bytes, int]:
-    crc = crc32(data)
-    if compression is Compression.ZSTD:
-        import zstandard
-
-        return zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(data), crc
-    if compression is Compression.LZ4:
-        import lz4.frame
-
-        # 1 MiB blocks: python-lz4 decodes them at twice the speed of its default 64 KiB blocks (slower than
-        # zstd) or of 4 MiB ones, for the same size (``python tools/bench_io.py``'s frame table)
-        return lz4.frame.compress(data, block_size=lz4.frame.BLOCKSIZE_MAX1MB), crc
-    return data, crc
-
-
-def temporary_output(output: Path) -> tuple[int, Path]:
-    """A new file beside ``output`` to write it in, renamed over it when complete: its descriptor and path.
-
-    Its permissions are those of a file the user creates (``mkstemp``'s 0600 would survive the rename
-    and make every log private). An OS error (read-only or full file system, no permission) is a
-    :class:`~starlog.errors.FileAccessError` naming ``output``.
-    """
-    with file_errors(output):
-        fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent or ".")
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
-    except BaseException:
-        os.close(fd)
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return fd, Path(tmp)
-
-
-def _open_in_place(output: Path) -> tuple[int, Path]:
-    """``output`` itself, created or emptied (the caller refused an existing one without ``force``); an OS error
-    is a :class:`~starlog.errors.FileAccessError` naming it."""
-    with file_errors(output):
-        return os.open(output, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666), output
-
-
-Identity = tuple[int, int, int, int]
-
-
-def output_identity(path: Path) -> Identity | None:
-    """Which file is at ``path`` (device, inode, size, modification time), or None when there is none."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        return None
-    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
-
-
-def commit_output(tmp: Path, output: Path, *, seen: Identity | None) -> None:
-    """Put the finished file ``tmp`` in place as ``output``, which held ``seen`` when the output was opened.
-
-    When another command has written ``output`` meanwhile (two commands writing the same path at once),
-    its file is kept and :class:`~starlog.errors.OutputChangedError` raised: the first to finish wins. The
-    check and the rename are one step for starlog commands (a lock on the folder), and an output that did
-    not exist is never written over, whoever created it (a hard link, which fails on an existing name).
-    """
-    with _folder_lock(output.parent):
-        now = output_identity(output)
-        if now is not None and now != seen:
-            raise OutputChangedError(output)
-        if seen is None and _link(tmp, output):
-            tmp.unlink()
-        else:
-            os.replace(tmp, output)
-
-
-def _link(tmp: Path, output: Path) -> bool:
-    """Hard-link ``tmp`` as ``output`` (False where the file system has no hard links)."""
-    try:
-        os.link(tmp, output)
-    except FileExistsError:
-        raise OutputChangedError(output) from None
-    except OSError as err:
-        if err.errno in _NO_HARD_LINKS:
-            return False
-        raise
-    return True
-
-
-_NO_HARD_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK}
-
-
-@contextmanager
-def _folder_lock(folder: Path) -> Iterator[None]:
-    """An exclusive lock on ``folder`` among starlog commands (``flock`` of its descriptor); none where the
-    platform or the file system has none, or the folder is gone (the rename then says so)."""
-    fd = None
-    with suppress(ImportError, OSError):
-        import fcntl
-
-        fd = os.open(folder, os.O_RDONLY)
-        with suppress(OSError):
-            fcntl.flock(fd, fcntl.LOCK_EX)
-    try:
-        yield
-    finally:
-        if fd is not None:
-            os.close(fd)
-
-
-@contextmanager
-def atomic_output(output: Path, *, force: bool = True) -> Iterator[Path]:
-    """A temporary file beside ``output`` for the block to write: put in place as ``output`` when the block
-    succeeds (:func:`commit_output`), removed whatever else happens. Refuses an existing ``output`` without
-    ``force``; an OS error is a :class:`~starlog.errors.FileAccessError` naming ``output``."""
-    output = Path(output)
-    if output.exists() and not force:
-        raise OutputExistsError(output)
-    OutputFolderError.check(output)
-    seen = output_identity(output)
-    fd, tmp = temporary_output(output)
-    os.close(fd)
-    try:
-        with file_errors(output):
-            yield tmp
-            _fsync(tmp)
-            commit_output(tmp, output, seen=seen)
-    finally:
-        with suppress(OSError):
-            tmp.unlink(missing_ok=True)
-
-
-def _fsync(path: Path) -> None:
-    """Make the bytes written to ``path`` durable before it is renamed into place (as the log writer does)."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-@contextmanager
-def temporary_folder(beside: Path) -> Iterator[Path]:
-    """A new hidden folder beside ``beside`` (e.g. for the layers of a chain that is then flattened into
-    ``beside``), removed at the end whatever happens. A failure to write in it names ``beside``, the output
-    the user asked for."""
-    OutputFolderError.check(beside)
-    with file_errors(beside):
-        folder = tempfile.TemporaryDirectory(prefix=f".{beside.name}.", suffix=".layers", dir=beside.parent or ".",
-                                             ignore_cleanup_errors=True)
-    with folder as name:
-        try:
-            yield Path(name)
-        except FileAccessError as err:
-            if Path(name) not in err.path.parents:
-                raise
-            raise FileAccessError(beside, err.action, err.errno, err.detail) from err
-
-
-@dataclass
-class _PendingChunk:
-    future: Future[tuple[bytes, int]]
-    uncompressed_size: int
-    message_indices: dict[int, list[tuple[int, int]]]
-    start_time: int
-    end_time: int
-
 
 class LogWriter:
     """Write a new MCAP log, or a layer on an existing one.
@@ -357,6 +175,7 @@ class LogWriter:
         self.workers = workers
         self.validate = validate
         self.layer = layer
+        self.in_place = in_place
         self._next_schema_id, self._next_channel_id = (
             first_ids if first_ids is not None else (layer.next_schema_id, layer.next_channel_id) if layer else (1, 1))
         self._checkers: dict[int, Callable[[Any], str | None]] = {}
@@ -374,26 +193,25 @@ class LogWriter:
         self._last_time: dict[int, int] = {}
         self._builders: dict[int, ChunkBuilder] = {}
         self._open_bytes = 0  # message bytes in the open chunks of all channels
-        self._records = RecordBuilder()
-        self._pending: deque[_PendingChunk] = deque()
-        self._executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
         self._closed = False
-        self.in_place = in_place
+        self._open_output(profile)
+
+    def _open_output(self, profile: str) -> None:
+        """Create the output (a temporary file beside it, or itself ``in_place``) and write its header."""
+        self._chunks = CompressionQueue(self.compression.value, self.workers, self._write_chunk)
         try:
             self._seen = output_identity(self.path)
-            fd, self._tmp_path = _open_in_place(self.path) if in_place else temporary_output(self.path)
+            fd, self._tmp_path = open_in_place(self.path) if self.in_place else temporary_output(self.path)
         except BaseException:
             self._closed = True
-            if self._executor is not None:
-                self._executor.shutdown(wait=False)
-            if layer is not None:
-                layer.cancel()
+            self._chunks.shutdown(cancel=True)
+            if self.layer is not None:
+                self.layer.cancel()
             raise
-        self._file = _DataSectionFile(os.fdopen(fd, "w+b", buffering=1024 * 1024), self.path)
+        self._file = ChecksummedFile(os.fdopen(fd, "w+b", buffering=1024 * 1024), self.path)
         try:
             self._file.write(MAGIC)
-            Header(profile=profile, library=LIBRARY).write(self._records)
-            self._flush_records()
+            self._file.write(encode_record(Header(profile=profile, library=LIBRARY)))
         except BaseException:
             self.abort()
             raise
@@ -466,8 +284,8 @@ class LogWriter:
         if monotonic:
             self._last_time[channel_id] = -1
         builder = self._builders[channel_id] = ChunkBuilder()
-        builder.add_schema(self._schemas[schema_id])  # each channel's first chunk names its schema
-        builder.add_channel(channel)
+        builder.add_record(encode_record(self._schemas[schema_id]))  # each channel's first chunk names its schema
+        builder.add_record(encode_record(channel))
         return channel_id
 
     def _register_channel(self, channel: Channel) -> None:
@@ -539,13 +357,11 @@ class LogWriter:
             self._last_time[channel_id] = log_time
         seq = self._sequence[channel_id]
         self._sequence[channel_id] = seq + 1
-        message = Message(channel_id=channel_id, log_time=log_time,
-                          publish_time=log_time if publish_time is None else int(publish_time),
-                          sequence=seq & 0xFFFFFFFF, data=data)
         self._count(channel_id, 1, log_time, log_time)
-        before = builder.count
-        builder.add_message(message)
-        self._open_bytes += builder.count - before
+        before = len(builder.data)
+        builder.add_message(channel_id, seq & 0xFFFFFFFF, log_time,
+                            log_time if publish_time is None else int(publish_time), data)
+        self._open_bytes += len(builder.data) - before
         if self._open_bytes >= self.chunk_size:
             self._close_chunk()
 
@@ -554,7 +370,7 @@ class LogWriter:
         growing file sees every message written so far (each flush ends the chunks, so flush at the pace a
         reader needs, not per message)."""
         self._close_chunk()
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         self._file.flush()
 
     def attach_base(self, layer: LayerBase) -> None:
@@ -575,11 +391,11 @@ class LogWriter:
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Add an MCAP Metadata record (indexed)."""
         self._close_chunk()
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         offset = self._file.tell()
-        Metadata(name=name, metadata=dict(data)).write(self._records)
-        length = self._records.count
-        self._flush_records()
+        record = encode_record(Metadata(name=name, metadata=dict(data)))
+        length = len(record)
+        self._file.write(record)
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
         self._stats.metadata_count += 1
 
@@ -591,7 +407,7 @@ class LogWriter:
             if self.layer is not None:
                 self.add_metadata(BASE_METADATA_NAME, self.layer.reference(self.path).to_metadata())
             self._close_chunk()
-            self._drain(all_of_them=True)
+            self._chunks.drain(all_of_them=True)
             self._write_summary()
             with file_errors(self.path):
                 self._file.flush()
@@ -603,8 +419,7 @@ class LogWriter:
             self.abort()
             raise
         finally:
-            if self._executor is not None:
-                self._executor.shutdown(wait=True)
+            self._chunks.shutdown()
         self._closed = True
         return self.path
 
@@ -613,8 +428,7 @@ class LogWriter:
         if self._closed:
             return
         self._closed = True
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
+        self._chunks.shutdown(cancel=True)
         if self.layer is not None:
             self.layer.cancel()
         try:
@@ -629,21 +443,19 @@ class LogWriter:
     # ------------------------------------------------------------------ copying records of other files
     def copy_schema(self, schema: Schema) -> None:
         """Write ``schema`` as it is (its id kept), for the copied records that name it."""
-        schema.write(self._records)
-        self._flush_records()
+        self._file.write(encode_record(schema))
         self._register_schema(schema)
 
     def copy_channel(self, channel: Channel) -> None:
         """Write ``channel`` as it is (its id, topic and metadata kept), for the copied records that name it; its
         topic may be another copied channel's (valid MCAP: one channel per publisher)."""
-        channel.write(self._records)
-        self._flush_records()
+        self._file.write(encode_record(channel))
         self._register_channel(channel)
 
     def copy_chunk(self, source: McapFile, ci: ChunkIndex, counts: dict[int, int]) -> int:
         """Copy the chunk ``ci`` of ``source`` and its message index records byte for byte (``counts``: its
         messages per channel, for the statistics); returns the bytes copied."""
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         chunk = source.read_bytes(ci.chunk_start_offset, ci.chunk_length)
         first_index = min(ci.message_index_offsets.values())
         indexes = source.read_bytes(first_index, ci.message_index_length)
@@ -667,7 +479,7 @@ class LogWriter:
     def copy_chunk_record(self, raw: bytes, ci: ChunkIndex, indices: dict[int, list[tuple[int, int]]]) -> None:
         """Write a chunk record as it is (``raw``) followed by new message index records (``indices``: the
         ``(log_time, offset)`` of its messages per channel)."""
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         chunk_start = self._file.tell()
         self._file.write(raw)
         self._write_chunk_index(chunk_start, len(raw), ci.message_start_time, ci.message_end_time, indices,
@@ -677,16 +489,14 @@ class LogWriter:
     def copy_messages(self, data: bytes, indices: dict[int, list[tuple[int, int]]]) -> None:
         """Write message records (``data``, their bytes as read) as one new chunk, compressed as this log's
         (``indices``: the ``(log_time, offset in data)`` of each message, per channel)."""
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         times = [t for records in indices.values() for t, _ in records]
-        future: Future[tuple[bytes, int]] = Future()
-        future.set_result(_compress(data, self.compression))
-        self._write_chunk(_PendingChunk(future, len(data), indices, min(times), max(times)))
+        self._chunks.put(data, indices, min(times), max(times), now=True)
         self._count_indexed(indices)
 
     def copy_record(self, source: McapFile, offset: int, length: int) -> int:
         """Copy one top-level record (metadata, attachment) of ``source`` byte for byte; returns its offset here."""
-        self._drain(all_of_them=True)
+        self._chunks.drain(all_of_them=True)
         data = source.read_bytes(offset, length)
         if len(data) != length:
             raise CorruptLogError(source.path, f"the record at offset {offset} is cut off")
@@ -709,9 +519,6 @@ class LogWriter:
         self._stats.attachment_count += 1
 
     # ------------------------------------------------------------------ internals
-    def _flush_records(self) -> None:
-        self._file.write(self._records.end())
-
     def _count(self, channel_id: int, n: int, first: int, last: int) -> None:
         """Add ``n`` messages of a channel spanning ``first..last`` to the statistics."""
         if n <= 0:
@@ -742,24 +549,9 @@ class LogWriter:
     def _close_builder(self, builder: ChunkBuilder) -> None:
         if builder.num_messages == 0:
             return
-        data = builder.end()
-        indices = {cid: list(index.records) for cid, index in builder.message_indices.items()}
-        start, end = builder.message_start_time, builder.message_end_time
-        builder.reset()
-        if self._executor is None:
-            future: Future[tuple[bytes, int]] = Future()
-            future.set_result(_compress(data, self.compression))
-        else:
-            future = self._executor.submit(_compress, data, self.compression)
-        self._pending.append(_PendingChunk(future, len(data), indices, start, end))
-        self._drain(all_of_them=False)
+        self._chunks.put(*builder.take())
 
-    def _drain(self, *, all_of_them: bool) -> None:
-        limit = 0 if all_of_them else 2 * self.workers
-        while self._pending and (len(self._pending) > limit or self._pending[0].future.done()):
-            self._write_chunk(self._pending.popleft())
-
-    def _write_chunk(self, pending: _PendingChunk) -> None:
+    def _write_chunk(self, pending: PendingChunk) -> None:
         compressed, crc = pending.future.result()
         compression = "" if self.compression is Compression.NONE else self.compression.value
         chunk_start = self._file.tell()
@@ -787,100 +579,9 @@ class LogWriter:
         self._stats.chunk_count += 1
 
     def _write_summary(self) -> None:
-        DataEnd(data_section_crc=self._file.crc).write(self._records)
-        self._flush_records()
-        summary_start = self._file.tell()
-        out = _SummarySink(self._file)
-        offsets: list[SummaryOffset] = []
-
-        def group(opcode: Opcode, records: list[Any], table: ChunkIndexTable | None = None) -> None:
-            if not records and not table:
-                return
-            start = out.count
-            out.write_records(records)
-            if table is not None:
-                table.write_records(out.write)
-            offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + start,
-                                         group_length=out.count - start))
-
-        group(Opcode.SCHEMA, [self._schemas[k] for k in sorted(self._schemas)])
-        group(Opcode.CHANNEL, [self._channels[k] for k in sorted(self._channels)])
-        self._stats.channel_message_counts = defaultdict(
-            int, {k: v for k, v in sorted(self._stats.channel_message_counts.items())}
-        )
-        group(Opcode.STATISTICS, [self._stats])
-        group(Opcode.CHUNK_INDEX, [], self._chunk_indexes)
-        group(Opcode.ATTACHMENT_INDEX, list(self._attachment_indexes))
-        group(Opcode.METADATA_INDEX, list(self._metadata_indexes))
-        summary_offset_start = summary_start + out.count
-        out.write_records(offsets)
-        out.flush()
-        crc = footer_crc(out.crc, summary_start, summary_offset_start)
-        Footer(summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=crc).write(
-            self._records
-        )
-        self._flush_records()
-        self._file.write(MAGIC)
-
-
-class _DataSectionFile:
-    """The output file, keeping the CRC-32 of every byte written to it (until the summary, that of the data
-    section, which the DataEnd record stores: the reference MCAP writers do the same). A failed write is a
-    :class:`~starlog.errors.FileAccessError` naming the output (``path``), not its temporary file."""
-
-    def __init__(self, file: BinaryIO, path: Path) -> None:
-        self._file = file
-        self._path = path
-        self.crc = 0
-
-    def write(self, data: bytes | memoryview) -> int:
-        self.crc = crc32(data, self.crc)
-        with file_errors(self._path):
-            return self._file.write(data)
-
-    def tell(self) -> int:
-        return self._file.tell()
-
-    def flush(self) -> None:
-        with file_errors(self._path):
-            self._file.flush()
-
-    def fileno(self) -> int:
-        return self._file.fileno()
-
-    def close(self) -> None:
-        self._file.close()
-
-
-class _SummarySink:
-    """The summary section written to the file as it is made (a few MiB at a time), with its CRC:
-    the summary of an hour-long log (millions of chunk indexes) is never held whole."""
-
-    _FLUSH_AT = 4 << 20
-
-    def __init__(self, file: _DataSectionFile) -> None:
-        self._file = file
-        self._parts: list[bytes] = []
-        self._pending = 0
-        self.count = 0
-        self.crc = 0
-
-    def write(self, data: bytes) -> None:
-        self._parts.append(data)
-        self._pending += len(data)
-        self.count += len(data)
-        if self._pending >= self._FLUSH_AT:
-            self.flush()
-
-    def write_records(self, records: list[Any]) -> None:
-        """MCAP records (objects of ``mcap.records``), serialised."""
-        builder = RecordBuilder()
-        for record in records:
-            record.write(builder)
-        self.write(builder.end())
-
-    def flush(self) -> None:
-        data = b"".join(self._parts)
-        self.crc = crc32(data, self.crc)  # ISA-L when installed, as for the chunks
-        self._file.write(data)
-        self._parts, self._pending = [], 0
+        """The DataEnd record, the summary section, the footer and the closing magic."""
+        self._file.write(encode_record(DataEnd(data_section_crc=self._file.crc)))
+        self._stats.channel_message_counts = defaultdict(int, sorted(self._stats.channel_message_counts.items()))
+        write_summary(self._file.write, self._file.tell(), [self._schemas[k] for k in sorted(self._schemas)],
+                      [self._channels[k] for k in sorted(self._channels)], self._stats, self._chunk_indexes,
+                      list(self._attachment_indexes), list(self._metadata_indexes))

@@ -28,7 +28,9 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Message, Metadata, Schema
 
 from starlog.errors import CorruptLogError, NotMcapError
-from starlog.io.layout import MAGIC, MESSAGE_HEADER, RECORD_HEADER, chunk_header, decode_chunk, iter_records, parse_record
+from starlog.io.chunks import decode_chunk
+from starlog.io.layout import MAGIC, MESSAGE_HEADER, RECORD_HEADER, chunk_header, parse_record
+from starlog.io.record_walk import walk_records
 
 __all__ = ["DamagedChunk", "FollowedChunk", "FollowedMessage", "FollowedMetadata", "McapFollower"]
 
@@ -223,8 +225,9 @@ class McapFollower:
         messages: list[FollowedMessage] = []
         counts: dict[int, int] = {}
         data = contents.data
-        for _, opcode, at, length in iter_records(data):
-            record = data[at: at + length]
+        for _, opcode, _, record in walk_records(data):
+            if record is None:
+                continue
             if opcode == Opcode.SCHEMA:
                 self._schema(parse_record(record, Schema))
             elif opcode == Opcode.CHANNEL:

@@ -25,7 +25,8 @@ from mcap.records import MetadataIndex
 from starlog.errors import OutputExistsError
 from starlog.io.chain import BASE_METADATA_NAME
 from starlog.io.mcap_file import McapFile
-from starlog.io.writer import LogWriter, temporary_folder
+from starlog.io.output_files import temporary_folder
+from starlog.io.writer import LogWriter
 from starlog.sim import SimulationConfig
 from starlog.stages.simulate import simulate_log
 

@@ -17,17 +17,9 @@ from typing import BinaryIO
 from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, Metadata, Schema
 
-from starlog.io.layout import (
-    MAGIC,
-    MESSAGE_HEADER,
-    RECORD_HEADER,
-    chunk_header,
-    decode_chunk,
-    iter_records,
-    parse_message_index,
-    parse_record,
-    walk_records,
-)
+from starlog.io.chunks import decode_chunk
+from starlog.io.layout import MAGIC, MESSAGE_HEADER, RECORD_HEADER, chunk_header, parse_message_index, parse_record
+from starlog.io.record_walk import walk_records
 from starlog.io.writer import LogWriter
 
 __all__ = ["snapshot_log"]
@@ -88,8 +80,9 @@ def _copy_chunk(f: BinaryIO, out: LogWriter, offset: int, length: int, indices: 
     rebuild = not indices
     if rebuild or not set(indices) <= channels:
         contents = decode_chunk(body)
-        for at, opcode, position, record_length in iter_records(contents.data):
-            record = contents.data[position: position + record_length]
+        for at, opcode, _, record in walk_records(contents.data):
+            if record is None:
+                continue
             if opcode == Opcode.MESSAGE and rebuild:
                 channel_id, _, log_time, _ = MESSAGE_HEADER.unpack_from(record, 0)
                 indices.setdefault(channel_id, []).append((log_time, at))

@@ -28,7 +28,7 @@ from starlog.io.frames import cached_image_decoder
 from starlog.codecs.images import IMAGE_SCHEMAS, is_image_schema
 from starlog.codecs.json_messages import decode_json
 from starlog.io.reader import LogReader
-from starlog.io.writer import atomic_output
+from starlog.io.output_files import atomic_output
 
 __all__ = ["flatten", "export_topic", "export_image_frames", "image_frames_table", "parquet_writer", "topic_file_name", "topic_table"]
 

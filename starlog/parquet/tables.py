@@ -28,7 +28,7 @@ from starlog.parquet.channels import export_image_frames, export_topic, image_fr
 from starlog.codecs.images import is_image_schema
 from starlog.io.reader import ChannelSummary, LogReader, TableMessage
 from starlog.codecs.schemas import schema_dir
-from starlog.io.writer import atomic_output
+from starlog.io.output_files import atomic_output
 from starlog import topics
 
 __all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "family_table", "table_columns", "table_of_channel",

@@ -86,7 +86,7 @@ def new_figure(width_in: float, height_in: float) -> Figure:
 
 def save_png(figure: Figure, path: str | Path, *, dpi: int = PNG_DPI) -> Path:
     """Write ``figure`` as a PNG file; returns its path."""
-    from starlog.io.writer import atomic_output
+    from starlog.io.output_files import atomic_output
 
     path = Path(path)
     with atomic_output(path) as tmp:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from starlog.io.writer import atomic_output
+from starlog.io.output_files import atomic_output
 from starlog.report.attitude import attitude_section
 from starlog.report.collect import ReportData, collect_report_data
 from starlog.report.page import Raw, figure, html_page, missing, table
@@ -258,7 +258,7 @@ def render_report(data: ReportData) -> str:
 
 def write_text_atomic(path: Path, text: str, *, force: bool = True) -> Path:
     """Write ``text`` to ``path`` through a temporary file put in its place when complete (never a half-written
-    file; see :func:`~starlog.io.writer.atomic_output`)."""
+    file; see :func:`~starlog.io.output_files.atomic_output`)."""
     with atomic_output(path, force=force) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return path

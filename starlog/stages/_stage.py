@@ -16,7 +16,7 @@ from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.io.reader import LogSource, LogView
 from starlog.codecs.schemas import MessageType
 from starlog.io.copying import flatten_log
-from starlog.io.writer import temporary_folder
+from starlog.io.output_files import temporary_folder
 
 __all__ = ["StageOutput", "extend_log", "layer_path_for", "record_provenance"]
 
