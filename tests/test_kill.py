@@ -365,6 +365,40 @@ def test_a_ctrl_c_landing_in_a_callback_from_c_still_stops_the_command_quietly()
     assert done.stderr == b""
 
 
+FINALIZER_AFTER_A_STOP = """
+import os, signal, sys
+from starlog import cli
+
+cli._handle_stops()
+
+
+class HalfMade:
+    def __del__(self):
+        self.handle.close()  # never set: the stop came before it was
+
+
+HalfMade()  # Python reports the finalizer's error: no stop yet, so it prints
+sys.stderr.write("--\\n")
+sys.stderr.flush()
+try:
+    os.kill(os.getpid(), signal.SIGINT)
+    sum(range(100_000))
+except KeyboardInterrupt:
+    HalfMade()  # the stop left it half made: not reported
+    print("stopped")
+"""
+
+
+def test_a_finalizer_failing_after_a_ctrl_c_prints_nothing() -> None:
+    """A Ctrl-C landing in numba's compiler leaves llvmlite objects half made, whose finalizers then fail: once
+    the command is stopping, Python's reports of those are left out (before a stop, they print as usual)."""
+    done = subprocess.run([sys.executable, "-c", FINALIZER_AFTER_A_STOP], capture_output=True, timeout=60,
+                          preexec_fn=_default_sigint)
+    assert done.stdout.decode().strip() == "stopped"
+    before, after = done.stderr.decode().split("--\n")
+    assert "AttributeError" in before and after == ""
+
+
 CTRL_C_AS_A_CLASS_IS_MADE = """
 import os, signal
 from starlog import cli

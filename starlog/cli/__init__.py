@@ -146,17 +146,20 @@ class _Terminated(BaseException):
     """SIGTERM arrived: unwind (abort partial outputs, stop worker pools), then die of the signal."""
 
 
-def _raise_terminated(signum: int, frame: Any) -> None:
-    raise _Terminated()
-
-
 _interrupted = False
+_stopping = False
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    global _stopping
+    _stopping = True
+    raise _Terminated()
 
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
     """Ctrl-C: unwind as for SIGTERM; a second Ctrl-C while the command unwinds does not cut its cleanup short."""
-    global _interrupted
-    _interrupted = True
+    global _interrupted, _stopping
+    _interrupted = _stopping = True
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     raise KeyboardInterrupt
 
@@ -164,10 +167,13 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
 def _redeliver_stop(unraisable: Any) -> None:
     """Python only reports an exception raised in code called back from C (numba's compiler cache, a finalizer);
     a Ctrl-C or SIGTERM landing there would be printed and lost. It is delivered again instead, a moment later,
-    once that callback has returned. Every other report goes to Python's own hook."""
+    once that callback has returned. Every other report goes to Python's own hook, but for those raised once
+    the command is stopping (a finalizer of an object the stop interrupted as it was made: llvmlite's, when
+    the stop lands in numba's compiler)."""
     stop = unraisable.exc_value
     if not isinstance(stop, KeyboardInterrupt | _Terminated) or threading.current_thread() is not threading.main_thread():
-        sys.__unraisablehook__(unraisable)
+        if not _stopping:  # once stopped, a finalizer of an object the stop left half made is no news
+            sys.__unraisablehook__(unraisable)
         return
     signum = signal.SIGINT if isinstance(stop, KeyboardInterrupt) else signal.SIGTERM
     if signum == signal.SIGINT:
