@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from starlog.centroiding import CentroidFlag, extract_stars
 # private module _stamps: remaining_snr takes stamps, which only it cuts
-from starlog.centroiding._stamps import gather_stamps
+from starlog.centroiding.stamps import gather_stamps
 from starlog.centroiding.artefacts import detection_threshold, remaining_snr
 from starlog.cli import cli
 from starlog.detect import detect_stars

@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.centroiding.artefacts import detection_threshold, find_artefacts, light_reach
-from starlog.centroiding._stamps import (
+from starlog.centroiding.stamps import (
     Stamps,
     fisher_sigma,
     gather_stamps,

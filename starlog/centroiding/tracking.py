@@ -39,7 +39,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.detect import DETECTION_DTYPE
-from starlog.detect._flags import StarFlag
+from starlog.detect.flags import StarFlag
 from starlog.detect.detection import matched_filter_kernel
 from starlog.detect.position import coarse_offsets
 from starlog.errors import InvalidParameterError

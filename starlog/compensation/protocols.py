@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensation._series import as_reference, as_series, improvement, parse_choice, radial_rms
+from starlog.compensation.series import as_reference, as_series, improvement, parse_choice, radial_rms
 from starlog.compensation.references import (
     CALIBRATION_FRACTION,
     MotionMode,

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensation._series import (
+from starlog.compensation.series import (
     as_samples,
     as_series,
     check_int,

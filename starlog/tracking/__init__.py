@@ -9,7 +9,7 @@ frame is one compiled (numba) call, the numpy steps kept as its reference.
   unscented transform, gated update), vectorised across stars.
 * :mod:`starlog.tracking.association` — :class:`StarTracker`: frame-by-frame association, track
   life cycle, per-track statistics, :meth:`StarTracker.brightest_track`.
-* :mod:`starlog.tracking._kernels` — the tracker's frame compiled: prediction, association, gated
+* :mod:`starlog.tracking.frame_kernel` — the tracker's frame compiled: prediction, association, gated
   update, life cycle and output rows of every track in one call.
 * :mod:`starlog.tracking.table` — :data:`TRACK_DTYPE` and :data:`TRACK_STATS_DTYPE` row layouts.
 * :mod:`starlog.tracking.state` — the live tracks' arrays, held in one structure (take/concat).

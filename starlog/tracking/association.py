@@ -43,7 +43,7 @@ live track. Each frame:
 
 "The brightest star's track" (the paper's sequence, §2.1): :meth:`StarTracker.brightest_track`.
 
-Each frame runs as one compiled call (:func:`starlog.tracking._kernels.track_frame`) on the live
+Each frame runs as one compiled call (:func:`starlog.tracking.frame_kernel.track_frame`) on the live
 tracks' tables (:class:`~starlog.tracking.state.TrackState`); the numpy steps below
 (``StarTracker(vectorised=True)``) are its reference, and take a frame over where the call hands it
 back: an assignment with a choice to make (solved with scipy here) or a covariance to repair.
@@ -241,7 +241,7 @@ class StarTracker:
         ``StarTracker(model="CONSTANT_VELOCITY", max_missed=5)``.
     vectorised : bool
         Run each frame as numpy steps over all tracks (the reference of the tests) instead of
-        one compiled call (:mod:`starlog.tracking._kernels`, the default: the same tracks, the
+        one compiled call (:mod:`starlog.tracking.frame_kernel`, the default: the same tracks, the
         same numbers to rounding). The compiled call hands a frame to the numpy steps where
         they do what it does not: an assignment with a choice to make, a covariance to repair.
     **options
@@ -651,12 +651,12 @@ class StarTracker:
 
 
 class _CompiledStep:
-    """The frames of a :class:`StarTracker` as one compiled call each (:func:`starlog.tracking._kernels.track_frame`)
+    """The frames of a :class:`StarTracker` as one compiled call each (:func:`starlog.tracking.frame_kernel.track_frame`)
     on its track tables, the numpy steps taking over where the call hands back."""
 
     def __init__(self, tracker: StarTracker) -> None:
         # numba: imported, and compiled, on first use
-        from starlog.tracking._kernels import Status, finish_frame, parameters, track_frame
+        from starlog.tracking.frame_kernel import Status, finish_frame, parameters, track_frame
 
         cfg = tracker.config
         d = tracker._d

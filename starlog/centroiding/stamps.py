@@ -1,4 +1,4 @@
-"""Private helpers: star windows (stamps), the pixel-integrated Gaussian model, smoothing.
+"""Star windows (stamps), the pixel-integrated Gaussian model, smoothing.
 
 A stamp is the (2h+1) x (2h+1) window centred on the integer pixel nearest the coarse
 position; offsets ``u = -h..h`` are relative to that centre pixel. Pixels outside the frame,
@@ -16,6 +16,7 @@ from scipy.special import erf
 from starlog.errors import InvalidInputError
 
 __all__ = [
+    "INV_SQRT_2PI",
     "Stamps",
     "gather_stamps",
     "with_saturated",
@@ -27,10 +28,13 @@ __all__ = [
     "smooth",
     "optimal_smoothing",
     "per_star",
+    "pixel_edges",
+    "pixel_profiles",
+    "variance",
 ]
 
 _SQ2 = np.sqrt(2.0)
-_ISQ2PI = 1.0 / np.sqrt(2.0 * np.pi)
+INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 F64 = npt.NDArray[np.float64]
 
 
@@ -79,8 +83,8 @@ def gather_stamps(
     saturation: float,
 ) -> Stamps:
     """Cut the windows around (x, y) out of ``image`` (never modified); compiled
-    (:func:`starlog.centroiding._kernels.gather_windows`), the same arrays as :func:`gather_stamps_vectorised`."""
-    from starlog.centroiding._kernels import gather_windows  # numba: imported, and compiled, on first use
+    (:func:`starlog.centroiding.star_kernels.gather_windows`), the same arrays as :func:`gather_stamps_vectorised`."""
+    from starlog.centroiding.star_kernels import gather_windows  # numba: imported, and compiled, on first use
 
     xc = np.rint(x).astype(np.intp)
     yc = np.rint(y).astype(np.intp)
@@ -189,7 +193,7 @@ def with_saturated(st: Stamps) -> Stamps:
     return replace(st, data=data, valid=st.valid | st.satpix)
 
 
-def _edges(u: F64) -> F64:
+def pixel_edges(u: F64) -> F64:
     """The W + 1 pixel edges of consecutive integer offsets ``u``."""
     return (u[0] - 0.5) + np.arange(u.size + 1, dtype=np.float64)
 
@@ -200,7 +204,7 @@ def _sigma_column(s: F64 | float, n: int) -> F64 | float:
     return float(arr) if arr.ndim == 0 else np.broadcast_to(arr, (n,))[:, None]
 
 
-def _profiles(t: F64) -> F64:
+def pixel_profiles(t: F64) -> F64:
     """Pixel-integrated unit Gaussian of the pixel edges ``t`` in sigma units (rows, W + 1) -> (rows, W)."""
     cdf = erf(t * (1.0 / _SQ2))
     return 0.5 * (cdf[:, 1:] - cdf[:, :-1])
@@ -212,11 +216,11 @@ def profile_1d(u: F64, c: F64, s: F64 | float, deriv: bool = False) -> tuple[F64
     ``u`` must be consecutive integers (pixel offsets); the W + 1 pixel edges are evaluated once.
     """
     sc = _sigma_column(s, c.shape[0])
-    t = (_edges(u)[None, :] - c[:, None]) / sc  # (N, W + 1)
-    e = _profiles(t)
+    t = (pixel_edges(u)[None, :] - c[:, None]) / sc  # (N, W + 1)
+    e = pixel_profiles(t)
     if not deriv:
         return e, None, None
-    pdf = _ISQ2PI * np.exp(-0.5 * t * t)
+    pdf = INV_SQRT_2PI * np.exp(-0.5 * t * t)
     de_dc = -(pdf[:, 1:] - pdf[:, :-1]) / sc
     tp = t * pdf
     de_ds = -(tp[:, 1:] - tp[:, :-1]) / sc
@@ -232,8 +236,8 @@ def model(st: Stamps, cx: F64, cy: F64, s: F64 | float) -> F64:
     sc = _sigma_column(s, n)
     if not isinstance(sc, float):
         sc = np.concatenate([sc, sc])
-    t = (_edges(st.u)[None, :] - np.concatenate([cx, cy])[:, None]) / sc
-    e = _profiles(t)
+    t = (pixel_edges(st.u)[None, :] - np.concatenate([cx, cy])[:, None]) / sc
+    e = pixel_profiles(t)
     return e[n:, :, None] * e[:n, None, :]
 
 
@@ -266,14 +270,14 @@ def fisher_sigma(st: Stamps, cx: F64, cy: F64, flux: F64, s: F64 | float) -> F64
     ``sqrt((I_xx + I_yy) / 2 / det I)`` of the Fisher information of the centre,
     ``I_ab = sum_ij w_ij (d mu / d a)(d mu / d b)`` with ``w`` the inverse pixel variance
     (:func:`variance`) of the model ``mu = F ey (x) ex``; compiled
-    (:func:`starlog.centroiding._kernels.fisher_sigmas`). inf where it cannot be inverted.
+    (:func:`starlog.centroiding.star_kernels.fisher_sigmas`). inf where it cannot be inverted.
     """
-    from starlog.centroiding._kernels import fisher_sigmas  # numba: imported, and compiled, on first use
+    from starlog.centroiding.star_kernels import fisher_sigmas  # numba: imported, and compiled, on first use
 
     n = st.data.shape[0]
     out = np.empty(n)
     fisher_sigmas(np.ascontiguousarray(st.valid, np.float64), per_star(st.noise, n, "noise"), float(st.gain),
-                  _edges(st.u), per_star(cx, n, "cx"), per_star(cy, n, "cy"), per_star(flux, n, "flux"),
+                  pixel_edges(st.u), per_star(cx, n, "cx"), per_star(cy, n, "cy"), per_star(flux, n, "flux"),
                   per_star(s, n, "s"), out)
     return out
 
