@@ -10,7 +10,6 @@ import pytest
 from click.testing import CliRunner
 
 from starlog.centroiding import CentroidFlag, extract_stars
-# private module _stamps: remaining_snr takes stamps, which only it cuts
 from starlog.centroiding.stamps import gather_stamps
 from starlog.centroiding.artefacts import detection_threshold, remaining_snr
 from starlog.cli import cli

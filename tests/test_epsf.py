@@ -166,7 +166,6 @@ def test_build_epsf_without_precise_stars_keeps_the_starting_gaussian() -> None:
 
 
 def _empty_stamps():
-    # private module _stamps: build_epsf takes stamps, which only it cuts (here none, to be refused)
     from starlog.centroiding.stamps import gather_stamps
 
     z = np.zeros(0)
