@@ -6,7 +6,8 @@ frame is one compiled (numba) call, the numpy steps kept as its reference.
 * :mod:`starlog.tracking.models` — :class:`MotionModel` (STATIC, RANDOM_WALK, BROWNIAN_MOTION,
   POLYNOMIAL_TREND, CONSTANT_VELOCITY), :class:`MotionModelConfig`, exact discretisation.
 * :mod:`starlog.tracking.ukf` — :class:`BatchUKF` and the functional core (Merwe sigma points,
-  unscented transform, gated update), vectorised across stars.
+  unscented transform, gated update), vectorised across stars; :mod:`starlog.tracking.ukf_filterpy` — filterpy's
+  per-object filter, its reference.
 * :mod:`starlog.tracking.association` — :class:`StarTracker`: frame-by-frame association, track
   life cycle, per-track statistics, :meth:`StarTracker.brightest_track`.
 * :mod:`starlog.tracking.frame_kernel` — the tracker's frame compiled: prediction, association, gated
@@ -34,12 +35,11 @@ from starlog.tracking.ukf import (
     BatchUKF,
     SigmaPoints,
     UKFUpdate,
-    filterpy_step,
     gate_threshold,
-    make_filterpy_ukf,
     ukf_predict,
     ukf_update,
 )
+from starlog.tracking.ukf_filterpy import filterpy_step, make_filterpy_ukf
 
 __all__ = [
     "MotionModel",
