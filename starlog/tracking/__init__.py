@@ -10,6 +10,8 @@ frame is one compiled (numba) call, the numpy steps kept as its reference.
   per-object filter, its reference.
 * :mod:`starlog.tracking.association` — :class:`StarTracker`: frame-by-frame association, track
   life cycle, per-track statistics, :meth:`StarTracker.brightest_track`.
+* :mod:`starlog.tracking.frame_steps` — the tracker's numpy steps of a frame (the reference);
+  :mod:`starlog.tracking.tracker_config` — :class:`TrackerConfig`.
 * :mod:`starlog.tracking.frame_kernel` — the tracker's frame compiled: prediction, association, gated
   update, life cycle and output rows of every track in one call.
 * :mod:`starlog.tracking.table` — :data:`TRACK_DTYPE` and :data:`TRACK_STATS_DTYPE` row layouts.
