@@ -189,7 +189,7 @@ def test_undersampled_stars_are_found_and_hot_pixels_are_not(psf_sigma: float) -
 
 
 def test_a_well_sampled_frame_keeps_the_default_spike_test() -> None:
-    from starlog.centroiding.extract import detect_options_for_psf
+    from starlog.centroiding.psf_width import detect_options_for_psf
 
     assert detect_options_for_psf(1.2) == {}
     assert detect_options_for_psf(0.4) == {"sharpness_ratio": 0.02}

@@ -8,6 +8,7 @@ non-finite or saturated are invalid (``valid`` False, ``data`` 0) and left out e
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -16,8 +17,12 @@ from scipy.special import erf
 from starlog.errors import InvalidInputError
 
 __all__ = [
+    "DETECTION_FIELDS",
     "INV_SQRT_2PI",
     "Stamps",
+    "check_detections",
+    "check_image",
+    "default_saturation",
     "gather_stamps",
     "with_saturated",
     "grown_saturation",
@@ -36,6 +41,40 @@ __all__ = [
 _SQ2 = np.sqrt(2.0)
 INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 F64 = npt.NDArray[np.float64]
+
+
+DETECTION_FIELDS = ("star", "x", "y", "background", "noise", "flux", "flags")
+
+
+def check_image(image: npt.ArrayLike) -> npt.NDArray[Any]:
+    """``image`` as an array, :class:`InvalidInputError` unless a non-empty 2-D array of integers or floats."""
+    arr = np.asarray(image)
+    if arr.ndim != 2 or arr.size == 0:
+        raise InvalidInputError(f"image must be a non-empty 2-D array; got shape {arr.shape}.")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise InvalidInputError(f"image must hold integers or floats; got dtype {arr.dtype}.")
+    return arr
+
+
+def check_detections(detections: npt.NDArray[Any]) -> npt.NDArray[Any]:
+    """``detections`` as an array, :class:`InvalidInputError` unless 1-D with the fields the windows are cut from."""
+    det = np.asarray(detections)
+    names = det.dtype.names or ()
+    missing = [f for f in DETECTION_FIELDS if f not in names]
+    if missing or det.ndim != 1:
+        raise InvalidInputError(
+            f"detections must be a 1-D structured array with fields {DETECTION_FIELDS} (DETECTION_DTYPE); "
+            f"missing {missing}, shape {det.shape}."
+        )
+    return det
+
+
+def default_saturation(arr: npt.NDArray[Any], saturation: float | None) -> float:
+    """``saturation``, or without one the frame's: its type's maximum for integers, none (inf) for floats."""
+    if saturation is not None:
+        return float(saturation)
+    return float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) else np.inf
+
 
 
 def per_star(value: npt.ArrayLike, n: int, name: str) -> F64:

@@ -7,14 +7,14 @@ centroid rows and the state after the frame. Between its two calls
 (:func:`starlog.centroiding.tracked_search_kernel.track_search`,
 :func:`starlog.centroiding.tracked_measure_kernel.track_measure`) numpy's ``erf`` evaluates each star's model at its
 coarse position, the one number of the measurement the compiled loops do not take from the full mode's code, so a star
-measured here gets full mode's bytes for the same detection row (:func:`starlog.centroiding.extract.measure_methods`).
+measured here gets full mode's bytes for the same detection row (:func:`starlog.centroiding.measure.measure_methods`).
 
 What it leaves to numpy: a frame whose first method is not GAUSSFIT or whose PSF width is not given
 (:class:`WindowFit`) is only located (``centroids`` None: the caller measures the located rows and ends the frame
 with :func:`~starlog.centroiding.tracking.finish_tracked`); a frame where a star's window holds a pixel its model
 cannot explain or its centroid strayed (the robust re-measurement, which judges every window of the frame
 together), or a fit failed while the PSF width is fitted, has its rows finished by numpy from the compiled windows
-and fit (:func:`~starlog.centroiding.extract.gaussfit_rows`: the robust pass, the fallback and the table, frame-wide
+and fit (:func:`~starlog.centroiding.measure.gaussfit_rows`: the robust pass, the fallback and the table, frame-wide
 numpy calls, a star's own only for the windows re-measured; ``remeasured`` in the result).
 
 Same numbers as the numpy form: the light check's cells, medians and thresholds and the window search's filter,
@@ -36,8 +36,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.special import erf
 
-from starlog.centroiding.extract import gaussfit_rows
 from starlog.centroiding.gaussfit import GaussFitResult
+from starlog.centroiding.measure import gaussfit_rows
 from starlog.centroiding.robust import clip_level
 from starlog.centroiding.stamps import SHOULDER, Stamps
 from starlog.centroiding.table import CENTROID_DTYPE
@@ -53,7 +53,7 @@ Mask = npt.NDArray[np.bool_]
 
 @dataclass(frozen=True)
 class WindowFit:
-    """How the compiled frame measures its stars: GAUSSFIT as :func:`~starlog.centroiding.extract.measure_methods`
+    """How the compiled frame measures its stars: GAUSSFIT as :func:`~starlog.centroiding.measure.measure_methods`
     runs it with these options (windows of ``half_size``, the PSF width ``psf_sigma`` given)."""
 
     half_size: int
@@ -274,7 +274,7 @@ def track_frame(image: npt.NDArray[Any], state: TrackState, settings: TrackingSe
 def _finished_in_numpy(detections: npt.NDArray[np.void], kernel_fit: _Fit, windows: _Windows, fitted: _Fitted,
                        fit: WindowFit) -> npt.NDArray[np.void]:
     """The first method's rows from the compiled windows and fit, finished as full mode finishes them
-    (:func:`~starlog.centroiding.extract.gaussfit_rows`: the robust re-measurement, a failed fit's fallback)."""
+    (:func:`~starlog.centroiding.measure.gaussfit_rows`: the robust re-measurement, a failed fit's fallback)."""
     stamps = Stamps(data=windows.data, valid=windows.valid, xc=windows.xc, yc=windows.yc, h=kernel_fit.half,
                     background=windows.background, noise=windows.noise, gain=kernel_fit.gain,
                     saturated=windows.flags[:, 0], cut=windows.flags[:, 1], masked=windows.flags[:, 2],

@@ -146,7 +146,7 @@ def _fit_windows(windows, fit, fitted):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True, error_model="numpy")
 def _needs_numpy(windows, fit, fitted):  # type: ignore[no-untyped-def]
     """Whether a window needs the robust re-measurement (``_remeasure_robust``'s test), or a failed fit's fallback
-    the PSF width it fitted: then numpy finishes the rows from the fit (``extract.gaussfit_rows``)."""
+    the PSF width it fitted: then numpy finishes the rows from the fit (``measure.gaussfit_rows``)."""
     w = windows.data.shape[1]
     mu, ex, ey = np.empty((w, w)), np.empty(w), np.empty(w)
     for k in range(fitted.dx.size):
