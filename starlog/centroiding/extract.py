@@ -53,8 +53,8 @@ def extract_stars(
     methods : iterable of CentroidMethod or str
         Methods to run (each once).
     gain, read_noise, psf_sigma, window, saturation
-        As in :func:`~starlog.centroiding.measure.measure_centroids` (``saturation`` is passed to detection too). The PSF
-        sigma is estimated once per frame when not given.
+        As in :func:`~starlog.centroiding.measure.measure_centroids` (``saturation`` is passed to detection
+        too). The PSF sigma is estimated once per frame when not given.
     detect_options : mapping, optional
         Extra keyword options of :func:`starlog.detect.detect_stars` (threshold, ...). On a frame
         whose PSF is undersampled the spike test is relaxed unless these set it

@@ -14,7 +14,14 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.centroiding.gaussfit import fit_gaussians
-from starlog.centroiding.stamps import check_detections, check_image, default_saturation, gather_stamps, linear_flux, model
+from starlog.centroiding.stamps import (
+    check_detections,
+    check_image,
+    default_saturation,
+    gather_stamps,
+    linear_flux,
+    model,
+)
 from starlog.centroiding.table import CentroidFlag
 from starlog.errors import InvalidParameterError
 

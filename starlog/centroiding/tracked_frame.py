@@ -20,8 +20,8 @@ numpy calls, a star's own only for the windows re-measured; ``remeasured`` in th
 Same numbers as the numpy form: the light check's cells, medians and thresholds and the window search's filter,
 peak and flags bit for bit; the coarse positions to the last bit of a logarithm (the C library's here, numpy's
 there); the measurement bit for bit given the detection rows (the fit is
-:func:`~starlog.centroiding.star_kernels.fit_stars` itself, sums run in numpy's pairwise order); the robust test's model takes the C library's ``erf``, so a pixel
-within a rounding error of its clip level could be judged apart.
+:func:`~starlog.centroiding.star_kernels.fit_stars` itself, sums run in numpy's pairwise order); the robust test's
+model takes the C library's ``erf``, so a pixel within a rounding error of its clip level could be judged apart.
 
 Coordinates: x = column, y = row, 0-based, (0, 0) at the centre of the top-left pixel.
 """

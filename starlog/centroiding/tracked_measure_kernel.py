@@ -3,7 +3,7 @@
 After :func:`~starlog.centroiding.tracked_search_kernel.track_search` and numpy's ``erf`` (the model at the coarse
 position): GAUSSFIT in the measurement windows (:func:`~starlog.centroiding.star_kernels.fit_stars` itself), the
 robust pass's test, the fallback of a failed fit, the centroid rows, the lost-star tests and the state's advance.
-The numpy forms (extract's ``measure_methods`` for GAUSSFIT, tracking's ``lost_stars`` and ``advance``) are the
+The numpy forms (``measure.measure_methods`` for GAUSSFIT, tracking's ``lost_stars`` and ``advance``) are the
 references: the same bits, sums over a window in numpy's pairwise order (:mod:`starlog.compiled_numpy`). The inputs
 come in the named tuples built by :mod:`~starlog.centroiding.tracked_frame` (``_Stars``, ``_Fit``, ``_Windows``,
 ``_Rule``, ``_Next``).

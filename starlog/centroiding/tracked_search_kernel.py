@@ -1,11 +1,11 @@
 """Compiled (numba): the first of a tracked frame's two calls, :func:`track_search` — where its stars are.
 
-:func:`starlog.centroiding.tracked_frame.track_frame` calls it, then :func:`numpy's erf <scipy.special.erf>` for
+:func:`starlog.centroiding.tracked_frame.track_frame` calls it, then ``scipy.special.erf`` for
 each star's model at its coarse position, then :func:`~starlog.centroiding.tracked_measure_kernel.track_measure`.
 One pass over the frame for the light check's cell means copies each star's search window while its rows are in
 the cache; then the window search and the measurement windows. The numpy forms (tracking's ``new_light``,
-``lasting_light``, ``locate_stars``, extract's ``measure_methods`` windows) are the references: the same bits, sums
-over a window in numpy's pairwise order (:mod:`starlog.compiled_numpy`), NaN propagating in maxima as
+``lasting_light``, ``locate_stars``, the windows of ``measure.measure_methods``) are the references: the same
+bits, sums over a window in numpy's pairwise order (:mod:`starlog.compiled_numpy`), NaN propagating in maxima as
 ``np.maximum``. The inputs come in the named tuples built by :mod:`~starlog.centroiding.tracked_frame` (``_Light``,
 ``_Search``, ``_Stars``, ``_Fit``, ``_Windows``).
 

@@ -45,8 +45,8 @@ live track. Each frame:
 
 Each frame runs as one compiled call (:func:`starlog.tracking.frame_kernel.track_frame`) on the live
 tracks' tables (:class:`~starlog.tracking.state.TrackState`); the numpy steps
-(:mod:`starlog.tracking.frame_steps`, ``StarTracker(vectorised=True)``) are its reference, and take a frame over where the call hands it
-back: an assignment with a choice to make (solved with scipy here) or a covariance to repair.
+(:mod:`starlog.tracking.frame_steps`, ``StarTracker(vectorised=True)``) are its reference, and take a frame
+over where the call hands it back: an assignment with a choice to make (solved with scipy here) or a covariance to repair.
 :meth:`StarTracker.update_block` runs the frames of a block into one row table.
 
 Coordinates: x = column, y = row, px, (0, 0) at the centre of the top-left pixel; times are

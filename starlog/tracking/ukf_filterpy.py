@@ -1,4 +1,4 @@
-"""The per-object :mod:`filterpy` UKF: the reference path :mod:`starlog.tracking.ukf`'s batched filter is tested against.
+"""The per-object :mod:`filterpy` UKF: the reference :mod:`starlog.tracking.ukf`'s batched filter is tested against.
 
 :func:`make_filterpy_ukf` builds a :class:`filterpy.kalman.UnscentedKalmanFilter` for one star with the same
 motion model and Merwe sigma points, and :func:`filterpy_step` takes it through one predict and gated update as
