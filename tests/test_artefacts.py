@@ -10,8 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from starlog.centroiding import CentroidFlag, extract_stars
-# private module _stamps: remaining_snr takes stamps, which only it cuts
-from starlog.centroiding._stamps import gather_stamps
+from starlog.centroiding.stamps import gather_stamps
 from starlog.centroiding.artefacts import detection_threshold, remaining_snr
 from starlog.cli import cli
 from starlog.detect import detect_stars
@@ -191,7 +190,7 @@ def test_undersampled_stars_are_found_and_hot_pixels_are_not(psf_sigma: float) -
 
 
 def test_a_well_sampled_frame_keeps_the_default_spike_test() -> None:
-    from starlog.centroiding.extract import detect_options_for_psf
+    from starlog.centroiding.psf_width import detect_options_for_psf
 
     assert detect_options_for_psf(1.2) == {}
     assert detect_options_for_psf(0.4) == {"sharpness_ratio": 0.02}

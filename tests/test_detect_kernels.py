@@ -1,4 +1,4 @@
-"""The compiled detection glue (starlog.detect._peak_kernels) against its numpy references, bit for bit."""
+"""The compiled detection glue (starlog.detect.peak_kernels) against its numpy references, bit for bit."""
 
 from __future__ import annotations
 
@@ -12,9 +12,8 @@ from numpy.testing import assert_array_equal
 
 import starlog.detect.components as components
 import starlog.detect.detection as detection
+from starlog.compiled_numpy import block_sum, pairwise_sum
 from starlog.detect import detect_stars
-# private _window_sum: the kernels' copy of numpy's summation order, checked alone on sums where the order shows
-from starlog.detect._peak_kernels import _window_sum
 from starlog.detect.components import Components, Peaks, component_peaks, find_components, find_components_vectorised
 from starlog.errors import InvalidInputError
 from starlog.sim.camera import CameraModel
@@ -237,8 +236,19 @@ def test_window_sum_is_numpys_summation_order(seed, m, k, spread):
     windows = rng.standard_normal((m, k, k)) * 10.0 ** rng.integers(-spread, spread + 1, (m, k, k))
     windows[rng.random((m, k, k)) < 0.1] = -0.0
     want = windows.sum(axis=(1, 2))
-    got = np.array([_window_sum(w.ravel().copy(), k * k) for w in windows])
+    got = np.array([0.0 + block_sum(w.ravel().copy(), 0, k * k) for w in windows])
     assert got.tobytes() == want.tobytes()
+
+
+@settings(max_examples=100, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**31 - 1), k=st.sampled_from([1, 5, 11, 12, 13, 17, 23, 37]), start=st.integers(0, 9),
+       spread=st.integers(0, 12))
+def test_pairwise_sum_is_numpys_summation_order_past_128_values(seed, k, start, spread):
+    """numpy's sum of one k x k window (169 and more values: the halves' sums added) at an offset in a longer run."""
+    rng = np.random.default_rng(seed)
+    run = rng.standard_normal(start + k * k) * 10.0 ** rng.integers(-spread, spread + 1, start + k * k)
+    want = run[start:].reshape(1, k, k).sum(axis=(1, 2))[0]
+    assert np.float64(0.0 + pairwise_sum(run, start, k * k)).tobytes() == want.tobytes()
 
 
 # private names patched: detect_stars run with its numpy references in place of the compiled steps

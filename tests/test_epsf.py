@@ -167,8 +167,7 @@ def test_build_epsf_without_precise_stars_keeps_the_starting_gaussian() -> None:
 
 
 def _empty_stamps():
-    # private module _stamps: build_epsf takes stamps, which only it cuts (here none, to be refused)
-    from starlog.centroiding._stamps import gather_stamps
+    from starlog.centroiding.stamps import gather_stamps
 
     z = np.zeros(0)
     return gather_stamps(np.zeros((20, 20)), z, z, 3, z, z, 1.0, np.inf), z, z, z

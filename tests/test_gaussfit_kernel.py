@@ -8,8 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
-# private module _stamps: fit_gaussians takes stamps, which only it cuts; its model draws the noise-free star
-from starlog.centroiding._stamps import gather_stamps, model
+from starlog.centroiding.stamps import gather_stamps, model
 from starlog.centroiding.gaussfit import fit_gaussians, fit_gaussians_vectorised
 from starlog.errors import InvalidInputError
 

@@ -8,8 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
-# private module _stamps: weighted_centroid takes stamps, which only it cuts; its model draws the noise-free star
-from starlog.centroiding._stamps import gather_stamps, model
+from starlog.centroiding.stamps import gather_stamps, model
 from starlog.centroiding.moment import weighted_centroid, weighted_centroid_vectorised
 from starlog.centroiding.robust import take_stamps
 from starlog.errors import InvalidInputError

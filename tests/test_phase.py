@@ -11,6 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from starlog.centroiding import extract_stars
+# private _applied: the three-standard-error edge of an amplitude, which estimated amplitudes cannot reach exactly
 from starlog.centroiding.phase import (
     PhaseCalibration,
     _applied,

@@ -8,8 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from starlog.centroiding import CentroidFlag, CentroidMethod, measure_centroids
-# private module _stamps: the robust functions take stamps, which only it cuts; its model is the true star
-from starlog.centroiding._stamps import gather_stamps, model
+from starlog.centroiding.stamps import gather_stamps, model
 from starlog.centroiding.robust import (
     clip_level,
     core_flux,

@@ -9,8 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-# private module _stamps: the compiled window cutter and its numpy reference, compared directly, bit for bit
-from starlog.centroiding._stamps import gather_stamps, gather_stamps_vectorised
+from starlog.centroiding.stamps import gather_stamps, gather_stamps_vectorised
 from starlog.errors import InvalidInputError
 
 

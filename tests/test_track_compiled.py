@@ -35,7 +35,7 @@ from starlog.tracking import (
     make_filterpy_ukf,
     state_dim,
 )
-from starlog.tracking._kernels import INT_COLUMNS, Status
+from starlog.tracking.frame_kernel import INT_COLUMNS, Status
 from starlog.tracking.state import INT_FIELDS, TrackState
 
 RTOL = 1e-9

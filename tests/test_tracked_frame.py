@@ -14,9 +14,9 @@ from scipy.ndimage import binary_dilation
 from scipy.special import erf
 
 from starlog.centroiding import CentroidFlag, CentroidMethod
-# private module: the fraction of the saturation level full mode clips beside a saturated core
-from starlog.centroiding._stamps import SHOULDER
-from starlog.centroiding.extract import measure_methods, window_half_size
+from starlog.centroiding.measure import measure_methods
+from starlog.centroiding.psf_width import window_half_size
+from starlog.centroiding.stamps import SHOULDER
 from starlog.centroiding.tracked_frame import WindowFit, track_frame
 from starlog.centroiding.tracking import TrackedFrame, TrackingSettings, TrackState, cell_means, track_frame_vectorised
 # private module: the per-frame work of the centroid stage, tested without a log

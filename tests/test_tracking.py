@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.special import erf
 
 from starlog.centroiding import CentroidFlag, CentroidMethod
-from starlog.centroiding.extract import window_half_size
+from starlog.centroiding.psf_width import window_half_size
 from starlog.centroiding.tracking import TrackingSettings, is_image_sequence
 from starlog.errors import InvalidParameterError
 from starlog.io import LogReader

@@ -16,8 +16,7 @@ from starlog.detect.background import Background
 from starlog.detect.components import find_components_vectorised
 from starlog.detect.detection import matched_filter
 
-# private module _stamps: the stamps and Gaussian model every fit uses, checked against their definitions
-from starlog.centroiding._stamps import fisher_sigma, gather_stamps, model, profile_1d
+from starlog.centroiding.stamps import fisher_sigma, gather_stamps, model, profile_1d
 # private _Problem, _Profiles: GAUSSFIT's normal equations, checked against the dense Jacobian they stand for
 from starlog.centroiding.gaussfit import _Problem, _Profiles
 # private _centre_of_weights: MOMENT's centre, checked against the weighted mean it computes

@@ -76,7 +76,8 @@ from starlog.centroiding import (  # noqa: E402
 )
 from starlog.centroiding.crb import centroid_crb_psf  # noqa: E402
 from starlog.centroiding.epsf import epsf_from_frames  # noqa: E402
-from starlog.centroiding.extract import artefact_candidates, window_half_size  # noqa: E402
+from starlog.centroiding.extract import artefact_candidates  # noqa: E402
+from starlog.centroiding.psf_width import window_half_size  # noqa: E402
 from starlog.detect import detect_stars  # noqa: E402
 from starlog.sim.camera import CameraModel  # noqa: E402
 from starlog.sim.profiles import AIRY_FWHM_PER_LAMBDA_D, AiryPSF, MoffatPSF, render_profile_stars  # noqa: E402

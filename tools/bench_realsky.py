@@ -89,7 +89,7 @@ from starlog.attitude.matching import isolated, match_nearest  # noqa: E402
 from starlog.attitude.rotation import radec_vectors  # noqa: E402, F401
 from starlog.centroiding import CentroidFlag, CentroidMethod, estimate_psf_sigma, extract_stars  # noqa: E402
 from starlog.centroiding.epsf import EPSF, epsf_from_frames  # noqa: E402
-from starlog.centroiding.extract import window_half_size  # noqa: E402
+from starlog.centroiding.psf_width import window_half_size  # noqa: E402
 from starlog.centroiding.phase import PhaseCalibration, estimate_phase_calibration, phase_sample_mask  # noqa: E402
 from starlog.detect import detect_stars  # noqa: E402
 from starlog.errors import InvalidInputError  # noqa: E402

@@ -14,13 +14,9 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from starlog.centroiding.crb import centroid_crb
-    from starlog.centroiding.extract import (
-        EFFICIENCY,
-        artefact_detections,
-        estimate_psf_sigma,
-        extract_stars,
-        measure_centroids,
-    )
+    from starlog.centroiding.extract import extract_stars
+    from starlog.centroiding.measure import EFFICIENCY, artefact_detections, measure_centroids
+    from starlog.centroiding.psf_width import estimate_psf_sigma
     from starlog.centroiding.table import CENTROID_DTYPE, CentroidFlag, CentroidMethod, empty_centroids
 
 #: Each public name and the module that defines it, imported on first use: a command that needs only a light
@@ -30,11 +26,11 @@ _DEFINED_IN = {
     "CentroidFlag": "table",
     "CentroidMethod": "table",
     "empty_centroids": "table",
-    "EFFICIENCY": "extract",
-    "artefact_detections": "extract",
-    "estimate_psf_sigma": "extract",
+    "EFFICIENCY": "measure",
+    "artefact_detections": "measure",
+    "estimate_psf_sigma": "psf_width",
     "extract_stars": "extract",
-    "measure_centroids": "extract",
+    "measure_centroids": "measure",
     "centroid_crb": "crb",
 }
 

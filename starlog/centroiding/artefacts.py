@@ -48,7 +48,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import correlate1d
 
-from starlog.centroiding._stamps import Stamps, model, with_saturated
+from starlog.centroiding.stamps import Stamps, model, with_saturated
 from starlog.centroiding.robust import (
     ModelError,
     gaussian_predictor,

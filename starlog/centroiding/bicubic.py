@@ -1,7 +1,7 @@
 """BICUBIC: peak of the bicubic (Keys, a = -0.5) interpolation of the star's window.
 
 The window is first smoothed with the noise-optimal Gaussian (see
-:func:`starlog.centroiding._stamps.optimal_smoothing`), then the continuous bicubic surface through
+:func:`starlog.centroiding.stamps.optimal_smoothing`), then the continuous bicubic surface through
 its pixels is maximised one axis at a time (two rounds) inside a +-1 px bracket.  Along one axis
 the surface is a cubic polynomial between two pixel centres (the Keys kernel with a = -0.5 is
 Catmull-Rom), so its gradient is a quadratic whose zeros are solved in closed form, interval by
@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroiding._stamps import Stamps, smooth
+from starlog.centroiding.stamps import Stamps, smooth
 from starlog.centroiding.coarse import peak_pixel
 
 __all__ = ["bicubic_peak", "keys_kernel"]

@@ -36,9 +36,9 @@ from scipy.ndimage import gaussian_filter, spline_filter
 from scipy.ndimage import shift as spline_shift
 from scipy.special import erf
 
-from starlog.centroiding._stamps import Stamps, gather_stamps
+from starlog.centroiding.stamps import Stamps, gather_stamps
 from starlog.centroiding.psffit import fit_psf
-from starlog.detect._flags import StarFlag
+from starlog.detect.flags import StarFlag
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = ["EPSF", "GaussianPSF", "build_epsf", "epsf_from_frames", "gaussian_epsf", "select_epsf_stars",

@@ -112,9 +112,9 @@ class FrameSums:
 
 
 def evidence_sums(previous: FrameEvidence | None, frame: FrameEvidence) -> FrameSums:
-    """:class:`FrameSums` of a frame, compiled (:func:`starlog.centroiding._kernels.evidence_sums`; the same numbers
-    as :func:`evidence_sums_vectorised`, but where two stars are at exactly the same distance)."""
-    from starlog.centroiding._kernels import evidence_sums as compiled  # numba: imported, and compiled, on first use
+    """:class:`FrameSums` of a frame, compiled (:func:`starlog.centroiding.evidence_kernel.evidence_sums`; the same
+    numbers as :func:`evidence_sums_vectorised`, but where two stars are at exactly the same distance)."""
+    from starlog.centroiding.evidence_kernel import evidence_sums as compiled  # numba: imported, and compiled, on use
 
     methods = frame.x.shape[0]
     apart, steps = np.zeros(methods), np.zeros(methods)

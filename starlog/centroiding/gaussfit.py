@@ -12,7 +12,7 @@ reaches the Cramer-Rao bound. The uncertainty ``sigma`` is taken from the invers
 matrix (the Fisher information) at the solution.
 
 :func:`fit_gaussians` runs the fit star by star in compiled code
-(:mod:`starlog.centroiding._kernels`); :func:`fit_gaussians_vectorised` is the same fit in
+(:mod:`starlog.centroiding.star_kernels`); :func:`fit_gaussians_vectorised` is the same fit in
 numpy, vectorised over the stars, kept as the reference the compiled one is tested against.
 """
 
@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroiding._stamps import _ISQ2PI, Stamps, _edges, _profiles, per_star
+from starlog.centroiding.stamps import INV_SQRT_2PI, Stamps, per_star, pixel_edges, pixel_profiles
 
-__all__ = ["GaussFitResult", "fit_gaussians", "fit_gaussians_vectorised"]
+__all__ = ["GaussFitResult", "fit_gaussians", "fit_gaussians_vectorised", "solve_damped"]
 
 F64 = npt.NDArray[np.float64]
 _PAIRS = {npar: np.triu_indices(npar) for npar in (3, 4, 5)}
@@ -61,7 +61,7 @@ class _Profiles:
     def at(cls, edges: F64, cx: F64, cy: F64, s: F64) -> "_Profiles":
         """Profiles at centres (cx, cy) and width s (the same values as :func:`profile_1d`)."""
         t = (edges[None, :] - np.concatenate([cx, cy])[:, None]) / np.concatenate([s, s])[:, None]
-        return cls(t, _profiles(t))
+        return cls(t, pixel_profiles(t))
 
     def where(self, better: npt.NDArray[np.bool_], other: "_Profiles") -> "_Profiles":
         """Per star, these profiles where ``better``, else ``other``'s."""
@@ -71,7 +71,7 @@ class _Profiles:
     def derivatives(self, s: F64, fit_sigma: bool) -> tuple[F64, F64 | None]:
         """d e / d centre and (``fit_sigma``) d e / d s, (N2, W)."""
         sc = np.concatenate([s, s])[:, None]
-        pdf = _ISQ2PI * np.exp(-0.5 * self.t * self.t)
+        pdf = INV_SQRT_2PI * np.exp(-0.5 * self.t * self.t)
         de_dc = -(pdf[:, 1:] - pdf[:, :-1]) / sc
         if not fit_sigma:
             return de_dc, None
@@ -86,7 +86,7 @@ class _Problem:
     def __init__(self, st: Stamps, fit_background: bool, fit_sigma: bool) -> None:
         n, w, _ = st.data.shape
         self.st, self.n = st, n
-        self.edges = _edges(st.u)
+        self.edges = pixel_edges(st.u)
         self.noise2 = st.noise[:, None, None] ** 2
         self.valid = st.valid.astype(np.float64)
         self.fit_background, self.fit_sigma = fit_background, fit_sigma
@@ -165,7 +165,7 @@ class _Problem:
         return (w * r * r).sum(axis=(1, 2))
 
 
-def _solve(damp: F64, g: F64, active: npt.NDArray[np.bool_]) -> F64:
+def solve_damped(damp: F64, g: F64, active: npt.NDArray[np.bool_]) -> F64:
     """Steps of the damped normal equations; a singular system leaves its star inactive (in place)."""
     try:
         step = np.linalg.solve(damp, g[:, :, None])[:, :, 0]
@@ -210,8 +210,8 @@ def fit_gaussians(
     tol: float = 1e-4,
 ) -> GaussFitResult:
     """Fit every stamp (see module docstring), star by star in compiled code
-    (:func:`starlog.centroiding._kernels.fit_stars`); ``psf_sigma`` is the start/fixed value."""
-    from starlog.centroiding._kernels import fit_stars  # numba: imported, and compiled, on first use
+    (:func:`starlog.centroiding.star_kernels.fit_stars`); ``psf_sigma`` is the start/fixed value."""
+    from starlog.centroiding.star_kernels import fit_stars  # numba: imported, and compiled, on first use
 
     n = st.data.shape[0]
     cx, cy, flux0 = (per_star(v, n, name) for v, name in ((dx0, "dx0"), (dy0, "dy0"), (flux0, "flux0")))
@@ -221,7 +221,7 @@ def fit_gaussians(
     sig, ferr = np.empty(n), np.empty(n)
     good_var, active = np.empty(n, bool), np.empty(n, bool)
     fit_stars(np.ascontiguousarray(st.data, np.float64), np.ascontiguousarray(st.valid, np.float64),
-              per_star(st.noise, n, "noise"), float(st.gain), _edges(st.u), cx, cy, f, b, s, fit_background,
+              per_star(st.noise, n, "noise"), float(st.gain), pixel_edges(st.u), cx, cy, f, b, s, fit_background,
               fit_sigma, int(iterations), float(tol), sig, ferr, good_var, active)
     h = st.h
     ok = active & np.isfinite(cx) & np.isfinite(cy) & (np.abs(cx) < h - 0.5) & (np.abs(cy) < h - 0.5) & (f > 0)
@@ -262,7 +262,7 @@ def fit_gaussians_vectorised(
         wr = w * r
         a_mat, g = prob.normal(prof, f, s, w, wr)
         c0 = (wr * r).sum(axis=(1, 2))
-        step = _solve(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
+        step = solve_damped(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
         step[:, :2] = np.minimum(np.maximum(step[:, :2], -0.5), 0.5)
         if fit_sigma:
             step[:, -1] = np.clip(step[:, -1], -0.3 * s, 0.3 * s)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroiding._stamps import Stamps, smooth
+from starlog.centroiding.stamps import Stamps, smooth
 
 __all__ = ["radial_symmetry_centre"]
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroiding._stamps import Stamps, _edges, model, per_star, smooth
+from starlog.centroiding.stamps import Stamps, model, per_star, pixel_edges, smooth
 from starlog.errors import InvalidInputError
 
 __all__ = ["squared_centroid", "weighted_centroid", "weighted_centroid_vectorised"]
@@ -56,8 +56,8 @@ def weighted_centroid(
     tol: float = 1e-5,
 ) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Iteratively re-weighted centre of gravity of each window (see module docstring), star by star in
-    compiled code (:func:`starlog.centroiding._kernels.weighted_centres`)."""
-    from starlog.centroiding._kernels import GAUSSIAN, NONE, OPTIMAL, weighted_centres  # numba: on first use
+    compiled code (:func:`starlog.centroiding.star_kernels.weighted_centres`)."""
+    from starlog.centroiding.star_kernels import GAUSSIAN, NONE, OPTIMAL, weighted_centres  # numba: on first use
 
     n = st.data.shape[0]
     if data.shape != st.data.shape:
@@ -65,7 +65,7 @@ def weighted_centroid(
     code = {"none": NONE, "gaussian": GAUSSIAN, "optimal": OPTIMAL}[weighting]
     cx, cy, ok = np.empty(n), np.empty(n), np.empty(n, bool)
     weighted_centres(np.ascontiguousarray(data, np.float64), np.ascontiguousarray(st.valid, np.float64), st.u,
-                     _edges(st.u), per_star(st.noise, n, "noise"), float(st.gain), per_star(dx0, n, "dx0"),
+                     pixel_edges(st.u), per_star(st.noise, n, "noise"), float(st.gain), per_star(dx0, n, "dx0"),
                      per_star(dy0, n, "dy0"), per_star(flux, n, "flux"), per_star(psf_sigma, n, "psf_sigma"), code,
                      int(iterations), float(tol), float(st.h), cx, cy, ok)
     return cx, cy, ok
@@ -97,7 +97,7 @@ def weighted_centroid_vectorised(
         else:
             m = model(st, cx, cy, psf_sigma)
             w = valid * m
-            if weighting == "optimal":  # the pixel variance of :func:`starlog.centroiding._stamps.variance`
+            if weighting == "optimal":  # the pixel variance of :func:`starlog.centroiding.stamps.variance`
                 w = w / (noise2 + np.maximum(star_flux * m, 0.0) / st.gain)
         return _centre_of_weights(w * data, u)
 

@@ -20,8 +20,8 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from starlog.centroiding._stamps import Stamps, variance
-from starlog.centroiding.gaussfit import _solve
+from starlog.centroiding.gaussfit import solve_damped
+from starlog.centroiding.stamps import Stamps, variance
 
 __all__ = ["PixelPSF", "PSFFitResult", "fit_psf"]
 
@@ -106,7 +106,7 @@ def fit_psf(st: Stamps, dx0: F64, dy0: F64, flux0: F64, psf: PixelPSF, *, fit_ba
         a_mat = np.einsum("npij,nqij->npq", jw, j)
         g = np.einsum("npij,nij->np", jw, r)
         c0 = (w * r * r).sum(axis=(1, 2))
-        step = _solve(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
+        step = solve_damped(a_mat + lam[:, None, None] * (a_mat * eye), g, active)
         step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
         ncx, ncy = cx + step[:, 0], cy + step[:, 1]
         nf = np.maximum(f + step[:, 2], 1e-6 * st.noise + 1e-12)

@@ -36,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.special import ndtri
 
-from starlog.centroiding._stamps import Stamps, model, variance
+from starlog.centroiding.stamps import Stamps, model, variance
 from starlog.centroiding.gaussfit import fit_gaussians
 
 __all__ = [
@@ -196,10 +196,10 @@ def symmetry_shifts(st: Stamps, reach: int = 2) -> tuple[npt.NDArray[np.intp], n
     The reflection that changes the window least (mean absolute difference between the pixels
     and their mirrors, over the valid pairs inside the window): a star's light decides it
     whatever its shape, and an artefact weighs on every candidate alike. Compiled
-    (:func:`starlog.centroiding._kernels.symmetry_shifts`); :func:`symmetry_shifts_vectorised` is the same in numpy,
-    bit for bit.
+    (:func:`starlog.centroiding.star_kernels.symmetry_shifts`); :func:`symmetry_shifts_vectorised` is the same in
+    numpy, bit for bit.
     """
-    from starlog.centroiding._kernels import symmetry_shifts as compiled  # numba: imported, and compiled, on first use
+    from starlog.centroiding.star_kernels import symmetry_shifts as compiled  # numba: imported, and compiled, on use
 
     n = st.data.shape[0]
     shift_x, shift_y = np.empty(n, np.intp), np.empty(n, np.intp)

@@ -10,7 +10,7 @@ import enum
 import numpy as np
 import numpy.typing as npt
 
-from starlog.detect._flags import StarFlag
+from starlog.detect.flags import StarFlag
 
 __all__ = ["CENTROID_DTYPE", "CentroidFlag", "CentroidMethod", "empty_centroids"]
 

@@ -3,24 +3,25 @@ lost-star tests and the state's advance of every tracked star, in two compiled c
 
 :func:`track_frame` gives what :func:`starlog.centroiding.tracking.track_frame_vectorised` gives (the numpy form,
 kept as the reference the tests compare with): the frame's cells, the located detection rows, the first method's
-centroid rows and the state after the frame. Between its two calls (:func:`starlog.centroiding._kernels.track_search`,
-:func:`~starlog.centroiding._kernels.track_measure`) numpy's ``erf`` evaluates each star's model at its coarse
-position, the one number of the measurement the compiled loops do not take from the full mode's code, so a star
-measured here gets full mode's bytes for the same detection row (:func:`starlog.centroiding.extract.measure_methods`).
+centroid rows and the state after the frame. Between its two calls
+(:func:`starlog.centroiding.tracked_search_kernel.track_search`,
+:func:`starlog.centroiding.tracked_measure_kernel.track_measure`) numpy's ``erf`` evaluates each star's model at its
+coarse position, the one number of the measurement the compiled loops do not take from the full mode's code, so a star
+measured here gets full mode's bytes for the same detection row (:func:`starlog.centroiding.measure.measure_methods`).
 
 What it leaves to numpy: a frame whose first method is not GAUSSFIT or whose PSF width is not given
 (:class:`WindowFit`) is only located (``centroids`` None: the caller measures the located rows and ends the frame
 with :func:`~starlog.centroiding.tracking.finish_tracked`); a frame where a star's window holds a pixel its model
 cannot explain or its centroid strayed (the robust re-measurement, which judges every window of the frame
 together), or a fit failed while the PSF width is fitted, has its rows finished by numpy from the compiled windows
-and fit (:func:`~starlog.centroiding.extract.gaussfit_rows`: the robust pass, the fallback and the table, frame-wide
+and fit (:func:`~starlog.centroiding.measure.gaussfit_rows`: the robust pass, the fallback and the table, frame-wide
 numpy calls, a star's own only for the windows re-measured; ``remeasured`` in the result).
 
 Same numbers as the numpy form: the light check's cells, medians and thresholds and the window search's filter,
 peak and flags bit for bit; the coarse positions to the last bit of a logarithm (the C library's here, numpy's
-there); the measurement bit for bit given the detection rows (the fit is :func:`~starlog.centroiding._kernels.fit_stars`
-itself, sums run in numpy's pairwise order); the robust test's model takes the C library's ``erf``, so a pixel
-within a rounding error of its clip level could be judged apart.
+there); the measurement bit for bit given the detection rows (the fit is
+:func:`~starlog.centroiding.star_kernels.fit_stars` itself, sums run in numpy's pairwise order); the robust test's
+model takes the C library's ``erf``, so a pixel within a rounding error of its clip level could be judged apart.
 
 Coordinates: x = column, y = row, 0-based, (0, 0) at the centre of the top-left pixel.
 """
@@ -35,10 +36,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.special import erf
 
-from starlog.centroiding._stamps import SHOULDER, Stamps
-from starlog.centroiding.extract import gaussfit_rows
 from starlog.centroiding.gaussfit import GaussFitResult
+from starlog.centroiding.measure import gaussfit_rows
 from starlog.centroiding.robust import clip_level
+from starlog.centroiding.stamps import SHOULDER, Stamps
 from starlog.centroiding.table import CENTROID_DTYPE
 from starlog.centroiding.tracking import TrackedFrame, TrackingSettings, TrackState, finish_tracked
 from starlog.detect import DETECTION_DTYPE
@@ -52,7 +53,7 @@ Mask = npt.NDArray[np.bool_]
 
 @dataclass(frozen=True)
 class WindowFit:
-    """How the compiled frame measures its stars: GAUSSFIT as :func:`~starlog.centroiding.extract.measure_methods`
+    """How the compiled frame measures its stars: GAUSSFIT as :func:`~starlog.centroiding.measure.measure_methods`
     runs it with these options (windows of ``half_size``, the PSF width ``psf_sigma`` given)."""
 
     half_size: int
@@ -105,7 +106,7 @@ class _Fit(NamedTuple):
     gain: float
     noise_floor: float  # read noise in DN (-inf: none)
     saturation: float
-    shoulder: float  # _stamps.SHOULDER: a saturated core's shoulders are saturated too
+    shoulder: float  # stamps.SHOULDER: a saturated core's shoulders are saturated too
     fit_background: bool
     fit_sigma: bool
     robust: bool
@@ -173,7 +174,7 @@ def _windows(n: int, w: int) -> _Windows:
 def _fit_settings(fit: WindowFit, saturation: float) -> _Fit:
     """The kernels' form of ``fit`` (made once per fit and saturation level)."""
     h, w = fit.half_size, 2 * fit.half_size + 1
-    edges = (-h - 0.5) + np.arange(w + 1, dtype=np.float64)  # as _stamps._edges
+    edges = (-h - 0.5) + np.arange(w + 1, dtype=np.float64)  # as stamps.pixel_edges
     floor = fit.read_noise / fit.gain if fit.read_noise is not None else -np.inf
     return _Fit(h, float(fit.psf_sigma), float(fit.gain), float(floor), float(saturation), SHOULDER, True,
                 fit.fit_psf_sigma, fit.robust, 12, 1e-4, edges, clip_level(np.arange(w * w + 1)))
@@ -227,7 +228,8 @@ def track_frame(image: npt.NDArray[Any], state: TrackState, settings: TrackingSe
     ``fit`` (None: located only). ``image``: the frame as measured (hot pixels missing); ``saturation``: its level
     (None: the type's maximum for integers, none for floats); ``half_size``: the windows' half-size the light check
     and the lost-star tests keep clear."""
-    from starlog.centroiding._kernels import LOCATED, MEASURED, SEARCH, track_measure, track_search
+    from starlog.centroiding.tracked_measure_kernel import track_measure
+    from starlog.centroiding.tracked_search_kernel import LOCATED, MEASURED, SEARCH, track_search
 
     image = _frame_image(np.asarray(image))
     light = _light(image, state, settings, before, half_size + settings.search + 1)
@@ -272,7 +274,7 @@ def track_frame(image: npt.NDArray[Any], state: TrackState, settings: TrackingSe
 def _finished_in_numpy(detections: npt.NDArray[np.void], kernel_fit: _Fit, windows: _Windows, fitted: _Fitted,
                        fit: WindowFit) -> npt.NDArray[np.void]:
     """The first method's rows from the compiled windows and fit, finished as full mode finishes them
-    (:func:`~starlog.centroiding.extract.gaussfit_rows`: the robust re-measurement, a failed fit's fallback)."""
+    (:func:`~starlog.centroiding.measure.gaussfit_rows`: the robust re-measurement, a failed fit's fallback)."""
     stamps = Stamps(data=windows.data, valid=windows.valid, xc=windows.xc, yc=windows.yc, h=kernel_fit.half,
                     background=windows.background, noise=windows.noise, gain=kernel_fit.gain,
                     saturated=windows.flags[:, 0], cut=windows.flags[:, 1], masked=windows.flags[:, 2],

@@ -5,7 +5,7 @@ A star tracker acquires its stars by searching the whole frame (detection, :func
 then tracks them: each star's next position is predicted from its last ones (constant velocity), its peak is
 found in a small window of the matched-filtered frame around the prediction, and its coarse position, with
 the background and noise its acquisition measured, makes the detection row that the ordinary measurement
-(:func:`starlog.centroiding.extract.measure_methods`) takes. So a tracked star is measured as full mode measures
+(:func:`starlog.centroiding.measure.measure_methods`) takes. So a tracked star is measured as full mode measures
 it, on the same window whenever the coarse position rounds to the same pixel.
 
 The functions here are the numpy form of a tracked frame (:func:`track_frame_vectorised`, completed by
@@ -39,7 +39,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.detect import DETECTION_DTYPE
-from starlog.detect._flags import StarFlag
+from starlog.detect.flags import StarFlag
 from starlog.detect.detection import matched_filter_kernel
 from starlog.detect.position import coarse_offsets
 from starlog.errors import InvalidParameterError

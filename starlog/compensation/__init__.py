@@ -4,7 +4,7 @@ The paper's contribution (§2.2–2.5) as plain numpy/scipy algorithms on (N, 2)
 in pixels (x = column, y = row, (0, 0) at the centre of the top-left pixel).  Modules, each
 importing only those above it:
 
-* :mod:`~starlog.compensation._series` — input validation, eq. 15 of a residual, eq. 13;
+* :mod:`~starlog.compensation.series` — input validation, eq. 15 of a residual, eq. 13;
 * :mod:`~starlog.compensation.burnin` — where the tracking filter's start-up ends;
 * :mod:`~starlog.compensation.decimate` — equidistant (nearest-frame) decimation to 10–100 Hz;
 * :mod:`~starlog.compensation.references` — the ``paper`` / ``truth`` / ``leakfree`` / ``relative``

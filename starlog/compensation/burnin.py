@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensation._series import as_samples
+from starlog.compensation.series import as_samples
 from starlog.errors import InvalidParameterError
 
 __all__ = ["BURN_IN_RATIO", "MAX_BURN_IN_FRACTION", "MAX_BURN_IN_S", "BurnIn", "BurnInSetting", "burn_in",

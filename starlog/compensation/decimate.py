@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensation._series import check_rate
+from starlog.compensation.series import check_rate
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = ["RATE_TOLERANCE", "decimate", "decimation_indices", "effective_rate", "sampled_rate"]

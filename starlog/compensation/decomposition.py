@@ -54,7 +54,7 @@ import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import optimize, special  # optimize up front: a lazy import made peak memory depend on whether a series has a periodic term
 
-from starlog.compensation._series import as_reference, as_series, check_int, check_rate, radial_rms
+from starlog.compensation.series import as_reference, as_series, check_int, check_rate, radial_rms
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = [

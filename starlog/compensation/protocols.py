@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensation._series import as_reference, as_series, improvement, parse_choice, radial_rms
+from starlog.compensation.series import as_reference, as_series, improvement, parse_choice, radial_rms
 from starlog.compensation.references import (
     CALIBRATION_FRACTION,
     MotionMode,
@@ -380,41 +380,33 @@ def evaluate(
             "the other stars (starlog.platform_motion).")
     relative = var = None
     if proto is ScoringProtocol.RELATIVE:
-        if static_position is None or np.shape(static_position) != (2,):
-            raise InvalidParameterError("the 'relative' protocol needs the star's static position (2,).")
         assert disp is not None
-        relative = np.asarray(static_position, dtype=np.float64) + disp
-        var = None if reference_variance is None else np.asarray(reference_variance, dtype=np.float64).reshape(n)
+        relative, var = _relative_reference(static_position, disp, reference_variance, n)
     shift, factor = None, 0.0
     if mode_motion is MotionMode.SEPARATE and disp is not None:
         shift, factor = _wiener(_filled(disp), reference_variance)
-    result = compensate(
-        p if shift is None else p - shift,
-        rate_hz=rate_hz,
-        flux=flux,
-        sigma=sigma,
-        reference_mode=mode,
-        calibration_fraction=calibration_fraction,
-        accuracy_source=accuracy_source,
-        top_k=top_k,
-        rollback_threshold=rollback_threshold,
-        select_positive=select_positive,
-        protocol=proto,
-    )
+    result = compensate(p if shift is None else p - shift, rate_hz=rate_hz, flux=flux, sigma=sigma, reference_mode=mode,
+                        calibration_fraction=calibration_fraction, accuracy_source=accuracy_source, top_k=top_k,
+                        rollback_threshold=rollback_threshold, select_positive=select_positive, protocol=proto)
     start = scored_start(proto, n, calibration_fraction=calibration_fraction)
     after = result.compensated if shift is None else result.compensated + shift
     figures = protocol_figures(p, after, protocol=proto, start=start, truth_fixed=tf, truth_series=ts,
                                relative=relative, relative_variance=var, reference_weight=factor)
-    return Evaluation(
-        protocol=proto,
-        figures=figures,
-        scored_start=start,
-        n_scored=figures[0].n_scored if proto is ScoringProtocol.RELATIVE else n - start,
-        result=result,
-        motion=mode_motion,
-        positions_after=None if shift is None else after,
-        motion_factor=factor,
-    )
+    return Evaluation(protocol=proto, figures=figures, scored_start=start,
+                      n_scored=figures[0].n_scored if proto is ScoringProtocol.RELATIVE else n - start,
+                      result=result, motion=mode_motion, positions_after=None if shift is None else after,
+                      motion_factor=factor)
+
+
+def _relative_reference(static_position: npt.ArrayLike | None, displacement: npt.NDArray[np.float64],
+                        reference_variance: npt.ArrayLike | None,
+                        n: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64] | None]:
+    """The ``relative`` protocol's reference, the static position moved by the platform at each sample, and its
+    predicted radial variance (None when not given)."""
+    if static_position is None or np.shape(static_position) != (2,):
+        raise InvalidParameterError("the 'relative' protocol needs the star's static position (2,).")
+    var = None if reference_variance is None else np.asarray(reference_variance, dtype=np.float64).reshape(n)
+    return np.asarray(static_position, dtype=np.float64) + displacement, var
 
 
 def _checked_displacement(displacement: npt.ArrayLike | None, n: int) -> npt.NDArray[np.float64] | None:

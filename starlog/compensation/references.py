@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensation._series import as_series, parse_choice
+from starlog.compensation.series import as_series, parse_choice
 from starlog.errors import InvalidInputError, InvalidParameterError
 
 __all__ = [

@@ -25,9 +25,6 @@ and may use neighbouring samples (the centred windows of strategies 1–3 reach 
 ahead); only the reference ``M`` is restricted to the past.  During selection the flux of
 eq. 10 is normalised by the calibration segment's maximum, in the final pass by the whole
 sequence's (its weight, ``I / 100``, is at most 0.01).
-
-One module of over 500 lines: scoring, ranking, the passes with rollback and their result record
-are eq. 12–14 and the rollback rule, read together.
 """
 
 from __future__ import annotations
@@ -39,7 +36,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.compensation._series import (
+from starlog.compensation.series import (
     as_samples,
     as_series,
     check_int,

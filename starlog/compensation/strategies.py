@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import sliding_window_view
 
-from starlog.compensation._series import as_reference, as_samples, as_series, check_rate
+from starlog.compensation.series import as_reference, as_samples, as_series, check_rate
 from starlog.errors import InvalidParameterError
 
 __all__ = [

@@ -9,7 +9,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from starlog.detect._flags import StarFlag as DetectionFlag
+    from starlog.detect.flags import StarFlag as DetectionFlag
     from starlog.detect.background import Background, estimate_background
     from starlog.detect.detection import DETECTION_DTYPE, DetectionWarning, detect_stars, empty_detections
 
@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 _DEFINED_IN = {
     "DETECTION_DTYPE": ("detection", "DETECTION_DTYPE"),
     "Background": ("background", "Background"),
-    "DetectionFlag": ("_flags", "StarFlag"),
+    "DetectionFlag": ("flags", "StarFlag"),
     "DetectionWarning": ("detection", "DetectionWarning"),
     "detect_stars": ("detection", "detect_stars"),
     "empty_detections": ("detection", "empty_detections"),

@@ -4,7 +4,7 @@ The frame is cut into ``mesh`` x ``mesh`` pixel cells (as SExtractor / SEP do). 
 sigma-clipped plane (level, slopes) and the residuals' standard deviation (noise) are computed on a
 sub-sampled set of pixels: the clipping starts from the median and the width of the star-free
 lower half of the distribution (all cells at once), then each cell's plane is fitted in one
-compiled pass (:mod:`starlog.detect._background_kernel`). The cell grid may be median-filtered
+compiled pass (:mod:`starlog.detect.background_kernel`). The cell grid may be median-filtered
 (``filter_size``), then it is interpolated back to full resolution bilinearly between cell
 centres (linear extrapolation in the outer half cells): :meth:`Background.map`, or, for the
 detection threshold, :meth:`Background.above` without making the map.
@@ -143,9 +143,9 @@ class Background:
     def above(self, image: npt.NDArray[np.float32], k: float) -> npt.NDArray[np.uint8]:
         """255 where ``image`` exceeds level + ``k`` x noise, else 0 (uint8): a comparison with
         ``map(mesh_level, plus=k * mesh_noise)`` without making that map (compiled,
-        :mod:`starlog.detect._threshold_kernel`); a pixel within float32 rounding of the
+        :mod:`starlog.detect.threshold_kernel`); a pixel within float32 rounding of the
         threshold may be decided differently."""
-        from starlog.detect._threshold_kernel import mark_above  # numba: imported, and compiled, on first use
+        from starlog.detect.threshold_kernel import mark_above  # numba: imported, and compiled, on first use
 
         grid, ring = _padded_grid(self.mesh_level, True, np.float32(k) * self.mesh_noise)
         grid = np.pad(grid, ((0, 1), (0, 1)), mode="edge")  # the cell after the last, for a zero weight
@@ -252,9 +252,9 @@ def _fit_planes(vals: npt.NDArray[np.float32], med: F64, sig: F64, iterations: i
                 clip_sigma: float) -> tuple[F64, F64, F64, F64]:
     """Sigma-clipped plane (level + x, y slopes) per cell, so that gradients and vignetting do
     not inflate the noise: level, slopes and residual sigma (not yet corrected for clipping).
-    Compiled (:mod:`starlog.detect._background_kernel`); :func:`_fit_planes_vectorised` is the same
+    Compiled (:mod:`starlog.detect.background_kernel`); :func:`_fit_planes_vectorised` is the same
     fit in numpy, the reference it is tested against."""
-    from starlog.detect._background_kernel import fit_planes  # numba: imported, and compiled, on first use
+    from starlog.detect.background_kernel import fit_planes  # numba: imported, and compiled, on first use
 
     level, noise = np.array(med, np.float64), np.array(sig, np.float64)
     slope_x, slope_y = np.empty_like(level), np.empty_like(level)

@@ -122,7 +122,7 @@ def find_components(binary: npt.NDArray[np.uint8], min_area: int = 1, max_area: 
     External contours give each component's bounding box and a seed pixel cheaply; a box's
     foreground pixels are the component's, except where boxes overlap: there only the pixels
     connected to the seed inside the box count (a neighbour poking in is left out). The
-    pixels are listed in compiled code (:func:`starlog.detect._peak_kernels.member_pixels`);
+    pixels are listed in compiled code (:func:`starlog.detect.peak_kernels.member_pixels`);
     :func:`find_components_vectorised` lists them in numpy, the reference it is tested against.
     """
     return _find_components(binary, min_area, max_area, _member_pixels)
@@ -147,7 +147,7 @@ def _shared_boxes(rects: I64) -> npt.NDArray[np.bool_]:
 
 def _member_pixels(binary: npt.NDArray[np.uint8], rects: I64, seeds: I64) -> tuple[I64, I64, I64]:
     """(box, y, x) of each box's pixels (see :func:`find_components`), box after box in raster order."""
-    from starlog.detect._peak_kernels import member_pixels  # numba: imported, and compiled, on first use
+    from starlog.detect.peak_kernels import member_pixels  # numba: imported, and compiled, on first use
 
     img = np.ascontiguousarray(binary, np.uint8)
     if img.ndim != 2 or rects.ndim != 2 or rects.shape[1] != 4 or seeds.shape != (rects.shape[0], 2):
@@ -225,10 +225,10 @@ def _local_maxima(comp: Components, filtered: npt.NDArray[np.float32]) -> npt.ND
     The box (not the whole frame) is the neighbourhood, so a maximum on the box edge stands
     even when a brighter pixel lies just outside it; a component with no such pixel (its top
     sits on a pixel the opening removed) gets its brightest pixel (first in raster order).
-    Compiled (:func:`starlog.detect._peak_kernels.local_maxima`); :func:`_local_maxima_vectorised`
+    Compiled (:func:`starlog.detect.peak_kernels.local_maxima`); :func:`_local_maxima_vectorised`
     is the numpy form, the reference it is tested against.
     """
-    from starlog.detect._peak_kernels import local_maxima  # numba: imported, and compiled, on first use
+    from starlog.detect.peak_kernels import local_maxima  # numba: imported, and compiled, on first use
 
     img = np.asarray(filtered)
     n, count = comp.y.shape, comp.area.shape

@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from starlog.detect._flags import StarFlag
+from starlog.detect.flags import StarFlag
 from starlog.detect.background import Background, estimate_background
 from starlog.detect.components import Components, Peaks, component_peaks, find_components
 from starlog.detect.correlated_noise import filtered_noise_factor
@@ -292,11 +292,11 @@ def _candidates(peaks: Peaks, comp: Components, work: npt.NDArray[np.float32], f
                 border: int) -> tuple[npt.NDArray[np.void], npt.NDArray[np.bool_]]:
     """Every peak as a detection row (``star`` not yet set), and which rows pass the screening.
 
-    Compiled (:func:`starlog.detect._peak_kernels.candidate_rows`, then numpy's logarithms for
-    the log-parabola, then :func:`~starlog.detect._peak_kernels.coarse_positions`);
+    Compiled (:func:`starlog.detect.peak_kernels.candidate_rows`, then numpy's logarithms for
+    the log-parabola, then :func:`~starlog.detect.peak_kernels.coarse_positions`);
     :func:`_candidates_vectorised` is the numpy form, the reference it is tested against.
     """
-    from starlog.detect._peak_kernels import candidate_rows, coarse_positions  # numba: compiled on first use
+    from starlog.detect.peak_kernels import candidate_rows, coarse_positions  # numba: compiled on first use
 
     n = peaks.y.shape
     count = comp.area.shape

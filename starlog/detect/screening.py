@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from starlog.detect._flags import StarFlag
+from starlog.detect.flags import StarFlag
 
 __all__ = ["elongation", "gather", "is_spike", "screen"]
 

@@ -6,10 +6,13 @@ frame is one compiled (numba) call, the numpy steps kept as its reference.
 * :mod:`starlog.tracking.models` — :class:`MotionModel` (STATIC, RANDOM_WALK, BROWNIAN_MOTION,
   POLYNOMIAL_TREND, CONSTANT_VELOCITY), :class:`MotionModelConfig`, exact discretisation.
 * :mod:`starlog.tracking.ukf` — :class:`BatchUKF` and the functional core (Merwe sigma points,
-  unscented transform, gated update), vectorised across stars.
+  unscented transform, gated update), vectorised across stars; :mod:`starlog.tracking.ukf_filterpy` — filterpy's
+  per-object filter, its reference.
 * :mod:`starlog.tracking.association` — :class:`StarTracker`: frame-by-frame association, track
   life cycle, per-track statistics, :meth:`StarTracker.brightest_track`.
-* :mod:`starlog.tracking._kernels` — the tracker's frame compiled: prediction, association, gated
+* :mod:`starlog.tracking.frame_steps` — the tracker's numpy steps of a frame (the reference);
+  :mod:`starlog.tracking.tracker_config` — :class:`TrackerConfig`.
+* :mod:`starlog.tracking.frame_kernel` — the tracker's frame compiled: prediction, association, gated
   update, life cycle and output rows of every track in one call.
 * :mod:`starlog.tracking.table` — :data:`TRACK_DTYPE` and :data:`TRACK_STATS_DTYPE` row layouts.
 * :mod:`starlog.tracking.state` — the live tracks' arrays, held in one structure (take/concat).
@@ -34,12 +37,11 @@ from starlog.tracking.ukf import (
     BatchUKF,
     SigmaPoints,
     UKFUpdate,
-    filterpy_step,
     gate_threshold,
-    make_filterpy_ukf,
     ukf_predict,
     ukf_update,
 )
+from starlog.tracking.ukf_filterpy import filterpy_step, make_filterpy_ukf
 
 __all__ = [
     "MotionModel",

@@ -43,192 +43,52 @@ live track. Each frame:
 
 "The brightest star's track" (the paper's sequence, §2.1): :meth:`StarTracker.brightest_track`.
 
-Each frame runs as one compiled call (:func:`starlog.tracking._kernels.track_frame`) on the live
-tracks' tables (:class:`~starlog.tracking.state.TrackState`); the numpy steps below
-(``StarTracker(vectorised=True)``) are its reference, and take a frame over where the call hands it
-back: an assignment with a choice to make (solved with scipy here) or a covariance to repair.
+Each frame runs as one compiled call (:func:`starlog.tracking.frame_kernel.track_frame`) on the live
+tracks' tables (:class:`~starlog.tracking.state.TrackState`); the numpy steps
+(:mod:`starlog.tracking.frame_steps`, ``StarTracker(vectorised=True)``) are its reference, and take a frame
+over where the call hands it back: an assignment with a choice to make (solved with scipy here) or a covariance to repair.
 :meth:`StarTracker.update_block` runs the frames of a block into one row table.
 
 Coordinates: x = column, y = row, px, (0, 0) at the centre of the top-left pixel; times are
 int ns ``log_time``.
 
-One module of over 500 lines: :class:`StarTracker`'s steps (predict, associate, update, start,
-life cycle) act on one set of live tracks, so they are one class, beside the compiled call that
-does them all and hands frames back to them.
+The options are :class:`~starlog.tracking.tracker_config.TrackerConfig`.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field, replace
-from typing import Any, NamedTuple
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import linear_sum_assignment
 
 from starlog.errors import InvalidInputError, InvalidParameterError, StarlogError
-from starlog.tracking.models import (
-    MotionModel,
-    MotionModelConfig,
-    discretize,
-    initial_covariance,
-    state_dim,
+from starlog.tracking.frame_steps import (
+    BAD_SIGMA,
+    NON_FINITE,
+    Centroids,
+    apply_measurements,
+    associate,
+    count_frame,
+    frame_arrays,
+    frame_columns,
+    stats_rows,
+    track_rows,
 )
+from starlog.tracking.models import MotionModel, discretize, initial_covariance, state_dim
 from starlog.tracking.state import FrameRows, TrackState
-from starlog.tracking.table import TRACK_DTYPE, TRACK_STATS_DTYPE
-from starlog.tracking.ukf import (
-    DEFAULT_GATE_PROBABILITY,
-    SigmaPoints,
-    gate_threshold,
-    ukf_predict,
-    ukf_update,
-)
+from starlog.tracking.table import TRACK_DTYPE
+from starlog.tracking.tracker_config import TrackerConfig
+from starlog.tracking.ukf import gate_threshold, ukf_predict
 
 __all__ = ["TrackerConfig", "StarTracker", "NoTrackError", "track_centroids"]
 
 Array = npt.NDArray[np.float64]
-_EYE2 = np.eye(2)
 
 
 class NoTrackError(StarlogError, LookupError):
     """No track satisfies the request (e.g. no confirmed track yet for the brightest star)."""
-
-
-@dataclass(frozen=True)
-class TrackerConfig:
-    """Options of :class:`StarTracker` (validated on construction).
-
-    Parameters
-    ----------
-    model : MotionModel or str
-        Motion model of every track (default STATIC, the paper's best model for a static
-        star field, Table 2).
-    motion : MotionModelConfig
-        Process-noise intensities and initial velocity/acceleration uncertainty.
-    points : SigmaPoints
-        Merwe sigma-point scaling.
-    gate_probability : float
-        Innovation gate: probability that a correct measurement passes, chi-square(2 dof);
-        default 0.9999 (NIS threshold 18.42). 1.0 disables the gate.
-    association_radius : float
-        Association window around each predicted position, px (default 3.0): star images
-        are many pixels apart, while jitter and transient outliers stay within a few px.
-    confirm_hits : int
-        Applied measurements (birth included) that confirm a track, >= 1 (default 3).
-    max_missed : int
-        Consecutive frames without an associated centroid that a confirmed track survives,
-        >= 0 (default 10: 33–50 ms at 200–300 Hz).
-    max_gated : int
-        Consecutive gated frames after which the next associated measurement is applied
-        regardless of the gate, >= 1 (default 5: outliers are transient).
-    sigma_floor : float
-        Smallest measurement uncertainty used, px, > 0 (default 1e-3): centroids reporting
-        ``sigma`` below it (e.g. 0 for a method without an uncertainty) use the floor.
-    max_distance : float, optional
-        When set, a centroid may be associated to a track only within this distance, px, of
-        the track's filtered position at its last applied measurement, replacing the window
-        and the gate (default None). A coasting track's position variance grows every frame,
-        and with it the innovation gate, while a moving model's prediction drifts on its
-        velocity; with a faint star of a static field detected in only some frames, either
-        would let the track jump to a noise peak pixels away and follow it, or lose its star.
-        The limit keeps such a track where its star was.
-    """
-
-    model: MotionModel | str = MotionModel.STATIC
-    motion: MotionModelConfig = field(default_factory=MotionModelConfig)
-    points: SigmaPoints = field(default_factory=SigmaPoints)
-    gate_probability: float = DEFAULT_GATE_PROBABILITY
-    association_radius: float = 3.0
-    confirm_hits: int = 3
-    max_missed: int = 10
-    max_gated: int = 5
-    sigma_floor: float = 1e-3
-    max_distance: float | None = None
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "model", MotionModel.parse(self.model))
-        if not isinstance(self.motion, MotionModelConfig):
-            raise InvalidParameterError(
-                f"TrackerConfig.motion must be a MotionModelConfig, got {self.motion!r}."
-            )
-        if not isinstance(self.points, SigmaPoints):
-            raise InvalidParameterError(
-                f"TrackerConfig.points must be a SigmaPoints, got {self.points!r}."
-            )
-        gate_threshold(self.gate_probability)  # validates
-        for name in ("association_radius", "sigma_floor"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)):
-                raise InvalidParameterError(
-                    f"TrackerConfig.{name} must be a number, got {value!r}."
-                )
-            if not (math.isfinite(value) and value > 0):
-                raise InvalidParameterError(
-                    f"TrackerConfig.{name} must be finite and > 0, got {value!r}."
-                )
-        for name, low in (("confirm_hits", 1), ("max_missed", 0), ("max_gated", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-                raise InvalidParameterError(
-                    f"TrackerConfig.{name} must be an integer >= {low}, got {value!r}."
-                )
-            object.__setattr__(self, name, int(value))
-        if self.max_distance is not None:
-            value = self.max_distance
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) or not (
-                    math.isfinite(value) and value > 0):
-                raise InvalidParameterError(
-                    f"TrackerConfig.max_distance must be None or a finite number > 0, got {value!r}."
-                )
-
-
-class _Centroids(NamedTuple):
-    """One frame's centroids, validated; ``sigma`` already raised to the tracker's floor."""
-
-    x: Array
-    y: Array
-    sigma: Array
-    flux: Array
-    var: Array  # sigma², the diagonal of R
-
-
-def _frame_columns(
-    x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.ArrayLike, flux: npt.ArrayLike
-) -> tuple[Array, Array, Array, Array]:
-    """The centroid columns as float64 arrays of one length (values not checked)."""
-    xs = np.asarray(x, dtype=np.float64)
-    ys = np.asarray(y, dtype=np.float64)
-    sigmas = np.asarray(sigma, dtype=np.float64)
-    fluxes = np.asarray(flux, dtype=np.float64)
-    if (xs.ndim != 1 or ys.shape != xs.shape or sigmas.shape != xs.shape
-            or fluxes.shape != xs.shape):
-        raise InvalidInputError(
-            "x, y, sigma and flux must be 1-D arrays of one length (one entry per centroid), "
-            f"got shapes {xs.shape}, {ys.shape}, {sigmas.shape}, {fluxes.shape}."
-        )
-    return xs, ys, sigmas, fluxes
-
-
-_NON_FINITE = "centroid x, y and flux must be finite (no NaN or inf)."
-_BAD_SIGMA = "centroid sigma must be finite and >= 0 px."
-
-
-def _frame_arrays(
-    x: npt.ArrayLike, y: npt.ArrayLike, sigma: npt.ArrayLike, flux: npt.ArrayLike
-) -> tuple[Array, Array, Array, Array]:
-    """The centroid columns (:func:`_frame_columns`), their values checked."""
-    xs, ys, sigmas, fluxes = _frame_columns(x, y, sigma, flux)
-    if xs.size and not (
-        np.isfinite(xs).all() and np.isfinite(ys).all() and np.isfinite(fluxes).all()
-    ):
-        raise InvalidInputError(_NON_FINITE)
-    if xs.size and not ((sigmas >= 0) & (sigmas < np.inf)).all():
-        raise InvalidInputError(_BAD_SIGMA)
-    return xs, ys, sigmas, fluxes
-
-
-_NO_PAIRS = (np.zeros(0, np.intp), np.zeros(0, np.intp))
 
 
 class StarTracker:
@@ -241,7 +101,7 @@ class StarTracker:
         ``StarTracker(model="CONSTANT_VELOCITY", max_missed=5)``.
     vectorised : bool
         Run each frame as numpy steps over all tracks (the reference of the tests) instead of
-        one compiled call (:mod:`starlog.tracking._kernels`, the default: the same tracks, the
+        one compiled call (:mod:`starlog.tracking.frame_kernel`, the default: the same tracks, the
         same numbers to rounding). The compiled call hands a frame to the numpy steps where
         they do what it does not: an assignment with a choice to make, a covariance to repair.
     **options
@@ -318,83 +178,6 @@ class StarTracker:
                 tracks.x, tracks.P, fx=lambda s: np.matmul(s, Ft), Q=Q, points=self.config.points
             )
 
-    def _associate(self, c: _Centroids) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
-        """Step 2: indices (tracks, centroids) of the admissible optimal assignment."""
-        tracks = self._tracks
-        if not (len(tracks) and c.x.size):
-            return _NO_PAIRS
-        px = tracks.x[:, 0]
-        py = tracks.x[:, 1]
-        nx = c.x[None, :] - px[:, None]
-        ny = c.y[None, :] - py[:, None]
-        a = tracks.P[:, 0, 0][:, None] + c.var[None, :]
-        b = tracks.P[:, 0, 1][:, None]
-        cc = tracks.P[:, 1, 1][:, None] + c.var[None, :]
-        d2 = (cc * nx * nx - 2.0 * b * nx * ny + a * ny * ny) / (a * cc - b * b)
-        r2 = self.config.association_radius**2
-        if self.config.max_distance is None:
-            ok = ((nx * nx + ny * ny) <= r2) | (d2 <= self._threshold)
-        else:  # only near where the star was last seen, however far the prediction has coasted
-            ax = c.x[None, :] - tracks.anchor[:, 0][:, None]
-            ay = c.y[None, :] - tracks.anchor[:, 1][:, None]
-            ok = (ax * ax + ay * ay) <= self.config.max_distance**2
-        if not ok.any():
-            return _NO_PAIRS
-        big = 1e3 * (float(d2[ok].max()) + 1.0)
-        cost = np.where(ok, d2, big)
-        rows, cols = linear_sum_assignment(cost)
-        keep = ok[rows, cols]
-        return rows[keep], cols[keep]
-
-    def _apply(
-        self, t: int, c: _Centroids, ti: npt.NDArray[np.intp], mj: npt.NDArray[np.intp]
-    ) -> tuple[FrameRows, npt.NDArray[np.bool_]]:
-        """Step 3: gated UKF update of the associated tracks; the rows and who was associated."""
-        tracks = self._tracks
-        n = len(tracks)
-        rows = FrameRows.empty(n)
-        associated = np.zeros(n, dtype=bool)
-        if ti.size:
-            cfg = self.config
-            z = np.stack((c.x[mj], c.y[mj]), axis=1)
-            R = c.var[mj][:, None, None] * _EYE2
-            reset = tracks.gated_streak[ti] >= cfg.max_gated
-            thr: float | Array = (
-                np.where(reset, np.inf, self._threshold) if reset.any() else self._threshold
-            )
-            res = ukf_update(tracks.x[ti], tracks.P[ti], z, R, points=cfg.points, threshold=thr)
-            tracks.x[ti] = res.x
-            tracks.P[ti] = res.P
-            rows.innovation[ti] = res.innovation
-            rows.nis[ti] = res.nis
-            rows.measured[ti] = res.applied
-            associated[ti] = True
-            rows.meas[ti, 0] = c.x[mj]
-            rows.meas[ti, 1] = c.y[mj]
-            rows.meas[ti, 2] = c.sigma[mj]
-            rows.meas[ti, 3] = c.flux[mj]
-            ok = ti[res.applied]
-            tracks.hits[ok] += 1
-            tracks.last_time[ok] = t
-            tracks.anchor[ok] = tracks.x[ok, :2]
-            tracks.sums[ok] += rows.meas[ok][:, [3, 0, 1]]
-        rows.gated = associated & ~rows.measured
-        return rows, associated
-
-    def _count(self, rows: FrameRows, associated: npt.NDArray[np.bool_]) -> None:
-        """Life-cycle counters after this frame's measurements."""
-        tracks = self._tracks
-        gated = rows.gated
-        measured = rows.measured
-        tracks.gated[gated] += 1
-        tracks.gated_streak[gated] += 1
-        tracks.gated_streak[~gated] = 0
-        tracks.missed[measured] = 0
-        tracks.missed[~measured] += 1
-        tracks.coast[associated] = 0
-        tracks.coast[~associated] += 1
-        tracks.age += 1
-
     def _retire_lost(self, rows: FrameRows) -> FrameRows:
         """Step 5: drop lost tracks (before births, so that new ids follow the old ones)."""
         cfg = self.config
@@ -403,13 +186,13 @@ class StarTracker:
         lost = np.where(confirmed, tracks.coast > cfg.max_missed, tracks.missed > 0)
         if not lost.any():
             return rows
-        self._lost.append(self._stats(tracks.take(lost), alive=False))
+        self._lost.append(stats_rows(tracks.take(lost), self.config.confirm_hits, alive=False))
         keep = ~lost
         self._tracks = tracks.take(keep)
         return rows.take(keep)
 
     def _start_tracks(
-        self, t: int, c: _Centroids, mj: npt.NDArray[np.intp], rows: FrameRows
+        self, t: int, c: Centroids, mj: npt.NDArray[np.intp], rows: FrameRows
     ) -> FrameRows:
         """Step 4: a track per unassociated centroid, in row-major order of position."""
         free = np.ones(c.x.size, dtype=bool)
@@ -434,52 +217,6 @@ class StarTracker:
         return rows.concat(
             FrameRows.born(np.stack((c.x[new], c.y[new], c.sigma[new], c.flux[new]), 1))
         )
-
-    def _output(self, rows: FrameRows) -> npt.NDArray[np.void]:
-        """One :data:`TRACK_DTYPE` row per live track."""
-        tracks = self._tracks
-        out = np.empty(len(tracks), dtype=TRACK_DTYPE)
-        out["track"] = tracks.ids
-        out["x"] = tracks.x[:, 0]
-        out["y"] = tracks.x[:, 1]
-        if self._d >= 4:
-            out["vx"] = tracks.x[:, 2]
-            out["vy"] = tracks.x[:, 3]
-        else:
-            out["vx"] = 0.0
-            out["vy"] = 0.0
-        out["cov_xx"] = tracks.P[:, 0, 0]
-        out["cov_xy"] = tracks.P[:, 0, 1]
-        out["cov_yy"] = tracks.P[:, 1, 1]
-        out["innovation_x"] = rows.innovation[:, 0]
-        out["innovation_y"] = rows.innovation[:, 1]
-        out["nis"] = rows.nis
-        out["measured"] = rows.measured
-        out["gated"] = rows.gated
-        out["meas_x"] = rows.meas[:, 0]
-        out["meas_y"] = rows.meas[:, 1]
-        out["meas_sigma"] = rows.meas[:, 2]
-        out["flux"] = rows.meas[:, 3]
-        out["age"] = tracks.age
-        out["missed"] = tracks.missed
-        out["confirmed"] = tracks.hits >= self.config.confirm_hits
-        out["hits"] = tracks.hits
-        return out
-
-    def _stats(self, tracks: TrackState, *, alive: bool) -> npt.NDArray[np.void]:
-        out = np.zeros(len(tracks), dtype=TRACK_STATS_DTYPE)
-        out["track"] = tracks.ids
-        out["alive"] = alive
-        out["confirmed"] = tracks.hits >= self.config.confirm_hits
-        out["hits"] = tracks.hits
-        out["gated"] = tracks.gated
-        out["first_log_time"] = tracks.first_time
-        out["last_log_time"] = tracks.last_time
-        mean = tracks.sums / np.maximum(tracks.hits, 1)[:, None]
-        out["mean_flux"] = mean[:, 0]
-        out["mean_x"] = mean[:, 1]
-        out["mean_y"] = mean[:, 2]
-        return out
 
     # ------------------------------------------------------------------ public API
     def update(
@@ -518,8 +255,8 @@ class StarTracker:
         """
         t = self._frame_time(log_time)
         if self._step is None:
-            return self._frame_steps(t, self._centroids(*_frame_arrays(x, y, sigma, flux)))
-        columns = _frame_columns(x, y, sigma, flux)
+            return self._frame_steps(t, self._centroids(*frame_arrays(x, y, sigma, flux)))
+        columns = frame_columns(x, y, sigma, flux)
         cents = np.empty((columns[0].size, 4))
         for k, column in enumerate(columns):
             cents[:, k] = column
@@ -574,26 +311,26 @@ class StarTracker:
             np.concatenate(out, out=rows)  # with ``out``, no promotion of the record dtypes of each pair
         return rows, np.array([r.size for r in out], dtype=np.int64)
 
-    def _centroids(self, x: Array, y: Array, sigma: Array, flux: Array) -> _Centroids:
+    def _centroids(self, x: Array, y: Array, sigma: Array, flux: Array) -> Centroids:
         sigmas = np.maximum(sigma, self.config.sigma_floor)
-        return _Centroids(x, y, sigmas, flux, sigmas * sigmas)
+        return Centroids(x, y, sigmas, flux, sigmas * sigmas)
 
-    def _frame_steps(self, t: int, c: _Centroids) -> npt.NDArray[np.void]:
+    def _frame_steps(self, t: int, c: Centroids) -> npt.NDArray[np.void]:
         """One frame as numpy steps over all tracks."""
         self._predict(t)
         self._last_time = t
         self.frames += 1
-        ti, mj = self._associate(c)
+        ti, mj = associate(self._tracks, c, self.config, self._threshold)
         return self._finish_steps(t, c, ti, mj)
 
-    def _finish_steps(self, t: int, c: _Centroids, ti: npt.NDArray[np.intp],
+    def _finish_steps(self, t: int, c: Centroids, ti: npt.NDArray[np.intp],
                       mj: npt.NDArray[np.intp]) -> npt.NDArray[np.void]:
         """The numpy steps of a frame after its association."""
-        rows, associated = self._apply(t, c, ti, mj)
-        self._count(rows, associated)
+        rows, associated = apply_measurements(self._tracks, t, c, ti, mj, self.config, self._threshold)
+        count_frame(self._tracks, rows, associated)
         rows = self._retire_lost(rows)
         rows = self._start_tracks(t, c, mj, rows)
-        return self._output(rows)
+        return track_rows(self._tracks, rows, self.config.confirm_hits)
 
     def track_stats(self) -> npt.NDArray[np.void]:
         """Summary of every track started so far (live and lost), sorted by id.
@@ -602,7 +339,7 @@ class StarTracker:
         -------
         ndarray of TRACK_STATS_DTYPE
         """
-        live = self._stats(self._tracks, alive=True)
+        live = stats_rows(self._tracks, self.config.confirm_hits, alive=True)
         out = np.concatenate([*self._lost, live]) if self._lost else live
         return out[np.argsort(out["track"], kind="stable")]
 
@@ -651,12 +388,12 @@ class StarTracker:
 
 
 class _CompiledStep:
-    """The frames of a :class:`StarTracker` as one compiled call each (:func:`starlog.tracking._kernels.track_frame`)
+    """The frames of a :class:`StarTracker` as one compiled call each (:func:`starlog.tracking.frame_kernel.track_frame`)
     on its track tables, the numpy steps taking over where the call hands back."""
 
     def __init__(self, tracker: StarTracker) -> None:
         # numba: imported, and compiled, on first use
-        from starlog.tracking._kernels import Status, finish_frame, parameters, track_frame
+        from starlog.tracking.frame_kernel import Status, finish_frame, parameters, track_frame
 
         cfg = tracker.config
         d = tracker._d
@@ -698,7 +435,7 @@ class _CompiledStep:
         tr._next_id += born
         if n_lost:
             self.lost.n = n_lost
-            tr._lost.append(tr._stats(self.lost, alive=False))
+            tr._lost.append(stats_rows(self.lost, tr.config.confirm_hits, alive=False))
             self.lost.n = 0
         return int(rows)
 
@@ -706,15 +443,15 @@ class _CompiledStep:
         """The frame after the call handed it back (``status``): an error, or the numpy steps' turn."""
         tr, code = self.tracker, self.status
         if status == code.BAD_VALUES:
-            raise InvalidInputError(_NON_FINITE)
+            raise InvalidInputError(NON_FINITE)
         if status == code.BAD_SIGMA:
-            raise InvalidInputError(_BAD_SIGMA)
+            raise InvalidInputError(BAD_SIGMA)
         c = tr._centroids(*cents.T)
         if status == code.REPAIR_PREDICT:
             return _copied(tr._frame_steps(t, c), out)
         tr._last_time = t  # the tracks are predicted
         tr.frames += 1
-        ti, mj = tr._associate(c)
+        ti, mj = associate(tr._tracks, c, tr.config, tr._threshold)
         if status == code.ASSIGN:
             tracks, lost = tr._tracks, self.lost
             status, rows, n_lost, born = self.finish_frame(
@@ -783,7 +520,7 @@ def track_centroids(
         The tracker after the last frame (for :meth:`StarTracker.brightest_track`).
     """
     t = np.asarray(log_time, dtype=np.int64)
-    xs, ys, sigmas, fluxes = _frame_arrays(x, y, sigma, flux)
+    xs, ys, sigmas, fluxes = frame_arrays(x, y, sigma, flux)
     if t.shape != xs.shape:
         raise InvalidInputError(f"log_time must have shape {xs.shape}, got {t.shape}.")
     frames = np.unique(t) if frame_times is None else np.unique(np.asarray(frame_times, np.int64))

@@ -6,7 +6,7 @@ integers (:data:`INT_FIELDS`). Every named array is a view of a column range of 
 :meth:`TrackState.take` (select tracks) and :meth:`TrackState.concat` (append new ones) move
 every array at once: none can be forgotten when tracks are dropped or born. The tables may hold
 spare rows beyond the live ones (:meth:`TrackState.reserve`), where the compiled frame step
-(:mod:`starlog.tracking._kernels`, which reads the same layout) writes the tracks it starts.
+(:mod:`starlog.tracking.frame_kernel`, which reads the same layout) writes the tracks it starts.
 
 :class:`FrameRows` holds what happened to each live track in the current frame (a dataclass of
 arrays, first axis the track).

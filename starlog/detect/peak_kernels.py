@@ -17,13 +17,14 @@ compare with:
   :func:`~starlog.detect.position.coarse_offsets`.
 
 Same bits: float64 sums over a window add its values in the order of numpy's pairwise
-summation (:func:`_window_sum`), float32 values are widened where numpy widens them, maxima
+summation (:func:`starlog.compiled_numpy.block_sum`), float32 values are widened where numpy widens them, maxima
 and minima propagate NaN as ``np.maximum`` does, and the logarithms of the log-parabola are
 taken by numpy itself between the two kernels (numpy's SIMD ``log`` and the C library's
 differ in the last bit for a fraction of values).
 
-One module, because numba's cache is refreshed when a function's own file changes, not when a
-function it calls in another file does. Divisions follow numpy (``error_model="numpy"``).
+One module: numba's cache is refreshed when a function's own file changes, not when a function it
+calls in another file does (after editing :mod:`starlog.compiled_numpy`, delete the cached code:
+``find starlog -name '*.nb[ic]' -delete``). Divisions follow numpy (``error_model="numpy"``).
 """
 
 from __future__ import annotations
@@ -33,17 +34,7 @@ import math
 import numpy as np
 from numba import njit
 
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _maximum(a, b):  # type: ignore[no-untyped-def]
-    """``np.maximum(a, b)``: NaN propagates, of two equal values the second (+0 for -0 and +0)."""
-    return a if (a > b or a != a) else b
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _minimum(a, b):  # type: ignore[no-untyped-def]
-    """``np.minimum(a, b)``: NaN propagates."""
-    return a if (a < b or a != a) else b
+from starlog.compiled_numpy import block_sum, maximum, minimum
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -69,9 +60,9 @@ def local_maxima(filtered, y, x, label, x_min, x_max, y_min, y_max, peak):  # ty
         c0, c2 = max(xi - 1, x_min[c]), min(xi + 1, x_max[c])
         up, mid, down = filtered[r0], filtered[yi], filtered[r2]
         f = mid[xi]
-        top = _maximum(_maximum(_maximum(up[c0], up[xi]), _maximum(up[c2], mid[c0])),
-                       _maximum(_maximum(mid[c2], down[c0]), _maximum(down[xi], down[c2])))
-        peak[i] = f >= _maximum(top, f)
+        top = maximum(maximum(maximum(up[c0], up[xi]), maximum(up[c2], mid[c0])),
+                      maximum(maximum(mid[c2], down[c0]), maximum(down[xi], down[c2])))
+        peak[i] = f >= maximum(top, f)
         if peak[i] and not has_peak[c]:
             has_peak[c] = True
             lonely -= 1
@@ -93,35 +84,6 @@ def local_maxima(filtered, y, x, label, x_min, x_max, y_min, y_max, peak):  # ty
         if best[c] >= 0:
             peak[best[c]] = True
     return -1
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _window_sum(a, n):  # type: ignore[no-untyped-def]
-    """numpy's float64 sum of ``a[:n]`` (n <= 128) as ``sum(axis=(1, 2))`` takes it for one window:
-    the reduction starts from 0 and adds the pairwise sum, eight partial sums combined in a tree."""
-    if n < 8:
-        res = 0.0
-        for i in range(n):
-            res += a[i]
-        return 0.0 + res
-    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
-    i = 8
-    whole = n - n % 8
-    while i < whole:
-        r0 += a[i]
-        r1 += a[i + 1]
-        r2 += a[i + 2]
-        r3 += a[i + 3]
-        r4 += a[i + 4]
-        r5 += a[i + 5]
-        r6 += a[i + 6]
-        r7 += a[i + 7]
-        i += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[i]
-        i += 1
-    return 0.0 + res
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -170,7 +132,7 @@ def _saturation_and_spike(raw, box, saturation, nse, sharpness_ratio):  # type: 
             if top == top and not (v <= top):
                 top = v
     centre = box[12]
-    lowest = _minimum(0.5 * (box[11] + box[13]), 0.5 * (box[7] + box[17]))
+    lowest = minimum(0.5 * (box[11] + box[13]), 0.5 * (box[7] + box[17]))
     spike = (centre - lowest > 8.0 * nse) and (lowest < sharpness_ratio * centre) and not sat
     return sat, top, spike
 
@@ -180,30 +142,30 @@ def _elongation(fil, level, fb, term):  # type: ignore[no-untyped-def]
     """:func:`~starlog.detect.screening.screen`'s elongation: the axis ratio of the second moments of the 7 x 7
     filtered window ``fil`` above ``level`` (``fb`` and ``term``: scratch of 49 values)."""
     for k in range(49):
-        fb[k] = _maximum(fil[k] - level, 0.0)
-    s0 = _window_sum(fb, 49)
+        fb[k] = maximum(fil[k] - level, 0.0)
+    s0 = 0.0 + block_sum(fb, 0, 49)
     s0 = s0 if s0 > 0 else 1.0
     for k in range(49):
         term[k] = fb[k] * (k % 7 - 3.0)
-    mx = _window_sum(term, 49) / s0
+    mx = (0.0 + block_sum(term, 0, 49)) / s0
     for k in range(49):
         term[k] = fb[k] * (k // 7 - 3.0)
-    my = _window_sum(term, 49) / s0
+    my = (0.0 + block_sum(term, 0, 49)) / s0
     for k in range(49):
         d = k % 7 - 3.0 - mx
         term[k] = fb[k] * d * d
-    sxx = _window_sum(term, 49) / s0
+    sxx = (0.0 + block_sum(term, 0, 49)) / s0
     for k in range(49):
         d = k // 7 - 3.0 - my
         term[k] = fb[k] * d * d
-    syy = _window_sum(term, 49) / s0
+    syy = (0.0 + block_sum(term, 0, 49)) / s0
     for k in range(49):
         term[k] = fb[k] * (k % 7 - 3.0 - mx) * (k // 7 - 3.0 - my)
-    sxy = _window_sum(term, 49) / s0
+    sxy = (0.0 + block_sum(term, 0, 49)) / s0
     tr, det = sxx + syy, sxx * syy - sxy * sxy
-    disc = math.sqrt(_maximum(tr * tr / 4 - det, 0.0))
-    l1, l2 = tr / 2 + disc, _maximum(tr / 2 - disc, 1e-12)
-    return _maximum(math.sqrt(l1 / l2), 1.0)
+    disc = math.sqrt(maximum(tr * tr / 4 - det, 0.0))
+    l1, l2 = tr / 2 + disc, maximum(tr / 2 - disc, 1e-12)
+    return maximum(math.sqrt(l1 / l2), 1.0)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -211,15 +173,15 @@ def _moment_offsets(box, term, fb, out):  # type: ignore[no-untyped-def]
     """``out`` = the moment offsets (x, y) of the 5 x 5 window ``box`` above the background
     (:func:`~starlog.detect.position.coarse_offsets`; ``term`` and ``fb``: scratch of 25 values)."""
     for k in range(25):
-        term[k] = _maximum(box[k], 0.0)
-    w0 = _window_sum(term, 25)
+        term[k] = maximum(box[k], 0.0)
+    w0 = 0.0 + block_sum(term, 0, 25)
     w0s = w0 if w0 > 0 else 1.0
     for k in range(25):
         fb[k] = term[k] * (k % 5 - 2.0)
-    out[0] = _window_sum(fb, 25) / w0s if w0 > 0 else 0.0
+    out[0] = (0.0 + block_sum(fb, 0, 25)) / w0s if w0 > 0 else 0.0
     for k in range(25):
         fb[k] = term[k] * (k // 5 - 2.0)
-    out[1] = _window_sum(fb, 25) / w0s if w0 > 0 else 0.0
+    out[1] = (0.0 + block_sum(fb, 0, 25)) / w0s if w0 > 0 else 0.0
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -1,4 +1,4 @@
-"""Private helpers: star windows (stamps), the pixel-integrated Gaussian model, smoothing.
+"""Star windows (stamps), the pixel-integrated Gaussian model, smoothing.
 
 A stamp is the (2h+1) x (2h+1) window centred on the integer pixel nearest the coarse
 position; offsets ``u = -h..h`` are relative to that centre pixel. Pixels outside the frame,
@@ -8,6 +8,7 @@ non-finite or saturated are invalid (``valid`` False, ``data`` 0) and left out e
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -16,7 +17,12 @@ from scipy.special import erf
 from starlog.errors import InvalidInputError
 
 __all__ = [
+    "DETECTION_FIELDS",
+    "INV_SQRT_2PI",
     "Stamps",
+    "check_detections",
+    "check_image",
+    "default_saturation",
     "gather_stamps",
     "with_saturated",
     "grown_saturation",
@@ -27,11 +33,48 @@ __all__ = [
     "smooth",
     "optimal_smoothing",
     "per_star",
+    "pixel_edges",
+    "pixel_profiles",
+    "variance",
 ]
 
 _SQ2 = np.sqrt(2.0)
-_ISQ2PI = 1.0 / np.sqrt(2.0 * np.pi)
+INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 F64 = npt.NDArray[np.float64]
+
+
+DETECTION_FIELDS = ("star", "x", "y", "background", "noise", "flux", "flags")
+
+
+def check_image(image: npt.ArrayLike) -> npt.NDArray[Any]:
+    """``image`` as an array, :class:`InvalidInputError` unless a non-empty 2-D array of integers or floats."""
+    arr = np.asarray(image)
+    if arr.ndim != 2 or arr.size == 0:
+        raise InvalidInputError(f"image must be a non-empty 2-D array; got shape {arr.shape}.")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise InvalidInputError(f"image must hold integers or floats; got dtype {arr.dtype}.")
+    return arr
+
+
+def check_detections(detections: npt.NDArray[Any]) -> npt.NDArray[Any]:
+    """``detections`` as an array, :class:`InvalidInputError` unless 1-D with the fields the windows are cut from."""
+    det = np.asarray(detections)
+    names = det.dtype.names or ()
+    missing = [f for f in DETECTION_FIELDS if f not in names]
+    if missing or det.ndim != 1:
+        raise InvalidInputError(
+            f"detections must be a 1-D structured array with fields {DETECTION_FIELDS} (DETECTION_DTYPE); "
+            f"missing {missing}, shape {det.shape}."
+        )
+    return det
+
+
+def default_saturation(arr: npt.NDArray[Any], saturation: float | None) -> float:
+    """``saturation``, or without one the frame's: its type's maximum for integers, none (inf) for floats."""
+    if saturation is not None:
+        return float(saturation)
+    return float(np.iinfo(arr.dtype).max) if np.issubdtype(arr.dtype, np.integer) else np.inf
+
 
 
 def per_star(value: npt.ArrayLike, n: int, name: str) -> F64:
@@ -79,8 +122,8 @@ def gather_stamps(
     saturation: float,
 ) -> Stamps:
     """Cut the windows around (x, y) out of ``image`` (never modified); compiled
-    (:func:`starlog.centroiding._kernels.gather_windows`), the same arrays as :func:`gather_stamps_vectorised`."""
-    from starlog.centroiding._kernels import gather_windows  # numba: imported, and compiled, on first use
+    (:func:`starlog.centroiding.star_kernels.gather_windows`), the same arrays as :func:`gather_stamps_vectorised`."""
+    from starlog.centroiding.star_kernels import gather_windows  # numba: imported, and compiled, on first use
 
     xc = np.rint(x).astype(np.intp)
     yc = np.rint(y).astype(np.intp)
@@ -189,7 +232,7 @@ def with_saturated(st: Stamps) -> Stamps:
     return replace(st, data=data, valid=st.valid | st.satpix)
 
 
-def _edges(u: F64) -> F64:
+def pixel_edges(u: F64) -> F64:
     """The W + 1 pixel edges of consecutive integer offsets ``u``."""
     return (u[0] - 0.5) + np.arange(u.size + 1, dtype=np.float64)
 
@@ -200,7 +243,7 @@ def _sigma_column(s: F64 | float, n: int) -> F64 | float:
     return float(arr) if arr.ndim == 0 else np.broadcast_to(arr, (n,))[:, None]
 
 
-def _profiles(t: F64) -> F64:
+def pixel_profiles(t: F64) -> F64:
     """Pixel-integrated unit Gaussian of the pixel edges ``t`` in sigma units (rows, W + 1) -> (rows, W)."""
     cdf = erf(t * (1.0 / _SQ2))
     return 0.5 * (cdf[:, 1:] - cdf[:, :-1])
@@ -212,11 +255,11 @@ def profile_1d(u: F64, c: F64, s: F64 | float, deriv: bool = False) -> tuple[F64
     ``u`` must be consecutive integers (pixel offsets); the W + 1 pixel edges are evaluated once.
     """
     sc = _sigma_column(s, c.shape[0])
-    t = (_edges(u)[None, :] - c[:, None]) / sc  # (N, W + 1)
-    e = _profiles(t)
+    t = (pixel_edges(u)[None, :] - c[:, None]) / sc  # (N, W + 1)
+    e = pixel_profiles(t)
     if not deriv:
         return e, None, None
-    pdf = _ISQ2PI * np.exp(-0.5 * t * t)
+    pdf = INV_SQRT_2PI * np.exp(-0.5 * t * t)
     de_dc = -(pdf[:, 1:] - pdf[:, :-1]) / sc
     tp = t * pdf
     de_ds = -(tp[:, 1:] - tp[:, :-1]) / sc
@@ -232,8 +275,8 @@ def model(st: Stamps, cx: F64, cy: F64, s: F64 | float) -> F64:
     sc = _sigma_column(s, n)
     if not isinstance(sc, float):
         sc = np.concatenate([sc, sc])
-    t = (_edges(st.u)[None, :] - np.concatenate([cx, cy])[:, None]) / sc
-    e = _profiles(t)
+    t = (pixel_edges(st.u)[None, :] - np.concatenate([cx, cy])[:, None]) / sc
+    e = pixel_profiles(t)
     return e[n:, :, None] * e[:n, None, :]
 
 
@@ -266,14 +309,14 @@ def fisher_sigma(st: Stamps, cx: F64, cy: F64, flux: F64, s: F64 | float) -> F64
     ``sqrt((I_xx + I_yy) / 2 / det I)`` of the Fisher information of the centre,
     ``I_ab = sum_ij w_ij (d mu / d a)(d mu / d b)`` with ``w`` the inverse pixel variance
     (:func:`variance`) of the model ``mu = F ey (x) ex``; compiled
-    (:func:`starlog.centroiding._kernels.fisher_sigmas`). inf where it cannot be inverted.
+    (:func:`starlog.centroiding.star_kernels.fisher_sigmas`). inf where it cannot be inverted.
     """
-    from starlog.centroiding._kernels import fisher_sigmas  # numba: imported, and compiled, on first use
+    from starlog.centroiding.star_kernels import fisher_sigmas  # numba: imported, and compiled, on first use
 
     n = st.data.shape[0]
     out = np.empty(n)
     fisher_sigmas(np.ascontiguousarray(st.valid, np.float64), per_star(st.noise, n, "noise"), float(st.gain),
-                  _edges(st.u), per_star(cx, n, "cx"), per_star(cy, n, "cy"), per_star(flux, n, "flux"),
+                  pixel_edges(st.u), per_star(cx, n, "cx"), per_star(cy, n, "cy"), per_star(flux, n, "flux"),
                   per_star(s, n, "s"), out)
     return out
 
