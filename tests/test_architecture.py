@@ -119,7 +119,7 @@ def test_the_reports_and_the_stage_declaration_import_only_downwards() -> None:
     graph = import_graph(ROOT, "starlog")
     report = {dep for name, deps in graph.items() if name.startswith("starlog.report") for dep in deps}
     assert not {d for d in report if d.startswith("starlog.experiment")}, "the report imports the experiment"
-    assert not graph["starlog.stage_declaration"] & {"starlog.plugins", "starlog.stage_api", "starlog.stages.custom"}
+    assert not graph["starlog.replay.declaration"] & {"starlog.replay.plugins", "starlog.stage_api", "starlog.stages.custom"}
 
 
 def test_the_check_finds_a_cycle_through_a_function_local_import(tmp_path: Path) -> None:

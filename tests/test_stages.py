@@ -26,7 +26,7 @@ from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.sim import Jitter
 from starlog.stages import simulate_log
 # private module _stage: the layer the built-in stages write through; its channel-order rule is tested without one
-from starlog.stages._stage import extend_log
+from starlog.replay.layer import extend_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
 from starlog.stages.track import track_log
@@ -353,7 +353,7 @@ def test_stage_refuses_to_read_fewer_messages_than_the_channel_holds(
 
 # private _blocks.worker_log's cache (_WORKER_LOG) and McapFile._file: a worker's open logs have no public view
 def test_a_worker_opens_each_log_once(tmp_path: Path) -> None:
-    from starlog.stages import _blocks as blocks
+    from starlog.replay import blocks
 
     log, other = tmp_path / "a.mcap", tmp_path / "b.mcap"
     for path in (log, other):

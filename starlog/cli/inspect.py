@@ -73,7 +73,7 @@ def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], fra
       starlog cat cen.mcap --topic '/stars/centroids/*' --start frame:10 --end frame:20 | jq '.message.stars | length'
       starlog cat bag.mcap --topic /camera/image_raw | head -n 5
     """
-    from starlog.stages.filter import cat_messages
+    from starlog.excerpt import cat_messages
 
     notes: list[str] = []
     lines = cat_messages(log, topics=topics, exclude_topics=exclude_topics, start=start, end=end,

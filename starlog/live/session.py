@@ -43,9 +43,9 @@ from starlog.live.sources import Camera, Source, SourceMessage, SourceProblem
 from starlog.live.stages import LiveCentroid, LiveSolve, LiveTrack, centroid_rows
 from starlog.live.status import StatusBoard
 from starlog.pipeline import PipelineConfig, fit_to_log, layer_paths, possible_layers, stage_steps
-from starlog.stages._centroid_frames import opencv_threads
-from starlog.stages._centroid_parameters import PHASE_MAX_FRAMES
-from starlog.stages._stage import StageOutput
+from starlog.stages.centroid.frames import opencv_threads
+from starlog.stages.centroid.parameters import PHASE_MAX_FRAMES
+from starlog.replay.layer import StageOutput
 from starlog.stages.centroid import resolve_centroid_parameters
 from starlog.trusted import TRUSTED, default_tracked, resolve_trusted, tracks_trusted
 

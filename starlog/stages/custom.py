@@ -1,11 +1,11 @@
-"""Running a declared stage (:mod:`starlog.stage_declaration`) on a log, with the guarantees of the built-in stages.
+"""Running a declared stage (:mod:`starlog.replay.declaration`) on a log, with the guarantees of the built-in stages.
 
 The input channel is read in batches of consecutive messages, undecoded; each batch is decoded
 (images to 2-D arrays, per-star tables to structured arrays), handed message by message to the
 stage's function, and its records encoded — in this process, or with ``workers > 1`` in worker
-processes (:mod:`starlog.stages._parallel`: they die with this process), results coming back in
+processes (:mod:`starlog.replay.pool`: they die with this process), results coming back in
 order. The records are written in message order by the stage's :class:`~starlog.io.LogWriter`
-(through :func:`~starlog.stages._stage.extend_log`), which checks each one against its
+(through :func:`~starlog.replay.layer.extend_log`), which checks each one against its
 channel's JSON Schema; so memory is bounded by a few batches, the output is written atomically
 with the stage's provenance, and its bytes depend neither on ``workers`` nor on the run.
 """
@@ -37,12 +37,12 @@ from starlog.io.messages import encode_json
 from starlog.io.reader import ChannelSummary, LogReader, decode_payload, source_path
 from starlog.io.star_tables import decode_table
 from starlog.io.writer import LogWriter
-from starlog.stage_declaration import KINDS, Message, Output, Stage
-from starlog.stages._channels import check_messages_read
-from starlog.stages._parallel import ordered_map, process_pool
-from starlog.stages._progress import progress
-from starlog.stages.window import windowed
-from starlog.stages._stage import extend_log
+from starlog.replay.declaration import KINDS, Message, Output, Stage
+from starlog.replay.channels import check_messages_read
+from starlog.replay.pool import ordered_map, process_pool
+from starlog.replay.progress import progress
+from starlog.replay.window import windowed
+from starlog.replay.layer import extend_log
 
 __all__ = ["StageSummary", "choose_inputs", "run_stage"]
 
@@ -244,7 +244,7 @@ class _Batch:
             ) -> list[tuple[int, tuple[bytes | None, ...]]]:
         """``(log_time, encoded record per output or None)`` of each message of the batch."""
         if stage is None:
-            from starlog.plugins import cached_reference
+            from starlog.replay.plugins import cached_reference
 
             stage = cached_reference(self.reference, self.search_path)
         return [(m.log_time, self._records(stage, m)) for m in self._messages(first, raws)]

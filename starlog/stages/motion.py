@@ -32,9 +32,9 @@ from starlog.io import protobuf_message_type, topics
 from starlog.io.reader import LogReader
 from starlog.io.star_tables import star_codec
 from starlog.platform_motion import Observations, PlatformEstimate, PlatformModel, estimate_platform
-from starlog.stages._channels import check_messages_read, select_track_channels
-from starlog.stages.window import windowed
-from starlog.stages._stage import StageOutput, extend_log
+from starlog.replay.channels import check_messages_read, select_track_channels
+from starlog.replay.window import windowed
+from starlog.replay.layer import StageOutput, extend_log
 
 __all__ = ["MotionSummary", "TrackObservations", "image_centre", "motion_log", "read_track_observations",
            "estimate_track_motion"]

@@ -57,10 +57,10 @@ from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import protobuf_message_type, topics
 from starlog.io.reader import LogReader
 from starlog.io.star_tables import star_codec
-from starlog.stages._channels import check_messages_read
-from starlog.stages._progress import progress
-from starlog.stages._stage import StageOutput, extend_log
-from starlog.stages.window import windowed
+from starlog.replay.channels import check_messages_read
+from starlog.replay.progress import progress
+from starlog.replay.layer import StageOutput, extend_log
+from starlog.replay.window import windowed
 
 __all__ = ["PROBE_FRAMES", "MethodFigures", "SolveSummary", "add_solve_channels", "compensated_name", "probe_sky",
            "select_centroid_channels", "select_compensated_channels", "sky_frames_kept", "solve_frame", "solve_log",

@@ -75,13 +75,13 @@ from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import ChannelSummary, LogReader
 from starlog.platform_motion import star_reference
-from starlog.stages._parallel import ordered_map, process_pool
-from starlog.stages._progress import progress
-from starlog.stages._channels import select_track_channels
-from starlog.stages._compensate_stars import (CentroidSigmas, StarFrames, TrackRows, centroid_sigmas,
+from starlog.replay.pool import ordered_map, process_pool
+from starlog.replay.progress import progress
+from starlog.replay.channels import select_track_channels
+from starlog.stages.compensate.stars import (CentroidSigmas, StarFrames, TrackRows, centroid_sigmas,
                                               collect_track_rows)
-from starlog.stages.window import windowed
-from starlog.stages._stage import StageOutput, extend_log
+from starlog.replay.window import windowed
+from starlog.replay.layer import StageOutput, extend_log
 from starlog.stages.motion import estimate_track_motion
 
 __all__ = ["BrightestSeries", "CompensateSummary", "compensate_log", "decision_table", "evaluate_series",

@@ -35,19 +35,19 @@ from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader, LogSource
 from starlog.io.writer import LogWriter
-from starlog.stages._blocks import channel_blocks
-from starlog.stages._centroid_frames import (
+from starlog.replay.blocks import channel_blocks
+from starlog.stages.centroid.frames import (
     FrameMessages,
     extract_blocks_serial,
     extract_parallel,
     extract_serial,
     opencv_threads,
 )
-from starlog.stages._centroid_parameters import CentroidParameters, parse_methods, resolve_centroid_parameters
-from starlog.stages._channels import check_messages_read
-from starlog.stages._progress import progress
-from starlog.stages.window import windowed
-from starlog.stages._stage import StageOutput, extend_log
+from starlog.stages.centroid.parameters import CentroidParameters, parse_methods, resolve_centroid_parameters
+from starlog.replay.channels import check_messages_read
+from starlog.replay.progress import progress
+from starlog.replay.window import windowed
+from starlog.replay.layer import StageOutput, extend_log
 
 __all__ = ["CentroidLayer", "CentroidParameters", "CentroidSummary", "centroid_log", "parse_methods",
            "resolve_centroid_parameters", "write_centroids"]
@@ -144,7 +144,7 @@ def centroid_log(
     ----------
     methods : str or sequence of str
         ``"all"`` (every method but MOMENT_SQUARED:
-        :data:`~starlog.stages._centroid_parameters.ALL_METHODS`) or names.
+        :data:`~starlog.stages.centroid.parameters.ALL_METHODS`) or names.
     gain, read_noise : float, optional
         Camera gain (e-/DN) and read noise (e-), used for the shot-noise part of each
         centroid's ``sigma``. Default: the values recorded by ``simulate`` in the log's
@@ -169,7 +169,7 @@ def centroid_log(
     psf : {"gaussian", "empirical"}, optional
         The PSF model PSFFIT fits. ``"empirical"``: an ePSF built once from the bright,
         isolated, unsaturated stars of the log's first frames
-        (:mod:`starlog.stages._centroid_parameters`), stored in the output (metadata
+        (:mod:`starlog.stages.centroid.parameters`), stored in the output (metadata
         ``starlog.epsf``) and recorded in the provenance, even when PSFFIT is not among the
         methods. ``"gaussian"``: PSFFIT fits the pixel-integrated Gaussian of the PSF sigma.
         Default: empirical when PSFFIT is among the methods, else none.
@@ -181,7 +181,7 @@ def centroid_log(
     phase_correction : "auto", "off" or path, optional
         Remove each method's pixel-phase bias (S-curve, :mod:`starlog.centroiding.phase`) from
         every centroid. ``"auto"`` learns it from the log's own stars (the first
-        :data:`~starlog.stages._centroid_parameters.PHASE_MIN_FRAMES` frames and more while they
+        :data:`~starlog.stages.centroid.parameters.PHASE_MIN_FRAMES` frames and more while they
         show new phases, each distinct star once; no catalogue), per method; a method with too
         few distinct bright stars is left uncorrected, with a note. A path reads the calibrations
         (JSON: ``--json`` output of an earlier run, or its ``phase_correction`` records). The

@@ -19,8 +19,8 @@ import numpy.typing as npt
 
 from starlog.io import encode_json, json_message_type, topics
 from starlog.io.reader import LogReader
-from starlog.stages._channels import check_messages_read
-from starlog.stages._stage import StageOutput
+from starlog.replay.channels import check_messages_read
+from starlog.replay.layer import StageOutput
 
 __all__ = ["CentroidSigmas", "StarFrames", "TrackRows", "centroid_sigmas", "collect_track_rows"]
 

@@ -36,8 +36,8 @@ from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog.io import topics
 from starlog.io.images import choose_image_topic
 from starlog.io.reader import LogReader, LogSource
-from starlog.stages._centroid_frames import FrameExtractor, opencv_threads
-from starlog.stages._progress import progress
+from starlog.stages.centroid.frames import FrameExtractor, opencv_threads
+from starlog.replay.progress import progress
 
 __all__ = ["HOT_PIXEL_FRAMES", "MODES", "MODE_FRAMES", "PHASE_MAX_FRAMES", "PHASE_MIN_FRAMES", "CentroidParameters",
            "PhaseCorrection", "extract_options", "parse_methods", "resolve_centroid_parameters", "ALL_METHODS"]
