@@ -160,11 +160,12 @@ class LiveSession:
             raise InvalidParameterError(f"the {self.source.description} gave no frame"
                                         + (f" ({self.source.end_reason})." if self.source.end_reason else "."))
         probe = prefix.close(self.source.metadata())
-        parameters = resolve_centroid_parameters(
-            probe, methods=table.get("methods", "all"), gain=table.get("gain"), read_noise=table.get("read_noise"),
-            options=table.get("options"), image_topic=table.get("image_topic"), psf=table.get("psf"),
-            phase_correction=table.get("phase_correction", "auto"), mode=table.get("mode", "auto"),
-            acquire_every=table.get("acquire_every"))
+        with LogReader(probe) as log:
+            parameters = resolve_centroid_parameters(
+                log, methods=table.get("methods", "all"), gain=table.get("gain"), read_noise=table.get("read_noise"),
+                options=table.get("options"), image_topic=table.get("image_topic"), psf=table.get("psf"),
+                phase_correction=table.get("phase_correction", "auto"), mode=table.get("mode", "auto"),
+                acquire_every=table.get("acquire_every"))
         self._open_layers(parameters, probe, folder, workers)
         self.say(f"live: {parameters.provenance['mode']} mode, methods {', '.join(m.value for m in parameters.methods)}"
                  + (f"; Foxglove: {self.server.url}" if self.server is not None else ""))

@@ -109,28 +109,28 @@ def _run_whole(input_path: Any, output_path: str | os.PathLike[str], stage: Stag
                show_progress: bool) -> StageSummary:
     """:func:`run_stage` on the whole of ``input_path`` (a window of the log, when a range was asked for)."""
     chosen = stage.resolve_options(options)
-    with LogReader(input_path) as probe:
-        topics, note = choose_inputs(stage, probe, input_topic)
-        images = {topic: is_image_schema(probe.channel(topic).schema_name) for topic in topics}
-    plan = [(topic, tuple((out.topic_for(topic), out) for out in stage.outputs)) for topic in topics]
-    written = [t for _, outputs in plan for t, _ in outputs]
-    if len(set(written)) < len(written):
-        raise InvalidParameterError(f"stage {stage.name!r}: its output topics {written} collide (to read several "
-                                    "channels, its topics need {name}, the last part of the input topic).")
-    parameters = {"stage_version": stage.version, "function": stage.reference,
-                  "input": topics[0] if len(topics) == 1 else topics, "options": chosen}
-    summary = StageSummary(stage.name, stage.version, topics, records=dict.fromkeys(written, 0),
-                           notes=[note] if note else [])
-    with extend_log(input_path, output_path, stage=stage.name, parameters=parameters, force=force, flatten=flatten,
-                    compression=compression) as (log, out):
-        for topic, outputs in plan:
-            ids = [out.add_channel(t, o.message_type) for t, o in outputs]
-            batch = _Batch(stage.reference, tuple(sys.path), str(source_path(input_path)), topic, images[topic], chosen,
-                           outputs)
-            summary.messages += _run_channel(log, out.writer, stage, batch, ids, summary.records, workers=workers,
-                                             show_progress=show_progress)
-        summary.notes += [n for n in log.notes if n not in summary.notes]
-    return summary
+    with LogReader(input_path) as log:
+        topics, note = choose_inputs(stage, log, input_topic)
+        images = {topic: is_image_schema(log.channel(topic).schema_name) for topic in topics}
+        plan = [(topic, tuple((out.topic_for(topic), out) for out in stage.outputs)) for topic in topics]
+        written = [t for _, outputs in plan for t, _ in outputs]
+        if len(set(written)) < len(written):
+            raise InvalidParameterError(f"stage {stage.name!r}: its output topics {written} collide (to read several "
+                                        "channels, its topics need {name}, the last part of the input topic).")
+        parameters = {"stage_version": stage.version, "function": stage.reference,
+                      "input": topics[0] if len(topics) == 1 else topics, "options": chosen}
+        summary = StageSummary(stage.name, stage.version, topics, records=dict.fromkeys(written, 0),
+                               notes=[note] if note else [])
+        with extend_log(log, output_path, stage=stage.name, parameters=parameters, force=force, flatten=flatten,
+                        compression=compression) as (_, out):
+            for topic, outputs in plan:
+                ids = [out.add_channel(t, o.message_type) for t, o in outputs]
+                batch = _Batch(stage.reference, tuple(sys.path), str(source_path(input_path)), topic, images[topic],
+                               chosen, outputs)
+                summary.messages += _run_channel(log, out.writer, stage, batch, ids, summary.records, workers=workers,
+                                                 show_progress=show_progress)
+            summary.notes += [n for n in log.notes if n not in summary.notes]
+        return summary
 
 
 def _run_channel(log: LogReader, writer: LogWriter, stage: Stage, batch: _Batch, ids: list[int],

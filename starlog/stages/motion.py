@@ -191,17 +191,16 @@ def motion_log(
     except ValueError:
         raise InvalidParameterError(f"unknown motion model {model!r}; choose translation, rigid or similarity.") from None
     options = dict(options or {})
-    with LogReader(input_path) as probe:
-        chosen = [c.topic for c in select_track_channels(probe, track)]
-    summary = MotionSummary(fit=fit.value)
-    parameters = {"tracks": chosen, "fit": fit.value, "options": options}
-    with extend_log(input_path, output_path, stage="motion", parameters=parameters, force=force, flatten=flatten,
-                    compression=compression) as (log, out), \
-            LogReader(input_path, validate_messages=False) as tracks:
-        for topic in chosen:
-            data, est = estimate_track_motion(tracks, topic, model=fit, options=options)
-            _write_motion(out, data, est)
-            summary.channels[topic] = _channel_summary(data, est, int(options.get("min_stars", 3)))
+    with LogReader(input_path, validate_messages=False) as tracks:  # the track rows starlog wrote: not re-checked
+        chosen = [c.topic for c in select_track_channels(tracks, track)]
+        summary = MotionSummary(fit=fit.value)
+        parameters = {"tracks": chosen, "fit": fit.value, "options": options}
+        with extend_log(tracks, output_path, stage="motion", parameters=parameters, force=force, flatten=flatten,
+                        compression=compression) as (_, out):
+            for topic in chosen:
+                data, est = estimate_track_motion(tracks, topic, model=fit, options=options)
+                _write_motion(out, data, est)
+                summary.channels[topic] = _channel_summary(data, est, int(options.get("min_stars", 3)))
     return summary
 
 

@@ -33,7 +33,7 @@ from starlog.centroiding.evidence import EvidenceAccumulator, recommend
 from starlog.io import protobuf_message_type, topics
 from starlog.io.frames import SkippedFrame
 from starlog.io.images import choose_image_topic
-from starlog.io.reader import LogReader, LogSource
+from starlog.io.reader import LogReader
 from starlog.io.writer import LogWriter
 from starlog.replay.blocks import channel_blocks
 from starlog.stages.centroid.frames import (
@@ -201,27 +201,28 @@ def centroid_log(
         Tracking: frames between two full searches (default
         :data:`~starlog.centroiding.tracking.DEFAULT_ACQUIRE_EVERY`).
     """
-    parameters = resolve_centroid_parameters(input_path, methods=methods, gain=gain, read_noise=read_noise,
-                                             options=options, image_topic=image_topic, psf=psf, hot_pixels=hot_pixels,
-                                             phase_correction=phase_correction, show_progress=show_progress,
-                                             mode=mode, acquire_every=acquire_every)
-    return write_centroids(input_path, output_path, parameters, skip_bad=skip_bad, workers=workers, force=force,
-                           flatten=flatten, compression=compression, show_progress=show_progress)
+    with LogReader(input_path) as log:  # opened once: the parameters' first frames and the frames written
+        parameters = resolve_centroid_parameters(log, methods=methods, gain=gain, read_noise=read_noise,
+                                                 options=options, image_topic=image_topic, psf=psf,
+                                                 hot_pixels=hot_pixels, phase_correction=phase_correction,
+                                                 show_progress=show_progress, mode=mode, acquire_every=acquire_every)
+        return write_centroids(log, output_path, parameters, skip_bad=skip_bad, workers=workers, force=force,
+                               flatten=flatten, compression=compression, show_progress=show_progress)
 
 
-def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], parameters: CentroidParameters, *,
+def write_centroids(log: LogReader, output_path: str | os.PathLike[str], parameters: CentroidParameters, *,
                     skip_bad: bool = False, workers: int = 1, force: bool = False, flatten: bool = False,
                     compression: str = "zstd", show_progress: bool = False) -> CentroidSummary:
-    """Write the layer of :func:`centroid_log` with resolved ``parameters``: every frame's detections, annotations
-    and centroids, and the ePSF and phase calibrations as metadata."""
+    """Write the layer of :func:`centroid_log` on the open ``log`` with resolved ``parameters``: every frame's
+    detections, annotations and centroids, and the ePSF and phase calibrations as metadata."""
     p = parameters
     summary = CentroidSummary.of(p)
     provenance = dict(p.provenance)  # completed with the count of full searches when the frames are done
-    with opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=provenance,
-                                       force=force, flatten=flatten, compression=compression) as (log, out):
+    with opencv_threads(1), extend_log(log, output_path, stage="centroid", parameters=provenance,
+                                       force=force, flatten=flatten, compression=compression) as (_, out):
         summary.channel_messages = n_frames = log.channel(p.image_topic).message_count
         layer = CentroidLayer.start(out, p, summary)
-        results = _frame_results(log, input_path, p, workers, skip_bad)
+        results = _frame_results(log, p, workers, skip_bad)
         for encoded in progress(results, total=n_frames, description="centroid", enabled=show_progress):
             layer.write(encoded)
         _check_frame_count(log, p.image_topic, summary)
@@ -287,7 +288,7 @@ class CentroidLayer:
         provenance["acquisitions"] = summary.acquisitions
 
 
-def _frame_results(log: LogReader, source: LogSource, p: CentroidParameters, workers: int, skip_bad: bool
+def _frame_results(log: LogReader, p: CentroidParameters, workers: int, skip_bad: bool
                    ) -> Iterator[FrameMessages | SkippedFrame]:
     """Every frame's messages in order. Full mode cuts the log into blocks of ~32 frames for the workers; tracking
     mode always cuts it into blocks of at most ``acquire_every`` frames (whole chunks), each starting with a full search, whatever the
@@ -298,7 +299,7 @@ def _frame_results(log: LogReader, source: LogSource, p: CentroidParameters, wor
     blocks = (channel_blocks(log, p.image_topic, frames_per_block, at_most=tracking is not None)
               if log.fully_indexed else None)
     if blocks and workers > 1 and n_frames >= 64:  # below 64 frames, a pool's start-up costs more than it saves
-        return extract_parallel(log, source, p.image_topic, blocks, p.extract, workers, skip_bad)
+        return extract_parallel(log, p.image_topic, blocks, p.extract, workers, skip_bad)
     if blocks and tracking is not None:
         return extract_blocks_serial(log, p.image_topic, blocks, p.extract, skip_bad)
     return extract_serial(log, p.image_topic, p.extract, skip_bad)
