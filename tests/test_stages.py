@@ -351,7 +351,7 @@ def test_stage_refuses_to_read_fewer_messages_than_the_channel_holds(
     assert not (tmp_path / "o.mcap").exists()
 
 
-# private _blocks.worker_log's cache (_WORKER_LOG) and McapFile._file: a worker's open logs have no public view
+# private blocks._WORKER_LOG (worker_log's cache) and McapFile._file: a worker's open logs have no public view
 def test_a_worker_opens_each_log_once(tmp_path: Path) -> None:
     from starlog.replay import blocks
 

@@ -19,6 +19,12 @@ whatever the number of workers, each starts with a full search, and known stars 
 windows around their predicted positions in between. The summary says how many frames were
 read against how many messages the channel holds; they must agree unless ``skip_bad`` names
 every frame left out.
+
+The input is opened once: :func:`~starlog.stages.centroid.parameters.resolve_centroid_parameters` reads the first
+frames it needs from the open log (PSF sigma, hot pixels, mode, ePSF, phase calibration) and :func:`write_centroids`
+writes the layer from the same reader (workers open the log themselves). Its parts:
+:mod:`~starlog.stages.centroid.parameters` (the parameters, resolved before any frame is written) and
+:mod:`~starlog.stages.centroid.frames` (one frame's work, and every frame in order, serial or on workers).
 """
 
 from __future__ import annotations
