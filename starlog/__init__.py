@@ -6,6 +6,13 @@ Conventions used everywhere in starlog (functions, messages, tables):
   *centre* of the top-left pixel (the numpy / OpenCV / photutils convention);
 * times are integer nanoseconds named ``log_time``.
 
+From Python: :func:`starlog.open` reads a log as tables, frames and messages (:class:`Log`), and one
+function per command runs it with the command's options and returns what it prints
+(:func:`starlog.simulate`, :func:`starlog.ingest`, :func:`starlog.centroid`, :func:`starlog.track`,
+:func:`starlog.motion`, :func:`starlog.compensate`, :func:`starlog.solve`, :func:`starlog.run`,
+:func:`starlog.export`, :func:`starlog.flatten`, :func:`starlog.verify`; :mod:`starlog.api`).
+Errors are :class:`StarlogError` subclasses with the command's one-line message.
+
 Subpackages: :mod:`starlog.io` (the MCAP log layer), :mod:`starlog.sim` (star-image
 simulator), :mod:`starlog.detect` and :mod:`starlog.centroiding` (single-frame extraction),
 :mod:`starlog.tracking` (UKF tracking), :mod:`starlog.compensation` (error decomposition and
@@ -18,15 +25,46 @@ compensation), :mod:`starlog.stages` (the stages that join algorithms and logs),
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+from typing import TYPE_CHECKING
 
-__all__ = ["StarlogError", "__version__"]
+from starlog.version import __version__
+
+__all__ = ["Log", "StarlogError", "__version__", "centroid", "compensate", "export", "flatten", "ingest", "motion",
+           "open", "run", "simulate", "solve", "track", "verify"]
+
+if TYPE_CHECKING:
+    from starlog.api import (
+        centroid,
+        compensate,
+        export,
+        flatten,
+        ingest,
+        motion,
+        open,
+        run,
+        simulate,
+        solve,
+        track,
+        verify,
+    )
+    from starlog.errors import StarlogError
+    from starlog.log import Log
+
+_DEFINED_IN = {"StarlogError": "starlog.errors", "Log": "starlog.log"} | {
+    name: "starlog.api" for name in ("centroid", "compensate", "export", "flatten", "ingest", "motion", "open", "run",
+                                     "simulate", "solve", "track", "verify")}
 
 
 def __getattr__(name: str) -> object:
-    """``StarlogError``, imported on first use: ``import starlog`` stays instant (the command line starts with it)."""
-    if name == "StarlogError":
-        from starlog.errors import StarlogError
+    """The public face, imported on first use: ``import starlog`` stays instant (the command line starts with it)."""
+    if name in _DEFINED_IN:
+        import importlib
 
-        return StarlogError
+        value = getattr(importlib.import_module(_DEFINED_IN[name]), name)
+        globals()[name] = value
+        return value
     raise AttributeError(f"module 'starlog' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -14,7 +14,7 @@ import os
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from starlog import __version__
+from starlog.version import __version__
 from starlog.errors import InvalidParameterError, StarlogError
 from starlog.io.images import choose_image_topic
 from starlog.io.message_json import MessageRenderer

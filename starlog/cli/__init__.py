@@ -17,6 +17,7 @@ import _thread
 import atexit
 import contextlib
 import errno
+import faulthandler
 import functools
 import os
 import signal
@@ -27,7 +28,7 @@ from typing import Any
 
 import click
 
-from starlog import __version__
+from starlog.version import __version__
 from starlog.replay.lifeline import die_of
 from starlog.cli.inspect import cat, export, info, report_command
 from starlog.cli.live import live
@@ -192,6 +193,8 @@ def main() -> None:
     SIGTERM and Ctrl-C unwind the command (partial outputs removed, worker pools stopped); the process then
     ends of that signal, as a shell expects of a stopped command.
     """
+    with contextlib.suppress(Exception):  # stderr may be no file (an embedding): nothing to print the crash to
+        faulthandler.enable()  # a crash in compiled code (a bug) prints where it happened instead of dying silently
     _handle_stops()
     try:
         cli(prog_name="starlog")

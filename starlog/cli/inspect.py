@@ -129,19 +129,19 @@ def export(logs: tuple[Path, ...], output: Path, tables: tuple[str, ...], export
       starlog export bag.mcap -o tables/ --topic /imu/data
       python -c "import pyarrow.parquet as pq; print(pq.read_table('tables/truth.parquet'))"
     """
+    from starlog import api
     from starlog.batch import BatchTask, run_batch
-    from starlog.parquet import export_log
 
     selected = tables or None
     if len(logs) == 1 and not scheduler:
-        written = export_log(logs[0], output, tables=selected, force=force, topics=export_topics)
+        written = api.export(logs[0], output, tables=selected, force=force, topics=export_topics)
         if as_json:
             print_json({"output": str(output), "tables": written})
         else:
             for name, rows in written.items():
                 click.echo(f"{output / (name + '.parquet')}: {rows} rows")
         return
-    tasks = [BatchTask(str(log), export_log, (str(log.absolute()), str((output / log.stem).absolute())),
+    tasks = [BatchTask(str(log), api.export, (str(log.absolute()), str((output / log.stem).absolute())),
                        {"tables": selected, "force": force, "topics": export_topics}) for log in logs]
     outcomes = run_batch(tasks, scheduler=scheduler, workers=workers, show_progress=not quiet, description="export")
     report_batch(outcomes, as_json, lambda r: ", ".join(f"{k} {v} rows" for k, v in r.items()))

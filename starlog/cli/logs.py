@@ -12,48 +12,31 @@ from starlog.cli.options import CONTEXT, echo_status, frame_write_options, json_
 __all__ = ["ingest", "simulate"]
 
 
-def _parse_jitter(values: tuple[str, ...]) -> tuple[Any, ...]:
-    from starlog.sim import Jitter
-
+def _parse_jitter(values: tuple[str, ...]) -> list[tuple[float, float]]:
     out = []
     for value in values:
         try:
             freq, amp = (float(v) for v in value.split(":"))
         except ValueError:
             raise click.BadParameter(f"{value!r}: expected FREQ_HZ:AMPLITUDE_PX, e.g. 25:0.05", param_hint="--jitter")
-        out.append(Jitter(frequency_hz=freq, amplitude_px=amp))
-    return tuple(out)
+        out.append((freq, amp))
+    return out
 
 
-def _timing(preset: str | None, fps: float | None, n_frames: int | None, duration: float | None) -> dict[str, Any]:
-    """Frame rate and number of frames: the preset's (or 300 Hz x 300 frames), overridden by the options."""
-    from starlog.sim import PRESETS
-
-    params: dict[str, Any] = {"fps": 300.0, "n_frames": 300}
-    if preset:
-        params.update(PRESETS[preset])
-    if fps is not None:
-        params["fps"] = fps
-    if duration is not None and n_frames is not None:
-        raise click.UsageError("give --frames or --duration, not both.")
-    if duration is not None:
-        params["n_frames"] = max(1, int(round(duration * params["fps"])))
-    elif n_frames is not None:
-        params["n_frames"] = n_frames
-    return params
-
-
-def _psf_shape(psf_model: str, psf_fwhm: float, moffat_beta: float, airy_lambda_d: float,
-               airy_zero: float) -> dict[str, Any]:
-    """The Moffat or Airy options of the simulation (none for the Gaussian PSF)."""
-    if psf_model == "gaussian":
-        return {}
-    from starlog.sim.profiles import AIRY_ZERO_PER_LAMBDA_D
-
-    if airy_zero and airy_lambda_d:
-        raise click.UsageError("give --airy-lambda-d or --airy-zero, not both.")
-    return {"psf_model": psf_model, "psf_fwhm": psf_fwhm, "moffat_beta": moffat_beta,
-            "airy_lambda_d": airy_lambda_d or airy_zero / AIRY_ZERO_PER_LAMBDA_D}
+def _parse_numbers(size: str, flux: str, drift: str, roll: str | None, sky_attitude: str | None) -> dict[str, Any]:
+    """The options written as several numbers, as :func:`starlog.simulate` takes them."""
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+        flux_min, flux_max = (float(v) for v in flux.split(":"))
+        drift_x, drift_y = (float(v) for v in drift.split(","))
+        roll_hz, roll_rad = (float(v) for v in roll.split(":")) if roll else (1.0, 0.0)
+        ra, dec, sky_roll = (float(v) for v in sky_attitude.split(",")) if sky_attitude else (0.0, 0.0, 0.0)
+    except ValueError as err:
+        raise click.BadParameter(f"{err}; see --help for the formats of --size, --flux, --drift, --roll and "
+                                 "--sky-attitude.")
+    return {"size": (width, height), "flux": (flux_min, flux_max), "drift": (drift_x, drift_y),
+            "roll": (roll_hz, roll_rad) if roll else None,
+            "sky_attitude": (ra, dec, sky_roll) if sky_attitude else None}
 
 
 @click.command(context_settings=CONTEXT)
@@ -132,40 +115,19 @@ def simulate(output: Path, preset: str | None, size: str, n_stars: int, flux: st
       starlog simulate -o sky.mcap --size 512x512 --sky-attitude 80,20,30 --fov 10 --jitter 5:0.5
       starlog simulate -o camera.mcap --size 512x512 --stars 40 --duration 60 --realtime
     """
-    from starlog.sim import CameraModel, SimulationConfig, Simulator
-    from starlog.stages import simulate_log
+    from starlog import api
 
-    params: dict[str, Any] = {}
-    try:
-        width, height = (int(v) for v in size.lower().split("x"))
-        flux_min, flux_max = (float(v) for v in flux.split(":"))
-        drift_x, drift_y = (float(v) for v in drift.split(","))
-        roll_hz, roll_rad = (float(v) for v in roll.split(":")) if roll else (1.0, 0.0)
-        attitude = tuple(float(v) for v in sky_attitude.split(",")) if sky_attitude else None
-    except ValueError as err:
-        raise click.BadParameter(f"{err}; see --help for the formats of --size, --flux, --drift, --roll and "
-                                 "--sky-attitude.")
-    if attitude is not None:
-        params.update(sky_attitude=attitude, fov_deg=fov_deg, magnitude_limit=mag_limit, flux_mag6=flux_mag6)
-    params.update(_timing(preset, fps, n_frames, duration))
-    camera = CameraModel(read_noise=read_noise, gain=gain, bias=bias, adc_bits=adc_bits)
-    params.update(_psf_shape(psf_model, psf_fwhm, moffat_beta, airy_lambda_d, airy_zero))
-    config = SimulationConfig(width=width, height=height, n_stars=n_stars, flux_min=flux_min, flux_max=flux_max,
-                              psf_sigma=psf_sigma, sky=sky, camera=camera, hot_pixels=hot_pixels,
-                              cosmic_rays_per_frame=cosmic_rays, jitter=_parse_jitter(jitter),
-                              drift_px_per_s=(drift_x, drift_y), random_walk_px_per_sqrt_s=random_walk,
-                              roll_amplitude_rad=roll_rad, roll_frequency_hz=roll_hz, seed=seed, start_time_ns=start_ns, **params)
-    if realtime:
-        from starlog.live import simulate_realtime
-
-        simulate_realtime(config, output, compression=compression, workers=workers, force=force,
-                          show_progress=not quiet, on_rendered=lambda: echo_status(
-                              quiet, f"rendered; writing {output} at {config.fps:g} Hz ({config.duration_s:.1f} s)"))
-    else:
-        simulate_log(config, output, compression=compression, workers=workers, force=force, show_progress=not quiet)
-    stars = n_stars if attitude is None else f"{Simulator(config).field.x.size} catalogue"
-    echo_status(quiet, f"wrote {output}: {config.n_frames} frames of {width}x{height} at {config.fps:g} Hz, "
-                       f"{stars} stars")
+    summary = api.simulate(
+        output, preset=preset, **_parse_numbers(size, flux, drift, roll, sky_attitude), stars=n_stars, fps=fps,
+        frames=n_frames, duration=duration, psf_sigma=psf_sigma, psf=psf_model, psf_fwhm=psf_fwhm,
+        moffat_beta=moffat_beta, airy_lambda_d=airy_lambda_d, airy_zero=airy_zero, sky=sky, read_noise=read_noise,
+        gain=gain, bias=bias, adc_bits=adc_bits, hot_pixels=hot_pixels, cosmic_rays=cosmic_rays,
+        jitter=_parse_jitter(jitter), random_walk=random_walk, fov=fov_deg, mag_limit=mag_limit,
+        flux_mag6=flux_mag6, seed=seed, start_ns=start_ns, realtime=realtime, force=force, compression=compression,
+        workers=workers, progress=not quiet, on_rendered=lambda planned: echo_status(
+            quiet, f"rendered; writing {output} at {planned.fps:g} Hz ({planned.frames / planned.fps:.1f} s)"))
+    for line in summary.lines():
+        echo_status(quiet, line)
 
 
 @click.command(context_settings=CONTEXT)
@@ -207,14 +169,14 @@ def ingest(source: Path, output: Path, fps: float | None, start_ns: int, time_pa
     """
     import warnings
 
-    from starlog.stages import ingest_folder
+    from starlog import api
 
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.showwarning = lambda message, *_, **__: click.echo(f"note: {message}", err=True)
-        summary = ingest_folder(source, output, fps=fps, start_ns=start_ns, time_pattern=time_pattern,
-                                time_unit=time_unit, skip_bad=skip_bad, compression=compression, workers=workers,
-                                force=force, show_progress=not quiet)
+        summary = api.ingest(source, output, fps=fps, start_ns=start_ns, time_pattern=time_pattern,
+                             time_unit=time_unit, skip_bad=skip_bad, compression=compression, workers=workers,
+                             force=force, progress=not quiet)
     echo_status(quiet, f"wrote {output}: {summary.frames} frames {summary.width}x{summary.height} "
                        f"{summary.encoding}, timed by {summary.timing}, {len(summary.skipped)} skipped")
     if as_json:

@@ -84,9 +84,9 @@ def flatten(log: Path, output: Path, force: bool, quiet: bool, as_json: bool) ->
     Example:
       starlog flatten result.mcap -o result-all.mcap
     """
-    from starlog.io.copying import flatten_log
+    from starlog import api
 
-    report = flatten_log(log, output, force=force)
+    report = api.flatten(log, output, force=force)
     d = report.to_dict()
     echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} topics, "
                        f"{d['chunks_copied']} chunks copied as they are")
@@ -155,17 +155,9 @@ def verify(log: Path, file_only: bool, as_json: bool, quiet: bool) -> None:
       starlog verify result.mcap --file-only
       starlog verify bag.mcap --json | jq '.files[].problems[] | select(.severity == "error")'
     """
-    from tqdm import tqdm
+    from starlog import api
 
-    from starlog.io.verify import verify_log
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.update(done - bar.n)
-
-    with tqdm(total=log.stat().st_size, desc="verify", unit="B", unit_scale=True, leave=False, dynamic_ncols=True,
-              disable=True if quiet else None) as bar:  # None: shown on a terminal only
-        report = verify_log(log, chain=not file_only, on_progress=progress)
+    report = api.verify(log, file_only=file_only, progress=not quiet)
     if as_json:
         print_json(report.to_dict())
     else:

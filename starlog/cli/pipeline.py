@@ -88,7 +88,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
       starlog run logs/*.mcap -o results/ --config pipeline.toml --scheduler tcp://10.0.0.5:8786
       starlog run sim.mcap -o first-second.mcap --start 0s --end 1s
     """
-    from starlog.pipeline import DEFAULT_CONFIG_TOML, load_config, run_pipeline, run_pipeline_batch
+    from starlog.pipeline import DEFAULT_CONFIG_TOML, load_config, run_pipeline_batch
 
     if print_config:
         click.echo(DEFAULT_CONFIG_TOML, nl=False)
@@ -105,10 +105,9 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
                      f"{_skipped_note(r['skipped'])}){reports[r['output']]}")
         return
 
+    from starlog import api
     from starlog.compensation import Shortfall
-    from starlog.errors import OutputExistsError
     from starlog.pipeline import report_path, stage_line
-    from starlog.report import write_report
     from starlog.report.summary import run_summary_lines
     from starlog.stages.compensate import decision_table
 
@@ -117,20 +116,17 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
         if line is not None:
             echo_status(quiet, line)
 
-    html = report_path(output)
-    if html.exists() and not force:
-        raise OutputExistsError(html)
     def skipping(shortfall: Shortfall) -> None:
         echo_status(quiet, f"skipped, log too short: compensate {shortfall.describe()}")
 
-    result = run_pipeline(logs[0], output, config, workers=workers, force=force, flatten=flatten,
-                          compression=compression, show_progress=not quiet, on_stage=stage_done, on_skip=skipping,
-                          start=start, end=end)
+    result = api.run(logs[0], output, config=config, workers=workers, force=force, flatten=flatten,
+                     compression=compression, progress=not quiet, on_stage=stage_done, on_skip=skipping,
+                     start=start, end=end)
+    html = report_path(output)
     if result.layers:
         echo_status(quiet, f"wrote {len(result.layers)} layers on {logs[0]}: "
                            f"{', '.join(str(p) for p in result.layers)}")
     echo_status(quiet, f"wrote {output}; inspect it with: starlog info {output}; tables: starlog export {output} -o DIR")
-    write_report(output, html)
     echo_status(quiet, f"wrote {html}")
     if as_json:
         print_json({**result.to_dict(), "report": str(html)})

@@ -93,11 +93,11 @@ def centroid(log: Path, output: Path, methods: str, psf: str | None, gain: float
       starlog centroid sky.mcap -o cen.mcap --method MOMENT,GAUSSFIT --phase-correction auto
       starlog centroid sim.mcap -o cen.mcap --method GAUSSFIT --mode tracking --acquire-every 50
     """
-    from starlog.stages.centroid import centroid_log
+    from starlog import api
 
-    summary = centroid_log(log, output, methods=methods, gain=gain, read_noise=read_noise, psf=psf,
+    summary = api.centroid(log, output, method=methods, gain=gain, read_noise=read_noise, psf=psf,
                            options=key_values(settings, "--set"), image_topic=image_topic, skip_bad=skip_bad,
-                           workers=workers, force=force, compression=compression, show_progress=not quiet,
+                           workers=workers, force=force, compression=compression, progress=not quiet,
                            hot_pixels=hot_pixels, phase_correction=phase_correction, start=start, end=end,
                            flatten=flatten, mode=mode, acquire_every=acquire_every)
     d = summary.to_dict()
@@ -142,11 +142,11 @@ def track(log: Path, output: Path, method: str, models: str, settings: tuple[str
       starlog track cen.mcap -o trk.mcap --centroids GAUSSFIT --model all
       starlog track cen.mcap -o trk.mcap --centroids NONE --model STATIC --set sigma_floor=0.05
     """
-    from starlog.stages.track import track_log
+    from starlog import api
 
-    summary = track_log(log, output, method=method, models=models, tracker=key_values(settings, "--set"),
+    summary = api.track(log, output, centroids=method, model=models, options=key_values(settings, "--set"),
                         motion=key_values(motion, "--motion"), force=force, compression=compression,
-                        workers=workers, show_progress=not quiet, start=start, end=end, flatten=flatten)
+                        workers=workers, progress=not quiet, start=start, end=end, flatten=flatten)
     echo_status(quiet, f"wrote {output}: {summary.frames} frames of {summary.method} centroids")
     print_result(summary, as_json)
 
@@ -182,9 +182,9 @@ def motion(log: Path, output: Path, track_topic: str | None, fit: str, settings:
       starlog motion trk.mcap -o mot.mcap --track /track/GAUSSFIT/STATIC
       starlog motion trk.mcap -o mot.mcap --track all --model translation --set k_sigma=4 --json
     """
-    from starlog.stages.motion import motion_log
+    from starlog import api
 
-    summary = motion_log(log, output, track=track_topic, model=fit, options=key_values(settings, "--set"),
+    summary = api.motion(log, output, track=track_topic, model=fit, options=key_values(settings, "--set"),
                          force=force, compression=compression, workers=workers, start=start, end=end,
                          flatten=flatten)
     echo_status(quiet, f"wrote {output}: {fit} platform motion of {len(summary.channels)} track channel(s)")
@@ -241,15 +241,16 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
       starlog compensate trk.mcap -o comp.mcap --rate 10,50 --protocol truth,relative --motion keep,separate
       starlog compensate trk.mcap -o comp.mcap --rate 50 --protocol paper --stars all
     """
-    from starlog.stages.compensate import compensate_log, decision_table
+    from starlog import api
+    from starlog.stages.compensate import decision_table
 
     try:
         rate_values = [float(r) for r in rates.split(",") if r.strip()]
     except ValueError:
         raise click.BadParameter(f"{rates!r}: expected numbers in Hz, e.g. 10,50", param_hint="--rate")
-    summary = compensate_log(log, output, rates=rate_values, track=track_topic, protocols=protocols,
+    summary = api.compensate(log, output, rate=rate_values, track=track_topic, protocol=protocols,
                              options=key_values(settings, "--set"), motion=motion, workers=workers,
-                             show_progress=not quiet, force=force, compression=compression, start=start, end=end,
+                             progress=not quiet, force=force, compression=compression, start=start, end=end,
                              burn_in=burn_in_setting(burn_in), skip_short=skip_short, flatten=flatten, stars=stars)
     for skipped in summary.skipped:
         echo_status(quiet, f"skipped (track too short): {skipped.describe()}")
@@ -300,11 +301,11 @@ def solve(log: Path, output: Path, methods: str | None, compensated: str | None,
       starlog solve cen.mcap -o att.mcap --centroids all --set match_radius=2 --json
       starlog solve comp.mcap -o att.mcap --compensated 50/truth
     """
-    from starlog.stages.solve import solve_log
+    from starlog import api
 
-    summary = solve_log(log, output, centroids=methods, compensated=compensated,
+    summary = api.solve(log, output, centroids=methods, compensated=compensated,
                         options=key_values(settings, "--set"), force=force,
-                        compression=compression, show_progress=not quiet, start=start, end=end, flatten=flatten)
+                        compression=compression, progress=not quiet, start=start, end=end, flatten=flatten)
     solved = sum(m["solved"] for m in summary.methods.values())
     frames = sum(m["frames"] for m in summary.methods.values())
     per_frame = 1000 * sum(summary.seconds.values()) / max(frames, 1)

@@ -26,7 +26,7 @@ from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Message, MessageIndex, Metadata, Schema
 
-from starlog import __version__
+from starlog.version import __version__
 from starlog.errors import BaseMismatchError, CorruptLogError, LogError, LogNotFoundError
 from starlog.io.chain import BASE_METADATA_NAME, LayerBase, base_reference
 from starlog.io.chunk_indexes import read_file_summary

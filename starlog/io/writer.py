@@ -65,7 +65,7 @@ from mcap.records import (
     SummaryOffset,
 )
 
-from starlog import __version__
+from starlog.version import __version__
 from starlog.errors import (
     CorruptLogError,
     FileAccessError,

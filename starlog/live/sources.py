@@ -31,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 from mcap.records import Channel, Schema
 
-from starlog import __version__
+from starlog.version import __version__
 from starlog.errors import ImageFolderError, InvalidParameterError, LogError
 from starlog.io import encode_json, encode_raw_image, json_message_type, protobuf_message_type, topics
 from starlog.io.images import choose_image_topic, is_image_schema

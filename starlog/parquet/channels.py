@@ -30,7 +30,7 @@ from starlog.io.messages import decode_json
 from starlog.io.reader import LogReader
 from starlog.io.writer import atomic_output
 
-__all__ = ["flatten", "export_topic", "export_image_frames", "parquet_writer", "topic_file_name"]
+__all__ = ["flatten", "export_topic", "export_image_frames", "parquet_writer", "topic_file_name", "topic_table"]
 
 
 @contextmanager
@@ -64,9 +64,10 @@ def topic_file_name(topic: str) -> str:
     return topic.strip("/").replace("/", ".") or "root"
 
 
-def _rows(log: LogReader, topic: str) -> Iterator[dict[str, Any]]:
+def _rows(log: LogReader, topic: str, start: int | None = None, end: int | None = None
+          ) -> Iterator[dict[str, Any]]:
     decoders: dict[int, Any] = {}
-    for schema, channel, message in log.raw_messages([topic]):
+    for schema, channel, message in log.raw_messages([topic], start=start, end=end):
         if channel.id not in decoders:
             decoder = decode_json if channel.message_encoding == "json" else \
                 message_decoder(schema, channel.message_encoding)
@@ -84,49 +85,63 @@ def _rows(log: LogReader, topic: str) -> Iterator[dict[str, Any]]:
         yield {"log_time": message.log_time, **flatten(value)}
 
 
-def _write_rows(rows: Iterator[dict[str, Any]], path: Path, row_group_rows: int, force: bool) -> int:
-    """Stream rows into a Parquet file (columns fixed by the first row group; later new keys are an error)."""
-    writer: pq.ParquetWriter | None = None
+def _row_tables(rows: Iterator[dict[str, Any]], row_group_rows: int, where: str) -> Iterator[pa.Table]:
+    """Rows in tables of ``row_group_rows`` (columns fixed by the first; later new keys are an error)."""
     schema: pa.Schema | None = None
     batch: list[dict[str, Any]] = []
+    try:
+        for row in rows:
+            batch.append(row)
+            if len(batch) >= row_group_rows:
+                table = pa.Table.from_pylist(batch, schema=schema)
+                schema = table.schema
+                batch.clear()
+                yield table
+        if batch:
+            yield pa.Table.from_pylist(batch, schema=schema)
+    except (pa.ArrowInvalid, pa.ArrowTypeError) as err:
+        raise InvalidInputError(f"{where}: the messages do not fit one table ({err}).") from err
+
+
+def _write_rows(rows: Iterator[dict[str, Any]], path: Path, row_group_rows: int, force: bool) -> int:
+    """Stream rows into a Parquet file, a row group at a time."""
+    writer: pq.ParquetWriter | None = None
     written = 0
-
-    def flush(tmp: Path) -> None:
-        nonlocal writer, schema, written
-        if not batch:
-            return
-        table = pa.Table.from_pylist(batch, schema=schema)
-        if writer is None:
-            schema = table.schema
-            writer = pq.ParquetWriter(tmp, schema, compression="zstd")
-        writer.write_table(table)
-        written += len(batch)
-        batch.clear()
-
     with atomic_output(path, force=force) as tmp:
         try:
-            try:
-                for row in rows:
-                    batch.append(row)
-                    if len(batch) >= row_group_rows:
-                        flush(tmp)
-                flush(tmp)
-            except (pa.ArrowInvalid, pa.ArrowTypeError) as err:
-                raise InvalidInputError(f"{path.name}: the messages do not fit one table ({err}).") from err
+            for table in _row_tables(rows, row_group_rows, path.name):
+                if writer is None:
+                    writer = pq.ParquetWriter(tmp, table.schema, compression="zstd")
+                writer.write_table(table)
+                written += table.num_rows
         except BaseException:
             if writer is not None:
                 with suppress(Exception):  # the block's error is the one to report
                     writer.close()
             raise
         if writer is None:
-            pq.write_table(pa.table({"log_time": pa.array([], pa.int64())}), tmp)
+            pq.write_table(_EMPTY, tmp)
         else:
             writer.close()
     return written
 
 
+_EMPTY = pa.table({"log_time": pa.array([], pa.int64())})
+_ROW_GROUP_ROWS = 16_384
+
+
+def topic_table(log: LogReader, topic: str, *, start: int | None = None, end: int | None = None,
+                row_group_rows: int = _ROW_GROUP_ROWS) -> pa.Table:
+    """The flat table ``export --topic`` writes for ``topic``, in memory: messages with ``start <= log_time <
+    end`` only (the rest of the log is not read). Columns are typed as the export types them."""
+    if topic not in log.topics:
+        raise ChannelNotFoundError(log.path, topic, log.topics)
+    tables = list(_row_tables(_rows(log, topic, start, end), row_group_rows, topic))
+    return pa.concat_tables(tables) if tables else _EMPTY
+
+
 def export_topic(log: LogReader, topic: str, output_dir: Path, *, force: bool = False,
-                 row_group_rows: int = 16_384) -> tuple[str, int]:
+                 row_group_rows: int = _ROW_GROUP_ROWS) -> tuple[str, int]:
     """Write ``<topic>.parquet`` (see :func:`topic_file_name`) with one flattened row per message."""
     if topic not in log.topics:
         raise ChannelNotFoundError(log.path, topic, log.topics)

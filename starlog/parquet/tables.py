@@ -30,7 +30,7 @@ from starlog.io.schemas import schema_dir
 from starlog.io.writer import atomic_output
 from starlog.io import topics
 
-__all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "table_columns"]
+__all__ = ["TABLES", "TableSpec", "arrow_schema", "export_log", "family_table", "table_columns", "table_of_channel"]
 
 _ARROW_TYPES: dict[str, pa.DataType] = {
     "int64": pa.int64(),
@@ -164,31 +164,50 @@ TABLES: tuple[TableSpec, ...] = (
 def _write_table(log: LogReader, spec: TableSpec, channels: list[ChannelSummary], path: Path,
                  row_group_rows: int, force: bool) -> int:
     """Write one table, a row group each time ``row_group_rows`` rows are gathered (after a whole message)."""
+    written = 0
+    with atomic_output(path, force=force) as tmp, parquet_writer(tmp, arrow_schema(spec.name)) as writer:
+        for group in _row_groups(log, spec, channels, row_group_rows):
+            writer.write_table(group)
+            written += group.num_rows
+    return written
+
+
+def _row_groups(log: LogReader, spec: TableSpec, channels: list[ChannelSummary], row_group_rows: int,
+                start: int | None = None, end: int | None = None) -> Iterator[pa.Table]:
+    """The table's rows in groups of at least ``row_group_rows`` (whole messages; the last group smaller)."""
     schema = arrow_schema(spec.name)
     names = schema.names
-    by_topic = {c.topic: c for c in channels}
     chunks: dict[str, list[Any]] = {n: [] for n in names}
-    pending = written = 0
-    with atomic_output(path, force=force) as tmp, parquet_writer(tmp, schema) as writer:
-
-        def flush() -> None:
-            nonlocal pending, written
-            if pending:
-                writer.write_table(pa.table({n: _joined(chunks[n], schema.field(n).type) for n in names},
-                                            schema=schema))
-                written += pending
-                pending = 0
-                for n in names:
-                    chunks[n].clear()
-
-        for columns in _columns(log, spec, by_topic, names):
+    pending = 0
+    for columns in _columns(log, spec, {c.topic: c for c in channels}, names, start, end):
+        for n in names:
+            chunks[n].append(columns[n])
+        pending += len(columns[names[0]])
+        if pending >= row_group_rows:
+            yield pa.table({n: _joined(chunks[n], schema.field(n).type) for n in names}, schema=schema)
+            pending = 0
             for n in names:
-                chunks[n].append(columns[n])
-            pending += len(columns[names[0]])
-            if pending >= row_group_rows:
-                flush()
-        flush()
-    return written
+                chunks[n].clear()
+    if pending:
+        yield pa.table({n: _joined(chunks[n], schema.field(n).type) for n in names}, schema=schema)
+
+
+def family_table(log: LogReader, name: str, *, topics: Iterable[str] | None = None, start: int | None = None,
+                 end: int | None = None) -> pa.Table:
+    """The table ``name`` of :data:`TABLES` as ``export`` writes it, in memory: every channel feeding it (or the
+    ``topics`` among them), messages with ``start <= log_time < end`` only (the rest of the log is not read)."""
+    spec = next((t for t in TABLES if t.name == name), None)
+    if spec is None:
+        raise InvalidParameterError(f"unknown table {name!r}; known tables: {[t.name for t in TABLES]}.")
+    chosen = None if topics is None else set(topics)
+    channels = [c for c in log.channels() if spec.matches(c) and (chosen is None or c.topic in chosen)]
+    groups = list(_row_groups(log, spec, channels, 1 << 62, start, end))
+    return groups[0] if groups else arrow_schema(name).empty_table()
+
+
+def table_of_channel(channel: ChannelSummary) -> str | None:
+    """The name of the table of :data:`TABLES` a channel feeds, if any."""
+    return next((t.name for t in TABLES if t.matches(channel)), None)
 
 
 def _joined(pieces: list[Any], kind: pa.DataType) -> pa.Array:
@@ -198,15 +217,17 @@ def _joined(pieces: list[Any], kind: pa.DataType) -> pa.Array:
     return pa.array([value for piece in pieces for value in piece], type=kind)
 
 
-def _columns(log: LogReader, spec: TableSpec, by_topic: dict[str, ChannelSummary],
-             names: list[str]) -> Iterator[dict[str, Any]]:
+def _columns(log: LogReader, spec: TableSpec, by_topic: dict[str, ChannelSummary], names: list[str],
+             start: int | None = None, end: int | None = None) -> Iterator[dict[str, Any]]:
     """Each message's rows as columns (one list or array per column)."""
+    if not by_topic:
+        return
     if spec.columns is not None:
-        for table in log.tables(list(by_topic)):
+        for table in log.tables(list(by_topic), start=start, end=end):
             yield spec.columns(table)
         return
     assert spec.rows is not None
-    for message in log.messages(list(by_topic)):
+    for message in log.messages(list(by_topic), start=start, end=end):
         rows = list(spec.rows(by_topic[message.topic], message.log_time, message.payload))
         yield {n: [row[n] for row in rows] for n in names}
 

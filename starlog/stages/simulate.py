@@ -5,9 +5,10 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from dataclasses import asdict, dataclass
 from typing import Any
 
-from starlog import __version__
+from starlog.version import __version__
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics
 from starlog.io.writer import FRAME_COMPRESSION
@@ -17,7 +18,7 @@ from starlog.sim import SimulatedFrame, SimulationConfig, Simulator
 from starlog.replay.pool import ordered_map, process_pool
 from starlog.replay.progress import progress
 
-__all__ = ["simulate_log"]
+__all__ = ["SimulationSummary", "simulate_log", "simulation_summary"]
 
 
 def simulate_log(
@@ -94,3 +95,32 @@ def _render_parallel(config: SimulationConfig, workers: int, block: int = 16) ->
     with process_pool(workers) as pool:
         for frames in ordered_map(pool, _render_block, blocks, window=2 * workers):
             yield from frames
+
+
+@dataclass(frozen=True)
+class SimulationSummary:
+    """What ``simulate`` wrote: the log, its frames (count, size, rate) and its stars."""
+
+    output: str
+    frames: int
+    width: int
+    height: int
+    fps: float
+    stars: int
+    catalogue: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def lines(self) -> list[str]:
+        stars = f"{self.stars} catalogue" if self.catalogue else str(self.stars)
+        return [f"wrote {self.output}: {self.frames} frames of {self.width}x{self.height} at {self.fps:g} Hz, "
+                f"{stars} stars"]
+
+
+def simulation_summary(config: SimulationConfig, output: str | os.PathLike[str]) -> SimulationSummary:
+    """The summary of a log simulated from ``config``."""
+    catalogue = config.sky_attitude is not None
+    stars = Simulator(config).field.x.size if catalogue else config.n_stars
+    return SimulationSummary(str(output), config.n_frames, config.width, config.height, config.fps, int(stars),
+                             catalogue)

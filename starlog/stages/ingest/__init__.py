@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from starlog import __version__
+from starlog.version import __version__
 from starlog.errors import ImageFolderError, InvalidParameterError
 from starlog.io import LogWriter, Provenance, encode_json, encode_raw_image, json_message_type, protobuf_message_type
 from starlog.io import topics

@@ -1,0 +1,283 @@
+"""starlog from Python: every function against its command on the same log (same bytes, same summary), the
+tables of ``starlog.open`` against ``export``'s Parquet, the errors, the help, the notebook and the reference."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pydoc
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from click.testing import CliRunner
+
+import starlog
+from starlog import api
+from starlog.cli import cli
+from starlog.errors import LogNotFoundError, StarlogError
+
+ROOT = Path(__file__).resolve().parent.parent
+SKY = ["--size", "256x256", "--frames", "80", "--fps", "50", "--sky-attitude", "80,20,30", "--fov", "10",
+       "--jitter", "2:0.3", "--seed", "4"]
+SKY_KEYWORDS: dict[str, Any] = {"size": (256, 256), "frames": 80, "fps": 50, "sky_attitude": (80, 20, 30),
+                                "fov": 10, "jitter": [(2, 0.3)], "seed": 4}
+#: Summary fields that measure the machine rather than the log.
+TIMINGS = {"seconds", "solver_ms", "ms_per_frame", "elapsed_s"}
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _assert_same_but_timings(one: Path, other: Path) -> None:
+    """Files that differ in bytes only where the solver's time per frame is recorded (``solve`` writes it)."""
+    if one.suffix == ".parquet":
+        tables = [pq.read_table(one), pq.read_table(other)]
+    else:
+        with starlog.open(one) as a, starlog.open(other) as b:
+            assert a.table_names() == b.table_names()
+            for name in a.table_names():
+                _assert_same_but_timings_in(a.table(name), b.table(name), f"{one.name}: {name}")
+            return
+    _assert_same_but_timings_in(*tables, one.name)
+
+
+def _assert_same_but_timings_in(one: Any, other: Any, what: str) -> None:
+    timed = [c for c in one.column_names if c in TIMINGS]
+    assert timed or one.equals(other), what
+    assert one.drop_columns(timed).equals(other.drop_columns(timed)), what
+
+
+def _without_timings(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _without_timings(v) for k, v in value.items() if k not in TIMINGS}
+    if isinstance(value, list):
+        return [_without_timings(v) for v in value]
+    return value
+
+
+@pytest.fixture(scope="module")
+def folders(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Path]]:
+    """Two folders, one for the command line and one for Python, each with the same sky log."""
+    root = tmp_path_factory.mktemp("api")
+    by_cli, by_api = root / "cli", root / "api"
+    by_cli.mkdir()
+    by_api.mkdir()
+    yield by_cli, by_api
+
+
+def _cli(folder: Path, args: list[str]) -> Any:
+    """Run a command in ``folder`` (relative paths: the bytes do not depend on the folder); its --json result."""
+    here = os.getcwd()
+    os.chdir(folder)
+    try:
+        result = CliRunner().invoke(cli, args)
+    finally:
+        os.chdir(here)
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout) if "--json" in args else None
+
+
+def _api(folder: Path, call: Callable[[], Any]) -> Any:
+    here = os.getcwd()
+    os.chdir(folder)
+    try:
+        return call()
+    finally:
+        os.chdir(here)
+
+
+def _same(folders: tuple[Path, Path], args: list[str], call: Callable[[], Any],
+          summary: Callable[[Any], Any] = lambda s: s.to_dict()) -> None:
+    """The command and the function write the same bytes and give the same summary."""
+    by_cli, by_api = folders
+    printed = _cli(by_cli, args)
+    returned = _api(by_api, call)
+    written, made = _digests(by_cli), _digests(by_api)
+    assert written.keys() == made.keys()
+    for name in (n for n in written if written[n] != made[n]):
+        _assert_same_but_timings(by_cli / name, by_api / name)
+    if printed is not None:  # the folder named in absolute paths (a layer's bases) aside
+        here = json.loads(json.dumps(printed).replace(str(by_cli), "FOLDER"))
+        there = json.loads(json.dumps(summary(returned)).replace(str(by_api), "FOLDER"))
+        assert _without_timings(here) == _without_timings(there)
+
+
+def test_each_function_writes_what_its_command_writes_and_returns_what_it_prints(folders: tuple[Path, Path]
+                                                                                 ) -> None:
+    _same(folders, ["simulate", "-o", "sky.mcap", *SKY, "-q"], lambda: starlog.simulate("sky.mcap", **SKY_KEYWORDS))
+    _same(folders, ["centroid", "sky.mcap", "-o", "cen.mcap", "--method", "GAUSSFIT,MOMENT", "--json", "-q"],
+          lambda: starlog.centroid("sky.mcap", "cen.mcap", method="GAUSSFIT,MOMENT"))
+    _same(folders, ["track", "cen.mcap", "-o", "trk.mcap", "--centroids", "GAUSSFIT", "--model", "STATIC",
+                    "--set", "sigma_floor=0.05", "--json", "-q"],
+          lambda: starlog.track("cen.mcap", "trk.mcap", centroids="GAUSSFIT", model="STATIC",
+                                options={"sigma_floor": 0.05}))
+    _same(folders, ["motion", "trk.mcap", "-o", "mot.mcap", "--json", "-q"],
+          lambda: starlog.motion("trk.mcap", "mot.mcap"))
+    _same(folders, ["compensate", "trk.mcap", "-o", "cmp.mcap", "--rate", "25", "--protocol", "paper,truth",
+                    "--burn-in", "off", "--json", "-q"],
+          lambda: starlog.compensate("trk.mcap", "cmp.mcap", rate=25, protocol="paper,truth", burn_in="off"))
+    _same(folders, ["solve", "cen.mcap", "-o", "att.mcap", "--centroids", "GAUSSFIT", "--start", "frame:2",
+                    "--json", "-q"],
+          lambda: starlog.solve("cen.mcap", "att.mcap", centroids="GAUSSFIT", start="frame:2"))
+    _same(folders, ["flatten", "cmp.mcap", "-o", "whole.mcap", "--json", "-q"],
+          lambda: starlog.flatten("cmp.mcap", "whole.mcap"))
+    _same(folders, ["export", "att.mcap", "-o", "tables", "--json"],
+          lambda: starlog.export("att.mcap", "tables"), lambda written: {"output": "tables", "tables": written})
+    _same(folders, ["verify", "cmp.mcap", "--json", "-q"], lambda: starlog.verify("cmp.mcap"))
+
+
+def test_run_writes_what_the_command_writes(folders: tuple[Path, Path], tmp_path: Path) -> None:
+    config = {"centroid": {"methods": "MOMENT"}, "track": {"methods": ["MOMENT"], "models": "STATIC"},
+              "compensate": {"rates": [25], "protocols": "paper"}}
+    toml = tmp_path / "small.toml"
+    toml.write_text('[centroid]\nmethods = "MOMENT"\n[track]\nmethods = ["MOMENT"]\nmodels = "STATIC"\n'
+                    '[compensate]\nrates = [25]\nprotocols = "paper"\n', encoding="utf-8")
+    _same(folders, ["run", "sky.mcap", "-o", "result.mcap", "--config", str(toml), "--json", "-q"],
+          lambda: starlog.run("sky.mcap", "result.mcap", config=config),
+          lambda result: {**result.to_dict(), "report": "result.html"})
+
+
+def test_ingest_writes_what_the_command_writes(tmp_path: Path) -> None:
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    rng = np.random.default_rng(2)
+    for n in range(5):
+        cv2.imwrite(str(frames / f"img{n}.png"), rng.integers(0, 4000, (32, 48), dtype=np.uint16))
+    pair = (tmp_path / "cli", tmp_path / "api")
+    for folder in pair:
+        folder.mkdir()
+    _same(pair, ["ingest", str(frames), "-o", "lab.mcap", "--fps", "30", "--json", "-q"],
+          lambda: starlog.ingest(frames, "lab.mcap", fps=30))
+
+
+@pytest.fixture(scope="module")
+def every_table(folders: tuple[Path, Path]) -> Path:
+    """A log with a channel of every table export writes (and a foreign JSON channel, /camera/frame)."""
+    by_api = folders[1]
+    if not (by_api / "att.mcap").exists():
+        test_each_function_writes_what_its_command_writes_and_returns_what_it_prints(folders)
+    _api(by_api, lambda: starlog.motion("cmp.mcap", "mot2.mcap", force=True))
+    _api(by_api, lambda: starlog.solve("mot2.mcap", "all.mcap", centroids="GAUSSFIT", force=True))
+    return by_api / "all.mcap"
+
+
+def test_each_table_is_the_table_export_writes(every_table: Path, tmp_path: Path) -> None:
+    written = starlog.export(every_table, tmp_path / "tables", topics=["/stars/annotations"])
+    with starlog.open(every_table) as log:
+        assert sorted(log.table_names()) == sorted(set(written) - {"stars.annotations"})
+        assert {"centroids", "tracks", "motion", "residuals", "compensation", "decisions", "attitude",
+                "identified", "truth", "frames", "detections"} <= set(log.table_names())
+        for name in log.table_names():
+            exported = pq.read_table(tmp_path / "tables" / f"{name}.parquet")
+            assert log.table(name).equals(exported), name
+        assert log.table("/stars/annotations").equals(pq.read_table(tmp_path / "tables" / "stars.annotations.parquet"))
+
+
+def test_a_channel_or_a_range_of_a_table_is_those_rows_of_the_whole(every_table: Path) -> None:
+    with starlog.open(every_table) as log:
+        whole = log.table("centroids").to_pandas()
+        one = log.table("/stars/centroids/MOMENT").to_pandas()
+        assert one.reset_index(drop=True).equals(whole[whole.method == "MOMENT"].reset_index(drop=True))
+        frame_times = sorted(set(whole.log_time))
+        part = log.table("centroids", start="frame:5", end="frame:9").to_pandas()
+        assert part.reset_index(drop=True).equals(
+            whole[(whole.log_time >= frame_times[5]) & (whole.log_time < frame_times[9])].reset_index(drop=True))
+        seconds = log.table("frames", start=f"{frame_times[3] * 1e-9:.9f}s", end=frame_times[6])
+        assert seconds["log_time"].to_pylist() == frame_times[3:6]
+
+
+def test_a_range_reads_only_the_chunks_that_hold_it(every_table: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from starlog.io import mcap_file
+
+    opened: list[int] = []
+    original = mcap_file.McapFile.read_chunk
+
+    def counting(self: Any, *args: Any, **kwargs: Any) -> Any:
+        opened.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(mcap_file.McapFile, "read_chunk", counting)
+    with starlog.open(every_table) as log:
+        log.table("/camera/frame")
+        everything = len(opened)
+        opened.clear()
+        log.table("/camera/frame", end="frame:2")
+        assert 0 < len(opened) < everything
+
+
+def test_frames_and_messages_stream_the_range(every_table: Path) -> None:
+    with starlog.open(every_table) as log:
+        frames = list(log.frames(start="frame:3", end="frame:6"))
+        times = [m.log_time for m in log.messages("/camera/frame")]
+        assert [t for t, _ in frames] == times[3:6]
+        assert all(image.shape == (256, 256) and image.dtype == np.uint16 for _, image in frames)
+        assert [m.log_time for m in log.messages("/camera/frame", end="frame:2")] == times[:2]
+        described = log.describe()
+        assert described["message_count"] == sum(c.message_count for c in log.channels)
+        assert [p.stage for p in log.provenance][:2] == ["simulate", "centroid"]
+        first, last = log.time_range
+        assert first == times[0] and last >= times[-1]
+
+
+def test_errors_are_starlog_errors_with_the_commands_message(tmp_path: Path) -> None:
+    with pytest.raises(LogNotFoundError) as raised:
+        starlog.centroid(tmp_path / "missing.mcap", tmp_path / "out.mcap")
+    printed = CliRunner().invoke(cli, ["track", str(tmp_path / "missing.mcap"), "-o", str(tmp_path / "t.mcap"),
+                                       "--centroids", "GAUSSFIT"])
+    assert printed.exit_code == 2  # click checks that the file exists before starlog does
+    (tmp_path / "not.mcap").write_bytes(b"not a log")
+    with pytest.raises(StarlogError) as raised:
+        starlog.open(tmp_path / "not.mcap")
+    printed = CliRunner().invoke(cli, ["info", str(tmp_path / "not.mcap")])
+    assert printed.exit_code == 1
+    assert printed.output.strip() == f"Error: {raised.value}"
+    with pytest.raises(StarlogError, match="frames or the duration"):
+        starlog.simulate(tmp_path / "x.mcap", frames=10, duration=1.0)
+
+
+def test_help_shows_an_example_for_every_function() -> None:
+    for name in api.__all__:
+        text = pydoc.render_doc(getattr(starlog, name), renderer=pydoc.plaintext)
+        assert "Example::" in text and f"starlog.{name}(" in text, name
+    assert set(api.__all__) | {"Log", "StarlogError", "__version__"} == set(starlog.__all__)
+
+
+def test_import_starlog_loads_none_of_the_library() -> None:
+    """The command line starts with ``import starlog``: the public face is loaded on first use."""
+    code = "import sys, starlog; print(sorted(m for m in sys.modules if m.startswith('starlog')))"
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert json.loads(loaded.replace("'", '"')) == ["starlog", "starlog.version"]
+
+
+def test_the_notebook_runs_top_to_bottom(tmp_path: Path) -> None:
+    """docs/python.ipynb, executed as a reader would run it: every cell without an error, its figures drawn."""
+    import nbformat
+    from nbclient import NotebookClient
+
+    notebook = nbformat.read(ROOT / "docs" / "python.ipynb", as_version=4)
+    NotebookClient(notebook, timeout=600, kernel_name="python3",
+                   resources={"metadata": {"path": str(tmp_path)}}).execute()
+    outputs = [o for cell in notebook.cells if cell.cell_type == "code" for o in cell.outputs]
+    assert not [o for o in outputs if o.output_type == "error"]
+    assert sum("image/png" in o.get("data", {}) for o in outputs) == 2
+    assert (tmp_path / "starlog-notebook" / "attitude.mcap").exists()
+
+
+def test_the_api_reference_builds_without_warnings(tmp_path: Path) -> None:
+    """The reference (pdoc, from the docstrings) of the public face and the modules it names."""
+    done = subprocess.run([sys.executable, "-W", "error", "-m", "pdoc", "starlog", "starlog.api", "starlog.log",
+                           "-o", str(tmp_path / "reference")], capture_output=True, text=True)
+    assert done.returncode == 0 and not done.stderr.strip(), done.stderr
+    page = (tmp_path / "reference" / "starlog.html").read_text(encoding="utf-8")
+    for name in ("open", "centroid", "track", "run", "Log"):
+        assert f'id="{name}"' in page or f"starlog.{name}" in page, name
