@@ -17,10 +17,11 @@ Subpackages: :mod:`starlog.io` (the MCAP container), :mod:`starlog.codecs` (the 
 JSON messages, schemas, other tools' messages), :mod:`starlog.topics` (channel names), :mod:`starlog.facts`
 (what a log holds, as data), :mod:`starlog.sim` (star-image simulator), :mod:`starlog.detect` and
 :mod:`starlog.centroiding` (single-frame extraction), :mod:`starlog.tracking` (UKF tracking),
-:mod:`starlog.compensation` (error decomposition and compensation), :mod:`starlog.stages` (the replay stages
-that join algorithms and logs), :mod:`starlog.pipeline` (several stages from one config),
-:mod:`starlog.parquet` (Parquet), :mod:`starlog.batch` (many logs on Dask), :mod:`starlog.experiment` (the
-paper's tables) and :mod:`starlog.cli` (the command line).
+:mod:`starlog.platform_motion` (the platform's motion from all stars), :mod:`starlog.compensation` (error
+decomposition and compensation), :mod:`starlog.stages` (the stages that join algorithms and logs),
+:mod:`starlog.replay` (what the stages share to replay a log), :mod:`starlog.excerpt` (``filter`` and ``cat``),
+:mod:`starlog.pipeline` (several stages from one config), :mod:`starlog.parquet` (Parquet), :mod:`starlog.batch`
+(many logs on Dask), :mod:`starlog.experiment` (the paper's tables) and :mod:`starlog.cli` (the command line).
 """
 
 from __future__ import annotations

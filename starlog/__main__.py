@@ -14,7 +14,7 @@ def main() -> None:
     except KeyboardInterrupt:
         import signal
 
-        from starlog._lifeline import die_of
+        from starlog.replay.lifeline import die_of
 
         die_of(signal.SIGINT)
     run_command()

@@ -45,7 +45,7 @@ from starlog.io.timerange import TimeRange
 from starlog.io.output_files import output_identity, temporary_folder
 from starlog.stages.centroid import centroid_log, parse_methods
 from starlog.stages.compensate import compensate_log, parse_protocols, too_short_message, track_shortfalls
-from starlog.stages.window import window_of
+from starlog.replay.window import window_of
 from starlog.stages.custom import run_stage
 from starlog.stages.track import track_log
 from starlog.trusted import resolve_trusted, tracks_trusted, with_trusted
@@ -470,7 +470,7 @@ class CustomStageConfig:
 
     def load(self) -> Stage:
         """The declared stage ``uses`` names (imported on first use)."""
-        from starlog.plugins import resolve_stage
+        from starlog.replay.plugins import resolve_stage
 
         return resolve_stage(self.uses, search_path=self.search_path)
 

@@ -23,8 +23,8 @@ the same bytes, and ``workers`` processes give the same bytes as one. See ``docs
 
 from __future__ import annotations
 
-from starlog.plugins import ENTRY_POINT_GROUP
-from starlog.stage_declaration import KINDS, Message, Output, Stage, stage
+from starlog.replay.plugins import ENTRY_POINT_GROUP
+from starlog.replay.declaration import KINDS, Message, Output, Stage, stage
 from starlog.stages.custom import StageSummary, run_stage
 
 __all__ = ["ENTRY_POINT_GROUP", "KINDS", "Message", "Output", "Stage", "StageSummary", "run_stage", "stage"]

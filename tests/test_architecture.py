@@ -1,5 +1,9 @@
-"""The shape of starlog's imports: no cycle among its modules (imports inside functions count), and the layers
-that must not import each other do not.
+"""The shape of starlog's imports: no cycle among its modules (imports inside functions count), the layers that
+must not import each other do not, and the CLI imports no private module or name.
+
+The layers, one way: the algorithms (plain functions on numpy arrays) import neither the log container
+(:mod:`starlog.io`) nor the stages (:mod:`starlog.stages`) nor the machinery that replays a log through a stage
+(:mod:`starlog.replay`); the container imports neither of the last two, and that machinery no stage.
 
 Every module is parsed with ``ast``; each ``import`` and ``from ... import`` (at the top, inside a
 function or under ``if TYPE_CHECKING``) that names a ``starlog`` module is an edge. Importing
@@ -108,6 +112,55 @@ def _describe(graph: dict[str, set[str]], component: list[str]) -> str:
     return "; ".join(f"{m} -> {', '.join(sorted(graph[m] & set(component)))}" for m in component)
 
 
+#: The algorithm packages: plain functions on numpy arrays, which know nothing of logs.
+ALGORITHMS = ("starlog.sim", "starlog.detect", "starlog.centroiding", "starlog.tracking", "starlog.platform_motion",
+              "starlog.compensation", "starlog.attitude")
+#: Each layer (packages or modules) → what it must not import, with why.
+FORBIDDEN = [
+    (ALGORITHMS, ("starlog.io", "starlog.stages", "starlog.replay"), "an algorithm imports the log layer or a stage"),
+    (("starlog.io",), ("starlog.stages", "starlog.replay"), "the log container imports a stage"),
+    (("starlog.replay",), ("starlog.stages",), "the machinery the stages share imports a stage"),
+]
+
+
+def _inside(name: str, prefixes: tuple[str, ...]) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def layer_violations(graph: dict[str, set[str]], layer: tuple[str, ...], forbidden: tuple[str, ...]) -> list[str]:
+    """``module -> imported`` for each module of ``layer`` that imports a module of ``forbidden``."""
+    return [f"{name} -> {dep}" for name in sorted(graph) if _inside(name, layer)
+            for dep in sorted(graph[name]) if _inside(dep, forbidden)]
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def private_imports(root: Path, package: str, layer: str) -> list[str]:
+    """``file:line name`` for each import, in the modules of ``layer``, of a ``_``-prefixed module of ``package``
+    or of a ``_``-prefixed name from one of its modules (dunder names such as ``__version__`` are public)."""
+    found = []
+    for name, (path, is_package) in sorted(_modules(root, package).items()):
+        if not _inside(name, (layer,)):
+            continue
+        own_package = name if is_package else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            if isinstance(node, ast.Import):
+                modules, names = [a.name for a in node.names], []
+            elif isinstance(node, ast.ImportFrom):
+                base = own_package.split(".")[: len(own_package.split(".")) - node.level + 1] if node.level else []
+                modules = [".".join(base + ([node.module] if node.module else []))]
+                names = [a.name for a in node.names]
+            else:
+                continue
+            modules = [m for m in modules if m == package or m.startswith(package + ".")]
+            private = [m for m in modules if any(_private(part) for part in m.split("."))]
+            private += [f"{modules[0]}.{n}" for n in names if modules and _private(n)]
+            found += [f"{path.relative_to(root)}:{node.lineno} {p}" for p in private]
+    return found
+
+
 def test_no_import_cycle_among_starlog_modules() -> None:
     graph = import_graph(ROOT, "starlog")
     assert len(graph) > 100
@@ -119,7 +172,48 @@ def test_the_reports_and_the_stage_declaration_import_only_downwards() -> None:
     graph = import_graph(ROOT, "starlog")
     report = {dep for name, deps in graph.items() if name.startswith("starlog.report") for dep in deps}
     assert not {d for d in report if d.startswith("starlog.experiment")}, "the report imports the experiment"
-    assert not graph["starlog.stage_declaration"] & {"starlog.plugins", "starlog.stage_api", "starlog.stages.custom"}
+    assert not graph["starlog.replay.declaration"] & {"starlog.replay.plugins", "starlog.stage_api",
+                                                      "starlog.stages.custom"}
+
+
+def test_the_algorithms_know_no_log_and_the_log_container_no_stage() -> None:
+    graph = import_graph(ROOT, "starlog")
+    assert all(any(_inside(name, (p,)) for name in graph) for p in ALGORITHMS)
+    found = [f"{why}: {line}" for layer, forbidden, why in FORBIDDEN
+             for line in layer_violations(graph, layer, forbidden)]
+    assert not found, "\n".join(found)
+
+
+def test_the_cli_imports_no_private_module_or_name() -> None:
+    found = private_imports(ROOT, "starlog", "starlog.cli")
+    assert not found, "the CLI imports private names (make them public where they live):\n" + "\n".join(found)
+
+
+def test_the_layer_check_finds_a_forbidden_import_through_a_package(tmp_path: Path) -> None:
+    (tmp_path / "pkg" / "algo").mkdir(parents=True)
+    (tmp_path / "pkg" / "io").mkdir()
+    for init in ("pkg", "pkg/algo", "pkg/io"):
+        (tmp_path / init / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "io" / "reader.py").write_text("X = 1\n")
+    (tmp_path / "pkg" / "algo" / "fit.py").write_text("def f():\n    from pkg.io.reader import X\n    return X\n")
+    (tmp_path / "pkg" / "algo" / "plain.py").write_text("from pkg.algo import fit\n")
+    graph = import_graph(tmp_path, "pkg")
+    assert layer_violations(graph, ("pkg.algo",), ("pkg.io",)) == ["pkg.algo.fit -> pkg.io", "pkg.algo.fit -> pkg.io.reader"]
+    assert layer_violations(graph, ("pkg.io",), ("pkg.algo",)) == []
+    assert layer_violations(graph, ("pkg.alg",), ("pkg.io",)) == []  # a prefix is a package, not a string
+
+
+def test_the_private_check_finds_private_modules_and_names(tmp_path: Path) -> None:
+    (tmp_path / "pkg" / "cli").mkdir(parents=True)
+    (tmp_path / "pkg" / "__init__.py").write_text("__version__ = '1'\n")
+    (tmp_path / "pkg" / "_lifeline.py").write_text("def die_of(): ...\n")
+    (tmp_path / "pkg" / "pool.py").write_text("class _Pool: ...\nclass Pool: ...\n")
+    (tmp_path / "pkg" / "cli" / "__init__.py").write_text(
+        "from pkg import __version__\nfrom pkg._lifeline import die_of\nfrom pkg.pool import Pool, _Pool\n")
+    (tmp_path / "pkg" / "cli" / "run.py").write_text("def f():\n    import pkg._lifeline\n    from .. import pool\n")
+    (tmp_path / "pkg" / "other.py").write_text("from pkg.pool import _Pool\n")
+    assert private_imports(tmp_path, "pkg", "pkg.cli") == [
+        "pkg/cli/__init__.py:2 pkg._lifeline", "pkg/cli/__init__.py:3 pkg.pool._Pool", "pkg/cli/run.py:2 pkg._lifeline"]
 
 
 def test_the_check_finds_a_cycle_through_a_function_local_import(tmp_path: Path) -> None:
@@ -149,18 +243,7 @@ def test_codecs_import_neither_io_nor_stages() -> None:
 
 #: Private modules other modules still import, each with the branch that makes it public (the lead empties this
 #: list when the branches are merged): a ``_``-prefixed name or module is its own module's business.
-PRIVATE_CROSSINGS_LEFT = {
-    "starlog._lifeline": "stages-house (the stage machinery package) and the lead (cli)",
-    "starlog.stages._blocks": "stages-house",
-    "starlog.stages._centroid_frames": "stages-house",
-    "starlog.stages._centroid_parameters": "stages-house",
-    "starlog.stages._channels": "stages-house",
-    "starlog.stages._compensate_stars": "stages-house",
-    "starlog.stages._parallel": "stages-house",
-    "starlog.stages._progress": "stages-house",
-    "starlog.stages._spool": "stages-house",
-    "starlog.stages._stage": "stages-house",
-}
+PRIVATE_CROSSINGS_LEFT: dict[str, str] = {}
 
 
 def _private(dotted: str) -> bool:

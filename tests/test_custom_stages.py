@@ -19,7 +19,7 @@ from starlog.errors import InvalidInputError, InvalidParameterError, StageFuncti
 from starlog.io import LogReader
 from starlog.io.verify import verify_log
 from starlog.pipeline import PipelineConfig, run_pipeline
-from starlog.plugins import load_reference
+from starlog.replay.plugins import load_reference
 from starlog.stage_api import Stage, run_stage, stage
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log

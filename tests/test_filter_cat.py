@@ -19,7 +19,7 @@ from starlog.io import LogReader, file_digest
 from starlog.io.verify import verify_log
 from starlog.stages import simulate_log
 from starlog.stages.centroid import centroid_log
-from starlog.stages.filter import cat_messages, filter_log
+from starlog.excerpt import cat_messages, filter_log
 from tests.foreign_logs import write_plain, write_ros2
 from tests.helpers import small_config
 

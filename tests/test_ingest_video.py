@@ -1,6 +1,6 @@
 """Ingest of what cameras write besides PNG/TIFF: SER files, AVI video, JPEG and BMP.
 
-SER files are written here from the public SER v3 header layout (see :mod:`starlog.stages.ingest_ser`), so
+SER files are written here from the public SER v3 header layout (see :mod:`starlog.stages.ingest.ser`), so
 the reader is checked against the format, not against itself.
 """
 
@@ -20,7 +20,7 @@ from starlog.cli import cli
 from starlog.errors import ImageFolderError, InvalidParameterError, StarlogError
 from starlog.io import LogReader
 from starlog import topics
-from starlog.stages.ingest_ser import unix_ns_to_ticks
+from starlog.stages.ingest.ser import unix_ns_to_ticks
 from starlog.sim import SimulationConfig, Simulator
 from starlog.stages import ingest_source
 from starlog.stages.ingest import ColourImageWarning, LossyImageWarning

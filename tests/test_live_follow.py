@@ -25,7 +25,7 @@ from starlog.live.snapshot import snapshot_log
 from starlog.live.sources import BlockCutter
 from starlog.live.status import LatencyHistogram
 from starlog.stages import simulate_log
-from starlog.stages._blocks import channel_blocks
+from starlog.replay.blocks import channel_blocks
 from tests.helpers import small_config
 
 

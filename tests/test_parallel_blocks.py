@@ -18,9 +18,9 @@ from starlog import topics
 from starlog.io.timerange import TimeRange
 from starlog.stages import simulate_log
 # private module _blocks: how the stages split a channel among workers; its edge cases need stand-in logs
-from starlog.stages._blocks import channel_blocks
-# private module _parallel: the stages' pool; only a _Pool never started (process_pool starts it) runs all items here
-from starlog.stages._parallel import _Pool, ordered_map, process_pool
+from starlog.replay.blocks import channel_blocks
+# _Pool is private to the pool module: only a pool never started (process_pool starts it) runs every item here
+from starlog.replay.pool import _Pool, ordered_map, process_pool
 from starlog.stages.centroid import centroid_log
 from tests.foreign_logs import write_plain
 from tests.helpers import small_config

@@ -41,8 +41,8 @@ from starlog.io.copying import flatten_log
 from starlog.codecs.images import choose_image_topic
 from starlog.io.recover import recover_log
 from starlog.io.verify import verify_log
-from starlog.stages._blocks import channel_blocks
-from starlog.stages.filter import filter_log
+from starlog.replay.blocks import channel_blocks
+from starlog.excerpt import filter_log
 
 CAM, NUM = "/cam", "/numbers"
 #: Channel variant -> (its topic, the type of message it carries).

@@ -28,7 +28,7 @@ from starlog.pipeline import PipelineConfig, load_config, run_pipeline
 from starlog.sim import Jitter
 from starlog.stages import simulate_log
 # private module _stage: the layer the built-in stages write through; its channel-order rule is tested without one
-from starlog.stages._stage import extend_log
+from starlog.replay.layer import extend_log
 from starlog.stages.centroid import centroid_log
 from starlog.stages.compensate import compensate_log
 from starlog.stages.track import track_log
@@ -353,9 +353,9 @@ def test_stage_refuses_to_read_fewer_messages_than_the_channel_holds(
     assert not (tmp_path / "o.mcap").exists()
 
 
-# private _blocks.worker_log's cache (_WORKER_LOG) and McapFile._file: a worker's open logs have no public view
+# private blocks._WORKER_LOG (worker_log's cache) and McapFile._file: a worker's open logs have no public view
 def test_a_worker_opens_each_log_once(tmp_path: Path) -> None:
-    from starlog.stages import _blocks as blocks
+    from starlog.replay import blocks
 
     log, other = tmp_path / "a.mcap", tmp_path / "b.mcap"
     for path in (log, other):
@@ -366,3 +366,46 @@ def test_a_worker_opens_each_log_once(tmp_path: Path) -> None:
     assert second is not first and first.files[0]._file.closed  # the previous log is closed on moving on
     blocks._WORKER_LOG.clear()
     second.close()
+
+
+def _count_opens(monkeypatch: pytest.MonkeyPatch, path: Path) -> list[Path]:
+    """Every LogReader opened on ``path`` from now on (by this process) is listed."""
+    opened: list[Path] = []
+    original = LogReader.__init__
+
+    def counting(self: LogReader, source: Any, **kwargs: Any) -> None:
+        original(self, source, **kwargs)
+        if Path(self.path).resolve() == path.resolve():
+            opened.append(Path(self.path))
+
+    monkeypatch.setattr(LogReader, "__init__", counting)
+    return opened
+
+
+def test_the_centroid_stage_opens_its_input_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    sim = tmp_path / "sim.mcap"
+    simulate_log(small_config(width=64, height=64, n_stars=4, n_frames=24, margin=10.0), sim)
+    opened = _count_opens(monkeypatch, sim)
+    # every step that reads the first frames: the PSF sigma, hot pixels, the mode, the ePSF, the phase calibration
+    summary = centroid_log(sim, tmp_path / "cen.mcap", methods="GAUSSFIT,PSFFIT", psf="empirical", hot_pixels="auto",
+                           phase_correction="auto", mode="auto")
+    assert summary.frames == 24 and summary.epsf is not None and summary.phase_correction is not None
+    assert len(opened) == 1, opened
+
+
+def test_the_compensate_stage_opens_its_input_once(pipeline_logs: dict[str, Path], tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    opened = _count_opens(monkeypatch, pipeline_logs["trk"])
+    summary = compensate_log(pipeline_logs["trk"], tmp_path / "comp.mcap", rates=[50.0], track="all", stars="all",
+                             motion="keep,separate")
+    assert summary.records and summary.stars
+    assert len(opened) == 1, opened
+
+
+def test_the_open_count_sees_a_second_open(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    sim = tmp_path / "sim.mcap"
+    simulate_log(small_config(width=32, height=32, n_stars=2, n_frames=3), sim)
+    opened = _count_opens(monkeypatch, sim)
+    with LogReader(sim), LogReader(str(sim)), LogReader(tmp_path / "." / "sim.mcap"):
+        pass
+    assert len(opened) == 3

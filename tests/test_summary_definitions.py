@@ -41,7 +41,7 @@ from starlog.io.summary_section import read_file_summary
 from starlog.io.copying import flatten_log
 from starlog.codecs.images import choose_image_topic
 from starlog.io.verify import verify_log
-from starlog.stages._blocks import channel_blocks
+from starlog.replay.blocks import channel_blocks
 
 JSON, PROTO, RAW, IMAGE = "/numbers", "/vectors", "/raw", "/cam"
 TOPICS = (JSON, PROTO, RAW, IMAGE)

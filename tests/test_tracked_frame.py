@@ -20,7 +20,7 @@ from starlog.centroiding.stamps import SHOULDER
 from starlog.centroiding.tracked_frame import WindowFit, track_frame
 from starlog.centroiding.tracking import TrackedFrame, TrackingSettings, TrackState, cell_means, track_frame_vectorised
 # private module: the per-frame work of the centroid stage, tested without a log
-from starlog.stages._centroid_frames import FrameExtractor
+from starlog.stages.centroid.frames import FrameExtractor
 
 PSF = 1.2
 GAIN, READ_NOISE = 1.0, 3.0

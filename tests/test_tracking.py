@@ -1,4 +1,4 @@
-"""Tracking mode (:mod:`starlog.centroiding.tracking`, :class:`starlog.stages._centroid_frames.TrackedFrames`) on
+"""Tracking mode (:mod:`starlog.centroiding.tracking`, :class:`starlog.stages.centroid.frames.TrackedFrames`) on
 hand-checkable sequences of small frames: where each star is is known, and so is when the whole frame must be
 searched again."""
 
@@ -20,7 +20,7 @@ from starlog.io import LogReader
 from starlog.pipeline import PipelineConfig, run_pipeline
 from starlog.stages import ingest_folder, simulate_log
 # private module: the per-frame work of the centroid stage, tested without a log
-from starlog.stages._centroid_frames import FrameExtractor
+from starlog.stages.centroid.frames import FrameExtractor
 from starlog.stages.centroid import centroid_log
 from tests.helpers import small_config
 

@@ -19,7 +19,7 @@ from starlog.codecs.star_tables import star_codec
 from starlog.io.verify import verify_file
 from starlog.stages.centroid import centroid_log
 from starlog.stages import simulate_log
-from starlog.stages.filter import filter_log
+from starlog.excerpt import filter_log
 from starlog.stages.motion import motion_log
 from starlog.stages.track import track_log
 from tests.foreign_logs import write_plain

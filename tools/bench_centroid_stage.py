@@ -233,7 +233,7 @@ def acquisition_sweep(log: Path, periods: list[int], count: int = 300) -> None:
     """CPU ms a frame of tracking mode in this process for each period of full searches (GAUSSFIT, frames
     decoded beforehand, messages encoded), best of two runs, and the searches made: what the period costs."""
     from starlog.centroiding.tracking import TrackingSettings
-    from starlog.stages._centroid_frames import FrameExtractor
+    from starlog.stages.centroid.frames import FrameExtractor
 
     with LogReader(log) as reader:
         frames = [img for _, _, img in itertools.islice(reader.frames(), count)]

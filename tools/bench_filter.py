@@ -49,7 +49,7 @@ from starlog.io import LogReader, file_digest  # noqa: E402
 from starlog.io.copying import TopicSelection, copy_log  # noqa: E402
 from starlog.sim import SimulationConfig  # noqa: E402
 from starlog.stages import simulate_log  # noqa: E402
-from starlog.stages.filter import filter_log  # noqa: E402
+from starlog.excerpt import filter_log  # noqa: E402
 
 FREE_CORE = ("filter hashes its input on a thread while it copies: it needs a free core, which other jobs on a "
              "shared 2-core machine decide")

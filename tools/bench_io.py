@@ -59,7 +59,7 @@ from starlog.codecs.json_rows import record_encoder  # noqa: E402
 from starlog.codecs.star_tables import STAR_TABLES, json_table, star_codec  # noqa: E402
 from starlog.sim import SimulationConfig, Simulator  # noqa: E402
 from starlog.stages import ingest_folder, simulate_log  # noqa: E402
-from starlog.stages._centroid_frames import annotation_diameter  # noqa: E402
+from starlog.stages.centroid.frames import annotation_diameter  # noqa: E402
 from starlog.stages.centroid import centroid_log  # noqa: E402
 from starlog.stages.track import track_log  # noqa: E402
 from starlog.tracking.table import TRACK_DTYPE  # noqa: E402

@@ -31,7 +31,7 @@ from typing import Any
 import click
 
 from starlog.version import __version__
-from starlog._lifeline import die_of
+from starlog.replay.lifeline import die_of
 from starlog.cli.inspect import cat, export, info, report_command
 from starlog.cli.live import live
 from starlog.cli.logs import ingest, simulate
@@ -109,7 +109,7 @@ for _command in (simulate, ingest, info, export, centroid, track, motion, compen
 @functools.cache
 def _installed_stages() -> dict[str, str]:
     """Name → ``"package version"`` of every stage installed packages register (their metadata only, once)."""
-    from starlog.plugins import distribution_of, registered_stages
+    from starlog.replay.plugins import distribution_of, registered_stages
 
     return {name: distribution_of(point) for name, point in registered_stages().items()}
 
@@ -125,7 +125,7 @@ class _LazyStageCommand(click.Command):
 
     def make_context(self, info_name: str | None, args: list[str], parent: click.Context | None = None,
                      **extra: Any) -> click.Context:
-        from starlog.plugins import load_registered
+        from starlog.replay.plugins import load_registered
 
         try:
             declared = load_registered(self.name or "")

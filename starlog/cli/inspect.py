@@ -74,7 +74,7 @@ def cat(log: Path, topics: tuple[str, ...], exclude_topics: tuple[str, ...], fra
       starlog cat bag.mcap --topic /camera/image_raw | head -n 5
     """
     from starlog.cli.describe import json_line
-    from starlog.stages.filter import cat_messages
+    from starlog.excerpt import cat_messages
 
     notes: list[str] = []
     lines = cat_messages(log, topics=topics, exclude_topics=exclude_topics, start=start, end=end,

@@ -52,7 +52,7 @@ def filter_command(log: Path, output: Path, topics: tuple[str, ...], exclude_top
       starlog filter trk.mcap -o small.mcap --exclude-topic '/camera/image' --start 1s --end 2.5s
       starlog filter bag.mcap -o first100.mcap --end frame:100
     """
-    from starlog.stages.filter import filter_log
+    from starlog.excerpt import filter_log
 
     report = filter_log(log, output, topics=topics, exclude_topics=exclude_topics, start=start, end=end,
                         frame_topic=frame_topic, force=force, compression=compression)

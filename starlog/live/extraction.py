@@ -1,10 +1,10 @@
 """The centroid stage's per-frame work for ``starlog live``, in this process or in worker processes.
 
 :func:`extract_frame` decodes one frame's image message and measures it with the stage's
-:class:`~starlog.stages._centroid_frames.FrameExtractor` — a new block's extractor when the frame starts
-a block (tracking mode's :class:`~starlog.stages._centroid_frames.TrackedFrames` keeps its state within a
+:class:`~starlog.stages.centroid.frames.FrameExtractor` — a new block's extractor when the frame starts
+a block (tracking mode's :class:`~starlog.stages.centroid.frames.TrackedFrames` keeps its state within a
 block). :class:`CentroidWorkers` runs it in worker processes that never outlive this one
-(:func:`~starlog.stages._parallel.guarded_process`), each block on one worker (its state stays there), so
+(:func:`~starlog.replay.pool.guarded_process`), each block on one worker (its state stays there), so
 a worker measures a frame while this process tracks, writes and publishes the frame before it; with
 several workers, blocks go round-robin. A worker is fed through a pipe of its own, the frame's bytes as
 they are (no executor threads in this process to compete with its own work). The messages are those of
@@ -21,8 +21,8 @@ from mcap.records import Schema
 
 from starlog.errors import InvalidInputError, StarlogError
 from starlog.io.frames import SkippedFrame, decode_image_message, reuse_frame_buffers
-from starlog.stages._centroid_frames import FrameExtractor, FrameMessages, opencv_threads
-from starlog.stages._parallel import guarded_process
+from starlog.stages.centroid.frames import FrameExtractor, FrameMessages, opencv_threads
+from starlog.replay.pool import guarded_process
 
 __all__ = ["CentroidWorkers", "Done", "FrameResult", "Handle", "extract_frame"]
 

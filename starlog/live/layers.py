@@ -25,7 +25,7 @@ from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.io.reader import LogReader
 from starlog.codecs.schemas import MessageType
 from starlog.io.writer import LogWriter
-from starlog.stages._stage import StageOutput, extend_log, record_provenance
+from starlog.replay.layer import StageOutput, extend_log, record_provenance
 
 __all__ = ["FLUSH_SECONDS", "PrefixLog", "PublishingWriter", "close_on_base", "relayer"]
 

@@ -43,9 +43,9 @@ from starlog.live.sources import Camera, Source, SourceMessage, SourceProblem
 from starlog.live.stages import LiveCentroid, LiveSolve, LiveTrack, centroid_rows
 from starlog.live.status import StatusBoard
 from starlog.pipeline import PipelineConfig, fit_to_log, layer_paths, possible_layers, stage_steps
-from starlog.stages._centroid_frames import opencv_threads
-from starlog.stages._centroid_parameters import PHASE_MAX_FRAMES
-from starlog.stages._stage import StageOutput
+from starlog.stages.centroid.frames import opencv_threads
+from starlog.stages.centroid.parameters import PHASE_MAX_FRAMES
+from starlog.replay.layer import StageOutput
 from starlog.stages.centroid import resolve_centroid_parameters
 from starlog.trusted import TRUSTED, default_tracked, resolve_trusted, tracks_trusted
 
@@ -160,11 +160,12 @@ class LiveSession:
             raise InvalidParameterError(f"the {self.source.description} gave no frame"
                                         + (f" ({self.source.end_reason})." if self.source.end_reason else "."))
         probe = prefix.close(self.source.metadata())
-        parameters = resolve_centroid_parameters(
-            probe, methods=table.get("methods", "all"), gain=table.get("gain"), read_noise=table.get("read_noise"),
-            options=table.get("options"), image_topic=table.get("image_topic"), psf=table.get("psf"),
-            phase_correction=table.get("phase_correction", "auto"), mode=table.get("mode", "auto"),
-            acquire_every=table.get("acquire_every"))
+        with LogReader(probe) as log:
+            parameters = resolve_centroid_parameters(
+                log, methods=table.get("methods", "all"), gain=table.get("gain"), read_noise=table.get("read_noise"),
+                options=table.get("options"), image_topic=table.get("image_topic"), psf=table.get("psf"),
+                phase_correction=table.get("phase_correction", "auto"), mode=table.get("mode", "auto"),
+                acquire_every=table.get("acquire_every"))
         self._open_layers(parameters, probe, folder, workers)
         self.say(f"live: {parameters.provenance['mode']} mode, methods {', '.join(m.value for m in parameters.methods)}"
                  + (f"; Foxglove: {self.server.url}" if self.server is not None else ""))

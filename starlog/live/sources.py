@@ -5,7 +5,7 @@ the layers will be written on: the frames, and any other channel the source reco
 :class:`SourceProblem` (what could not be used, in one line). Each frame carries its index in the
 image channel and whether it starts a *block*: the centroid stage cuts a log into blocks of whole
 chunks of at most ``acquire_every`` frames, each starting with a full search
-(:func:`starlog.stages._blocks.channel_blocks`), and :class:`BlockCutter` cuts the chunks as they
+(:func:`starlog.replay.blocks.channel_blocks`), and :class:`BlockCutter` cuts the chunks as they
 arrive by the same rule, so that live and a replay of the finished log search the same frames.
 
 * :class:`FollowedLog` — an MCAP file being written (:class:`~starlog.live.follow.McapFollower`); it
@@ -40,7 +40,7 @@ from starlog.io.provenance import PROVENANCE_METADATA_NAME, Provenance
 from starlog.io.writer import LogWriter
 from starlog.live.follow import DamagedChunk, FollowedChunk, FollowedMessage, FollowedMetadata, McapFollower
 from starlog.live.snapshot import snapshot_log
-from starlog.stages.ingest_sources import IMAGE_SUFFIXES, luma, natural_key, read_image
+from starlog.stages.ingest.sources import IMAGE_SUFFIXES, luma, natural_key, read_image
 
 __all__ = ["BaseRecorder", "BlockCutter", "Camera", "FollowedLog", "Source", "SourceMessage", "SourceProblem",
            "WatchedFolder"]

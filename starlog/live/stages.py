@@ -1,7 +1,7 @@
 """``run``'s per-frame stages, one frame at a time as it arrives, through the stages' own per-frame functions.
 
 * :class:`LiveCentroid` — the centroid stage's :class:`~starlog.stages.centroid.CentroidLayer` fed by its
-  :class:`~starlog.stages._centroid_frames.FrameExtractor` (a new block's extractor where the source's
+  :class:`~starlog.stages.centroid.frames.FrameExtractor` (a new block's extractor where the source's
   chunks start a block, as the stage cuts them);
 * :class:`LiveTrack` — one :class:`~starlog.tracking.StarTracker` per motion model of a centroid method, fed
   by :func:`~starlog.stages.track.track_frame` from the rows of the centroid message as the layer holds it
@@ -37,9 +37,9 @@ from starlog.codecs.star_tables import star_codec
 from starlog.live.extraction import CentroidWorkers, Done, FrameResult, Handle, extract_frame
 from starlog.live.layers import PublishingWriter, close_on_base, relayer
 from starlog.live.sources import SourceMessage
-from starlog.stages._centroid_frames import FrameMessages
-from starlog.stages._spool import read_blocks, write_block
-from starlog.stages._stage import StageOutput, extend_log
+from starlog.stages.centroid.frames import FrameMessages
+from starlog.replay.spool import read_blocks, write_block
+from starlog.replay.layer import StageOutput, extend_log
 from starlog.stages.centroid import CentroidLayer, CentroidParameters, CentroidSummary
 from starlog.stages.track import (
     BLOCK_FRAMES,

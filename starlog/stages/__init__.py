@@ -1,8 +1,18 @@
-"""Replay stages: each reads the channels it needs from a log and writes a new log with its channels added.
+"""The stages: each joins an algorithm to logs and records what it did in the log's provenance.
 
-The algorithms live in :mod:`starlog.sim`, :mod:`starlog.detect`, :mod:`starlog.centroiding`,
-:mod:`starlog.tracking` and :mod:`starlog.compensation` and know nothing of MCAP; the functions
-here join them to the log layer (:mod:`starlog.io`) and record provenance.
+Two stages write a new log: ``simulate`` (:mod:`~starlog.stages.simulate`, frames from :mod:`starlog.sim`) and
+``ingest`` (:mod:`~starlog.stages.ingest`: image files, SER, video). The others replay a log: each reads the
+channels it needs and writes its own channels as a layer on its input (:mod:`starlog.io.chain`; with
+``flatten``, the whole chain as one self-contained log): ``centroid`` (:mod:`~starlog.stages.centroid`,
+:mod:`starlog.detect` and :mod:`starlog.centroiding`), ``track`` (:mod:`~starlog.stages.track`,
+:mod:`starlog.tracking`), ``motion`` (:mod:`~starlog.stages.motion`, :mod:`starlog.platform_motion`),
+``compensate`` (:mod:`~starlog.stages.compensate`, :mod:`starlog.compensation`), ``solve``
+(:mod:`~starlog.stages.solve`, :mod:`starlog.attitude`) and your own stages (:mod:`~starlog.stages.custom`,
+declared with :mod:`starlog.stage_api`). A stage with parts of its own is a package holding them
+(``centroid/``, ``compensate/``, ``ingest/``).
+
+The algorithms know nothing of MCAP; what the stages share to read and write logs (the layer and its
+provenance, ``--start`` / ``--end``, worker pools, blocks, spools, progress) is :mod:`starlog.replay`.
 
 The names below are imported on first use, so a command running one stage does not pay for
 importing the others (simulation and ingest pull in scipy.special, OpenCV, image readers).

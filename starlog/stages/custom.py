@@ -1,11 +1,11 @@
-"""Running a declared stage (:mod:`starlog.stage_declaration`) on a log, with the guarantees of the built-in stages.
+"""Running a declared stage (:mod:`starlog.replay.declaration`) on a log, with the guarantees of the built-in stages.
 
 The input channel is read in batches of consecutive messages, undecoded; each batch is decoded
 (images to 2-D arrays, per-star tables to structured arrays), handed message by message to the
 stage's function, and its records encoded — in this process, or with ``workers > 1`` in worker
-processes (:mod:`starlog.stages._parallel`: they die with this process), results coming back in
+processes (:mod:`starlog.replay.pool`: they die with this process), results coming back in
 order. The records are written in message order by the stage's :class:`~starlog.io.LogWriter`
-(through :func:`~starlog.stages._stage.extend_log`), which checks each one against its
+(through :func:`~starlog.replay.layer.extend_log`), which checks each one against its
 channel's JSON Schema; so memory is bounded by a few batches, the output is written atomically
 with the stage's provenance, and its bytes depend neither on ``workers`` nor on the run.
 """
@@ -37,12 +37,12 @@ from starlog.codecs.json_messages import encode_json
 from starlog.io.reader import ChannelSummary, LogReader, decode_payload, source_path
 from starlog.codecs.star_tables import decode_table
 from starlog.io.writer import LogWriter
-from starlog.stage_declaration import KINDS, Message, Output, Stage
-from starlog.stages._channels import check_messages_read
-from starlog.stages._parallel import ordered_map, process_pool
-from starlog.stages._progress import progress
-from starlog.stages.window import windowed
-from starlog.stages._stage import extend_log
+from starlog.replay.declaration import KINDS, Message, Output, Stage
+from starlog.replay.channels import check_messages_read
+from starlog.replay.pool import ordered_map, process_pool
+from starlog.replay.progress import progress
+from starlog.replay.window import windowed
+from starlog.replay.layer import extend_log
 
 __all__ = ["StageSummary", "choose_inputs", "run_stage"]
 
@@ -109,28 +109,28 @@ def _run_whole(input_path: Any, output_path: str | os.PathLike[str], stage: Stag
                show_progress: bool) -> StageSummary:
     """:func:`run_stage` on the whole of ``input_path`` (a window of the log, when a range was asked for)."""
     chosen = stage.resolve_options(options)
-    with LogReader(input_path) as probe:
-        topics, note = choose_inputs(stage, probe, input_topic)
-        images = {topic: is_image_schema(probe.channel(topic).schema_name) for topic in topics}
-    plan = [(topic, tuple((out.topic_for(topic), out) for out in stage.outputs)) for topic in topics]
-    written = [t for _, outputs in plan for t, _ in outputs]
-    if len(set(written)) < len(written):
-        raise InvalidParameterError(f"stage {stage.name!r}: its output topics {written} collide (to read several "
-                                    "channels, its topics need {name}, the last part of the input topic).")
-    parameters = {"stage_version": stage.version, "function": stage.reference,
-                  "input": topics[0] if len(topics) == 1 else topics, "options": chosen}
-    summary = StageSummary(stage.name, stage.version, topics, records=dict.fromkeys(written, 0),
-                           notes=[note] if note else [])
-    with extend_log(input_path, output_path, stage=stage.name, parameters=parameters, force=force, flatten=flatten,
-                    compression=compression) as (log, out):
-        for topic, outputs in plan:
-            ids = [out.add_channel(t, o.message_type) for t, o in outputs]
-            batch = _Batch(stage.reference, tuple(sys.path), str(source_path(input_path)), topic, images[topic], chosen,
-                           outputs)
-            summary.messages += _run_channel(log, out.writer, stage, batch, ids, summary.records, workers=workers,
-                                             show_progress=show_progress)
-        summary.notes += [n for n in log.notes if n not in summary.notes]
-    return summary
+    with LogReader(input_path) as log:
+        topics, note = choose_inputs(stage, log, input_topic)
+        images = {topic: is_image_schema(log.channel(topic).schema_name) for topic in topics}
+        plan = [(topic, tuple((out.topic_for(topic), out) for out in stage.outputs)) for topic in topics]
+        written = [t for _, outputs in plan for t, _ in outputs]
+        if len(set(written)) < len(written):
+            raise InvalidParameterError(f"stage {stage.name!r}: its output topics {written} collide (to read several "
+                                        "channels, its topics need {name}, the last part of the input topic).")
+        parameters = {"stage_version": stage.version, "function": stage.reference,
+                      "input": topics[0] if len(topics) == 1 else topics, "options": chosen}
+        summary = StageSummary(stage.name, stage.version, topics, records=dict.fromkeys(written, 0),
+                               notes=[note] if note else [])
+        with extend_log(log, output_path, stage=stage.name, parameters=parameters, force=force, flatten=flatten,
+                        compression=compression) as (_, out):
+            for topic, outputs in plan:
+                ids = [out.add_channel(t, o.message_type) for t, o in outputs]
+                batch = _Batch(stage.reference, tuple(sys.path), str(source_path(input_path)), topic, images[topic],
+                               chosen, outputs)
+                summary.messages += _run_channel(log, out.writer, stage, batch, ids, summary.records, workers=workers,
+                                                 show_progress=show_progress)
+            summary.notes += [n for n in log.notes if n not in summary.notes]
+        return summary
 
 
 def _run_channel(log: LogReader, writer: LogWriter, stage: Stage, batch: _Batch, ids: list[int],
@@ -244,7 +244,7 @@ class _Batch:
             ) -> list[tuple[int, tuple[bytes | None, ...]]]:
         """``(log_time, encoded record per output or None)`` of each message of the batch."""
         if stage is None:
-            from starlog.plugins import cached_reference
+            from starlog.replay.plugins import cached_reference
 
             stage = cached_reference(self.reference, self.search_path)
         return [(m.log_time, self._records(stage, m)) for m in self._messages(first, raws)]

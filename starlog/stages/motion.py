@@ -33,9 +33,9 @@ from starlog import topics
 from starlog.io.reader import LogReader
 from starlog.codecs.star_tables import star_codec
 from starlog.platform_motion import Observations, PlatformEstimate, PlatformModel, estimate_platform
-from starlog.stages._channels import check_messages_read, select_track_channels
-from starlog.stages.window import windowed
-from starlog.stages._stage import StageOutput, extend_log
+from starlog.replay.channels import check_messages_read, select_track_channels
+from starlog.replay.window import windowed
+from starlog.replay.layer import StageOutput, extend_log
 
 __all__ = ["MotionSummary", "TrackObservations", "image_centre", "motion_log", "read_track_observations",
            "estimate_track_motion"]
@@ -192,17 +192,16 @@ def motion_log(
     except ValueError:
         raise InvalidParameterError(f"unknown motion model {model!r}; choose translation, rigid or similarity.") from None
     options = dict(options or {})
-    with LogReader(input_path) as probe:
-        chosen = [c.topic for c in select_track_channels(probe, track)]
-    summary = MotionSummary(fit=fit.value)
-    parameters = {"tracks": chosen, "fit": fit.value, "options": options}
-    with extend_log(input_path, output_path, stage="motion", parameters=parameters, force=force, flatten=flatten,
-                    compression=compression) as (log, out), \
-            LogReader(input_path, validate_messages=False) as tracks:
-        for topic in chosen:
-            data, est = estimate_track_motion(tracks, topic, model=fit, options=options)
-            _write_motion(out, data, est)
-            summary.channels[topic] = _channel_summary(data, est, int(options.get("min_stars", 3)))
+    with LogReader(input_path, validate_messages=False) as tracks:  # the track rows starlog wrote: not re-checked
+        chosen = [c.topic for c in select_track_channels(tracks, track)]
+        summary = MotionSummary(fit=fit.value)
+        parameters = {"tracks": chosen, "fit": fit.value, "options": options}
+        with extend_log(tracks, output_path, stage="motion", parameters=parameters, force=force, flatten=flatten,
+                        compression=compression) as (_, out):
+            for topic in chosen:
+                data, est = estimate_track_motion(tracks, topic, model=fit, options=options)
+                _write_motion(out, data, est)
+                summary.channels[topic] = _channel_summary(data, est, int(options.get("min_stars", 3)))
     return summary
 
 

@@ -16,8 +16,8 @@ from starlog.io.writer import FRAME_COMPRESSION
 from starlog.attitude.rotation import quaternion_from_matrix, radec_roll
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
 from starlog.sim import SimulatedFrame, SimulationConfig, Simulator
-from starlog.stages._parallel import ordered_map, process_pool
-from starlog.stages._progress import progress
+from starlog.replay.pool import ordered_map, process_pool
+from starlog.replay.progress import progress
 
 __all__ = ["SimulationSummary", "simulate_log", "simulation_summary"]
 

@@ -58,10 +58,10 @@ from starlog.codecs import protobuf_message_type
 from starlog import topics
 from starlog.io.reader import LogReader
 from starlog.codecs.star_tables import star_codec
-from starlog.stages._channels import check_messages_read
-from starlog.stages._progress import progress
-from starlog.stages._stage import StageOutput, extend_log
-from starlog.stages.window import windowed
+from starlog.replay.channels import check_messages_read
+from starlog.replay.progress import progress
+from starlog.replay.layer import StageOutput, extend_log
+from starlog.replay.window import windowed
 
 __all__ = ["PROBE_FRAMES", "MethodFigures", "SolveSummary", "add_solve_channels", "compensated_name", "probe_sky",
            "select_centroid_channels", "select_compensated_channels", "sky_frames_kept", "solve_frame", "solve_log",
@@ -528,34 +528,34 @@ def solve_log(
     """
     solver_data_file()  # a clear error naming the extra before anything is read
     options = dict(options or {})
-    with LogReader(input_path) as probe:
-        chosen = _chosen_channels(probe, centroids, compensated)
-        kinds = {c.topic: c.schema_name for c in probe.channels()}
-        rows, cols = _image_shape(probe)
-        settings = tracker_settings(probe, options, cols)
-    catalogue = load_catalogue()
-    summary = SolveSummary(width=cols)
-    parameters = solve_parameters([t for t in chosen if kinds[t] != COMPENSATED_STARS], options, catalogue,
-                                  None if compensated is None else [t for t in chosen if kinds[t] == COMPENSATED_STARS])
-    with extend_log(input_path, output_path, stage="solve", parameters=parameters, force=force, flatten=flatten,
-                    compression=compression) as (log, out):
-        truth = _true_attitudes(log)
-        runs = [(t, w) for t in chosen for w in ((None,) if kinds[t] != COMPENSATED_STARS else ("before", "after"))]
-        identified: dict[str, list[IdentifiedFrame]] = {}
-        for topic, which in runs:
-            tracker = AttitudeTracker(catalogue, (rows, cols), settings)
-            figures = _solve_channel(log, out, topic, tracker, truth, show_progress=show_progress, which=which)
-            name = topic.rsplit("/", 1)[-1] if which is None else compensated_name(topic, which)
-            summary.methods[name] = figures.to_dict(cols)
-            summary.seconds[name] = figures.seconds
-            if which is None and figures.identified:
-                identified[name] = figures.identified
-        if len(identified) >= 2:
-            summary.sky_evidence = sky_evidence(identified, tracker.catalogue.vectors, tracker.catalogue.magnitude,
-                                                fit_distortion=settings.fit_distortion)
-        out.writer.add_metadata(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods),
-                                                        "sky_evidence": json.dumps(summary.sky_evidence)})
-    return summary
+    with LogReader(input_path) as log:
+        chosen = _chosen_channels(log, centroids, compensated)
+        kinds = {c.topic: c.schema_name for c in log.channels()}
+        rows, cols = _image_shape(log)
+        settings = tracker_settings(log, options, cols)
+        catalogue = load_catalogue()
+        summary = SolveSummary(width=cols)
+        stars = None if compensated is None else [t for t in chosen if kinds[t] == COMPENSATED_STARS]
+        parameters = solve_parameters([t for t in chosen if kinds[t] != COMPENSATED_STARS], options, catalogue, stars)
+        with extend_log(log, output_path, stage="solve", parameters=parameters, force=force, flatten=flatten,
+                        compression=compression) as (_, out):
+            truth = _true_attitudes(log)
+            runs = [(t, w) for t in chosen for w in ((None,) if kinds[t] != COMPENSATED_STARS else ("before", "after"))]
+            identified: dict[str, list[IdentifiedFrame]] = {}
+            for topic, which in runs:
+                tracker = AttitudeTracker(catalogue, (rows, cols), settings)
+                figures = _solve_channel(log, out, topic, tracker, truth, show_progress=show_progress, which=which)
+                name = topic.rsplit("/", 1)[-1] if which is None else compensated_name(topic, which)
+                summary.methods[name] = figures.to_dict(cols)
+                summary.seconds[name] = figures.seconds
+                if which is None and figures.identified:
+                    identified[name] = figures.identified
+            if len(identified) >= 2:
+                summary.sky_evidence = sky_evidence(identified, tracker.catalogue.vectors, tracker.catalogue.magnitude,
+                                                    fit_distortion=settings.fit_distortion)
+            out.writer.add_metadata(topics.SOLVE_METADATA, {"methods": json.dumps(summary.methods),
+                                                            "sky_evidence": json.dumps(summary.sky_evidence)})
+        return summary
 
 
 def probe_sky(log: LogReader, centroid_topics: Sequence[str], *, frames: int = PROBE_FRAMES

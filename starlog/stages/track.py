@@ -49,13 +49,13 @@ from starlog import topics
 from starlog.io.reader import LogReader, LogSource, TableMessage
 from starlog.codecs.schemas import MessageType
 from starlog.codecs.star_tables import star_codec
-from starlog.stages._blocks import channel_blocks, worker_log
-from starlog.stages._channels import check_messages_read
-from starlog.stages._parallel import ordered_map, process_pool
-from starlog.stages._progress import progress
-from starlog.stages._spool import Spool, opened, read_block, read_blocks, write_block
-from starlog.stages.window import windowed
-from starlog.stages._stage import StageOutput, extend_log
+from starlog.replay.blocks import channel_blocks, worker_log
+from starlog.replay.channels import check_messages_read
+from starlog.replay.pool import ordered_map, process_pool
+from starlog.replay.progress import progress
+from starlog.replay.spool import Spool, opened, read_block, read_blocks, write_block
+from starlog.replay.window import windowed
+from starlog.replay.layer import StageOutput, extend_log
 from starlog.tracking import (
     MotionModel,
     MotionModelConfig,

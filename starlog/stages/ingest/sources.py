@@ -7,7 +7,7 @@ keeps one (SER timestamp trailer, video container timestamps).
 Colour (RGB/BGR) frames become luma ``0.299 R + 0.587 G + 0.114 B``; Bayer frames are debayered
 to mono with OpenCV; both with a :class:`ColourImageWarning`. Lossy files (JPEG, JPEG-compressed TIFF,
 lossy video codecs) give a :class:`LossyImageWarning`: compression artefacts bias sub-pixel centroids
-(both warnings in :mod:`starlog.stages.ingest_warnings`).
+(both warnings in :mod:`starlog.stages.ingest.image_warnings`).
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import ImageFolderError
-from starlog.stages.ingest_ser import HEADER_SIZE, SerReader
-from starlog.stages.ingest_warnings import ColourImageWarning, LossyImageWarning, lossy_warning
-from starlog.stages._parallel import ordered_map
+from starlog.stages.ingest.ser import HEADER_SIZE, SerReader
+from starlog.stages.ingest.image_warnings import ColourImageWarning, LossyImageWarning, lossy_warning
+from starlog.replay.pool import ordered_map
 
 __all__ = ["IMAGE_SUFFIXES", "SER_SUFFIXES", "VIDEO_SUFFIXES", "ColourImageWarning", "LossyImageWarning",
            "SourceFrame", "folder_frames", "list_images", "natural_key", "read_image", "ser_frames", "video_frames"]
@@ -85,7 +85,7 @@ def read_image(path: Path) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
         if suffix in {".fits", ".fit", ".fts"}:
             image = _read_fits(path)
         elif suffix in {".tif", ".tiff"}:
-            from starlog.stages.ingest_tiff import read_tiff
+            from starlog.stages.ingest.tiff import read_tiff
 
             image = read_tiff(path)
         else:
@@ -171,7 +171,7 @@ def folder_frames(files: Sequence[Path], workers: int) -> Iterator[SourceFrame]:
 
 # ---------------------------------------------------------------- SER
 def ser_frames(path: Path) -> tuple[int, bool, Iterator[SourceFrame]]:
-    """``(frame count, has timestamps, frames)`` of a SER file (format: :mod:`starlog.stages.ingest_ser`)."""
+    """``(frame count, has timestamps, frames)`` of a SER file (format: :mod:`starlog.stages.ingest.ser`)."""
     with SerReader(path) as reader:
         count, times = reader.header.frame_count, reader.timestamps_ns()
         if count == 0:

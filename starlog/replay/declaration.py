@@ -1,6 +1,6 @@
 """Declaring a stage: :func:`stage`, the :class:`Stage` it makes, its :class:`Message` and :class:`Output`.
 
-What :mod:`starlog.plugins` loads and :mod:`starlog.stages.custom` runs; users import it through
+What :mod:`starlog.replay.plugins` loads and :mod:`starlog.stages.custom` runs; users import it through
 :mod:`starlog.stage_api`. It imports neither of them.
 """
 

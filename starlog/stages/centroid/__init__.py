@@ -19,6 +19,12 @@ whatever the number of workers, each starts with a full search, and known stars 
 windows around their predicted positions in between. The summary says how many frames were
 read against how many messages the channel holds; they must agree unless ``skip_bad`` names
 every frame left out.
+
+The input is opened once: :func:`~starlog.stages.centroid.parameters.resolve_centroid_parameters` reads the first
+frames it needs from the open log (PSF sigma, hot pixels, mode, ePSF, phase calibration) and :func:`write_centroids`
+writes the layer from the same reader (workers open the log themselves). Its parts:
+:mod:`~starlog.stages.centroid.parameters` (the parameters, resolved before any frame is written) and
+:mod:`~starlog.stages.centroid.frames` (one frame's work, and every frame in order, serial or on workers).
 """
 
 from __future__ import annotations
@@ -34,21 +40,21 @@ from starlog.codecs import protobuf_message_type
 from starlog import topics
 from starlog.io.frames import SkippedFrame
 from starlog.codecs.images import choose_image_topic
-from starlog.io.reader import LogReader, LogSource
+from starlog.io.reader import LogReader
 from starlog.io.writer import LogWriter
-from starlog.stages._blocks import channel_blocks
-from starlog.stages._centroid_frames import (
+from starlog.replay.blocks import channel_blocks
+from starlog.stages.centroid.frames import (
     FrameMessages,
     extract_blocks_serial,
     extract_parallel,
     extract_serial,
     opencv_threads,
 )
-from starlog.stages._centroid_parameters import CentroidParameters, parse_methods, resolve_centroid_parameters
-from starlog.stages._channels import check_messages_read
-from starlog.stages._progress import progress
-from starlog.stages.window import windowed
-from starlog.stages._stage import StageOutput, extend_log
+from starlog.stages.centroid.parameters import CentroidParameters, parse_methods, resolve_centroid_parameters
+from starlog.replay.channels import check_messages_read
+from starlog.replay.progress import progress
+from starlog.replay.window import windowed
+from starlog.replay.layer import StageOutput, extend_log
 
 __all__ = ["CentroidLayer", "CentroidParameters", "CentroidSummary", "centroid_log", "parse_methods",
            "resolve_centroid_parameters", "write_centroids"]
@@ -145,7 +151,7 @@ def centroid_log(
     ----------
     methods : str or sequence of str
         ``"all"`` (every method but MOMENT_SQUARED:
-        :data:`~starlog.stages._centroid_parameters.ALL_METHODS`) or names.
+        :data:`~starlog.stages.centroid.parameters.ALL_METHODS`) or names.
     gain, read_noise : float, optional
         Camera gain (e-/DN) and read noise (e-), used for the shot-noise part of each
         centroid's ``sigma``. Default: the values recorded by ``simulate`` in the log's
@@ -170,7 +176,7 @@ def centroid_log(
     psf : {"gaussian", "empirical"}, optional
         The PSF model PSFFIT fits. ``"empirical"``: an ePSF built once from the bright,
         isolated, unsaturated stars of the log's first frames
-        (:mod:`starlog.stages._centroid_parameters`), stored in the output (metadata
+        (:mod:`starlog.stages.centroid.parameters`), stored in the output (metadata
         ``starlog.epsf``) and recorded in the provenance, even when PSFFIT is not among the
         methods. ``"gaussian"``: PSFFIT fits the pixel-integrated Gaussian of the PSF sigma.
         Default: empirical when PSFFIT is among the methods, else none.
@@ -182,7 +188,7 @@ def centroid_log(
     phase_correction : "auto", "off" or path, optional
         Remove each method's pixel-phase bias (S-curve, :mod:`starlog.centroiding.phase`) from
         every centroid. ``"auto"`` learns it from the log's own stars (the first
-        :data:`~starlog.stages._centroid_parameters.PHASE_MIN_FRAMES` frames and more while they
+        :data:`~starlog.stages.centroid.parameters.PHASE_MIN_FRAMES` frames and more while they
         show new phases, each distinct star once; no catalogue), per method; a method with too
         few distinct bright stars is left uncorrected, with a note. A path reads the calibrations
         (JSON: ``--json`` output of an earlier run, or its ``phase_correction`` records). The
@@ -202,27 +208,28 @@ def centroid_log(
         Tracking: frames between two full searches (default
         :data:`~starlog.centroiding.tracking.DEFAULT_ACQUIRE_EVERY`).
     """
-    parameters = resolve_centroid_parameters(input_path, methods=methods, gain=gain, read_noise=read_noise,
-                                             options=options, image_topic=image_topic, psf=psf, hot_pixels=hot_pixels,
-                                             phase_correction=phase_correction, show_progress=show_progress,
-                                             mode=mode, acquire_every=acquire_every)
-    return write_centroids(input_path, output_path, parameters, skip_bad=skip_bad, workers=workers, force=force,
-                           flatten=flatten, compression=compression, show_progress=show_progress)
+    with LogReader(input_path) as log:  # opened once: the parameters' first frames and the frames written
+        parameters = resolve_centroid_parameters(log, methods=methods, gain=gain, read_noise=read_noise,
+                                                 options=options, image_topic=image_topic, psf=psf,
+                                                 hot_pixels=hot_pixels, phase_correction=phase_correction,
+                                                 show_progress=show_progress, mode=mode, acquire_every=acquire_every)
+        return write_centroids(log, output_path, parameters, skip_bad=skip_bad, workers=workers, force=force,
+                               flatten=flatten, compression=compression, show_progress=show_progress)
 
 
-def write_centroids(input_path: LogSource, output_path: str | os.PathLike[str], parameters: CentroidParameters, *,
+def write_centroids(log: LogReader, output_path: str | os.PathLike[str], parameters: CentroidParameters, *,
                     skip_bad: bool = False, workers: int = 1, force: bool = False, flatten: bool = False,
                     compression: str = "zstd", show_progress: bool = False) -> CentroidSummary:
-    """Write the layer of :func:`centroid_log` with resolved ``parameters``: every frame's detections, annotations
-    and centroids, and the ePSF and phase calibrations as metadata."""
+    """Write the layer of :func:`centroid_log` on the open ``log`` with resolved ``parameters``: every frame's
+    detections, annotations and centroids, and the ePSF and phase calibrations as metadata."""
     p = parameters
     summary = CentroidSummary.of(p)
     provenance = dict(p.provenance)  # completed with the count of full searches when the frames are done
-    with opencv_threads(1), extend_log(input_path, output_path, stage="centroid", parameters=provenance,
-                                       force=force, flatten=flatten, compression=compression) as (log, out):
+    with opencv_threads(1), extend_log(log, output_path, stage="centroid", parameters=provenance,
+                                       force=force, flatten=flatten, compression=compression) as (_, out):
         summary.channel_messages = n_frames = log.channel(p.image_topic).message_count
         layer = CentroidLayer.start(out, p, summary)
-        results = _frame_results(log, input_path, p, workers, skip_bad)
+        results = _frame_results(log, p, workers, skip_bad)
         for encoded in progress(results, total=n_frames, description="centroid", enabled=show_progress):
             layer.write(encoded)
         _check_frame_count(log, p.image_topic, summary)
@@ -288,7 +295,7 @@ class CentroidLayer:
         provenance["acquisitions"] = summary.acquisitions
 
 
-def _frame_results(log: LogReader, source: LogSource, p: CentroidParameters, workers: int, skip_bad: bool
+def _frame_results(log: LogReader, p: CentroidParameters, workers: int, skip_bad: bool
                    ) -> Iterator[FrameMessages | SkippedFrame]:
     """Every frame's messages in order. Full mode cuts the log into blocks of ~32 frames for the workers; tracking
     mode always cuts it into blocks of at most ``acquire_every`` frames (whole chunks), each starting with a full search, whatever the
@@ -299,7 +306,7 @@ def _frame_results(log: LogReader, source: LogSource, p: CentroidParameters, wor
     blocks = (channel_blocks(log, p.image_topic, frames_per_block, at_most=tracking is not None)
               if log.fully_indexed else None)
     if blocks and workers > 1 and n_frames >= 64:  # below 64 frames, a pool's start-up costs more than it saves
-        return extract_parallel(log, source, p.image_topic, blocks, p.extract, workers, skip_bad)
+        return extract_parallel(log, p.image_topic, blocks, p.extract, workers, skip_bad)
     if blocks and tracking is not None:
         return extract_blocks_serial(log, p.image_topic, blocks, p.extract, skip_bad)
     return extract_serial(log, p.image_topic, p.extract, skip_bad)

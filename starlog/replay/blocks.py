@@ -7,10 +7,11 @@ worker decompresses each chunk it needs once, and no message crosses processes o
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from starlog.io.reader import LogReader, LogSource, LogView, source_path
 
-__all__ = ["channel_blocks", "worker_log"]
+__all__ = ["channel_blocks", "source_of", "worker_log"]
 
 
 def channel_blocks(log: LogReader, topic: str, frames_per_block: int, *, at_most: bool = False
@@ -46,6 +47,12 @@ def _identity(source: LogSource) -> tuple[object, ...]:
     info = os.stat(path)
     window = source.window if isinstance(source, LogView) else None
     return os.path.abspath(path), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns, window
+
+
+def source_of(log: LogReader) -> LogSource:
+    """What ``log`` reads (its newest file, seen through its window if any): what a worker opens to read its
+    blocks itself."""
+    return LogView(Path(log.path), log.window) if log.window is not None else log.path
 
 
 def worker_log(source: LogSource) -> LogReader:

@@ -1,11 +1,11 @@
 """The ``ingest`` stage: turn camera output (a folder of images, a SER or video file) into a log.
 
-Sources (read by :mod:`starlog.stages.ingest_sources`):
+Sources (read by :mod:`starlog.stages.ingest.sources`):
 
 * a folder of 8- and 16-bit PNG and TIFF (any compression cameras and libraries write:
-  :mod:`starlog.stages.ingest_tiff`), BMP, JPEG (lossy: a warning), and FITS with the ``fits``
+  :mod:`starlog.stages.ingest.tiff`), BMP, JPEG (lossy: a warning), and FITS with the ``fits``
   extra (``pip install starlog[fits]``), in natural file-name order (``img2.png`` before ``img10.png``);
-* a SER file (:mod:`starlog.stages.ingest_ser`): 8/16-bit mono, RGB/BGR and Bayer frames;
+* a SER file (:mod:`starlog.stages.ingest.ser`): 8/16-bit mono, RGB/BGR and Bayer frames;
 * an AVI/MP4/MOV/MKV video, decoded by OpenCV to 8 bits.
 
 Timestamps come from a frame rate (``fps``, ``start_ns``), from the file names (``time_pattern``,
@@ -33,8 +33,8 @@ from starlog.codecs import encode_json, encode_raw_image, json_message_type, pro
 from starlog import topics
 from starlog.io.writer import FRAME_COMPRESSION
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
-from starlog.stages._progress import progress
-from starlog.stages.ingest_sources import (
+from starlog.replay.progress import progress
+from starlog.stages.ingest.sources import (
     IMAGE_SUFFIXES,
     LOSSY_SUFFIXES,
     SER_SUFFIXES,

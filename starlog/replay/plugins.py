@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from starlog.errors import InvalidParameterError
 
 if TYPE_CHECKING:  # imported when a stage is loaded: listing installed stages stays light (starlog --help)
-    from starlog.stage_declaration import Stage
+    from starlog.replay.declaration import Stage
 
 __all__ = ["ENTRY_POINT_GROUP", "load_reference", "load_registered", "registered_stages", "resolve_stage"]
 
@@ -94,7 +94,7 @@ def cached_reference(reference: str, search_path: tuple[str, ...]) -> Stage:
 
 
 def _as_stage(target: Any, reference: str) -> Stage:
-    from starlog.stage_declaration import Stage
+    from starlog.replay.declaration import Stage
 
     if not isinstance(target, Stage):
         raise InvalidParameterError(f"{reference} is not a declared stage: decorate the function with "

@@ -3,13 +3,13 @@ command stopped by a signal ends once it has cleaned up.
 
 :func:`watch` starts a daemon thread that ends the calling process the moment the owner process
 has exited (a pidfd on Linux, which becomes readable at exit even before the owner is reaped;
-polling every 0.2 s elsewhere). The worker pools of :mod:`starlog.stages._parallel` use it.
+polling every 0.2 s elsewhere). The worker pools of :mod:`starlog.replay.pool` use it.
 
 Imported by multiprocessing's fork server (as its first preload module), this module also ties the
 fork server to the process that started it: nothing else would stop a fork server whose owner was
 killed while it still had workers or was importing its other preload modules. It also makes the fork
 server ignore SIGINT from then on (its workers inherit that from their first instruction; the server
-starts with SIGINT blocked, see :func:`starlog.stages._parallel.process_pool`): a Ctrl-C at the terminal
+starts with SIGINT blocked, see :func:`starlog.replay.pool.process_pool`): a Ctrl-C at the terminal
 reaches the whole process group, and the owner alone decides how to stop.
 """
 
@@ -78,7 +78,7 @@ def _imported_by_fork_server() -> bool:
     return False
 
 
-#: Set by the owner when it starts its fork server (:func:`starlog.stages._parallel.process_pool`): its pid.
+#: Set by the owner when it starts its fork server (:func:`starlog.replay.pool.process_pool`): its pid.
 #: The fork server's parent pid would name init instead if the owner were killed before this module loads.
 OWNER_VARIABLE = "STARLOG_FORK_SERVER_OWNER"
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -13,7 +13,7 @@ from starlog.version import __version__
 from starlog.errors import OutputExistsError, file_errors
 from starlog.io import LogReader, LogWriter, Provenance
 from starlog.io.provenance import PROVENANCE_METADATA_NAME
-from starlog.io.reader import LogSource, LogView
+from starlog.io.reader import LogSource
 from starlog.codecs.schemas import MessageType
 from starlog.io.copying import flatten_log
 from starlog.io.output_files import temporary_folder
@@ -45,7 +45,7 @@ class StageOutput:
 
 @contextmanager
 def extend_log(
-    input_path: LogSource,
+    input_path: LogSource | LogReader,
     output_path: str | os.PathLike[str],
     *,
     stage: str,
@@ -54,7 +54,8 @@ def extend_log(
     compression: str = "zstd",
     flatten: bool = False,
 ) -> Iterator[tuple[LogReader, StageOutput]]:
-    """Open ``input_path`` for reading and a layer on it at ``output_path`` (:mod:`starlog.io.chain`).
+    """Open ``input_path`` for reading (or take the reader a stage has already opened, which stays open) and a
+    layer on it at ``output_path`` (:mod:`starlog.io.chain`).
 
     The stage adds its channels; on success its provenance (name, version, parameters with the
     stage's ``results`` when it gave any, the input file's SHA-256, hashed on a thread while the
@@ -69,10 +70,10 @@ def extend_log(
     The layer's chunks are compressed on the calling thread: what a stage derives is small beside the
     images it reads, and compression threads would hold several chunks of it in memory at once.
     """
-    window = {"range": input_path.window.to_dict()} if isinstance(input_path, LogView) else {}
     with file_errors(output_path, only_writes=True), \
             layer_path_for(Path(output_path), flatten=flatten, force=force) as layer_path, \
-            LogReader(input_path) as reader:
+            (nullcontext(input_path) if isinstance(input_path, LogReader) else LogReader(input_path)) as reader:
+        window = {"range": reader.window.to_dict()} if reader.window is not None else {}
         base = reader.layer_base()
         with LogWriter(layer_path, layer=base, force=force or flatten, compression=compression) as writer:
             out = StageOutput(writer)

@@ -3,7 +3,7 @@
 Worker processes come from a fork server (the caller may have threads, which must not be forked).
 Whatever ends the owning process (SIGKILL, SIGTERM, Ctrl-C, an exception), nothing is left behind:
 
-- the fork server and each worker watch the owner's pid (:mod:`starlog._lifeline`) and exit at
+- the fork server and each worker watch the owner's pid (:mod:`starlog.replay.lifeline`) and exit at
   once when the owner is gone; on Linux a worker also dies with its parent, the fork server
   (``prctl(PR_SET_PDEATHSIG, SIGKILL)``, which needs no Python thread to run);
 - multiprocessing's resource tracker exits by itself once they are all gone;
@@ -40,7 +40,7 @@ from contextlib import contextmanager
 from multiprocessing.synchronize import SemLock
 from typing import Any, TypeVar
 
-from starlog import _lifeline as lifeline
+from starlog.replay import lifeline
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -50,7 +50,7 @@ __all__ = ["guarded_process", "ordered_map", "process_pool", "signals_held"]
 _PR_SET_PDEATHSIG = 1
 # Imported first by the fork server: the lifeline ties it to its owner, and workers then start with
 # this module (their initializer) loaded, so they are guarded from their first milliseconds.
-_FORK_SERVER_PRELOAD = ["starlog._lifeline", "starlog.stages._parallel"]
+_FORK_SERVER_PRELOAD = ["starlog.replay.lifeline", "starlog.replay.pool"]
 _START_TIMEOUT = 5.0  # seconds an owner that is stopping waits for its pool's start-up thread
 _STOP_TIMEOUT = 2.0  # seconds for terminated workers to exit before they are killed
 
@@ -164,7 +164,7 @@ def signals_held() -> Iterator[None]:
 def _start_fork_server() -> None:
     """Start the fork server (if it is not running) with SIGINT blocked, as multiprocessing starts its resource
     tracker: a Ctrl-C to the process group while the server's interpreter starts, before it ignores SIGINT
-    (:mod:`starlog._lifeline`), would end it with a traceback. Its workers inherit the blocked signal too."""
+    (:mod:`starlog.replay.lifeline`), would end it with a traceback. Its workers inherit the blocked signal too."""
     from multiprocessing import forkserver, resource_tracker
 
     if not hasattr(signal, "pthread_sigmask"):

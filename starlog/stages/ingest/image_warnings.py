@@ -1,6 +1,6 @@
 """The warnings ingest gives about the frames it reads: colour converted to mono, lossy compression.
 
-Shared by every ingest source (:mod:`starlog.stages.ingest_sources`, :mod:`starlog.stages.ingest_tiff`);
+Shared by every ingest source (:mod:`starlog.stages.ingest.sources`, :mod:`starlog.stages.ingest.tiff`);
 it imports none of them.
 """
 

@@ -1,29 +1,23 @@
-"""Reading tracks track by track and writing the all-star series of ``compensate --stars all``.
+"""Reading a track channel track by track, and the centroid channel's sigmas, for the ``compensate`` stage.
 
 :func:`collect_track_rows` reads the rows of a track channel per track (the brightest track alone, or every
 track), :func:`centroid_sigmas` the centroid channel's sigmas once for many tracks; both read the channels as
-tables (:meth:`~starlog.io.reader.LogReader.tables`: a structured array per frame, no dict per star). The ``compensate``
-stage compensates each confirmed track with the brightest track's pipeline; :class:`StarFrames` gathers the
-results of one (rate, protocol, motion mode) and writes them as one ``starlog.CompensatedStars`` message
-per frame: the rows :mod:`starlog.stages.solve` reads to solve the attitude before and after compensation.
+tables (:meth:`~starlog.io.reader.LogReader.tables`: a structured array per frame, no dict per star).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from starlog.codecs import encode_json, json_message_type
 from starlog import topics
 from starlog.io.reader import LogReader
-from starlog.stages._channels import check_messages_read
-from starlog.stages._stage import StageOutput
+from starlog.replay.channels import check_messages_read
 
-__all__ = ["CentroidSigmas", "StarFrames", "TrackRows", "centroid_sigmas", "collect_track_rows"]
+__all__ = ["CentroidSigmas", "TrackRows", "centroid_sigmas", "collect_track_rows"]
 
 #: log_time → (x, y) of a centroid → its sigma (the first centroid at that position).
 CentroidSigmas = dict[int, dict[tuple[float, float], float]]
@@ -100,38 +94,3 @@ def centroid_sigmas(log: LogReader, method: str, *,
             if wanted is None or (x, y) in wanted:
                 frame.setdefault((x, y), sigma)
     return out
-
-
-@dataclass
-class StarFrames:
-    """The compensated samples of every star of one (track channel, rate, protocol, motion mode), by frame."""
-
-    topic: str
-    rate_hz: float
-    protocol: str
-    rows: dict[int, list[dict[str, Any]]] = field(default_factory=dict)
-    frames: dict[int, int] = field(default_factory=dict)
-    tracks: list[int] = field(default_factory=list)
-
-    def add(self, track: int, log_time: npt.NDArray[np.int64], frame: npt.NDArray[np.int64],
-            before: npt.NDArray[np.float64], after: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64],
-            flux: npt.NDArray[np.float64], scored: npt.NDArray[np.bool_]) -> None:
-        """One star's decimated samples before and after compensation."""
-        self.tracks.append(track)
-        for k, t in enumerate(log_time.tolist()):
-            self.frames[t] = int(frame[k])
-            self.rows.setdefault(t, []).append({
-                "track": track, "x_before": float(before[k, 0]), "y_before": float(before[k, 1]),
-                "x_after": float(after[k, 0]), "y_after": float(after[k, 1]), "sigma": float(sigma[k]),
-                "flux": float(flux[k]), "scored": bool(scored[k])})
-
-    def write(self, out: StageOutput) -> int:
-        """One ``starlog.CompensatedStars`` message per frame, in time order; returns the messages written."""
-        if not self.rows:
-            return 0
-        channel = out.add_channel(self.topic, json_message_type("starlog.CompensatedStars"))
-        for sample, t in enumerate(sorted(self.rows)):
-            record = {"sample": sample, "frame": self.frames[t], "rate_hz": self.rate_hz, "protocol": self.protocol,
-                      "stars": sorted(self.rows[t], key=lambda r: r["track"])}
-            out.writer.write(channel, log_time=t, data=encode_json(record))
-        return len(self.rows)

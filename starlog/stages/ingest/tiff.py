@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from starlog.errors import ImageFolderError
-from starlog.stages.ingest_warnings import lossy_warning
+from starlog.stages.ingest.image_warnings import lossy_warning
 
 __all__ = ["read_tiff"]
 

@@ -35,9 +35,10 @@ from starlog.detect import detect_stars
 from starlog.errors import InvalidInputError, InvalidParameterError
 from starlog import topics
 from starlog.codecs.images import choose_image_topic
-from starlog.io.reader import LogReader, LogSource
-from starlog.stages._centroid_frames import FrameExtractor, opencv_threads
-from starlog.stages._progress import progress
+from starlog.io.reader import LogReader
+from starlog.replay.blocks import source_of
+from starlog.stages.centroid.frames import FrameExtractor, opencv_threads
+from starlog.replay.progress import progress
 
 __all__ = ["HOT_PIXEL_FRAMES", "MODES", "MODE_FRAMES", "PHASE_MAX_FRAMES", "PHASE_MIN_FRAMES", "CentroidParameters",
            "PhaseCorrection", "extract_options", "parse_methods", "resolve_centroid_parameters", "ALL_METHODS"]
@@ -140,7 +141,7 @@ class CentroidParameters:
 
 
 def resolve_centroid_parameters(
-    input_path: LogSource,
+    log: LogReader,
     *,
     methods: str | Sequence[str] = "all",
     gain: float | None = None,
@@ -155,37 +156,30 @@ def resolve_centroid_parameters(
     acquire_every: int | None = None,
 ) -> CentroidParameters:
     """The parameters of :func:`starlog.stages.centroid.centroid_log` (its options, same meanings), with what
-    the log gives where an option is not set; reads the first frames of the log for the PSF sigma, the ePSF,
-    the hot-pixel map, the phase calibrations and (``mode="auto"``) whether its frames are one sequence."""
+    the open ``log`` gives where an option is not set; reads the first frames of the log for the PSF sigma, the
+    ePSF, the hot-pixel map, the phase calibrations and (``mode="auto"``) whether its frames are one sequence."""
     chosen = parse_methods(methods)
     options = extract_options(options)
     if mode not in MODES:
         raise InvalidParameterError(f"mode must be one of {', '.join(MODES)}; got {mode!r}.")
     tracking = _tracking_settings(options.get("detect_options"), acquire_every)
-    with opencv_threads(1), LogReader(input_path) as probe:
-        topic, chosen_note = choose_image_topic(input_path, probe.channels(), image_topic)
-        camera = _camera_from_provenance(probe)
-        gain = gain if gain is not None else camera.get("gain", 1.0)
-        if read_noise is None:
-            read_noise = camera.get("read_noise")
-        if not (gain > 0):
-            raise InvalidParameterError(f"gain must be > 0 e-/DN, got {gain}.")
+    with opencv_threads(1):
+        topic, chosen_note = choose_image_topic(source_of(log), log.channels(), image_topic)
+        gain, read_noise = _camera(log, gain, read_noise)
         if options.get("psf_sigma") is None:
-            options["psf_sigma"] = _log_psf_sigma(probe, topic, gain=gain,
-                                                  detect_options=options.get("detect_options"))
+            options["psf_sigma"] = _log_psf_sigma(log, topic, gain=gain, detect_options=options.get("detect_options"))
         detect_options = detect_options_for_psf(options["psf_sigma"], options.get("detect_options"))
         if detect_options != (options.get("detect_options") or {}):
             options["detect_options"] = detect_options  # an undersampled PSF: recorded in the provenance
-        hot_map = _hot_pixel_map(probe, topic, hot_pixels)
-        mode_record = _choose_mode(probe, topic, mode, tracking, options.get("detect_options"))
-    epsf, epsf_note = _epsf_for(input_path, topic, chosen, psf, gain=gain, read_noise=read_noise, options=options)
-    notes = [chosen_note] if chosen_note else []
-    notes += [epsf_note] if epsf_note else []
-    if epsf is not None and CentroidMethod.PSFFIT not in chosen:
-        notes.append("the empirical PSF is stored, but only PSFFIT fits it and it is not among the methods.")
-    extract = FrameExtractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options, epsf=epsf,
-                             hot_pixels=hot_map)
-    phase = _phase_correction_for(input_path, topic, extract, phase_correction, show_progress=show_progress)
+        hot_map = _hot_pixel_map(log, topic, hot_pixels)
+        mode_record = _choose_mode(log, topic, mode, tracking, options.get("detect_options"))
+        epsf, epsf_note = _epsf_for(log, topic, chosen, psf, gain=gain, read_noise=read_noise, options=options)
+        notes = [note for note in (chosen_note, epsf_note) if note]
+        if epsf is not None and CentroidMethod.PSFFIT not in chosen:
+            notes.append("the empirical PSF is stored, but only PSFFIT fits it and it is not among the methods.")
+        extract = FrameExtractor(methods=tuple(chosen), gain=gain, read_noise=read_noise, options=options, epsf=epsf,
+                                 hot_pixels=hot_map)
+        phase = _phase_correction_for(log, topic, extract, phase_correction, show_progress=show_progress)
     if phase is not None:
         extract = replace(extract, phase=phase.active())
         notes += phase.notes
@@ -207,6 +201,17 @@ def resolve_centroid_parameters(
     return CentroidParameters(methods=chosen, image_topic=topic, gain=gain, read_noise=read_noise, options=options,
                               epsf=epsf, hot_pixels=hot_map, phase=phase, extract=extract, provenance=provenance,
                               notes=notes)
+
+
+def _camera(log: LogReader, gain: float | None, read_noise: float | None) -> tuple[float, float | None]:
+    """Gain and read noise: as given, else as ``simulate`` recorded them, else gain 1 and no read noise."""
+    camera = _camera_from_provenance(log)
+    gain = gain if gain is not None else camera.get("gain", 1.0)
+    if read_noise is None:
+        read_noise = camera.get("read_noise")
+    if not (gain > 0):
+        raise InvalidParameterError(f"gain must be > 0 e-/DN, got {gain}.")
+    return gain, read_noise
 
 
 def _tracking_settings(detect_options: dict[str, Any] | None, acquire_every: int | None) -> TrackingSettings:
@@ -249,7 +254,7 @@ def _camera_from_provenance(log: LogReader) -> dict[str, float]:
     return {}
 
 
-def _epsf_for(path: LogSource, topic: str, chosen: list[CentroidMethod], psf: str | None, *,
+def _epsf_for(log: LogReader, topic: str, chosen: list[CentroidMethod], psf: str | None, *,
               gain: float, read_noise: float | None, options: dict[str, Any]) -> tuple[EPSF | None, str]:
     """The log's ePSF when ``psf`` asks for it, or by default when PSFFIT is chosen
     (see :func:`starlog.stages.centroid.centroid_log`), and a note. By default, a log without a star to build
@@ -259,10 +264,9 @@ def _epsf_for(path: LogSource, topic: str, chosen: list[CentroidMethod], psf: st
     if psf == "gaussian" or (psf is None and CentroidMethod.PSFFIT not in chosen):
         return None, ""
     try:
-        with opencv_threads(1), LogReader(path) as log:
-            return _log_epsf(log, topic, gain=gain, read_noise=read_noise, psf_sigma=float(options["psf_sigma"]),
-                             window=options.get("window"), saturation=options.get("saturation"),
-                             detect_options=options.get("detect_options")), ""
+        return _log_epsf(log, topic, gain=gain, read_noise=read_noise, psf_sigma=float(options["psf_sigma"]),
+                         window=options.get("window"), saturation=options.get("saturation"),
+                         detect_options=options.get("detect_options")), ""
     except InvalidInputError as err:
         if psf == "empirical":
             raise
@@ -357,15 +361,14 @@ class PhaseCorrection:
                 "declined": json.dumps(self.declined)}
 
 
-def _phase_correction_for(path: LogSource, topic: str, extract: FrameExtractor, spec: str | os.PathLike[str] | None,
+def _phase_correction_for(log: LogReader, topic: str, extract: FrameExtractor, spec: str | os.PathLike[str] | None,
                           *, show_progress: bool = False) -> PhaseCorrection | None:
     """The phase calibrations ``spec`` asks for: learnt from the log (``"auto"``), read from a file, or none."""
     if spec is None or (isinstance(spec, str) and spec == "off"):
         return None
     methods = [m.value for m in extract.methods]
     if isinstance(spec, str) and spec == "auto":
-        with opencv_threads(1), LogReader(path) as log:
-            samples, frames = _phase_samples(log, topic, extract, show_progress=show_progress)
+        samples, frames = _phase_samples(log, topic, extract, show_progress=show_progress)
         calibrations, declined = {}, {}
         for m in methods:
             try:

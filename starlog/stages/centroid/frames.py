@@ -29,8 +29,8 @@ from starlog.codecs import encode_image_annotations
 from starlog.io.frames import SkippedFrame
 from starlog.io.reader import LogReader, LogSource
 from starlog.codecs.star_tables import star_codec
-from starlog.stages._blocks import worker_log
-from starlog.stages._parallel import ordered_map, process_pool
+from starlog.replay.blocks import source_of, worker_log
+from starlog.replay.pool import ordered_map, process_pool
 
 __all__ = ["FrameExtractor", "FrameMessages", "TrackedFrames", "annotation_diameter", "extract_blocks_serial",
            "extract_parallel", "extract_serial", "opencv_threads"]
@@ -275,10 +275,12 @@ def _extract_block(source: LogSource, topic: str, start: int, end: int, first_in
         return list(extract_serial(log, topic, extract, skip_bad, start=start, end=end, first_index=first_index))
 
 
-def extract_parallel(log: LogReader, source: LogSource, topic: str, blocks: list[tuple[int, int, int]],
-                     extract: FrameExtractor, workers: int, skip_bad: bool) -> Iterator[FrameMessages | SkippedFrame]:
-    """The frames of ``blocks`` (:func:`~starlog.stages._blocks.channel_blocks`) extracted by worker processes,
-    and by this process until they are up."""
+def extract_parallel(log: LogReader, topic: str, blocks: list[tuple[int, int, int]], extract: FrameExtractor,
+                     workers: int, skip_bad: bool) -> Iterator[FrameMessages | SkippedFrame]:
+    """The frames of ``blocks`` (:func:`~starlog.replay.blocks.channel_blocks`) extracted by worker processes, each
+    reading its blocks from the log itself (:func:`~starlog.replay.blocks.source_of`), and by this process (from
+    ``log``) until they are up."""
+    source = source_of(log)
     items = ((source, topic, start, end, first, extract, skip_bad) for start, end, first in blocks)
 
     def in_this_process(_: LogSource, topic: str, start: int, end: int, first: int, extract: FrameExtractor,
