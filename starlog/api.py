@@ -357,11 +357,12 @@ def verify(log: PathLike, *, file_only: bool = False, progress: bool = False) ->
     from tqdm import tqdm
 
     from starlog.io.verify import verify_log
+    from starlog.replay.progress import hidden
 
     if not Path(log).is_file():
         raise LogNotFoundError(log)
     with tqdm(desc="verify", unit="B", unit_scale=True, leave=False, dynamic_ncols=True,
-              disable=None if progress else True) as bar:  # None: shown on a terminal only
+              disable=hidden() if progress else True) as bar:
 
         def advance(done: int, total: int) -> None:
             bar.total = total

@@ -253,6 +253,16 @@ _ADVICE = {
 WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
 
 
+class WorkerProcessError(StarlogError):
+    """A worker process ended before its work was done."""
+
+    def __init__(self) -> None:
+        super().__init__(
+            "a worker process ended before its work was done (it was killed, or ran out of memory). From a Python "
+            "script, put the calls to starlog under `if __name__ == \"__main__\":` (the workers import the script "
+            "again, as Python's multiprocessing does), or pass workers=1.")
+
+
 class FileAccessError(StarlogError, OSError):
     """Reading or writing a file failed in the operating system (disk full, read-only file system, permission
     denied, file-size limit, a file or folder removed meanwhile).

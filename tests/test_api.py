@@ -354,3 +354,27 @@ def test_mistakes_are_one_line_starlog_errors(every_table: Path) -> None:
         log.table("ingest")
     with pytest.raises(LogNotFoundError):
         starlog.verify(every_table.parent / "missing.mcap")
+
+
+SCRIPT = """
+import starlog
+{guard}
+    summary = starlog.centroid("sim.mcap", "cen.mcap", method="GAUSSFIT,MOMENT", workers=2, force=True)
+    print(summary.to_dict()["frames"])
+"""
+
+
+def test_a_script_runs_its_calls_under_the_main_guard_or_is_told_to(tmp_path: Path) -> None:
+    """Worker processes import the script that started them again: under ``if __name__ == "__main__":`` the calls
+    run once; without it the worker ends and the call raises a StarlogError that names the guard."""
+    starlog.simulate(tmp_path / "sim.mcap", frames=300, size=(128, 128), workers=1)
+    for guard, expected in (("if __name__ == '__main__':", 0), ("if True:", 1)):
+        (tmp_path / "script.py").write_text(SCRIPT.format(guard=guard), encoding="utf-8")
+        done = subprocess.run([sys.executable, "script.py"], cwd=tmp_path, capture_output=True, text=True,
+                              timeout=300)
+        assert done.returncode == expected, done.stderr
+        if expected:
+            assert "WorkerProcessError" in done.stderr and '__name__ == \\"__main__\\"' not in done.stderr
+            assert 'if __name__ == "__main__":' in done.stderr.splitlines()[-1]
+        else:
+            assert done.stdout.strip() == "300"

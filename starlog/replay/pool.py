@@ -36,10 +36,12 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from multiprocessing.synchronize import SemLock
 from typing import Any, TypeVar
 
+from starlog.errors import WorkerProcessError
 from starlog.replay import lifeline
 
 T = TypeVar("T")
@@ -117,6 +119,7 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
     (it applies when the fork server starts, i.e. at the first pool of the process). The workers
     are started on a thread: the pool is returned at once (see ``until_ready`` of :func:`ordered_map`).
     """
+    _end_if_importing_a_script()
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
     with signals_held():  # the pool's queues and their semaphores, made whole or not at all
@@ -126,11 +129,13 @@ def process_pool(workers: int, *, preload: Sequence[str] = ()) -> Iterator[_Pool
         pool.start_workers()
     try:
         yield pool
-    except BaseException:
+    except BaseException as err:
         with signals_held():
             _stop_now(pool)
             pool.wait_started(timeout=_START_TIMEOUT)  # the stopped pool fails the starter's task
             _free_now(semaphores)
+        if isinstance(err, BrokenProcessPool):
+            raise WorkerProcessError() from err
         raise
     with signals_held():
         pool.wait_started()
@@ -184,11 +189,20 @@ def _start_fork_server() -> None:
             os.environ[lifeline.OWNER_VARIABLE] = previous
 
 
+def _end_if_importing_a_script() -> None:
+    """A worker being started imports the script that started it again (a script without an ``if __name__ ==
+    "__main__":`` guard then calls starlog once more, from the worker): it ends there, and its owner says why
+    (:class:`~starlog.errors.WorkerProcessError`)."""
+    if getattr(multiprocessing.process.current_process(), "_inheriting", False):
+        os._exit(1)
+
+
 def guarded_process(target: Callable[..., object], args: tuple[Any, ...], *,
                     preload: Sequence[str] = ()) -> multiprocessing.process.BaseProcess:
     """A started process of the fork server running ``target(*args)``, guarded as the pools' workers are (it ends
     when the calling process ends, however that ends; the fork server is started and the process made with
     SIGINT and SIGTERM held back, as a pool's workers are)."""
+    _end_if_importing_a_script()
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*_FORK_SERVER_PRELOAD, *preload])
     process = context.Process(target=_run_guarded, args=(os.getpid(), target, args), daemon=True)
