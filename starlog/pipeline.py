@@ -169,6 +169,14 @@ class PipelineResult:
     trusted: dict[str, Any] | None = None
     """What ``"trusted"`` in ``[track]`` stood for and why (:func:`trusted_method`); None without it."""
 
+    def lines(self) -> list[str]:
+        """What ``starlog run`` prints: what ran, the method trusted, the headline compensation figures, what was
+        left out, and where the report (beside the output, :func:`report_path`) and the rows are."""
+        from starlog.report.summary import run_summary_lines
+
+        return run_summary_lines(self.output, self.stages, report_path(self.output),
+                                 [s.to_dict() for s in self.skipped], self.trusted)
+
     def to_dict(self) -> dict[str, Any]:
         return {"output": str(self.output), "layers": [str(p) for p in self.layers],
                 "stages": [{"stage": s, **r} for s, r in self.stages], "skipped": [s.to_dict() for s in self.skipped],

@@ -107,6 +107,8 @@ def _same(folders: tuple[Path, Path], args: list[str], call: Callable[[], Any],
     assert written.keys() == made.keys()
     for name in (n for n in written if written[n] != made[n]):
         _assert_same_but_timings(by_cli / name, by_api / name)
+    if not isinstance(returned, dict):  # the command's text too
+        assert all(isinstance(line, str) for line in returned.lines())
     if printed is not None:  # the folder named in absolute paths (a layer's bases) aside
         here = json.loads(json.dumps(printed).replace(str(by_cli), "FOLDER"))
         there = json.loads(json.dumps(summary(returned)).replace(str(by_api), "FOLDER"))
@@ -378,3 +380,18 @@ def test_a_script_runs_its_calls_under_the_main_guard_or_is_told_to(tmp_path: Pa
             assert 'if __name__ == "__main__":' in done.stderr.splitlines()[-1]
         else:
             assert done.stdout.strip() == "300"
+
+
+def test_the_text_a_command_prints_is_its_summarys_lines(folders: tuple[Path, Path]) -> None:
+    by_cli, by_api = folders
+    if not (by_api / "trk.mcap").exists():
+        test_each_function_writes_what_its_command_writes_and_returns_what_it_prints(folders)
+    here = os.getcwd()
+    os.chdir(by_cli)
+    try:
+        printed = CliRunner().invoke(cli, ["compensate", "trk.mcap", "-o", "text.mcap", "--rate", "25",
+                                           "--protocol", "paper", "-q"])
+    finally:
+        os.chdir(here)
+    returned = _api(by_api, lambda: starlog.compensate("trk.mcap", "text.mcap", rate=25, protocol="paper"))
+    assert printed.exit_code == 0 and printed.stdout == "".join(f"{line}\n" for line in returned.lines())

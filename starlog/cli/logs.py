@@ -182,5 +182,5 @@ def ingest(source: Path, output: Path, fps: float | None, start_ns: int, time_pa
     if as_json:
         print_json(summary.to_dict())
     else:
-        for name, reason in summary.skipped:
-            click.echo(f"  skipped {name}: {reason}")
+        for line in summary.lines():
+            click.echo(line)

@@ -87,11 +87,10 @@ def flatten(log: Path, output: Path, force: bool, quiet: bool, as_json: bool) ->
     from starlog import api
 
     report = api.flatten(log, output, force=force)
-    d = report.to_dict()
-    echo_status(quiet, f"wrote {output}: {sum(d['messages'].values())} messages of {len(d['messages'])} topics, "
-                       f"{d['chunks_copied']} chunks copied as they are")
+    for line in report.lines():
+        echo_status(quiet, line)
     if as_json:
-        print_json(d)
+        print_json(report.to_dict())
 
 
 @click.command(context_settings=CONTEXT)

@@ -108,7 +108,6 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
     from starlog import api
     from starlog.compensation import Shortfall
     from starlog.pipeline import report_path, stage_line
-    from starlog.report.summary import run_summary_lines
     from starlog.stages.compensate import decision_table
 
     def stage_done(stage: str, result: dict[str, Any]) -> None:
@@ -135,8 +134,7 @@ def run(logs: tuple[Path, ...], output: Path | None, config_path: Path | None, p
         for stage, summary in result.stages:
             if stage == "compensate":
                 click.echo(decision_table(summary["records"]))
-    click.echo("\n".join(run_summary_lines(output, result.stages, html, [s.to_dict() for s in result.skipped],
-                                          result.trusted)))
+    click.echo("\n".join(result.lines()))
 
 
 @click.command(context_settings=CONTEXT)

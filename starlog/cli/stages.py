@@ -242,7 +242,6 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
       starlog compensate trk.mcap -o comp.mcap --rate 50 --protocol paper --stars all
     """
     from starlog import api
-    from starlog.stages.compensate import decision_table
 
     try:
         rate_values = [float(r) for r in rates.split(",") if r.strip()]
@@ -258,8 +257,7 @@ def compensate(log: Path, output: Path, track_topic: str | None, rates: str, pro
     if as_json:
         print_json(summary.to_dict())
     else:
-        click.echo(decision_table(summary.records))
-        for line in summary.star_lines():
+        for line in summary.lines():
             click.echo(line)
 
 

@@ -77,6 +77,11 @@ class CopyReport:
     bytes_copied: int = 0
     time_range: ResolvedRange | None = None
 
+    def lines(self) -> list[str]:
+        """What ``starlog flatten`` says it wrote."""
+        return [f"wrote {self.output}: {sum(self.messages.values())} messages of {len(self.messages)} topics, "
+                f"{self.chunks_copied} chunks copied as they are"]
+
     def to_dict(self) -> dict[str, Any]:
         return {"output": str(self.output), "messages": dict(self.messages),
                 "chunks_copied": self.chunks_copied, "chunks_reencoded": self.chunks_reencoded,

@@ -110,6 +110,10 @@ class CompensateSummary:
         out = {"records": self.records, "skipped": [s.to_dict() for s in self.skipped]}
         return out | ({"stars": self.stars} if self.stars else {})
 
+    def lines(self) -> list[str]:
+        """What ``starlog compensate`` prints: the decision table, then the all-star lines (``stars="all"``)."""
+        return [*decision_table(self.records).splitlines(), *self.star_lines()]
+
     def star_lines(self) -> list[str]:
         """One line per all-star channel: tracks compensated, left out, frames and the median RMSE."""
         lines = []

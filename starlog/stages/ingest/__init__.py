@@ -72,6 +72,10 @@ class IngestSummary:
     skipped: list[tuple[str, str]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
+    def lines(self) -> list[str]:
+        """What ``starlog ingest`` prints: each file or frame left out, and why."""
+        return [f"  skipped {name}: {reason}" for name, reason in self.skipped]
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form."""
         return {
