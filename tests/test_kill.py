@@ -12,6 +12,7 @@ Also: every command gives identical bytes for identical inputs (reproducibility)
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import shutil
@@ -432,6 +433,21 @@ def test_a_ctrl_c_landing_while_a_module_defines_a_class_still_stops_the_command
     assert done.stderr.decode().strip() == "Aborted!"
 
 
+#: Commands run in turn in one interpreter, each as ``starlog`` runs it (status 0, or the interpreter exits with its
+#: status).
+COMMANDS_IN_TURN = """
+import json, sys
+from starlog.cli import cli
+
+for args in json.loads(sys.argv[1]):
+    try:
+        cli.main(args, prog_name="starlog")
+    except SystemExit as ended:
+        if ended.code:
+            raise
+"""
+
+
 def test_every_command_is_reproducible(workdir: Path, tmp_path: Path) -> None:
     """Identical inputs and parameters give identical bytes (no wall-clock time, host or random order)."""
     commands = [
@@ -441,18 +457,22 @@ def test_every_command_is_reproducible(workdir: Path, tmp_path: Path) -> None:
         ["track", "{d}/cen.mcap", "-o", "{d}/trk.mcap", "--centroids", "MOMENT", "--model", "STATIC", "-q"],
         ["compensate", "{d}/trk.mcap", "-o", "{d}/cmp.mcap", "--rate", "50", "--protocol", "paper", "-q"],
         ["export", "{d}/cmp.mcap", "-o", "{d}/tables"],
+        ["recover", "{d}/cut.mcap", "-o", "{d}/rec.mcap"],
     ]
-    digests = []
-    for name in ("a", "b"):
+    data = (workdir / "in.mcap").read_bytes()
+    runs = []
+    for name in ("a", "b"):  # two interpreters at once, each with its own hash seed, each running every command
         d = tmp_path / name
         d.mkdir()
-        for command in commands:
-            run([a.replace("{d}", str(d)) for a in command], tmp_path)
-        data = (d / "sim.mcap").read_bytes()
-        (d / "cut.mcap").write_bytes(data[: len(data) * 2 // 3])
-        run(["recover", str(d / "cut.mcap"), "-o", str(d / "rec.mcap")], tmp_path)
-        files = sorted(p for p in d.rglob("*") if p.is_file())
-        digests.append({p.relative_to(d).as_posix(): sha(p) for p in files})
+        (d / "cut.mcap").write_bytes(data[: len(data) * 2 // 3])  # a log cut off, for recover
+        chain = [[a.replace("{d}", str(d)) for a in command] for command in commands]
+        runs.append(subprocess.Popen([sys.executable, "-c", COMMANDS_IN_TURN, json.dumps(chain)], cwd=tmp_path,
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
+    for proc in runs:
+        _, stderr = proc.communicate(timeout=300)
+        assert proc.returncode == 0, stderr.decode()
+    digests = [{p.relative_to(d).as_posix(): sha(p) for p in sorted(d.rglob("*")) if p.is_file()}
+               for d in (tmp_path / "a", tmp_path / "b")]
     assert digests[0] == digests[1]
     assert {"sim.mcap", "ing.mcap", "cen.mcap", "trk.mcap", "cmp.mcap", "rec.mcap"} <= set(digests[0])
     assert any(k.startswith("tables/") for k in digests[0])

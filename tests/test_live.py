@@ -25,8 +25,9 @@ import cv2
 import numpy as np
 import pytest
 
-from starlog.io import LogReader
+import starlog
 from starlog import topics
+from starlog.io import LogReader
 from starlog.io.mcap_file import McapFile
 from starlog.io.recover import recover_log
 from starlog.io.verify import verify_log
@@ -189,8 +190,7 @@ def _layers(output: Path, config: Path) -> list[Path]:
 def assert_live_is_replay(tmp_path: Path, base: Path, live_output: Path, config: Path) -> None:
     """``run`` on the finished base gives the messages of every live layer; the live chain verifies clean."""
     replay = tmp_path / "replay.mcap"
-    subprocess.run(PY + ["run", str(base), "-o", str(replay), "--config", str(config), "--workers", "1", "-q"],
-                   cwd=tmp_path, check=True, capture_output=True, timeout=600)
+    starlog.run(base, replay, config=config, workers=1, report=False)  # ``starlog run``, in this process
     for live_layer, run_layer in zip(_layers(live_output, config), _layers(replay, config), strict=True):
         assert _messages(live_layer) == _messages(run_layer), live_layer.name
     assert verify_log(live_output).ok
@@ -405,10 +405,10 @@ def assert_same_plan(tmp_path: Path, source: Path, options: list[str]) -> tuple[
     each holding the same messages and provenance; live's result and its status lines."""
     live = Process(["live", str(source), "-o", "out.mcap", "--no-server", "--json", *options], tmp_path,
                    "live-plan")
-    lived = json.loads(live.finish())
     ran = json.loads(subprocess.run(PY + ["run", str(source), "-o", "replay.mcap", "--workers", "1", "-q", "--json",
                                           *options], cwd=tmp_path, check=True, capture_output=True, text=True,
-                                    timeout=600).stdout)
+                                    timeout=600).stdout)  # while live runs: neither reads what the other writes
+    lived = json.loads(live.finish())
     assert lived["trusted"] == ran["trusted"] and ran["trusted"] is not None
     assert [s["stage"] for s in lived["stages"]] == [s["stage"] for s in ran["stages"]]
     assert f"track {ran['trusted']['method']}" in [s["stage"] for s in lived["stages"]]

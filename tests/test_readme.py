@@ -25,12 +25,22 @@ def test_the_docs_hold_their_python_examples() -> None:
         line: [page] for line, page in EXAMPLES.items()}
 
 
+#: Frames an example simulates at most here (the examples work frame by frame: fewer frames, the same calls).
+MAX_FRAMES = 100
+
+
+def _runnable(block: str) -> str:
+    """The example as this test runs it: a simulation it writes out as ``n_frames=N`` made at most
+    :data:`MAX_FRAMES` long."""
+    return re.sub(r"\bn_frames=(\d+)", lambda m: f"n_frames={min(int(m[1]), MAX_FRAMES)}", block)
+
+
 @pytest.mark.parametrize("index", range(len(BLOCKS)), ids=[f"{page}-{i}" for i, (page, _) in enumerate(BLOCKS)])
 def test_readme_python_block_runs(index: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     simulate_log(small_config(), tmp_path / "demo.mcap")  # the quick start's demo log, small
     page, block = BLOCKS[index]
-    exec(compile(block, f"{page} python block {index}", "exec"), {"__name__": "readme"})
+    exec(compile(_runnable(block), f"{page} python block {index}", "exec"), {"__name__": "readme"})
 
 
 # ---------------------------------------------------------------- the repository stands alone

@@ -23,15 +23,25 @@ def test_seeds_follow_the_datasets_own_and_keep_its_stars_apart():
     assert all(min_separation(replace(ds.config, seed=s)) >= MIN_SEPARATION_PX for s in seeds)
 
 
-def test_one_realisation_scores_table2s_cells_and_leaves_no_log(tmp_path: Path):
-    ds = paper_datasets(quick=True, regime="paper")[1]  # 200 Hz, 740 frames
-    rows = realisations.run_realisation(ds.to_dict(), ds.config.seed + 1, str(tmp_path), window_s=3.0)
+@pytest.fixture(scope="module")
+def realisation(tmp_path_factory: pytest.TempPathFactory) -> tuple[list[dict], Path]:
+    """One realisation of the 200 Hz dataset (740 frames) with the tables' own seed, scored over 3 s: its rows and
+    the folder it worked in (run once for the two tests that read it)."""
+    work = tmp_path_factory.mktemp("realisation")
+    ds = paper_datasets(quick=True, regime="paper")[1]
+    return realisations.run_realisation(ds.to_dict(), ds.config.seed, str(work), window_s=3.0), work
+
+
+def test_one_realisation_scores_table2s_cells_and_leaves_no_log(realisation: tuple[list[dict], Path],
+                                                                 tmp_path: Path):
+    rows, work = realisation
+    ds = paper_datasets(quick=True, regime="paper")[1]
     assert [r["rate_hz"] for r in rows] == [5.0, 10.0]
     for r in rows:
-        assert (r["regime"], r["dataset"], r["seed"]) == ("paper", "200Hz", ds.config.seed + 1)
+        assert (r["regime"], r["dataset"], r["seed"]) == ("paper", "200Hz", ds.config.seed)
         assert r["n_samples"] == int(math.floor(3.0 * r["rate_hz"] + 0.5))
         assert 0.05 < r["rmse"] < 2.0  # a faint star's scatter, px
-    assert list(tmp_path.iterdir()) == []
+    assert list(work.iterdir()) == []
     path = realisations.write_parquet(rows, tmp_path / "r.parquet")
     assert pq.read_table(path).column("rmse").to_pylist() == [r["rmse"] for r in rows]
 
@@ -42,7 +52,7 @@ def test_the_run_is_as_long_as_a_numeric_burn_in_and_the_window_need(tmp_path: P
     assert [r["n_samples"] for r in rows] == [5, 10]  # 1.5 s skipped, then the whole 1 s window
 
 
-def test_the_tables_seed_reproduces_the_tables_cell(tmp_path: Path):
+def test_the_tables_seed_reproduces_the_tables_cell(realisation: tuple[list[dict], Path], tmp_path: Path):
     from starlog.experiment.runner import simulate_and_centroid, track_and_score
 
     ds = paper_datasets(quick=True, regime="paper")[1]
@@ -53,9 +63,7 @@ def test_the_tables_seed_reproduces_the_tables_cell(tmp_path: Path):
                              rates_uncompensated=[5.0, 10.0], rates_compensated=[], window_s=3.0)
     table = {r["rate_hz"]: r["rmse_before"] for r in result["rows"] if r["model"] == "STATIC"
              and r["window"] == "3s" and r["burn_in"] == "skipped" and r["protocol"] == "paper"}
-    work = tmp_path / "work"
-    work.mkdir()
-    again = realisations.run_realisation(d, ds.config.seed, str(work), window_s=3.0)
+    again, _ = realisation  # run_realisation(d, ds.config.seed, ..., window_s=3.0)
     assert {r["rate_hz"]: r["rmse"] for r in again} == table
 
 
