@@ -273,6 +273,8 @@ def test_the_notebook_runs_top_to_bottom(tmp_path: Path) -> None:
     outputs = [o for cell in notebook.cells if cell.cell_type == "code" for o in cell.outputs]
     assert not [o for o in outputs if o.output_type == "error"]
     assert sum("image/png" in o.get("data", {}) for o in outputs) == 2
+    bars = [o.text for o in outputs if o.output_type == "stream" and o.name == "stderr"]
+    assert any("centroid" in text and "%|" in text for text in bars), "progress=True shows no bar in a notebook"
     assert (tmp_path / "starlog-notebook" / "attitude.mcap").exists()
 
 

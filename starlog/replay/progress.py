@@ -28,4 +28,5 @@ def progress(items: Iterable[T], *, total: int | None, description: str, enabled
 def hidden() -> bool | None:
     """tqdm's ``disable`` for a bar asked for: None (shown on a terminal only) from the command line, False (shown)
     in a Jupyter kernel, whose stderr is the cell's output, not a terminal."""
-    return False if "ipykernel" in sys.modules else None
+    shell = getattr(sys.modules.get("IPython"), "get_ipython", lambda: None)()
+    return False if type(shell).__name__ == "ZMQInteractiveShell" else None
