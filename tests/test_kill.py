@@ -348,7 +348,8 @@ def called_back():
 
 try:
     called_back()
-    time.sleep(5)
+    for _ in range(500):  # 5 s for the Ctrl-C to come again; Python handles it between two sleeps
+        time.sleep(0.01)
 except KeyboardInterrupt:
     print("stopped")
 else:
